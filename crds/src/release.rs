@@ -1,0 +1,27 @@
+//! The reference to a software release that robots run and deployments roll out.
+
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+/// A software release: a version name plus the digest of its file manifest.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq, Eq, Hash)]
+#[serde(rename_all = "camelCase")]
+pub struct ReleaseRef {
+    /// Human-readable version of the release, for example `1.4.2` or `2026-11-01-nightly`.
+    /// Letters, digits, `.`, `_`, `+` and `-`; 1 to 128 characters.
+    #[schemars(length(min = 1, max = 128), regex(pattern = r"^[A-Za-z0-9][A-Za-z0-9._+-]*$"))]
+    pub version: String,
+
+    /// Digest of the release's file manifest, as printed by `kubectl lekiwi release push`:
+    /// `sha256:` followed by 64 lowercase hex digits. The manifest lists every file of the
+    /// release with its own digest, so two robots with the same digest run the same bytes.
+    #[schemars(regex(pattern = r"^sha256:[a-f0-9]{64}$"))]
+    pub digest: String,
+}
+
+impl std::fmt::Display for ReleaseRef {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let short = self.digest.strip_prefix("sha256:").unwrap_or(&self.digest);
+        write!(f, "{} ({})", self.version, &short[..short.len().min(12)])
+    }
+}

@@ -1,0 +1,278 @@
+//! The `Robot` resource: one LeKiwi robot, what its lab wants of it and what it last reported.
+
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use kube::CustomResource;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+
+use crate::condition::Condition;
+use crate::release::ReleaseRef;
+
+/// Condition type: the robot's agent holds a live connection to a gateway.
+pub const CONDITION_CONNECTED: &str = "Connected";
+/// Condition type: the agent's own health check passes.
+pub const CONDITION_HEALTHY: &str = "Healthy";
+/// Condition type: somebody is teleoperating the robot right now.
+pub const CONDITION_TELEOPERATING: &str = "Teleoperating";
+/// Condition type: the robot runs the release its spec asks for.
+pub const CONDITION_UP_TO_DATE: &str = "UpToDate";
+
+/// A LeKiwi robot of the fleet. The spec is what the lab sets; the status is what the robot's
+/// agent last reported through a gateway, and what the Robot controller concluded from it.
+#[derive(CustomResource, Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[kube(
+    group = "fleet.lekiwi.io",
+    version = "v1alpha1",
+    kind = "Robot",
+    plural = "robots",
+    shortname = "rb",
+    category = "lekiwi",
+    namespaced,
+    status = "RobotStatus",
+    derive = "Default",
+    derive = "PartialEq",
+    doc = "A LeKiwi robot: the release it should run, and its connection, health and telemetry as reported by its agent.",
+    printcolumn = r#"{"name":"Display Name","type":"string","jsonPath":".spec.displayName","priority":1}"#,
+    printcolumn = r#"{"name":"Phase","type":"string","jsonPath":".status.phase"}"#,
+    printcolumn = r#"{"name":"Release","type":"string","jsonPath":".status.currentRelease.version"}"#,
+    printcolumn = r#"{"name":"Desired","type":"string","jsonPath":".spec.release.version"}"#,
+    printcolumn = r#"{"name":"Teleop","type":"string","jsonPath":".status.conditions[?(@.type==\"Teleoperating\")].status"}"#,
+    printcolumn = r#"{"name":"Heartbeat","type":"date","jsonPath":".status.lastHeartbeatTime"}"#,
+    printcolumn = r#"{"name":"Agent","type":"string","jsonPath":".status.agentVersion","priority":1}"#,
+    printcolumn = r#"{"name":"Gateway","type":"string","jsonPath":".status.gateway","priority":1}"#,
+    printcolumn = r#"{"name":"Age","type":"date","jsonPath":".metadata.creationTimestamp"}"#
+)]
+#[serde(rename_all = "camelCase")]
+pub struct RobotSpec {
+    /// Name people use for the robot, for example `Kiwi 7 (lab bench 2)`. Free text, at most
+    /// 253 characters; the resource name stays the stable identity.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = 253))]
+    pub display_name: Option<String>,
+
+    /// What the robot is built from. Informational: rollouts do not read it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hardware: Option<Hardware>,
+
+    /// Cordons the robot: while true no rollout touches it and its phase is `Maintenance`.
+    /// The agent stays connected and keeps reporting.
+    #[serde(default)]
+    pub maintenance: bool,
+
+    /// The release this robot should run. Set by a RobotDeployment while it rolls out, or by
+    /// hand; the robot's agent downloads and switches to it. Unset: keep whatever runs now.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub release: Option<ReleaseRef>,
+}
+
+/// Description of a robot's hardware.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct Hardware {
+    /// Hardware model, for example `LeKiwi v1`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
+    /// Serial number or asset tag.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub serial: Option<String>,
+    /// Single-board computer, for example `Raspberry Pi 5 8GB`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub computer: Option<String>,
+    /// Cameras attached, for example `front` and `wrist`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cameras: Vec<String>,
+    /// Free-form notes, for example which arm or gripper is mounted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notes: Option<String>,
+}
+
+/// The robot's lifecycle phase, derived by the Robot controller.
+#[derive(Clone, Copy, Debug, Deserialize, Serialize, JsonSchema, PartialEq, Eq, Hash)]
+pub enum RobotPhase {
+    /// The robot has never connected.
+    Pending,
+    /// Connected, with a recent heartbeat, through a live gateway.
+    Online,
+    /// Disconnected, or its last heartbeat is older than the grace period.
+    Offline,
+    /// The gateway that held its connection stopped renewing its Lease: nobody can tell.
+    Unknown,
+    /// Cordoned by `spec.maintenance`.
+    Maintenance,
+}
+
+impl RobotPhase {
+    /// Every phase, for metrics that report a value per phase.
+    pub const ALL: [RobotPhase; 5] = [
+        RobotPhase::Pending,
+        RobotPhase::Online,
+        RobotPhase::Offline,
+        RobotPhase::Unknown,
+        RobotPhase::Maintenance,
+    ];
+
+    /// The phase as written in status.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            RobotPhase::Pending => "Pending",
+            RobotPhase::Online => "Online",
+            RobotPhase::Offline => "Offline",
+            RobotPhase::Unknown => "Unknown",
+            RobotPhase::Maintenance => "Maintenance",
+        }
+    }
+}
+
+impl std::fmt::Display for RobotPhase {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// Observed state of a robot. Two writers share it through server-side apply: the gateway that
+/// holds the robot's connection writes the presence facts (`connected`, `gateway`,
+/// `lastHeartbeatTime`, system facts, telemetry, ...), the Robot controller writes `phase`,
+/// `conditions` and `observedGeneration`.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct RobotStatus {
+    /// Lifecycle phase: `Pending` (never connected), `Online`, `Offline`, `Unknown` (its
+    /// gateway is gone) or `Maintenance`. Written by the Robot controller.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub phase: Option<RobotPhase>,
+
+    /// Current conditions: `Connected`, `Healthy`, `Teleoperating`, `UpToDate`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    #[schemars(extend("x-kubernetes-list-type" = "map", "x-kubernetes-list-map-keys" = ["type"]))]
+    pub conditions: Vec<Condition>,
+
+    /// The `metadata.generation` of the spec the controller last acted on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observed_generation: Option<i64>,
+
+    /// Whether the gateway named in `gateway` holds a live connection to the robot's agent.
+    /// Written by the gateway.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub connected: Option<bool>,
+
+    /// Identity of the gateway holding (or that last held) the connection; also the name of
+    /// that gateway's Lease, which it renews while it is alive.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gateway: Option<String>,
+
+    /// How the agent talks to the gateway: `websocket`, or `poll` for legacy polling agents.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub protocol: Option<String>,
+
+    /// When the gateway last recorded a heartbeat. Refreshed on every change and at least every
+    /// few minutes while connected, not on every heartbeat.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_heartbeat_time: Option<Time>,
+
+    /// When the current connection was established.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub connected_since: Option<Time>,
+
+    /// Version of the agent software running on the robot.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agent_version: Option<String>,
+
+    /// The release the robot reports it runs now.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub current_release: Option<ReleaseRef>,
+
+    /// Network address the robot connected from.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub address: Option<String>,
+
+    /// Result of the agent's own health check.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub health: Option<HealthReport>,
+
+    /// Whether the agent detects teleoperation right now.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub teleoperation: Option<TeleoperationReport>,
+
+    /// Facts about the robot's computer, reported at connect.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub system: Option<SystemInfo>,
+
+    /// A small summary of recent telemetry; full series live in the event store.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telemetry: Option<TelemetrySummary>,
+}
+
+/// The agent's own health verdict.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct HealthReport {
+    /// Whether every health check passes.
+    pub healthy: bool,
+    /// Why not, when `healthy` is false.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
+}
+
+/// The agent's teleoperation verdict.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct TeleoperationReport {
+    /// Whether the robot is being teleoperated.
+    pub active: bool,
+    /// Weighted indicator score behind the verdict, 0 to 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 0.0, max = 1.0))]
+    pub score: Option<f64>,
+    /// When `active` last changed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub since: Option<Time>,
+}
+
+/// Facts about the robot's computer.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct SystemInfo {
+    /// Host name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hostname: Option<String>,
+    /// Operating system and version, for example `Debian GNU/Linux 12 (bookworm)`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub os: Option<String>,
+    /// Kernel version.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kernel: Option<String>,
+    /// CPU architecture, for example `aarch64`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arch: Option<String>,
+    /// Number of logical CPUs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cpus: Option<u32>,
+    /// Total memory in bytes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub memory_bytes: Option<u64>,
+}
+
+/// Latest telemetry values, refreshed together with the heartbeat time.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct TelemetrySummary {
+    /// CPU use in percent of all cores.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cpu_percent: Option<f64>,
+    /// Memory in use, percent of total.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub memory_percent: Option<f64>,
+    /// SoC temperature in degrees Celsius.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub temperature_celsius: Option<f64>,
+    /// Battery charge in percent, when the robot reports one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub battery_percent: Option<f64>,
+}
+
+impl Robot {
+    /// The condition of the given type, if the status has one.
+    pub fn condition(&self, r#type: &str) -> Option<&Condition> {
+        self.status.as_ref().and_then(|s| crate::condition::find(&s.conditions, r#type))
+    }
+}

@@ -1,0 +1,15 @@
+//! Hand-written schema fragments for what schemars cannot express on its own.
+
+use schemars::{Schema, SchemaGenerator, json_schema};
+
+/// `batchSize`: a positive count or a percentage from 1% to 100%.
+pub fn batch_size(_: &mut SchemaGenerator) -> Schema {
+    json_schema!({
+        "description": "How many robots to update at once after the canary batch: a count (`5`) or a percentage of the targeted robots (`20%`, rounded up, at least one). Default `25%`.",
+        "x-kubernetes-int-or-string": true,
+        "anyOf": [
+            { "type": "integer", "minimum": 1 },
+            { "type": "string", "pattern": "^([1-9][0-9]?|100)%$" }
+        ]
+    })
+}

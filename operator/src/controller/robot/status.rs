@@ -1,0 +1,30 @@
+//! Client steps of the Robot controller: write the planned status by server-side apply.
+
+use kube::Api;
+use kube::api::{Patch, PatchParams};
+use lekiwi_crds::Robot;
+use serde_json::json;
+
+use super::plan::Plan;
+use crate::error::{Error, Result};
+
+/// Field manager of everything the Robot controller writes. The gateway uses its own, so the
+/// two never overwrite each other's fields.
+pub const FIELD_MANAGER: &str = "lekiwi-robot-controller";
+
+/// Applies `phase`, `conditions` and `observedGeneration`, and nothing else.
+pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan) -> Result<()> {
+    let patch = json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1",
+        "kind": "Robot",
+        "status": {
+            "phase": plan.phase,
+            "conditions": plan.conditions,
+            "observedGeneration": plan.observed_generation,
+        }
+    });
+    api.patch_status(name, &PatchParams::apply(FIELD_MANAGER).force(), &Patch::Apply(&patch))
+        .await
+        .map_err(|source| Error::PatchStatus { object: name.to_owned(), source })?;
+    Ok(())
+}

@@ -1,0 +1,49 @@
+//! The operator's error type.
+
+/// Everything that can fail in the operator.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// No usable Kubernetes client configuration.
+    #[error("cannot configure the Kubernetes client: {0}")]
+    KubeConfig(String),
+    /// A CRD this operator needs is not installed.
+    #[error(
+        "the CustomResourceDefinition {0} is not installed; run `kubectl apply -f manifests/crds/` or start with --install-crds"
+    )]
+    CrdMissing(String),
+    /// Reading or installing CRDs failed.
+    #[error("cannot check or install CRD {name}: {source}")]
+    Crd { name: String, source: kube::Error },
+    /// A CRD did not become Established in time.
+    #[error("CRD {0} did not become Established")]
+    CrdNotEstablished(String),
+    /// Writing a Robot's status failed.
+    #[error("cannot patch status of {object}: {source}")]
+    PatchStatus { object: String, source: kube::Error },
+    /// The leader-election Lease could not be read or written.
+    #[error("leader election Lease {name}: {source}")]
+    Lease { name: String, source: kube::Error },
+    /// The HTTP server could not start.
+    #[error("cannot serve HTTP on {addr}: {source}")]
+    Serve { addr: std::net::SocketAddr, source: std::io::Error },
+    /// A long-running task ended unexpectedly.
+    #[error("task {0} stopped unexpectedly")]
+    TaskStopped(&'static str),
+}
+
+impl Error {
+    /// A bounded label for the `reason` of the error metric.
+    pub fn metric_reason(&self) -> &'static str {
+        match self {
+            Error::KubeConfig(_) => "kube_config",
+            Error::CrdMissing(_) | Error::Crd { .. } | Error::CrdNotEstablished(_) => "crd",
+            Error::PatchStatus { .. } => "patch_status",
+            Error::Lease { .. } => "lease",
+            Error::Serve { .. } => "serve",
+            Error::TaskStopped(_) => "task_stopped",
+        }
+    }
+}
+
+/// Result with the operator's [`Error`].
+pub type Result<T, E = Error> = std::result::Result<T, E>;

