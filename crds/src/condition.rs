@@ -31,8 +31,7 @@ pub struct Condition {
     /// Machine-readable CamelCase reason for the current status.
     #[schemars(length(min = 1, max = 1024))]
     pub reason: String,
-    /// Human-readable explanation of the current status.
-    #[serde(default)]
+    /// Human-readable explanation of the current status; may be empty.
     pub message: String,
     /// The `metadata.generation` the condition was computed from.
     #[serde(default, skip_serializing_if = "Option::is_none")]

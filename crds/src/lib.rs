@@ -20,7 +20,35 @@ pub const VERSION: &str = "v1alpha1";
 pub fn crds() -> Vec<k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition>
 {
     use kube::CustomResourceExt;
-    vec![Robot::crd(), RobotDeployment::crd()]
+    vec![polish(Robot::crd()), polish(RobotDeployment::crd())]
+}
+
+/// Makes the generated schema read well in `kubectl explain` on every server version:
+/// - drops `nullable: true`: the OpenAPI v2 that Kubernetes 1.20 publishes cannot say
+///   "nullable", so it drops the type of every such field and `kubectl explain` shows `<>`
+///   without its sub-fields. Our writers omit unset fields instead of sending `null`.
+/// - joins the line breaks of `///` comments, so descriptions wrap as prose.
+fn polish(
+    crd: k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition,
+) -> k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition {
+    fn walk(v: &mut serde_json::Value) {
+        match v {
+            serde_json::Value::Object(map) => {
+                if map.get("nullable") == Some(&serde_json::Value::Bool(true)) {
+                    map.remove("nullable");
+                }
+                if let Some(serde_json::Value::String(d)) = map.get_mut("description") {
+                    *d = d.split('\n').map(str::trim).collect::<Vec<_>>().join(" ");
+                }
+                map.values_mut().for_each(walk);
+            }
+            serde_json::Value::Array(items) => items.iter_mut().for_each(walk),
+            _ => {}
+        }
+    }
+    let Ok(mut value) = serde_json::to_value(&crd) else { return crd };
+    walk(&mut value);
+    serde_json::from_value(value).unwrap_or(crd)
 }
 
 /// Renders one CRD as the YAML document committed under `manifests/crds/`.

@@ -14,15 +14,12 @@ pub const FIELD_MANAGER: &str = "lekiwi-robot-controller";
 
 /// Applies `phase`, `conditions` and `observedGeneration`, and nothing else.
 pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan) -> Result<()> {
-    let patch = json!({
-        "apiVersion": "fleet.lekiwi.io/v1alpha1",
-        "kind": "Robot",
-        "status": {
-            "phase": plan.phase,
-            "conditions": plan.conditions,
-            "observedGeneration": plan.observed_generation,
-        }
-    });
+    let mut status = json!({ "phase": plan.phase, "conditions": plan.conditions });
+    // The schema has no `nullable`: omit unset fields rather than sending null.
+    if let Some(generation) = plan.observed_generation {
+        status["observedGeneration"] = json!(generation);
+    }
+    let patch = json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": status });
     api.patch_status(name, &PatchParams::apply(FIELD_MANAGER).force(), &Patch::Apply(&patch))
         .await
         .map_err(|source| Error::PatchStatus { object: name.to_owned(), source })?;

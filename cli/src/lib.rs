@@ -1,0 +1,81 @@
+//! `kubectl lekiwi`: the fleet's kubectl plugin. This version lists robots; release, rollout,
+//! enrollment and discovery commands follow with the features they drive.
+
+pub mod robots;
+
+use std::path::PathBuf;
+
+use clap::{Parser, Subcommand, ValueEnum};
+use kube::config::{KubeConfigOptions, Kubeconfig};
+
+/// Output format, as kubectl's `-o`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Output {
+    /// A table.
+    Table,
+    /// A wider table.
+    Wide,
+    /// JSON.
+    Json,
+    /// YAML.
+    Yaml,
+}
+
+/// Manage a LeKiwi robot fleet.
+#[derive(Debug, Parser)]
+#[command(name = "kubectl-lekiwi", bin_name = "kubectl lekiwi", version, about)]
+pub struct Cli {
+    /// Path to the kubeconfig file.
+    #[arg(long, global = true, env = "KUBECONFIG")]
+    pub kubeconfig: Option<PathBuf>,
+    /// Kubeconfig context to use.
+    #[arg(long, global = true)]
+    pub context: Option<String>,
+    /// Namespace (default: the context's namespace).
+    #[arg(short = 'n', long, global = true)]
+    pub namespace: Option<String>,
+    /// List across all namespaces.
+    #[arg(short = 'A', long, global = true)]
+    pub all_namespaces: bool,
+    /// Output format.
+    #[arg(short = 'o', long, global = true, value_enum, default_value = "table")]
+    pub output: Output,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// List robots with phase, release, teleoperation and last heartbeat.
+    Robots,
+}
+
+/// Runs one command.
+pub async fn run(cli: Cli) -> anyhow::Result<()> {
+    let (client, default_ns) = client(&cli).await?;
+    let namespace = cli.namespace.clone().unwrap_or(default_ns);
+    match cli.command {
+        Command::Robots => {
+            let ns = if cli.all_namespaces { None } else { Some(namespace.as_str()) };
+            let out = robots::list(client, ns, cli.output).await?;
+            print!("{out}");
+        }
+    }
+    Ok(())
+}
+
+async fn client(cli: &Cli) -> anyhow::Result<(kube::Client, String)> {
+    let options = KubeConfigOptions { context: cli.context.clone(), ..KubeConfigOptions::default() };
+    let config = match &cli.kubeconfig {
+        // KUBECONFIG may list several files separated by ':'; kube merges them.
+        Some(path) if !path.as_os_str().to_string_lossy().contains(':') => {
+            let kc = Kubeconfig::read_from(path)?;
+            kube::Config::from_custom_kubeconfig(kc, &options).await?
+        }
+        _ if cli.context.is_some() => kube::Config::from_kubeconfig(&options).await?,
+        _ => kube::Config::infer().await?,
+    };
+    let ns = config.default_namespace.clone();
+    Ok((kube::Client::try_from(config)?, ns))
+}

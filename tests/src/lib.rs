@@ -1,0 +1,458 @@
+//! Test harness: the shared local control plane, private ones for disruptive tests, operator
+//! processes, and a stand-in that plays the gateway's part in Robot status.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context as _, Result, bail};
+use jiff::Timestamp;
+use k8s_openapi::api::coordination::v1::{Lease, LeaseSpec};
+use k8s_openapi::api::core::v1::Namespace;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
+use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
+use kube::config::{KubeConfigOptions, Kubeconfig};
+use kube::{Api, Client};
+use lekiwi_crds::Robot;
+use serde_json::{Value, json};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+/// The repository root.
+pub fn repo_root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").canonicalize().expect("repo root")
+}
+
+/// kubectl and helm as installed by `scripts/setup.sh`.
+pub fn tool(name: &str) -> PathBuf {
+    let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
+    let cache = std::env::var("LEKIWI_CACHE").unwrap_or_else(|_| format!("{home}/.cache/lekiwi"));
+    PathBuf::from(cache).join("bin").join(name)
+}
+
+/// Path of one of our binaries, built once per test process.
+pub fn bin(name: &str) -> PathBuf {
+    static BUILT: OnceLock<()> = OnceLock::new();
+    BUILT.get_or_init(|| {
+        let status = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+            .args(["build", "--quiet", "--bins", "-p", "lekiwi-operator", "-p", "kubectl-lekiwi", "-p", "lekiwi-agent"])
+            .current_dir(repo_root())
+            .status()
+            .expect("run cargo build");
+        assert!(status.success(), "building the binaries failed");
+    });
+    let target = std::env::var("CARGO_TARGET_DIR").map(PathBuf::from).unwrap_or_else(|_| repo_root().join("target"));
+    target.join("debug").join(name)
+}
+
+/// A directory for logs of processes a test starts, kept after the run for debugging.
+pub fn log_dir() -> PathBuf {
+    let dir = repo_root().join("target/test-logs");
+    std::fs::create_dir_all(&dir).expect("create log dir");
+    dir
+}
+
+/// A running etcd + kube-apiserver managed by `scripts/control-plane.sh`.
+pub struct ControlPlane {
+    /// State directory of the instance.
+    pub dir: PathBuf,
+    private: Option<tempfile::TempDir>,
+}
+
+impl ControlPlane {
+    /// The control plane shared by the whole test run (started once, reused), with our CRDs.
+    pub fn shared() -> &'static ControlPlane {
+        static SHARED: OnceLock<ControlPlane> = OnceLock::new();
+        SHARED.get_or_init(|| {
+            let dir = std::env::var("LEKIWI_CP_DIR").map(PathBuf::from).unwrap_or_else(|_| {
+                let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
+                PathBuf::from(home).join(".cache/lekiwi/control-plane")
+            });
+            let cp = ControlPlane { dir, private: None };
+            cp.up().expect("start the shared control plane");
+            cp.install_crds().expect("install CRDs");
+            cp
+        })
+    }
+
+    /// A second control plane of this test's own, on its own ports, for tests that restart it.
+    pub fn private() -> Result<ControlPlane> {
+        let tmp = tempfile::Builder::new().prefix("lekiwi-cp-").tempdir()?;
+        let cp = ControlPlane { dir: tmp.path().to_owned(), private: Some(tmp) };
+        cp.up()?;
+        Ok(cp)
+    }
+
+    fn script(&self, args: &[&str]) -> Result<Output> {
+        let out = Command::new("bash")
+            .arg(repo_root().join("scripts/control-plane.sh"))
+            .args(args)
+            .env("LEKIWI_CP_DIR", &self.dir)
+            .stdin(Stdio::null())
+            .output()?;
+        if !out.status.success() {
+            bail!("control-plane.sh {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        Ok(out)
+    }
+
+    /// Starts (or restarts, on the same ports and data) the processes.
+    pub fn up(&self) -> Result<()> {
+        self.script(&["up"]).map(|_| ())
+    }
+
+    /// SIGKILLs etcd and kube-apiserver, keeping their data.
+    pub fn kill(&self) -> Result<()> {
+        self.script(&["kill"]).map(|_| ())
+    }
+
+    /// The admin kubeconfig.
+    pub fn kubeconfig(&self) -> PathBuf {
+        self.dir.join("kubeconfig")
+    }
+
+    /// A client with admin rights.
+    pub async fn client(&self) -> Result<Client> {
+        let kc = Kubeconfig::read_from(self.kubeconfig())?;
+        let config = kube::Config::from_custom_kubeconfig(kc, &KubeConfigOptions::default()).await?;
+        Ok(Client::try_from(config)?)
+    }
+
+    /// Runs kubectl against this control plane.
+    pub fn kubectl(&self, args: &[&str]) -> Output {
+        let path = format!("{}:{}", tool("kubectl").parent().unwrap().display(), std::env::var("PATH").unwrap_or_default());
+        Command::new(tool("kubectl"))
+            .args(args)
+            .env("KUBECONFIG", self.kubeconfig())
+            // A fresh discovery cache: a stale one hides CRDs installed a moment ago.
+            .env("KUBECACHEDIR", self.dir.join(format!("kubectl-cache-{}", std::process::id())))
+            .env("PATH", path)
+            .current_dir(repo_root())
+            .output()
+            .expect("run kubectl")
+    }
+
+    /// Server-side applies our CRDs and waits until they are served.
+    pub fn install_crds(&self) -> Result<()> {
+        let out = self.kubectl(&["apply", "--server-side", "--force-conflicts", "-f", "manifests/crds/"]);
+        if !out.status.success() {
+            bail!("kubectl apply crds: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        let out = self.kubectl(&["wait", "--for=condition=Established", "--timeout=60s", "crd/robots.fleet.lekiwi.io", "crd/robotdeployments.fleet.lekiwi.io"]);
+        if !out.status.success() {
+            bail!("CRDs not established: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        Ok(())
+    }
+}
+
+impl Drop for ControlPlane {
+    fn drop(&mut self) {
+        if self.private.is_some() {
+            let _ = self.script(&["down", "--purge"]);
+        }
+    }
+}
+
+/// Creates a namespace of the test's own. Namespaces are not deleted: without a
+/// controller-manager they would stay Terminating anyway, and `down --purge` removes all.
+pub async fn namespace(client: &Client, prefix: &str) -> Result<String> {
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.subsec_nanos();
+    let name = format!("{prefix}-{:x}{:x}", std::process::id() % 4096, nanos % 65536);
+    let ns = Namespace { metadata: ObjectMeta { name: Some(name.clone()), ..ObjectMeta::default() }, ..Namespace::default() };
+    Api::<Namespace>::all(client.clone()).create(&PostParams::default(), &ns).await?;
+    Ok(name)
+}
+
+/// A free loopback port.
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("free port")
+}
+
+/// Polls `f` every 100 ms until it returns `Some`, or fails after `timeout` with `what`.
+pub async fn wait_for<T, F, Fut>(what: &str, timeout: Duration, mut f: F) -> Result<T>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Option<T>>,
+{
+    let start = Instant::now();
+    loop {
+        if let Some(v) = f().await {
+            return Ok(v);
+        }
+        if start.elapsed() > timeout {
+            bail!("timed out after {timeout:?} waiting for {what}");
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// A `lekiwi-operator` process; SIGKILLed when dropped.
+pub struct OperatorProcess {
+    child: Child,
+    /// Address of its HTTP endpoints.
+    pub http_port: u16,
+    /// Its log file.
+    pub log: PathBuf,
+}
+
+impl OperatorProcess {
+    /// Starts an operator that watches only `namespace` and keeps its Leases there.
+    pub fn start(cp: &ControlPlane, namespace: &str, identity: &str, extra: &[&str]) -> Result<Self> {
+        let http_port = free_port();
+        let log = log_dir().join(format!("{namespace}-{identity}.log"));
+        let file = std::fs::File::create(&log)?;
+        let child = Command::new(bin("lekiwi-operator"))
+            .args(["--kubeconfig", cp.kubeconfig().to_str().unwrap()])
+            .args(["--namespace", namespace, "--watch-namespace", namespace, "--identity", identity])
+            .args(["--http-addr", &format!("127.0.0.1:{http_port}")])
+            .args(["--lease-duration-seconds", "4", "--lease-retry-seconds", "1"])
+            .args(extra)
+            .env("RUST_LOG", "info,kube=warn,lekiwi_operator=debug")
+            .stdin(Stdio::null())
+            .stdout(file.try_clone()?)
+            .stderr(file)
+            .spawn()
+            .context("spawn lekiwi-operator")?;
+        Ok(Self { child, http_port, log })
+    }
+
+    /// Waits until `/readyz` answers 200.
+    pub async fn wait_ready(&mut self) -> Result<()> {
+        let port = self.http_port;
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait()? {
+                bail!("operator exited with {status} before it was ready; log:\n{}", self.log_text());
+            }
+            if let Ok((200, _)) = http_get(port, "/readyz").await {
+                return Ok(());
+            }
+            if start.elapsed() > Duration::from_secs(30) {
+                bail!("operator not ready in 30s; log:\n{}", self.log_text());
+            }
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    }
+
+    /// The process's output so far.
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// The raw `/metrics` text.
+    pub async fn metrics(&self) -> Result<String> {
+        let (code, body) = http_get(self.http_port, "/metrics").await?;
+        if code != 200 {
+            bail!("/metrics answered {code}");
+        }
+        Ok(body)
+    }
+
+    /// One sample's value from `/metrics`, by its full series name, e.g. `x_total{a="b"}`.
+    pub async fn metric(&self, series: &str) -> Option<f64> {
+        let text = self.metrics().await.ok()?;
+        sample(&text, series)
+    }
+
+    /// SIGKILL: a crash, nothing is cleaned up.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// SIGTERM, then waits for the exit.
+    pub fn terminate(&mut self) -> Result<std::process::ExitStatus> {
+        Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status()?;
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait()? {
+                return Ok(status);
+            }
+            if start.elapsed() > Duration::from_secs(20) {
+                bail!("operator did not exit within 20s of SIGTERM");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    /// Whether the process is still running.
+    pub fn running(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
+    }
+}
+
+impl Drop for OperatorProcess {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// Finds one sample in Prometheus text by its exact series name.
+pub fn sample(text: &str, series: &str) -> Option<f64> {
+    text.lines().find_map(|l| l.strip_prefix(series).and_then(|rest| rest.strip_prefix(' ')).and_then(|v| v.trim().parse().ok()))
+}
+
+/// A minimal HTTP/1.0 GET against 127.0.0.1: status code and body.
+pub async fn http_get(port: u16, path: &str) -> Result<(u16, String)> {
+    let mut stream = tokio::net::TcpStream::connect(("127.0.0.1", port)).await?;
+    stream.write_all(format!("GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").as_bytes()).await?;
+    let mut buf = Vec::new();
+    stream.read_to_end(&mut buf).await?;
+    let text = String::from_utf8_lossy(&buf).into_owned();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let code = head.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    Ok((code, body.to_owned()))
+}
+
+/// Field manager the real gateway uses for the presence fields of Robot status.
+pub const GATEWAY_FIELD_MANAGER: &str = "lekiwi-gateway";
+
+/// Plays the gateway's part until the gateway exists: renews a gateway Lease and writes the
+/// presence fields of Robot status by server-side apply under the gateway's field manager,
+/// always the whole set, as the real gateway will.
+pub struct GatewayStandIn {
+    /// The gateway's identity (and Lease name).
+    pub name: String,
+    robots: Api<Robot>,
+    leases: Api<Lease>,
+    renew: Option<tokio::task::JoinHandle<()>>,
+    presence: std::collections::HashMap<String, Value>,
+}
+
+impl GatewayStandIn {
+    /// Creates the gateway's Lease in `namespace` and renews it every second.
+    pub async fn start(client: &Client, namespace: &str, name: &str, lease_seconds: i32) -> Result<Self> {
+        let leases: Api<Lease> = Api::namespaced(client.clone(), namespace);
+        let mut me = Self {
+            name: name.to_owned(),
+            robots: Api::namespaced(client.clone(), namespace),
+            leases,
+            renew: None,
+            presence: Default::default(),
+        };
+        me.renew_lease(lease_seconds).await?;
+        me.resume_renewing(lease_seconds);
+        Ok(me)
+    }
+
+    async fn renew_lease(&self, lease_seconds: i32) -> Result<()> {
+        renew(&self.leases, &self.name, lease_seconds).await
+    }
+
+    /// Starts renewing again after [`Self::stop_renewing`].
+    pub fn resume_renewing(&mut self, lease_seconds: i32) {
+        let (leases, name) = (self.leases.clone(), self.name.clone());
+        self.renew = Some(tokio::spawn(async move {
+            loop {
+                let _ = renew(&leases, &name, lease_seconds).await;
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }));
+    }
+
+    /// Stops renewing the Lease, as a crashed gateway would.
+    pub fn stop_renewing(&mut self) {
+        if let Some(t) = self.renew.take() {
+            t.abort();
+        }
+    }
+
+    async fn write(&mut self, robot: &str, fields: Value) -> Result<()> {
+        let entry = self.presence.entry(robot.to_owned()).or_insert_with(|| json!({}));
+        for (k, v) in fields.as_object().cloned().unwrap_or_default() {
+            entry[k] = v;
+        }
+        let patch = json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": entry.clone() });
+        self.robots
+            .patch_status(robot, &PatchParams::apply(GATEWAY_FIELD_MANAGER).force(), &Patch::Apply(&patch))
+            .await
+            .with_context(|| format!("gateway stand-in: patch status of {robot}"))?;
+        Ok(())
+    }
+
+    /// An agent connects: presence facts as the gateway would record them.
+    pub async fn connect(&mut self, robot: &str) -> Result<()> {
+        let now = now();
+        let gateway = self.name.clone();
+        self.write(
+            robot,
+            json!({
+                "connected": true,
+                "gateway": gateway,
+                "protocol": "websocket",
+                "connectedSince": now,
+                "lastHeartbeatTime": now,
+                "agentVersion": "0.1.0",
+                "address": "127.0.0.1",
+                "health": { "healthy": true },
+                "teleoperation": { "active": false },
+                "system": { "os": "Debian GNU/Linux 12 (bookworm)", "arch": "aarch64", "cpus": 4, "memoryBytes": 8_589_934_592u64 },
+                "telemetry": { "cpuPercent": 12.5, "memoryPercent": 31.0, "temperatureCelsius": 48.2 }
+            }),
+        )
+        .await
+    }
+
+    /// A heartbeat worth recording.
+    pub async fn heartbeat(&mut self, robot: &str) -> Result<()> {
+        self.write(robot, json!({ "lastHeartbeatTime": now() })).await
+    }
+
+    /// Any other presence fields, e.g. `{"teleoperation": {"active": true}}`.
+    pub async fn report(&mut self, robot: &str, fields: Value) -> Result<()> {
+        self.write(robot, fields).await
+    }
+
+    /// The agent's connection closed.
+    pub async fn disconnect(&mut self, robot: &str) -> Result<()> {
+        self.write(robot, json!({ "connected": false })).await
+    }
+}
+
+impl Drop for GatewayStandIn {
+    fn drop(&mut self) {
+        self.stop_renewing();
+    }
+}
+
+async fn renew(leases: &Api<Lease>, name: &str, lease_seconds: i32) -> Result<()> {
+    let lease = Lease {
+        metadata: ObjectMeta { name: Some(name.to_owned()), ..ObjectMeta::default() },
+        spec: Some(LeaseSpec {
+            holder_identity: Some(name.to_owned()),
+            lease_duration_seconds: Some(lease_seconds),
+            renew_time: Some(MicroTime(Timestamp::now())),
+            ..LeaseSpec::default()
+        }),
+    };
+    leases.patch(name, &PatchParams::apply(GATEWAY_FIELD_MANAGER).force(), &Patch::Apply(&lease)).await?;
+    Ok(())
+}
+
+/// Now, as a Kubernetes `Time` string (second precision).
+pub fn now() -> String {
+    Timestamp::now().round(jiff::Unit::Second).unwrap_or_else(|_| Timestamp::now()).strftime("%Y-%m-%dT%H:%M:%SZ").to_string()
+}
+
+/// Reads a robot.
+pub async fn get_robot(client: &Client, namespace: &str, name: &str) -> Result<Robot> {
+    Ok(Api::<Robot>::namespaced(client.clone(), namespace).get(name).await?)
+}
+
+/// Creates a robot from a minimal spec.
+pub async fn create_robot(client: &Client, namespace: &str, name: &str, labels: &[(&str, &str)]) -> Result<Robot> {
+    let labels: serde_json::Map<String, Value> = labels.iter().map(|(k, v)| (k.to_string(), json!(v))).collect();
+    let robot: Robot = serde_json::from_value(json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1",
+        "kind": "Robot",
+        "metadata": { "name": name, "labels": labels },
+        "spec": { "displayName": format!("Test robot {name}") }
+    }))?;
+    Ok(Api::<Robot>::namespaced(client.clone(), namespace).create(&PostParams::default(), &robot).await?)
+}
+
+/// Reads a file under the repository root.
+pub fn repo_file(path: impl AsRef<Path>) -> String {
+    std::fs::read_to_string(repo_root().join(path)).expect("read repo file")
+}
