@@ -34,8 +34,19 @@ pub fn tool(name: &str) -> PathBuf {
 pub fn bin(name: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
-        let status = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
-            .args(["build", "--quiet", "--bins", "-p", "lekiwi-operator", "-p", "kubectl-lekiwi", "-p", "lekiwi-agent"])
+        // The same command as scripts/test.sh runs first, in the same environment: the test
+        // runner's CARGO_PKG_* variables would make ring's build script, and so the whole TLS
+        // stack, rebuild.
+        let mut cmd = Command::new("cargo");
+        for (key, _) in std::env::vars_os() {
+            let key = key.to_string_lossy().into_owned();
+            let keep = matches!(key.as_str(), "CARGO_HOME" | "CARGO_TARGET_DIR");
+            if !keep && (key.starts_with("CARGO") || key.starts_with("RUSTUP_TOOLCHAIN") || key == "OUT_DIR" || key == "RUST_RECURSION_COUNT") {
+                cmd.env_remove(&key);
+            }
+        }
+        let status = cmd
+            .args(["build", "--quiet", "--workspace", "--bins"])
             .current_dir(repo_root())
             .status()
             .expect("run cargo build");
