@@ -10,10 +10,16 @@ use serde::{Deserialize, Serialize};
 pub enum Error {
     /// The config file exists but cannot be read.
     #[error("cannot read config file {path}: {source}")]
-    ReadConfig { path: PathBuf, source: std::io::Error },
+    ReadConfig {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     /// The config file is not valid YAML of the expected shape.
     #[error("invalid config file {path}: {source}")]
-    ParseConfig { path: PathBuf, source: serde_yaml::Error },
+    ParseConfig {
+        path: PathBuf,
+        source: serde_yaml::Error,
+    },
     /// A required setting is missing everywhere.
     #[error("no gateway configured: set `gateway` in {path}, --gateway or LEKIWI_GATEWAY_URL")]
     MissingGateway { path: PathBuf },
@@ -21,7 +27,11 @@ pub enum Error {
 
 /// Command-line flags; each also reads an environment variable and overrides the file.
 #[derive(Debug, Parser)]
-#[command(name = "lekiwi-agent", version, about = "Connects a LeKiwi robot to its fleet's gateway")]
+#[command(
+    name = "lekiwi-agent",
+    version,
+    about = "Connects a LeKiwi robot to its fleet's gateway"
+)]
 pub struct Flags {
     /// Config file to read.
     #[arg(long, env = "LEKIWI_CONFIG", default_value = "/etc/lekiwi/agent.yaml")]
@@ -65,11 +75,14 @@ impl Config {
     /// Merges the file (if present) with flags and environment; flags win.
     pub fn load(flags: &Flags, hostname: &str) -> Result<Self, Error> {
         let file = read_file(&flags.config)?;
-        let gateway = flags
-            .gateway
-            .clone()
-            .or(file.gateway)
-            .ok_or_else(|| Error::MissingGateway { path: flags.config.clone() })?;
+        let gateway =
+            flags
+                .gateway
+                .clone()
+                .or(file.gateway)
+                .ok_or_else(|| Error::MissingGateway {
+                    path: flags.config.clone(),
+                })?;
         Ok(Self {
             gateway,
             state_dir: flags
@@ -77,7 +90,11 @@ impl Config {
                 .clone()
                 .or(file.state_dir)
                 .unwrap_or_else(|| PathBuf::from("/var/lib/lekiwi")),
-            robot_name: flags.robot_name.clone().or(file.robot_name).unwrap_or_else(|| hostname.to_owned()),
+            robot_name: flags
+                .robot_name
+                .clone()
+                .or(file.robot_name)
+                .unwrap_or_else(|| hostname.to_owned()),
         })
     }
 }
@@ -89,7 +106,10 @@ fn read_file(path: &Path) -> Result<FileConfig, Error> {
             source,
         }),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(FileConfig::default()),
-        Err(source) => Err(Error::ReadConfig { path: path.to_owned(), source }),
+        Err(source) => Err(Error::ReadConfig {
+            path: path.to_owned(),
+            source,
+        }),
     }
 }
 
@@ -102,7 +122,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("agent.yaml");
         std::fs::write(&path, "gateway: wss://file/agent\nrobotName: from-file\n").unwrap();
-        let flags = Flags::parse_from(["lekiwi-agent", "--config", path.to_str().unwrap(), "--robot-name", "kiwi-9"]);
+        let flags = Flags::parse_from([
+            "lekiwi-agent",
+            "--config",
+            path.to_str().unwrap(),
+            "--robot-name",
+            "kiwi-9",
+        ]);
         let cfg = Config::load(&flags, "host").unwrap();
         assert_eq!(cfg.gateway, "wss://file/agent");
         assert_eq!(cfg.robot_name, "kiwi-9");

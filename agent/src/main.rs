@@ -11,5 +11,7 @@ fn main() -> anyhow::Result<()> {
         print!("{}", serde_yaml::to_string(&config)?);
         return Ok(());
     }
-    anyhow::bail!("the agent's gateway connection is not implemented yet (see the protocol issue); use --print-config")
+    anyhow::bail!(
+        "the agent's gateway connection is not implemented yet (see the protocol issue); use --print-config"
+    )
 }

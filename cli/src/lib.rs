@@ -57,7 +57,11 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
     let namespace = cli.namespace.clone().unwrap_or(default_ns);
     match cli.command {
         Command::Robots => {
-            let ns = if cli.all_namespaces { None } else { Some(namespace.as_str()) };
+            let ns = if cli.all_namespaces {
+                None
+            } else {
+                Some(namespace.as_str())
+            };
             let out = robots::list(client, ns, cli.output).await?;
             print!("{out}");
         }
@@ -66,7 +70,10 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
 }
 
 async fn client(cli: &Cli) -> anyhow::Result<(kube::Client, String)> {
-    let options = KubeConfigOptions { context: cli.context.clone(), ..KubeConfigOptions::default() };
+    let options = KubeConfigOptions {
+        context: cli.context.clone(),
+        ..KubeConfigOptions::default()
+    };
     let config = match &cli.kubeconfig {
         // KUBECONFIG may list several files separated by ':'; kube merges them.
         Some(path) if !path.as_os_str().to_string_lossy().contains(':') => {

@@ -9,7 +9,11 @@ use lekiwi_crds::robot::CONDITION_TELEOPERATING;
 use crate::Output;
 
 /// Lists robots of one namespace (or all) in the given format.
-pub async fn list(client: kube::Client, namespace: Option<&str>, output: Output) -> anyhow::Result<String> {
+pub async fn list(
+    client: kube::Client,
+    namespace: Option<&str>,
+    output: Output,
+) -> anyhow::Result<String> {
     let api: Api<Robot> = match namespace {
         Some(ns) => Api::namespaced(client, ns),
         None => Api::all(client),
@@ -19,7 +23,12 @@ pub async fn list(client: kube::Client, namespace: Option<&str>, output: Output)
     Ok(match output {
         Output::Json => serde_json::to_string_pretty(&robots)? + "\n",
         Output::Yaml => serde_yaml::to_string(&robots)?,
-        Output::Table | Output::Wide => table(&robots, namespace.is_none(), output == Output::Wide, Timestamp::now()),
+        Output::Table | Output::Wide => table(
+            &robots,
+            namespace.is_none(),
+            output == Output::Wide,
+            Timestamp::now(),
+        ),
     })
 }
 
@@ -38,9 +47,20 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
         let dash = || "-".to_owned();
         let mut row = vec![
             r.name_any(),
-            status.phase.map(|p| p.to_string()).unwrap_or_else(|| "Pending".into()),
-            status.current_release.as_ref().map(|x| x.version.clone()).unwrap_or_else(dash),
-            r.spec.release.as_ref().map(|x| x.version.clone()).unwrap_or_else(dash),
+            status
+                .phase
+                .map(|p| p.to_string())
+                .unwrap_or_else(|| "Pending".into()),
+            status
+                .current_release
+                .as_ref()
+                .map(|x| x.version.clone())
+                .unwrap_or_else(dash),
+            r.spec
+                .release
+                .as_ref()
+                .map(|x| x.version.clone())
+                .unwrap_or_else(dash),
             r.condition(CONDITION_TELEOPERATING)
                 .map(|c| match c.status {
                     lekiwi_crds::ConditionStatus::True => "yes".to_owned(),
@@ -48,7 +68,11 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
                     lekiwi_crds::ConditionStatus::Unknown => "?".to_owned(),
                 })
                 .unwrap_or_else(dash),
-            status.last_heartbeat_time.as_ref().map(|t| age(now, t.0)).unwrap_or_else(dash),
+            status
+                .last_heartbeat_time
+                .as_ref()
+                .map(|t| age(now, t.0))
+                .unwrap_or_else(dash),
         ];
         if wide {
             row.push(status.agent_version.unwrap_or_else(dash));
@@ -60,10 +84,16 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
         }
         rows.push(row);
     }
-    let widths: Vec<usize> = (0..rows[0].len()).map(|i| rows.iter().map(|r| r[i].len()).max().unwrap_or(0)).collect();
+    let widths: Vec<usize> = (0..rows[0].len())
+        .map(|i| rows.iter().map(|r| r[i].len()).max().unwrap_or(0))
+        .collect();
     let mut out = String::new();
     for row in rows {
-        let line: Vec<String> = row.iter().zip(&widths).map(|(c, w)| format!("{c:<w$}")).collect();
+        let line: Vec<String> = row
+            .iter()
+            .zip(&widths)
+            .map(|(c, w)| format!("{c:<w$}"))
+            .collect();
         out.push_str(line.join("   ").trim_end());
         out.push('\n');
     }
@@ -104,12 +134,20 @@ status:
         )
         .unwrap();
         let pending: Robot = serde_yaml::from_str("apiVersion: fleet.lekiwi.io/v1alpha1\nkind: Robot\nmetadata: {name: kiwi-02}\nspec: {}\n").unwrap();
-        let out = table(&[robot, pending], false, false, "2026-11-22T10:00:42Z".parse().unwrap());
+        let out = table(
+            &[robot, pending],
+            false,
+            false,
+            "2026-11-22T10:00:42Z".parse().unwrap(),
+        );
         let lines: Vec<&str> = out.lines().collect();
         assert_eq!(lines.len(), 3);
         assert!(lines[0].starts_with("NAME"));
         let cols: Vec<&str> = lines[1].split_whitespace().collect();
-        assert_eq!(cols, ["kiwi-01", "Online", "1.0.0", "1.1.0", "yes", "42s", "ago"]);
+        assert_eq!(
+            cols,
+            ["kiwi-01", "Online", "1.0.0", "1.1.0", "yes", "42s", "ago"]
+        );
         let cols: Vec<&str> = lines[2].split_whitespace().collect();
         assert_eq!(cols, ["kiwi-02", "Pending", "-", "-", "-", "-"]);
     }

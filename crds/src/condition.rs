@@ -88,12 +88,24 @@ mod tests {
         let old_time = Time("2026-01-01T00:00:00Z".parse().unwrap());
         let mut old = Condition::new("Connected", ConditionStatus::True, "Heartbeat", "", Some(1));
         old.last_transition_time = old_time.clone();
-        let same = Condition::new("Connected", ConditionStatus::True, "Heartbeat", "fresh", Some(2));
+        let same = Condition::new(
+            "Connected",
+            ConditionStatus::True,
+            "Heartbeat",
+            "fresh",
+            Some(2),
+        );
         let merged = merge_conditions(std::slice::from_ref(&old), vec![same]);
         assert_eq!(merged[0].last_transition_time, old_time);
         assert_eq!(merged[0].message, "fresh");
 
-        let flipped = Condition::new("Connected", ConditionStatus::False, "Disconnected", "", Some(2));
+        let flipped = Condition::new(
+            "Connected",
+            ConditionStatus::False,
+            "Disconnected",
+            "",
+            Some(2),
+        );
         let merged = merge_conditions(&[old], vec![flipped]);
         assert_ne!(merged[0].last_transition_time, old_time);
     }

@@ -17,7 +17,8 @@ pub const GROUP: &str = "fleet.lekiwi.io";
 pub const VERSION: &str = "v1alpha1";
 
 /// Every CRD this crate defines, in the order they are written to disk.
-pub fn crds() -> Vec<k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition>
+pub fn crds()
+-> Vec<k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition>
 {
     use kube::CustomResourceExt;
     vec![polish(Robot::crd()), polish(RobotDeployment::crd())]
@@ -46,7 +47,9 @@ fn polish(
             _ => {}
         }
     }
-    let Ok(mut value) = serde_json::to_value(&crd) else { return crd };
+    let Ok(mut value) = serde_json::to_value(&crd) else {
+        return crd;
+    };
     walk(&mut value);
     serde_json::from_value(value).unwrap_or(crd)
 }

@@ -9,7 +9,10 @@ use serde::{Deserialize, Serialize};
 pub struct ReleaseRef {
     /// Human-readable version of the release, for example `1.4.2` or `2026-11-01-nightly`.
     /// Letters, digits, `.`, `_`, `+` and `-`; 1 to 128 characters.
-    #[schemars(length(min = 1, max = 128), regex(pattern = r"^[A-Za-z0-9][A-Za-z0-9._+-]*$"))]
+    #[schemars(
+        length(min = 1, max = 128),
+        regex(pattern = r"^[A-Za-z0-9][A-Za-z0-9._+-]*$")
+    )]
     pub version: String,
 
     /// Digest of the release's file manifest, as printed by `kubectl lekiwi release push`:

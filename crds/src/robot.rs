@@ -273,6 +273,8 @@ pub struct TelemetrySummary {
 impl Robot {
     /// The condition of the given type, if the status has one.
     pub fn condition(&self, r#type: &str) -> Option<&Condition> {
-        self.status.as_ref().and_then(|s| crate::condition::find(&s.conditions, r#type))
+        self.status
+            .as_ref()
+            .and_then(|s| crate::condition::find(&s.conditions, r#type))
     }
 }

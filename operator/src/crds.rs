@@ -17,9 +17,16 @@ pub async fn ensure(client: kube::Client, install: bool) -> Result<()> {
     for crd in lekiwi_crds::crds() {
         let name = crd.metadata.name.clone().unwrap_or_default();
         if install {
-            api.patch(&name, &PatchParams::apply(FIELD_MANAGER).force(), &Patch::Apply(&crd))
-                .await
-                .map_err(|source| Error::Crd { name: name.clone(), source })?;
+            api.patch(
+                &name,
+                &PatchParams::apply(FIELD_MANAGER).force(),
+                &Patch::Apply(&crd),
+            )
+            .await
+            .map_err(|source| Error::Crd {
+                name: name.clone(),
+                source,
+            })?;
             info!(crd = %name, "installed CRD");
         }
         wait_established(&api, &name).await?;
@@ -32,7 +39,10 @@ async fn wait_established(api: &Api<CustomResourceDefinition>, name: &str) -> Re
         let crd = api
             .get_opt(name)
             .await
-            .map_err(|source| Error::Crd { name: name.to_owned(), source })?
+            .map_err(|source| Error::Crd {
+                name: name.to_owned(),
+                source,
+            })?
             .ok_or_else(|| Error::CrdMissing(name.to_owned()))?;
         let established = crd
             .status

@@ -25,7 +25,10 @@ pub enum Error {
     Lease { name: String, source: kube::Error },
     /// The HTTP server could not start.
     #[error("cannot serve HTTP on {addr}: {source}")]
-    Serve { addr: std::net::SocketAddr, source: std::io::Error },
+    Serve {
+        addr: std::net::SocketAddr,
+        source: std::io::Error,
+    },
     /// A long-running task ended unexpectedly.
     #[error("task {0} stopped unexpectedly")]
     TaskStopped(&'static str),

@@ -33,14 +33,21 @@ pub fn router(state: HttpState) -> Router {
 
 async fn metrics(State(state): State<HttpState>) -> impl IntoResponse {
     (
-        [(header::CONTENT_TYPE, "application/openmetrics-text; version=1.0.0; charset=utf-8")],
+        [(
+            header::CONTENT_TYPE,
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
+        )],
         state.metrics.encode(),
     )
 }
 
 async fn readyz(State(state): State<HttpState>) -> impl IntoResponse {
     if state.ready.load(Ordering::Acquire) {
-        let role = if *state.leader.borrow() { "leader" } else { "standby" };
+        let role = if *state.leader.borrow() {
+            "leader"
+        } else {
+            "standby"
+        };
         (StatusCode::OK, format!("ok ({role})\n"))
     } else {
         (StatusCode::SERVICE_UNAVAILABLE, "starting\n".to_owned())
@@ -59,7 +66,11 @@ mod tests {
     async fn readyz_reflects_startup_and_metrics_render() {
         let ready = Arc::new(AtomicBool::new(false));
         let (_tx, leader) = tokio::sync::watch::channel(true);
-        let app = router(HttpState { metrics: Metrics::default(), ready: ready.clone(), leader });
+        let app = router(HttpState {
+            metrics: Metrics::default(),
+            ready: ready.clone(),
+            leader,
+        });
         let get = |path: &str| Request::get(path).body(Body::empty()).unwrap();
 
         let res = app.clone().oneshot(get("/readyz")).await.unwrap();
@@ -72,6 +83,10 @@ mod tests {
 
         let res = app.oneshot(get("/metrics")).await.unwrap();
         let body = res.into_body().collect().await.unwrap().to_bytes();
-        assert!(std::str::from_utf8(&body).unwrap().contains("lekiwi_leader_election_is_leader"));
+        assert!(
+            std::str::from_utf8(&body)
+                .unwrap()
+                .contains("lekiwi_leader_election_is_leader")
+        );
     }
 }

@@ -29,7 +29,14 @@ pub struct LeaderElector {
 
 impl LeaderElector {
     /// An elector for the Lease `namespace/name`.
-    pub fn new(client: kube::Client, namespace: &str, name: &str, identity: String, duration: Duration, retry: Duration) -> Self {
+    pub fn new(
+        client: kube::Client,
+        namespace: &str,
+        name: &str,
+        identity: String,
+        duration: Duration,
+        retry: Duration,
+    ) -> Self {
         Self {
             api: Api::namespaced(client, namespace),
             name: name.to_owned(),
@@ -42,7 +49,12 @@ impl LeaderElector {
 
     /// Campaigns and renews until cancelled, publishing leadership on `leader`; releases the
     /// Lease on the way out so a standby takes over at once.
-    pub async fn run(mut self, leader: watch::Sender<bool>, metrics: Metrics, cancel: CancellationToken) {
+    pub async fn run(
+        mut self,
+        leader: watch::Sender<bool>,
+        metrics: Metrics,
+        cancel: CancellationToken,
+    ) {
         let mut last_renew = Instant::now();
         loop {
             let is_leader = *leader.borrow();
@@ -66,7 +78,8 @@ impl LeaderElector {
                 Err(e) => {
                     warn!(error = %e, "leader election attempt failed");
                     // Keep leading through short API outages, but never past our own Lease.
-                    if is_leader && last_renew.elapsed() >= self.duration.saturating_sub(self.retry) {
+                    if is_leader && last_renew.elapsed() >= self.duration.saturating_sub(self.retry)
+                    {
                         warn!("cannot renew the leader Lease in time; stepping down");
                         metrics.is_leader.set(0);
                         leader.send_replace(false);
@@ -89,15 +102,26 @@ impl LeaderElector {
     }
 
     fn lease_error(&self, source: kube::Error) -> Error {
-        Error::Lease { name: self.name.clone(), source }
+        Error::Lease {
+            name: self.name.clone(),
+            source,
+        }
     }
 
     /// One round: true when this replica holds the Lease afterwards.
     async fn try_acquire_or_renew(&mut self) -> Result<bool> {
         let now = MicroTime(Timestamp::now());
-        let Some(mut lease) = self.api.get_opt(&self.name).await.map_err(|e| self.lease_error(e))? else {
+        let Some(mut lease) = self
+            .api
+            .get_opt(&self.name)
+            .await
+            .map_err(|e| self.lease_error(e))?
+        else {
             let lease = Lease {
-                metadata: ObjectMeta { name: Some(self.name.clone()), ..ObjectMeta::default() },
+                metadata: ObjectMeta {
+                    name: Some(self.name.clone()),
+                    ..ObjectMeta::default()
+                },
                 spec: Some(self.spec_for_me(now, 0)),
             };
             return match self.api.create(&PostParams::default(), &lease).await {
@@ -111,14 +135,21 @@ impl LeaderElector {
         if self.observed.as_ref().map(|(s, _)| s) != Some(&spec) {
             self.observed = Some((spec.clone(), Instant::now()));
         }
-        let observed_at = self.observed.as_ref().map(|(_, t)| *t).unwrap_or_else(Instant::now);
+        let observed_at = self
+            .observed
+            .as_ref()
+            .map(|(_, t)| *t)
+            .unwrap_or_else(Instant::now);
         let held_duration = spec
             .lease_duration_seconds
             .map(|s| Duration::from_secs(s.max(0) as u64))
             .unwrap_or(self.duration);
         let expired = observed_at.elapsed() >= held_duration;
         let new_spec = if holder == self.identity {
-            LeaseSpec { renew_time: Some(now), ..spec }
+            LeaseSpec {
+                renew_time: Some(now),
+                ..spec
+            }
         } else if holder.is_empty() || expired {
             if !holder.is_empty() {
                 info!(previous = %holder, "leader Lease expired; taking over");
@@ -130,7 +161,11 @@ impl LeaderElector {
         lease.spec = Some(new_spec);
         // `replace` carries the resourceVersion we read: a concurrent writer makes it fail with
         // 409 instead of both replicas believing they lead.
-        match self.api.replace(&self.name, &PostParams::default(), &lease).await {
+        match self
+            .api
+            .replace(&self.name, &PostParams::default(), &lease)
+            .await
+        {
             Ok(_) => Ok(true),
             Err(kube::Error::Api(s)) if s.code == 409 => Ok(false),
             Err(e) => Err(self.lease_error(e)),
@@ -149,17 +184,27 @@ impl LeaderElector {
     }
 
     async fn release(&self) -> Result<()> {
-        let Some(mut lease) = self.api.get_opt(&self.name).await.map_err(|e| self.lease_error(e))? else {
+        let Some(mut lease) = self
+            .api
+            .get_opt(&self.name)
+            .await
+            .map_err(|e| self.lease_error(e))?
+        else {
             return Ok(());
         };
-        let Some(spec) = lease.spec.as_mut() else { return Ok(()) };
+        let Some(spec) = lease.spec.as_mut() else {
+            return Ok(());
+        };
         if spec.holder_identity.as_deref() != Some(self.identity.as_str()) {
             return Ok(());
         }
         spec.holder_identity = None;
         spec.lease_duration_seconds = Some(1);
         spec.renew_time = Some(MicroTime(Timestamp::now()));
-        self.api.replace(&self.name, &PostParams::default(), &lease).await.map_err(|e| self.lease_error(e))?;
+        self.api
+            .replace(&self.name, &PostParams::default(), &lease)
+            .await
+            .map_err(|e| self.lease_error(e))?;
         Ok(())
     }
 }

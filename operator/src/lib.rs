@@ -27,14 +27,24 @@ use crate::metrics::Metrics;
 /// Builds a client from `--kubeconfig`/`--context`, `$KUBECONFIG`, `~/.kube/config` or the
 /// in-cluster service account, in that order.
 pub async fn client(config: &Config) -> Result<kube::Client> {
-    let options = KubeConfigOptions { context: config.context.clone(), ..KubeConfigOptions::default() };
+    let options = KubeConfigOptions {
+        context: config.context.clone(),
+        ..KubeConfigOptions::default()
+    };
     let kube_config = match (&config.kubeconfig, &config.context) {
         (Some(path), _) => {
-            let kc = Kubeconfig::read_from(path).map_err(|e| Error::KubeConfig(format!("{}: {e}", path.display())))?;
-            kube::Config::from_custom_kubeconfig(kc, &options).await.map_err(|e| Error::KubeConfig(e.to_string()))?
+            let kc = Kubeconfig::read_from(path)
+                .map_err(|e| Error::KubeConfig(format!("{}: {e}", path.display())))?;
+            kube::Config::from_custom_kubeconfig(kc, &options)
+                .await
+                .map_err(|e| Error::KubeConfig(e.to_string()))?
         }
-        (None, Some(_)) => kube::Config::from_kubeconfig(&options).await.map_err(|e| Error::KubeConfig(e.to_string()))?,
-        (None, None) => kube::Config::infer().await.map_err(|e| Error::KubeConfig(e.to_string()))?,
+        (None, Some(_)) => kube::Config::from_kubeconfig(&options)
+            .await
+            .map_err(|e| Error::KubeConfig(e.to_string()))?,
+        (None, None) => kube::Config::infer()
+            .await
+            .map_err(|e| Error::KubeConfig(e.to_string()))?,
     };
     kube::Client::try_from(kube_config).map_err(|e| Error::KubeConfig(e.to_string()))
 }
@@ -53,12 +63,21 @@ pub async fn run(config: Config) -> Result<()> {
 
     let listener = tokio::net::TcpListener::bind(config.http_addr)
         .await
-        .map_err(|source| Error::Serve { addr: config.http_addr, source })?;
+        .map_err(|source| Error::Serve {
+            addr: config.http_addr,
+            source,
+        })?;
     info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), "serving /metrics, /healthz and /readyz");
-    let app = http::router(http::HttpState { metrics: metrics.clone(), ready: ready.clone(), leader: leader_rx.clone() });
+    let app = http::router(http::HttpState {
+        metrics: metrics.clone(),
+        ready: ready.clone(),
+        leader: leader_rx.clone(),
+    });
     let http_cancel = cancel.clone();
     let mut http_task = tokio::spawn(async move {
-        axum::serve(listener, app).with_graceful_shutdown(async move { http_cancel.cancelled().await }).await
+        axum::serve(listener, app)
+            .with_graceful_shutdown(async move { http_cancel.cancelled().await })
+            .await
     });
 
     let elector = leader::LeaderElector::new(
@@ -71,7 +90,13 @@ pub async fn run(config: Config) -> Result<()> {
     );
     let mut elector_task = tokio::spawn(elector.run(leader_tx, metrics.clone(), cancel.clone()));
 
-    let recorder = Recorder::new(client.clone(), Reporter { controller: "lekiwi-operator".into(), instance: Some(identity.clone()) });
+    let recorder = Recorder::new(
+        client.clone(),
+        Reporter {
+            controller: "lekiwi-operator".into(),
+            instance: Some(identity.clone()),
+        },
+    );
     let ctx = Arc::new(Context::new(client, recorder, metrics, config.clone()));
     let mut controllers_task = tokio::spawn(run_while_leader(ctx, leader_rx, cancel.clone()));
 
@@ -99,7 +124,11 @@ pub async fn run(config: Config) -> Result<()> {
 }
 
 /// Starts the controllers whenever this replica leads and stops them when it no longer does.
-async fn run_while_leader(ctx: Arc<Context>, mut leader: watch::Receiver<bool>, cancel: CancellationToken) -> Result<()> {
+async fn run_while_leader(
+    ctx: Arc<Context>,
+    mut leader: watch::Receiver<bool>,
+    cancel: CancellationToken,
+) -> Result<()> {
     loop {
         tokio::select! {
             () = cancel.cancelled() => return Ok(()),
@@ -129,7 +158,10 @@ async fn run_while_leader(ctx: Arc<Context>, mut leader: watch::Receiver<bool>, 
 }
 
 /// Waits until leadership equals `want`, without holding the watch guard across an await.
-async fn wait_leader(leader: &mut watch::Receiver<bool>, want: bool) -> Result<(), watch::error::RecvError> {
+async fn wait_leader(
+    leader: &mut watch::Receiver<bool>,
+    want: bool,
+) -> Result<(), watch::error::RecvError> {
     leader.wait_for(|l| *l == want).await.map(|_| ())
 }
 

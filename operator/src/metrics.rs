@@ -66,9 +66,10 @@ impl Default for Metrics {
         let mut registry = Registry::default();
         let reconciliations = Family::<ControllerLabels, Counter>::default();
         let reconcile_errors = Family::<ErrorLabels, Counter>::default();
-        let reconcile_duration = Family::<ControllerLabels, Histogram>::new_with_constructor(|| {
-            Histogram::new(exponential_buckets(0.001, 2.0, 14))
-        });
+        let reconcile_duration =
+            Family::<ControllerLabels, Histogram>::new_with_constructor(|| {
+                Histogram::new(exponential_buckets(0.001, 2.0, 14))
+            });
         let robots = Family::<PhaseLabels, Gauge>::default();
         let robot_transitions = Family::<PhaseLabels, Counter>::default();
         let is_leader = Gauge::default();
@@ -88,7 +89,11 @@ impl Default for Metrics {
             "Time one reconcile took, by controller",
             reconcile_duration.clone(),
         );
-        registry.register("lekiwi_robots", "Robots by phase, as the leader sees them", robots.clone());
+        registry.register(
+            "lekiwi_robots",
+            "Robots by phase, as the leader sees them",
+            robots.clone(),
+        );
         registry.register(
             "lekiwi_robot_phase_transitions",
             "Robot phase transitions, by the phase entered",
@@ -157,10 +162,17 @@ mod tests {
     fn names_follow_the_lekiwi_convention() {
         let m = Metrics::default();
         drop(m.reconcile_started(ControllerName::robot));
-        m.robots.get_or_create(&PhaseLabels { phase: "Online" }).set(3);
+        m.robots
+            .get_or_create(&PhaseLabels { phase: "Online" })
+            .set(3);
         let text = m.encode();
-        assert!(text.contains("lekiwi_controller_reconciliations_total{controller=\"robot\"} 1"), "{text}");
-        assert!(text.contains("lekiwi_controller_reconcile_duration_seconds_count{controller=\"robot\"} 1"));
+        assert!(
+            text.contains("lekiwi_controller_reconciliations_total{controller=\"robot\"} 1"),
+            "{text}"
+        );
+        assert!(text.contains(
+            "lekiwi_controller_reconcile_duration_seconds_count{controller=\"robot\"} 1"
+        ));
         assert!(text.contains("lekiwi_robots{phase=\"Online\"} 3"));
         assert!(text.ends_with("# EOF\n"));
     }

@@ -94,9 +94,21 @@ mod tests {
 
     #[test]
     fn unknown_and_oversized_frames_are_errors_not_panics() {
-        assert!(matches!(Message::decode(r#"{"type":"teleport"}"#), Err(Error::Malformed(_))));
-        assert!(matches!(Message::decode("not json"), Err(Error::Malformed(_))));
-        let big = format!(r#"{{"type":"heartbeat","pad":"{}"}}"#, "x".repeat(MAX_FRAME_BYTES));
-        assert!(matches!(Message::decode(&big), Err(Error::FrameTooLarge { .. })));
+        assert!(matches!(
+            Message::decode(r#"{"type":"teleport"}"#),
+            Err(Error::Malformed(_))
+        ));
+        assert!(matches!(
+            Message::decode("not json"),
+            Err(Error::Malformed(_))
+        ));
+        let big = format!(
+            r#"{{"type":"heartbeat","pad":"{}"}}"#,
+            "x".repeat(MAX_FRAME_BYTES)
+        );
+        assert!(matches!(
+            Message::decode(&big),
+            Err(Error::FrameTooLarge { .. })
+        ));
     }
 }

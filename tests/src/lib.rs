@@ -20,7 +20,10 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..").canonicalize().expect("repo root")
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .canonicalize()
+        .expect("repo root")
 }
 
 /// kubectl and helm as installed by `scripts/setup.sh`.
@@ -41,7 +44,12 @@ pub fn bin(name: &str) -> PathBuf {
         for (key, _) in std::env::vars_os() {
             let key = key.to_string_lossy().into_owned();
             let keep = matches!(key.as_str(), "CARGO_HOME" | "CARGO_TARGET_DIR");
-            if !keep && (key.starts_with("CARGO") || key.starts_with("RUSTUP_TOOLCHAIN") || key == "OUT_DIR" || key == "RUST_RECURSION_COUNT") {
+            if !keep
+                && (key.starts_with("CARGO")
+                    || key.starts_with("RUSTUP_TOOLCHAIN")
+                    || key == "OUT_DIR"
+                    || key == "RUST_RECURSION_COUNT")
+            {
                 cmd.env_remove(&key);
             }
         }
@@ -52,7 +60,9 @@ pub fn bin(name: &str) -> PathBuf {
             .expect("run cargo build");
         assert!(status.success(), "building the binaries failed");
     });
-    let target = std::env::var("CARGO_TARGET_DIR").map(PathBuf::from).unwrap_or_else(|_| repo_root().join("target"));
+    let target = std::env::var("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| repo_root().join("target"));
     target.join("debug").join(name)
 }
 
@@ -75,10 +85,14 @@ impl ControlPlane {
     pub fn shared() -> &'static ControlPlane {
         static SHARED: OnceLock<ControlPlane> = OnceLock::new();
         SHARED.get_or_init(|| {
-            let dir = std::env::var("LEKIWI_CP_DIR").map(PathBuf::from).unwrap_or_else(|_| {
-                let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
-                PathBuf::from(home).join(".cache/lekiwi/control-plane")
-            });
+            let dir = std::env::var("LEKIWI_CP_DIR")
+                .map(PathBuf::from)
+                .unwrap_or_else(|_| {
+                    let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
+                    // Not the quickstart's control plane: an operator left running there watches
+                // every namespace and would fight the tests' own operators.
+                PathBuf::from(home).join(".cache/lekiwi/test-control-plane")
+                });
             let cp = ControlPlane { dir, private: None };
             cp.up().expect("start the shared control plane");
             cp.install_crds().expect("install CRDs");
@@ -89,7 +103,10 @@ impl ControlPlane {
     /// A second control plane of this test's own, on its own ports, for tests that restart it.
     pub fn private() -> Result<ControlPlane> {
         let tmp = tempfile::Builder::new().prefix("lekiwi-cp-").tempdir()?;
-        let cp = ControlPlane { dir: tmp.path().to_owned(), private: Some(tmp) };
+        let cp = ControlPlane {
+            dir: tmp.path().to_owned(),
+            private: Some(tmp),
+        };
         cp.up()?;
         Ok(cp)
     }
@@ -102,7 +119,10 @@ impl ControlPlane {
             .stdin(Stdio::null())
             .output()?;
         if !out.status.success() {
-            bail!("control-plane.sh {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+            bail!(
+                "control-plane.sh {args:?} failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
         }
         Ok(out)
     }
@@ -125,18 +145,27 @@ impl ControlPlane {
     /// A client with admin rights.
     pub async fn client(&self) -> Result<Client> {
         let kc = Kubeconfig::read_from(self.kubeconfig())?;
-        let config = kube::Config::from_custom_kubeconfig(kc, &KubeConfigOptions::default()).await?;
+        let config =
+            kube::Config::from_custom_kubeconfig(kc, &KubeConfigOptions::default()).await?;
         Ok(Client::try_from(config)?)
     }
 
     /// Runs kubectl against this control plane.
     pub fn kubectl(&self, args: &[&str]) -> Output {
-        let path = format!("{}:{}", tool("kubectl").parent().unwrap().display(), std::env::var("PATH").unwrap_or_default());
+        let path = format!(
+            "{}:{}",
+            tool("kubectl").parent().unwrap().display(),
+            std::env::var("PATH").unwrap_or_default()
+        );
         Command::new(tool("kubectl"))
             .args(args)
             .env("KUBECONFIG", self.kubeconfig())
             // A fresh discovery cache: a stale one hides CRDs installed a moment ago.
-            .env("KUBECACHEDIR", self.dir.join(format!("kubectl-cache-{}", std::process::id())))
+            .env(
+                "KUBECACHEDIR",
+                self.dir
+                    .join(format!("kubectl-cache-{}", std::process::id())),
+            )
             .env("PATH", path)
             .current_dir(repo_root())
             .output()
@@ -145,13 +174,31 @@ impl ControlPlane {
 
     /// Server-side applies our CRDs and waits until they are served.
     pub fn install_crds(&self) -> Result<()> {
-        let out = self.kubectl(&["apply", "--server-side", "--force-conflicts", "-f", "manifests/crds/"]);
+        let out = self.kubectl(&[
+            "apply",
+            "--server-side",
+            "--force-conflicts",
+            "-f",
+            "manifests/crds/",
+        ]);
         if !out.status.success() {
-            bail!("kubectl apply crds: {}", String::from_utf8_lossy(&out.stderr));
+            bail!(
+                "kubectl apply crds: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
         }
-        let out = self.kubectl(&["wait", "--for=condition=Established", "--timeout=60s", "crd/robots.fleet.lekiwi.io", "crd/robotdeployments.fleet.lekiwi.io"]);
+        let out = self.kubectl(&[
+            "wait",
+            "--for=condition=Established",
+            "--timeout=60s",
+            "crd/robots.fleet.lekiwi.io",
+            "crd/robotdeployments.fleet.lekiwi.io",
+        ]);
         if !out.status.success() {
-            bail!("CRDs not established: {}", String::from_utf8_lossy(&out.stderr));
+            bail!(
+                "CRDs not established: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
         }
         Ok(())
     }
@@ -168,16 +215,33 @@ impl Drop for ControlPlane {
 /// Creates a namespace of the test's own. Namespaces are not deleted: without a
 /// controller-manager they would stay Terminating anyway, and `down --purge` removes all.
 pub async fn namespace(client: &Client, prefix: &str) -> Result<String> {
-    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH)?.subsec_nanos();
-    let name = format!("{prefix}-{:x}{:x}", std::process::id() % 4096, nanos % 65536);
-    let ns = Namespace { metadata: ObjectMeta { name: Some(name.clone()), ..ObjectMeta::default() }, ..Namespace::default() };
-    Api::<Namespace>::all(client.clone()).create(&PostParams::default(), &ns).await?;
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)?
+        .subsec_nanos();
+    let name = format!(
+        "{prefix}-{:x}{:x}",
+        std::process::id() % 4096,
+        nanos % 65536
+    );
+    let ns = Namespace {
+        metadata: ObjectMeta {
+            name: Some(name.clone()),
+            ..ObjectMeta::default()
+        },
+        ..Namespace::default()
+    };
+    Api::<Namespace>::all(client.clone())
+        .create(&PostParams::default(), &ns)
+        .await?;
     Ok(name)
 }
 
 /// A free loopback port.
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").and_then(|l| l.local_addr()).map(|a| a.port()).expect("free port")
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("free port")
 }
 
 /// Polls `f` every 100 ms until it returns `Some`, or fails after `timeout` with `what`.
@@ -209,15 +273,32 @@ pub struct OperatorProcess {
 
 impl OperatorProcess {
     /// Starts an operator that watches only `namespace` and keeps its Leases there.
-    pub fn start(cp: &ControlPlane, namespace: &str, identity: &str, extra: &[&str]) -> Result<Self> {
+    pub fn start(
+        cp: &ControlPlane,
+        namespace: &str,
+        identity: &str,
+        extra: &[&str],
+    ) -> Result<Self> {
         let http_port = free_port();
         let log = log_dir().join(format!("{namespace}-{identity}.log"));
         let file = std::fs::File::create(&log)?;
         let child = Command::new(bin("lekiwi-operator"))
             .args(["--kubeconfig", cp.kubeconfig().to_str().unwrap()])
-            .args(["--namespace", namespace, "--watch-namespace", namespace, "--identity", identity])
+            .args([
+                "--namespace",
+                namespace,
+                "--watch-namespace",
+                namespace,
+                "--identity",
+                identity,
+            ])
             .args(["--http-addr", &format!("127.0.0.1:{http_port}")])
-            .args(["--lease-duration-seconds", "4", "--lease-retry-seconds", "1"])
+            .args([
+                "--lease-duration-seconds",
+                "4",
+                "--lease-retry-seconds",
+                "1",
+            ])
             .args(extra)
             .env("RUST_LOG", "info,kube=warn,lekiwi_operator=debug")
             .stdin(Stdio::null())
@@ -225,7 +306,11 @@ impl OperatorProcess {
             .stderr(file)
             .spawn()
             .context("spawn lekiwi-operator")?;
-        Ok(Self { child, http_port, log })
+        Ok(Self {
+            child,
+            http_port,
+            log,
+        })
     }
 
     /// Waits until `/readyz` answers 200.
@@ -234,7 +319,10 @@ impl OperatorProcess {
         let start = Instant::now();
         loop {
             if let Some(status) = self.child.try_wait()? {
-                bail!("operator exited with {status} before it was ready; log:\n{}", self.log_text());
+                bail!(
+                    "operator exited with {status} before it was ready; log:\n{}",
+                    self.log_text()
+                );
             }
             if let Ok((200, _)) = http_get(port, "/readyz").await {
                 return Ok(());
@@ -274,7 +362,9 @@ impl OperatorProcess {
 
     /// SIGTERM, then waits for the exit.
     pub fn terminate(&mut self) -> Result<std::process::ExitStatus> {
-        Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status()?;
+        Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()?;
         let start = Instant::now();
         loop {
             if let Some(status) = self.child.try_wait()? {
@@ -301,18 +391,28 @@ impl Drop for OperatorProcess {
 
 /// Finds one sample in Prometheus text by its exact series name.
 pub fn sample(text: &str, series: &str) -> Option<f64> {
-    text.lines().find_map(|l| l.strip_prefix(series).and_then(|rest| rest.strip_prefix(' ')).and_then(|v| v.trim().parse().ok()))
+    text.lines().find_map(|l| {
+        l.strip_prefix(series)
+            .and_then(|rest| rest.strip_prefix(' '))
+            .and_then(|v| v.trim().parse().ok())
+    })
 }
 
 /// A minimal HTTP/1.0 GET against 127.0.0.1: status code and body.
 pub async fn http_get(port: u16, path: &str) -> Result<(u16, String)> {
     let mut stream = tokio::net::TcpStream::connect(("127.0.0.1", port)).await?;
-    stream.write_all(format!("GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").as_bytes()).await?;
+    stream
+        .write_all(format!("GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n").as_bytes())
+        .await?;
     let mut buf = Vec::new();
     stream.read_to_end(&mut buf).await?;
     let text = String::from_utf8_lossy(&buf).into_owned();
     let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
-    let code = head.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    let code = head
+        .split_whitespace()
+        .nth(1)
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
     Ok((code, body.to_owned()))
 }
 
@@ -333,7 +433,12 @@ pub struct GatewayStandIn {
 
 impl GatewayStandIn {
     /// Creates the gateway's Lease in `namespace` and renews it every second.
-    pub async fn start(client: &Client, namespace: &str, name: &str, lease_seconds: i32) -> Result<Self> {
+    pub async fn start(
+        client: &Client,
+        namespace: &str,
+        name: &str,
+        lease_seconds: i32,
+    ) -> Result<Self> {
         let leases: Api<Lease> = Api::namespaced(client.clone(), namespace);
         let mut me = Self {
             name: name.to_owned(),
@@ -370,13 +475,20 @@ impl GatewayStandIn {
     }
 
     async fn write(&mut self, robot: &str, fields: Value) -> Result<()> {
-        let entry = self.presence.entry(robot.to_owned()).or_insert_with(|| json!({}));
+        let entry = self
+            .presence
+            .entry(robot.to_owned())
+            .or_insert_with(|| json!({}));
         for (k, v) in fields.as_object().cloned().unwrap_or_default() {
             entry[k] = v;
         }
         let patch = json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": entry.clone() });
         self.robots
-            .patch_status(robot, &PatchParams::apply(GATEWAY_FIELD_MANAGER).force(), &Patch::Apply(&patch))
+            .patch_status(
+                robot,
+                &PatchParams::apply(GATEWAY_FIELD_MANAGER).force(),
+                &Patch::Apply(&patch),
+            )
             .await
             .with_context(|| format!("gateway stand-in: patch status of {robot}"))?;
         Ok(())
@@ -407,7 +519,8 @@ impl GatewayStandIn {
 
     /// A heartbeat worth recording.
     pub async fn heartbeat(&mut self, robot: &str) -> Result<()> {
-        self.write(robot, json!({ "lastHeartbeatTime": now() })).await
+        self.write(robot, json!({ "lastHeartbeatTime": now() }))
+            .await
     }
 
     /// Any other presence fields, e.g. `{"teleoperation": {"active": true}}`.
@@ -429,7 +542,10 @@ impl Drop for GatewayStandIn {
 
 async fn renew(leases: &Api<Lease>, name: &str, lease_seconds: i32) -> Result<()> {
     let lease = Lease {
-        metadata: ObjectMeta { name: Some(name.to_owned()), ..ObjectMeta::default() },
+        metadata: ObjectMeta {
+            name: Some(name.to_owned()),
+            ..ObjectMeta::default()
+        },
         spec: Some(LeaseSpec {
             holder_identity: Some(name.to_owned()),
             lease_duration_seconds: Some(lease_seconds),
@@ -437,30 +553,52 @@ async fn renew(leases: &Api<Lease>, name: &str, lease_seconds: i32) -> Result<()
             ..LeaseSpec::default()
         }),
     };
-    leases.patch(name, &PatchParams::apply(GATEWAY_FIELD_MANAGER).force(), &Patch::Apply(&lease)).await?;
+    leases
+        .patch(
+            name,
+            &PatchParams::apply(GATEWAY_FIELD_MANAGER).force(),
+            &Patch::Apply(&lease),
+        )
+        .await?;
     Ok(())
 }
 
 /// Now, as a Kubernetes `Time` string (second precision).
 pub fn now() -> String {
-    Timestamp::now().round(jiff::Unit::Second).unwrap_or_else(|_| Timestamp::now()).strftime("%Y-%m-%dT%H:%M:%SZ").to_string()
+    Timestamp::now()
+        .round(jiff::Unit::Second)
+        .unwrap_or_else(|_| Timestamp::now())
+        .strftime("%Y-%m-%dT%H:%M:%SZ")
+        .to_string()
 }
 
 /// Reads a robot.
 pub async fn get_robot(client: &Client, namespace: &str, name: &str) -> Result<Robot> {
-    Ok(Api::<Robot>::namespaced(client.clone(), namespace).get(name).await?)
+    Ok(Api::<Robot>::namespaced(client.clone(), namespace)
+        .get(name)
+        .await?)
 }
 
 /// Creates a robot from a minimal spec.
-pub async fn create_robot(client: &Client, namespace: &str, name: &str, labels: &[(&str, &str)]) -> Result<Robot> {
-    let labels: serde_json::Map<String, Value> = labels.iter().map(|(k, v)| (k.to_string(), json!(v))).collect();
+pub async fn create_robot(
+    client: &Client,
+    namespace: &str,
+    name: &str,
+    labels: &[(&str, &str)],
+) -> Result<Robot> {
+    let labels: serde_json::Map<String, Value> = labels
+        .iter()
+        .map(|(k, v)| (k.to_string(), json!(v)))
+        .collect();
     let robot: Robot = serde_json::from_value(json!({
         "apiVersion": "fleet.lekiwi.io/v1alpha1",
         "kind": "Robot",
         "metadata": { "name": name, "labels": labels },
         "spec": { "displayName": format!("Test robot {name}") }
     }))?;
-    Ok(Api::<Robot>::namespaced(client.clone(), namespace).create(&PostParams::default(), &robot).await?)
+    Ok(Api::<Robot>::namespaced(client.clone(), namespace)
+        .create(&PostParams::default(), &robot)
+        .await?)
 }
 
 /// Reads a file under the repository root.

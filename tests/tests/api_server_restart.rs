@@ -4,7 +4,9 @@
 use std::time::{Duration, Instant};
 
 use lekiwi_crds::RobotPhase;
-use lekiwi_tests::{ControlPlane, GatewayStandIn, OperatorProcess, create_robot, get_robot, namespace, wait_for};
+use lekiwi_tests::{
+    ControlPlane, GatewayStandIn, OperatorProcess, create_robot, get_robot, namespace, wait_for,
+};
 
 #[tokio::test]
 async fn refuses_without_crds_installs_them_and_survives_api_restart() -> anyhow::Result<()> {
@@ -14,25 +16,41 @@ async fn refuses_without_crds_installs_them_and_survives_api_restart() -> anyhow
 
     // No CRDs: a clear refusal, non-zero exit.
     let mut op = OperatorProcess::start(&cp, &ns, "op-nocrd", &[])?;
-    let err = op.wait_ready().await.expect_err("operator started without CRDs");
+    let err = op
+        .wait_ready()
+        .await
+        .expect_err("operator started without CRDs");
     let msg = err.to_string();
-    assert!(msg.contains("CustomResourceDefinition robots.fleet.lekiwi.io is not installed"), "{msg}");
+    assert!(
+        msg.contains("CustomResourceDefinition robots.fleet.lekiwi.io is not installed"),
+        "{msg}"
+    );
     assert!(msg.contains("--install-crds"), "{msg}");
     drop(op);
 
     // --install-crds installs them and starts.
-    let mut op = OperatorProcess::start(&cp, &ns, "op", &["--install-crds", "--heartbeat-grace-seconds", "30"])?;
+    let mut op = OperatorProcess::start(
+        &cp,
+        &ns,
+        "op",
+        &["--install-crds", "--heartbeat-grace-seconds", "30"],
+    )?;
     op.wait_ready().await?;
     create_robot(&client, &ns, "kiwi-1", &[]).await?;
     wait_for("kiwi-1 Pending", Duration::from_secs(20), || async {
-        (get_robot(&client, &ns, "kiwi-1").await.ok()?.status?.phase == Some(RobotPhase::Pending)).then_some(())
+        (get_robot(&client, &ns, "kiwi-1").await.ok()?.status?.phase == Some(RobotPhase::Pending))
+            .then_some(())
     })
     .await?;
 
     // Kill etcd and the API server, keep them down for a while, bring them back.
     cp.kill()?;
     tokio::time::sleep(Duration::from_secs(5)).await;
-    assert!(op.running(), "operator died while the API server was down:\n{}", op.log_text());
+    assert!(
+        op.running(),
+        "operator died while the API server was down:\n{}",
+        op.log_text()
+    );
     let restarted = Instant::now();
     cp.up()?;
     println!("control plane back after {:?}", restarted.elapsed());
@@ -43,17 +61,35 @@ async fn refuses_without_crds_installs_them_and_survives_api_restart() -> anyhow
     let mut gw = GatewayStandIn::start(&client, &ns, "gateway-r", 15).await?;
     gw.connect("kiwi-1").await?;
     let caught_up = Instant::now();
-    wait_for("kiwi-1 Online after the restart", Duration::from_secs(60), || async {
-        (get_robot(&client, &ns, "kiwi-1").await.ok()?.status?.phase == Some(RobotPhase::Online)).then_some(())
-    })
+    wait_for(
+        "kiwi-1 Online after the restart",
+        Duration::from_secs(60),
+        || async {
+            (get_robot(&client, &ns, "kiwi-1").await.ok()?.status?.phase
+                == Some(RobotPhase::Online))
+            .then_some(())
+        },
+    )
     .await
     .map_err(|e| anyhow::anyhow!("{e}\noperator log:\n{}", op.log_text()))?;
-    wait_for("kiwi-2 Pending after the restart", Duration::from_secs(30), || async {
-        (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase == Some(RobotPhase::Pending)).then_some(())
-    })
+    wait_for(
+        "kiwi-2 Pending after the restart",
+        Duration::from_secs(30),
+        || async {
+            (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase
+                == Some(RobotPhase::Pending))
+            .then_some(())
+        },
+    )
     .await?;
-    println!("operator caught up {:?} after the API server was ready", caught_up.elapsed());
+    println!(
+        "operator caught up {:?} after the API server was ready",
+        caught_up.elapsed()
+    );
     assert!(op.running());
-    assert_eq!(op.metric("lekiwi_leader_election_is_leader").await, Some(1.0));
+    assert_eq!(
+        op.metric("lekiwi_leader_election_is_leader").await,
+        Some(1.0)
+    );
     Ok(())
 }

@@ -4,7 +4,11 @@
 use lekiwi_tests::{ControlPlane, bin, namespace};
 
 fn text(out: &std::process::Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr))
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
 }
 
 #[tokio::test]
@@ -13,44 +17,96 @@ async fn crds_and_examples_apply_and_explain_reads_like_docs() -> anyhow::Result
     let client = cp.client().await?;
     let ns = namespace(&client, "res").await?;
 
-    let out = cp.kubectl(&["apply", "-n", &ns, "-f", "manifests/crds/", "-f", "manifests/examples/"]);
+    let out = cp.kubectl(&[
+        "apply",
+        "-n",
+        &ns,
+        "-f",
+        "manifests/crds/",
+        "-f",
+        "manifests/examples/",
+    ]);
     assert!(out.status.success(), "kubectl apply failed: {}", text(&out));
     let applied = text(&out);
-    assert!(applied.contains("robot.fleet.lekiwi.io/kiwi-01 created"), "{applied}");
-    assert!(applied.contains("robotdeployment.fleet.lekiwi.io/lab-a-stable created"), "{applied}");
+    assert!(
+        applied.contains("robot.fleet.lekiwi.io/kiwi-01 created"),
+        "{applied}"
+    );
+    assert!(
+        applied.contains("robotdeployment.fleet.lekiwi.io/lab-a-stable created"),
+        "{applied}"
+    );
 
     // The API server republishes its OpenAPI a moment after a CRD changes: poll briefly.
     let explain = |path: &'static str| {
-        lekiwi_tests::wait_for(path, std::time::Duration::from_secs(20), move || async move {
-            let out = cp.kubectl(&["explain", path]);
-            let t = text(&out);
-            (out.status.success() && t.contains("FIELDS")).then_some(t)
-        })
+        lekiwi_tests::wait_for(
+            path,
+            std::time::Duration::from_secs(20),
+            move || async move {
+                let out = cp.kubectl(&["explain", path]);
+                let t = text(&out);
+                (out.status.success() && t.contains("FIELDS")).then_some(t)
+            },
+        )
     };
     let release = explain("robot.spec.release").await?;
-    assert!(release.contains("The release this robot should run"), "{release}");
-    assert!(release.contains("digest\t<string>") && release.contains("version\t<string>"), "{release}");
+    assert!(
+        release.contains("The release this robot should run"),
+        "{release}"
+    );
+    assert!(
+        release.contains("digest\t<string>") && release.contains("version\t<string>"),
+        "{release}"
+    );
     let spec = explain("robot.spec").await?;
-    for field in ["displayName\t<string>", "hardware\t<Object>", "maintenance\t<boolean>", "release\t<Object>"] {
-        assert!(spec.contains(field), "kubectl explain robot.spec lacks {field}:\n{spec}");
+    for field in [
+        "displayName\t<string>",
+        "hardware\t<Object>",
+        "maintenance\t<boolean>",
+        "release\t<Object>",
+    ] {
+        assert!(
+            spec.contains(field),
+            "kubectl explain robot.spec lacks {field}:\n{spec}"
+        );
     }
     let strategy = explain("robotdeployment.spec.strategy").await?;
     let prose = strategy.split_whitespace().collect::<Vec<_>>().join(" ");
-    assert!(prose.contains("below it every robot updated so far is rolled back"), "{strategy}");
+    assert!(
+        prose.contains("below it every robot updated so far is rolled back"),
+        "{strategy}"
+    );
 
     // One category lists both kinds; short names work.
     let out = cp.kubectl(&["get", "lekiwi", "-n", &ns, "-o", "name"]);
     let names = text(&out);
     assert!(names.contains("robot.fleet.lekiwi.io/kiwi-03"), "{names}");
-    assert!(names.contains("robotdeployment.fleet.lekiwi.io/lab-a-stable"), "{names}");
+    assert!(
+        names.contains("robotdeployment.fleet.lekiwi.io/lab-a-stable"),
+        "{names}"
+    );
     let out = cp.kubectl(&["get", "rb", "-n", &ns]);
     let table = text(&out);
-    for col in ["NAME", "PHASE", "RELEASE", "DESIRED", "TELEOP", "HEARTBEAT", "AGE"] {
-        assert!(table.lines().next().unwrap_or("").contains(col), "missing column {col}: {table}");
+    for col in [
+        "NAME",
+        "PHASE",
+        "RELEASE",
+        "DESIRED",
+        "TELEOP",
+        "HEARTBEAT",
+        "AGE",
+    ] {
+        assert!(
+            table.lines().next().unwrap_or("").contains(col),
+            "missing column {col}: {table}"
+        );
     }
     let out = cp.kubectl(&["get", "rdeploy", "-n", &ns]);
     let table = text(&out);
-    assert!(table.contains("PROGRESS") && table.contains("lab-a-stable") && table.contains("1.1.0"), "{table}");
+    assert!(
+        table.contains("PROGRESS") && table.contains("lab-a-stable") && table.contains("1.1.0"),
+        "{table}"
+    );
     Ok(())
 }
 
@@ -114,10 +170,20 @@ async fn nonsense_is_refused_with_the_reason() -> anyhow::Result<()> {
         let path = dir.path().join("obj.json");
         std::fs::write(&path, body)?;
         // --validate=false: the API server itself must refuse, not kubectl's client-side check.
-        let out = cp.kubectl(&["create", "--validate=false", "-n", &ns, "-f", path.to_str().unwrap()]);
+        let out = cp.kubectl(&[
+            "create",
+            "--validate=false",
+            "-n",
+            &ns,
+            "-f",
+            path.to_str().unwrap(),
+        ]);
         let msg = text(&out);
         assert!(!out.status.success(), "{what} was accepted: {msg}");
-        assert!(msg.contains(reason), "{what}: expected {reason:?} in:\n{msg}");
+        assert!(
+            msg.contains(reason),
+            "{what}: expected {reason:?} in:\n{msg}"
+        );
     }
     // A valid count and a valid percentage are both accepted.
     for (name, batch) in [("count", "3"), ("percent", "\"20%\"")] {
@@ -129,7 +195,11 @@ async fn nonsense_is_refused_with_the_reason() -> anyhow::Result<()> {
         let path = dir.path().join("ok.json");
         std::fs::write(&path, body)?;
         let out = cp.kubectl(&["apply", "-n", &ns, "-f", path.to_str().unwrap()]);
-        assert!(out.status.success(), "batchSize {batch} refused: {}", text(&out));
+        assert!(
+            out.status.success(),
+            "batchSize {batch} refused: {}",
+            text(&out)
+        );
     }
     // Defaults are filled in by the API server.
     let out = cp.kubectl(&["get", "rdeploy", "ok-count", "-n", &ns, "-o", "jsonpath={.spec.strategy.successThreshold} {.spec.strategy.canary} {.spec.strategy.teleoperated}"]);
@@ -147,8 +217,15 @@ async fn kubectl_plugin_lists_robots() -> anyhow::Result<()> {
 
     // kubectl finds the plugin on PATH, as users run it.
     let plugin_dir = tempfile::tempdir()?;
-    std::os::unix::fs::symlink(bin("kubectl-lekiwi"), plugin_dir.path().join("kubectl-lekiwi"))?;
-    let path = format!("{}:{}", plugin_dir.path().display(), std::env::var("PATH").unwrap_or_default());
+    std::os::unix::fs::symlink(
+        bin("kubectl-lekiwi"),
+        plugin_dir.path().join("kubectl-lekiwi"),
+    )?;
+    let path = format!(
+        "{}:{}",
+        plugin_dir.path().display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
     let out = std::process::Command::new(lekiwi_tests::tool("kubectl"))
         .args(["lekiwi", "robots", "-n", &ns])
         .env("KUBECONFIG", cp.kubeconfig())
@@ -168,7 +245,9 @@ async fn kubectl_plugin_lists_robots() -> anyhow::Result<()> {
     let robots: Vec<lekiwi_crds::Robot> = serde_json::from_slice(&out.stdout)?;
     assert_eq!(robots.len(), 3);
 
-    let out = std::process::Command::new(bin("kubectl-lekiwi")).arg("--help").output()?;
+    let out = std::process::Command::new(bin("kubectl-lekiwi"))
+        .arg("--help")
+        .output()?;
     assert!(text(&out).contains("robots"));
     Ok(())
 }

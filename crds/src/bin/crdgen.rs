@@ -6,7 +6,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
     let targets: Vec<PathBuf> = match std::env::args().nth(1).as_deref() {
         Some("--help" | "-h") => {
-            println!("Usage: crdgen [--stdout | DIR...]\n\nWrites the CRDs to manifests/crds/ and charts/lekiwi-operator/crds/ (default), to the given directories, or to stdout.");
+            println!(
+                "Usage: crdgen [--stdout | DIR...]\n\nWrites the CRDs to manifests/crds/ and charts/lekiwi-operator/crds/ (default), to the given directories, or to stdout."
+            );
             return Ok(());
         }
         Some("--stdout") => {
@@ -16,7 +18,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             return Ok(());
         }
         Some(_) => std::env::args().skip(1).map(PathBuf::from).collect(),
-        None => vec![root.join("manifests/crds"), root.join("charts/lekiwi-operator/crds")],
+        None => vec![
+            root.join("manifests/crds"),
+            root.join("charts/lekiwi-operator/crds"),
+        ],
     };
     for dir in targets {
         std::fs::create_dir_all(&dir)?;

@@ -32,14 +32,28 @@ pub struct Context {
 
 impl Context {
     /// A context with no failures recorded.
-    pub fn new(client: kube::Client, recorder: Recorder, metrics: Metrics, config: Arc<Config>) -> Self {
-        Self { client, recorder, metrics, config, gateway_leases: None, failures: Arc::default() }
+    pub fn new(
+        client: kube::Client,
+        recorder: Recorder,
+        metrics: Metrics,
+        config: Arc<Config>,
+    ) -> Self {
+        Self {
+            client,
+            recorder,
+            metrics,
+            config,
+            gateway_leases: None,
+            failures: Arc::default(),
+        }
     }
 
     /// Delay before retrying an object that just failed: 1 s, doubling, at most 5 minutes.
     pub fn next_backoff(&self, name: &str, namespace: &str) -> Duration {
         let mut failures = self.failures.lock().unwrap_or_else(|p| p.into_inner());
-        let n = failures.entry((namespace.to_owned(), name.to_owned())).or_insert(0);
+        let n = failures
+            .entry((namespace.to_owned(), name.to_owned()))
+            .or_insert(0);
         *n = n.saturating_add(1);
         Duration::from_secs(1u64 << (*n - 1).min(8)).min(Duration::from_secs(300))
     }

@@ -11,11 +11,11 @@ use std::time::Duration;
 use futures::StreamExt;
 use jiff::Timestamp;
 use k8s_openapi::api::coordination::v1::Lease;
+use kube::core::DeserializeGuard;
 use kube::runtime::controller::{Action, Controller};
 use kube::runtime::events::{Event, EventType};
 use kube::runtime::reflector::{ObjectRef, Store};
 use kube::runtime::{WatchStreamExt, reflector, watcher};
-use kube::core::DeserializeGuard;
 use kube::{Api, Resource, ResourceExt};
 use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
@@ -44,13 +44,25 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         () = cancel.cancelled() => { lease_task.abort(); return Ok(()); }
         r = lease_store.wait_until_ready() => if r.is_err() { return Err(Error::TaskStopped("lease reflector")); }
     }
-    let ctx = Arc::new(Context { gateway_leases: Some(lease_store.clone()), ..(*ctx).clone() });
+    let ctx = Arc::new(Context {
+        gateway_leases: Some(lease_store.clone()),
+        ..(*ctx).clone()
+    });
 
     let controller = Controller::new(robots, watcher::Config::default().any_semantic())
-        .with_config(kube::runtime::controller::Config::default().concurrency(ctx.config.concurrency));
+        .with_config(
+            kube::runtime::controller::Config::default().concurrency(ctx.config.concurrency),
+        );
     let robot_store = controller.store();
-    let (trigger_tx, trigger_rx) = futures::channel::mpsc::channel::<ObjectRef<DeserializeGuard<Robot>>>(1024);
-    let liveness = tokio::spawn(watch_gateways(ctx.clone(), robot_store, lease_store, trigger_tx, cancel.clone()));
+    let (trigger_tx, trigger_rx) =
+        futures::channel::mpsc::channel::<ObjectRef<DeserializeGuard<Robot>>>(1024);
+    let liveness = tokio::spawn(watch_gateways(
+        ctx.clone(),
+        robot_store,
+        lease_store,
+        trigger_tx,
+        cancel.clone(),
+    ));
 
     info!("robot controller started");
     let shutdown = cancel.clone();
@@ -73,15 +85,24 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
 
 /// Whether a Lease was renewed within its duration.
 fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
-    let Some(spec) = lease.spec.as_ref() else { return false };
+    let Some(spec) = lease.spec.as_ref() else {
+        return false;
+    };
     let (Some(renew), Some(secs)) = (spec.renew_time.as_ref(), spec.lease_duration_seconds) else {
         return false;
     };
-    spec.holder_identity.as_deref().is_some_and(|h| !h.is_empty())
+    spec.holder_identity
+        .as_deref()
+        .is_some_and(|h| !h.is_empty())
         && now.duration_since(renew.0) <= jiff::SignedDuration::from_secs(i64::from(secs))
 }
 
-fn gateway_state(store: &Store<Lease>, namespace: &str, gateway: &str, now: Timestamp) -> GatewayState {
+fn gateway_state(
+    store: &Store<Lease>,
+    namespace: &str,
+    gateway: &str,
+    now: Timestamp,
+) -> GatewayState {
     match store.get(&ObjectRef::new(gateway).within(namespace)) {
         Some(lease) if lease_alive(&lease, now) => GatewayState::Alive,
         _ => GatewayState::Gone,
@@ -106,19 +127,27 @@ async fn watch_gateways(
         }
         let now = Timestamp::now();
         let all = robots.state();
-        let mut by_gateway: HashMap<String, Vec<ObjectRef<DeserializeGuard<Robot>>>> = HashMap::new();
-        let mut phases: HashMap<&'static str, i64> = RobotPhase::ALL.iter().map(|p| (p.as_str(), 0)).collect();
+        let mut by_gateway: HashMap<String, Vec<ObjectRef<DeserializeGuard<Robot>>>> =
+            HashMap::new();
+        let mut phases: HashMap<&'static str, i64> =
+            RobotPhase::ALL.iter().map(|p| (p.as_str(), 0)).collect();
         for guard in &all {
             let Ok(robot) = &guard.0 else { continue };
             if let Some(phase) = robot.status.as_ref().and_then(|s| s.phase) {
                 *phases.entry(phase.as_str()).or_default() += 1;
             }
             if let Some(gw) = robot.status.as_ref().and_then(|s| s.gateway.clone()) {
-                by_gateway.entry(gw).or_default().push(ObjectRef::from_obj(guard.as_ref()));
+                by_gateway
+                    .entry(gw)
+                    .or_default()
+                    .push(ObjectRef::from_obj(guard.as_ref()));
             }
         }
         for (phase, n) in phases {
-            ctx.metrics.robots.get_or_create(&PhaseLabels { phase }).set(n);
+            ctx.metrics
+                .robots
+                .get_or_create(&PhaseLabels { phase })
+                .set(n);
         }
         let mut current = HashMap::new();
         for (gateway, refs) in by_gateway {
@@ -151,11 +180,19 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     async move {
         let _timer = ctx.metrics.reconcile_started(ControllerName::robot);
         let now = Timestamp::now();
-        let gateway = robot.status.as_ref().and_then(|s| s.gateway.as_deref()).map(|gw| match &ctx.gateway_leases {
-            Some(store) => gateway_state(store, &ctx.config.namespace, gw, now),
-            None => GatewayState::Gone,
-        });
-        let facts = Facts { now, heartbeat_grace: Duration::from_secs(ctx.config.heartbeat_grace_seconds), gateway };
+        let gateway = robot
+            .status
+            .as_ref()
+            .and_then(|s| s.gateway.as_deref())
+            .map(|gw| match &ctx.gateway_leases {
+                Some(store) => gateway_state(store, &ctx.config.namespace, gw, now),
+                None => GatewayState::Gone,
+            });
+        let facts = Facts {
+            now,
+            heartbeat_grace: Duration::from_secs(ctx.config.heartbeat_grace_seconds),
+            gateway,
+        };
         let plan = plan::plan(robot, &facts);
         if plan.differs_from(robot) {
             let api: Api<Robot> = Api::namespaced(ctx.client.clone(), &namespace);
@@ -163,7 +200,12 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
             let old_phase = robot.status.as_ref().and_then(|s| s.phase);
             if let Some(reason) = plan::transition_reason(old_phase, plan.phase) {
                 info!(from = ?old_phase, to = %plan.phase, "robot phase changed");
-                ctx.metrics.robot_transitions.get_or_create(&PhaseLabels { phase: plan.phase.as_str() }).inc();
+                ctx.metrics
+                    .robot_transitions
+                    .get_or_create(&PhaseLabels {
+                        phase: plan.phase.as_str(),
+                    })
+                    .inc();
                 publish_transition(&ctx, robot, reason, &plan).await;
             }
         }
@@ -184,7 +226,11 @@ async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &p
         .find(|c| c.r#type == lekiwi_crds::robot::CONDITION_CONNECTED)
         .map(|c| c.message.clone());
     let event = Event {
-        type_: if matches!(plan.phase, RobotPhase::Offline | RobotPhase::Unknown) { EventType::Warning } else { EventType::Normal },
+        type_: if matches!(plan.phase, RobotPhase::Offline | RobotPhase::Unknown) {
+            EventType::Warning
+        } else {
+            EventType::Normal
+        },
         reason: reason.to_owned(),
         note,
         action: "UpdatePhase".to_owned(),
@@ -199,7 +245,10 @@ fn error_policy(guard: Arc<DeserializeGuard<Robot>>, error: &Error, ctx: Arc<Con
     let (name, namespace) = (guard.name_any(), guard.namespace().unwrap_or_default());
     ctx.metrics
         .reconcile_errors
-        .get_or_create(&ErrorLabels { controller: ControllerName::robot, reason: error.metric_reason() })
+        .get_or_create(&ErrorLabels {
+            controller: ControllerName::robot,
+            reason: error.metric_reason(),
+        })
         .inc();
     let delay = ctx.next_backoff(&name, &namespace);
     warn!(robot = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed");

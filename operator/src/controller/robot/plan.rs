@@ -6,7 +6,9 @@ use std::time::Duration;
 use jiff::Timestamp;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_crds::condition::merge_conditions;
-use lekiwi_crds::robot::{CONDITION_CONNECTED, CONDITION_HEALTHY, CONDITION_TELEOPERATING, CONDITION_UP_TO_DATE};
+use lekiwi_crds::robot::{
+    CONDITION_CONNECTED, CONDITION_HEALTHY, CONDITION_TELEOPERATING, CONDITION_UP_TO_DATE,
+};
 use lekiwi_crds::{Condition, ConditionStatus, Robot, RobotPhase};
 
 /// What the controller knows about the gateway named in a robot's status.
@@ -56,7 +58,9 @@ impl Plan {
     /// Whether writing this plan would change the robot's status (ignoring timestamps of
     /// conditions whose status is unchanged, which `merge_conditions` already kept).
     pub fn differs_from(&self, robot: &Robot) -> bool {
-        let Some(status) = robot.status.as_ref() else { return true };
+        let Some(status) = robot.status.as_ref() else {
+            return true;
+        };
         status.phase != Some(self.phase)
             || status.observed_generation != self.observed_generation
             || status.conditions != self.conditions
@@ -98,9 +102,24 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
     let gateway = status.gateway.as_deref().unwrap_or("none");
     let grace = facts.heartbeat_grace.as_secs();
     let connected = match presence {
-        Presence::Online => cond(CONDITION_CONNECTED, ConditionStatus::True, "Connected", format!("connected through gateway {gateway}")),
-        Presence::NeverConnected => cond(CONDITION_CONNECTED, ConditionStatus::False, "NeverConnected", "the robot's agent has never connected"),
-        Presence::Disconnected => cond(CONDITION_CONNECTED, ConditionStatus::False, "Disconnected", format!("the agent disconnected from gateway {gateway}")),
+        Presence::Online => cond(
+            CONDITION_CONNECTED,
+            ConditionStatus::True,
+            "Connected",
+            format!("connected through gateway {gateway}"),
+        ),
+        Presence::NeverConnected => cond(
+            CONDITION_CONNECTED,
+            ConditionStatus::False,
+            "NeverConnected",
+            "the robot's agent has never connected",
+        ),
+        Presence::Disconnected => cond(
+            CONDITION_CONNECTED,
+            ConditionStatus::False,
+            "Disconnected",
+            format!("the agent disconnected from gateway {gateway}"),
+        ),
         Presence::HeartbeatExpired => cond(
             CONDITION_CONNECTED,
             ConditionStatus::False,
@@ -117,27 +136,72 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
 
     let online = presence == Presence::Online;
     let healthy = match (&status.health, online) {
-        (_, false) => cond(CONDITION_HEALTHY, ConditionStatus::Unknown, "NotConnected", "health is reported only while connected"),
-        (None, true) => cond(CONDITION_HEALTHY, ConditionStatus::Unknown, "NotReported", "the agent has not reported a health check"),
-        (Some(h), true) if h.healthy => cond(CONDITION_HEALTHY, ConditionStatus::True, "HealthChecksPassed", "every health check passes"),
+        (_, false) => cond(
+            CONDITION_HEALTHY,
+            ConditionStatus::Unknown,
+            "NotConnected",
+            "health is reported only while connected",
+        ),
+        (None, true) => cond(
+            CONDITION_HEALTHY,
+            ConditionStatus::Unknown,
+            "NotReported",
+            "the agent has not reported a health check",
+        ),
+        (Some(h), true) if h.healthy => cond(
+            CONDITION_HEALTHY,
+            ConditionStatus::True,
+            "HealthChecksPassed",
+            "every health check passes",
+        ),
         (Some(h), true) => cond(
             CONDITION_HEALTHY,
             ConditionStatus::False,
             "HealthCheckFailed",
-            h.message.clone().unwrap_or_else(|| "a health check failed".into()),
+            h.message
+                .clone()
+                .unwrap_or_else(|| "a health check failed".into()),
         ),
     };
     let teleoperating = match (&status.teleoperation, online) {
-        (_, false) => cond(CONDITION_TELEOPERATING, ConditionStatus::Unknown, "NotConnected", "teleoperation is reported only while connected"),
-        (None, true) => cond(CONDITION_TELEOPERATING, ConditionStatus::Unknown, "NotReported", "the agent has not reported teleoperation"),
-        (Some(t), true) if t.active => cond(CONDITION_TELEOPERATING, ConditionStatus::True, "TeleoperationDetected", "somebody is operating the robot"),
-        (Some(_), true) => cond(CONDITION_TELEOPERATING, ConditionStatus::False, "Idle", "no teleoperation detected"),
+        (_, false) => cond(
+            CONDITION_TELEOPERATING,
+            ConditionStatus::Unknown,
+            "NotConnected",
+            "teleoperation is reported only while connected",
+        ),
+        (None, true) => cond(
+            CONDITION_TELEOPERATING,
+            ConditionStatus::Unknown,
+            "NotReported",
+            "the agent has not reported teleoperation",
+        ),
+        (Some(t), true) if t.active => cond(
+            CONDITION_TELEOPERATING,
+            ConditionStatus::True,
+            "TeleoperationDetected",
+            "somebody is operating the robot",
+        ),
+        (Some(_), true) => cond(
+            CONDITION_TELEOPERATING,
+            ConditionStatus::False,
+            "Idle",
+            "no teleoperation detected",
+        ),
     };
     let up_to_date = match (&robot.spec.release, &status.current_release) {
-        (None, _) => cond(CONDITION_UP_TO_DATE, ConditionStatus::True, "NoReleaseRequested", "spec.release is not set"),
-        (Some(want), Some(have)) if want == have => {
-            cond(CONDITION_UP_TO_DATE, ConditionStatus::True, "RunningDesiredRelease", format!("runs {want}"))
-        }
+        (None, _) => cond(
+            CONDITION_UP_TO_DATE,
+            ConditionStatus::True,
+            "NoReleaseRequested",
+            "spec.release is not set",
+        ),
+        (Some(want), Some(have)) if want == have => cond(
+            CONDITION_UP_TO_DATE,
+            ConditionStatus::True,
+            "RunningDesiredRelease",
+            format!("runs {want}"),
+        ),
         (Some(want), Some(have)) => cond(
             CONDITION_UP_TO_DATE,
             ConditionStatus::False,
@@ -163,14 +227,26 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
 
     // An Online robot turns Offline when its heartbeat ages past the grace: wake up just then.
     let requeue_after = match (presence, heartbeat_age) {
-        (Presence::Online, Some(age)) => Some(facts.heartbeat_grace.saturating_sub(age) + Duration::from_millis(500)),
+        (Presence::Online, Some(age)) => {
+            Some(facts.heartbeat_grace.saturating_sub(age) + Duration::from_millis(500))
+        }
         _ => None,
     };
 
-    Plan { phase, conditions, observed_generation: generation, requeue_after }
+    Plan {
+        phase,
+        conditions,
+        observed_generation: generation,
+        requeue_after,
+    }
 }
 
-fn cond(t: &'static str, s: ConditionStatus, reason: &'static str, message: impl Into<String>) -> (&'static str, ConditionStatus, &'static str, String) {
+fn cond(
+    t: &'static str,
+    s: ConditionStatus,
+    reason: &'static str,
+    message: impl Into<String>,
+) -> (&'static str, ConditionStatus, &'static str, String) {
     (t, s, reason, message.into())
 }
 
@@ -199,7 +275,11 @@ mod tests {
     }
 
     fn facts(now: &str, gateway: Option<GatewayState>) -> Facts {
-        Facts { now: now.parse().unwrap(), heartbeat_grace: GRACE, gateway }
+        Facts {
+            now: now.parse().unwrap(),
+            heartbeat_grace: GRACE,
+            gateway,
+        }
     }
 
     fn status_of(plan: &Plan, t: &str) -> (ConditionStatus, String) {
@@ -225,10 +305,15 @@ status:
 
     #[test]
     fn new_robot_is_pending_without_an_event() {
-        let r = robot("apiVersion: fleet.lekiwi.io/v1alpha1\nkind: Robot\nmetadata: {name: a, generation: 1}\nspec: {}\n");
+        let r = robot(
+            "apiVersion: fleet.lekiwi.io/v1alpha1\nkind: Robot\nmetadata: {name: a, generation: 1}\nspec: {}\n",
+        );
         let p = plan(&r, &facts("2026-11-22T10:00:00Z", None));
         assert_eq!(p.phase, RobotPhase::Pending);
-        assert_eq!(status_of(&p, "Connected"), (ConditionStatus::False, "NeverConnected".into()));
+        assert_eq!(
+            status_of(&p, "Connected"),
+            (ConditionStatus::False, "NeverConnected".into())
+        );
         assert_eq!(status_of(&p, "UpToDate").0, ConditionStatus::True);
         assert_eq!(p.observed_generation, Some(1));
         assert_eq!(p.requeue_after, None);
@@ -237,44 +322,77 @@ status:
 
     #[test]
     fn fresh_heartbeat_through_live_gateway_is_online_and_requeues_at_expiry() {
-        let p = plan(&robot(CONNECTED), &facts("2026-11-22T10:00:20Z", Some(GatewayState::Alive)));
+        let p = plan(
+            &robot(CONNECTED),
+            &facts("2026-11-22T10:00:20Z", Some(GatewayState::Alive)),
+        );
         assert_eq!(p.phase, RobotPhase::Online);
         assert_eq!(status_of(&p, "Connected").0, ConditionStatus::True);
         assert_eq!(status_of(&p, "Healthy").0, ConditionStatus::True);
-        assert_eq!(status_of(&p, "Teleoperating"), (ConditionStatus::True, "TeleoperationDetected".into()));
-        assert_eq!(status_of(&p, "UpToDate"), (ConditionStatus::False, "ReleasePending".into()));
+        assert_eq!(
+            status_of(&p, "Teleoperating"),
+            (ConditionStatus::True, "TeleoperationDetected".into())
+        );
+        assert_eq!(
+            status_of(&p, "UpToDate"),
+            (ConditionStatus::False, "ReleasePending".into())
+        );
         assert_eq!(p.requeue_after, Some(Duration::from_millis(40_500)));
-        assert_eq!(transition_reason(Some(RobotPhase::Pending), p.phase), Some("RobotOnline"));
+        assert_eq!(
+            transition_reason(Some(RobotPhase::Pending), p.phase),
+            Some("RobotOnline")
+        );
     }
 
     #[test]
     fn stale_heartbeat_is_offline() {
-        let p = plan(&robot(CONNECTED), &facts("2026-11-22T10:01:01Z", Some(GatewayState::Alive)));
+        let p = plan(
+            &robot(CONNECTED),
+            &facts("2026-11-22T10:01:01Z", Some(GatewayState::Alive)),
+        );
         assert_eq!(p.phase, RobotPhase::Offline);
-        assert_eq!(status_of(&p, "Connected"), (ConditionStatus::False, "HeartbeatExpired".into()));
+        assert_eq!(
+            status_of(&p, "Connected"),
+            (ConditionStatus::False, "HeartbeatExpired".into())
+        );
         assert_eq!(status_of(&p, "Healthy").0, ConditionStatus::Unknown);
         assert_eq!(p.requeue_after, None);
     }
 
     #[test]
     fn expired_gateway_lease_is_unknown() {
-        let p = plan(&robot(CONNECTED), &facts("2026-11-22T10:00:05Z", Some(GatewayState::Gone)));
+        let p = plan(
+            &robot(CONNECTED),
+            &facts("2026-11-22T10:00:05Z", Some(GatewayState::Gone)),
+        );
         assert_eq!(p.phase, RobotPhase::Unknown);
-        assert_eq!(status_of(&p, "Connected"), (ConditionStatus::Unknown, "GatewayLost".into()));
+        assert_eq!(
+            status_of(&p, "Connected"),
+            (ConditionStatus::Unknown, "GatewayLost".into())
+        );
     }
 
     #[test]
     fn disconnect_is_offline_and_maintenance_wins() {
         let mut r = robot(CONNECTED);
         r.status.as_mut().unwrap().connected = Some(false);
-        let p = plan(&r, &facts("2026-11-22T10:00:05Z", Some(GatewayState::Alive)));
+        let p = plan(
+            &r,
+            &facts("2026-11-22T10:00:05Z", Some(GatewayState::Alive)),
+        );
         assert_eq!(p.phase, RobotPhase::Offline);
         assert_eq!(status_of(&p, "Connected").1, "Disconnected");
 
         r.spec.maintenance = true;
-        let p = plan(&r, &facts("2026-11-22T10:00:05Z", Some(GatewayState::Alive)));
+        let p = plan(
+            &r,
+            &facts("2026-11-22T10:00:05Z", Some(GatewayState::Alive)),
+        );
         assert_eq!(p.phase, RobotPhase::Maintenance);
-        assert_eq!(transition_reason(Some(RobotPhase::Offline), p.phase), Some("RobotMaintenance"));
+        assert_eq!(
+            transition_reason(Some(RobotPhase::Offline), p.phase),
+            Some("RobotMaintenance")
+        );
     }
 
     #[test]
@@ -289,7 +407,13 @@ status:
         status.observed_generation = first.observed_generation;
         let later = facts("2026-11-22T10:00:30Z", Some(GatewayState::Alive));
         let second = plan(&r, &later);
-        assert!(!second.differs_from(&r), "an unchanged robot must not be written again");
-        assert_eq!(second.conditions[0].last_transition_time, first.conditions[0].last_transition_time);
+        assert!(
+            !second.differs_from(&r),
+            "an unchanged robot must not be written again"
+        );
+        assert_eq!(
+            second.conditions[0].last_transition_time,
+            first.conditions[0].last_transition_time
+        );
     }
 }

@@ -19,9 +19,17 @@ pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan) -> Result<()> {
     if let Some(generation) = plan.observed_generation {
         status["observedGeneration"] = json!(generation);
     }
-    let patch = json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": status });
-    api.patch_status(name, &PatchParams::apply(FIELD_MANAGER).force(), &Patch::Apply(&patch))
-        .await
-        .map_err(|source| Error::PatchStatus { object: name.to_owned(), source })?;
+    let patch =
+        json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": status });
+    api.patch_status(
+        name,
+        &PatchParams::apply(FIELD_MANAGER).force(),
+        &Patch::Apply(&patch),
+    )
+    .await
+    .map_err(|source| Error::PatchStatus {
+        object: name.to_owned(),
+        source,
+    })?;
     Ok(())
 }

@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+#! Runs the whole test suite: installs what is missing, checks formatting and lints, builds,
+#! starts the shared local control plane and runs every unit and integration test with nextest.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+log() { printf '\033[1;34m[test]\033[0m %s\n' "$*" >&2; }
+start=$(date +%s)
+
+bash scripts/setup.sh
+log "cargo fmt --check"
+cargo fmt --all -- --check
+log "cargo clippy --all-targets -- -D warnings"
+cargo clippy --quiet --workspace --all-targets -- -D warnings
+log "building binaries"
+cargo build --quiet --workspace --bins
+# The tests' own control plane, apart from the quickstart's (whose operator watches everything).
+export LEKIWI_CP_DIR="${LEKIWI_CP_DIR:-$HOME/.cache/lekiwi/test-control-plane}"
+log "starting the shared control plane ($LEKIWI_CP_DIR)"
+bash scripts/control-plane.sh up
+eval "$(bash scripts/control-plane.sh env)"
+
+log "running tests"
+if cargo nextest --version >/dev/null 2>&1; then
+  cargo nextest run --workspace --no-fail-fast "$@"
+else
+  log "cargo-nextest not found; falling back to cargo test"
+  cargo test --workspace --no-fail-fast "$@"
+fi
+log "all tests passed in $(( $(date +%s) - start ))s"
