@@ -90,8 +90,8 @@ impl ControlPlane {
                 .unwrap_or_else(|_| {
                     let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
                     // Not the quickstart's control plane: an operator left running there watches
-                // every namespace and would fight the tests' own operators.
-                PathBuf::from(home).join(".cache/lekiwi/test-control-plane")
+                    // every namespace and would fight the tests' own operators.
+                    PathBuf::from(home).join(".cache/lekiwi/test-control-plane")
                 });
             let cp = ControlPlane { dir, private: None };
             cp.up().expect("start the shared control plane");
