@@ -32,6 +32,7 @@ pub struct Condition {
     #[schemars(length(min = 1, max = 1024))]
     pub reason: String,
     /// Human-readable explanation of the current status; may be empty.
+    #[serde(default)]
     pub message: String,
     /// The `metadata.generation` the condition was computed from.
     #[serde(default, skip_serializing_if = "Option::is_none")]

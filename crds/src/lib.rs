@@ -28,6 +28,7 @@ pub fn crds()
 /// - drops `nullable: true`: the OpenAPI v2 that Kubernetes 1.20 publishes cannot say
 ///   "nullable", so it drops the type of every such field and `kubectl explain` shows `<>`
 ///   without its sub-fields. Our writers omit unset fields instead of sending `null`.
+/// - drops `default: null` and `default: ""`, which Kubernetes 1.20 refuses for a string.
 /// - joins the line breaks of `///` comments, so descriptions wrap as prose.
 fn polish(
     crd: k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition,
@@ -37,6 +38,14 @@ fn polish(
             serde_json::Value::Object(map) => {
                 if map.get("nullable") == Some(&serde_json::Value::Bool(true)) {
                     map.remove("nullable");
+                }
+                // `default: null` is invalid for a non-nullable field, and Kubernetes 1.20 turns a
+                // `default: ""` sent by server-side apply into null as well. Our readers default
+                // missing strings themselves (`#[serde(default)]`), so drop both.
+                if matches!(map.get("default"), Some(serde_json::Value::Null))
+                    || map.get("default") == Some(&serde_json::json!(""))
+                {
+                    map.remove("default");
                 }
                 if let Some(serde_json::Value::String(d)) = map.get_mut("description") {
                     *d = d.split('\n').map(str::trim).collect::<Vec<_>>().join(" ");

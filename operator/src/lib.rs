@@ -104,21 +104,48 @@ pub async fn run(config: Config) -> Result<()> {
     ready.store(true, Ordering::Release);
     info!(%identity, namespace = %config.namespace, "lekiwi-operator started");
 
+    // Which task ended first; a finished JoinHandle must not be awaited again below.
+    let (mut http_done, mut elector_done, mut controllers_done) = (false, false, false);
     let outcome = tokio::select! {
-        r = &mut http_task => Err(match r { Ok(Err(source)) => Error::Serve { addr: config.http_addr, source }, _ => Error::TaskStopped("http server") }),
-        _ = &mut elector_task => if cancel.is_cancelled() { Ok(()) } else { Err(Error::TaskStopped("leader election")) },
-        r = &mut controllers_task => match r { Ok(Ok(())) if cancel.is_cancelled() => Ok(()), Ok(Err(e)) => Err(e), _ => Err(Error::TaskStopped("controllers")) },
+        r = &mut http_task => {
+            http_done = true;
+            Err(match r {
+                Ok(Err(source)) => Error::Serve { addr: config.http_addr, source },
+                _ => Error::TaskStopped("http server"),
+            })
+        }
+        _ = &mut elector_task => {
+            elector_done = true;
+            if cancel.is_cancelled() { Ok(()) } else { Err(Error::TaskStopped("leader election")) }
+        }
+        r = &mut controllers_task => {
+            controllers_done = true;
+            match r {
+                Ok(Ok(())) if cancel.is_cancelled() => Ok(()),
+                Ok(Err(e)) => Err(e),
+                _ => Err(Error::TaskStopped("controllers")),
+            }
+        }
         () = cancel.cancelled() => Ok(()),
     };
     cancel.cancel();
     ready.store(false, Ordering::Release);
     // Let the controllers drain, the Lease be released and the HTTP server close.
-    let _ = tokio::time::timeout(std::time::Duration::from_secs(10), async {
-        let _ = controllers_task.await;
-        let _ = elector_task.await;
-        let _ = http_task.await;
+    let drained = tokio::time::timeout(std::time::Duration::from_secs(10), async {
+        if !controllers_done {
+            let _ = controllers_task.await;
+        }
+        if !elector_done {
+            let _ = elector_task.await;
+        }
+        if !http_done {
+            let _ = http_task.await;
+        }
     })
     .await;
+    if drained.is_err() {
+        tracing::warn!("shutdown did not finish within 10s; exiting anyway");
+    }
     info!("lekiwi-operator stopped");
     outcome
 }

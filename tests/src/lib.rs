@@ -150,6 +150,36 @@ impl ControlPlane {
         Ok(Client::try_from(config)?)
     }
 
+    /// A kubeconfig for the same server with another bearer token.
+    pub fn kubeconfig_with_token(&self, token: &str, path: &Path) -> Result<()> {
+        let mut kc: serde_yaml::Value =
+            serde_yaml::from_str(&std::fs::read_to_string(self.kubeconfig())?)?;
+        let users = kc["users"]
+            .as_sequence_mut()
+            .context("kubeconfig has no users")?;
+        for user in users.iter_mut() {
+            user["user"] =
+                serde_yaml::to_value(std::collections::BTreeMap::from([("token", token)]))?;
+        }
+        std::fs::write(path, serde_yaml::to_string(&kc)?)?;
+        Ok(())
+    }
+
+    /// Runs a tool from the cache (`kubectl`, `helm`) against this control plane.
+    pub fn tool(&self, name: &str, args: &[&str]) -> Output {
+        Command::new(tool(name))
+            .args(args)
+            .env("KUBECONFIG", self.kubeconfig())
+            .env(
+                "KUBECACHEDIR",
+                self.dir
+                    .join(format!("kubectl-cache-{}", std::process::id())),
+            )
+            .current_dir(repo_root())
+            .output()
+            .expect("run tool")
+    }
+
     /// Runs kubectl against this control plane.
     pub fn kubectl(&self, args: &[&str]) -> Output {
         let path = format!(
@@ -279,11 +309,21 @@ impl OperatorProcess {
         identity: &str,
         extra: &[&str],
     ) -> Result<Self> {
+        Self::start_with_kubeconfig(&cp.kubeconfig(), namespace, identity, extra)
+    }
+
+    /// As [`Self::start`], with other credentials.
+    pub fn start_with_kubeconfig(
+        kubeconfig: &Path,
+        namespace: &str,
+        identity: &str,
+        extra: &[&str],
+    ) -> Result<Self> {
         let http_port = free_port();
         let log = log_dir().join(format!("{namespace}-{identity}.log"));
         let file = std::fs::File::create(&log)?;
         let child = Command::new(bin("lekiwi-operator"))
-            .args(["--kubeconfig", cp.kubeconfig().to_str().unwrap()])
+            .args(["--kubeconfig", kubeconfig.to_str().unwrap()])
             .args([
                 "--namespace",
                 namespace,

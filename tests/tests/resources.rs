@@ -251,3 +251,23 @@ async fn kubectl_plugin_lists_robots() -> anyhow::Result<()> {
     assert!(text(&out).contains("robots"));
     Ok(())
 }
+
+#[test]
+fn every_binary_has_help() {
+    for (name, expect) in [
+        ("lekiwi-operator", "--heartbeat-grace-seconds"),
+        ("kubectl-lekiwi", "robots"),
+        ("lekiwi-agent", "--gateway"),
+        ("crdgen", "manifests/crds"),
+    ] {
+        let out = std::process::Command::new(bin(name))
+            .arg("--help")
+            .output()
+            .unwrap();
+        let help = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success() && help.contains(expect),
+            "{name} --help:\n{help}"
+        );
+    }
+}

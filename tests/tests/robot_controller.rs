@@ -342,7 +342,7 @@ async fn metrics_scrape_cleanly() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "metrics").await?;
-    let mut op = OperatorProcess::start(cp, &ns, "op-m", &[])?;
+    let mut op = OperatorProcess::start(cp, &ns, "op-m", &["--log-format", "json"])?;
     op.wait_ready().await?;
     for i in 0..3 {
         create_robot(&client, &ns, &format!("kiwi-{i}"), &[]).await?;
@@ -391,6 +391,18 @@ async fn metrics_scrape_cleanly() -> anyhow::Result<()> {
         ),
         Some(1.0)
     );
+
+    // JSON logs: every line is one JSON object with a level and a message; reconcile lines carry
+    // the robot's name from the span.
+    let log = op.log_text();
+    let mut saw_robot_span = false;
+    for line in log.lines() {
+        let v: serde_json::Value =
+            serde_json::from_str(line).unwrap_or_else(|e| panic!("not JSON ({e}): {line}"));
+        assert!(v["level"].is_string() && v["message"].is_string(), "{line}");
+        saw_robot_span |= v["span"]["robot"] == "kiwi-0";
+    }
+    assert!(saw_robot_span, "no log line carried the robot span:\n{log}");
 
     // Prometheus's own parser and linter accept the exposition.
     let mut lint = std::process::Command::new("promtool")
