@@ -107,12 +107,16 @@ pub async fn run(config: Config) -> Result<()> {
     // Which task ended first; a finished JoinHandle must not be awaited again below.
     let (mut http_done, mut elector_done, mut controllers_done) = (false, false, false);
     let outcome = tokio::select! {
+        biased;
+        () = cancel.cancelled() => Ok(()),
         r = &mut http_task => {
             http_done = true;
-            Err(match r {
-                Ok(Err(source)) => Error::Serve { addr: config.http_addr, source },
-                _ => Error::TaskStopped("http server"),
-            })
+            match r {
+                // The server closes as soon as the token fires; that is a clean stop.
+                Ok(Ok(())) if cancel.is_cancelled() => Ok(()),
+                Ok(Err(source)) => Err(Error::Serve { addr: config.http_addr, source }),
+                _ => Err(Error::TaskStopped("http server")),
+            }
         }
         _ = &mut elector_task => {
             elector_done = true;
@@ -126,7 +130,6 @@ pub async fn run(config: Config) -> Result<()> {
                 _ => Err(Error::TaskStopped("controllers")),
             }
         }
-        () = cancel.cancelled() => Ok(()),
     };
     cancel.cancel();
     ready.store(false, Ordering::Release);
