@@ -1,79 +1,369 @@
 //! Wire types of the agent-gateway protocol: versioned JSON messages in WebSocket text frames.
 //!
-//! This first version carries registration and heartbeats; telemetry, events and deployment
-//! commands join it with the gateway.
+//! `PROTOCOL.md` beside this crate is the specification; this module is its Rust rendering.
+//! Pure types: no kube, no axum, no I/O.
 
 use serde::{Deserialize, Serialize};
 
-/// Protocol version spoken by this crate. A peer with another major version is refused.
+/// Protocol version spoken by this crate. A peer with another version is refused.
 pub const PROTOCOL_VERSION: u32 = 1;
 
-/// Largest frame either side accepts, in bytes.
+/// Largest frame either side accepts by default, in bytes. The gateway may announce a smaller
+/// limit in `welcome`.
 pub const MAX_FRAME_BYTES: usize = 256 * 1024;
+
+/// Path of the WebSocket endpoint on the gateway.
+pub const AGENT_PATH: &str = "/v1/agent";
+
+/// Header naming the robot when enrolling with a fleet enrollment token.
+pub const ROBOT_HEADER: &str = "x-lekiwi-robot";
 
 /// Errors decoding a frame.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// The frame is larger than [`MAX_FRAME_BYTES`].
+    /// The frame is larger than the limit.
     #[error("frame of {size} bytes exceeds the limit of {limit} bytes")]
-    FrameTooLarge { size: usize, limit: usize },
-    /// The frame is not a message this version understands.
+    FrameTooLarge {
+        /// Size of the frame.
+        size: usize,
+        /// The limit.
+        limit: usize,
+    },
+    /// The frame is not valid JSON of a known message type.
     #[error("malformed frame: {0}")]
     Malformed(#[from] serde_json::Error),
 }
 
-/// Machine-readable error codes carried by [`Message::Error`].
-#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+impl Error {
+    /// The error code to answer this decoding error with.
+    pub fn code(&self) -> ErrorCode {
+        match self {
+            Error::FrameTooLarge { .. } => ErrorCode::FrameTooLarge,
+            Error::Malformed(e) if e.is_data() => ErrorCode::UnknownMessage,
+            Error::Malformed(_) => ErrorCode::Malformed,
+        }
+    }
+}
+
+/// Machine-readable error codes carried by [`ServerMessage::Error`] and by close frames.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
 #[serde(rename_all = "snake_case")]
 pub enum ErrorCode {
-    /// The frame could not be parsed.
+    /// The frame is not JSON.
     Malformed,
+    /// JSON, but not a message of this protocol version (unknown `type` or missing fields).
+    UnknownMessage,
     /// The frame exceeded the size limit.
     FrameTooLarge,
-    /// The peer speaks an incompatible protocol version.
+    /// The `hello` asked for a protocol version the gateway does not speak. Fatal.
     UnsupportedVersion,
+    /// A message that is not allowed at this point, e.g. a second `hello`.
+    UnexpectedMessage,
+    /// Too many messages per second; the message was dropped. Sustained abuse is fatal.
+    RateLimited,
+    /// No `hello` within the handshake timeout. Fatal.
+    HandshakeTimeout,
+    /// A newer connection of the same robot replaced this one. Fatal.
+    Replaced,
+    /// The gateway could not store a durable message; the agent must resend it later.
+    StoreUnavailable,
+    /// The gateway is shutting down; reconnect (to another replica). Fatal.
+    ShuttingDown,
+    /// Anything else on the gateway's side.
+    Internal,
 }
 
-/// One protocol message.
+/// A release as the agent reports or is told to run it.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+pub struct Release {
+    /// Version name.
+    pub version: String,
+    /// `sha256:<hex>` digest of the release manifest.
+    pub digest: String,
+}
+
+/// Facts about the robot's computer, sent once in `hello`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct SystemFacts {
+    /// Host name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hostname: Option<String>,
+    /// Operating system name and version.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub os: Option<String>,
+    /// Kernel version.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kernel: Option<String>,
+    /// CPU architecture, e.g. `aarch64`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub arch: Option<String>,
+    /// Logical CPUs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cpus: Option<u32>,
+    /// Total memory in bytes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub memory_bytes: Option<u64>,
+}
+
+/// The agent's health verdict.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq, Eq)]
+pub struct Health {
+    /// Whether every check passes.
+    pub healthy: bool,
+    /// Why not.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
+}
+
+/// The agent's teleoperation verdict.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Teleoperation {
+    /// Whether somebody operates the robot.
+    pub active: bool,
+    /// Weighted indicator score, 0 to 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub score: Option<f64>,
+}
+
+/// Current readings sent with every heartbeat; all optional.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct Vitals {
+    /// Seconds since boot.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uptime_s: Option<u64>,
+    /// CPU use, percent of all cores.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cpu_percent: Option<f64>,
+    /// Memory in use, percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub memory_percent: Option<f64>,
+    /// One-minute load average.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub load1: Option<f64>,
+    /// Root file system use, percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub disk_percent: Option<f64>,
+    /// SoC temperature, degrees Celsius.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub temperature_c: Option<f64>,
+    /// Battery charge, percent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub battery_percent: Option<f64>,
+}
+
+/// Severity of an agent event.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum Severity {
+    /// Routine.
+    Info,
+    /// Worth a look.
+    Warning,
+    /// Something failed.
+    Error,
+}
+
+/// One telemetry sample.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Sample {
+    /// Metric name, e.g. `cpu_percent`.
+    pub metric: String,
+    /// When it was taken, Unix milliseconds.
+    pub ts_ms: i64,
+    /// The value.
+    pub value: f64,
+}
+
+/// A deployment command's payload.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "action", rename_all = "snake_case")]
+pub enum Command {
+    /// Download and switch to a release.
+    Deploy {
+        /// The release.
+        release: Release,
+        /// Where to fetch the manifest, relative to the gateway's base URL.
+        manifest_url: String,
+    },
+    /// Stop a deployment in progress.
+    Cancel,
+    /// Switch back to the release that ran before.
+    Rollback {
+        /// The release to return to.
+        release: Release,
+    },
+}
+
+/// Messages from the agent to the gateway.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "type", rename_all = "snake_case")]
-pub enum Message {
-    /// First frame from the agent.
+pub enum AgentMessage {
+    /// First frame of every connection.
     Hello {
+        /// Protocol version the agent speaks.
         protocol_version: u32,
-        robot: String,
+        /// Version of the agent software.
         agent_version: String,
+        /// Facts about the computer.
+        #[serde(default)]
+        system: SystemFacts,
+        /// Release running now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        current_release: Option<Release>,
+        /// Highest sequence number the gateway acknowledged on an earlier connection.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        last_acked_seq: Option<u64>,
+        /// Health at connect time.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        health: Option<Health>,
+        /// Teleoperation at connect time.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        teleoperation: Option<Teleoperation>,
     },
-    /// The gateway's answer to `hello`.
-    Welcome {
-        protocol_version: u32,
-        heartbeat_interval_seconds: u32,
+    /// Liveness and current state, every `heartbeat_interval_s`.
+    Heartbeat {
+        /// The agent's clock, Unix milliseconds; echoed in the ack for round-trip time.
+        sent_at_ms: i64,
+        /// Round-trip time of the previous heartbeat, milliseconds.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rtt_ms: Option<f64>,
+        /// Readings.
+        #[serde(default)]
+        vitals: Vitals,
+        /// Release running now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        current_release: Option<Release>,
+        /// Health now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        health: Option<Health>,
+        /// Teleoperation now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        teleoperation: Option<Teleoperation>,
     },
-    /// Periodic liveness signal from the agent.
-    Heartbeat { seq: u64, sent_at_ms: u64 },
-    /// The gateway's acknowledgement, echoing the agent's clock so it can measure round-trip time.
-    HeartbeatAck { seq: u64, sent_at_ms: u64 },
-    /// A refused frame or a fatal condition.
-    Error { code: ErrorCode, message: String },
+    /// A durable event; acknowledged by `ack` once stored.
+    Event {
+        /// Per-robot sequence number, shared with `telemetry` and `progress`.
+        seq: u64,
+        /// When it happened, Unix milliseconds.
+        ts_ms: i64,
+        /// Short machine-readable kind, e.g. `teleoperation_started`.
+        kind: String,
+        /// Severity.
+        severity: Severity,
+        /// Human-readable text.
+        #[serde(default)]
+        message: String,
+        /// Free-form details.
+        #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
+        data: serde_json::Value,
+    },
+    /// A durable batch of telemetry samples.
+    Telemetry {
+        /// Per-robot sequence number.
+        seq: u64,
+        /// The samples, at most 1000.
+        samples: Vec<Sample>,
+    },
+    /// Durable progress of a command.
+    Progress {
+        /// Per-robot sequence number.
+        seq: u64,
+        /// The command this reports on.
+        command_id: String,
+        /// Phase, e.g. `downloading`, `switching`, `health_check`, `done`, `failed`, `rolled_back`.
+        phase: String,
+        /// Percent done, 0 to 100.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        percent: Option<f64>,
+        /// Details.
+        #[serde(default)]
+        message: String,
+    },
 }
 
-impl Message {
-    /// Decodes one text frame, enforcing the size limit before parsing.
-    pub fn decode(frame: &str) -> Result<Self, Error> {
-        if frame.len() > MAX_FRAME_BYTES {
-            return Err(Error::FrameTooLarge {
-                size: frame.len(),
-                limit: MAX_FRAME_BYTES,
-            });
+impl AgentMessage {
+    /// The sequence number of a durable message.
+    pub fn seq(&self) -> Option<u64> {
+        match self {
+            AgentMessage::Event { seq, .. }
+            | AgentMessage::Telemetry { seq, .. }
+            | AgentMessage::Progress { seq, .. } => Some(*seq),
+            AgentMessage::Hello { .. } | AgentMessage::Heartbeat { .. } => None,
         }
-        Ok(serde_json::from_str(frame)?)
     }
+}
 
-    /// Encodes the message as one text frame.
-    pub fn encode(&self) -> String {
-        // Serializing these plain enums cannot fail: no maps with non-string keys, no I/O.
-        serde_json::to_string(self).unwrap_or_default()
+/// Messages from the gateway to the agent.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ServerMessage {
+    /// Answer to `hello`: the session is established.
+    Welcome {
+        /// Protocol version the gateway speaks.
+        protocol_version: u32,
+        /// The robot's namespace and name as the gateway knows it.
+        robot: String,
+        /// Seconds between heartbeats.
+        heartbeat_interval_s: u32,
+        /// Largest frame the gateway accepts.
+        max_frame_bytes: usize,
+        /// Messages per second the gateway accepts (sustained).
+        max_messages_per_second: u32,
+        /// Highest sequence number stored for this robot; the agent may drop everything up to it.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        stored_seq: Option<u64>,
+        /// A new per-robot token, sent once after enrollment. The agent must persist it and
+        /// use it instead of the enrollment token from now on.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        robot_token: Option<String>,
+    },
+    /// Answer to `heartbeat`.
+    HeartbeatAck {
+        /// The agent's `sent_at_ms`, echoed.
+        sent_at_ms: i64,
+        /// The gateway's clock, Unix milliseconds.
+        server_time_ms: i64,
+    },
+    /// A durable message is stored (or was already stored).
+    Ack {
+        /// Its sequence number.
+        seq: u64,
+    },
+    /// Something to do.
+    Command {
+        /// Unique id, echoed in `progress`.
+        command_id: String,
+        /// What to do.
+        #[serde(flatten)]
+        command: Command,
+    },
+    /// A refused frame or a fatal condition.
+    Error {
+        /// Machine-readable code.
+        code: ErrorCode,
+        /// Human-readable text.
+        message: String,
+        /// Whether the gateway closes the connection after this frame.
+        #[serde(default)]
+        fatal: bool,
+    },
+}
+
+/// Decodes one text frame, enforcing `limit` before parsing.
+pub fn decode<T: serde::de::DeserializeOwned>(frame: &str, limit: usize) -> Result<T, Error> {
+    if frame.len() > limit {
+        return Err(Error::FrameTooLarge {
+            size: frame.len(),
+            limit,
+        });
     }
+    Ok(serde_json::from_str(frame)?)
+}
+
+/// Encodes a message as one text frame.
+pub fn encode<T: Serialize>(msg: &T) -> String {
+    // These types hold only strings, numbers, JSON values and string-keyed maps: cannot fail.
+    serde_json::to_string(msg).unwrap_or_default()
 }
 
 #[cfg(test)]
@@ -82,33 +372,68 @@ mod tests {
 
     #[test]
     fn hello_has_a_type_tag_and_round_trips() {
-        let hello = Message::Hello {
+        let hello = AgentMessage::Hello {
             protocol_version: PROTOCOL_VERSION,
-            robot: "kiwi-01".into(),
             agent_version: "0.1.0".into(),
+            system: SystemFacts {
+                arch: Some("aarch64".into()),
+                cpus: Some(4),
+                ..Default::default()
+            },
+            current_release: None,
+            last_acked_seq: Some(41),
+            health: None,
+            teleoperation: None,
         };
-        let frame = hello.encode();
+        let frame = encode(&hello);
         assert!(frame.starts_with(r#"{"type":"hello""#), "{frame}");
-        assert_eq!(Message::decode(&frame).unwrap(), hello);
+        assert_eq!(
+            decode::<AgentMessage>(&frame, MAX_FRAME_BYTES).unwrap(),
+            hello
+        );
     }
 
     #[test]
-    fn unknown_and_oversized_frames_are_errors_not_panics() {
+    fn spec_examples_decode() {
+        // The frames shown in PROTOCOL.md, verbatim.
+        let hb = r#"{"type":"heartbeat","sent_at_ms":1763800000000,"rtt_ms":3.2,"vitals":{"cpu_percent":12.5,"temperature_c":51.0},"teleoperation":{"active":false}}"#;
         assert!(matches!(
-            Message::decode(r#"{"type":"teleport"}"#),
-            Err(Error::Malformed(_))
+            decode::<AgentMessage>(hb, MAX_FRAME_BYTES).unwrap(),
+            AgentMessage::Heartbeat { .. }
         ));
-        assert!(matches!(
-            Message::decode("not json"),
-            Err(Error::Malformed(_))
-        ));
-        let big = format!(
-            r#"{{"type":"heartbeat","pad":"{}"}}"#,
-            "x".repeat(MAX_FRAME_BYTES)
+        let ev = r#"{"type":"event","seq":42,"ts_ms":1763800000123,"kind":"teleoperation_started","severity":"info","message":"operator connected on :5555"}"#;
+        assert_eq!(
+            decode::<AgentMessage>(ev, MAX_FRAME_BYTES).unwrap().seq(),
+            Some(42)
         );
+        let cmd = r#"{"type":"command","command_id":"c1","action":"deploy","release":{"version":"1.2.0","digest":"sha256:00"},"manifest_url":"/v1/blobs/sha256:00"}"#;
         assert!(matches!(
-            Message::decode(&big),
-            Err(Error::FrameTooLarge { .. })
+            decode::<ServerMessage>(cmd, MAX_FRAME_BYTES).unwrap(),
+            ServerMessage::Command {
+                command: Command::Deploy { .. },
+                ..
+            }
         ));
+    }
+
+    #[test]
+    fn unknown_malformed_and_oversized_frames_are_errors_not_panics() {
+        let unknown =
+            decode::<AgentMessage>(r#"{"type":"teleport"}"#, MAX_FRAME_BYTES).unwrap_err();
+        assert_eq!(unknown.code(), ErrorCode::UnknownMessage);
+        let missing =
+            decode::<AgentMessage>(r#"{"type":"event","seq":1}"#, MAX_FRAME_BYTES).unwrap_err();
+        assert_eq!(missing.code(), ErrorCode::UnknownMessage);
+        assert_eq!(
+            decode::<AgentMessage>("not json", MAX_FRAME_BYTES)
+                .unwrap_err()
+                .code(),
+            ErrorCode::Malformed
+        );
+        let big = format!(r#"{{"type":"heartbeat","pad":"{}"}}"#, "x".repeat(100));
+        assert_eq!(
+            decode::<AgentMessage>(&big, 64).unwrap_err().code(),
+            ErrorCode::FrameTooLarge
+        );
     }
 }
