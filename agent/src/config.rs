@@ -36,7 +36,7 @@ pub struct Flags {
     /// Config file to read.
     #[arg(long, env = "LEKIWI_CONFIG", default_value = "/etc/lekiwi/agent.yaml")]
     pub config: PathBuf,
-    /// WebSocket URL of the gateway, e.g. wss://fleet.example.com/agent.
+    /// WebSocket URL of the gateway, e.g. wss://fleet.example.com/v1/agent.
     #[arg(long, env = "LEKIWI_GATEWAY_URL")]
     pub gateway: Option<String>,
     /// Directory for the token, outbox and releases.

@@ -1,4 +1,6 @@
-//! The LeKiwi robot agent. This first version loads and reports its configuration; the
-//! connection, telemetry, outbox and release execution follow with the gateway.
+//! The LeKiwi robot agent: configuration and the gateway connection (shared with the fleet
+//! simulator). Telemetry, the durable outbox and release execution follow.
 
 pub mod config;
+pub mod connection;
+pub mod sim;

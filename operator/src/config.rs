@@ -15,6 +15,17 @@ pub enum LogFormat {
     Json,
 }
 
+/// Which parts of the operator this process runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum Role {
+    /// Controllers (leader-elected) and the gateway.
+    All,
+    /// Only the controllers.
+    Controller,
+    /// Only the agent gateway (scales apart from the controllers; no leader election).
+    Gateway,
+}
+
 /// The LeKiwi fleet operator: reconciles Robot and RobotDeployment resources.
 #[derive(Clone, Debug, Parser)]
 #[command(name = "lekiwi-operator", version, about, long_about = None)]
@@ -75,6 +86,87 @@ pub struct Config {
     /// Most reconciles running at once.
     #[arg(long, env = "LEKIWI_CONCURRENCY", default_value_t = 16)]
     pub concurrency: u16,
+
+    /// What this process runs.
+    #[arg(long, env = "LEKIWI_ROLE", value_enum, default_value = "all")]
+    pub role: Role,
+
+    /// Address of the agent gateway (WebSocket `/v1/agent`, legacy `/v1/poll`).
+    #[arg(long, env = "LEKIWI_GATEWAY_ADDR", default_value = "0.0.0.0:8081")]
+    pub gateway_addr: SocketAddr,
+
+    /// This gateway's name: written to `Robot.status.gateway` and the name of its Lease
+    /// (default: the identity).
+    #[arg(long, env = "LEKIWI_GATEWAY_NAME")]
+    pub gateway_name: Option<String>,
+
+    /// PEM certificate chain for TLS on the gateway; with --tls-key, agents connect over wss://.
+    #[arg(long, env = "LEKIWI_TLS_CERT", requires = "tls_key")]
+    pub tls_cert: Option<PathBuf>,
+
+    /// PEM private key for --tls-cert.
+    #[arg(long, env = "LEKIWI_TLS_KEY", requires = "tls_cert")]
+    pub tls_key: Option<PathBuf>,
+
+    /// Event store: `sqlite://FILE` (embedded default) or `postgres://...`.
+    #[arg(
+        long,
+        env = "LEKIWI_STORE_URL",
+        default_value = "sqlite://lekiwi-events.db"
+    )]
+    pub store_url: String,
+
+    /// Agent events, telemetry and connection history older than this are deleted.
+    #[arg(long, env = "LEKIWI_RETENTION_DAYS", default_value_t = 30)]
+    pub retention_days: u64,
+
+    /// Heartbeat interval the gateway asks agents for.
+    #[arg(long, env = "LEKIWI_HEARTBEAT_INTERVAL_SECONDS", default_value_t = 30)]
+    pub heartbeat_interval_seconds: u64,
+
+    /// Silent heartbeat intervals after which the gateway closes a session (robot Offline).
+    #[arg(long, env = "LEKIWI_MISSED_HEARTBEATS", default_value_t = 3)]
+    pub missed_heartbeats: u32,
+
+    /// Refresh `lastHeartbeatTime` in Robot status at most this often when nothing changes.
+    #[arg(long, env = "LEKIWI_STATUS_REFRESH_SECONDS", default_value_t = 300)]
+    pub status_refresh_seconds: u64,
+
+    /// A legacy polling robot that has not polled for this long is Offline.
+    #[arg(long, env = "LEKIWI_POLL_GRACE_SECONDS", default_value_t = 180)]
+    pub poll_grace_seconds: u64,
+
+    /// Most agent connections this gateway holds at once.
+    #[arg(long, env = "LEKIWI_MAX_CONNECTIONS", default_value_t = 20_000)]
+    pub max_connections: usize,
+
+    /// Largest frame accepted from an agent, in bytes.
+    #[arg(long, env = "LEKIWI_MAX_FRAME_BYTES", default_value_t = 256 * 1024)]
+    pub max_frame_bytes: usize,
+
+    /// Messages per second one agent may send, sustained.
+    #[arg(long, env = "LEKIWI_AGENT_RATE", default_value_t = 20)]
+    pub agent_rate: u32,
+
+    /// Messages one agent may send at once.
+    #[arg(long, env = "LEKIWI_AGENT_BURST", default_value_t = 40)]
+    pub agent_burst: u32,
+
+    /// Seconds an agent has to send `hello` after connecting.
+    #[arg(long, env = "LEKIWI_HANDSHAKE_TIMEOUT_SECONDS", default_value_t = 10)]
+    pub handshake_timeout_seconds: u64,
+
+    /// Robot status writes per second, sustained, from this gateway.
+    #[arg(long, env = "LEKIWI_STATUS_QPS", default_value_t = 50.0)]
+    pub status_qps: f64,
+
+    /// Robot status writes at once.
+    #[arg(long, env = "LEKIWI_STATUS_BURST", default_value_t = 100)]
+    pub status_burst: u32,
+
+    /// Validity of the gateway's own Lease (renewed every third of it).
+    #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]
+    pub gateway_lease_seconds: u64,
 }
 
 impl Config {
@@ -86,6 +178,21 @@ impl Config {
     /// Leader retry and renew period.
     pub fn lease_retry(&self) -> Duration {
         Duration::from_secs(self.lease_retry_seconds.max(1))
+    }
+
+    /// The gateway's name.
+    pub fn gateway_name(&self) -> String {
+        self.gateway_name.clone().unwrap_or_else(|| self.identity())
+    }
+
+    /// Whether this process runs the controllers.
+    pub fn runs_controllers(&self) -> bool {
+        matches!(self.role, Role::All | Role::Controller)
+    }
+
+    /// Whether this process runs the gateway.
+    pub fn runs_gateway(&self) -> bool {
+        matches!(self.role, Role::All | Role::Gateway)
     }
 
     /// The identity to hold the leader Lease with.

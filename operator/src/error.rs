@@ -32,6 +32,9 @@ pub enum Error {
     /// A long-running task ended unexpectedly.
     #[error("task {0} stopped unexpectedly")]
     TaskStopped(&'static str),
+    /// The durable event store failed.
+    #[error("event store: {0}")]
+    Store(#[from] crate::store::Error),
 }
 
 impl Error {
@@ -44,6 +47,7 @@ impl Error {
             Error::Lease { .. } => "lease",
             Error::Serve { .. } => "serve",
             Error::TaskStopped(_) => "task_stopped",
+            Error::Store(_) => "store",
         }
     }
 }

@@ -20,6 +20,8 @@ pub struct HttpState {
     pub ready: Arc<AtomicBool>,
     /// Whether this replica leads right now (reported by `/readyz`).
     pub leader: tokio::sync::watch::Receiver<bool>,
+    /// Set once the gateway listens, when this process runs one.
+    pub gateway_ready: Option<Arc<AtomicBool>>,
 }
 
 /// The router, separate from serving so tests can call it directly.
@@ -42,7 +44,11 @@ async fn metrics(State(state): State<HttpState>) -> impl IntoResponse {
 }
 
 async fn readyz(State(state): State<HttpState>) -> impl IntoResponse {
-    if state.ready.load(Ordering::Acquire) {
+    let gateway_ready = state
+        .gateway_ready
+        .as_ref()
+        .is_none_or(|g| g.load(Ordering::Acquire));
+    if state.ready.load(Ordering::Acquire) && gateway_ready {
         let role = if *state.leader.borrow() {
             "leader"
         } else {

@@ -5,9 +5,11 @@ pub mod config;
 pub mod controller;
 pub mod crds;
 pub mod error;
+pub mod gateway;
 pub mod http;
 pub mod leader;
 pub mod metrics;
+pub mod store;
 pub mod telemetry;
 
 use std::sync::Arc;
@@ -68,82 +70,98 @@ pub async fn run(config: Config) -> Result<()> {
             source,
         })?;
     info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), "serving /metrics, /healthz and /readyz");
+    let gateway_ready = config
+        .runs_gateway()
+        .then(|| Arc::new(AtomicBool::new(false)));
     let app = http::router(http::HttpState {
         metrics: metrics.clone(),
         ready: ready.clone(),
         leader: leader_rx.clone(),
+        gateway_ready: gateway_ready.clone(),
     });
+    // Every long-lived task reports its name and outcome; the first to end stops the rest.
+    let mut tasks: tokio::task::JoinSet<(&'static str, Result<()>)> = tokio::task::JoinSet::new();
     let http_cancel = cancel.clone();
-    let mut http_task = tokio::spawn(async move {
-        axum::serve(listener, app)
+    let http_addr = config.http_addr;
+    tasks.spawn(async move {
+        let served = axum::serve(listener, app)
             .with_graceful_shutdown(async move { http_cancel.cancelled().await })
             .await
+            .map_err(|source| Error::Serve {
+                addr: http_addr,
+                source,
+            });
+        ("http server", served)
     });
 
-    let elector = leader::LeaderElector::new(
-        client.clone(),
-        &config.namespace,
-        &config.leader_lease,
-        identity.clone(),
-        config.lease_duration(),
-        config.lease_retry(),
-    );
-    let mut elector_task = tokio::spawn(elector.run(leader_tx, metrics.clone(), cancel.clone()));
-
-    let recorder = Recorder::new(
-        client.clone(),
-        Reporter {
-            controller: "lekiwi-operator".into(),
-            instance: Some(identity.clone()),
-        },
-    );
-    let ctx = Arc::new(Context::new(client, recorder, metrics, config.clone()));
-    let mut controllers_task = tokio::spawn(run_while_leader(ctx, leader_rx, cancel.clone()));
+    if config.runs_controllers() {
+        let elector = leader::LeaderElector::new(
+            client.clone(),
+            &config.namespace,
+            &config.leader_lease,
+            identity.clone(),
+            config.lease_duration(),
+            config.lease_retry(),
+        );
+        let (m, c) = (metrics.clone(), cancel.clone());
+        tasks.spawn(async move {
+            elector.run(leader_tx, m, c).await;
+            ("leader election", Ok(()))
+        });
+        let recorder = Recorder::new(
+            client.clone(),
+            Reporter {
+                controller: "lekiwi-operator".into(),
+                instance: Some(identity.clone()),
+            },
+        );
+        let ctx = Arc::new(Context::new(
+            client.clone(),
+            recorder,
+            metrics.clone(),
+            config.clone(),
+        ));
+        let c = cancel.clone();
+        tasks.spawn(async move { ("controllers", run_while_leader(ctx, leader_rx, c).await) });
+    }
+    if config.runs_gateway() {
+        let store = store::Store::connect(&config.store_url).await?;
+        info!(backend = store.backend(), "event store ready");
+        let (cfg, cl, m, c) = (
+            config.clone(),
+            client.clone(),
+            metrics.clone(),
+            cancel.clone(),
+        );
+        let listening = gateway_ready.clone().unwrap_or_default();
+        tasks.spawn(async move {
+            (
+                "gateway",
+                gateway::run(cfg, cl, m, store, listening, c).await,
+            )
+        });
+    }
 
     tokio::spawn(shutdown_on_signal(cancel.clone()));
     ready.store(true, Ordering::Release);
-    info!(%identity, namespace = %config.namespace, "lekiwi-operator started");
+    info!(%identity, namespace = %config.namespace, role = ?config.role, "lekiwi-operator started");
 
-    // Which task ended first; a finished JoinHandle must not be awaited again below.
-    let (mut http_done, mut elector_done, mut controllers_done) = (false, false, false);
     let outcome = tokio::select! {
         biased;
         () = cancel.cancelled() => Ok(()),
-        r = &mut http_task => {
-            http_done = true;
-            match r {
-                // The server closes as soon as the token fires; that is a clean stop.
-                Ok(Ok(())) if cancel.is_cancelled() => Ok(()),
-                Ok(Err(source)) => Err(Error::Serve { addr: config.http_addr, source }),
-                _ => Err(Error::TaskStopped("http server")),
-            }
-        }
-        _ = &mut elector_task => {
-            elector_done = true;
-            if cancel.is_cancelled() { Ok(()) } else { Err(Error::TaskStopped("leader election")) }
-        }
-        r = &mut controllers_task => {
-            controllers_done = true;
-            match r {
-                Ok(Ok(())) if cancel.is_cancelled() => Ok(()),
-                Ok(Err(e)) => Err(e),
-                _ => Err(Error::TaskStopped("controllers")),
-            }
-        }
+        Some(joined) = tasks.join_next() => match joined {
+            // A task that ends cleanly because we are stopping is fine; on its own it is not.
+            Ok((_, Ok(()))) if cancel.is_cancelled() => Ok(()),
+            Ok((name, Ok(()))) => Err(Error::TaskStopped(name)),
+            Ok((_, Err(e))) => Err(e),
+            Err(_) => Err(Error::TaskStopped("a task panicked")),
+        },
     };
     cancel.cancel();
     ready.store(false, Ordering::Release);
-    // Let the controllers drain, the Lease be released and the HTTP server close.
+    // Let the controllers drain, the Lease be released, the gateway flush and HTTP close.
     let drained = tokio::time::timeout(std::time::Duration::from_secs(10), async {
-        if !controllers_done {
-            let _ = controllers_task.await;
-        }
-        if !elector_done {
-            let _ = elector_task.await;
-        }
-        if !http_done {
-            let _ = http_task.await;
-        }
+        while tasks.join_next().await.is_some() {}
     })
     .await;
     if drained.is_err() {

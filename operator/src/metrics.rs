@@ -41,6 +41,29 @@ pub struct PhaseLabels {
     pub phase: &'static str,
 }
 
+/// Labels of gateway status-queue series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct PriorityLabels {
+    /// `high` or `low`.
+    pub priority: &'static str,
+}
+
+/// Labels of gateway status writes.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct WriteLabels {
+    /// `high` or `low`.
+    pub priority: &'static str,
+    /// `ok`, `error`, `gone` or `superseded`.
+    pub result: &'static str,
+}
+
+/// A bounded label with one value from a fixed set.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct KindLabels {
+    /// The kind (frame type, error code, refusal reason, ...).
+    pub kind: &'static str,
+}
+
 /// All metrics, cheap to clone.
 #[derive(Clone)]
 pub struct Metrics {
@@ -59,6 +82,26 @@ pub struct Metrics {
     pub is_leader: Gauge,
     /// Times this replica became leader.
     pub leader_acquisitions: Counter,
+    /// Agent connections open now.
+    pub gateway_connections: Gauge,
+    /// Sessions ended, by how (`closed`, `replaced`, `heartbeat_timeout`, `error`, ...).
+    pub gateway_sessions_ended: Family<KindLabels, Counter>,
+    /// Upgrade requests refused, by reason.
+    pub gateway_refused: Family<KindLabels, Counter>,
+    /// Frames received, by message type.
+    pub gateway_frames: Family<KindLabels, Counter>,
+    /// Error frames sent, by code.
+    pub gateway_errors: Family<KindLabels, Counter>,
+    /// Durable messages acknowledged, `stored` or `replay`.
+    pub gateway_durable: Family<KindLabels, Counter>,
+    /// Heartbeat round-trip time the agents report.
+    pub gateway_heartbeat_rtt: Histogram,
+    /// Robots waiting for a status write, by priority.
+    pub gateway_status_queue: Family<PriorityLabels, Gauge>,
+    /// Status writes, by priority and result.
+    pub gateway_status_writes: Family<WriteLabels, Counter>,
+    /// Legacy polls answered, `200` or `304`.
+    pub gateway_polls: Family<KindLabels, Counter>,
 }
 
 impl Default for Metrics {
@@ -74,6 +117,66 @@ impl Default for Metrics {
         let robot_transitions = Family::<PhaseLabels, Counter>::default();
         let is_leader = Gauge::default();
         let leader_acquisitions = Counter::default();
+        let gateway_connections = Gauge::default();
+        let gateway_sessions_ended = Family::<KindLabels, Counter>::default();
+        let gateway_refused = Family::<KindLabels, Counter>::default();
+        let gateway_frames = Family::<KindLabels, Counter>::default();
+        let gateway_errors = Family::<KindLabels, Counter>::default();
+        let gateway_durable = Family::<KindLabels, Counter>::default();
+        let gateway_heartbeat_rtt = Histogram::new(exponential_buckets(0.0005, 2.0, 14));
+        let gateway_status_queue = Family::<PriorityLabels, Gauge>::default();
+        let gateway_status_writes = Family::<WriteLabels, Counter>::default();
+        let gateway_polls = Family::<KindLabels, Counter>::default();
+        registry.register(
+            "lekiwi_gateway_connections",
+            "Agent connections open now",
+            gateway_connections.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_sessions_ended",
+            "Agent sessions ended, by how",
+            gateway_sessions_ended.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_refused",
+            "Agent upgrade requests refused, by reason",
+            gateway_refused.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_frames",
+            "Frames received from agents, by message type",
+            gateway_frames.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_error_frames",
+            "Error frames sent to agents, by code",
+            gateway_errors.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_durable_messages",
+            "Durable agent messages acknowledged, stored or replay",
+            gateway_durable.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_heartbeat_rtt_seconds",
+            "Heartbeat round-trip time as reported by agents",
+            gateway_heartbeat_rtt.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_status_queue",
+            "Robots waiting for a status write, by priority",
+            gateway_status_queue.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_status_writes",
+            "Robot status writes, by priority and result",
+            gateway_status_writes.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_polls",
+            "Legacy polls answered, by status code",
+            gateway_polls.clone(),
+        );
         registry.register(
             "lekiwi_controller_reconciliations",
             "Reconciles started, by controller",
@@ -118,6 +221,16 @@ impl Default for Metrics {
             robot_transitions,
             is_leader,
             leader_acquisitions,
+            gateway_connections,
+            gateway_sessions_ended,
+            gateway_refused,
+            gateway_frames,
+            gateway_errors,
+            gateway_durable,
+            gateway_heartbeat_rtt,
+            gateway_status_queue,
+            gateway_status_writes,
+            gateway_polls,
         }
     }
 }

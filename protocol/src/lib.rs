@@ -346,6 +346,10 @@ pub enum ServerMessage {
         /// Whether the gateway closes the connection after this frame.
         #[serde(default)]
         fatal: bool,
+        /// The sequence number of the durable message this refuses, if it was one; the agent
+        /// keeps that message and resends it later.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        seq: Option<u64>,
     },
 }
 

@@ -1,6 +1,8 @@
 //! Test harness: the shared local control plane, private ones for disruptive tests, operator
 //! processes, and a stand-in that plays the gateway's part in Robot status.
 
+pub mod postgres;
+
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::sync::OnceLock;
@@ -297,6 +299,10 @@ pub struct OperatorProcess {
     child: Child,
     /// Address of its HTTP endpoints.
     pub http_port: u16,
+    /// Port of its agent gateway.
+    pub gateway_port: u16,
+    /// Its SQLite event store.
+    pub store_path: PathBuf,
     /// Its log file.
     pub log: PathBuf,
 }
@@ -320,7 +326,10 @@ impl OperatorProcess {
         extra: &[&str],
     ) -> Result<Self> {
         let http_port = free_port();
+        let gateway_port = free_port();
         let log = log_dir().join(format!("{namespace}-{identity}.log"));
+        let store_path = log_dir().join(format!("{namespace}-{identity}.db"));
+        let _ = std::fs::remove_file(&store_path);
         let file = std::fs::File::create(&log)?;
         let child = Command::new(bin("lekiwi-operator"))
             .args(["--kubeconfig", kubeconfig.to_str().unwrap()])
@@ -333,6 +342,9 @@ impl OperatorProcess {
                 identity,
             ])
             .args(["--http-addr", &format!("127.0.0.1:{http_port}")])
+            .args(["--gateway-addr", &format!("127.0.0.1:{gateway_port}")])
+            .args(["--gateway-name", &format!("gw-{identity}")])
+            .args(["--store-url", &format!("sqlite://{}", store_path.display())])
             .args([
                 "--lease-duration-seconds",
                 "4",
@@ -349,6 +361,8 @@ impl OperatorProcess {
         Ok(Self {
             child,
             http_port,
+            gateway_port,
+            store_path,
             log,
         })
     }
@@ -644,4 +658,95 @@ pub async fn create_robot(
 /// Reads a file under the repository root.
 pub fn repo_file(path: impl AsRef<Path>) -> String {
     std::fs::read_to_string(repo_root().join(path)).expect("read repo file")
+}
+
+/// The gateway's WebSocket URL of an operator process.
+pub fn gateway_url(op: &OperatorProcess) -> String {
+    format!(
+        "ws://127.0.0.1:{}{}",
+        op.gateway_port,
+        lekiwi_protocol::AGENT_PATH
+    )
+}
+
+/// Creates a fleet enrollment token for `namespace` (stored as a hash) and returns it.
+pub async fn enrollment_token(client: &Client, namespace: &str) -> Result<String> {
+    use k8s_openapi::ByteString;
+    use k8s_openapi::api::core::v1::Secret;
+    use sha2::Digest;
+    let token = format!(
+        "lke_{}",
+        hex::encode(sha2::Sha256::digest(
+            format!("{namespace}{:?}", Instant::now()).as_bytes()
+        ))
+    );
+    let hash = hex::encode(sha2::Sha256::digest(token.as_bytes()));
+    let secret = Secret {
+        metadata: ObjectMeta {
+            name: Some("fleet-enrollment".into()),
+            labels: Some([("fleet.lekiwi.io/token".to_owned(), "enrollment".to_owned())].into()),
+            ..ObjectMeta::default()
+        },
+        data: Some([("sha256".to_owned(), ByteString(hash.into_bytes()))].into()),
+        ..Secret::default()
+    };
+    Api::<Secret>::namespaced(client.clone(), namespace)
+        .create(&PostParams::default(), &secret)
+        .await?;
+    Ok(token)
+}
+
+/// A `hello` as a real agent sends it.
+pub fn hello() -> lekiwi_protocol::AgentMessage {
+    lekiwi_protocol::AgentMessage::Hello {
+        protocol_version: lekiwi_protocol::PROTOCOL_VERSION,
+        agent_version: "0.1.0-test".into(),
+        system: lekiwi_protocol::SystemFacts {
+            arch: Some("aarch64".into()),
+            cpus: Some(4),
+            ..Default::default()
+        },
+        current_release: None,
+        last_acked_seq: None,
+        health: Some(lekiwi_protocol::Health {
+            healthy: true,
+            message: None,
+        }),
+        teleoperation: Some(lekiwi_protocol::Teleoperation {
+            active: false,
+            score: Some(0.0),
+        }),
+    }
+}
+
+/// A plain HTTP/1.1 GET with headers: status, response headers (lowercase names) and body.
+pub async fn http_get_with(
+    port: u16,
+    path: &str,
+    headers: &[(&str, &str)],
+) -> Result<(u16, Vec<(String, String)>, String)> {
+    let mut stream = tokio::net::TcpStream::connect(("127.0.0.1", port)).await?;
+    let mut req = format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n");
+    for (k, v) in headers {
+        req.push_str(&format!("{k}: {v}\r\n"));
+    }
+    req.push_str("\r\n");
+    stream.write_all(req.as_bytes()).await?;
+    let mut buf = Vec::new();
+    stream.read_to_end(&mut buf).await?;
+    let text = String::from_utf8_lossy(&buf).into_owned();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let mut lines = head.lines();
+    let code = lines
+        .next()
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|c| c.parse().ok())
+        .unwrap_or(0);
+    let hdrs = lines
+        .filter_map(|l| {
+            l.split_once(':')
+                .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_owned()))
+        })
+        .collect();
+    Ok((code, hdrs, body.to_owned()))
 }

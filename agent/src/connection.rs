@@ -1,0 +1,156 @@
+//! The agent's side of a gateway session: open the WebSocket with the right credentials, send
+//! `hello`, read `welcome`. Shared by the agent and the fleet simulator.
+
+use std::time::Duration;
+
+use futures::{SinkExt, StreamExt};
+use lekiwi_protocol::{
+    AgentMessage, ErrorCode, MAX_FRAME_BYTES, ROBOT_HEADER, ServerMessage, decode, encode,
+};
+use tokio::net::TcpStream;
+use tokio_tungstenite::tungstenite::Message;
+use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::http::HeaderValue;
+use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
+
+/// An open WebSocket to the gateway.
+pub type Socket = WebSocketStream<MaybeTlsStream<TcpStream>>;
+
+/// Why a session could not be established.
+#[derive(Debug, thiserror::Error)]
+pub enum ConnectError {
+    /// The gateway refused the credentials (HTTP 401).
+    #[error("the gateway refused the credentials: {0}")]
+    Unauthorized(String),
+    /// The gateway is full or unavailable (HTTP 503).
+    #[error("the gateway is unavailable: {0}")]
+    Unavailable(String),
+    /// The URL or a header value is invalid.
+    #[error("invalid gateway request: {0}")]
+    Request(String),
+    /// Network or WebSocket failure.
+    #[error("cannot reach the gateway: {0}")]
+    Transport(#[from] tokio_tungstenite::tungstenite::Error),
+    /// The gateway answered `hello` with an error.
+    #[error("the gateway refused the session ({code:?}): {message}")]
+    Refused {
+        /// Its code.
+        code: ErrorCode,
+        /// Its text.
+        message: String,
+    },
+    /// No `welcome` in time, or the connection closed first.
+    #[error("no welcome from the gateway: {0}")]
+    NoWelcome(&'static str),
+}
+
+impl ConnectError {
+    /// Whether retrying with the same credentials can help.
+    pub fn retryable(&self) -> bool {
+        !matches!(
+            self,
+            ConnectError::Unauthorized(_) | ConnectError::Request(_)
+        )
+    }
+}
+
+/// What the gateway said in `welcome`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Welcome {
+    /// `namespace/name` of this robot.
+    pub robot: String,
+    /// Heartbeat interval to use.
+    pub heartbeat_interval: Duration,
+    /// Largest frame the gateway accepts.
+    pub max_frame_bytes: usize,
+    /// Messages per second allowed.
+    pub max_messages_per_second: u32,
+    /// Highest sequence number the gateway has stored.
+    pub stored_seq: Option<u64>,
+    /// A new per-robot token, after enrollment.
+    pub robot_token: Option<String>,
+}
+
+/// Credentials for one connection.
+#[derive(Clone, Debug)]
+pub struct Credentials {
+    /// Per-robot or enrollment token.
+    pub token: String,
+    /// `namespace/name` (or just `name` when enrolling).
+    pub robot: String,
+}
+
+/// Opens a session: WebSocket upgrade with credentials, `hello`, `welcome`.
+pub async fn connect(
+    url: &str,
+    creds: &Credentials,
+    hello: &AgentMessage,
+    timeout: Duration,
+) -> Result<(Socket, Welcome), ConnectError> {
+    let mut request = url
+        .into_client_request()
+        .map_err(|e| ConnectError::Request(e.to_string()))?;
+    let auth = HeaderValue::from_str(&format!("Bearer {}", creds.token))
+        .map_err(|e| ConnectError::Request(e.to_string()))?;
+    let robot =
+        HeaderValue::from_str(&creds.robot).map_err(|e| ConnectError::Request(e.to_string()))?;
+    request.headers_mut().insert("authorization", auth);
+    request.headers_mut().insert(ROBOT_HEADER, robot);
+    let (mut ws, _) =
+        match tokio::time::timeout(timeout, tokio_tungstenite::connect_async(request)).await {
+            Err(_) => return Err(ConnectError::NoWelcome("connect timed out")),
+            Ok(Err(tokio_tungstenite::tungstenite::Error::Http(resp))) => {
+                let body = resp
+                    .body()
+                    .as_ref()
+                    .map(|b| String::from_utf8_lossy(b).into_owned())
+                    .unwrap_or_default();
+                return Err(match resp.status().as_u16() {
+                    401 => ConnectError::Unauthorized(body),
+                    _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
+                });
+            }
+            Ok(r) => r?,
+        };
+    ws.send(Message::text(encode(hello))).await?;
+    let welcome = tokio::time::timeout(timeout, async {
+        while let Some(frame) = ws.next().await {
+            match frame? {
+                Message::Text(t) => match decode::<ServerMessage>(t.as_str(), MAX_FRAME_BYTES) {
+                    Ok(ServerMessage::Welcome {
+                        robot,
+                        heartbeat_interval_s,
+                        max_frame_bytes,
+                        max_messages_per_second,
+                        stored_seq,
+                        robot_token,
+                        ..
+                    }) => {
+                        return Ok(Welcome {
+                            robot,
+                            heartbeat_interval: Duration::from_secs(u64::from(
+                                heartbeat_interval_s.max(1),
+                            )),
+                            max_frame_bytes,
+                            max_messages_per_second,
+                            stored_seq,
+                            robot_token,
+                        });
+                    }
+                    Ok(ServerMessage::Error { code, message, .. }) => {
+                        return Err(ConnectError::Refused { code, message });
+                    }
+                    _ => continue,
+                },
+                Message::Close(_) => {
+                    return Err(ConnectError::NoWelcome("connection closed before welcome"));
+                }
+                _ => continue,
+            }
+        }
+        Err(ConnectError::NoWelcome("connection closed before welcome"))
+    })
+    .await
+    .map_err(|_| ConnectError::NoWelcome("welcome timed out"))??;
+    Ok((ws, welcome))
+}

@@ -1,0 +1,318 @@
+//! The fleet simulator: N real agent connections from one process, each with a heartbeat loop,
+//! reporting connect time, heartbeat round-trip percentiles, errors and reconnects.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use clap::Parser;
+use futures::{SinkExt, StreamExt};
+use lekiwi_protocol::{
+    AgentMessage, ErrorCode, Health, PROTOCOL_VERSION, Release, ServerMessage, SystemFacts,
+    Teleoperation, Vitals, decode, encode,
+};
+use rand::Rng;
+use tokio_tungstenite::tungstenite::Message;
+
+use crate::connection::{ConnectError, Credentials, connect};
+
+/// Simulates a fleet of LeKiwi agents against a gateway.
+#[derive(Clone, Debug, Parser)]
+#[command(name = "lekiwi-sim", version, about)]
+pub struct Args {
+    /// Gateway WebSocket URL.
+    #[arg(
+        long,
+        env = "LEKIWI_GATEWAY_URL",
+        default_value = "ws://127.0.0.1:8081/v1/agent"
+    )]
+    pub gateway: String,
+    /// Fleet enrollment token (robots enroll on first connect and keep their own token).
+    #[arg(long, env = "LEKIWI_ENROLLMENT_TOKEN")]
+    pub enrollment_token: String,
+    /// Namespace the robots belong to.
+    #[arg(long, default_value = "lekiwi-demo")]
+    pub namespace: String,
+    /// Number of robots.
+    #[arg(long, default_value_t = 20)]
+    pub robots: usize,
+    /// Robot names are PREFIX-00001, PREFIX-00002, ...
+    #[arg(long, default_value = "sim")]
+    pub prefix: String,
+    /// Heartbeat interval in seconds (default: what the gateway says).
+    #[arg(long)]
+    pub heartbeat_interval: Option<f64>,
+    /// New connections per second while ramping up.
+    #[arg(long, default_value_t = 500.0)]
+    pub connect_rate: f64,
+    /// Stop after this many seconds (default: run until killed).
+    #[arg(long)]
+    pub duration: Option<f64>,
+    /// Seconds between progress lines.
+    #[arg(long, default_value_t = 5.0)]
+    pub report_every: f64,
+    /// Write the final summary as JSON to this file.
+    #[arg(long)]
+    pub json: Option<std::path::PathBuf>,
+    /// Release the robots report (version:sha256hex).
+    #[arg(long, default_value = "1.0.0")]
+    pub release_version: String,
+}
+
+#[derive(Default)]
+struct Stats {
+    connected: AtomicU64,
+    ever_connected: AtomicU64,
+    connect_errors: AtomicU64,
+    reconnects: AtomicU64,
+    error_frames: AtomicU64,
+    heartbeats: AtomicU64,
+    rtts_us: Mutex<Vec<u32>>,
+    all_connected_after: Mutex<Option<Duration>>,
+}
+
+/// Summary of a run.
+#[derive(Debug, serde::Serialize)]
+pub struct Summary {
+    /// Robots simulated.
+    pub robots: usize,
+    /// Robots connected at the end.
+    pub connected: u64,
+    /// Seconds until every robot had connected once (None if some never did).
+    pub all_connected_seconds: Option<f64>,
+    /// Heartbeats acknowledged.
+    pub heartbeats: u64,
+    /// Round-trip percentiles, milliseconds.
+    pub rtt_p50_ms: f64,
+    /// 99th percentile.
+    pub rtt_p99_ms: f64,
+    /// Maximum.
+    pub rtt_max_ms: f64,
+    /// Failed connection attempts.
+    pub connect_errors: u64,
+    /// Sessions re-established after a drop.
+    pub reconnects: u64,
+    /// Error frames received.
+    pub error_frames: u64,
+}
+
+fn percentile(sorted: &[u32], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let idx = ((sorted.len() as f64 - 1.0) * p).round() as usize;
+    f64::from(sorted[idx.min(sorted.len() - 1)]) / 1000.0
+}
+
+fn now_ms() -> i64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or(0)
+}
+
+/// Runs the simulation and returns its summary.
+pub async fn run(args: Args) -> anyhow::Result<Summary> {
+    let _ = rlimit::increase_nofile_limit(u64::MAX);
+    let stats = Arc::new(Stats::default());
+    let start = Instant::now();
+    let release = Release {
+        version: args.release_version.clone(),
+        digest: format!("sha256:{}", "0".repeat(64)),
+    };
+    let mut tasks = Vec::with_capacity(args.robots);
+    let gap = Duration::from_secs_f64(1.0 / args.connect_rate.max(1.0));
+    for i in 0..args.robots {
+        let name = format!("{}-{:05}", args.prefix, i + 1);
+        tasks.push(tokio::spawn(robot(
+            args.clone(),
+            name,
+            release.clone(),
+            stats.clone(),
+            start,
+        )));
+        tokio::time::sleep(gap).await;
+    }
+    let deadline = args.duration.map(|d| start + Duration::from_secs_f64(d));
+    let mut last_report = Instant::now();
+    loop {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        if last_report.elapsed().as_secs_f64() >= args.report_every {
+            last_report = Instant::now();
+            let mut rtts =
+                std::mem::take(&mut *stats.rtts_us.lock().unwrap_or_else(|p| p.into_inner()));
+            rtts.sort_unstable();
+            println!(
+                "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}",
+                start.elapsed().as_secs_f64(),
+                stats.connected.load(Ordering::Relaxed),
+                args.robots,
+                stats.heartbeats.load(Ordering::Relaxed),
+                percentile(&rtts, 0.5),
+                percentile(&rtts, 0.99),
+                percentile(&rtts, 1.0),
+                stats.connect_errors.load(Ordering::Relaxed),
+                stats.reconnects.load(Ordering::Relaxed),
+                stats.error_frames.load(Ordering::Relaxed),
+            );
+            // Keep them for the final summary too.
+            stats
+                .rtts_us
+                .lock()
+                .unwrap_or_else(|p| p.into_inner())
+                .extend(rtts);
+        }
+        if deadline.is_some_and(|d| Instant::now() >= d) {
+            break;
+        }
+    }
+    for t in &tasks {
+        t.abort();
+    }
+    let mut rtts = std::mem::take(&mut *stats.rtts_us.lock().unwrap_or_else(|p| p.into_inner()));
+    rtts.sort_unstable();
+    let summary = Summary {
+        robots: args.robots,
+        connected: stats.connected.load(Ordering::Relaxed),
+        all_connected_seconds: stats
+            .all_connected_after
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .map(|d| d.as_secs_f64()),
+        heartbeats: stats.heartbeats.load(Ordering::Relaxed),
+        rtt_p50_ms: percentile(&rtts, 0.5),
+        rtt_p99_ms: percentile(&rtts, 0.99),
+        rtt_max_ms: percentile(&rtts, 1.0),
+        connect_errors: stats.connect_errors.load(Ordering::Relaxed),
+        reconnects: stats.reconnects.load(Ordering::Relaxed),
+        error_frames: stats.error_frames.load(Ordering::Relaxed),
+    };
+    if let Some(path) = &args.json {
+        std::fs::write(path, serde_json::to_string_pretty(&summary)?)?;
+    }
+    Ok(summary)
+}
+
+async fn robot(args: Args, name: String, release: Release, stats: Arc<Stats>, start: Instant) {
+    let mut creds = Credentials {
+        token: args.enrollment_token.clone(),
+        robot: format!("{}/{}", args.namespace, name),
+    };
+    let mut first = true;
+    let mut backoff = Duration::from_millis(500);
+    loop {
+        let hello = AgentMessage::Hello {
+            protocol_version: PROTOCOL_VERSION,
+            agent_version: concat!("sim-", env!("CARGO_PKG_VERSION")).to_owned(),
+            system: SystemFacts {
+                hostname: Some(name.clone()),
+                os: Some("Debian GNU/Linux 12 (bookworm)".into()),
+                arch: Some("aarch64".into()),
+                cpus: Some(4),
+                memory_bytes: Some(8 << 30),
+                kernel: None,
+            },
+            current_release: Some(release.clone()),
+            last_acked_seq: None,
+            health: Some(Health {
+                healthy: true,
+                message: None,
+            }),
+            teleoperation: Some(Teleoperation {
+                active: false,
+                score: Some(0.0),
+            }),
+        };
+        match connect(&args.gateway, &creds, &hello, Duration::from_secs(30)).await {
+            Ok((ws, welcome)) => {
+                backoff = Duration::from_millis(500);
+                if let Some(token) = welcome.robot_token.clone() {
+                    creds.token = token;
+                }
+                creds.robot = welcome.robot.clone();
+                if first {
+                    first = false;
+                    let n = stats.ever_connected.fetch_add(1, Ordering::Relaxed) + 1;
+                    if n as usize == args.robots {
+                        *stats
+                            .all_connected_after
+                            .lock()
+                            .unwrap_or_else(|p| p.into_inner()) = Some(start.elapsed());
+                    }
+                } else {
+                    stats.reconnects.fetch_add(1, Ordering::Relaxed);
+                }
+                stats.connected.fetch_add(1, Ordering::Relaxed);
+                let interval = args
+                    .heartbeat_interval
+                    .map(Duration::from_secs_f64)
+                    .unwrap_or(welcome.heartbeat_interval);
+                heartbeats(ws, interval, &stats).await;
+                stats.connected.fetch_sub(1, Ordering::Relaxed);
+            }
+            Err(e) => {
+                stats.connect_errors.fetch_add(1, Ordering::Relaxed);
+                if matches!(e, ConnectError::Unauthorized(_)) {
+                    eprintln!("{name}: {e}");
+                }
+            }
+        }
+        // Full jitter, so a fleet does not come back in lockstep.
+        let wait = rand::rng().random_range(Duration::ZERO..=backoff);
+        tokio::time::sleep(wait).await;
+        backoff = (backoff * 2).min(Duration::from_secs(30));
+    }
+}
+
+async fn heartbeats(ws: crate::connection::Socket, interval: Duration, stats: &Stats) {
+    let (mut tx, mut rx) = ws.split();
+    // Spread the first heartbeat over one interval.
+    let offset = rand::rng().random_range(Duration::ZERO..=interval);
+    let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + offset, interval);
+    let mut pending: Option<(i64, Instant)> = None;
+    let mut last_rtt: Option<f64> = None;
+    loop {
+        tokio::select! {
+            _ = tick.tick() => {
+                let sent_at_ms = now_ms();
+                let hb = AgentMessage::Heartbeat {
+                    sent_at_ms,
+                    rtt_ms: last_rtt,
+                    vitals: Vitals { cpu_percent: Some(12.0), memory_percent: Some(30.0), temperature_c: Some(50.0), ..Vitals::default() },
+                    current_release: None,
+                    health: None,
+                    teleoperation: None,
+                };
+                pending = Some((sent_at_ms, Instant::now()));
+                if tx.send(Message::text(encode(&hb))).await.is_err() {
+                    return;
+                }
+            }
+            frame = rx.next() => {
+                let Some(Ok(frame)) = frame else { return };
+                let Message::Text(text) = frame else {
+                    if matches!(frame, Message::Close(_)) { return; }
+                    continue;
+                };
+                match decode::<ServerMessage>(text.as_str(), usize::MAX) {
+                    Ok(ServerMessage::HeartbeatAck { sent_at_ms, .. }) => {
+                        if let Some((sent, at)) = pending.take_if(|(s, _)| *s == sent_at_ms) {
+                            let _ = sent;
+                            let rtt = at.elapsed();
+                            last_rtt = Some(rtt.as_secs_f64() * 1000.0);
+                            stats.heartbeats.fetch_add(1, Ordering::Relaxed);
+                            stats.rtts_us.lock().unwrap_or_else(|p| p.into_inner()).push(rtt.as_micros().min(u128::from(u32::MAX)) as u32);
+                        }
+                    }
+                    Ok(ServerMessage::Error { code, fatal, .. }) => {
+                        stats.error_frames.fetch_add(1, Ordering::Relaxed);
+                        if fatal || code == ErrorCode::Replaced {
+                            return;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+}

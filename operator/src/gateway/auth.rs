@@ -1,0 +1,278 @@
+//! Agent authentication: per-robot tokens and fleet enrollment tokens, both kept in Secrets
+//! only as SHA-256 hashes; registration of unknown robots that present an enrollment token.
+
+use std::collections::BTreeMap;
+
+use k8s_openapi::ByteString;
+use k8s_openapi::api::core::v1::Secret;
+use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
+use kube::runtime::reflector::{ObjectRef, Store};
+use kube::{Api, Resource};
+use lekiwi_crds::Robot;
+use rand::RngCore;
+use sha2::{Digest, Sha256};
+
+use crate::store::RobotKey;
+
+/// Label on every token Secret; its value says which kind.
+pub const TOKEN_LABEL: &str = "fleet.lekiwi.io/token";
+/// `TOKEN_LABEL` value of a fleet enrollment token.
+pub const KIND_ENROLLMENT: &str = "enrollment";
+/// `TOKEN_LABEL` value of a per-robot token.
+pub const KIND_ROBOT: &str = "robot";
+/// Label naming the robot a per-robot token belongs to.
+pub const ROBOT_LABEL: &str = "fleet.lekiwi.io/robot";
+/// Key in a token Secret's data holding the hex SHA-256 of the token.
+pub const HASH_KEY: &str = "sha256";
+/// Field manager of what the gateway writes.
+pub const FIELD_MANAGER: &str = "lekiwi-gateway";
+
+/// Why a connection was refused (logged and counted; never with the token).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Refusal {
+    /// No `Authorization: Bearer` header.
+    MissingToken,
+    /// The robot header is absent or not a valid name.
+    BadRobotName,
+    /// The token matches neither the robot's token nor an enrollment token.
+    WrongToken,
+}
+
+impl Refusal {
+    /// Bounded metric label and log text.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Refusal::MissingToken => "missing_token",
+            Refusal::BadRobotName => "bad_robot_name",
+            Refusal::WrongToken => "wrong_token",
+        }
+    }
+}
+
+/// Who the caller is, once the token checks out.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Grant {
+    /// A known robot with its own token.
+    Robot(RobotKey),
+    /// A robot enrolling with a fleet enrollment token; it gets its own token after `hello`.
+    Enroll(RobotKey),
+}
+
+impl Grant {
+    /// The robot either way.
+    pub fn robot(&self) -> &RobotKey {
+        match self {
+            Grant::Robot(k) | Grant::Enroll(k) => k,
+        }
+    }
+}
+
+/// Hex SHA-256 of a token.
+pub fn hash_token(token: &str) -> String {
+    hex::encode(Sha256::digest(token.as_bytes()))
+}
+
+/// A fresh random token with a kind prefix (`lkr_` robot, `lke_` enrollment).
+pub fn new_token(prefix: &str) -> String {
+    let mut bytes = [0u8; 32];
+    rand::rng().fill_bytes(&mut bytes);
+    format!("{prefix}{}", hex::encode(bytes))
+}
+
+/// Compares two hashes without an early exit, so timing says nothing about the token.
+fn same_hash(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+fn secret_hash(secret: &Secret) -> Option<Vec<u8>> {
+    secret.data.as_ref()?.get(HASH_KEY).map(|b| b.0.clone())
+}
+
+/// Name of the Secret holding a robot's token hash.
+pub fn robot_secret_name(robot: &str) -> String {
+    format!("{robot}-agent-token")
+}
+
+/// Whether `name` is a valid Kubernetes object name (RFC 1123 subdomain).
+pub fn valid_name(name: &str) -> bool {
+    !name.is_empty()
+        && name.len() <= 253
+        && name.split('.').all(|part| {
+            !part.is_empty()
+                && part
+                    .bytes()
+                    .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-')
+                && !part.starts_with('-')
+                && !part.ends_with('-')
+        })
+}
+
+/// Parses the robot header: `namespace/name`, or `name` alone for enrollment.
+pub fn parse_robot(header: &str) -> Option<(Option<String>, String)> {
+    let (ns, name) = match header.split_once('/') {
+        Some((ns, name)) => (Some(ns.to_owned()), name.to_owned()),
+        None => (None, header.to_owned()),
+    };
+    (valid_name(&name) && ns.as_deref().is_none_or(valid_name)).then_some((ns, name))
+}
+
+/// Checks tokens against the Secrets the gateway watches, falling back to a direct read for a
+/// robot token minted a moment ago that the watch has not delivered yet.
+#[derive(Clone)]
+pub struct Authenticator {
+    client: kube::Client,
+    secrets: Store<Secret>,
+}
+
+impl Authenticator {
+    /// An authenticator over a reflector of token Secrets.
+    pub fn new(client: kube::Client, secrets: Store<Secret>) -> Self {
+        Self { client, secrets }
+    }
+
+    /// Decides who presents `token` for `robot_header`.
+    pub async fn authenticate(
+        &self,
+        token: Option<&str>,
+        robot_header: Option<&str>,
+    ) -> Result<Grant, Refusal> {
+        let token = token
+            .filter(|t| !t.is_empty())
+            .ok_or(Refusal::MissingToken)?;
+        let (namespace, name) = robot_header
+            .and_then(parse_robot)
+            .ok_or(Refusal::BadRobotName)?;
+        let hash = hash_token(token);
+        let hash = hash.as_bytes();
+
+        if let Some(ns) = &namespace {
+            let secret_ref = ObjectRef::<Secret>::new(&robot_secret_name(&name)).within(ns);
+            let cached = self.secrets.get(&secret_ref).and_then(|s| secret_hash(&s));
+            let matches = match cached {
+                Some(h) if same_hash(&h, hash) => true,
+                _ => {
+                    // Not (yet) in the cache, or rotated a moment ago: ask the API server.
+                    let api: Api<Secret> = Api::namespaced(self.client.clone(), ns);
+                    match api.get_opt(&robot_secret_name(&name)).await {
+                        Ok(Some(s)) => secret_hash(&s).is_some_and(|h| same_hash(&h, hash)),
+                        _ => false,
+                    }
+                }
+            };
+            if matches {
+                return Ok(Grant::Robot(RobotKey {
+                    namespace: ns.clone(),
+                    name,
+                }));
+            }
+        }
+        // An enrollment token registers the robot in the enrollment Secret's namespace.
+        for secret in self.secrets.state() {
+            let labels = secret.metadata.labels.as_ref();
+            if labels.and_then(|l| l.get(TOKEN_LABEL)).map(String::as_str) != Some(KIND_ENROLLMENT)
+            {
+                continue;
+            }
+            let Some(secret_ns) = secret.metadata.namespace.clone() else {
+                continue;
+            };
+            if namespace.as_ref().is_some_and(|ns| *ns != secret_ns) {
+                continue;
+            }
+            if secret_hash(&secret).is_some_and(|h| same_hash(&h, hash)) {
+                return Ok(Grant::Enroll(RobotKey {
+                    namespace: secret_ns,
+                    name,
+                }));
+            }
+        }
+        Err(Refusal::WrongToken)
+    }
+
+    /// Registers an enrolling robot: creates its `Robot` unless it exists (re-registration
+    /// never duplicates it) and mints a new per-robot token, stored only as a hash.
+    pub async fn register(&self, robot: &RobotKey) -> Result<String, kube::Error> {
+        let robots: Api<Robot> = Api::namespaced(self.client.clone(), &robot.namespace);
+        let existing = match robots.get_opt(&robot.name).await? {
+            Some(r) => r,
+            None => {
+                let new = Robot {
+                    metadata: ObjectMeta {
+                        name: Some(robot.name.clone()),
+                        labels: Some(BTreeMap::from([(
+                            "fleet.lekiwi.io/enrolled".to_owned(),
+                            "true".to_owned(),
+                        )])),
+                        ..ObjectMeta::default()
+                    },
+                    ..Robot::default()
+                };
+                match robots.create(&PostParams::default(), &new).await {
+                    Ok(r) => r,
+                    // Two connections enrolling the same robot at once: the other one created it.
+                    Err(kube::Error::Api(s)) if s.code == 409 => robots.get(&robot.name).await?,
+                    Err(e) => return Err(e),
+                }
+            }
+        };
+        let token = new_token("lkr_");
+        let secret = Secret {
+            metadata: ObjectMeta {
+                name: Some(robot_secret_name(&robot.name)),
+                labels: Some(BTreeMap::from([
+                    (TOKEN_LABEL.to_owned(), KIND_ROBOT.to_owned()),
+                    (ROBOT_LABEL.to_owned(), robot.name.clone()),
+                ])),
+                owner_references: existing.controller_owner_ref(&()).map(|r| vec![r]),
+                ..ObjectMeta::default()
+            },
+            data: Some(BTreeMap::from([(
+                HASH_KEY.to_owned(),
+                ByteString(hash_token(&token).into_bytes()),
+            )])),
+            type_: Some("Opaque".to_owned()),
+            ..Secret::default()
+        };
+        let secrets: Api<Secret> = Api::namespaced(self.client.clone(), &robot.namespace);
+        secrets
+            .patch(
+                &robot_secret_name(&robot.name),
+                &PatchParams::apply(FIELD_MANAGER).force(),
+                &Patch::Apply(&secret),
+            )
+            .await?;
+        Ok(token)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn robot_header_forms() {
+        assert_eq!(
+            parse_robot("lab/kiwi-1"),
+            Some((Some("lab".into()), "kiwi-1".into()))
+        );
+        assert_eq!(parse_robot("kiwi-1"), Some((None, "kiwi-1".into())));
+        assert_eq!(parse_robot("Lab/Kiwi"), None);
+        assert_eq!(parse_robot("lab/"), None);
+        assert_eq!(parse_robot("../etc"), None);
+    }
+
+    #[test]
+    fn tokens_are_random_and_hashes_compare() {
+        let a = new_token("lkr_");
+        assert!(a.starts_with("lkr_") && a.len() == 68);
+        assert_ne!(a, new_token("lkr_"));
+        assert!(same_hash(
+            hash_token(&a).as_bytes(),
+            hash_token(&a).as_bytes()
+        ));
+        assert!(!same_hash(
+            hash_token(&a).as_bytes(),
+            hash_token("x").as_bytes()
+        ));
+    }
+}

@@ -1,0 +1,84 @@
+//! The event store's error type.
+
+use std::path::PathBuf;
+
+/// Everything that can fail in the event store. Messages never contain the database URL, which
+/// may hold a password.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The URL names no backend we support, or is malformed.
+    #[error(
+        "unsupported event store URL ({reason}); expected sqlite:///abs/path.db, sqlite://rel.db, sqlite::memory: or postgres://user@host/db"
+    )]
+    UnsupportedUrl {
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// The directory for the SQLite file could not be created.
+    #[error("cannot create directory {path} for the SQLite event store: {source}")]
+    CreateDir {
+        /// The directory.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// Opening the database failed.
+    #[error("cannot connect to the {backend} event store: {source}")]
+    Connect {
+        /// `sqlite` or `postgres`.
+        backend: &'static str,
+        /// The cause.
+        source: sqlx::Error,
+    },
+    /// The database did not answer in time.
+    #[error("cannot connect to the {backend} event store: no answer within {after:?}")]
+    ConnectTimeout {
+        /// `sqlite` or `postgres`.
+        backend: &'static str,
+        /// How long we waited.
+        after: std::time::Duration,
+    },
+    /// Applying the schema migrations failed.
+    #[error("cannot migrate the {backend} event store: {source}")]
+    Migrate {
+        /// `sqlite` or `postgres`.
+        backend: &'static str,
+        /// The cause.
+        source: sqlx::migrate::MigrateError,
+    },
+    /// Storing something failed; it was not stored and must not be acknowledged.
+    #[error("cannot store {what} of robot {robot}: {source}")]
+    Insert {
+        /// What was being stored, e.g. `event`.
+        what: &'static str,
+        /// `namespace/name` of the robot.
+        robot: String,
+        /// The cause.
+        source: sqlx::Error,
+    },
+    /// Updating a stored record failed.
+    #[error("cannot update {what}: {source}")]
+    Update {
+        /// What was being updated.
+        what: &'static str,
+        /// The cause.
+        source: sqlx::Error,
+    },
+    /// Reading failed.
+    #[error("cannot read {what} from the event store: {source}")]
+    Query {
+        /// What was being read.
+        what: &'static str,
+        /// The cause.
+        source: sqlx::Error,
+    },
+    /// Deleting old records failed.
+    #[error("cannot prune the event store: {0}")]
+    Prune(#[source] sqlx::Error),
+    /// A sequence number too large for the database's signed 64-bit integers.
+    #[error("sequence number {0} is out of range: the event store holds at most {max}", max = i64::MAX)]
+    SeqOutOfRange(u64),
+}
+
+/// Result with the event store's [`Error`].
+pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -1,0 +1,416 @@
+//! The event store behaves the same on both backends: a SQLite file and a real PostgreSQL 15
+//! server of the test's own (restarted and crashed where the test says so).
+
+use std::sync::Arc;
+
+use anyhow::{Result, ensure};
+use lekiwi_operator::store::{ConnectionRecord, PruneCounts, RobotKey, Sample, Store, StoredEvent};
+use lekiwi_tests::postgres::Postgres;
+use serde_json::json;
+use tokio::sync::Barrier;
+
+/// One test's database.
+enum Db {
+    Sqlite(tempfile::TempDir),
+    Postgres(Postgres),
+}
+
+impl Db {
+    fn sqlite() -> Result<Db> {
+        Ok(Db::Sqlite(
+            tempfile::Builder::new().prefix("lekiwi-store-").tempdir()?,
+        ))
+    }
+
+    fn postgres() -> Result<Db> {
+        let pg = Postgres::start()?;
+        eprintln!(
+            "postgres on port {}: initdb {:?}, start {:?}",
+            pg.port(),
+            pg.init_time,
+            pg.start_time
+        );
+        pg.create_database("lekiwi")?;
+        Ok(Db::Postgres(pg))
+    }
+
+    fn url(&self) -> String {
+        match self {
+            Db::Sqlite(dir) => format!("sqlite://{}", dir.path().join("events.db").display()),
+            Db::Postgres(pg) => pg.url("lekiwi"),
+        }
+    }
+
+    async fn store(&self) -> Result<Store> {
+        Ok(Store::connect(&self.url()).await?)
+    }
+
+    /// Restarts the database server cleanly, if there is one.
+    fn restart(&mut self) -> Result<()> {
+        match self {
+            Db::Sqlite(_) => Ok(()),
+            Db::Postgres(pg) => pg.restart(),
+        }
+    }
+
+    /// Stops the database server as a crash would and starts it again, if there is one.
+    fn crash_restart(&mut self) -> Result<()> {
+        match self {
+            Db::Sqlite(_) => Ok(()),
+            Db::Postgres(pg) => pg.crash_restart(),
+        }
+    }
+}
+
+fn robot(name: &str) -> RobotKey {
+    RobotKey::new("fleet-a", name)
+}
+
+fn event(seq: u64, ts_ms: i64) -> StoredEvent {
+    StoredEvent {
+        seq,
+        ts_ms,
+        kind: if seq % 2 == 0 {
+            "progress"
+        } else {
+            "teleoperation_started"
+        }
+        .into(),
+        severity: "info".into(),
+        message: format!("event {seq}"),
+        data: json!({ "seq": seq, "nested": { "list": [1, 2.5, "x", null] } }),
+    }
+}
+
+fn sample(metric: &str, ts_ms: i64, value: f64) -> Sample {
+    Sample {
+        metric: metric.into(),
+        ts_ms,
+        value,
+    }
+}
+
+fn connection(at_ms: i64) -> ConnectionRecord {
+    ConnectionRecord {
+        gateway: "gw-0".into(),
+        protocol: "websocket".into(),
+        address: Some("10.0.0.7:40112".into()),
+        connected_at_ms: at_ms,
+        disconnected_at_ms: None,
+        reason: None,
+    }
+}
+
+async fn replays_are_stored_once(db: Db) -> Result<()> {
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    ensure!(store.insert_event(&r, &event(1, 1_000)).await?);
+    let mut replay = event(1, 1_000);
+    replay.message = "a different body under the same seq".into();
+    ensure!(
+        !store.insert_event(&r, &replay).await?,
+        "replay stored again"
+    );
+    assert_eq!(store.events(&r, None, 100).await?, vec![event(1, 1_000)]);
+
+    let batch = [
+        sample("cpu_percent", 1_000, 12.5),
+        sample("temp_c", 1_000, 48.25),
+    ];
+    ensure!(store.insert_telemetry(&r, 2, &batch).await?);
+    ensure!(
+        !store.insert_telemetry(&r, 2, &batch).await?,
+        "replayed batch stored again"
+    );
+    assert_eq!(store.samples(&r, None, 0, 100).await?.len(), 2);
+    // Another robot's seq 1 is its own.
+    ensure!(
+        store
+            .insert_event(&robot("kiwi-2"), &event(1, 1_000))
+            .await?
+    );
+    Ok(())
+}
+
+async fn last_seq_spans_events_and_telemetry(db: Db) -> Result<()> {
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    assert_eq!(store.last_seq(&r).await?, None);
+    store.insert_event(&r, &event(4, 1_000)).await?;
+    assert_eq!(store.last_seq(&r).await?, Some(4));
+    store
+        .insert_telemetry(&r, 10, &[sample("cpu_percent", 1_000, 1.0)])
+        .await?;
+    assert_eq!(store.last_seq(&r).await?, Some(10));
+    store.insert_event(&r, &event(6, 1_000)).await?;
+    assert_eq!(store.last_seq(&r).await?, Some(10));
+    let top = i64::MAX as u64;
+    store.insert_event(&r, &event(top, 1_000)).await?;
+    assert_eq!(store.last_seq(&r).await?, Some(top));
+    ensure!(
+        store
+            .insert_event(&r, &event(top + 1, 1_000))
+            .await
+            .is_err()
+    );
+    assert_eq!(store.last_seq(&robot("kiwi-2")).await?, None);
+    Ok(())
+}
+
+async fn queries_filter_order_and_limit(db: Db) -> Result<()> {
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    for seq in [3, 1, 5, 2, 4] {
+        store
+            .insert_event(&r, &event(seq, 1_000 + seq as i64))
+            .await?;
+    }
+    store
+        .insert_event(&robot("kiwi-2"), &event(9, 1_000))
+        .await?;
+    let seqs = |evs: Vec<StoredEvent>| evs.iter().map(|e| e.seq).collect::<Vec<_>>();
+    assert_eq!(seqs(store.events(&r, None, 100).await?), [1, 2, 3, 4, 5]);
+    assert_eq!(seqs(store.events(&r, Some(1), 3).await?), [2, 3, 4]);
+    assert_eq!(seqs(store.events(&r, Some(5), 3).await?), [] as [u64; 0]);
+    // JSON data comes back as it went in.
+    assert_eq!(store.events(&r, Some(2), 1).await?, vec![event(3, 1_003)]);
+
+    store
+        .insert_telemetry(
+            &r,
+            10,
+            &[
+                sample("cpu_percent", 2_000, 1.5),
+                sample("temp_c", 2_000, 40.0),
+            ],
+        )
+        .await?;
+    store
+        .insert_telemetry(
+            &r,
+            11,
+            &[
+                sample("cpu_percent", 3_000, 2.5),
+                sample("temp_c", 3_000, 41.0),
+            ],
+        )
+        .await?;
+    let cpu = store.samples(&r, Some("cpu_percent"), 0, 100).await?;
+    let cpu: Vec<_> = cpu.iter().map(|s| (s.seq, s.ts_ms, s.value)).collect();
+    assert_eq!(cpu, [(10, 2_000, 1.5), (11, 3_000, 2.5)]);
+    let recent = store.samples(&r, None, 2_500, 100).await?;
+    let recent: Vec<_> = recent
+        .iter()
+        .map(|s| (s.metric.as_str(), s.ts_ms))
+        .collect();
+    assert_eq!(recent, [("cpu_percent", 3_000), ("temp_c", 3_000)]);
+    assert_eq!(store.samples(&r, None, 0, 3).await?.len(), 3);
+    ensure!(
+        store
+            .samples(&robot("kiwi-2"), None, 0, 100)
+            .await?
+            .is_empty()
+    );
+
+    let first = store.record_connect(&r, &connection(1_000)).await?;
+    store
+        .record_disconnect(first, 1_500, "heartbeat_timeout")
+        .await?;
+    store.record_disconnect(first, 9_000, "duplicate").await?;
+    let second = store.record_connect(&r, &connection(2_000)).await?;
+    ensure!(first != second);
+    let conns = store.connections(&r, 100).await?;
+    assert_eq!(
+        conns,
+        vec![
+            connection(2_000),
+            ConnectionRecord {
+                disconnected_at_ms: Some(1_500),
+                reason: Some("heartbeat_timeout".into()),
+                ..connection(1_000)
+            },
+        ]
+    );
+    assert_eq!(store.connections(&r, 1).await?, vec![connection(2_000)]);
+    assert_eq!(
+        store
+            .close_open_connections("gw-0", 5_000, "gateway restarted")
+            .await?,
+        1
+    );
+    assert_eq!(
+        store.connections(&r, 1).await?[0].disconnected_at_ms,
+        Some(5_000)
+    );
+    Ok(())
+}
+
+async fn prune_deletes_old_records_only(db: Db) -> Result<()> {
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    store.insert_event(&r, &event(1, 1_000)).await?;
+    store.insert_event(&r, &event(2, 5_000)).await?;
+    store
+        .insert_telemetry(
+            &r,
+            3,
+            &[
+                sample("cpu_percent", 1_000, 1.0),
+                sample("cpu_percent", 5_000, 2.0),
+            ],
+        )
+        .await?;
+    let old = store.record_connect(&r, &connection(500)).await?;
+    store.record_disconnect(old, 1_000, "closed").await?;
+    let recent = store.record_connect(&r, &connection(2_000)).await?;
+    store.record_disconnect(recent, 4_000, "closed").await?;
+    store.record_connect(&r, &connection(100)).await?;
+
+    let counts = store.prune(3_000).await?;
+    assert_eq!(
+        counts,
+        PruneCounts {
+            events: 1,
+            samples: 1,
+            connections: 1
+        }
+    );
+    assert_eq!(store.events(&r, None, 100).await?, vec![event(2, 5_000)]);
+    let samples = store.samples(&r, None, 0, 100).await?;
+    assert_eq!(samples.iter().map(|s| s.ts_ms).collect::<Vec<_>>(), [5_000]);
+    let started: Vec<_> = store
+        .connections(&r, 100)
+        .await?
+        .iter()
+        .map(|c| c.connected_at_ms)
+        .collect();
+    // The old but still open connection stays.
+    assert_eq!(started, [2_000, 100]);
+    assert_eq!(store.prune(3_000).await?, PruneCounts::default());
+    Ok(())
+}
+
+async fn concurrent_inserts_store_one_row(db: Db) -> Result<()> {
+    const TASKS: usize = 8;
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    let barrier = Arc::new(Barrier::new(TASKS));
+    let mut tasks = tokio::task::JoinSet::new();
+    for task in 0..TASKS {
+        let (store, r, barrier) = (store.clone(), r.clone(), barrier.clone());
+        tasks.spawn(async move {
+            barrier.wait().await;
+            let first = store.insert_event(&r, &event(1, 1_000)).await?;
+            let batch = [
+                sample("cpu_percent", 1_000, task as f64),
+                sample("temp_c", 1_000, 40.0),
+            ];
+            let telemetry = store.insert_telemetry(&r, 2, &batch).await?;
+            // And every task's own seqs, interleaved with the others'.
+            for i in 0..10 {
+                let seq = 100 + (task * 10 + i) as u64;
+                ensure!(store.insert_event(&r, &event(seq, 2_000)).await?);
+            }
+            anyhow::Ok((first, telemetry))
+        });
+    }
+    let (mut events, mut batches) = (0, 0);
+    while let Some(joined) = tasks.join_next().await {
+        let (event, telemetry) = joined??;
+        events += usize::from(event);
+        batches += usize::from(telemetry);
+    }
+    assert_eq!(
+        (events, batches),
+        (1, 1),
+        "exactly one insert of each seq wins"
+    );
+    assert_eq!(store.events(&r, None, 1_000).await?.len(), 1 + TASKS * 10);
+    assert_eq!(store.samples(&r, None, 0, 1_000).await?.len(), 2);
+    assert_eq!(
+        store.last_seq(&r).await?,
+        Some(100 + (TASKS * 10 - 1) as u64)
+    );
+    Ok(())
+}
+
+async fn data_survives_reconnects_and_restarts(mut db: Db) -> Result<()> {
+    let r = robot("kiwi-1");
+    let store = db.store().await?;
+    store.insert_event(&r, &event(1, 1_000)).await?;
+    store
+        .insert_telemetry(&r, 2, &[sample("cpu_percent", 1_000, 1.0)])
+        .await?;
+    let conn = store.record_connect(&r, &connection(1_000)).await?;
+    store.close().await;
+
+    let check = |store: Store, last: u64| {
+        let r = r.clone();
+        async move {
+            assert_eq!(store.last_seq(&r).await?, Some(last));
+            assert_eq!(store.events(&r, None, 100).await?[0], event(1, 1_000));
+            assert_eq!(store.samples(&r, None, 0, 100).await?.len(), 1);
+            assert_eq!(store.connections(&r, 100).await?.len(), 1);
+            ensure!(
+                !store.insert_event(&r, &event(1, 1_000)).await?,
+                "replay after restart"
+            );
+            anyhow::Ok(store)
+        }
+    };
+
+    // Closed pool, same database.
+    let store = check(db.store().await?, 2).await?;
+    store.close().await;
+
+    // A clean server restart.
+    db.restart()?;
+    let store = check(db.store().await?, 2).await?;
+
+    // A crash with the store still open: the pool replaces its dead connections, and what was
+    // acknowledged before the crash is there afterwards.
+    store
+        .insert_event(&robot("kiwi-1"), &event(3, 2_000))
+        .await?;
+    store.record_disconnect(conn, 2_000, "closed").await?;
+    db.crash_restart()?;
+    let store = check(store, 3).await?;
+    assert_eq!(
+        store.connections(&robot("kiwi-1"), 1).await?[0]
+            .reason
+            .as_deref(),
+        Some("closed")
+    );
+    Ok(())
+}
+
+/// Runs each check once per backend, as `sqlite::name` and `postgres::name`.
+macro_rules! on_both_backends {
+    ($($name:ident),* $(,)?) => {
+        mod sqlite {
+            $(
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn $name() -> anyhow::Result<()> {
+                    super::$name(super::Db::sqlite()?).await
+                }
+            )*
+        }
+        mod postgres {
+            $(
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn $name() -> anyhow::Result<()> {
+                    super::$name(super::Db::postgres()?).await
+                }
+            )*
+        }
+    };
+}
+
+on_both_backends!(
+    replays_are_stored_once,
+    last_seq_spans_events_and_telemetry,
+    queries_filter_order_and_limit,
+    prune_deletes_old_records_only,
+    concurrent_inserts_store_one_row,
+    data_survives_reconnects_and_restarts,
+);

@@ -1,0 +1,617 @@
+//! The agent gateway end to end: real WebSocket agents against a real operator process and API
+//! server — enrollment, refusals, bad frames, replacement, presence timing, durable ingest,
+//! gateway death, legacy polling.
+
+use std::time::{Duration, Instant};
+
+use futures::{SinkExt, StreamExt};
+use kube::Api;
+use kube::api::{ListParams, Patch, PatchParams};
+use lekiwi_agent::connection::{ConnectError, Credentials, Socket, connect};
+use lekiwi_crds::{Robot, RobotPhase};
+use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, Severity, Vitals, decode, encode};
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, enrollment_token, gateway_url, get_robot, hello, http_get_with,
+    namespace, wait_for,
+};
+use serde_json::json;
+use tokio_tungstenite::tungstenite::Message;
+
+const TIMEOUT: Duration = Duration::from_secs(10);
+
+async fn phase_within(
+    client: &kube::Client,
+    ns: &str,
+    name: &str,
+    phase: RobotPhase,
+    within: Duration,
+) -> anyhow::Result<Duration> {
+    let start = Instant::now();
+    wait_for(&format!("{name} {phase}"), within, || async {
+        (get_robot(client, ns, name).await.ok()?.status?.phase == Some(phase)).then_some(())
+    })
+    .await?;
+    Ok(start.elapsed())
+}
+
+async fn send(ws: &mut Socket, msg: &AgentMessage) {
+    ws.send(Message::text(encode(msg))).await.expect("send");
+}
+
+/// The next protocol message from the gateway (skipping pings).
+async fn recv(ws: &mut Socket) -> Option<ServerMessage> {
+    loop {
+        match tokio::time::timeout(TIMEOUT, ws.next()).await.ok()?? {
+            Ok(Message::Text(t)) => {
+                return Some(decode(t.as_str(), usize::MAX).expect("server frame decodes"));
+            }
+            Ok(Message::Close(_)) | Err(_) => return None,
+            Ok(_) => continue,
+        }
+    }
+}
+
+fn heartbeat() -> AgentMessage {
+    AgentMessage::Heartbeat {
+        sent_at_ms: 42,
+        rtt_ms: None,
+        vitals: Vitals::default(),
+        current_release: None,
+        health: None,
+        teleoperation: None,
+    }
+}
+
+async fn start(
+    cp: &ControlPlane,
+    ns: &str,
+    id: &str,
+    extra: &[&str],
+) -> anyhow::Result<OperatorProcess> {
+    let mut args = vec!["--heartbeat-grace-seconds", "60"];
+    args.extend_from_slice(extra);
+    let mut op = OperatorProcess::start(cp, ns, id, &args)?;
+    op.wait_ready().await?;
+    Ok(op)
+}
+
+#[tokio::test]
+async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gw").await?;
+    let op = start(cp, &ns, "gw-a", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let url = gateway_url(&op);
+
+    // Enrollment creates the Robot and hands out the robot's own token; Online within a second.
+    let creds = Credentials {
+        token: enroll.clone(),
+        robot: "kiwi-1".into(),
+    };
+    let t = Instant::now();
+    let (mut ws, welcome) = connect(&url, &creds, &hello(), TIMEOUT).await?;
+    assert_eq!(welcome.robot, format!("{ns}/kiwi-1"));
+    let token = welcome
+        .robot_token
+        .clone()
+        .expect("enrollment returns a robot token");
+    let online = phase_within(
+        &client,
+        &ns,
+        "kiwi-1",
+        RobotPhase::Online,
+        Duration::from_secs(5),
+    )
+    .await?
+        + t.elapsed().min(Duration::ZERO);
+    println!("enrolled robot Online {:?} after connect", t.elapsed());
+    assert!(
+        t.elapsed() < Duration::from_secs(2),
+        "Online took {:?}",
+        online
+    );
+    let r = get_robot(&client, &ns, "kiwi-1").await?;
+    let status = r.status.unwrap();
+    assert_eq!(status.protocol.as_deref(), Some("websocket"));
+    assert_eq!(status.agent_version.as_deref(), Some("0.1.0-test"));
+    assert_eq!(status.system.unwrap().arch.as_deref(), Some("aarch64"));
+    send(&mut ws, &heartbeat()).await;
+    assert!(matches!(
+        recv(&mut ws).await,
+        Some(ServerMessage::HeartbeatAck { sent_at_ms: 42, .. })
+    ));
+
+    // The robot's own token works; a second connection replaces the first, which is told why.
+    let own = Credentials {
+        token: token.clone(),
+        robot: welcome.robot.clone(),
+    };
+    let (mut ws2, w2) = connect(&url, &own, &hello(), TIMEOUT).await?;
+    assert_eq!(w2.robot_token, None);
+    match recv(&mut ws).await {
+        Some(ServerMessage::Error {
+            code: ErrorCode::Replaced,
+            fatal: true,
+            ..
+        }) => {}
+        other => panic!("old connection got {other:?}"),
+    }
+    assert!(recv(&mut ws).await.is_none(), "old connection is closed");
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert_eq!(
+        get_robot(&client, &ns, "kiwi-1")
+            .await?
+            .status
+            .unwrap()
+            .phase,
+        Some(RobotPhase::Online),
+        "replacement must not look like a disconnect"
+    );
+    send(&mut ws2, &heartbeat()).await;
+    assert!(matches!(
+        recv(&mut ws2).await,
+        Some(ServerMessage::HeartbeatAck { .. })
+    ));
+
+    // Enrolling again (a robot that lost its token) never duplicates the Robot.
+    drop(ws2);
+    let (ws3, w3) = connect(&url, &creds, &hello(), TIMEOUT).await?;
+    assert!(
+        w3.robot_token.is_some() && w3.robot_token != Some(token.clone()),
+        "re-enrollment rotates the token"
+    );
+    let robots = Api::<Robot>::namespaced(client.clone(), &ns)
+        .list(&ListParams::default())
+        .await?;
+    assert_eq!(robots.items.len(), 1);
+    // The old token no longer works.
+    let err = connect(&url, &own, &hello(), TIMEOUT).await.unwrap_err();
+    assert!(matches!(err, ConnectError::Unauthorized(_)), "{err}");
+
+    // A closed connection is Offline within a second.
+    drop(ws3);
+    let t = Instant::now();
+    phase_within(
+        &client,
+        &ns,
+        "kiwi-1",
+        RobotPhase::Offline,
+        Duration::from_secs(5),
+    )
+    .await?;
+    println!("Offline {:?} after close", t.elapsed());
+    assert!(
+        t.elapsed() < Duration::from_millis(1500),
+        "Offline took {:?}",
+        t.elapsed()
+    );
+    Ok(())
+}
+
+#[tokio::test]
+async fn bad_credentials_are_refused_before_the_upgrade() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gwauth").await?;
+    let op = start(cp, &ns, "gw-auth", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let url = gateway_url(&op);
+    let cases = [
+        (
+            "wrong token",
+            Credentials {
+                token: "lkr_not-a-token".into(),
+                robot: format!("{ns}/kiwi-1"),
+            },
+        ),
+        (
+            "enrollment token of another namespace",
+            Credentials {
+                token: enroll.clone(),
+                robot: "default/kiwi-1".into(),
+            },
+        ),
+        (
+            "invalid robot name",
+            Credentials {
+                token: enroll.clone(),
+                robot: "Kiwi_1".into(),
+            },
+        ),
+        (
+            "empty token",
+            Credentials {
+                token: String::new(),
+                robot: "kiwi-1".into(),
+            },
+        ),
+    ];
+    for (what, creds) in cases {
+        match connect(&url, &creds, &hello(), TIMEOUT).await {
+            Err(ConnectError::Unauthorized(body)) => {
+                let v: serde_json::Value = serde_json::from_str(&body)
+                    .unwrap_or_else(|_| panic!("{what}: body not JSON: {body}"));
+                assert_eq!(v["error"], "unauthorized", "{what}: {body}");
+            }
+            other => panic!("{what}: expected 401, got {:?}", other.map(|(_, w)| w)),
+        }
+    }
+    // No Robot was created, and the log never contains a token.
+    assert!(
+        Api::<Robot>::namespaced(client.clone(), &ns)
+            .list(&ListParams::default())
+            .await?
+            .items
+            .is_empty()
+    );
+    let log = op.log_text();
+    assert!(
+        !log.contains("lkr_not-a-token") && !log.contains(&enroll),
+        "a token leaked into the log"
+    );
+    assert!(log.contains("refused an agent request"), "{log}");
+    Ok(())
+}
+
+#[tokio::test]
+async fn bad_frames_get_error_frames_and_the_session_survives() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gwframes").await?;
+    let op = start(
+        cp,
+        &ns,
+        "gw-frames",
+        &["--agent-rate", "50", "--agent-burst", "5"],
+    )
+    .await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let (mut ws, _) = connect(
+        &gateway_url(&op),
+        &Credentials {
+            token: enroll,
+            robot: "kiwi-1".into(),
+        },
+        &hello(),
+        TIMEOUT,
+    )
+    .await?;
+
+    let cases: Vec<(Message, ErrorCode)> = vec![
+        (Message::text("this is not json"), ErrorCode::Malformed),
+        (
+            Message::text(r#"{"type":"teleport","to":"mars"}"#),
+            ErrorCode::UnknownMessage,
+        ),
+        (
+            Message::text(r#"{"type":"event","seq":1}"#),
+            ErrorCode::UnknownMessage,
+        ),
+        (
+            Message::text(format!(
+                r#"{{"type":"heartbeat","sent_at_ms":1,"pad":"{}"}}"#,
+                "x".repeat(300 * 1024)
+            )),
+            ErrorCode::FrameTooLarge,
+        ),
+        (Message::binary(vec![0u8, 1, 2]), ErrorCode::Malformed),
+        (
+            Message::text(encode(&hello())),
+            ErrorCode::UnexpectedMessage,
+        ),
+    ];
+    for (frame, code) in cases {
+        ws.send(frame).await?;
+        match recv(&mut ws).await {
+            Some(ServerMessage::Error {
+                code: got,
+                fatal: false,
+                ..
+            }) => assert_eq!(got, code),
+            other => panic!("expected a non-fatal {code:?} error frame, got {other:?}"),
+        }
+        tokio::time::sleep(Duration::from_millis(120)).await; // stay under the rate limit
+    }
+    send(&mut ws, &heartbeat()).await;
+    assert!(
+        matches!(
+            recv(&mut ws).await,
+            Some(ServerMessage::HeartbeatAck { .. })
+        ),
+        "session still serves"
+    );
+
+    // A burst over the limit is refused message by message; sustained abuse closes the session.
+    for _ in 0..40 {
+        send(&mut ws, &heartbeat()).await;
+    }
+    let mut limited = 0;
+    let mut closed = false;
+    while let Some(msg) = recv(&mut ws).await {
+        match msg {
+            ServerMessage::Error {
+                code: ErrorCode::RateLimited,
+                fatal: true,
+                ..
+            } => {
+                closed = recv(&mut ws).await.is_none();
+                break;
+            }
+            ServerMessage::Error {
+                code: ErrorCode::RateLimited,
+                ..
+            } => limited += 1,
+            _ => {}
+        }
+    }
+    assert!(limited > 0 && closed, "limited {limited}, closed {closed}");
+    Ok(())
+}
+
+#[tokio::test]
+async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gwevents").await?;
+    let op = start(cp, &ns, "gw-ev", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let (mut ws, welcome) = connect(
+        &gateway_url(&op),
+        &Credentials {
+            token: enroll,
+            robot: "kiwi-1".into(),
+        },
+        &hello(),
+        TIMEOUT,
+    )
+    .await?;
+    assert_eq!(welcome.stored_seq, None);
+    let event = |seq| AgentMessage::Event {
+        seq,
+        ts_ms: 1_763_800_000_000 + seq as i64,
+        kind: "teleoperation_started".into(),
+        severity: Severity::Info,
+        message: format!("event {seq}"),
+        data: json!({"port": 5555}),
+    };
+    for seq in [1, 2, 2, 1, 3] {
+        send(&mut ws, &event(seq)).await;
+        assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq }));
+    }
+    send(
+        &mut ws,
+        &AgentMessage::Telemetry {
+            seq: 4,
+            samples: vec![lekiwi_protocol::Sample {
+                metric: "cpu_percent".into(),
+                ts_ms: 1,
+                value: 5.0,
+            }],
+        },
+    )
+    .await;
+    assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq: 4 }));
+    drop(ws);
+
+    let store =
+        lekiwi_operator::store::Store::connect(&format!("sqlite://{}", op.store_path.display()))
+            .await?;
+    let key = lekiwi_operator::store::RobotKey {
+        namespace: ns.clone(),
+        name: "kiwi-1".into(),
+    };
+    let events = store.events(&key, None, 100).await?;
+    assert_eq!(
+        events.iter().map(|e| e.seq).collect::<Vec<_>>(),
+        [1, 2, 3],
+        "each seq stored exactly once"
+    );
+    assert_eq!(events[0].data["port"], 5555);
+    assert_eq!(store.last_seq(&key).await?, Some(4));
+
+    // A reconnecting agent learns what is stored already.
+    let (_ws, welcome) = connect(
+        &gateway_url(&op),
+        &Credentials {
+            token: welcome.robot_token.unwrap(),
+            robot: welcome.robot,
+        },
+        &hello(),
+        TIMEOUT,
+    )
+    .await?;
+    assert_eq!(welcome.stored_seq, Some(4));
+    let conns = store.connections(&key, 10).await?;
+    assert!(
+        conns.len() >= 2 && conns.iter().any(|c| c.disconnected_at_ms.is_some()),
+        "{conns:?}"
+    );
+    Ok(())
+}
+
+#[tokio::test]
+async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -> anyhow::Result<()>
+{
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gwdeath").await?;
+    // Controllers and gateway in separate processes, so the gateway can die alone.
+    let _ctl = start(cp, &ns, "ctl", &["--role", "controller"]).await?;
+    let mut gw = start(
+        cp,
+        &ns,
+        "gw",
+        &[
+            "--role",
+            "gateway",
+            "--heartbeat-interval-seconds",
+            "1",
+            "--gateway-lease-seconds",
+            "3",
+        ],
+    )
+    .await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+
+    // Silence: closed and Offline within 3 intervals (+ write latency).
+    let (ws, _) = connect(
+        &gateway_url(&gw),
+        &Credentials {
+            token: enroll.clone(),
+            robot: "quiet".into(),
+        },
+        &hello(),
+        TIMEOUT,
+    )
+    .await?;
+    phase_within(
+        &client,
+        &ns,
+        "quiet",
+        RobotPhase::Online,
+        Duration::from_secs(5),
+    )
+    .await?;
+    let t = Instant::now();
+    phase_within(
+        &client,
+        &ns,
+        "quiet",
+        RobotPhase::Offline,
+        Duration::from_secs(8),
+    )
+    .await?;
+    println!(
+        "silent robot Offline after {:?} (3 x 1 s intervals)",
+        t.elapsed()
+    );
+    assert!(
+        t.elapsed() < Duration::from_millis(4500),
+        "took {:?}",
+        t.elapsed()
+    );
+    drop(ws);
+
+    // A live robot on a gateway that is killed: Unknown once the gateway Lease expires.
+    let (mut ws, _) = connect(
+        &gateway_url(&gw),
+        &Credentials {
+            token: enroll,
+            robot: "busy".into(),
+        },
+        &hello(),
+        TIMEOUT,
+    )
+    .await?;
+    send(&mut ws, &heartbeat()).await;
+    phase_within(
+        &client,
+        &ns,
+        "busy",
+        RobotPhase::Online,
+        Duration::from_secs(5),
+    )
+    .await?;
+    gw.kill();
+    let t = Instant::now();
+    phase_within(
+        &client,
+        &ns,
+        "busy",
+        RobotPhase::Unknown,
+        Duration::from_secs(10),
+    )
+    .await?;
+    println!(
+        "robot Unknown {:?} after its gateway was killed (lease 3 s)",
+        t.elapsed()
+    );
+    Ok(())
+}
+
+#[tokio::test]
+async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gwpoll").await?;
+    let op = start(cp, &ns, "gw-poll", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    lekiwi_tests::create_robot(&client, &ns, "old-1", &[]).await?;
+    let release = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch(
+            "old-1",
+            &PatchParams::default(),
+            &Patch::Merge(json!({"spec": {"release": release}})),
+        )
+        .await?;
+    let auth = format!("Bearer {enroll}");
+    let path = format!("/v1/poll?robot={ns}/old-1&version=1.0.0&agent=legacy-0.9");
+    let (code, headers, body) =
+        http_get_with(op.gateway_port, &path, &[("authorization", &auth)]).await?;
+    assert_eq!(code, 200, "{body}");
+    let answer: serde_json::Value = serde_json::from_str(&body)?;
+    assert_eq!(answer["update_available"], true);
+    assert_eq!(answer["target_version"], "2.0.0");
+    let etag = headers
+        .iter()
+        .find(|(k, _)| k == "etag")
+        .map(|(_, v)| v.clone())
+        .expect("ETag");
+    assert!(
+        headers
+            .iter()
+            .any(|(k, v)| k == "cache-control" && v.contains("no-cache"))
+    );
+
+    let (code, _, body) = http_get_with(
+        op.gateway_port,
+        &path,
+        &[("authorization", &auth), ("if-none-match", &etag)],
+    )
+    .await?;
+    assert_eq!(code, 304, "{body}");
+    assert!(body.is_empty());
+
+    // The poll made the robot Online, recorded as a polling robot.
+    phase_within(
+        &client,
+        &ns,
+        "old-1",
+        RobotPhase::Online,
+        Duration::from_secs(5),
+    )
+    .await?;
+    let status = get_robot(&client, &ns, "old-1").await?.status.unwrap();
+    assert_eq!(status.protocol.as_deref(), Some("poll"));
+    assert_eq!(status.agent_version.as_deref(), Some("legacy-0.9"));
+
+    // Answers are cached: a spec change within the TTL is not seen yet (polling fleets cost
+    // the API server one read per robot per minute at most).
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch("old-1", &PatchParams::default(), &Patch::Merge(json!({"spec": {"release": {"version": "3.0.0", "digest": format!("sha256:{}", "c".repeat(64))}}})))
+        .await?;
+    let (code, _, _) = http_get_with(
+        op.gateway_port,
+        &path,
+        &[("authorization", &auth), ("if-none-match", &etag)],
+    )
+    .await?;
+    assert_eq!(code, 304);
+    let polls = op.metric("lekiwi_gateway_polls_total{kind=\"304\"}").await;
+    assert_eq!(polls, Some(2.0));
+
+    // Unknown robots and bad tokens are clear errors.
+    let (code, _, body) = http_get_with(
+        op.gateway_port,
+        &format!("/v1/poll?robot={ns}/nope&version=1"),
+        &[("authorization", &auth)],
+    )
+    .await?;
+    assert_eq!(code, 404, "{body}");
+    let (code, _, _) =
+        http_get_with(op.gateway_port, &path, &[("authorization", "Bearer wrong")]).await?;
+    assert_eq!(code, 401);
+    Ok(())
+}
