@@ -5,6 +5,8 @@ use clap::Parser;
 #[tokio::main]
 async fn main() -> std::process::ExitCode {
     let config = lekiwi_operator::config::Config::parse();
+    // One file descriptor per agent connection: use all the kernel allows us.
+    let _ = rlimit::increase_nofile_limit(u64::MAX);
     if let Err(e) = lekiwi_operator::telemetry::init(&config.log_format, &config.log_level) {
         eprintln!("lekiwi-operator: cannot start logging: {e}");
         return std::process::ExitCode::FAILURE;
