@@ -49,7 +49,11 @@ impl Db {
     fn restart(&mut self) -> Result<()> {
         match self {
             Db::Sqlite(_) => Ok(()),
-            Db::Postgres(pg) => pg.restart(),
+            Db::Postgres(pg) => {
+                pg.restart()?;
+                eprintln!("postgres restarted in {:?}", pg.start_time);
+                Ok(())
+            }
         }
     }
 
@@ -57,7 +61,11 @@ impl Db {
     fn crash_restart(&mut self) -> Result<()> {
         match self {
             Db::Sqlite(_) => Ok(()),
-            Db::Postgres(pg) => pg.crash_restart(),
+            Db::Postgres(pg) => {
+                pg.crash_restart()?;
+                eprintln!("postgres recovered from a crash in {:?}", pg.start_time);
+                Ok(())
+            }
         }
     }
 }
@@ -70,7 +78,7 @@ fn event(seq: u64, ts_ms: i64) -> StoredEvent {
     StoredEvent {
         seq,
         ts_ms,
-        kind: if seq % 2 == 0 {
+        kind: if seq.is_multiple_of(2) {
             "progress"
         } else {
             "teleoperation_started"
