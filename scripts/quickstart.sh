@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 #! The main job on a fresh Debian 12 machine: installs what is needed, starts a local control
-#! plane (etcd + kube-apiserver), installs the CRDs, runs the operator and applies the example
-#! robots, then shows them with `kubectl get rb`. `quickstart.sh down` stops it all again.
+#! plane (etcd + kube-apiserver), installs the CRDs, runs the operator (controllers + gateway),
+#! applies the example robots, enrolls a simulated fleet of 20 robots over real WebSockets and
+#! shows them coming Online with `kubectl get rb`. `quickstart.sh down` stops it all again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
@@ -12,12 +13,15 @@ mkdir -p "$STATE"
 
 log() { printf '\033[1;34m[quickstart]\033[0m %s\n' "$*" >&2; }
 
-stop_operator() {
-  if [ -f "$STATE/operator.pid" ] && kill -0 "$(cat "$STATE/operator.pid")" 2>/dev/null; then
-    kill -TERM "$(cat "$STATE/operator.pid")" && log "operator stopped"
+SIM_ROBOTS="${LEKIWI_SIM_ROBOTS:-20}"
+
+stop_pid() {
+  if [ -f "$STATE/$1.pid" ] && kill -0 "$(cat "$STATE/$1.pid")" 2>/dev/null; then
+    kill -TERM "$(cat "$STATE/$1.pid")" && log "$1 stopped"
   fi
-  rm -f "$STATE/operator.pid"
+  rm -f "$STATE/$1.pid"
 }
+stop_operator() { stop_pid simulator; stop_pid operator; }
 
 case "${1:-up}" in
   down)
@@ -48,12 +52,17 @@ for ns in "$SYSTEM_NS" "$NS"; do
 done
 
 stop_operator
-PORT="${LEKIWI_HTTP_PORT:-8080}"
-if python3 -c "import socket,sys; s=socket.socket(); s.bind(('127.0.0.1', $PORT))" 2>/dev/null; then :; else
-  PORT=$(python3 -c "import socket; s=socket.socket(); s.bind(('127.0.0.1',0)); print(s.getsockname()[1])")
-fi
-log "starting lekiwi-operator (metrics on http://127.0.0.1:$PORT/metrics, log in $STATE/operator.log)"
+free_port() {
+  if python3 -c "import socket,sys; s=socket.socket(); s.bind(('127.0.0.1', $1))" 2>/dev/null; then echo "$1"; else
+    python3 -c "import socket; s=socket.socket(); s.bind(('127.0.0.1',0)); print(s.getsockname()[1])"
+  fi
+}
+PORT=$(free_port "${LEKIWI_HTTP_PORT:-8080}")
+GW_PORT=$(free_port "${LEKIWI_GATEWAY_PORT:-8081}")
+log "starting lekiwi-operator (metrics on http://127.0.0.1:$PORT/metrics, gateway ws://127.0.0.1:$GW_PORT/v1/agent, log in $STATE/operator.log)"
 setsid nohup target/debug/lekiwi-operator --namespace "$SYSTEM_NS" --http-addr "127.0.0.1:$PORT" \
+  --gateway-addr "127.0.0.1:$GW_PORT" --gateway-name quickstart-gateway \
+  --store-url "sqlite://$STATE/events.db" --heartbeat-interval-seconds 10 \
   >"$STATE/operator.log" 2>&1 </dev/null &
 echo $! >"$STATE/operator.pid"
 for _ in $(seq 1 100); do
@@ -64,14 +73,30 @@ done
 
 log "applying the example robots and deployment to namespace $NS"
 kubectl apply -n "$NS" -f manifests/examples/
-for _ in $(seq 1 50); do
-  [ "$(kubectl get rb -n "$NS" -o jsonpath='{.items[*].status.phase}' | wc -w)" -ge 3 ] && break
+
+# A fleet enrollment token: the Secret keeps only its SHA-256; the token itself stays here.
+if [ ! -s "$STATE/enrollment-token" ] || ! kubectl get secret fleet-enrollment -n "$NS" >/dev/null 2>&1; then
+  echo "lke_$(openssl rand -hex 32)" >"$STATE/enrollment-token"
+  chmod 600 "$STATE/enrollment-token"
+  kubectl delete secret fleet-enrollment -n "$NS" --ignore-not-found >/dev/null
+  kubectl create secret generic fleet-enrollment -n "$NS" \
+    --from-literal=sha256="$(tr -d '\n' <"$STATE/enrollment-token" | sha256sum | cut -d' ' -f1)" >/dev/null
+  kubectl label secret fleet-enrollment -n "$NS" fleet.lekiwi.io/token=enrollment >/dev/null
+fi
+log "starting a simulated fleet of $SIM_ROBOTS robots (real WebSocket agents; log in $STATE/simulator.log)"
+setsid nohup target/debug/lekiwi-sim --gateway "ws://127.0.0.1:$GW_PORT/v1/agent" \
+  --enrollment-token "$(cat "$STATE/enrollment-token")" --namespace "$NS" --robots "$SIM_ROBOTS" \
+  --prefix kiwi-sim --report-every 30 >"$STATE/simulator.log" 2>&1 </dev/null &
+echo $! >"$STATE/simulator.pid"
+for _ in $(seq 1 150); do
+  online=$(kubectl get rb -n "$NS" -o jsonpath='{range .items[*]}{.status.phase}{"\n"}{end}' | grep -c '^Online$' || true)
+  [ "$online" -ge "$SIM_ROBOTS" ] && break
   sleep 0.2
 done
 echo
 kubectl get rb -n "$NS"
 echo
-kubectl lekiwi robots -n "$NS" -o wide
+kubectl lekiwi robots -n "$NS" -o wide | head -8
 cat <<MSG
 
 The control plane and operator keep running. Try:
@@ -79,6 +104,8 @@ The control plane and operator keep running. Try:
   kubectl get lekiwi -n $NS                      # robots and deployments
   kubectl explain robot.spec                    # the resource documentation
   kubectl describe rb kiwi-03 -n $NS            # conditions and events
-  curl -s http://127.0.0.1:$PORT/metrics | grep lekiwi_robots
+  curl -s http://127.0.0.1:$PORT/metrics | grep -E 'lekiwi_(robots|gateway_connections) '
+  kill -STOP \$(cat $STATE/simulator.pid)        # freeze the fleet: robots turn Offline in ~30 s
+  kill -CONT \$(cat $STATE/simulator.pid)        # ...and come back
   scripts/quickstart.sh down                    # stop everything
 MSG
