@@ -76,6 +76,7 @@ mod tests {
             metrics: Metrics::default(),
             ready: ready.clone(),
             leader,
+            gateway_ready: None,
         });
         let get = |path: &str| Request::get(path).body(Body::empty()).unwrap();
 

@@ -120,18 +120,34 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     // The gateway under the same credentials: enrollment (creates a Robot and its token Secret),
     // presence, durable events, a legacy poll.
     let enroll = lekiwi_tests::enrollment_token(&client, &ns).await?;
-    let creds = lekiwi_agent::connection::Credentials { token: enroll.clone(), robot: "kiwi-2".into() };
-    let (ws, welcome) = lekiwi_agent::connection::connect(&lekiwi_tests::gateway_url(&op), &creds, &lekiwi_tests::hello(), Duration::from_secs(10)).await?;
+    let creds = lekiwi_agent::connection::Credentials {
+        token: enroll.clone(),
+        robot: "kiwi-2".into(),
+    };
+    let (ws, welcome) = lekiwi_agent::connection::connect(
+        &lekiwi_tests::gateway_url(&op),
+        &creds,
+        &lekiwi_tests::hello(),
+        Duration::from_secs(10),
+    )
+    .await?;
     assert!(welcome.robot_token.is_some());
     wait_for("enrolled robot Online", Duration::from_secs(20), || async {
-        (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase == Some(RobotPhase::Online)).then_some(())
+        (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase == Some(RobotPhase::Online))
+            .then_some(())
     })
     .await
     .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
     drop(ws);
-    wait_for("enrolled robot Offline", Duration::from_secs(20), || async {
-        (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase == Some(RobotPhase::Offline)).then_some(())
-    })
+    wait_for(
+        "enrolled robot Offline",
+        Duration::from_secs(20),
+        || async {
+            (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase
+                == Some(RobotPhase::Offline))
+            .then_some(())
+        },
+    )
     .await?;
     let (code, _, body) = lekiwi_tests::http_get_with(
         op.gateway_port,

@@ -227,6 +227,22 @@ pub async fn run(
     };
 
     // The writer outlives the sessions so their disconnects still reach the API server.
+    // Connection records a crashed earlier run of this gateway left open are closed now.
+    match store
+        .close_open_connections(
+            &name,
+            jiff::Timestamp::now().as_millisecond(),
+            "gateway_restarted",
+        )
+        .await
+    {
+        Ok(0) => {}
+        Ok(n) => info!(
+            records = n,
+            "closed connection records left open by an earlier run"
+        ),
+        Err(e) => warn!(error = %e, "cannot close stale connection records"),
+    }
     let writer_cancel = CancellationToken::new();
     let writer_task = tokio::spawn(
         presence
