@@ -80,13 +80,53 @@ pub struct Credentials {
     pub robot: String,
 }
 
-/// Opens a session: WebSocket upgrade with credentials, `hello`, `welcome`.
+/// Opens a session: WebSocket upgrade with credentials, `hello`, `welcome`; `wss://` URLs are
+/// verified against the public web roots.
 pub async fn connect(
     url: &str,
     creds: &Credentials,
     hello: &AgentMessage,
     timeout: Duration,
 ) -> Result<(Socket, Welcome), ConnectError> {
+    connect_with_ca(url, creds, hello, timeout, None).await
+}
+
+/// TLS settings for `wss://` that trust only the CA certificates in `ca_file` (PEM).
+fn tls_connector(ca_file: &std::path::Path) -> Result<tokio_tungstenite::Connector, ConnectError> {
+    use rustls_pki_types::CertificateDer;
+    use rustls_pki_types::pem::PemObject;
+    let bad = |e: &dyn std::fmt::Display| {
+        ConnectError::Request(format!("CA file {}: {e}", ca_file.display()))
+    };
+    let mut roots = rustls::RootCertStore::empty();
+    for cert in CertificateDer::pem_file_iter(ca_file).map_err(|e| bad(&e))? {
+        roots.add(cert.map_err(|e| bad(&e))?).map_err(|e| bad(&e))?;
+    }
+    if roots.is_empty() {
+        return Err(bad(&"no certificate in the file"));
+    }
+    let provider = std::sync::Arc::new(rustls::crypto::ring::default_provider());
+    let config = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| ConnectError::Request(e.to_string()))?
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    Ok(tokio_tungstenite::Connector::Rustls(std::sync::Arc::new(
+        config,
+    )))
+}
+
+/// As [`connect`], trusting only the CA in `ca_file` for `wss://` when one is given.
+pub async fn connect_with_ca(
+    url: &str,
+    creds: &Credentials,
+    hello: &AgentMessage,
+    timeout: Duration,
+    ca_file: Option<&std::path::Path>,
+) -> Result<(Socket, Welcome), ConnectError> {
+    // tokio-tungstenite's default TLS connector needs a process-wide crypto provider.
+    let _ = rustls::crypto::ring::default_provider().install_default();
+    let connector = ca_file.map(tls_connector).transpose()?;
     let mut request = url
         .into_client_request()
         .map_err(|e| ConnectError::Request(e.to_string()))?;
@@ -96,22 +136,26 @@ pub async fn connect(
         HeaderValue::from_str(&creds.robot).map_err(|e| ConnectError::Request(e.to_string()))?;
     request.headers_mut().insert("authorization", auth);
     request.headers_mut().insert(ROBOT_HEADER, robot);
-    let (mut ws, _) =
-        match tokio::time::timeout(timeout, tokio_tungstenite::connect_async(request)).await {
-            Err(_) => return Err(ConnectError::NoWelcome("connect timed out")),
-            Ok(Err(tokio_tungstenite::tungstenite::Error::Http(resp))) => {
-                let body = resp
-                    .body()
-                    .as_ref()
-                    .map(|b| String::from_utf8_lossy(b).into_owned())
-                    .unwrap_or_default();
-                return Err(match resp.status().as_u16() {
-                    401 => ConnectError::Unauthorized(body),
-                    _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
-                });
-            }
-            Ok(r) => r?,
-        };
+    let (mut ws, _) = match tokio::time::timeout(
+        timeout,
+        tokio_tungstenite::connect_async_tls_with_config(request, None, false, connector),
+    )
+    .await
+    {
+        Err(_) => return Err(ConnectError::NoWelcome("connect timed out")),
+        Ok(Err(tokio_tungstenite::tungstenite::Error::Http(resp))) => {
+            let body = resp
+                .body()
+                .as_ref()
+                .map(|b| String::from_utf8_lossy(b).into_owned())
+                .unwrap_or_default();
+            return Err(match resp.status().as_u16() {
+                401 => ConnectError::Unauthorized(body),
+                _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
+            });
+        }
+        Ok(r) => r?,
+    };
     ws.send(Message::text(encode(hello))).await?;
     let welcome = tokio::time::timeout(timeout, async {
         while let Some(frame) = ws.next().await {

@@ -615,3 +615,160 @@ async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Res
     assert_eq!(code, 401);
     Ok(())
 }
+
+#[tokio::test]
+async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gwtls").await?;
+
+    // A self-signed CA and a server certificate for 127.0.0.1, made with openssl.
+    let dir = tempfile::tempdir()?;
+    let d = dir.path().display().to_string();
+    let sh = |cmd: String| {
+        let out = std::process::Command::new("bash")
+            .arg("-c")
+            .arg(&cmd)
+            .output()
+            .expect("bash");
+        assert!(
+            out.status.success(),
+            "{cmd}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    sh(format!(
+        "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=lekiwi-test-ca -keyout {d}/ca.key -out {d}/ca.crt 2>/dev/null"
+    ));
+    sh(format!(
+        "openssl req -newkey rsa:2048 -nodes -subj /CN=127.0.0.1 -keyout {d}/tls.key -out {d}/tls.csr 2>/dev/null"
+    ));
+    std::fs::write(
+        dir.path().join("ext"),
+        "subjectAltName=IP:127.0.0.1,DNS:localhost\nbasicConstraints=CA:FALSE\n",
+    )?;
+    sh(format!(
+        "openssl x509 -req -in {d}/tls.csr -CA {d}/ca.crt -CAkey {d}/ca.key -CAcreateserial -days 1 -extfile {d}/ext -out {d}/tls.crt 2>/dev/null"
+    ));
+
+    let cert = format!("{d}/tls.crt");
+    let key = format!("{d}/tls.key");
+    let op = start(
+        cp,
+        &ns,
+        "gw-tls",
+        &[
+            "--tls-cert",
+            &cert,
+            "--tls-key",
+            &key,
+            "--max-connections",
+            "1",
+            "--handshake-timeout-seconds",
+            "1",
+        ],
+    )
+    .await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let url = format!("wss://127.0.0.1:{}/v1/agent", op.gateway_port);
+    let ca = dir.path().join("ca.crt");
+
+    // wss:// with our CA: a session as usual.
+    let creds = Credentials {
+        token: enroll.clone(),
+        robot: "kiwi-tls".into(),
+    };
+    let (mut ws, welcome) =
+        lekiwi_agent::connection::connect_with_ca(&url, &creds, &hello(), TIMEOUT, Some(&ca))
+            .await?;
+    assert_eq!(welcome.robot, format!("{ns}/kiwi-tls"));
+    send(&mut ws, &heartbeat()).await;
+    assert!(matches!(
+        recv(&mut ws).await,
+        Some(ServerMessage::HeartbeatAck { .. })
+    ));
+    phase_within(
+        &client,
+        &ns,
+        "kiwi-tls",
+        RobotPhase::Online,
+        Duration::from_secs(5),
+    )
+    .await?;
+
+    // The connection cap (1) is reached: the next agent gets 503 before any upgrade.
+    let other = Credentials {
+        token: enroll.clone(),
+        robot: "kiwi-2".into(),
+    };
+    match lekiwi_agent::connection::connect_with_ca(&url, &other, &hello(), TIMEOUT, Some(&ca))
+        .await
+    {
+        Err(ConnectError::Unavailable(msg)) => assert!(msg.contains("503"), "{msg}"),
+        other => panic!("expected 503, got {:?}", other.map(|(_, w)| w)),
+    }
+    // Plain ws:// to a TLS gateway and a wss:// client that does not trust our CA both fail.
+    assert!(
+        connect(
+            &format!("ws://127.0.0.1:{}/v1/agent", op.gateway_port),
+            &other,
+            &hello(),
+            TIMEOUT
+        )
+        .await
+        .is_err()
+    );
+    drop(ws);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    assert!(
+        connect(&url, &other, &hello(), TIMEOUT).await.is_err(),
+        "an untrusted certificate was accepted"
+    );
+
+    // A client that upgrades but never says hello is told so and closed after the timeout.
+    let mut request =
+        tokio_tungstenite::tungstenite::client::IntoClientRequest::into_client_request(
+            url.as_str(),
+        )?;
+    request
+        .headers_mut()
+        .insert("authorization", format!("Bearer {enroll}").parse()?);
+    request
+        .headers_mut()
+        .insert("x-lekiwi-robot", "kiwi-mute".parse()?);
+    let tls = rustls_for(&ca);
+    let (mut mute, _) =
+        tokio_tungstenite::connect_async_tls_with_config(request, None, false, Some(tls)).await?;
+    let t = Instant::now();
+    match recv(&mut mute).await {
+        Some(ServerMessage::Error {
+            code: ErrorCode::HandshakeTimeout,
+            fatal: true,
+            ..
+        }) => {}
+        other => panic!("expected handshake_timeout, got {other:?}"),
+    }
+    assert!(
+        t.elapsed() < Duration::from_secs(3),
+        "took {:?}",
+        t.elapsed()
+    );
+    Ok(())
+}
+
+fn rustls_for(ca: &std::path::Path) -> tokio_tungstenite::Connector {
+    use rustls_pki_types::CertificateDer;
+    use rustls_pki_types::pem::PemObject;
+    let mut roots = rustls::RootCertStore::empty();
+    for cert in CertificateDer::pem_file_iter(ca).unwrap() {
+        roots.add(cert.unwrap()).unwrap();
+    }
+    let config = rustls::ClientConfig::builder_with_provider(std::sync::Arc::new(
+        rustls::crypto::ring::default_provider(),
+    ))
+    .with_safe_default_protocol_versions()
+    .unwrap()
+    .with_root_certificates(roots)
+    .with_no_client_auth();
+    tokio_tungstenite::Connector::Rustls(std::sync::Arc::new(config))
+}

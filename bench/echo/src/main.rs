@@ -32,7 +32,11 @@ const BUCKETS: usize = 14;
 #[command(name = "lekiwi-bench-echo", version, about)]
 struct Args {
     /// Address of the WebSocket endpoint (`/v1/agent`).
-    #[arg(long, env = "LEKIWI_BENCH_ECHO_LISTEN", default_value = "127.0.0.1:8091")]
+    #[arg(
+        long,
+        env = "LEKIWI_BENCH_ECHO_LISTEN",
+        default_value = "127.0.0.1:8091"
+    )]
     listen: SocketAddr,
 
     /// Address of a plain-HTTP `/metrics` endpoint (Prometheus text format); off without it.
@@ -40,7 +44,11 @@ struct Args {
     metrics: Option<SocketAddr>,
 
     /// Heartbeat interval announced in `welcome`, seconds.
-    #[arg(long, env = "LEKIWI_BENCH_ECHO_HEARTBEAT_INTERVAL", default_value_t = 5)]
+    #[arg(
+        long,
+        env = "LEKIWI_BENCH_ECHO_HEARTBEAT_INTERVAL",
+        default_value_t = 5
+    )]
     heartbeat_interval: u32,
 }
 

@@ -122,12 +122,24 @@ pub fn parse_robot(header: &str) -> Option<(Option<String>, String)> {
 pub struct Authenticator {
     client: kube::Client,
     secrets: Store<Secret>,
+    /// Enrollment costs three API requests; a fleet enrolling at once waits here instead of
+    /// flooding the API server.
+    enrollments: std::sync::Arc<tokio::sync::Semaphore>,
 }
+
+/// Enrollments in flight at once.
+const MAX_CONCURRENT_ENROLLMENTS: usize = 16;
 
 impl Authenticator {
     /// An authenticator over a reflector of token Secrets.
     pub fn new(client: kube::Client, secrets: Store<Secret>) -> Self {
-        Self { client, secrets }
+        Self {
+            client,
+            secrets,
+            enrollments: std::sync::Arc::new(tokio::sync::Semaphore::new(
+                MAX_CONCURRENT_ENROLLMENTS,
+            )),
+        }
     }
 
     /// Decides who presents `token` for `robot_header`.
@@ -192,6 +204,7 @@ impl Authenticator {
     /// Registers an enrolling robot: creates its `Robot` unless it exists (re-registration
     /// never duplicates it) and mints a new per-robot token, stored only as a hash.
     pub async fn register(&self, robot: &RobotKey) -> Result<String, kube::Error> {
+        let _slot = self.enrollments.acquire().await;
         let robots: Api<Robot> = Api::namespaced(self.client.clone(), &robot.namespace);
         let existing = match robots.get_opt(&robot.name).await? {
             Some(r) => r,
