@@ -71,6 +71,9 @@ pub enum ErrorCode {
     ShuttingDown,
     /// Anything else on the gateway's side.
     Internal,
+    /// A code this version does not know (sent by a newer gateway); honour `fatal`.
+    #[serde(other)]
+    Unknown,
 }
 
 /// A release as the agent reports or is told to run it.
@@ -161,6 +164,9 @@ pub enum Severity {
     Warning,
     /// Something failed.
     Error,
+    /// A severity this version does not know (from a newer agent); stored as `unknown`.
+    #[serde(other)]
+    Unknown,
 }
 
 /// One telemetry sample.
@@ -415,6 +421,27 @@ mod tests {
             decode::<ServerMessage>(cmd, MAX_FRAME_BYTES).unwrap(),
             ServerMessage::Command {
                 command: Command::Deploy { .. },
+                ..
+            }
+        ));
+    }
+
+    #[test]
+    fn newer_enum_values_still_decode() {
+        let err = r#"{"type":"error","code":"quota_exceeded","message":"x","fatal":true,"seq":7}"#;
+        match decode::<ServerMessage>(err, MAX_FRAME_BYTES).unwrap() {
+            ServerMessage::Error {
+                code, fatal, seq, ..
+            } => {
+                assert_eq!((code, fatal, seq), (ErrorCode::Unknown, true, Some(7)));
+            }
+            other => panic!("{other:?}"),
+        }
+        let ev = r#"{"type":"event","seq":1,"ts_ms":1,"kind":"k","severity":"critical"}"#;
+        assert!(matches!(
+            decode::<AgentMessage>(ev, MAX_FRAME_BYTES).unwrap(),
+            AgentMessage::Event {
+                severity: Severity::Unknown,
                 ..
             }
         ));
