@@ -93,3 +93,90 @@ async fn refuses_without_crds_installs_them_and_survives_api_restart() -> anyhow
     );
     Ok(())
 }
+
+/// Status writes that fail while the API server is down are retried, not dropped: a robot that
+/// disconnects during the outage shows Offline once the API server is back.
+#[tokio::test]
+async fn gateway_status_writes_survive_an_api_outage() -> anyhow::Result<()> {
+    use lekiwi_agent::connection::{Credentials, connect};
+    let cp = ControlPlane::private()?;
+    cp.install_crds()?;
+    let client = cp.client().await?;
+    let ns = namespace(&client, "outage").await?;
+    let mut op = OperatorProcess::start(&cp, &ns, "op", &["--heartbeat-grace-seconds", "300"])?;
+    op.wait_ready().await?;
+    let token = lekiwi_tests::enrollment_token(&client, &ns).await?;
+    let url = lekiwi_tests::gateway_url(&op);
+    let (stays, _) = connect(
+        &url,
+        &Credentials {
+            token: token.clone(),
+            robot: "stays".into(),
+        },
+        &lekiwi_tests::hello(),
+        Duration::from_secs(10),
+    )
+    .await?;
+    let (leaves, _) = connect(
+        &url,
+        &Credentials {
+            token,
+            robot: "leaves".into(),
+        },
+        &lekiwi_tests::hello(),
+        Duration::from_secs(10),
+    )
+    .await?;
+    for name in ["stays", "leaves"] {
+        wait_for(
+            &format!("{name} Online"),
+            Duration::from_secs(10),
+            || async {
+                (get_robot(&client, &ns, name).await.ok()?.status?.phase
+                    == Some(RobotPhase::Online))
+                .then_some(())
+            },
+        )
+        .await?;
+    }
+
+    cp.kill()?;
+    drop(leaves); // the disconnect happens while nothing can be written
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    cp.up()?;
+    let client = cp.client().await?;
+    let t = Instant::now();
+    wait_for(
+        "the disconnect written after the outage",
+        Duration::from_secs(60),
+        || async {
+            (get_robot(&client, &ns, "leaves").await.ok()?.status?.phase
+                == Some(RobotPhase::Offline))
+            .then_some(())
+        },
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
+    println!(
+        "disconnect from the outage written {:?} after the API server came back",
+        t.elapsed()
+    );
+    assert_eq!(
+        get_robot(&client, &ns, "stays")
+            .await?
+            .status
+            .and_then(|s| s.phase),
+        Some(RobotPhase::Online)
+    );
+    let failed = op
+        .metric("lekiwi_gateway_status_writes_total{priority=\"high\",result=\"error\"}")
+        .await
+        .unwrap_or(0.0);
+    assert!(
+        failed >= 1.0,
+        "the write during the outage should have failed and been retried"
+    );
+    assert!(op.running());
+    drop(stays);
+    Ok(())
+}
