@@ -57,6 +57,27 @@ pub struct Args {
     /// Release the robots report (version:sha256hex).
     #[arg(long, default_value = "1.0.0")]
     pub release_version: String,
+    /// Keep the robots' own tokens in this JSON file (name → token), as real agents keep theirs
+    /// in their state directory: robots found in it connect with their token instead of
+    /// enrolling again.
+    #[arg(long)]
+    pub token_file: Option<std::path::PathBuf>,
+    /// Exit as soon as every robot has connected once.
+    #[arg(long)]
+    pub exit_when_connected: bool,
+    /// Seconds to wait for `welcome` (enrollment of a large fleet queues on the gateway).
+    #[arg(long, default_value_t = 120.0)]
+    pub connect_timeout: f64,
+}
+
+type Tokens = Arc<Mutex<std::collections::BTreeMap<String, String>>>;
+
+fn save_tokens(path: &std::path::Path, tokens: &Tokens) -> anyhow::Result<()> {
+    let json = serde_json::to_string(&*tokens.lock().unwrap_or_else(|p| p.into_inner()))?;
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, json)?;
+    std::fs::rename(tmp, path)?;
+    Ok(())
 }
 
 #[derive(Default)]
@@ -115,6 +136,10 @@ fn now_ms() -> i64 {
 pub async fn run(args: Args) -> anyhow::Result<Summary> {
     let _ = rlimit::increase_nofile_limit(u64::MAX);
     let stats = Arc::new(Stats::default());
+    let tokens: Tokens = Arc::new(Mutex::new(match &args.token_file {
+        Some(path) if path.exists() => serde_json::from_str(&std::fs::read_to_string(path)?)?,
+        _ => Default::default(),
+    }));
     let start = Instant::now();
     let release = Release {
         version: args.release_version.clone(),
@@ -129,6 +154,7 @@ pub async fn run(args: Args) -> anyhow::Result<Summary> {
             name,
             release.clone(),
             stats.clone(),
+            tokens.clone(),
             start,
         )));
         tokio::time::sleep(gap).await;
@@ -162,12 +188,18 @@ pub async fn run(args: Args) -> anyhow::Result<Summary> {
                 .unwrap_or_else(|p| p.into_inner())
                 .extend(rtts);
         }
-        if deadline.is_some_and(|d| Instant::now() >= d) {
+        if deadline.is_some_and(|d| Instant::now() >= d)
+            || (args.exit_when_connected
+                && stats.ever_connected.load(Ordering::Relaxed) as usize >= args.robots)
+        {
             break;
         }
     }
     for t in &tasks {
         t.abort();
+    }
+    if let Some(path) = &args.token_file {
+        save_tokens(path, &tokens)?;
     }
     let mut rtts = std::mem::take(&mut *stats.rtts_us.lock().unwrap_or_else(|p| p.into_inner()));
     rtts.sort_unstable();
@@ -193,9 +225,21 @@ pub async fn run(args: Args) -> anyhow::Result<Summary> {
     Ok(summary)
 }
 
-async fn robot(args: Args, name: String, release: Release, stats: Arc<Stats>, start: Instant) {
+async fn robot(
+    args: Args,
+    name: String,
+    release: Release,
+    stats: Arc<Stats>,
+    tokens: Tokens,
+    start: Instant,
+) {
+    let own = tokens
+        .lock()
+        .unwrap_or_else(|p| p.into_inner())
+        .get(&name)
+        .cloned();
     let mut creds = Credentials {
-        token: args.enrollment_token.clone(),
+        token: own.unwrap_or_else(|| args.enrollment_token.clone()),
         robot: format!("{}/{}", args.namespace, name),
     };
     let mut first = true;
@@ -223,10 +267,21 @@ async fn robot(args: Args, name: String, release: Release, stats: Arc<Stats>, st
                 score: Some(0.0),
             }),
         };
-        match connect(&args.gateway, &creds, &hello, Duration::from_secs(30)).await {
+        match connect(
+            &args.gateway,
+            &creds,
+            &hello,
+            Duration::from_secs_f64(args.connect_timeout),
+        )
+        .await
+        {
             Ok((ws, welcome)) => {
                 backoff = Duration::from_millis(500);
                 if let Some(token) = welcome.robot_token.clone() {
+                    tokens
+                        .lock()
+                        .unwrap_or_else(|p| p.into_inner())
+                        .insert(name.clone(), token.clone());
                     creds.token = token;
                 }
                 creds.robot = welcome.robot.clone();
@@ -254,6 +309,8 @@ async fn robot(args: Args, name: String, release: Release, stats: Arc<Stats>, st
                 stats.connect_errors.fetch_add(1, Ordering::Relaxed);
                 if matches!(e, ConnectError::Unauthorized(_)) {
                     eprintln!("{name}: {e}");
+                    // A stale token (rotated elsewhere): enroll again.
+                    creds.token = args.enrollment_token.clone();
                 }
             }
         }

@@ -92,7 +92,7 @@ pub fn bearer(headers: &HeaderMap) -> Option<&str> {
 #[derive(Clone)]
 pub struct GatewayState {
     /// Shared with sessions.
-    pub shared: Shared,
+    pub shared: Arc<Shared>,
     /// Kubernetes client.
     pub client: kube::Client,
     /// Legacy-poll answers.
@@ -177,13 +177,18 @@ pub async fn run(
         None => Api::all(client.clone()),
     };
     let (secret_store, writer) = reflector::store();
-    let secret_watch = reflector(
-        writer,
-        watcher(secrets, watcher::Config::default().labels(TOKEN_LABEL)),
-    )
-    .default_backoff()
-    .touched_objects()
-    .for_each(|_| futures::future::ready(()));
+    // Keep only what authentication reads: at 10,000 robots the managed fields and annotations
+    // of the token Secrets would cost more memory than the hashes themselves.
+    let token_secrets = watcher(secrets, watcher::Config::default().labels(TOKEN_LABEL))
+        .default_backoff()
+        .modify(|secret: &mut Secret| {
+            secret.metadata.managed_fields = None;
+            secret.metadata.annotations = None;
+            secret.metadata.owner_references = None;
+        });
+    let secret_watch = reflector(writer, token_secrets)
+        .touched_objects()
+        .for_each(|_| futures::future::ready(()));
     let secret_task = tokio::spawn(secret_watch);
     tokio::select! {
         () = cancel.cancelled() => { secret_task.abort(); return Ok(()); }
@@ -220,7 +225,7 @@ pub async fn run(
         cancel: cancel.clone(),
     };
     let state = GatewayState {
-        shared,
+        shared: Arc::new(shared),
         client: client.clone(),
         releases: Arc::default(),
         connections: Arc::new(Semaphore::new(config.max_connections)),

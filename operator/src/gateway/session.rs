@@ -47,7 +47,8 @@ pub enum Control {
     /// A newer connection of the same robot took over.
     Replaced,
     /// Send this to the agent.
-    Send(ServerMessage),
+    /// Boxed: the channel's slots are allocated per connection, so keep them pointer-sized.
+    Send(Box<ServerMessage>),
 }
 
 /// The sessions of this gateway, one per robot.
@@ -61,7 +62,7 @@ impl Registry {
     /// Registers a new session for `key`, telling an older one that it was replaced.
     fn register(&self, key: &RobotKey) -> (u64, mpsc::Receiver<Control>) {
         let id = self.next.fetch_add(1, Ordering::Relaxed) + 1;
-        let (tx, rx) = mpsc::channel(64);
+        let (tx, rx) = mpsc::channel(16);
         let old = self
             .sessions
             .lock()
@@ -86,7 +87,7 @@ impl Registry {
         let sessions = self.sessions.lock().unwrap_or_else(|p| p.into_inner());
         sessions
             .get(key)
-            .is_some_and(|(_, tx)| tx.try_send(Control::Send(msg)).is_ok())
+            .is_some_and(|(_, tx)| tx.try_send(Control::Send(Box::new(msg))).is_ok())
     }
 
     /// Sessions open now.
@@ -241,8 +242,13 @@ fn frame_label(msg: &AgentMessage) -> &'static str {
 }
 
 /// Runs one session to its end.
-pub async fn run<W, R, E>(shared: Shared, grant: Grant, address: Option<String>, sink: W, stream: R)
-where
+pub async fn run<W, R, E>(
+    shared: Arc<Shared>,
+    grant: Grant,
+    address: Option<String>,
+    sink: W,
+    stream: R,
+) where
     W: Sink<Message> + Unpin + Send,
     R: Stream<Item = Result<Message, E>> + Unpin + Send,
     E: std::fmt::Display,
@@ -255,7 +261,7 @@ where
 }
 
 async fn run_inner<W, R, E>(
-    shared: Shared,
+    shared: Arc<Shared>,
     grant: Grant,
     address: Option<String>,
     sink: W,
@@ -343,7 +349,7 @@ async fn run_inner<W, R, E>(
 
     // 2. Enrollment mints the robot's own token.
     let robot_token = match &grant {
-        Grant::Enroll(robot) => match shared.auth.register(robot).await {
+        Grant::Enroll(robot) => match Box::pin(shared.auth.register(robot)).await {
             Ok(token) => {
                 info!("robot enrolled; issued its own token");
                 Some(token)
@@ -374,17 +380,19 @@ async fn run_inner<W, R, E>(
         disconnected_at_ms: None,
         reason: None,
     };
-    let record_id = match shared.store.record_connect(&key, &record).await {
+    let record_id = match Box::pin(shared.store.record_connect(&key, &record)).await {
         Ok(id) => Some(id),
         Err(e) => {
             warn!(error = %e, "cannot record the connection in the event store");
             None
         }
     };
-    let stored_seq = shared.store.last_seq(&key).await.unwrap_or_else(|e| {
-        warn!(error = %e, "cannot read the last stored sequence number");
-        None
-    });
+    let stored_seq = Box::pin(shared.store.last_seq(&key))
+        .await
+        .unwrap_or_else(|e| {
+            warn!(error = %e, "cannot read the last stored sequence number");
+            None
+        });
     shared.presence.connect(
         &key,
         id,
@@ -428,10 +436,12 @@ async fn run_inner<W, R, E>(
         .get_or_create(&KindLabels { kind: end.label() })
         .inc();
     if let Some(record_id) = record_id
-        && let Err(e) = shared
-            .store
-            .record_disconnect(record_id, Timestamp::now().as_millisecond(), end.label())
-            .await
+        && let Err(e) = Box::pin(shared.store.record_disconnect(
+            record_id,
+            Timestamp::now().as_millisecond(),
+            end.label(),
+        ))
+        .await
     {
         warn!(error = %e, "cannot record the disconnect");
     }
@@ -619,12 +629,16 @@ where
                     message,
                     data,
                 };
-                durable(shared, seq, shared.store.insert_event(key, &ev).await)
+                durable(
+                    shared,
+                    seq,
+                    Box::pin(shared.store.insert_event(key, &ev)).await,
+                )
             }
             AgentMessage::Telemetry { seq, samples } => durable(
                 shared,
                 seq,
-                shared.store.insert_telemetry(key, seq, &samples).await,
+                Box::pin(shared.store.insert_telemetry(key, seq, &samples)).await,
             ),
             AgentMessage::Progress {
                 seq,
@@ -645,7 +659,11 @@ where
                     message,
                     data: serde_json::json!({ "command_id": command_id, "phase": phase, "percent": percent }),
                 };
-                durable(shared, seq, shared.store.insert_event(key, &ev).await)
+                durable(
+                    shared,
+                    seq,
+                    Box::pin(shared.store.insert_event(key, &ev)).await,
+                )
             }
         };
         let sent = match reply {
