@@ -152,7 +152,8 @@ async fn agent_ws(
     Ok(ws
         .max_message_size(hard_cap)
         .max_frame_size(hard_cap)
-        .read_buffer_size(4 * 1024)
+        // Frames are small (a heartbeat is ~200 bytes); bigger ones are read in several chunks.
+        .read_buffer_size(2 * 1024)
         .write_buffer_size(0)
         .on_upgrade(move |socket| async move {
             let (sink, stream) = socket.split();

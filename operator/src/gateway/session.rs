@@ -746,3 +746,63 @@ impl Bucket {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gateway::auth::Authenticator;
+    use crate::gateway::presence::{Presence, PresenceConfig};
+    use crate::store::RobotKey;
+
+    #[tokio::test]
+    async fn an_idle_session_is_small() {
+        let client =
+            kube::Client::try_from(kube::Config::new("http://127.0.0.1:1".parse().unwrap()))
+                .unwrap();
+        let (_writer, secrets) = {
+            let (store, writer) =
+                kube::runtime::reflector::store::<k8s_openapi::api::core::v1::Secret>();
+            (writer, store)
+        };
+        let metrics = Metrics::default();
+        let shared = Arc::new(Shared {
+            presence: Presence::new(
+                PresenceConfig {
+                    gateway: "gw".into(),
+                    status_refresh: Duration::from_secs(300),
+                    poll_grace: Duration::from_secs(180),
+                    qps: 1.0,
+                    burst: 1,
+                    concurrency: 1,
+                },
+                metrics.clone(),
+            ),
+            store: Store::connect("sqlite::memory:").await.unwrap(),
+            auth: Authenticator::new(client, secrets),
+            registry: Arc::default(),
+            limits: Limits {
+                max_frame_bytes: 1024,
+                rate: 10,
+                burst: 10,
+                abuse_threshold: 20,
+                handshake_timeout: Duration::from_secs(1),
+                heartbeat_interval: Duration::from_secs(1),
+                missed_heartbeats: 3,
+            },
+            metrics,
+            gateway: "gw".into(),
+            cancel: CancellationToken::new(),
+        });
+        let (sink, _rx) = futures::channel::mpsc::channel::<Message>(1);
+        let (_tx, stream) = futures::channel::mpsc::channel::<Result<Message, std::io::Error>>(1);
+        let grant = Grant::Robot(RobotKey {
+            namespace: "lab".into(),
+            name: "kiwi".into(),
+        });
+        let session = run(shared, grant, None, sink, stream);
+        let size = std::mem::size_of_val(&session);
+        println!("session future: {size} bytes");
+        // Every connection holds one of these for its whole life: keep it well under 8 KiB.
+        assert!(size < 8 * 1024, "session future is {size} bytes");
+    }
+}
