@@ -142,6 +142,8 @@ fn now_ms() -> i64 {
 /// One agent connection: upgrade at `/v1/agent`, then answer frames until it closes.
 async fn session(stream: TcpStream, stats: Arc<Stats>, heartbeat_interval_s: u32) {
     let mut robot = None;
+    // The signature is tungstenite's handshake `Callback`; its error type is not ours to shrink.
+    #[allow(clippy::result_large_err)]
     let callback = |req: &Request, resp: Response| -> Result<Response, ErrorResponse> {
         if req.uri().path() != AGENT_PATH {
             let mut refusal = ErrorResponse::new(Some(format!("only {AGENT_PATH} is served\n")));
@@ -158,7 +160,7 @@ async fn session(stream: TcpStream, stats: Arc<Stats>, heartbeat_interval_s: u32
     // The gateway's socket settings (see `operator/src/gateway/mod.rs`), so only the work
     // behind the socket differs.
     let config = WebSocketConfig::default()
-        .read_buffer_size(4 * 1024)
+        .read_buffer_size(2 * 1024)
         .write_buffer_size(0)
         .max_message_size(Some(MAX_FRAME_BYTES * 4))
         .max_frame_size(Some(MAX_FRAME_BYTES * 4));
