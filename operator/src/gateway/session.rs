@@ -423,6 +423,19 @@ async fn run_inner<W, R, E>(
     } else {
         End::Closed
     };
+    if !matches!(end, End::Closed) {
+        // We sent a Close frame. Read (and drop) what the agent still sends until its Close, for
+        // at most a second: closing a socket with unread data makes the kernel send RST, which
+        // destroys the error frame and close reason we just sent before the agent reads them.
+        let _ = tokio::time::timeout(Duration::from_secs(1), async {
+            while let Some(Ok(frame)) = stream.next().await {
+                if matches!(frame, Message::Close(_)) {
+                    break;
+                }
+            }
+        })
+        .await;
+    }
 
     // 4. Clean up: a replaced session leaves presence to its successor.
     shared.registry.unregister(&key, id);
