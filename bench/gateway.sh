@@ -27,7 +27,8 @@
 #!   --status-burst B      gateway --status-burst (default 1000)
 #!   --status-refresh S    gateway --status-refresh-seconds (default 300, the operator's default)
 #!   --online-timeout S    give up waiting for all robots Online after S seconds (default
-#!                         robots / connect rate + 180, at most 600)
+#!                         robots / connect rate + robots / 40 + 120, at most 600: the API server
+#!                         writes about 3 objects per robot coming Online, ~200 writes/s on 2 cores)
 #!   --no-build            use the binaries already in target/release
 #!   --keep                keep the work directory (logs, metric scrapes) instead of deleting it
 #!   -h, --help            this text
@@ -88,7 +89,7 @@ if [ -z "$CONNECT_RATE" ]; then
   if [ "$MODE" = enroll ]; then CONNECT_RATE=25; else CONNECT_RATE=1000; fi
 fi
 if [ -z "$ONLINE_TIMEOUT" ]; then
-  ONLINE_TIMEOUT=$((ROBOTS / CONNECT_RATE + 180))
+  ONLINE_TIMEOUT=$((ROBOTS / CONNECT_RATE + ROBOTS / 40 + 120))
   [ $ONLINE_TIMEOUT -le 600 ] || ONLINE_TIMEOUT=600
 fi
 

@@ -25,18 +25,18 @@ pub fn crds()
 }
 
 /// Makes the generated schema read well in `kubectl explain` on every server version:
-/// - drops `nullable: true`: the OpenAPI v2 that Kubernetes 1.20 publishes cannot say
-///   "nullable", so it drops the type of every such field and `kubectl explain` shows `<>`
-///   without its sub-fields. Our writers omit unset fields instead of sending `null`.
+/// - drops `nullable: true` from the spec: the OpenAPI v2 that Kubernetes 1.20 publishes cannot
+///   say "nullable", so it drops the type of every such field and `kubectl explain` shows `<>`
+///   without its sub-fields. Status keeps it (see below).
 /// - drops `default: null` and `default: ""`, which Kubernetes 1.20 refuses for a string.
 /// - joins the line breaks of `///` comments, so descriptions wrap as prose.
 fn polish(
     crd: k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition,
 ) -> k8s_openapi::apiextensions_apiserver::pkg::apis::apiextensions::v1::CustomResourceDefinition {
-    fn walk(v: &mut serde_json::Value) {
+    fn walk(v: &mut serde_json::Value, strip_nullable: bool) {
         match v {
             serde_json::Value::Object(map) => {
-                if map.get("nullable") == Some(&serde_json::Value::Bool(true)) {
+                if strip_nullable && map.get("nullable") == Some(&serde_json::Value::Bool(true)) {
                     map.remove("nullable");
                 }
                 // `default: null` is invalid for a non-nullable field, and Kubernetes 1.20 turns a
@@ -50,16 +50,29 @@ fn polish(
                 if let Some(serde_json::Value::String(d)) = map.get_mut("description") {
                     *d = d.split('\n').map(str::trim).collect::<Vec<_>>().join(" ");
                 }
-                map.values_mut().for_each(walk);
+                map.values_mut().for_each(|v| walk(v, strip_nullable));
             }
-            serde_json::Value::Array(items) => items.iter_mut().for_each(walk),
+            serde_json::Value::Array(items) => items.iter_mut().for_each(|v| walk(v, strip_nullable)),
             _ => {}
         }
     }
-    let Ok(mut value) = serde_json::to_value(&crd) else {
-        return crd;
-    };
-    walk(&mut value);
+    let Ok(mut value) = serde_json::to_value(&crd) else { return crd };
+    if let Some(versions) = value.pointer_mut("/spec/versions").and_then(|v| v.as_array_mut()) {
+        for version in versions {
+            // Status keeps `nullable`: when a field manager stops sending a field it owned,
+            // Kubernetes 1.20's server-side apply stores null, which must stay valid.
+            let status = version
+                .pointer_mut("/schema/openAPIV3Schema/properties/status")
+                .map(serde_json::Value::take);
+            walk(version, true);
+            if let Some(mut status) = status {
+                walk(&mut status, false);
+                if let Some(props) = version.pointer_mut("/schema/openAPIV3Schema/properties") {
+                    props["status"] = status;
+                }
+            }
+        }
+    }
     serde_json::from_value(value).unwrap_or(crd)
 }
 

@@ -111,7 +111,7 @@ async fn gateway_status_writes_survive_an_api_outage() -> anyhow::Result<()> {
         &url,
         &Credentials {
             token: token.clone(),
-            robot: "stays".into(),
+            robot: format!("{ns}/stays"),
         },
         &lekiwi_tests::hello(),
         Duration::from_secs(10),
@@ -121,7 +121,7 @@ async fn gateway_status_writes_survive_an_api_outage() -> anyhow::Result<()> {
         &url,
         &Credentials {
             token,
-            robot: "leaves".into(),
+            robot: format!("{ns}/leaves"),
         },
         &lekiwi_tests::hello(),
         Duration::from_secs(10),

