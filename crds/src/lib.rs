@@ -52,12 +52,19 @@ fn polish(
                 }
                 map.values_mut().for_each(|v| walk(v, strip_nullable));
             }
-            serde_json::Value::Array(items) => items.iter_mut().for_each(|v| walk(v, strip_nullable)),
+            serde_json::Value::Array(items) => {
+                items.iter_mut().for_each(|v| walk(v, strip_nullable))
+            }
             _ => {}
         }
     }
-    let Ok(mut value) = serde_json::to_value(&crd) else { return crd };
-    if let Some(versions) = value.pointer_mut("/spec/versions").and_then(|v| v.as_array_mut()) {
+    let Ok(mut value) = serde_json::to_value(&crd) else {
+        return crd;
+    };
+    if let Some(versions) = value
+        .pointer_mut("/spec/versions")
+        .and_then(|v| v.as_array_mut())
+    {
         for version in versions {
             // Status keeps `nullable`: when a field manager stops sending a field it owned,
             // Kubernetes 1.20's server-side apply stores null, which must stay valid.
