@@ -125,7 +125,7 @@ trap 'log "terminated"; exit 143' TERM
 # Starts "$@" in the background with its output in $WORK/<name>.log; sets LAST_PID.
 start() {
   local name="$1"; shift
-  "$@" >"$WORK/$name.log" 2>&1 &
+  "$@" >"$WORK/$name.log" 2>&1 8>&- &
   LAST_PID=$!
   PIDS+=("$LAST_PID")
 }
@@ -232,6 +232,14 @@ cpu_report() {
 }
 
 # ---- preparation ----------------------------------------------------------------------------
+# One benchmark at a time on this machine: two would share the 2 cores and disturb each other.
+LOCK="${TMPDIR:-/tmp}/lekiwi-bench.lock"
+exec 8>>"$LOCK"
+if ! flock -n 8; then
+  log "another benchmark run holds $LOCK; waiting for it (at most 15 minutes)"
+  flock -w 900 8 || die "another benchmark run still holds $LOCK after 15 minutes"
+fi
+
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 NOFILE="$(ulimit -n)"
 [ "$NOFILE" -gt $((ROBOTS + 100)) ] \
@@ -264,7 +272,7 @@ fact connect_rates "$CONNECT_RATE/s against the gateway, $ECHO_CONNECT_RATE/s ag
 log "starting a private control plane in $CP_DIR"
 export LEKIWI_CP_DIR="$CP_DIR"
 CP_UP=1
-"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" \
+"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
   || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
 eval "$("$ROOT/scripts/control-plane.sh" env)"
 # shellcheck disable=SC1091
