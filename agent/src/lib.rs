@@ -1,6 +1,9 @@
-//! The LeKiwi robot agent: configuration and the gateway connection (shared with the fleet
-//! simulator). Telemetry, the durable outbox and release execution follow.
+//! The LeKiwi robot agent: configuration, the gateway connection (shared with the fleet
+//! simulator), the durable outbox, telemetry, teleoperation detection, discovery and the run loop.
 
 pub mod config;
 pub mod connection;
+pub mod discovery;
 pub mod sim;
+pub mod telemetry;
+pub mod teleop;
