@@ -57,6 +57,10 @@ pub struct Flags {
     #[arg(long)]
     #[serde(skip)]
     pub print_config: bool,
+    /// Something to do instead of running the agent.
+    #[command(subcommand)]
+    #[serde(skip)]
+    pub command: Option<Command>,
 
     /// WebSocket URL of the gateway, e.g. wss://fleet.example.com/v1/agent.
     #[arg(long, env = "LEKIWI_GATEWAY_URL")]
@@ -215,6 +219,30 @@ pub struct Flags {
     pub teleop_serial_weight: Option<f64>,
 }
 
+/// Subcommands.
+#[derive(Debug, clap::Subcommand)]
+pub enum Command {
+    /// Queue an event for the fleet (e.g. from a lekiwi_host hook); it is stored in the outbox
+    /// at once and sent by the running agent, also if the gateway is unreachable right now.
+    Event {
+        /// Machine-readable kind, e.g. `calibration_done`.
+        #[arg(long)]
+        kind: String,
+        /// Human-readable text.
+        #[arg(long, default_value = "")]
+        message: String,
+        /// info, warning or error.
+        #[arg(long, default_value = "info", value_parser = ["info", "warning", "error"])]
+        severity: String,
+        /// Details as a JSON value.
+        #[arg(long)]
+        data: Option<String>,
+        /// Send ahead of telemetry and other events and never drop it.
+        #[arg(long)]
+        critical: bool,
+    },
+}
+
 /// The effective configuration. Field names are the config file's keys.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "camelCase", deny_unknown_fields, default)]
@@ -348,16 +376,7 @@ impl Default for Config {
 impl Config {
     /// Merges the file (if present) with flags and environment; flags win.
     pub fn load(flags: &Flags, hostname: &str) -> Result<Self, Error> {
-        let mut merged = read_file(&flags.config)?;
-        let overrides = serde_json::to_value(flags).map_err(|e| Error::Invalid(e.to_string()))?;
-        if let serde_json::Value::Object(overrides) = overrides {
-            merged.extend(overrides);
-        }
-        let mut config: Config = serde_json::from_value(serde_json::Value::Object(merged))
-            .map_err(|source| Error::ParseConfig {
-                path: flags.config.clone(),
-                source: serde::de::Error::custom(source),
-            })?;
+        let mut config = Self::merge(flags)?;
         if config.gateway.is_empty() {
             return Err(Error::MissingGateway {
                 path: flags.config.clone(),
@@ -368,6 +387,22 @@ impl Config {
         }
         config.validate()?;
         Ok(config)
+    }
+
+    /// File, environment and flags merged, without checking that the gateway is set (for
+    /// subcommands that work on the state directory only).
+    pub fn merge(flags: &Flags) -> Result<Self, Error> {
+        let mut merged = read_file(&flags.config)?;
+        let overrides = serde_json::to_value(flags).map_err(|e| Error::Invalid(e.to_string()))?;
+        if let serde_json::Value::Object(overrides) = overrides {
+            merged.extend(overrides);
+        }
+        serde_json::from_value(serde_json::Value::Object(merged)).map_err(|source| {
+            Error::ParseConfig {
+                path: flags.config.clone(),
+                source: serde::de::Error::custom(source),
+            }
+        })
     }
 
     fn validate(&self) -> Result<(), Error> {
@@ -393,7 +428,10 @@ impl Config {
         for (key, v) in [
             ("telemetryCpuIntervalS", self.telemetry_cpu_interval_s),
             ("telemetryMemoryIntervalS", self.telemetry_memory_interval_s),
-            ("telemetryNetworkIntervalS", self.telemetry_network_interval_s),
+            (
+                "telemetryNetworkIntervalS",
+                self.telemetry_network_interval_s,
+            ),
             (
                 "telemetryTemperatureIntervalS",
                 self.telemetry_temperature_interval_s,
@@ -406,7 +444,7 @@ impl Config {
                 return bad(format!("{key} must be at least 1 second"));
             }
         }
-        if !(self.teleop_interval_s > 0.0) {
+        if self.teleop_interval_s.is_nan() || self.teleop_interval_s <= 0.0 {
             return bad("teleopIntervalS must be > 0".into());
         }
         if self.status_listen != "off" && self.status_listen.parse::<SocketAddr>().is_err() {

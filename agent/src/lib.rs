@@ -1,9 +1,13 @@
 //! The LeKiwi robot agent: configuration, the gateway connection (shared with the fleet
 //! simulator), the durable outbox, telemetry, teleoperation detection, discovery and the run loop.
 
+pub mod backoff;
 pub mod config;
 pub mod connection;
 pub mod discovery;
+pub mod outbox;
+pub mod run;
 pub mod sim;
+pub mod state;
 pub mod telemetry;
 pub mod teleop;

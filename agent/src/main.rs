@@ -1,17 +1,92 @@
-//! `lekiwi-agent` entry point.
+//! `lekiwi-agent` entry point: flags, logging, a single-threaded runtime, signals.
 
+use anyhow::Context;
 use clap::Parser;
-use lekiwi_agent::config::{Config, Flags};
+use lekiwi_agent::config::{Command, Config, Flags};
+use lekiwi_agent::outbox::{Lane, Outbox};
+use lekiwi_agent::run::Agent;
+use lekiwi_protocol::{AgentMessage, Severity};
 
 fn main() -> anyhow::Result<()> {
     let flags = Flags::parse();
+    if let Some(Command::Event {
+        kind,
+        message,
+        severity,
+        data,
+        critical,
+    }) = &flags.command
+    {
+        let config = Config::merge(&flags)?;
+        let data: serde_json::Value = match data {
+            Some(d) => serde_json::from_str(d).context("--data is not valid JSON")?,
+            None => serde_json::Value::Null,
+        };
+        let severity = match severity.as_str() {
+            "warning" => Severity::Warning,
+            "error" => Severity::Error,
+            _ => Severity::Info,
+        };
+        lekiwi_agent::state::ensure_dir(&config.state_dir)?;
+        let mut outbox = Outbox::open(&config.state_dir, config.outbox_max_bytes)?;
+        let ts_ms = now_ms();
+        let lane = if *critical {
+            Lane::Critical
+        } else {
+            Lane::Event
+        };
+        let seq = outbox.push(lane, ts_ms, |seq| AgentMessage::Event {
+            seq,
+            ts_ms,
+            kind: kind.clone(),
+            severity,
+            message: message.clone(),
+            data,
+        })?;
+        println!("{seq}");
+        return Ok(());
+    }
     let hostname = std::fs::read_to_string("/etc/hostname").unwrap_or_default();
     let config = Config::load(&flags, hostname.trim())?;
     if flags.print_config {
         print!("{}", serde_yaml::to_string(&config)?);
         return Ok(());
     }
-    anyhow::bail!(
-        "the agent's gateway connection is not implemented yet (see the protocol issue); use --print-config"
-    )
+    init_logging(&config.log_format);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let agent = Agent::new(config).await?;
+        agent.run(shutdown_signal()).await?;
+        Ok(())
+    })
+}
+
+fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or_default()
+}
+
+fn init_logging(format: &str) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt().with_env_filter(filter);
+    if format == "json" {
+        builder.json().init();
+    } else {
+        builder.init();
+    }
+}
+
+async fn shutdown_signal() {
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut term = signal(SignalKind::terminate()).expect("SIGTERM handler");
+    let mut int = signal(SignalKind::interrupt()).expect("SIGINT handler");
+    tokio::select! {
+        _ = term.recv() => {}
+        _ = int.recv() => {}
+    }
 }

@@ -243,7 +243,8 @@ async fn robot(
         robot: format!("{}/{}", args.namespace, name),
     };
     let mut first = true;
-    let mut backoff = Duration::from_millis(500);
+    let mut backoff =
+        crate::backoff::Backoff::new(Duration::from_millis(500), Duration::from_secs(30));
     loop {
         let hello = AgentMessage::Hello {
             protocol_version: PROTOCOL_VERSION,
@@ -276,7 +277,7 @@ async fn robot(
         .await
         {
             Ok((ws, welcome)) => {
-                backoff = Duration::from_millis(500);
+                backoff.reset();
                 if let Some(token) = welcome.robot_token.clone() {
                     tokens
                         .lock()
@@ -315,9 +316,7 @@ async fn robot(
             }
         }
         // Full jitter, so a fleet does not come back in lockstep.
-        let wait = rand::rng().random_range(Duration::ZERO..=backoff);
-        tokio::time::sleep(wait).await;
-        backoff = (backoff * 2).min(Duration::from_secs(30));
+        tokio::time::sleep(backoff.next_delay()).await;
     }
 }
 

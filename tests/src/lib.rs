@@ -305,6 +305,7 @@ pub struct OperatorProcess {
     pub store_path: PathBuf,
     /// Its log file.
     pub log: PathBuf,
+    args: Vec<String>,
 }
 
 impl OperatorProcess {
@@ -330,41 +331,46 @@ impl OperatorProcess {
         let log = log_dir().join(format!("{namespace}-{identity}.log"));
         let store_path = log_dir().join(format!("{namespace}-{identity}.db"));
         let _ = std::fs::remove_file(&store_path);
-        let file = std::fs::File::create(&log)?;
-        let child = Command::new(bin("lekiwi-operator"))
-            .args(["--kubeconfig", kubeconfig.to_str().unwrap()])
-            .args([
-                "--namespace",
-                namespace,
-                "--watch-namespace",
-                namespace,
-                "--identity",
-                identity,
-            ])
-            .args(["--http-addr", &format!("127.0.0.1:{http_port}")])
-            .args(["--gateway-addr", &format!("127.0.0.1:{gateway_port}")])
-            .args(["--gateway-name", &format!("gw-{identity}")])
-            .args(["--store-url", &format!("sqlite://{}", store_path.display())])
-            .args([
-                "--lease-duration-seconds",
-                "4",
-                "--lease-retry-seconds",
-                "1",
-            ])
-            .args(extra)
-            .env("RUST_LOG", "info,kube=warn,lekiwi_operator=debug")
-            .stdin(Stdio::null())
-            .stdout(file.try_clone()?)
-            .stderr(file)
-            .spawn()
-            .context("spawn lekiwi-operator")?;
+        std::fs::File::create(&log)?;
+        let mut args: Vec<String> = Vec::new();
+        let mut push = |a: &[&str]| args.extend(a.iter().map(|s| s.to_string()));
+        push(&["--kubeconfig", kubeconfig.to_str().unwrap()]);
+        push(&[
+            "--namespace",
+            namespace,
+            "--watch-namespace",
+            namespace,
+            "--identity",
+            identity,
+        ]);
+        push(&["--http-addr", &format!("127.0.0.1:{http_port}")]);
+        push(&["--gateway-addr", &format!("127.0.0.1:{gateway_port}")]);
+        push(&["--gateway-name", &format!("gw-{identity}")]);
+        push(&["--store-url", &format!("sqlite://{}", store_path.display())]);
+        push(&[
+            "--lease-duration-seconds",
+            "4",
+            "--lease-retry-seconds",
+            "1",
+        ]);
+        push(extra);
+        let child = spawn_operator(&args, &log)?;
         Ok(Self {
             child,
             http_port,
             gateway_port,
             store_path,
             log,
+            args,
         })
+    }
+
+    /// Starts it again with the same ports, store and flags (after [`Self::kill`] or
+    /// [`Self::terminate`]); the log is appended to.
+    pub fn restart(&mut self) -> Result<()> {
+        self.kill();
+        self.child = spawn_operator(&self.args, &self.log)?;
+        Ok(())
     }
 
     /// Waits until `/readyz` answers 200.
@@ -435,6 +441,21 @@ impl OperatorProcess {
     pub fn running(&mut self) -> bool {
         matches!(self.child.try_wait(), Ok(None))
     }
+}
+
+fn spawn_operator(args: &[String], log: &Path) -> Result<Child> {
+    let file = std::fs::OpenOptions::new()
+        .append(true)
+        .create(true)
+        .open(log)?;
+    Command::new(bin("lekiwi-operator"))
+        .args(args)
+        .env("RUST_LOG", "info,kube=warn,lekiwi_operator=debug")
+        .stdin(Stdio::null())
+        .stdout(file.try_clone()?)
+        .stderr(file)
+        .spawn()
+        .context("spawn lekiwi-operator")
 }
 
 impl Drop for OperatorProcess {
@@ -749,4 +770,176 @@ pub async fn http_get_with(
         })
         .collect();
     Ok((code, hdrs, body.to_owned()))
+}
+
+/// A real `lekiwi-agent` process with its own state directory, for tests.
+pub struct AgentProcess {
+    child: Child,
+    /// Its state directory (token, outbox).
+    pub state_dir: PathBuf,
+    /// Port of its local status endpoint.
+    pub status_port: u16,
+    /// Its log file (JSON lines).
+    pub log: PathBuf,
+    args: Vec<String>,
+}
+
+impl AgentProcess {
+    /// Starts an agent for `robot` (`namespace/name`) against `gateway`, enrolling with the
+    /// token in `enrollment_token_file` when its state directory has no credentials yet. Quick
+    /// test settings: backoff 200 ms to 2 s, teleoperation checks every 0.5 s, no mDNS; `extra`
+    /// flags come last and win.
+    pub fn start(
+        gateway: &str,
+        robot: &str,
+        enrollment_token_file: &Path,
+        state_dir: &Path,
+        extra: &[&str],
+    ) -> Result<Self> {
+        let status_port = free_port();
+        let safe = robot.replace('/', "_");
+        let log = log_dir().join(format!(
+            "agent-{safe}-{}.log",
+            state_dir
+                .file_name()
+                .and_then(|n| n.to_str())
+                .unwrap_or("state")
+        ));
+        std::fs::File::create(&log)?;
+        let mut args: Vec<String> = [
+            "--config",
+            "/nonexistent/lekiwi-agent.yaml",
+            "--gateway",
+            gateway,
+            "--robot-name",
+            robot,
+            "--enrollment-token-file",
+            enrollment_token_file.to_str().unwrap(),
+            "--state-dir",
+            state_dir.to_str().unwrap(),
+            "--status-listen",
+            &format!("127.0.0.1:{status_port}"),
+            "--mdns",
+            "false",
+            "--backoff-initial-ms",
+            "200",
+            "--backoff-max-ms",
+            "2000",
+            "--connect-timeout-s",
+            "5",
+            "--teleop-interval-s",
+            "0.5",
+            "--log-format",
+            "json",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let child = spawn_agent(&args, &log)?;
+        Ok(Self {
+            child,
+            state_dir: state_dir.to_owned(),
+            status_port,
+            log,
+            args,
+        })
+    }
+
+    /// SIGKILL: a crash or a power cut, nothing is cleaned up.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// SIGTERM and wait for the exit status.
+    pub fn terminate(&mut self) -> Result<std::process::ExitStatus> {
+        Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()?;
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait()? {
+                return Ok(status);
+            }
+            if start.elapsed() > Duration::from_secs(10) {
+                bail!("agent did not exit within 10s of SIGTERM");
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    /// Starts it again with the same flags and state directory (log appended).
+    pub fn restart(&mut self) -> Result<()> {
+        self.kill();
+        self.child = spawn_agent(&self.args, &self.log)?;
+        Ok(())
+    }
+
+    /// Its process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// The JSON log lines so far.
+    pub fn log_lines(&self) -> Vec<Value> {
+        std::fs::read_to_string(&self.log)
+            .unwrap_or_default()
+            .lines()
+            .filter_map(|l| serde_json::from_str(l).ok())
+            .collect()
+    }
+
+    /// The log as text, for failure messages.
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// `GET /status` of its local endpoint.
+    pub async fn status(&self) -> Result<Value> {
+        let (code, body) = http_get(self.status_port, "/status").await?;
+        if code != 200 {
+            bail!("/status answered {code}: {body}");
+        }
+        Ok(serde_json::from_str(&body)?)
+    }
+
+    /// Queues an event with `lekiwi-agent event` (works whether or not the agent runs) and
+    /// returns its sequence number.
+    pub fn emit(&self, kind: &str, message: &str, data: &Value) -> Result<u64> {
+        let out = Command::new(bin("lekiwi-agent"))
+            .args(["--config", "/nonexistent/lekiwi-agent.yaml"])
+            .args(["--state-dir", self.state_dir.to_str().unwrap()])
+            .args(["event", "--kind", kind, "--message", message])
+            .args(["--data", &data.to_string()])
+            .output()?;
+        if !out.status.success() {
+            bail!(
+                "lekiwi-agent event failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        Ok(String::from_utf8_lossy(&out.stdout).trim().parse()?)
+    }
+}
+
+fn spawn_agent(args: &[String], log: &Path) -> Result<Child> {
+    let file = std::fs::OpenOptions::new()
+        .append(true)
+        .create(true)
+        .open(log)?;
+    Command::new(bin("lekiwi-agent"))
+        .args(args)
+        .env("RUST_LOG", "info,lekiwi_agent=debug")
+        .stdin(Stdio::null())
+        .stdout(file.try_clone()?)
+        .stderr(file)
+        .spawn()
+        .context("spawn lekiwi-agent")
+}
+
+impl Drop for AgentProcess {
+    fn drop(&mut self) {
+        self.kill();
+    }
 }

@@ -1,0 +1,551 @@
+//! The durable outbox: every event, telemetry batch and progress report is written to an on-disk
+//! SQLite queue (WAL, `synchronous=FULL`) before it is sent, and removed only when the gateway
+//! acknowledges it.
+//!
+//! - **Sequence numbers** are allocated in the same transaction as the insert and kept in a
+//!   `meta` row, so they never repeat, also across crashes and when the queue is empty.
+//! - **Lanes**: [`Lane::Critical`] (deployment progress and results, teleoperation changes) is
+//!   sent before [`Lane::Event`], which is sent before [`Lane::Telemetry`]; within a lane, in
+//!   sequence order. A backlog of telemetry never delays a critical message.
+//! - **Bound**: when the queued bytes exceed the bound, the oldest telemetry goes first, then the
+//!   oldest ordinary events; critical messages are never dropped (they are small and rare; the
+//!   bound may be exceeded by them alone). Drops are counted and reported once reconnected.
+//! - Other processes (e.g. `lekiwi-agent event`) may append at the same time: SQLite's locking
+//!   and a busy timeout serialise them.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use lekiwi_protocol::{AgentMessage, encode};
+use rusqlite::{Connection, OptionalExtension, TransactionBehavior, params};
+
+/// Outbox errors.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// SQLite failed (disk full, corrupt file, permissions).
+    #[error("outbox {path}: {source}")]
+    Sqlite {
+        /// The database file.
+        path: PathBuf,
+        /// The cause.
+        source: rusqlite::Error,
+    },
+}
+
+/// Outbox result.
+pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// Priority lanes, most urgent first.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Lane {
+    /// Deployment progress and results, teleoperation changes: never dropped, sent first.
+    Critical = 0,
+    /// Other events: dropped after telemetry when over the bound.
+    Event = 1,
+    /// Telemetry batches: dropped first, oldest first.
+    Telemetry = 2,
+}
+
+impl Lane {
+    /// All lanes in sending order.
+    pub const ALL: [Lane; 3] = [Lane::Critical, Lane::Event, Lane::Telemetry];
+
+    fn from_db(v: i64) -> Lane {
+        match v {
+            0 => Lane::Critical,
+            1 => Lane::Event,
+            _ => Lane::Telemetry,
+        }
+    }
+}
+
+/// One queued message.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Entry {
+    /// Its sequence number.
+    pub seq: u64,
+    /// Its lane.
+    pub lane: Lane,
+    /// The encoded frame, ready to send.
+    pub frame: String,
+}
+
+/// What was dropped to honour the bound, since it was last reported.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Dropped {
+    /// Telemetry batches dropped.
+    pub telemetry: u64,
+    /// Ordinary events dropped.
+    pub events: u64,
+}
+
+/// Queue depth.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Depth {
+    /// Messages queued.
+    pub messages: u64,
+    /// Bytes queued.
+    pub bytes: u64,
+}
+
+/// The outbox, one SQLite file in the state directory.
+pub struct Outbox {
+    conn: Connection,
+    path: PathBuf,
+    max_bytes: u64,
+}
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS outbox (
+    seq INTEGER PRIMARY KEY,
+    lane INTEGER NOT NULL,
+    frame TEXT NOT NULL,
+    bytes INTEGER NOT NULL,
+    created_ms INTEGER NOT NULL
+);
+CREATE INDEX IF NOT EXISTS outbox_lane_seq ON outbox (lane, seq);
+INSERT OR IGNORE INTO meta (key, value) VALUES
+    ('next_seq', 1), ('last_acked_seq', 0), ('dropped_telemetry', 0), ('dropped_events', 0);
+";
+
+impl Outbox {
+    /// Opens (creating if needed) `outbox.db` in `dir`, bounded to `max_bytes` of messages.
+    pub fn open(dir: &Path, max_bytes: u64) -> Result<Self> {
+        let path = dir.join("outbox.db");
+        let err = |source| Error::Sqlite {
+            path: path.clone(),
+            source,
+        };
+        let conn = Connection::open(&path).map_err(err)?;
+        conn.busy_timeout(Duration::from_secs(10)).map_err(err)?;
+        // auto_vacuum must precede the first table; it is a no-op on an existing file.
+        conn.execute_batch(
+            "PRAGMA auto_vacuum = INCREMENTAL;
+             PRAGMA journal_mode = WAL;
+             PRAGMA synchronous = FULL;
+             PRAGMA cache_size = -256;",
+        )
+        .map_err(err)?;
+        conn.execute_batch(SCHEMA).map_err(err)?;
+        Ok(Self {
+            conn,
+            path,
+            max_bytes,
+        })
+    }
+
+    fn err(&self) -> impl Fn(rusqlite::Error) -> Error + '_ {
+        |source| Error::Sqlite {
+            path: self.path.clone(),
+            source,
+        }
+    }
+
+    /// Appends a message built by `build` from its newly allocated sequence number, durably
+    /// (fsync'd) before returning; then enforces the bound. Returns the sequence number.
+    pub fn push(
+        &mut self,
+        lane: Lane,
+        ts_ms: i64,
+        build: impl FnOnce(u64) -> AgentMessage,
+    ) -> Result<u64> {
+        let path = self.path.clone();
+        let err = move |source| Error::Sqlite {
+            path: path.clone(),
+            source,
+        };
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)
+            .map_err(&err)?;
+        let seq: i64 = tx
+            .query_row("SELECT value FROM meta WHERE key = 'next_seq'", [], |r| {
+                r.get(0)
+            })
+            .map_err(&err)?;
+        let frame = encode(&build(seq as u64));
+        tx.execute(
+            "INSERT INTO outbox (seq, lane, frame, bytes, created_ms) VALUES (?1, ?2, ?3, ?4, ?5)",
+            params![seq, lane as i64, frame, frame.len() as i64, ts_ms],
+        )
+        .map_err(&err)?;
+        tx.execute(
+            "UPDATE meta SET value = ?1 WHERE key = 'next_seq'",
+            params![seq + 1],
+        )
+        .map_err(&err)?;
+        enforce_bound(&tx, self.max_bytes).map_err(&err)?;
+        tx.commit().map_err(&err)?;
+        Ok(seq as u64)
+    }
+
+    /// Up to `limit` messages of `lane` with a sequence number above `after`, in order.
+    pub fn next_in_lane(&self, lane: Lane, after: u64, limit: usize) -> Result<Vec<Entry>> {
+        let mut stmt = self
+            .conn
+            .prepare_cached(
+                "SELECT seq, frame FROM outbox WHERE lane = ?1 AND seq > ?2 ORDER BY seq LIMIT ?3",
+            )
+            .map_err(self.err())?;
+        let rows = stmt
+            .query_map(params![lane as i64, after as i64, limit as i64], |r| {
+                Ok(Entry {
+                    seq: r.get::<_, i64>(0)? as u64,
+                    lane,
+                    frame: r.get(1)?,
+                })
+            })
+            .map_err(self.err())?;
+        rows.collect::<Result<Vec<_>, _>>().map_err(self.err())
+    }
+
+    /// Everything queued, in sending order (lane, then sequence). For tests and diagnostics.
+    pub fn all(&self) -> Result<Vec<Entry>> {
+        let mut stmt = self
+            .conn
+            .prepare("SELECT seq, lane, frame FROM outbox ORDER BY lane, seq")
+            .map_err(self.err())?;
+        let rows = stmt
+            .query_map([], |r| {
+                Ok(Entry {
+                    seq: r.get::<_, i64>(0)? as u64,
+                    lane: Lane::from_db(r.get(1)?),
+                    frame: r.get(2)?,
+                })
+            })
+            .map_err(self.err())?;
+        rows.collect::<Result<Vec<_>, _>>().map_err(self.err())
+    }
+
+    /// Removes acknowledged messages (one transaction) and records the highest acknowledged
+    /// sequence number. Unknown numbers are ignored (acknowledged twice, or dropped).
+    pub fn ack(&mut self, seqs: &[u64]) -> Result<()> {
+        if seqs.is_empty() {
+            return Ok(());
+        }
+        let path = self.path.clone();
+        let err = move |source| Error::Sqlite {
+            path: path.clone(),
+            source,
+        };
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)
+            .map_err(&err)?;
+        {
+            let mut del = tx
+                .prepare_cached("DELETE FROM outbox WHERE seq = ?1")
+                .map_err(&err)?;
+            for seq in seqs {
+                del.execute(params![*seq as i64]).map_err(&err)?;
+            }
+        }
+        let max = seqs.iter().copied().max().unwrap_or_default() as i64;
+        tx.execute(
+            "UPDATE meta SET value = max(value, ?1) WHERE key = 'last_acked_seq'",
+            params![max],
+        )
+        .map_err(&err)?;
+        tx.commit().map_err(&err)?;
+        // Give freed pages back a little at a time, so the file shrinks after a backlog.
+        let _ = self.conn.execute_batch("PRAGMA incremental_vacuum(64);");
+        Ok(())
+    }
+
+    /// The highest sequence number the gateway acknowledged (0 when none).
+    pub fn last_acked_seq(&self) -> Result<u64> {
+        self.meta("last_acked_seq")
+    }
+
+    /// The sequence number the next message will get.
+    pub fn next_seq(&self) -> Result<u64> {
+        self.meta("next_seq")
+    }
+
+    /// Applies the gateway's `stored_seq` (PROTOCOL.md §6 rule 5): when it is at or above
+    /// every number this outbox ever assigned, the state directory was lost or restored from an
+    /// old copy, and queued messages would be taken for replays and never stored. They are
+    /// renumbered consecutively from `stored + 1`, in order, and numbering continues after them.
+    /// Returns how many messages were renumbered, or `None` when nothing had to change.
+    pub fn renumber_after(&mut self, stored: u64) -> Result<Option<u64>> {
+        let path = self.path.clone();
+        let err = move |source| Error::Sqlite {
+            path: path.clone(),
+            source,
+        };
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)
+            .map_err(&err)?;
+        let next: i64 = tx
+            .query_row("SELECT value FROM meta WHERE key = 'next_seq'", [], |r| {
+                r.get(0)
+            })
+            .map_err(&err)?;
+        if (stored as i64) < next {
+            return Ok(None);
+        }
+        let rows: Vec<(i64, String)> = {
+            let mut stmt = tx
+                .prepare("SELECT seq, frame FROM outbox ORDER BY seq")
+                .map_err(&err)?;
+            stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+                .map_err(&err)?
+                .collect::<Result<_, _>>()
+                .map_err(&err)?
+        };
+        let mut seq = stored as i64 + 1;
+        for (old, frame) in &rows {
+            let frame = match serde_json::from_str::<serde_json::Value>(frame) {
+                Ok(mut v) => {
+                    v["seq"] = serde_json::Value::from(seq);
+                    v.to_string()
+                }
+                Err(_) => frame.clone(),
+            };
+            tx.execute(
+                "UPDATE outbox SET seq = ?1, frame = ?2, bytes = ?3 WHERE seq = ?4",
+                params![seq, frame, frame.len() as i64, old],
+            )
+            .map_err(&err)?;
+            seq += 1;
+        }
+        tx.execute(
+            "UPDATE meta SET value = ?1 WHERE key = 'next_seq'",
+            params![seq],
+        )
+        .map_err(&err)?;
+        tx.commit().map_err(&err)?;
+        Ok(Some(rows.len() as u64))
+    }
+
+    /// Messages and bytes queued.
+    pub fn depth(&self) -> Result<Depth> {
+        self.conn
+            .query_row(
+                "SELECT count(*), coalesce(sum(bytes), 0) FROM outbox",
+                [],
+                |r| {
+                    Ok(Depth {
+                        messages: r.get::<_, i64>(0)? as u64,
+                        bytes: r.get::<_, i64>(1)? as u64,
+                    })
+                },
+            )
+            .map_err(self.err())
+    }
+
+    /// Drops counted since the last call, and resets the counters.
+    pub fn take_dropped(&mut self) -> Result<Dropped> {
+        let path = self.path.clone();
+        let err = move |source| Error::Sqlite {
+            path: path.clone(),
+            source,
+        };
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)
+            .map_err(&err)?;
+        let get = |key: &str| -> rusqlite::Result<u64> {
+            tx.query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| {
+                r.get::<_, i64>(0)
+            })
+            .map(|v| v as u64)
+        };
+        let dropped = Dropped {
+            telemetry: get("dropped_telemetry").map_err(&err)?,
+            events: get("dropped_events").map_err(&err)?,
+        };
+        tx.execute(
+            "UPDATE meta SET value = 0 WHERE key IN ('dropped_telemetry', 'dropped_events')",
+            [],
+        )
+        .map_err(&err)?;
+        tx.commit().map_err(&err)?;
+        Ok(dropped)
+    }
+
+    fn meta(&self, key: &str) -> Result<u64> {
+        self.conn
+            .query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| {
+                r.get::<_, i64>(0)
+            })
+            .optional()
+            .map(|v| v.unwrap_or_default() as u64)
+            .map_err(self.err())
+    }
+}
+
+/// Deletes the oldest telemetry, then the oldest ordinary events, until the queue fits.
+fn enforce_bound(tx: &rusqlite::Transaction<'_>, max_bytes: u64) -> rusqlite::Result<()> {
+    let total: i64 = tx.query_row("SELECT coalesce(sum(bytes), 0) FROM outbox", [], |r| {
+        r.get(0)
+    })?;
+    let mut excess = total - max_bytes as i64;
+    if excess <= 0 {
+        return Ok(());
+    }
+    for (lane, counter) in [
+        (Lane::Telemetry, "dropped_telemetry"),
+        (Lane::Event, "dropped_events"),
+    ] {
+        let victims: Vec<(i64, i64)> = {
+            let mut stmt =
+                tx.prepare_cached("SELECT seq, bytes FROM outbox WHERE lane = ?1 ORDER BY seq")?;
+            let mut rows = stmt.query([lane as i64])?;
+            let mut victims = Vec::new();
+            while excess > 0 {
+                let Some(row) = rows.next()? else { break };
+                let (seq, bytes): (i64, i64) = (row.get(0)?, row.get(1)?);
+                excess -= bytes;
+                victims.push((seq, bytes));
+            }
+            victims
+        };
+        if victims.is_empty() {
+            continue;
+        }
+        let last = victims.last().map(|v| v.0).unwrap_or_default();
+        let n = tx.execute(
+            "DELETE FROM outbox WHERE lane = ?1 AND seq <= ?2",
+            params![lane as i64, last],
+        )?;
+        tx.execute(
+            "UPDATE meta SET value = value + ?1 WHERE key = ?2",
+            params![n as i64, counter],
+        )?;
+        tracing::warn!(
+            lane = ?lane,
+            dropped = n,
+            max_bytes,
+            "outbox over its bound: dropped the oldest messages of this lane"
+        );
+        if excess <= 0 {
+            break;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lekiwi_protocol::{Sample, Severity};
+
+    fn event(seq: u64, kind: &str, pad: usize) -> AgentMessage {
+        AgentMessage::Event {
+            seq,
+            ts_ms: 1,
+            kind: kind.into(),
+            severity: Severity::Info,
+            message: "x".repeat(pad),
+            data: serde_json::Value::Null,
+        }
+    }
+
+    fn telemetry(seq: u64, n: usize) -> AgentMessage {
+        AgentMessage::Telemetry {
+            seq,
+            samples: (0..n)
+                .map(|i| Sample {
+                    metric: "cpu_percent".into(),
+                    ts_ms: i as i64,
+                    value: 1.5,
+                })
+                .collect(),
+        }
+    }
+
+    #[test]
+    fn sequence_numbers_survive_reopen_and_an_empty_queue() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut ob = Outbox::open(dir.path(), 1 << 20).unwrap();
+        assert_eq!(ob.push(Lane::Event, 1, |s| event(s, "a", 1)).unwrap(), 1);
+        assert_eq!(ob.push(Lane::Event, 1, |s| event(s, "b", 1)).unwrap(), 2);
+        ob.ack(&[1, 2]).unwrap();
+        assert_eq!(ob.depth().unwrap().messages, 0);
+        drop(ob);
+        let mut ob = Outbox::open(dir.path(), 1 << 20).unwrap();
+        assert_eq!(ob.last_acked_seq().unwrap(), 2);
+        assert_eq!(ob.push(Lane::Event, 1, |s| event(s, "c", 1)).unwrap(), 3);
+        // The gateway has more than we remember: queued messages move past it, in order.
+        ob.push(Lane::Event, 1, |s| event(s, "d", 1)).unwrap(); // 4
+        assert_eq!(ob.renumber_after(10).unwrap(), Some(2));
+        assert_eq!(ob.renumber_after(5).unwrap(), None);
+        let all = ob.all().unwrap();
+        assert_eq!(all.iter().map(|e| e.seq).collect::<Vec<_>>(), vec![11, 12]);
+        assert!(all[0].frame.contains(r#""seq":11"#) && all[0].frame.contains(r#""kind":"c""#));
+        assert!(all[1].frame.contains(r#""seq":12"#) && all[1].frame.contains(r#""kind":"d""#));
+        assert_eq!(ob.push(Lane::Event, 1, |s| event(s, "e", 1)).unwrap(), 13);
+    }
+
+    #[test]
+    fn lanes_come_out_in_priority_then_sequence_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut ob = Outbox::open(dir.path(), 1 << 20).unwrap();
+        ob.push(Lane::Telemetry, 1, |s| telemetry(s, 2)).unwrap(); // 1
+        ob.push(Lane::Event, 1, |s| event(s, "e", 1)).unwrap(); // 2
+        ob.push(Lane::Telemetry, 1, |s| telemetry(s, 2)).unwrap(); // 3
+        ob.push(Lane::Critical, 1, |s| event(s, "teleop", 1))
+            .unwrap(); // 4
+        let order: Vec<u64> = ob.all().unwrap().iter().map(|e| e.seq).collect();
+        assert_eq!(order, vec![4, 2, 1, 3]);
+        let t = ob.next_in_lane(Lane::Telemetry, 1, 10).unwrap();
+        assert_eq!(t.iter().map(|e| e.seq).collect::<Vec<_>>(), vec![3]);
+        assert!(t[0].frame.contains(r#""seq":3"#));
+    }
+
+    #[test]
+    fn the_bound_drops_oldest_telemetry_then_events_never_critical() {
+        let dir = tempfile::tempdir().unwrap();
+        let max = 64 * 1024;
+        let mut ob = Outbox::open(dir.path(), max).unwrap();
+        let crit = ob
+            .push(Lane::Critical, 1, |s| event(s, "deploy_done", 30_000))
+            .unwrap();
+        let ev = ob
+            .push(Lane::Event, 1, |s| event(s, "note", 10_000))
+            .unwrap();
+        let mut tele = Vec::new();
+        for _ in 0..40 {
+            tele.push(ob.push(Lane::Telemetry, 1, |s| telemetry(s, 20)).unwrap());
+        }
+        let d = ob.depth().unwrap();
+        assert!(d.bytes <= max, "{d:?}");
+        let left: Vec<u64> = ob.all().unwrap().iter().map(|e| e.seq).collect();
+        assert!(left.contains(&crit) && left.contains(&ev), "{left:?}");
+        // The survivors are the newest telemetry batches, contiguous up to the last one.
+        let kept: Vec<u64> = left.iter().copied().filter(|s| tele.contains(s)).collect();
+        assert!(!kept.is_empty() && kept.len() < tele.len());
+        assert_eq!(kept, tele[tele.len() - kept.len()..].to_vec());
+        let dropped = ob.take_dropped().unwrap();
+        assert_eq!(dropped.telemetry as usize, tele.len() - kept.len());
+        assert_eq!(dropped.events, 0);
+        assert_eq!(ob.take_dropped().unwrap(), Dropped::default());
+
+        // Only events and critical left to give: events go, critical stays.
+        for _ in 0..4 {
+            ob.push(Lane::Critical, 1, |s| event(s, "deploy_done", 20_000))
+                .unwrap();
+        }
+        let left = ob.all().unwrap();
+        assert!(left.iter().all(|e| e.lane == Lane::Critical), "{left:?}");
+        assert_eq!(left.len(), 5);
+        let dropped = ob.take_dropped().unwrap();
+        assert_eq!(dropped.events, 1);
+    }
+
+    #[test]
+    fn a_second_writer_process_shares_the_sequence() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut a = Outbox::open(dir.path(), 1 << 20).unwrap();
+        let mut b = Outbox::open(dir.path(), 1 << 20).unwrap();
+        let mut seqs = Vec::new();
+        for i in 0..10 {
+            let ob = if i % 2 == 0 { &mut a } else { &mut b };
+            seqs.push(ob.push(Lane::Event, 1, |s| event(s, "x", 1)).unwrap());
+        }
+        assert_eq!(seqs, (1..=10).collect::<Vec<_>>());
+    }
+}
