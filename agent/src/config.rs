@@ -217,6 +217,30 @@ pub struct Flags {
     #[arg(long, env = "LEKIWI_TELEOP_SERIAL_WEIGHT")]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub teleop_serial_weight: Option<f64>,
+
+    /// Shell command run in the new release directory before the switch; failing it aborts
+    /// the deployment (the old release keeps running). Empty: none.
+    #[arg(long, env = "LEKIWI_RELEASE_PRE_SWITCH_COMMAND")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_pre_switch_command: Option<String>,
+    /// Shell command that restarts the robot's software after a switch (e.g.
+    /// `systemctl restart lekiwi-host`). Empty: none.
+    #[arg(long, env = "LEKIWI_RELEASE_RESTART_COMMAND")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_restart_command: Option<String>,
+    /// Shell command that exits 0 when the new release is healthy; retried until it passes or
+    /// the health timeout ends. Empty: healthy once restarted.
+    #[arg(long, env = "LEKIWI_RELEASE_HEALTH_COMMAND")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_health_command: Option<String>,
+    /// Seconds the health command may take to pass after a switch.
+    #[arg(long, env = "LEKIWI_RELEASE_HEALTH_TIMEOUT_S")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_health_timeout_s: Option<u64>,
+    /// Releases kept on disk (the current one included) for instant rollback.
+    #[arg(long, env = "LEKIWI_RELEASE_KEEP")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_keep: Option<u32>,
 }
 
 /// Subcommands.
@@ -326,6 +350,17 @@ pub struct Config {
     pub teleop_serial_device: PathBuf,
     /// Serial weight.
     pub teleop_serial_weight: f64,
+
+    /// Pre-switch command.
+    pub release_pre_switch_command: String,
+    /// Restart command.
+    pub release_restart_command: String,
+    /// Health command.
+    pub release_health_command: String,
+    /// Health timeout, s.
+    pub release_health_timeout_s: u64,
+    /// Releases kept.
+    pub release_keep: u32,
 }
 
 impl Default for Config {
@@ -369,6 +404,11 @@ impl Default for Config {
             teleop_stream_weight: 0.3,
             teleop_serial_device: PathBuf::from("/dev/ttyACM0"),
             teleop_serial_weight: 0.2,
+            release_pre_switch_command: String::new(),
+            release_restart_command: String::new(),
+            release_health_command: String::new(),
+            release_health_timeout_s: 60,
+            release_keep: 3,
         }
     }
 }
@@ -414,6 +454,12 @@ impl Config {
             return bad(format!(
                 "backoffInitialMs ({}) must be > 0 and <= backoffMaxMs ({})",
                 self.backoff_initial_ms, self.backoff_max_ms
+            ));
+        }
+        if self.release_keep < 2 {
+            return bad(format!(
+                "releaseKeep ({}) must be at least 2: the current release and the one to roll back to",
+                self.release_keep
             ));
         }
         if self.outbox_window == 0 {

@@ -5,6 +5,8 @@
 
 use serde::{Deserialize, Serialize};
 
+pub mod release;
+
 /// Protocol version spoken by this crate. A peer with another version is refused.
 pub const PROTOCOL_VERSION: u32 = 1;
 
