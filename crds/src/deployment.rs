@@ -262,4 +262,16 @@ pub struct RobotDeploymentStatus {
     /// A sentence on the current state, for people.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
+    /// Identifies the rollout in progress: derived from the release and the last restart. The
+    /// robots of this rollout carry it in their `fleet.lekiwi.io/rollout` annotation, which is
+    /// how the controller resumes after a restart without redeploying finished robots.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rollout_id: Option<String>,
+    /// When the current batch started.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub current_batch_start_time: Option<Time>,
+    /// When the last batch ended successfully (the next one waits
+    /// `pauseBetweenBatchesSeconds` after it).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_batch_completion_time: Option<Time>,
 }

@@ -9,7 +9,7 @@ mod schema;
 pub use condition::{Condition, ConditionStatus};
 pub use deployment::{RobotDeployment, RobotDeploymentSpec, RobotDeploymentStatus};
 pub use release::ReleaseRef;
-pub use robot::{Robot, RobotPhase, RobotSpec, RobotStatus};
+pub use robot::{Robot, RobotPhase, RobotSpec, RobotStatus, UpdateReport};
 
 /// The API group of every LeKiwi resource.
 pub const GROUP: &str = "fleet.lekiwi.io";

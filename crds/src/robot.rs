@@ -200,6 +200,28 @@ pub struct RobotStatus {
     /// A small summary of recent telemetry; full series live in the event store.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub telemetry: Option<TelemetrySummary>,
+
+    /// Outcome of the agent's latest release update, as it reported it. Written by the gateway
+    /// when an update ends; rollouts read it to see failures without waiting for a timeout.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub last_update: Option<UpdateReport>,
+}
+
+/// How an agent's release update ended.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct UpdateReport {
+    /// The release the agent was told to run.
+    pub release: ReleaseRef,
+    /// `done`, `failed` (nothing switched) or `rolled_back` (switched, unhealthy, switched
+    /// back).
+    pub phase: String,
+    /// The agent's explanation.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
+    /// When the gateway received the outcome.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time: Option<Time>,
 }
 
 /// The agent's own health verdict.
