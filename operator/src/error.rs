@@ -17,6 +17,9 @@ pub enum Error {
     /// A CRD did not become Established in time.
     #[error("CRD {0} did not become Established")]
     CrdNotEstablished(String),
+    /// Writing a Robot's spec or annotations failed.
+    #[error("cannot patch {object}: {source}")]
+    PatchRobot { object: String, source: kube::Error },
     /// Writing a Robot's status failed.
     #[error("cannot patch status of {object}: {source}")]
     PatchStatus { object: String, source: kube::Error },
@@ -44,6 +47,7 @@ impl Error {
             Error::KubeConfig(_) => "kube_config",
             Error::CrdMissing(_) | Error::Crd { .. } | Error::CrdNotEstablished(_) => "crd",
             Error::PatchStatus { .. } => "patch_status",
+            Error::PatchRobot { .. } => "patch_robot",
             Error::Lease { .. } => "lease",
             Error::Serve { .. } => "serve",
             Error::TaskStopped(_) => "task_stopped",

@@ -184,21 +184,32 @@ async fn run_while_leader(
         }
         let term = cancel.child_token();
         let mut robot = tokio::spawn(controller::robot::run(ctx.clone(), term.clone()));
+        let mut rollout = tokio::spawn(controller::deployment::run(ctx.clone(), term.clone()));
+        let stopped = |r: Result<Result<()>, tokio::task::JoinError>, what: &'static str| match r {
+            Ok(Ok(())) if cancel.is_cancelled() => Ok(()),
+            Ok(Err(e)) => Err(e),
+            _ => Err(Error::TaskStopped(what)),
+        };
         tokio::select! {
             r = &mut robot => {
-                return match r {
-                    Ok(Ok(())) if cancel.is_cancelled() => Ok(()),
-                    Ok(Err(e)) => Err(e),
-                    _ => Err(Error::TaskStopped("robot controller")),
-                };
+                term.cancel();
+                let _ = rollout.await;
+                return stopped(r, "robot controller");
+            }
+            r = &mut rollout => {
+                term.cancel();
+                let _ = robot.await;
+                return stopped(r, "robot deployment controller");
             }
             _ = wait_leader(&mut leader, false) => {
                 info!("no longer leader; stopping controllers");
                 term.cancel();
                 let _ = robot.await;
+                let _ = rollout.await;
             }
             () = cancel.cancelled() => {
                 let _ = robot.await;
+                let _ = rollout.await;
                 return Ok(());
             }
         }

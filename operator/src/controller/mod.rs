@@ -1,5 +1,6 @@
 //! Controllers and the state they share.
 
+pub mod deployment;
 pub mod robot;
 
 use std::collections::HashMap;

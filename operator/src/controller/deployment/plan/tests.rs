@@ -1,0 +1,410 @@
+//! Scenario tests of the rollout planner: a small simulated fleet driven through plans.
+
+use super::*;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, ObjectMeta};
+use lekiwi_crds::RobotDeploymentSpec;
+use lekiwi_crds::deployment::RolloutStrategy;
+
+fn rel(v: &str) -> ReleaseRef {
+    ReleaseRef {
+        version: v.into(),
+        digest: format!("sha256:{}", v.repeat(64).chars().take(64).collect::<String>()),
+    }
+}
+
+fn deployment(batch: IntOrString, canary: i32) -> RobotDeployment {
+    let mut d = RobotDeployment::new(
+        "roll",
+        RobotDeploymentSpec {
+            selector: LabelSelector::default(),
+            release: rel("2"),
+            strategy: RolloutStrategy {
+                batch_size: batch,
+                canary,
+                success_threshold: 0.8,
+                robot_timeout_seconds: 60,
+                pause_between_batches_seconds: 0,
+                wait_timeout_seconds: 300,
+                ..RolloutStrategy::default()
+            },
+            paused: false,
+        },
+    );
+    d.metadata = ObjectMeta {
+        name: Some("roll".into()),
+        namespace: Some("lab".into()),
+        generation: Some(1),
+        ..ObjectMeta::default()
+    };
+    d
+}
+
+fn robot(i: usize) -> RobotView {
+    RobotView {
+        name: format!("kiwi-{i:02}"),
+        maintenance: false,
+        phase: Some(RobotPhase::Online),
+        healthy: true,
+        teleoperated: false,
+        desired: Some(rel("1")),
+        current: Some(rel("1")),
+        last_update: None,
+        mark: None,
+    }
+}
+
+struct Sim {
+    d: RobotDeployment,
+    robots: Vec<RobotView>,
+    now: Timestamp,
+    /// Robots whose health check fails on the new release (the agent switches back).
+    failing: Vec<String>,
+    events: Vec<&'static str>,
+}
+
+impl Sim {
+    fn new(d: RobotDeployment, n: usize) -> Self {
+        Self {
+            d,
+            robots: (0..n).map(robot).collect(),
+            now: "2026-11-22T10:00:00Z".parse().unwrap(),
+            failing: Vec::new(),
+            events: Vec::new(),
+        }
+    }
+
+    fn facts(&self) -> Facts {
+        Facts {
+            now: self.now,
+            robots: self.robots.clone(),
+            release: ReleaseCheck::Valid,
+            overlaps: Vec::new(),
+            active_deployments: vec!["roll".into()],
+        }
+    }
+
+    /// One reconcile: plan, apply writes and status.
+    fn step(&mut self) -> Plan {
+        let plan = plan(&self.d, &self.facts());
+        for w in &plan.writes {
+            let r = self.robots.iter_mut().find(|r| r.name == w.robot).unwrap();
+            r.mark = Some(w.mark.clone());
+            if w.release.is_some() {
+                r.desired = w.release.clone();
+            }
+        }
+        self.d.status = Some(plan.status.clone());
+        self.events.extend(plan.events.iter().map(|e| e.reason));
+        plan
+    }
+
+    /// Agents act on their desired release.
+    fn agents(&mut self) {
+        for r in &mut self.robots {
+            if r.desired != r.current && r.phase == Some(RobotPhase::Online) && !r.teleoperated {
+                let want = r.desired.clone().unwrap();
+                if self.failing.contains(&r.name) && want == rel("2") {
+                    r.last_update = Some((
+                        want,
+                        "rolled_back".into(),
+                        Some("health check failed".into()),
+                        Some(self.now),
+                    ));
+                } else {
+                    r.current = Some(want.clone());
+                    r.last_update = Some((want, "done".into(), None, Some(self.now)));
+                }
+            }
+        }
+    }
+
+    fn advance(&mut self, s: i64) {
+        self.now += SignedDuration::from_secs(s);
+    }
+
+    fn phase(&self) -> RolloutPhase {
+        self.d.status.as_ref().unwrap().phase.unwrap()
+    }
+
+    fn run_until_done(&mut self, max_steps: usize) -> usize {
+        for i in 0..max_steps {
+            self.step();
+            if matches!(
+                self.phase(),
+                RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
+            ) {
+                return i;
+            }
+            self.agents();
+            self.advance(1);
+        }
+        panic!("no end after {max_steps} steps: {:?}", self.d.status);
+    }
+}
+
+#[test]
+fn batch_sizes_and_counts() {
+    assert_eq!(batch_size(&IntOrString::String("25%".into()), 10), 3);
+    assert_eq!(batch_size(&IntOrString::String("10%".into()), 200), 20);
+    assert_eq!(batch_size(&IntOrString::Int(0), 10), 1);
+    assert_eq!(total_batches(1, 3, 10), 4);
+    assert_eq!(total_batches(0, 20, 200), 10);
+    assert_eq!(total_batches(5, 3, 2), 1);
+    assert_ne!(
+        rollout_id(&rel("2"), None),
+        rollout_id(&rel("2"), Some("2026"))
+    );
+}
+
+#[test]
+fn a_clean_rollout_goes_canary_first_then_in_batches() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(3), 1), 10);
+    let first = sim.step();
+    assert_eq!(first.writes.len(), 1, "canary batch of one");
+    assert_eq!(first.writes[0].robot, "kiwi-00");
+    assert_eq!(first.writes[0].release, Some(rel("2")));
+    assert_eq!(first.writes[0].mark.previous, Some(rel("1")));
+    assert_eq!(sim.phase(), RolloutPhase::Progressing);
+    assert_eq!(sim.d.status.as_ref().unwrap().total_batches, Some(4));
+    sim.run_until_done(50);
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed));
+    assert_eq!((st.updated, st.failed, st.targeted), (10, 0, 10));
+    assert!(sim.robots.iter().all(|r| r.current == Some(rel("2"))));
+    let batches = sim.events.iter().filter(|e| **e == "BatchStarted").count();
+    assert_eq!(batches, 4);
+    // Batches contain the robots in name order.
+    let marks: Vec<i32> = sim
+        .robots
+        .iter()
+        .map(|r| r.mark.as_ref().unwrap().batch)
+        .collect();
+    assert_eq!(marks, vec![0, 1, 1, 1, 2, 2, 2, 3, 3, 3]);
+    // A finished rollout asks for nothing more.
+    let again = sim.step();
+    assert!(again.writes.is_empty() && again.requeue_after.is_none());
+}
+
+#[test]
+fn a_failing_batch_rolls_every_updated_robot_back() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(10), 0), 20);
+    // 3 of the second batch fail their health check: 70% < 80%.
+    sim.failing = vec!["kiwi-10".into(), "kiwi-13".into(), "kiwi-17".into()];
+    sim.run_until_done(50);
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::RolledBack), "{:?}", st.message);
+    assert!(st.message.as_deref().unwrap().contains("3 of 10"), "{:?}", st.message);
+    assert!(
+        sim.robots.iter().all(|r| r.current == Some(rel("1"))),
+        "every robot back on the previous release"
+    );
+    assert!(sim.events.contains(&"RollbackStarted") && sim.events.contains(&"RolledBack"));
+    assert!(sim.events.contains(&"RobotUpdateFailed"));
+    let rolled_back = st
+        .robots
+        .iter()
+        .filter(|r| r.state == RobotRolloutState::RolledBack)
+        .count();
+    assert_eq!(rolled_back, 20);
+}
+
+#[test]
+fn teleoperated_robots_are_waited_for_and_never_interrupted() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(5), 0), 5);
+    sim.robots[2].teleoperated = true;
+    sim.step();
+    let r2 = &sim.robots[2];
+    assert_eq!(r2.mark.as_ref().unwrap().state, MarkState::Waiting);
+    assert_eq!(r2.desired, Some(rel("1")), "not told to switch while teleoperated");
+    for _ in 0..5 {
+        sim.agents();
+        sim.advance(10);
+        sim.step();
+    }
+    assert_eq!(sim.phase(), RolloutPhase::Progressing, "waits for it");
+    assert_eq!(sim.robots[2].current, Some(rel("1")));
+    sim.robots[2].teleoperated = false;
+    sim.run_until_done(20);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert_eq!(sim.robots[2].current, Some(rel("2")));
+}
+
+#[test]
+fn robots_waited_for_too_long_are_skipped_and_offline_ones_skipped_at_once() {
+    let mut d = deployment(IntOrString::Int(5), 0);
+    d.spec.strategy.wait_timeout_seconds = 100;
+    let mut sim = Sim::new(d, 5);
+    sim.robots[1].teleoperated = true;
+    sim.robots[3].phase = Some(RobotPhase::Offline);
+    sim.step();
+    assert_eq!(
+        sim.robots[3].mark.as_ref().unwrap().state,
+        MarkState::Skipped,
+        "unavailable: Skip by default"
+    );
+    sim.agents();
+    sim.advance(101);
+    sim.run_until_done(10);
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed));
+    assert_eq!((st.updated, st.skipped), (3, 2));
+    assert_eq!(sim.robots[1].current, Some(rel("1")));
+}
+
+#[test]
+fn silent_robots_fail_after_the_timeout() {
+    let mut d = deployment(IntOrString::Int(2), 0);
+    d.spec.strategy.success_threshold = 1.0;
+    let mut sim = Sim::new(d, 2);
+    sim.step();
+    // kiwi-01 goes offline mid-update and never reports.
+    sim.robots[1].phase = Some(RobotPhase::Offline);
+    sim.agents();
+    sim.advance(30);
+    sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::Progressing);
+    sim.advance(31);
+    sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
+    let st = sim.d.status.as_ref().unwrap();
+    assert!(st.message.as_deref().unwrap().contains("timed out"), "{:?}", st.message);
+}
+
+#[test]
+fn an_offline_robot_that_comes_back_in_time_succeeds() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 2);
+    sim.step();
+    sim.robots[1].phase = Some(RobotPhase::Offline);
+    sim.agents();
+    sim.advance(20);
+    sim.step();
+    sim.robots[1].phase = Some(RobotPhase::Online);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert_eq!(sim.d.status.as_ref().unwrap().updated, 2);
+}
+
+#[test]
+fn a_restarted_controller_does_not_redeploy_finished_robots() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 6);
+    sim.step(); // batch 0 formed
+    sim.agents();
+    sim.step(); // batch 0 done
+    sim.step(); // batch 1 formed
+    sim.agents(); // kiwi-00..03 run the release
+    // A new leader starts from the objects only: status and marks are all it has.
+    let plan = plan(&sim.d, &sim.facts());
+    assert!(
+        plan.writes
+            .iter()
+            .all(|w| !["kiwi-00", "kiwi-01", "kiwi-02", "kiwi-03"].contains(&w.robot.as_str())),
+        "{:?}",
+        plan.writes
+    );
+    sim.run_until_done(20);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+}
+
+#[test]
+fn editing_the_release_starts_over_from_the_canary() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 1), 5);
+    sim.step();
+    sim.agents();
+    sim.step();
+    sim.d.spec.release = rel("3");
+    let p = sim.step();
+    assert_eq!(p.writes.len(), 1, "canary of the new rollout: {:?}", p.writes);
+    assert_eq!(p.writes[0].release, Some(rel("3")));
+    assert_eq!(p.writes[0].mark.previous, Some(rel("2")));
+    assert!(sim.events.contains(&"RolloutRestarted"));
+    sim.run_until_done(30);
+    assert!(sim.robots.iter().all(|r| r.current == Some(rel("3"))));
+}
+
+#[test]
+fn paused_rollouts_start_no_new_robot() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 4);
+    sim.step();
+    sim.d.spec.paused = true;
+    sim.agents();
+    for _ in 0..3 {
+        let p = sim.step();
+        assert!(p.writes.iter().all(|w| w.release.is_none()));
+        sim.agents();
+        sim.advance(5);
+    }
+    assert_eq!(sim.phase(), RolloutPhase::Paused);
+    assert_eq!(sim.d.status.as_ref().unwrap().updated, 2);
+    sim.d.spec.paused = false;
+    sim.run_until_done(10);
+    assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
+}
+
+#[test]
+fn an_invalid_release_fails_clearly_and_a_younger_overlap_waits() {
+    let sim = Sim::new(deployment(IntOrString::Int(2), 0), 2);
+    let mut facts = sim.facts();
+    facts.release = ReleaseCheck::Invalid("release sha256:22… not found in the blob store".into());
+    let p = plan(&sim.d, &facts);
+    assert!(p.writes.is_empty());
+    assert_eq!(p.status.phase, Some(RolloutPhase::Failed));
+    assert!(p.status.message.as_deref().unwrap().contains("not found"));
+    let c = lekiwi_crds::condition::find(&p.status.conditions, CONDITION_RELEASE_VALID).unwrap();
+    assert_eq!(c.status, ConditionStatus::False);
+
+    let mut facts = sim.facts();
+    facts.overlaps = vec![Overlap {
+        deployment: "older".into(),
+        earlier: true,
+        robots: vec!["kiwi-00".into()],
+    }];
+    let p = plan(&sim.d, &facts);
+    assert!(p.writes.is_empty());
+    let c = lekiwi_crds::condition::find(&p.status.conditions, CONDITION_CONFLICT).unwrap();
+    assert_eq!(c.status, ConditionStatus::True);
+    assert!(c.message.contains("older"));
+}
+
+#[test]
+fn robots_held_by_another_deployment_are_not_touched() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(5), 0), 3);
+    sim.robots[0].mark = Some(Mark {
+        deployment: "other".into(),
+        rollout_id: "x".into(),
+        batch: 0,
+        state: MarkState::Started,
+        since: sim.now,
+        previous: None,
+        message: None,
+    });
+    let mut facts = sim.facts();
+    facts.active_deployments.push("other".into());
+    let p = plan(&sim.d, &facts);
+    assert!(p.writes.iter().all(|w| w.robot != "kiwi-00"));
+    assert_eq!(p.writes.len(), 2);
+}
+
+#[test]
+fn undo_rolls_back_a_completed_rollout_and_new_robots_join_a_completed_one() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(5), 0), 3);
+    sim.run_until_done(10);
+    sim.robots.push(robot(7));
+    sim.agents();
+    sim.advance(1);
+    let p = sim.step();
+    assert_eq!(p.writes.len(), 1, "the new robot is updated");
+    sim.run_until_done(10);
+    assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
+
+    sim.advance(5);
+    let at = sim.now.to_string();
+    sim.d
+        .metadata
+        .annotations
+        .get_or_insert_default()
+        .insert(UNDO_ANNOTATION.into(), at);
+    sim.advance(1);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::RolledBack);
+    assert!(sim.robots.iter().all(|r| r.current == Some(rel("1"))));
+}
