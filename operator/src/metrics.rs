@@ -361,7 +361,7 @@ impl RolloutMetrics {
                 Histogram::new(exponential_buckets(1.0, 2.0, 16))
             }),
             batches: Family::default(),
-            batch_success: Histogram::new([0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.99, 1.0].into_iter()),
+            batch_success: Histogram::new([0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.99, 1.0]),
         };
         registry.register(
             "lekiwi_rollout_phase",

@@ -3,6 +3,7 @@
 //! stores every durable agent message before acknowledging it.
 
 pub mod auth;
+pub mod dispatch;
 pub mod lease;
 pub mod legacy;
 pub mod presence;
@@ -207,11 +208,18 @@ pub async fn run(
         },
         metrics.clone(),
     );
+    let registry = Arc::new(Registry::default());
+    let robots: Api<lekiwi_crds::Robot> = match &config.watch_namespace {
+        Some(ns) => Api::namespaced(client.clone(), ns),
+        None => Api::all(client.clone()),
+    };
+    let (desired, dispatch_task) =
+        dispatch::start(robots, registry.clone(), cancel.clone()).await?;
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
         auth: Authenticator::new(client.clone(), secret_store),
-        registry: Arc::new(Registry::default()),
+        registry,
         limits: Limits {
             max_frame_bytes: config.max_frame_bytes,
             rate: config.agent_rate,
@@ -224,6 +232,7 @@ pub async fn run(
         metrics: metrics.clone(),
         gateway: name.clone(),
         cancel: cancel.clone(),
+        desired: Some(desired),
     };
     let state = GatewayState {
         shared: Arc::new(shared),
@@ -329,7 +338,7 @@ pub async fn run(
     let _ = tokio::time::timeout(Duration::from_secs(5), flush).await;
     writer_cancel.cancel();
     let _ = writer_task.await;
-    for t in [ticker, lease_task, retention, secret_task] {
+    for t in [ticker, lease_task, retention, secret_task, dispatch_task] {
         t.abort();
     }
     served.map_err(|source| Error::Serve { addr, source })

@@ -77,6 +77,19 @@ pub struct HeartbeatInfo {
     pub vitals: Vitals,
 }
 
+/// How an agent's release update ended, as it reported it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct UpdateOutcome {
+    /// The release it was told to run.
+    pub release: Release,
+    /// `done`, `failed` or `rolled_back`.
+    pub phase: String,
+    /// Its explanation.
+    pub message: Option<String>,
+    /// When the gateway got it.
+    pub time: Timestamp,
+}
+
 #[derive(Clone, Debug)]
 struct Entry {
     session: u64,
@@ -88,6 +101,7 @@ struct Entry {
     teleoperation_since: Option<Timestamp>,
     vitals: Vitals,
     retries: u32,
+    last_update: Option<UpdateOutcome>,
 }
 
 #[derive(Default)]
@@ -192,6 +206,9 @@ impl Presence {
         let now = Timestamp::now();
         self.with_state(|s| {
             let teleoperation_since = info.teleoperation.as_ref().map(|_| now);
+            // Keep the last update's outcome: rollouts read it, and a manager that stops
+            // sending a field makes server-side apply drop it.
+            let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
             s.robots.insert(
                 key.clone(),
                 Entry {
@@ -204,6 +221,7 @@ impl Presence {
                     teleoperation_since,
                     vitals: Vitals::default(),
                     retries: 0,
+                    last_update,
                 },
             );
             s.enqueue(key, Priority::High);
@@ -248,6 +266,24 @@ impl Presence {
             changed
         });
         if changed {
+            self.wake();
+        }
+    }
+
+    /// An update commanded in session `session` ended; written at once.
+    pub fn update_finished(&self, key: &RobotKey, session: u64, outcome: UpdateOutcome) {
+        let done = self.with_state(|s| {
+            let Some(e) = s.robots.get_mut(key).filter(|e| e.session == session) else {
+                return false;
+            };
+            if outcome.phase == "done" {
+                e.info.release = Some(outcome.release.clone());
+            }
+            e.last_update = Some(outcome);
+            s.enqueue(key, Priority::High);
+            true
+        });
+        if done {
             self.wake();
         }
     }
@@ -409,6 +445,17 @@ impl Presence {
         }
         if !telemetry.is_empty() {
             status["telemetry"] = Value::Object(telemetry);
+        }
+        if let Some(u) = &e.last_update {
+            let mut v = json!({
+                "release": { "version": u.release.version, "digest": u.release.digest },
+                "phase": u.phase,
+                "time": time(u.time),
+            });
+            if let Some(m) = &u.message {
+                v["message"] = json!(m.chars().take(1024).collect::<String>());
+            }
+            status["lastUpdate"] = v;
         }
         json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": status })
     }
@@ -622,6 +669,7 @@ mod tests {
                     teleoperation_since: None,
                     vitals: Vitals::default(),
                     retries: 0,
+                    last_update: None,
                 },
             );
             s.enqueue(&key("a"), Priority::Low);

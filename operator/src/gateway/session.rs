@@ -10,14 +10,16 @@ use std::time::Duration;
 use axum::extract::ws::{CloseFrame, Message, Utf8Bytes};
 use futures::{Sink, SinkExt, Stream, StreamExt};
 use jiff::Timestamp;
-use lekiwi_protocol::{AgentMessage, ErrorCode, PROTOCOL_VERSION, ServerMessage, decode, encode};
+use lekiwi_protocol::{
+    AgentMessage, ErrorCode, PROTOCOL_VERSION, Release, ServerMessage, decode, encode,
+};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, debug, info, info_span, warn};
 
 use super::auth::{Authenticator, Grant};
-use super::presence::{ConnectInfo, HeartbeatInfo, Presence};
+use super::presence::{ConnectInfo, HeartbeatInfo, Presence, UpdateOutcome};
 use crate::metrics::{KindLabels, Metrics};
 use crate::store::{ConnectionRecord, RobotKey, Store, StoredEvent};
 
@@ -49,6 +51,8 @@ pub enum Control {
     /// Send this to the agent.
     /// Boxed: the channel's slots are allocated per connection, so keep them pointer-sized.
     Send(Box<ServerMessage>),
+    /// The robot's `spec.release` changed to this.
+    Desired(Option<Box<Release>>),
 }
 
 /// The sessions of this gateway, one per robot.
@@ -80,6 +84,14 @@ impl Registry {
         if sessions.get(key).is_some_and(|(current, _)| *current == id) {
             sessions.remove(key);
         }
+    }
+
+    /// Tells a robot's session that its desired release changed, if it has a session.
+    pub fn desire(&self, key: &RobotKey, release: Option<Release>) -> bool {
+        let sessions = self.sessions.lock().unwrap_or_else(|p| p.into_inner());
+        sessions
+            .get(key)
+            .is_some_and(|(_, tx)| tx.try_send(Control::Desired(release.map(Box::new))).is_ok())
     }
 
     /// Sends a message to a robot's session, if it has one.
@@ -123,6 +135,57 @@ pub struct Shared {
     pub gateway: String,
     /// Fires on shutdown.
     pub cancel: CancellationToken,
+    /// The robots' desired releases (`spec.release`), when this gateway watches Robots.
+    pub desired: Option<DesiredReleases>,
+}
+
+/// Looks up a robot's `spec.release` in the gateway's Robot cache.
+#[derive(Clone)]
+pub struct DesiredReleases(pub kube::runtime::reflector::Store<lekiwi_crds::Robot>);
+
+impl DesiredReleases {
+    /// The release `key` should run, if its Robot names one.
+    pub fn get(&self, key: &RobotKey) -> Option<Release> {
+        let obj = kube::runtime::reflector::ObjectRef::new(&key.name).within(&key.namespace);
+        self.0.get(&obj).and_then(|r| {
+            r.spec.release.as_ref().map(|rel| Release {
+                version: rel.version.clone(),
+                digest: rel.digest.clone(),
+            })
+        })
+    }
+}
+
+/// What a session knows about the robot's release and the deploy command it sent.
+struct Rollout {
+    current: Option<Release>,
+    desired: Option<Release>,
+    /// The last deploy command: its id and release. Not repeated within the session; a new
+    /// session (reconnect) sends it again if the robot still does not run it.
+    sent: Option<(String, Release)>,
+    counter: u32,
+}
+
+impl Rollout {
+    /// The deploy command to send now, if the robot should run another release.
+    fn command(&mut self, gateway: &str, session: u64) -> Option<ServerMessage> {
+        let desired = self.desired.clone()?;
+        if self.current.as_ref() == Some(&desired)
+            || self.sent.as_ref().is_some_and(|(_, r)| *r == desired)
+        {
+            return None;
+        }
+        self.counter += 1;
+        let command_id = format!("{gateway}-{session}-{}", self.counter);
+        self.sent = Some((command_id.clone(), desired.clone()));
+        Some(ServerMessage::Command {
+            command_id,
+            command: lekiwi_protocol::Command::Deploy {
+                manifest_url: lekiwi_protocol::release::blob_path(&desired.digest),
+                release: desired,
+            },
+        })
+    }
 }
 
 /// WebSocket close code for a session ended by policy (limits, replacement).
@@ -393,6 +456,7 @@ async fn run_inner<W, R, E>(
             warn!(error = %e, "cannot read the last stored sequence number");
             None
         });
+    let release_at_hello = release.clone();
     shared.presence.connect(
         &key,
         id,
@@ -418,8 +482,23 @@ async fn run_inner<W, R, E>(
         stored_seq,
         robot_token,
     };
+    let mut rollout = Box::new(Rollout {
+        current: release_at_hello,
+        desired: shared.desired.as_ref().and_then(|d| d.get(&key)),
+        sent: None,
+        counter: 0,
+    });
     let end = if conn.send(&welcome).await {
-        serve(&shared, &key, id, &mut conn, &mut stream, &mut control).await
+        serve(
+            &shared,
+            &key,
+            id,
+            &mut conn,
+            &mut stream,
+            &mut control,
+            &mut rollout,
+        )
+        .await
     } else {
         End::Closed
     };
@@ -483,6 +562,7 @@ async fn serve<W, R, E>(
     conn: &mut Conn<W>,
     stream: &mut R,
     control: &mut mpsc::Receiver<Control>,
+    rollout: &mut Rollout,
 ) -> End
 where
     W: Sink<Message> + Unpin + Send,
@@ -494,6 +574,12 @@ where
     let mut deadline = Instant::now() + silence;
     let mut bucket = Bucket::new(limits.rate, limits.burst);
     let mut strikes: u32 = 0;
+    if let Some(cmd) = rollout.command(&shared.gateway, id) {
+        info!(release = ?rollout.desired.as_ref().map(|r| &r.version), "sending deploy command");
+        if !conn.send(&cmd).await {
+            return End::Closed;
+        }
+    }
     loop {
         let frame = tokio::select! {
             () = shared.cancel.cancelled() => {
@@ -504,6 +590,14 @@ where
             ctl = control.recv() => match ctl {
                 Some(Control::Send(msg)) => {
                     if !conn.send(&msg).await { return End::Closed; }
+                    continue;
+                }
+                Some(Control::Desired(release)) => {
+                    rollout.desired = release.map(|r| *r);
+                    if let Some(cmd) = rollout.command(&shared.gateway, id) {
+                        info!(release = ?rollout.desired.as_ref().map(|r| &r.version), "sending deploy command");
+                        if !conn.send(&cmd).await { return End::Closed; }
+                    }
                     continue;
                 }
                 Some(Control::Replaced) | None => {
@@ -607,6 +701,15 @@ where
                 if let Some(rtt) = rtt_ms.filter(|r| r.is_finite() && *r >= 0.0) {
                     shared.metrics.gateway_heartbeat_rtt.observe(rtt / 1000.0);
                 }
+                if current_release.is_some() && current_release != rollout.current {
+                    rollout.current = current_release.clone();
+                    // Switched elsewhere than asked (e.g. finished an older deploy): ask again.
+                    if let Some(cmd) = rollout.command(&shared.gateway, id)
+                        && !conn.send(&cmd).await
+                    {
+                        return End::Closed;
+                    }
+                }
                 shared.presence.heartbeat(
                     key,
                     id,
@@ -660,6 +763,25 @@ where
                 percent,
                 message,
             } => {
+                if matches!(phase.as_str(), "done" | "failed" | "rolled_back")
+                    && let Some((sent_id, release)) = &rollout.sent
+                    && *sent_id == command_id
+                {
+                    info!(%phase, release = %release.version, %message, "update finished");
+                    if phase == "done" {
+                        rollout.current = Some(release.clone());
+                    }
+                    shared.presence.update_finished(
+                        key,
+                        id,
+                        UpdateOutcome {
+                            release: release.clone(),
+                            phase: phase.clone(),
+                            message: (!message.is_empty()).then(|| message.clone()),
+                            time: Timestamp::now(),
+                        },
+                    );
+                }
                 let ev = StoredEvent {
                     seq,
                     ts_ms: Timestamp::now().as_millisecond(),
@@ -805,6 +927,7 @@ mod tests {
             metrics,
             gateway: "gw".into(),
             cancel: CancellationToken::new(),
+            desired: None,
         });
         let (sink, _rx) = futures::channel::mpsc::channel::<Message>(1);
         let (_tx, stream) = futures::channel::mpsc::channel::<Result<Message, std::io::Error>>(1);

@@ -119,24 +119,26 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
 
 fn is_active(d: &DeserializeGuard<RobotDeployment>) -> bool {
     match &d.0 {
-        Ok(d) => d.status.as_ref().and_then(|s| s.phase).is_none_or(|p| {
-            matches!(
-                p,
-                RolloutPhase::Pending
-                    | RolloutPhase::Progressing
-                    | RolloutPhase::Paused
-                    | RolloutPhase::RollingBack
-            )
-        }) || d.status.as_ref().and_then(|s| s.rollout_id.as_deref())
-            != Some(
-                plan::rollout_id(
-                    &d.spec.release,
-                    d.annotations()
-                        .get(plan::RESTART_ANNOTATION)
-                        .map(String::as_str),
+        Ok(d) => {
+            d.status.as_ref().and_then(|s| s.phase).is_none_or(|p| {
+                matches!(
+                    p,
+                    RolloutPhase::Pending
+                        | RolloutPhase::Progressing
+                        | RolloutPhase::Paused
+                        | RolloutPhase::RollingBack
                 )
-                .as_str(),
-            ),
+            }) || d.status.as_ref().and_then(|s| s.rollout_id.as_deref())
+                != Some(
+                    plan::rollout_id(
+                        &d.spec.release,
+                        d.annotations()
+                            .get(plan::RESTART_ANNOTATION)
+                            .map(String::as_str),
+                    )
+                    .as_str(),
+                )
+        }
         Err(_) => false,
     }
 }
@@ -162,14 +164,9 @@ fn view(r: &Robot) -> RobotView {
         teleoperated: status.teleoperation.as_ref().is_some_and(|t| t.active),
         desired: r.spec.release.clone(),
         current: status.current_release.clone(),
-        last_update: status.last_update.map(|u| {
-            (
-                u.release,
-                u.phase,
-                u.message,
-                u.time.map(|t| t.0),
-            )
-        }),
+        last_update: status
+            .last_update
+            .map(|u| (u.release, u.phase, u.message, u.time.map(|t| t.0))),
         mark: r
             .annotations()
             .get(MARK_ANNOTATION)
@@ -216,9 +213,7 @@ pub fn check_release(blob_dir: Option<&Path>, release: &ReleaseRef) -> ReleaseCh
     let missing: Vec<&str> = manifest
         .files
         .iter()
-        .filter(|f| {
-            digest_hex(&f.digest).map_or(true, |h| !dir.join("sha256").join(h).exists())
-        })
+        .filter(|f| digest_hex(&f.digest).map_or(true, |h| !dir.join("sha256").join(h).exists()))
         .map(|f| f.path.as_str())
         .collect();
     if let Some(first) = missing.first() {
@@ -430,7 +425,9 @@ fn record_metrics(
         deployment: name.to_owned(),
     };
     let st = &plan.status;
-    m.targeted.get_or_create(&labels).set(i64::from(st.targeted));
+    m.targeted
+        .get_or_create(&labels)
+        .set(i64::from(st.targeted));
     m.updated.get_or_create(&labels).set(i64::from(st.updated));
     m.failed.get_or_create(&labels).set(i64::from(st.failed));
     m.current_batch

@@ -435,9 +435,14 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
     for (i, s) in &states {
         let r = &facts.robots[*i];
         if let RobotState::Failed(b, why) = s
-            && r.mark.as_ref().is_some_and(|m| m.state == MarkState::Started)
+            && r.mark
+                .as_ref()
+                .is_some_and(|m| m.state == MarkState::Started)
         {
-            let mut mark = r.mark.clone().unwrap_or_else(|| unreachable_mark(&name, &rid));
+            let mut mark = r
+                .mark
+                .clone()
+                .unwrap_or_else(|| unreachable_mark(&name, &rid));
             mark.state = MarkState::Failed;
             mark.since = now;
             mark.message = Some(why.clone());
@@ -518,9 +523,7 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
         status.completion_time = None;
     }
     let mut rollback_started_now = false;
-    if undo_requested
-        && !matches!(phase, RolloutPhase::RollingBack | RolloutPhase::RolledBack)
-    {
+    if undo_requested && !matches!(phase, RolloutPhase::RollingBack | RolloutPhase::RolledBack) {
         rollback_started_now = true;
         phase = RolloutPhase::RollingBack;
         message = "rollback requested by a user (kubectl lekiwi rollout undo)".to_owned();
@@ -671,7 +674,9 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
         let r = &facts.robots[*i];
         let w = written.get(r.name.as_str());
         let mark = w.map(|w| &w.mark).or(r.mark.as_ref());
-        let started_at = mark.filter(|m| m.state != MarkState::Waiting).map(|m| time(m.since));
+        let started_at = mark
+            .filter(|m| m.state != MarkState::Waiting)
+            .map(|m| time(m.since));
         let previous = mark.and_then(|m| m.previous.clone());
         let (state, batch, msg) = match (s, w.map(|w| w.mark.state)) {
             (RobotState::Maintenance, _) => continue,
@@ -723,9 +728,7 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
             (RobotState::Pending, _) => continue,
             (RobotState::Updating(b, _), _) => (RobotRolloutState::Updating, *b, None),
             (RobotState::Failed(b, why), _) => (RobotRolloutState::Failed, *b, Some(why.clone())),
-            (RobotState::Skipped(b, why), _) => {
-                (RobotRolloutState::Skipped, *b, Some(why.clone()))
-            }
+            (RobotState::Skipped(b, why), _) => (RobotRolloutState::Skipped, *b, Some(why.clone())),
         };
         match state {
             RobotRolloutState::Failed => failed += 1,
@@ -755,7 +758,11 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
     results.truncate(MAX_ROBOT_RESULTS);
     // Keep `startedAt`/`finishedAt` stable across reconciles.
     for r in &mut results {
-        if let Some(old) = old.robots.iter().find(|o| o.robot == r.robot && o.state == r.state) {
+        if let Some(old) = old
+            .robots
+            .iter()
+            .find(|o| o.robot == r.robot && o.state == r.state)
+        {
             r.finished_at = old.finished_at.clone();
         } else if matches!(
             r.state,
@@ -995,9 +1002,7 @@ fn progress(
                 .any(|(_, s)| matches!(s, RobotState::HeldBy(_)));
             if waiting_elsewhere {
                 soon(now + SignedDuration::from_secs(30));
-                return Outcome::Continue(
-                    "waiting for robots held by another deployment".into(),
-                );
+                return Outcome::Continue("waiting for robots held by another deployment".into());
             }
             return Outcome::Completed;
         }
@@ -1071,7 +1076,10 @@ fn progress(
             }
             RobotState::Waiting(_, since) => {
                 if now.duration_since(*since) > wait_timeout {
-                    let mut mark = r.mark.clone().unwrap_or_else(|| unreachable_mark(name, rid));
+                    let mut mark = r
+                        .mark
+                        .clone()
+                        .unwrap_or_else(|| unreachable_mark(name, rid));
                     mark.state = MarkState::Skipped;
                     mark.message = Some(format!(
                         "skipped: still {} after {}s",
@@ -1085,7 +1093,10 @@ fn progress(
                         release: None,
                     });
                 } else if !paused && r.available().is_ok() {
-                    let mut mark = r.mark.clone().unwrap_or_else(|| unreachable_mark(name, rid));
+                    let mut mark = r
+                        .mark
+                        .clone()
+                        .unwrap_or_else(|| unreachable_mark(name, rid));
                     mark.state = MarkState::Started;
                     mark.since = now;
                     mark.previous = r.current.clone();

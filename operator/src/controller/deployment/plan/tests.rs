@@ -8,7 +8,10 @@ use lekiwi_crds::deployment::RolloutStrategy;
 fn rel(v: &str) -> ReleaseRef {
     ReleaseRef {
         version: v.into(),
-        digest: format!("sha256:{}", v.repeat(64).chars().take(64).collect::<String>()),
+        digest: format!(
+            "sha256:{}",
+            v.repeat(64).chars().take(64).collect::<String>()
+        ),
     }
 }
 
@@ -193,7 +196,11 @@ fn a_failing_batch_rolls_every_updated_robot_back() {
     sim.run_until_done(50);
     let st = sim.d.status.clone().unwrap();
     assert_eq!(st.phase, Some(RolloutPhase::RolledBack), "{:?}", st.message);
-    assert!(st.message.as_deref().unwrap().contains("3 of 10"), "{:?}", st.message);
+    assert!(
+        st.message.as_deref().unwrap().contains("3 of 10"),
+        "{:?}",
+        st.message
+    );
     assert!(
         sim.robots.iter().all(|r| r.current == Some(rel("1"))),
         "every robot back on the previous release"
@@ -215,7 +222,11 @@ fn teleoperated_robots_are_waited_for_and_never_interrupted() {
     sim.step();
     let r2 = &sim.robots[2];
     assert_eq!(r2.mark.as_ref().unwrap().state, MarkState::Waiting);
-    assert_eq!(r2.desired, Some(rel("1")), "not told to switch while teleoperated");
+    assert_eq!(
+        r2.desired,
+        Some(rel("1")),
+        "not told to switch while teleoperated"
+    );
     for _ in 0..5 {
         sim.agents();
         sim.advance(10);
@@ -267,7 +278,11 @@ fn silent_robots_fail_after_the_timeout() {
     sim.step();
     assert_eq!(sim.phase(), RolloutPhase::RollingBack);
     let st = sim.d.status.as_ref().unwrap();
-    assert!(st.message.as_deref().unwrap().contains("timed out"), "{:?}", st.message);
+    assert!(
+        st.message.as_deref().unwrap().contains("timed out"),
+        "{:?}",
+        st.message
+    );
 }
 
 #[test]
@@ -313,7 +328,12 @@ fn editing_the_release_starts_over_from_the_canary() {
     sim.step();
     sim.d.spec.release = rel("3");
     let p = sim.step();
-    assert_eq!(p.writes.len(), 1, "canary of the new rollout: {:?}", p.writes);
+    assert_eq!(
+        p.writes.len(),
+        1,
+        "canary of the new rollout: {:?}",
+        p.writes
+    );
     assert_eq!(p.writes[0].release, Some(rel("3")));
     assert_eq!(p.writes[0].mark.previous, Some(rel("2")));
     assert!(sim.events.contains(&"RolloutRestarted"));

@@ -1,0 +1,67 @@
+//! Deploy dispatch: the gateway watches Robots and tells a connected robot's session when its
+//! `spec.release` changes; the session then sends the agent a `deploy` command (PROTOCOL.md §12).
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use futures::StreamExt;
+use kube::runtime::{WatchStreamExt, reflector, watcher};
+use kube::{Api, ResourceExt};
+use lekiwi_crds::Robot;
+use lekiwi_protocol::Release;
+use tokio_util::sync::CancellationToken;
+use tracing::debug;
+
+use super::session::{DesiredReleases, Registry};
+use crate::error::{Error, Result};
+use crate::store::RobotKey;
+
+/// Starts the Robot watch; returns the cache sessions read their desired release from once it
+/// is ready, and the task that forwards changes to sessions.
+pub async fn start(
+    robots: Api<Robot>,
+    registry: Arc<Registry>,
+    cancel: CancellationToken,
+) -> Result<(DesiredReleases, tokio::task::JoinHandle<()>)> {
+    let (store, writer) = reflector::store();
+    let stream = reflector(
+        writer,
+        watcher(robots, watcher::Config::default().any_semantic())
+            .default_backoff()
+            .modify(|r: &mut Robot| {
+                // Sessions read spec.release only.
+                r.metadata.managed_fields = None;
+                r.metadata.annotations = None;
+                r.status = None;
+            }),
+    )
+    .applied_objects();
+    let task = tokio::spawn(async move {
+        let mut seen: HashMap<RobotKey, Option<Release>> = HashMap::new();
+        let mut stream = std::pin::pin!(stream);
+        loop {
+            let robot = tokio::select! {
+                () = cancel.cancelled() => return,
+                r = stream.next() => match r { Some(Ok(r)) => r, Some(Err(_)) => continue, None => return },
+            };
+            let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
+            let desired = robot.spec.release.as_ref().map(|r| Release {
+                version: r.version.clone(),
+                digest: r.digest.clone(),
+            });
+            if seen.get(&key) != Some(&desired) {
+                let told = registry.desire(&key, desired.clone());
+                debug!(robot = %key, release = ?desired.as_ref().map(|r| &r.version), told, "desired release changed");
+                seen.insert(key, desired);
+            }
+        }
+    });
+    tokio::select! {
+        () = async { let _ = store.wait_until_ready().await; } => {}
+        () = tokio::time::sleep(std::time::Duration::from_secs(120)) => {
+            task.abort();
+            return Err(Error::TaskStopped("robot reflector of the gateway"));
+        }
+    }
+    Ok((DesiredReleases(store), task))
+}
