@@ -2,6 +2,7 @@
 //! enrollment and discovery commands follow with the features they drive.
 
 pub mod robots;
+pub mod rollout;
 
 use std::path::PathBuf;
 
@@ -49,6 +50,12 @@ pub struct Cli {
 pub enum Command {
     /// List robots with phase, release, teleoperation and last heartbeat.
     Robots,
+    /// Watch and steer a RobotDeployment's rollout.
+    Rollout {
+        /// What to do.
+        #[command(subcommand)]
+        command: rollout::RolloutCommand,
+    },
 }
 
 /// Runs one command.
@@ -64,6 +71,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             };
             let out = robots::list(client, ns, cli.output).await?;
             print!("{out}");
+        }
+        Command::Rollout { command } => {
+            rollout::run(client, &namespace, cli.output, command).await?;
         }
     }
     Ok(())

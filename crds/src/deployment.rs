@@ -9,6 +9,15 @@ use serde::{Deserialize, Serialize};
 use crate::condition::Condition;
 use crate::release::ReleaseRef;
 
+/// Annotation on a RobotDeployment whose change restarts the rollout from its first batch
+/// (`kubectl lekiwi rollout restart`): failed and skipped robots are tried again.
+pub const RESTART_ANNOTATION: &str = "fleet.lekiwi.io/restartedAt";
+/// Annotation on a RobotDeployment, an RFC 3339 time, asking to roll every robot it updated back
+/// to the release it ran before (`kubectl lekiwi rollout undo`).
+pub const UNDO_ANNOTATION: &str = "fleet.lekiwi.io/undoRequestedAt";
+/// Annotation on a Robot holding, as JSON, its state in the rollout that last touched it.
+pub const MARK_ANNOTATION: &str = "fleet.lekiwi.io/rollout";
+
 /// Most per-robot results kept in status; the event store keeps the full history.
 pub const MAX_ROBOT_RESULTS: usize = 500;
 

@@ -22,12 +22,7 @@ use lekiwi_crds::{
 };
 use serde::{Deserialize, Serialize};
 
-/// Annotation on a Robot holding its [`Mark`] as JSON.
-pub const MARK_ANNOTATION: &str = "fleet.lekiwi.io/rollout";
-/// Annotation on a RobotDeployment whose change restarts the rollout (`rollout restart`).
-pub const RESTART_ANNOTATION: &str = "fleet.lekiwi.io/restartedAt";
-/// Annotation on a RobotDeployment asking to roll back every robot it updated (`rollout undo`).
-pub const UNDO_ANNOTATION: &str = "fleet.lekiwi.io/undoRequestedAt";
+pub use lekiwi_crds::deployment::{MARK_ANNOTATION, RESTART_ANNOTATION, UNDO_ANNOTATION};
 
 /// Condition types of a RobotDeployment.
 pub const CONDITION_PROGRESSING: &str = "Progressing";

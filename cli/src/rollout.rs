@@ -1,0 +1,280 @@
+//! `kubectl lekiwi rollout status|pause|resume|undo|restart NAME`: watch and steer a
+//! RobotDeployment.
+
+use std::io::{IsTerminal, Write};
+use std::time::Duration;
+
+use clap::Subcommand;
+use jiff::Timestamp;
+use kube::api::{Patch, PatchParams};
+use kube::{Api, ResourceExt};
+use lekiwi_crds::RobotDeployment;
+use lekiwi_crds::deployment::{
+    RESTART_ANNOTATION, RobotRolloutState, RolloutPhase, UNDO_ANNOTATION,
+};
+use serde_json::json;
+
+use crate::Output;
+
+/// Rollout subcommands.
+#[derive(Debug, Subcommand)]
+pub enum RolloutCommand {
+    /// Show a rollout's progress; by default follow it live until it completes, rolls back or
+    /// fails (exit status 0 only when it completes).
+    Status {
+        /// The RobotDeployment.
+        name: String,
+        /// Follow until the rollout ends (`--watch=false` prints once).
+        #[arg(short = 'w', long, default_value_t = true, action = clap::ArgAction::Set)]
+        watch: bool,
+        /// Give up following after this many seconds (0: never).
+        #[arg(long, default_value_t = 0)]
+        timeout: u64,
+    },
+    /// Pause: robots updating now finish, no new robot starts.
+    Pause {
+        /// The RobotDeployment.
+        name: String,
+    },
+    /// Resume a paused rollout.
+    Resume {
+        /// The RobotDeployment.
+        name: String,
+    },
+    /// Roll every robot the rollout updated back to the release it ran before.
+    Undo {
+        /// The RobotDeployment.
+        name: String,
+    },
+    /// Start the rollout over from its first batch (failed and skipped robots are tried again).
+    Restart {
+        /// The RobotDeployment.
+        name: String,
+    },
+}
+
+/// Runs a rollout subcommand.
+pub async fn run(
+    client: kube::Client,
+    namespace: &str,
+    output: Output,
+    cmd: RolloutCommand,
+) -> anyhow::Result<()> {
+    let api: Api<RobotDeployment> = Api::namespaced(client, namespace);
+    match cmd {
+        RolloutCommand::Status {
+            name,
+            watch,
+            timeout,
+        } => status(&api, &name, watch, timeout, output).await,
+        RolloutCommand::Pause { name } => {
+            merge(&api, &name, json!({"spec": {"paused": true}})).await?;
+            println!("robotdeployment/{name} paused");
+            Ok(())
+        }
+        RolloutCommand::Resume { name } => {
+            merge(&api, &name, json!({"spec": {"paused": false}})).await?;
+            println!("robotdeployment/{name} resumed");
+            Ok(())
+        }
+        RolloutCommand::Undo { name } => {
+            let at = Timestamp::now().to_string();
+            merge(
+                &api,
+                &name,
+                json!({"metadata": {"annotations": {UNDO_ANNOTATION: at}}}),
+            )
+            .await?;
+            println!("robotdeployment/{name} rolling back");
+            Ok(())
+        }
+        RolloutCommand::Restart { name } => {
+            let at = Timestamp::now().to_string();
+            merge(
+                &api,
+                &name,
+                json!({"metadata": {"annotations": {RESTART_ANNOTATION: at}}}),
+            )
+            .await?;
+            println!("robotdeployment/{name} restarted");
+            Ok(())
+        }
+    }
+}
+
+async fn merge(
+    api: &Api<RobotDeployment>,
+    name: &str,
+    patch: serde_json::Value,
+) -> anyhow::Result<()> {
+    api.patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+        .await
+        .map_err(|e| match e {
+            kube::Error::Api(s) if s.code == 404 => {
+                anyhow::anyhow!("robotdeployment {name:?} not found in this namespace")
+            }
+            e => e.into(),
+        })?;
+    Ok(())
+}
+
+fn terminal(d: &RobotDeployment) -> Option<RolloutPhase> {
+    let st = d.status.as_ref()?;
+    // A status from before the latest spec change says nothing about it.
+    if st.observed_generation != d.metadata.generation {
+        return None;
+    }
+    st.phase.filter(|p| {
+        matches!(
+            p,
+            RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
+        )
+    })
+}
+
+/// One line: phase, a bar, counts, batch.
+pub fn summary_line(d: &RobotDeployment) -> String {
+    let st = d.status.clone().unwrap_or_default();
+    let targeted = st.targeted.max(0) as usize;
+    let updated = st.updated.max(0) as usize;
+    let width = 30;
+    let filled = (updated * width)
+        .checked_div(targeted)
+        .unwrap_or(0)
+        .min(width);
+    format!(
+        "{:<11} [{}{}] {}/{} updated, {} failed, {} skipped, batch {}  {}",
+        st.phase.map_or("Pending".to_owned(), |p| format!("{p:?}")),
+        "#".repeat(filled),
+        ".".repeat(width - filled),
+        updated,
+        targeted,
+        st.failed,
+        st.skipped,
+        st.batch_progress.as_deref().unwrap_or("-"),
+        st.message.as_deref().unwrap_or(""),
+    )
+}
+
+/// The full report: summary, robots in progress and failures, conditions.
+pub fn report(d: &RobotDeployment) -> String {
+    let st = d.status.clone().unwrap_or_default();
+    let mut out = format!(
+        "robotdeployment/{}: {} → {}\n{}\n",
+        d.name_any(),
+        d.spec.release.version,
+        d.spec.release.digest,
+        summary_line(d)
+    );
+    let busy: Vec<_> = st
+        .robots
+        .iter()
+        .filter(|r| {
+            matches!(
+                r.state,
+                RobotRolloutState::Updating
+                    | RobotRolloutState::Waiting
+                    | RobotRolloutState::Failed
+            )
+        })
+        .take(20)
+        .collect();
+    if !busy.is_empty() {
+        out.push_str("ROBOT                BATCH  STATE      MESSAGE\n");
+        for r in busy {
+            out.push_str(&format!(
+                "{:<20} {:<6} {:<10} {}\n",
+                r.robot,
+                r.batch,
+                format!("{:?}", r.state),
+                r.message.as_deref().unwrap_or("")
+            ));
+        }
+    }
+    for c in &st.conditions {
+        if c.status == lekiwi_crds::ConditionStatus::True {
+            out.push_str(&format!(
+                "condition {}: {} {}\n",
+                c.r#type, c.reason, c.message
+            ));
+        }
+    }
+    out
+}
+
+async fn status(
+    api: &Api<RobotDeployment>,
+    name: &str,
+    watch: bool,
+    timeout: u64,
+    output: Output,
+) -> anyhow::Result<()> {
+    let get = || async {
+        api.get(name).await.map_err(|e| match e {
+            kube::Error::Api(s) if s.code == 404 => {
+                anyhow::anyhow!("robotdeployment {name:?} not found in this namespace")
+            }
+            e => e.into(),
+        })
+    };
+    let d = get().await?;
+    if !watch || matches!(output, Output::Json | Output::Yaml) {
+        match output {
+            Output::Json => println!("{}", serde_json::to_string_pretty(&d.status)?),
+            Output::Yaml => print!("{}", serde_yaml::to_string(&d.status)?),
+            _ => print!("{}", report(&d)),
+        }
+        return verdict(&d);
+    }
+    let tty = std::io::stderr().is_terminal();
+    let started = std::time::Instant::now();
+    let mut last = String::new();
+    let mut d = d;
+    loop {
+        let line = summary_line(&d);
+        if line != last {
+            if tty {
+                eprint!("\r\x1b[2K{line}");
+            } else {
+                eprintln!("{line}");
+            }
+            let _ = std::io::stderr().flush();
+            last = line;
+        }
+        if terminal(&d).is_some() {
+            if tty {
+                eprintln!();
+            }
+            print!("{}", report(&d));
+            return verdict(&d);
+        }
+        if timeout > 0 && started.elapsed() > Duration::from_secs(timeout) {
+            if tty {
+                eprintln!();
+            }
+            anyhow::bail!("rollout of {name} still in progress after {timeout}s");
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        d = get().await?;
+    }
+}
+
+fn verdict(d: &RobotDeployment) -> anyhow::Result<()> {
+    match terminal(d) {
+        Some(RolloutPhase::RolledBack) => anyhow::bail!(
+            "rollout rolled back: {}",
+            d.status
+                .as_ref()
+                .and_then(|s| s.message.clone())
+                .unwrap_or_default()
+        ),
+        Some(RolloutPhase::Failed) => anyhow::bail!(
+            "rollout failed: {}",
+            d.status
+                .as_ref()
+                .and_then(|s| s.message.clone())
+                .unwrap_or_default()
+        ),
+        _ => Ok(()),
+    }
+}
