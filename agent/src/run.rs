@@ -11,8 +11,8 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use futures::{SinkExt, StreamExt};
 use lekiwi_protocol::{
-    AgentMessage, ErrorCode, Health, MAX_FRAME_BYTES, PROTOCOL_VERSION, Sample, ServerMessage,
-    Severity, decode, encode,
+    AgentMessage, ErrorCode, Health, MAX_FRAME_BYTES, PROTOCOL_VERSION, Release, Sample,
+    ServerMessage, Severity, decode, encode,
 };
 use tokio::time::{Instant, sleep_until};
 use tokio_tungstenite::tungstenite::Message;
@@ -23,6 +23,7 @@ use crate::config::Config;
 use crate::connection::{ConnectError, Credentials as ConnCredentials, Socket, Welcome};
 use crate::discovery::{Advertiser, StatusSnapshot};
 use crate::outbox::{Lane, Outbox};
+use crate::release::{GatewayAccess, Outcome, Progress, Releases};
 use crate::state::{self, Credentials};
 use crate::telemetry::Telemetry;
 use crate::teleop::{Detector, Verdict};
@@ -47,6 +48,9 @@ pub enum Error {
         /// The cause.
         source: std::io::Error,
     },
+    /// The release store is unusable.
+    #[error(transparent)]
+    Release(#[from] crate::release::Error),
     /// Neither saved credentials nor an enrollment token.
     #[error(
         "not enrolled: no credentials in {0} and no enrollment token \
@@ -176,6 +180,29 @@ pub struct Agent {
     enrollment_token: Option<String>,
     /// Use the enrollment token next time (the robot's own token was refused).
     reenroll: bool,
+    /// The release store, while no deployment task holds it.
+    releases: Option<Releases>,
+    /// The release `current` points at.
+    current_release: Option<Release>,
+    /// The deployment (or recovery) running now.
+    deploying: Option<Deploying>,
+    /// The next command, received while one was running (the latest wins).
+    queued: Option<(String, lekiwi_protocol::Command)>,
+    progress_tx: tokio::sync::mpsc::UnboundedSender<Progress>,
+    progress_rx: tokio::sync::mpsc::UnboundedReceiver<Progress>,
+    /// New credentials for the release store, while a task holds it.
+    pending_access: Option<GatewayAccess>,
+}
+
+/// A deployment task and what it is for.
+struct Deploying {
+    task: tokio::task::JoinHandle<(Releases, Option<Outcome>)>,
+    /// Its command id (empty for a recovery) and release.
+    command_id: String,
+    release: Option<Release>,
+    /// Later command ids for the same release (a reconnect re-sends the command): they get the
+    /// same final report.
+    aliases: Vec<String>,
 }
 
 impl Agent {
@@ -188,13 +215,27 @@ impl Agent {
             return Err(Error::NotEnrolled(config.state_dir.clone()));
         }
         let outbox = Outbox::open(&config.state_dir, config.outbox_max_bytes)?;
+        let saved = state::load_credentials(&config.state_dir)?;
+        let releases = Releases::open(
+            &config,
+            GatewayAccess::from_gateway_url(
+                &config.gateway,
+                saved.as_ref().map(|c| c.token.clone()).unwrap_or_default(),
+                saved
+                    .as_ref()
+                    .map_or(config.robot_name.clone(), |c| c.robot.clone()),
+                config.ca_file.clone(),
+            )?,
+        )?;
+        let current_release = releases.current();
+        let (progress_tx, progress_rx) = tokio::sync::mpsc::unbounded_channel();
         let telemetry = Telemetry::new(&config);
         let mut detector = Detector::new(&config);
         let teleop = detector.check();
         let snapshot = StatusSnapshot {
             robot: config.robot_name.clone(),
             agent_version: AGENT_VERSION.to_owned(),
-            release: None,
+            release: current_release.clone(),
             gateway: config.gateway.clone(),
             connected: false,
             teleoperation: Some(teleop.to_wire()),
@@ -238,7 +279,19 @@ impl Agent {
             last_rtt_ms: None,
             enrollment_token,
             reenroll: false,
+            releases: Some(releases),
+            current_release,
+            deploying: None,
+            queued: None,
+            progress_tx,
+            progress_rx,
+            pending_access: None,
         })
+    }
+
+    /// Follows what the agent publishes on its status endpoint.
+    pub fn status(&self) -> tokio::sync::watch::Receiver<StatusSnapshot> {
+        self.status.subscribe()
     }
 
     /// The robot's name as the gateway knows it, once enrolled.
@@ -273,7 +326,7 @@ impl Agent {
             protocol_version: PROTOCOL_VERSION,
             agent_version: AGENT_VERSION.to_owned(),
             system: crate::telemetry::system_facts(),
-            current_release: None,
+            current_release: self.current_release.clone(),
             last_acked_seq: (last > 0).then_some(last),
             health: Some(Health {
                 healthy: true,
@@ -365,7 +418,7 @@ impl Agent {
             sent_at_ms: now_ms(),
             rtt_ms: self.last_rtt_ms,
             vitals: self.telemetry.vitals(),
-            current_release: None,
+            current_release: self.current_release.clone(),
             health: Some(Health {
                 healthy: true,
                 message: None,
@@ -434,6 +487,16 @@ impl Agent {
                 },
             )?;
             info!(robot = %welcome.robot, "enrolled; the robot's own token is saved");
+            let access = GatewayAccess::from_gateway_url(
+                &self.config.gateway,
+                token.clone(),
+                welcome.robot.clone(),
+                self.config.ca_file.clone(),
+            )?;
+            match self.releases.as_mut() {
+                Some(r) => r.set_gateway(access)?,
+                None => self.pending_access = Some(access),
+            }
             self.reenroll = false;
         } else if enrolling {
             warn!("enrolled without a robot token in welcome; will enroll again next time");
@@ -516,23 +579,190 @@ impl Agent {
             ServerMessage::Command {
                 command_id,
                 command,
-            } => {
-                warn!(%command_id, ?command, "commands are not executed by this agent version");
-                let ts = now_ms();
-                self.outbox
-                    .push(Lane::Critical, ts, |seq| AgentMessage::Progress {
-                        seq,
-                        command_id,
-                        phase: "failed".into(),
-                        percent: None,
-                        message: format!("agent {AGENT_VERSION} does not execute commands"),
-                    })?;
-            }
+            } => self.on_command(command_id, command)?,
             ServerMessage::Welcome { .. } => {
                 warn!("a second welcome; ignored");
             }
         }
         Ok(None)
+    }
+
+    /// A command from the gateway: start it, or queue it behind the one running.
+    fn on_command(
+        &mut self,
+        command_id: String,
+        command: lekiwi_protocol::Command,
+    ) -> Result<(), Error> {
+        use lekiwi_protocol::Command;
+        let target = match &command {
+            Command::Deploy { release, .. } | Command::Rollback { release } => {
+                Some(release.clone())
+            }
+            Command::Cancel => None,
+        };
+        info!(%command_id, ?command, "command received");
+        if let Some(running) = self.deploying.as_mut() {
+            if target.is_some() && running.release == target {
+                // The same release again (a reconnect re-sends it): report to both ids.
+                running.aliases.push(command_id);
+                return Ok(());
+            }
+            match command {
+                Command::Cancel => {
+                    if let Some((queued_id, _)) = self.queued.take() {
+                        self.report_final(
+                            &queued_id,
+                            "failed",
+                            "cancelled before it started".into(),
+                        )?;
+                    }
+                    // A running deployment finishes or rolls back by itself; it is not torn
+                    // down half-way.
+                    self.report_final(
+                        &command_id,
+                        "failed",
+                        "a deployment in progress is not interrupted; it finishes or rolls back"
+                            .into(),
+                    )?;
+                }
+                other => {
+                    if let Some((old, _)) = self.queued.replace((command_id, other)) {
+                        self.report_final(&old, "failed", "superseded by a newer command".into())?;
+                    }
+                }
+            }
+            return Ok(());
+        }
+        match command {
+            Command::Cancel => {
+                self.report_final(&command_id, "done", "nothing to cancel".into())?
+            }
+            other => self.start_command(command_id, other),
+        }
+        Ok(())
+    }
+
+    fn report_final(
+        &mut self,
+        command_id: &str,
+        phase: &str,
+        message: String,
+    ) -> Result<(), Error> {
+        let ts = now_ms();
+        self.outbox
+            .push(Lane::Critical, ts, |seq| AgentMessage::Progress {
+                seq,
+                command_id: command_id.to_owned(),
+                phase: phase.to_owned(),
+                percent: None,
+                message,
+            })?;
+        Ok(())
+    }
+
+    /// Moves the release store into a task that runs `command`.
+    fn start_command(&mut self, command_id: String, command: lekiwi_protocol::Command) {
+        use lekiwi_protocol::Command;
+        let Some(mut releases) = self.releases.take() else {
+            return;
+        };
+        let tx = self.progress_tx.clone();
+        let id = command_id.clone();
+        let (release, task) = match command {
+            Command::Deploy {
+                release,
+                manifest_url,
+            } => (
+                Some(release.clone()),
+                tokio::spawn(async move {
+                    let o = releases.deploy(&id, &release, &manifest_url, &tx).await;
+                    (releases, Some(o))
+                }),
+            ),
+            Command::Rollback { release } => (
+                Some(release.clone()),
+                tokio::spawn(async move {
+                    let o = releases.rollback(&id, &release, &tx).await;
+                    (releases, Some(o))
+                }),
+            ),
+            Command::Cancel => {
+                self.releases = Some(releases);
+                return;
+            }
+        };
+        self.deploying = Some(Deploying {
+            task,
+            command_id,
+            release,
+            aliases: Vec::new(),
+        });
+    }
+
+    /// Runs the recovery of an interrupted deployment, if the journal has one.
+    fn start_recovery(&mut self) {
+        let Some(mut releases) = self.releases.take() else {
+            return;
+        };
+        let tx = self.progress_tx.clone();
+        self.deploying = Some(Deploying {
+            task: tokio::spawn(async move {
+                let o = releases.recover(&tx).await;
+                (releases, o)
+            }),
+            command_id: String::new(),
+            release: None,
+            aliases: Vec::new(),
+        });
+    }
+
+    /// A deployment task ended: take the store back, report to aliases, start what is queued.
+    fn on_deploy_done(
+        &mut self,
+        joined: Result<(Releases, Option<Outcome>), tokio::task::JoinError>,
+    ) -> Result<(), Error> {
+        let Some(done) = self.deploying.take() else {
+            return Ok(());
+        };
+        let (mut releases, outcome) = match joined {
+            Ok(x) => x,
+            Err(e) => {
+                // The task panicked: the store's journal makes the next start recover.
+                error!(error = %e, "deployment task failed; restart the agent to recover");
+                return Ok(());
+            }
+        };
+        if let Some(access) = self.pending_access.take() {
+            releases.set_gateway(access)?;
+        }
+        self.current_release = releases.current();
+        self.releases = Some(releases);
+        if let Some(o) = &outcome {
+            info!(
+                command_id = %done.command_id,
+                phase = %o.phase,
+                bytes = o.bytes_downloaded,
+                files_downloaded = o.files_downloaded,
+                files_reused = o.files_reused,
+                message = %o.message,
+                "deployment finished"
+            );
+            for alias in &done.aliases {
+                self.report_final(alias, o.phase.as_str(), o.message.clone())?;
+            }
+        }
+        let release = self.current_release.clone();
+        self.status.send_modify(|s| s.release = release);
+        if let Some(adv) = self.advertiser.as_mut() {
+            let snapshot = self.status.borrow().clone();
+            if let Err(e) = adv.update(&snapshot) {
+                warn!(error = %e, "cannot update the mDNS advertisement");
+            }
+        }
+        if let Some((id, cmd)) = self.queued.take() {
+            self.start_command(id, cmd);
+        }
+        Ok(())
     }
 
     fn on_teleop_check(&mut self) -> Result<bool, Error> {
@@ -569,6 +799,7 @@ impl Agent {
             format!("lekiwi-agent {AGENT_VERSION} started"),
             serde_json::json!({"version": AGENT_VERSION}),
         )?;
+        self.start_recovery();
         let mut backoff = Backoff::new(
             Duration::from_millis(self.config.backoff_initial_ms),
             Duration::from_millis(self.config.backoff_max_ms),
@@ -602,6 +833,12 @@ impl Agent {
                     None => std::future::pending().await,
                 }
             };
+            let deploy_done = async {
+                match self.deploying.as_mut() {
+                    Some(d) => (&mut d.task).await,
+                    None => std::future::pending().await,
+                }
+            };
             let connect_done = async {
                 match connecting.as_mut() {
                     Some((fut, _)) => fut.await,
@@ -620,11 +857,15 @@ impl Agent {
                 Dead,
                 Pump,
                 AckFlush,
+                Progress(Option<Progress>),
+                Deployed(Box<Result<(Releases, Option<Outcome>), tokio::task::JoinError>>),
             }
             let wake = tokio::select! {
                 biased;
                 () = &mut shutdown => Wake::Shutdown,
                 frame = ws_next => Wake::Frame(frame),
+                p = self.progress_rx.recv() => Wake::Progress(p),
+                r = deploy_done => Wake::Deployed(Box::new(r)),
                 res = connect_done => Wake::Connected(Box::new(res)),
                 () = sleep_until(heartbeat_due) => Wake::Heartbeat,
                 () = sleep_until(next_teleop) => Wake::Teleop,
@@ -763,6 +1004,27 @@ impl Agent {
                 }
                 Wake::Dead => end_session = Some("no answer from the gateway"),
                 Wake::Pump => {}
+                Wake::Progress(p) => {
+                    if let Some(p) = p {
+                        let ts = now_ms();
+                        self.outbox
+                            .push(Lane::Critical, ts, |seq| p.to_message(seq))?;
+                    }
+                }
+                Wake::Deployed(r) => {
+                    // Progress sent before the end goes out first.
+                    while let Ok(p) = self.progress_rx.try_recv() {
+                        let ts = now_ms();
+                        self.outbox
+                            .push(Lane::Critical, ts, |seq| p.to_message(seq))?;
+                    }
+                    self.on_deploy_done(*r)?;
+                    if let Some(s) = session.as_mut()
+                        && !self.send_heartbeat(s).await
+                    {
+                        end_session = Some("send failed");
+                    }
+                }
                 Wake::AckFlush => {
                     next_ack_flush = None;
                     self.flush_acks()?;

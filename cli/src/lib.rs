@@ -1,6 +1,7 @@
-//! `kubectl lekiwi`: the fleet's kubectl plugin. This version lists robots; release, rollout,
-//! enrollment and discovery commands follow with the features they drive.
+//! `kubectl lekiwi`: the fleet's kubectl plugin. Lists robots, pushes and inspects releases,
+//! steers rollouts; enrollment and discovery commands follow with the features they drive.
 
+pub mod release;
 pub mod robots;
 pub mod rollout;
 
@@ -56,6 +57,15 @@ pub enum Command {
         #[command(subcommand)]
         command: rollout::RolloutCommand,
     },
+    /// Push a directory as a release to the gateway's blob store, or inspect a stored release.
+    Release {
+        /// Where the gateway is and how to get its API token.
+        #[command(flatten)]
+        server: release::ServerArgs,
+        /// What to do.
+        #[command(subcommand)]
+        command: release::ReleaseCommand,
+    },
 }
 
 /// Runs one command.
@@ -74,6 +84,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Rollout { command } => {
             rollout::run(client, &namespace, cli.output, command).await?;
+        }
+        Command::Release { server, command } => {
+            release::run(client, &server, cli.output, command).await?;
         }
     }
     Ok(())

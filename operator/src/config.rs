@@ -167,6 +167,20 @@ pub struct Config {
     /// Validity of the gateway's own Lease (renewed every third of it).
     #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]
     pub gateway_lease_seconds: u64,
+
+    /// Directory of the release blob store (`sha256/<hex>` blobs, `uploads/` in progress); a
+    /// PersistentVolume shared by the gateways in a cluster.
+    #[arg(long, env = "LEKIWI_BLOB_DIR", default_value = "/var/lib/lekiwi/blobs")]
+    pub blob_dir: PathBuf,
+
+    /// Largest release blob the gateway accepts, in bytes.
+    #[arg(long, env = "LEKIWI_MAX_BLOB_BYTES", default_value_t = 4 * 1024 * 1024 * 1024)]
+    pub max_blob_bytes: u64,
+
+    /// Secret in --namespace holding the API token (`data.token`) that release uploads
+    /// present; created with a random token when missing.
+    #[arg(long, env = "LEKIWI_API_TOKEN_SECRET", default_value = "lekiwi-api")]
+    pub api_token_secret: String,
 }
 
 impl Config {

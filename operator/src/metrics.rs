@@ -104,6 +104,12 @@ pub struct Metrics {
     pub gateway_status_writes: Family<WriteLabels, Counter>,
     /// Legacy polls answered, `200` or `304`.
     pub gateway_polls: Family<KindLabels, Counter>,
+    /// Blob bytes sent to robots and clients (no per-robot label: robots are unbounded).
+    pub gateway_blob_bytes_served: Counter,
+    /// Blob bytes received in uploads.
+    pub gateway_blob_bytes_received: Counter,
+    /// Blob upload requests, by outcome (`created`, `partial`, `exists`, `conflict`, ...).
+    pub gateway_blob_uploads: Family<KindLabels, Counter>,
     /// Rollout metrics.
     pub rollouts: RolloutMetrics,
 }
@@ -131,6 +137,9 @@ impl Default for Metrics {
         let gateway_status_queue = Family::<PriorityLabels, Gauge>::default();
         let gateway_status_writes = Family::<WriteLabels, Counter>::default();
         let gateway_polls = Family::<KindLabels, Counter>::default();
+        let gateway_blob_bytes_served = Counter::default();
+        let gateway_blob_bytes_received = Counter::default();
+        let gateway_blob_uploads = Family::<KindLabels, Counter>::default();
         let rollouts = RolloutMetrics::register(&mut registry);
         registry.register(
             "lekiwi_gateway_connections",
@@ -181,6 +190,21 @@ impl Default for Metrics {
             "lekiwi_gateway_polls",
             "Legacy polls answered, by status code",
             gateway_polls.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_blob_bytes_served",
+            "Release blob bytes sent to robots and clients",
+            gateway_blob_bytes_served.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_blob_bytes_received",
+            "Release blob bytes received in uploads",
+            gateway_blob_bytes_received.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_blob_uploads",
+            "Release blob upload requests, by outcome",
+            gateway_blob_uploads.clone(),
         );
         registry.register(
             "lekiwi_controller_reconciliations",
@@ -236,6 +260,9 @@ impl Default for Metrics {
             gateway_status_queue,
             gateway_status_writes,
             gateway_polls,
+            gateway_blob_bytes_served,
+            gateway_blob_bytes_received,
+            gateway_blob_uploads,
             rollouts,
         }
     }

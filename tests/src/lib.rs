@@ -353,6 +353,11 @@ impl OperatorProcess {
             "--lease-retry-seconds",
             "1",
         ]);
+        if !extra.contains(&"--blob-dir") {
+            // Never the machine's /var/lib/lekiwi: each operator gets its own blob store.
+            let blobs = log_dir().join(format!("{namespace}-{identity}-blobs"));
+            push(&["--blob-dir", blobs.to_str().unwrap()]);
+        }
         push(extra);
         let child = spawn_operator(&args, &log)?;
         Ok(Self {

@@ -3,6 +3,7 @@
 //! stores every durable agent message before acknowledging it.
 
 pub mod auth;
+pub mod blobs;
 pub mod dispatch;
 pub mod lease;
 pub mod legacy;
@@ -100,6 +101,8 @@ pub struct GatewayState {
     pub releases: legacy::SharedCache,
     /// Caps concurrent connections.
     pub connections: Arc<Semaphore>,
+    /// Release blobs, uploads and the API token.
+    pub blobs: Arc<blobs::BlobApi>,
 }
 
 impl GatewayState {
@@ -127,6 +130,7 @@ pub fn router(state: GatewayState) -> Router {
         .route(AGENT_PATH, get(agent_ws))
         .route("/v1/poll", get(legacy::poll))
         .route("/healthz", get(|| async { "ok\n" }))
+        .merge(blobs::routes())
         .with_state(state)
 }
 
@@ -161,6 +165,27 @@ async fn agent_ws(
             session::run(shared, grant, Some(peer.ip().to_string()), sink, stream).await;
             drop(permit);
         }))
+}
+
+/// The blob routes' state: the store's directories and the API token Secret are made now when
+/// possible; if not, the gateway still serves agents and the blob routes retry (uploads answer
+/// 500, a missing token Secret is made at the next API-token request).
+async fn blob_api(config: &Config, client: &kube::Client) -> blobs::BlobApi {
+    let store = crate::blobs::BlobStore::new(&config.blob_dir, config.max_blob_bytes);
+    match store.ensure_dirs().await {
+        Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
+        Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
+    }
+    let token = auth::ApiToken::new(client.clone(), &config.namespace, &config.api_token_secret);
+    if let Err(e) = token.refresh().await {
+        warn!(
+            secret = %config.api_token_secret,
+            namespace = %config.namespace,
+            error = %e,
+            "cannot read or create the API token Secret; retrying on use"
+        );
+    }
+    blobs::BlobApi::new(store, token)
 }
 
 /// Runs the gateway until `cancel` fires.
@@ -239,6 +264,7 @@ pub async fn run(
         client: client.clone(),
         releases: Arc::default(),
         connections: Arc::new(Semaphore::new(config.max_connections)),
+        blobs: Arc::new(blob_api(&config, &client).await),
     };
 
     // The writer outlives the sessions so their disconnects still reach the API server.

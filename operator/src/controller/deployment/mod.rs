@@ -285,7 +285,13 @@ async fn reconcile(
                 });
             }
         }
-        let release = check_release(None, &d.spec.release);
+        let release = check_release(
+            ctx.config
+                .blob_dir
+                .is_dir()
+                .then_some(ctx.config.blob_dir.as_path()),
+            &d.spec.release,
+        );
         let facts = Facts {
             now,
             robots: ours.iter().map(|r| view(r)).collect(),

@@ -647,11 +647,11 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
                 Outcome::BatchFailed(b, ratio, why) => {
                     batch_result = Some((b, ratio));
                     phase = RolloutPhase::RollingBack;
-                    message = format!("batch {b} failed: {why}; rolling back every updated robot");
+                    message = format!("batch {b} failed: {why}");
                     events.push(PlannedEvent {
                         warning: true,
                         reason: "RollbackStarted",
-                        note: message.clone(),
+                        note: format!("{message}; rolling back every updated robot"),
                     });
                     start_rollback(&facts.robots, &states, &name, &rid, now, &mut writes);
                     soon(now + SignedDuration::from_secs(2));
@@ -843,6 +843,15 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
         },
         generation,
     ));
+    // Kubernetes 1.20's server-side apply turns "" into null, which the schema refuses.
+    for c in &mut conditions {
+        if c.message.is_empty() {
+            c.message = c.reason.clone();
+        }
+    }
+    if status.message.as_deref() == Some("") {
+        status.message = None;
+    }
     status.conditions = merge_conditions(&old.conditions, conditions);
 
     let finished = was_active

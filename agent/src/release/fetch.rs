@@ -1,0 +1,575 @@
+//! The blob HTTP client: `GET {base}/v1/blobs/sha256:<hex>` over HTTP/1.1 (TLS by rustls),
+//! with keep-alive connections reused across blobs and `Range` to resume partial downloads.
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use futures::FutureExt;
+use http_body_util::{BodyExt, Empty};
+use hyper::body::{Bytes, Incoming};
+use hyper::client::conn::http1::{self, SendRequest};
+use hyper::header::{AUTHORIZATION, CONTENT_RANGE, HOST, RANGE};
+use hyper::{Request, Response, StatusCode, Uri};
+use hyper_util::rt::TokioIo;
+use lekiwi_protocol::ROBOT_HEADER;
+use lekiwi_protocol::release::blob_path;
+use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tracing::debug;
+
+use super::store::{Hasher, Layout};
+use super::{Error, Result, Wanted, blocking};
+
+/// Time to open a connection (TCP and TLS).
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(15);
+/// Longest silence of the gateway while a response is awaited or streamed.
+const IDLE_TIMEOUT: Duration = Duration::from_secs(30);
+/// Error bodies read at most.
+const ERROR_BODY_LIMIT: usize = 4096;
+/// Idle connections kept for reuse.
+const POOL_SIZE: usize = 4;
+
+/// How to reach the gateway's blob API.
+#[derive(Clone)]
+pub struct GatewayAccess {
+    /// `http(s)://host[:port]`, without a path.
+    pub base_url: String,
+    /// The robot's token.
+    pub token: String,
+    /// `namespace/name`.
+    pub robot: String,
+    /// PEM file of the CA to trust for `https://` instead of the public web roots.
+    pub ca_file: Option<PathBuf>,
+}
+
+impl std::fmt::Debug for GatewayAccess {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("GatewayAccess")
+            .field("base_url", &self.base_url)
+            .field("token", &"<redacted>")
+            .field("robot", &self.robot)
+            .field("ca_file", &self.ca_file)
+            .finish()
+    }
+}
+
+impl GatewayAccess {
+    /// Access derived from the gateway's WebSocket URL: `ws`→`http`, `wss`→`https`, path
+    /// dropped.
+    pub fn from_gateway_url(
+        gateway: &str,
+        token: impl Into<String>,
+        robot: impl Into<String>,
+        ca_file: Option<PathBuf>,
+    ) -> Result<Self> {
+        Ok(Self {
+            base_url: base_url(gateway)?,
+            token: token.into(),
+            robot: robot.into(),
+            ca_file,
+        })
+    }
+}
+
+/// The HTTP base URL of a gateway WebSocket URL.
+pub fn base_url(gateway: &str) -> Result<String> {
+    let uri: Uri = gateway
+        .parse()
+        .map_err(|e| Error::Access(format!("gateway URL {gateway:?}: {e}")))?;
+    let scheme = match uri.scheme_str() {
+        Some("ws" | "http") => "http",
+        Some("wss" | "https") => "https",
+        other => {
+            return Err(Error::Access(format!(
+                "gateway URL {gateway:?}: scheme {other:?} is not ws, wss, http or https"
+            )));
+        }
+    };
+    let authority = uri
+        .authority()
+        .ok_or_else(|| Error::Access(format!("gateway URL {gateway:?} has no host")))?;
+    Ok(format!("{scheme}://{authority}"))
+}
+
+type Sender = SendRequest<Empty<Bytes>>;
+
+/// A byte stream to the gateway, plain or TLS.
+trait Io: AsyncRead + AsyncWrite + Send + Unpin {}
+impl<T: AsyncRead + AsyncWrite + Send + Unpin> Io for T {}
+
+/// The parsed base URL.
+#[derive(Clone, Debug)]
+struct Target {
+    /// For `Host:` (with the port if one was given).
+    authority: String,
+    /// For connecting and for TLS (no brackets around IPv6).
+    host: String,
+    port: u16,
+}
+
+/// Marker of a blob that landed in the store.
+pub(super) struct Fetched;
+
+/// The client: gateway access, TLS settings and a few idle connections.
+pub(super) struct Client {
+    access: GatewayAccess,
+    target: Target,
+    tls: Option<tokio_rustls::TlsConnector>,
+    idle: Mutex<Vec<Sender>>,
+}
+
+impl Client {
+    pub(super) fn new(access: GatewayAccess) -> Result<Self> {
+        let uri: Uri = access
+            .base_url
+            .parse()
+            .map_err(|e| Error::Access(format!("base URL {:?}: {e}", access.base_url)))?;
+        let tls = match uri.scheme_str() {
+            Some("https") => true,
+            Some("http") => false,
+            other => {
+                return Err(Error::Access(format!(
+                    "base URL {:?}: scheme {other:?} is not http or https",
+                    access.base_url
+                )));
+            }
+        };
+        let authority = uri
+            .authority()
+            .ok_or_else(|| Error::Access(format!("base URL {:?} has no host", access.base_url)))?;
+        let host = authority
+            .host()
+            .trim_start_matches('[')
+            .trim_end_matches(']')
+            .to_owned();
+        let port = authority.port_u16().unwrap_or(if tls { 443 } else { 80 });
+        let target = Target {
+            authority: authority.as_str().to_owned(),
+            host,
+            port,
+        };
+        let connector = if tls {
+            Some(tls_connector(access.ca_file.as_deref())?)
+        } else {
+            None
+        };
+        Ok(Self {
+            access,
+            target,
+            tls: connector,
+            idle: Mutex::new(Vec::new()),
+        })
+    }
+
+    pub(super) fn set_token(&mut self, token: String) {
+        self.access.token = token;
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.access.base_url)
+    }
+
+    async fn connect(&self) -> Result<Sender> {
+        let t = &self.target;
+        let transport = |message: String| Error::Transport {
+            url: self.access.base_url.clone(),
+            message,
+        };
+        let open = async {
+            let tcp = TcpStream::connect((t.host.as_str(), t.port))
+                .await
+                .map_err(|e| transport(format!("connect: {e}")))?;
+            let _ = tcp.set_nodelay(true);
+            let io: Box<dyn Io> = match &self.tls {
+                None => Box::new(tcp),
+                Some(tls) => {
+                    let name = rustls_pki_types::ServerName::try_from(t.host.clone())
+                        .map_err(|e| Error::Access(format!("host {:?}: {e}", t.host)))?;
+                    Box::new(
+                        tls.connect(name, tcp)
+                            .await
+                            .map_err(|e| transport(format!("TLS: {e}")))?,
+                    )
+                }
+            };
+            http1::handshake(TokioIo::new(io))
+                .await
+                .map_err(|e| transport(format!("HTTP handshake: {e}")))
+        };
+        let (sender, conn) = tokio::time::timeout(CONNECT_TIMEOUT, open)
+            .await
+            .map_err(|_| transport("connect timed out".into()))??;
+        tokio::spawn(async move {
+            if let Err(e) = conn.await {
+                debug!(error = %e, "blob connection ended");
+            }
+        });
+        Ok(sender)
+    }
+
+    /// An idle connection that is still open, or a new one.
+    async fn sender(&self) -> Result<(Sender, bool)> {
+        loop {
+            let idle = self.idle.lock().map(|mut v| v.pop()).unwrap_or_default();
+            match idle {
+                Some(mut s) if !s.is_closed() => {
+                    if s.ready().await.is_ok() {
+                        return Ok((s, true));
+                    }
+                }
+                Some(_) => {}
+                None => return Ok((self.connect().await?, false)),
+            }
+        }
+    }
+
+    fn release(&self, sender: Sender) {
+        if sender.is_closed() {
+            return;
+        }
+        if let Ok(mut idle) = self.idle.lock()
+            && idle.len() < POOL_SIZE
+        {
+            idle.push(sender);
+        }
+    }
+
+    /// Sends a GET; a reused connection that the gateway closed meanwhile is replaced once.
+    async fn get(&self, path: &str, range_from: u64) -> Result<(Response<Incoming>, Sender)> {
+        let url = self.url(path);
+        let mut request = Request::get(path)
+            .header(HOST, &self.target.authority)
+            .header(AUTHORIZATION, format!("Bearer {}", self.access.token))
+            .header(ROBOT_HEADER, &self.access.robot);
+        if range_from > 0 {
+            request = request.header(RANGE, format!("bytes={range_from}-"));
+        }
+        let request = request
+            .body(Empty::<Bytes>::new())
+            .map_err(|e| Error::Access(format!("request for {url}: {e}")))?;
+        let mut retried = false;
+        loop {
+            let (mut sender, reused) = self.sender().await?;
+            let sent =
+                tokio::time::timeout(IDLE_TIMEOUT, sender.send_request(clone_request(&request)))
+                    .await;
+            match sent {
+                Ok(Ok(response)) => return Ok((response, sender)),
+                Ok(Err(e)) if reused && !retried => {
+                    debug!(error = %e, "reused connection was closed; reconnecting");
+                    retried = true;
+                }
+                Ok(Err(e)) => {
+                    return Err(Error::Transport {
+                        url,
+                        message: e.to_string(),
+                    });
+                }
+                Err(_) => {
+                    return Err(Error::Transport {
+                        url,
+                        message: "no response in time".into(),
+                    });
+                }
+            }
+        }
+    }
+
+    /// A small resource (the manifest) in memory, at most `limit` bytes.
+    pub(super) async fn get_small(&self, path: &str, limit: usize) -> Result<Vec<u8>> {
+        if !path.starts_with('/') {
+            return Err(Error::Invalid(format!(
+                "manifest URL {path:?} is not a path on the gateway"
+            )));
+        }
+        let url = self.url(path);
+        let (response, sender) = self.get(path, 0).boxed().await?;
+        let status = response.status();
+        let mut body = response.into_body();
+        if status != StatusCode::OK {
+            return Err(self.status_error(&url, status, body).await);
+        }
+        let mut bytes = Vec::new();
+        while let Some(chunk) = next_chunk(&mut body, &url).await? {
+            if bytes.len() + chunk.len() > limit {
+                return Err(Error::Transport {
+                    url,
+                    message: format!("more than {limit} bytes"),
+                });
+            }
+            bytes.extend_from_slice(&chunk);
+        }
+        self.release(sender);
+        Ok(bytes)
+    }
+
+    /// Downloads one blob into `blobs/tmp/<hex>.partial` (resuming what is there), verifies it
+    /// while streaming and moves it into the store.
+    pub(super) async fn fetch_blob(
+        &self,
+        layout: &Layout,
+        w: &Wanted,
+        counter: &AtomicU64,
+    ) -> Result<Fetched> {
+        let partial = layout.partial_path(&w.digest)?;
+        let what = format!("blob {} of {}", w.digest, w.path);
+        // What an earlier attempt (or agent) left: hash it to continue the digest.
+        let p = partial.clone();
+        let (mut hasher, mut have) = blocking(move || hash_partial(&p)).await?;
+        let resumed = have > 0;
+        if have > w.size {
+            have = 0;
+            hasher = Hasher::new();
+        }
+        if have == w.size {
+            // Complete already (killed before the move): verify and promote.
+            return self
+                .promote(layout, w, &what, &partial, hasher, resumed)
+                .await;
+        }
+        let path = blob_path(&w.digest);
+        let url = self.url(&path);
+        let (response, sender) = self.get(&path, have).boxed().await?;
+        let status = response.status();
+        let range_start = response
+            .headers()
+            .get(CONTENT_RANGE)
+            .and_then(|v| v.to_str().ok())
+            .and_then(content_range_start);
+        let mut body = response.into_body();
+        let append = match status {
+            StatusCode::PARTIAL_CONTENT if have > 0 => {
+                let from = range_start;
+                if from != Some(have) {
+                    return Err(Error::Transport {
+                        url,
+                        message: format!("asked for bytes from {have}, got {from:?}"),
+                    });
+                }
+                true
+            }
+            StatusCode::OK => false,
+            StatusCode::RANGE_NOT_SATISFIABLE => {
+                // The partial is wrong (longer than the blob?): start over next attempt.
+                remove_partial(&partial).await;
+                return Err(Error::Transport {
+                    url,
+                    message: "the gateway refused to resume; starting over".into(),
+                });
+            }
+            _ => return Err(self.status_error(&url, status, body).await),
+        };
+        if !append {
+            have = 0;
+            hasher = Hasher::new();
+        }
+        let p = partial.clone();
+        let file = blocking(move || {
+            std::fs::OpenOptions::new()
+                .create(true)
+                .write(true)
+                .append(append)
+                .truncate(!append)
+                .open(&p)
+                .map_err(super::io(&p))
+        })
+        .await?;
+        let file = tokio::fs::File::from_std(file);
+        // Unbuffered on purpose: each chunk reaches the file at once (tokio writes it in the
+        // background), so an agent killed mid-transfer loses at most the chunk in flight.
+        let mut out = file;
+        let streamed: Result<()> = async {
+            while let Some(chunk) = next_chunk(&mut body, &url).await? {
+                if have + chunk.len() as u64 > w.size {
+                    remove_partial(&partial).await;
+                    return Err(Error::TooLarge {
+                        what: what.clone(),
+                        size: w.size,
+                    });
+                }
+                hasher.update(&chunk);
+                out.write_all(&chunk).await.map_err(super::io(&partial))?;
+                have += chunk.len() as u64;
+                counter.fetch_add(chunk.len() as u64, Ordering::Relaxed);
+            }
+            Ok(())
+        }
+        .await;
+        // Keep what arrived, also when the transfer broke off: the next attempt resumes it.
+        let flushed = out.flush().await.map_err(super::io(&partial));
+        streamed?;
+        flushed?;
+        self.release(sender);
+        if have < w.size {
+            return Err(Error::Transport {
+                url,
+                message: format!("the body ended after {have} of {} bytes", w.size),
+            });
+        }
+        out.sync_all().await.map_err(super::io(&partial))?;
+        drop(out);
+        self.promote(layout, w, &what, &partial, hasher, resumed)
+            .await
+    }
+
+    /// Checks the digest of a complete partial file and moves it into the store.
+    async fn promote(
+        &self,
+        layout: &Layout,
+        w: &Wanted,
+        what: &str,
+        partial: &std::path::Path,
+        hasher: Hasher,
+        resumed: bool,
+    ) -> Result<Fetched> {
+        let actual = hasher.finish();
+        if actual != w.digest {
+            remove_partial(partial).await;
+            if resumed {
+                // The partial file from before may be what is wrong: one more try from scratch.
+                return Err(Error::Transport {
+                    url: self.url(&blob_path(&w.digest)),
+                    message: format!(
+                        "the resumed download of {what} did not verify; starting over"
+                    ),
+                });
+            }
+            return Err(Error::DigestMismatch {
+                what: what.to_owned(),
+                expected: w.digest.clone(),
+                actual,
+            });
+        }
+        let blob = layout.blob_path(&w.digest)?;
+        let partial = partial.to_owned();
+        blocking(move || std::fs::rename(&partial, &blob).map_err(super::io(&blob))).await?;
+        Ok(Fetched)
+    }
+
+    /// The error for a non-success status, with the gateway's `message` if it sent one.
+    async fn status_error(&self, url: &str, status: StatusCode, mut body: Incoming) -> Error {
+        let mut bytes = Vec::new();
+        while bytes.len() < ERROR_BODY_LIMIT {
+            match tokio::time::timeout(IDLE_TIMEOUT, body.frame()).await {
+                Ok(Some(Ok(frame))) => {
+                    if let Some(d) = frame.data_ref() {
+                        bytes.extend_from_slice(d);
+                    }
+                }
+                _ => break,
+            }
+        }
+        bytes.truncate(ERROR_BODY_LIMIT);
+        let message = serde_json::from_slice::<serde_json::Value>(&bytes)
+            .ok()
+            .and_then(|v| v.get("message").and_then(|m| m.as_str()).map(str::to_owned))
+            .unwrap_or_else(|| String::from_utf8_lossy(&bytes).trim().to_owned());
+        let url = url.to_owned();
+        match status {
+            StatusCode::UNAUTHORIZED => Error::Unauthorized { url, message },
+            _ => Error::Status {
+                url,
+                status: status.as_u16(),
+                message,
+            },
+        }
+    }
+}
+
+/// The first byte of `Content-Range: bytes <first>-<last>/<len>`.
+fn content_range_start(v: &str) -> Option<u64> {
+    v.strip_prefix("bytes ")?
+        .split('-')
+        .next()?
+        .trim()
+        .parse()
+        .ok()
+}
+
+fn clone_request(r: &Request<Empty<Bytes>>) -> Request<Empty<Bytes>> {
+    let mut c = Request::new(Empty::new());
+    *c.method_mut() = r.method().clone();
+    *c.uri_mut() = r.uri().clone();
+    *c.headers_mut() = r.headers().clone();
+    c
+}
+
+/// The next data chunk of a body, `None` at its end.
+async fn next_chunk(body: &mut Incoming, url: &str) -> Result<Option<Bytes>> {
+    loop {
+        let frame = tokio::time::timeout(IDLE_TIMEOUT, body.frame())
+            .await
+            .map_err(|_| Error::Transport {
+                url: url.to_owned(),
+                message: format!("no data for {}s", IDLE_TIMEOUT.as_secs()),
+            })?;
+        match frame {
+            None => return Ok(None),
+            Some(Err(e)) => {
+                return Err(Error::Transport {
+                    url: url.to_owned(),
+                    message: format!("transfer broke off: {e}"),
+                });
+            }
+            Some(Ok(frame)) => {
+                if let Ok(data) = frame.into_data() {
+                    return Ok(Some(data));
+                }
+            }
+        }
+    }
+}
+
+/// Deletes a partial download (that turned out wrong); a failure only costs disk space.
+async fn remove_partial(partial: &std::path::Path) {
+    let p = partial.to_owned();
+    let _ = blocking(move || {
+        let _ = std::fs::remove_file(&p);
+        Ok(())
+    })
+    .await;
+}
+
+/// The length of a partial file and the hash state of its content.
+fn hash_partial(path: &std::path::Path) -> Result<(Hasher, u64)> {
+    let mut hasher = Hasher::new();
+    match std::fs::File::open(path) {
+        Ok(mut f) => {
+            let n = std::io::copy(&mut f, &mut hasher).map_err(super::io(path))?;
+            Ok((hasher, n))
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok((hasher, 0)),
+        Err(e) => Err(super::io(path)(e)),
+    }
+}
+
+/// TLS settings trusting the CA in `ca_file`, or the public web roots.
+fn tls_connector(ca_file: Option<&std::path::Path>) -> Result<tokio_rustls::TlsConnector> {
+    use rustls_pki_types::CertificateDer;
+    use rustls_pki_types::pem::PemObject;
+    let mut roots = rustls::RootCertStore::empty();
+    match ca_file {
+        Some(ca_file) => {
+            let bad = |e: &dyn std::fmt::Display| {
+                Error::Access(format!("CA file {}: {e}", ca_file.display()))
+            };
+            for cert in CertificateDer::pem_file_iter(ca_file).map_err(|e| bad(&e))? {
+                roots.add(cert.map_err(|e| bad(&e))?).map_err(|e| bad(&e))?;
+            }
+            if roots.is_empty() {
+                return Err(bad(&"no certificate in the file"));
+            }
+        }
+        None => roots.extend(webpki_roots::TLS_SERVER_ROOTS.iter().cloned()),
+    }
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let mut config = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| Error::Access(e.to_string()))?
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    config.alpn_protocols = vec![b"http/1.1".to_vec()];
+    Ok(tokio_rustls::TlsConnector::from(Arc::new(config)))
+}

@@ -1,0 +1,143 @@
+//! The configured shell commands of a deployment: pre-switch, restart and health check, run
+//! with `sh -c` in the release directory, output kept for failure messages.
+
+use std::path::PathBuf;
+use std::process::Stdio;
+use std::time::Duration;
+
+use lekiwi_protocol::Release;
+use tokio::time::Instant;
+
+use crate::config::Config;
+
+/// Longest run of the pre-switch or restart command.
+const HOOK_TIMEOUT: Duration = Duration::from_secs(300);
+/// Output kept for a failure message, bytes.
+const OUTPUT_TAIL: u64 = 2048;
+/// Pause between two runs of the health command.
+const HEALTH_INTERVAL: Duration = Duration::from_secs(1);
+
+/// The release a hook runs for.
+pub(super) struct HookEnv {
+    /// `releases/<version>`, the working directory.
+    pub dir: PathBuf,
+    /// The release.
+    pub release: Release,
+    /// The version that ran before (or, when switching back, the one that failed).
+    pub previous: Option<String>,
+}
+
+/// The configured commands; empty ones are skipped.
+pub(super) struct Hooks {
+    pub pre_switch: String,
+    pub restart: String,
+    pub health: String,
+    pub health_timeout: Duration,
+    pub health_interval: Duration,
+    /// Where a command's output goes (a file rather than a pipe, so that a daemon the command
+    /// leaves behind cannot keep the agent waiting for the end of its output).
+    log: PathBuf,
+}
+
+impl Hooks {
+    pub(super) fn from_config(config: &Config) -> Self {
+        Self {
+            pre_switch: config.release_pre_switch_command.trim().to_owned(),
+            restart: config.release_restart_command.trim().to_owned(),
+            health: config.release_health_command.trim().to_owned(),
+            health_timeout: Duration::from_secs(config.release_health_timeout_s),
+            health_interval: HEALTH_INTERVAL,
+            log: config.state_dir.join("release-hook.log"),
+        }
+    }
+
+    /// Runs `command` to its end (at most [`HOOK_TIMEOUT`]); `Err` says why it failed.
+    pub(super) async fn run(&self, command: &str, env: &HookEnv) -> Result<(), String> {
+        self.run_for(command, env, HOOK_TIMEOUT).await
+    }
+
+    /// Runs the health command until it passes or the health timeout ends.
+    pub(super) async fn health_check(&self, env: &HookEnv) -> Result<(), String> {
+        let deadline = Instant::now() + self.health_timeout;
+        let mut attempts = 0;
+        loop {
+            attempts += 1;
+            let left = deadline
+                .saturating_duration_since(Instant::now())
+                .max(Duration::from_millis(100));
+            match self.run_for(&self.health, env, left).await {
+                Ok(()) => return Ok(()),
+                Err(why) if Instant::now() + self.health_interval >= deadline => {
+                    return Err(format!(
+                        "not healthy within {}s ({attempts} attempts); last: {why}",
+                        self.health_timeout.as_secs_f64()
+                    ));
+                }
+                Err(_) => tokio::time::sleep(self.health_interval).await,
+            }
+        }
+    }
+
+    async fn run_for(&self, command: &str, env: &HookEnv, timeout: Duration) -> Result<(), String> {
+        let out = std::fs::File::create(&self.log)
+            .map_err(|e| format!("cannot create {}: {e}", self.log.display()))?;
+        let err = out
+            .try_clone()
+            .map_err(|e| format!("cannot open {}: {e}", self.log.display()))?;
+        let mut child = tokio::process::Command::new("sh")
+            .arg("-c")
+            .arg(command)
+            .current_dir(&env.dir)
+            .env("LEKIWI_RELEASE_DIR", &env.dir)
+            .env("LEKIWI_RELEASE_VERSION", &env.release.version)
+            .env("LEKIWI_RELEASE_DIGEST", &env.release.digest)
+            .env(
+                "LEKIWI_PREVIOUS_VERSION",
+                env.previous.as_deref().unwrap_or_default(),
+            )
+            .stdin(Stdio::null())
+            .stdout(out)
+            .stderr(err)
+            .kill_on_drop(true)
+            .spawn()
+            .map_err(|e| format!("cannot start `sh -c {command}`: {e}"))?;
+        let status = match tokio::time::timeout(timeout, child.wait()).await {
+            Ok(Ok(status)) => status,
+            Ok(Err(e)) => return Err(format!("waiting for `{command}`: {e}")),
+            Err(_) => {
+                let _ = child.kill().await;
+                return Err(format!(
+                    "`{command}` timed out after {}s{}",
+                    timeout.as_secs_f64(),
+                    self.output()
+                ));
+            }
+        };
+        if status.success() {
+            Ok(())
+        } else {
+            Err(format!("`{command}` {status}{}", self.output()))
+        }
+    }
+
+    /// The end of the last command's output, as `: <text>`, or nothing.
+    fn output(&self) -> String {
+        use std::io::{Read, Seek, SeekFrom};
+        let Ok(mut file) = std::fs::File::open(&self.log) else {
+            return String::new();
+        };
+        let len = file.metadata().map(|m| m.len()).unwrap_or_default();
+        let start = len.saturating_sub(OUTPUT_TAIL);
+        let mut bytes = Vec::new();
+        if file.seek(SeekFrom::Start(start)).is_err() || file.read_to_end(&mut bytes).is_err() {
+            return String::new();
+        }
+        let text = String::from_utf8_lossy(&bytes);
+        let text = text.trim();
+        match (text.is_empty(), start > 0) {
+            (true, _) => String::new(),
+            (false, false) => format!(": {text}"),
+            (false, true) => format!(": …{text}"),
+        }
+    }
+}

@@ -1,0 +1,641 @@
+//! Rollouts end to end on the real control plane: a release pushed with the real CLI, a
+//! `RobotDeployment`, the real operator (controller + gateway) and a fleet of real agents
+//! (`lekiwi-fleet`: the agent's own run loop, one state directory per robot).
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use anyhow::{Context as _, bail};
+use k8s_openapi::api::core::v1::Secret;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
+use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
+use kube::api::{ListParams, Patch, PatchParams, PostParams};
+use kube::{Api, Client};
+use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
+use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
+use lekiwi_operator::store::{RobotKey, Store};
+use lekiwi_tests::{
+    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token, gateway_url, http_get_with,
+    log_dir, namespace, wait_for,
+};
+use serde_json::{Value, json};
+
+const HEALTH: &str = r#"test ! -e "$LEKIWI_RELEASE_DIR/../../fail-health""#;
+
+/// A namespace with an operator (blob store in a temp dir) and an enrollment token file.
+struct Site {
+    cp: &'static ControlPlane,
+    client: Client,
+    ns: String,
+    op: OperatorProcess,
+    dir: tempfile::TempDir,
+    token_file: PathBuf,
+}
+
+impl Site {
+    async fn new(prefix: &str) -> anyhow::Result<Self> {
+        let cp = ControlPlane::shared();
+        let client = cp.client().await?;
+        let ns = namespace(&client, prefix).await?;
+        let dir = tempfile::tempdir()?;
+        let blobs = dir.path().join("blobs");
+        std::fs::create_dir_all(&blobs)?;
+        let mut op =
+            OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blobs.to_str().unwrap()])?;
+        op.wait_ready().await?;
+        let token_file = dir.path().join("enroll");
+        std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+        Ok(Self {
+            cp,
+            client,
+            ns,
+            op,
+            dir,
+            token_file,
+        })
+    }
+
+    /// Pushes `dir` as `version` with the real CLI; returns the release.
+    fn push(&self, dir: &Path, version: &str) -> anyhow::Result<ReleaseRef> {
+        let out = Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(self.cp.kubeconfig())
+            .args([
+                "release",
+                "push",
+                dir.to_str().unwrap(),
+                "--version",
+                version,
+            ])
+            .args(["--operator-namespace", &self.ns])
+            .args([
+                "--server",
+                &format!("http://127.0.0.1:{}", self.op.gateway_port),
+            ])
+            .env_remove("LEKIWI_SERVER")
+            .output()?;
+        if !out.status.success() {
+            bail!(
+                "release push failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        let digest = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+        Ok(ReleaseRef {
+            version: version.into(),
+            digest,
+        })
+    }
+
+    fn fleet(&self, robots: usize, extra: &[&str]) -> anyhow::Result<Fleet> {
+        Fleet::start(self, robots, extra)
+    }
+
+    async fn deploy(
+        &self,
+        name: &str,
+        release: &ReleaseRef,
+        strategy: RolloutStrategy,
+        selector: LabelSelector,
+    ) -> anyhow::Result<()> {
+        let d = RobotDeployment::new(
+            name,
+            RobotDeploymentSpec {
+                selector,
+                release: release.clone(),
+                strategy,
+                paused: false,
+            },
+        );
+        Api::<RobotDeployment>::namespaced(self.client.clone(), &self.ns)
+            .create(&PostParams::default(), &d)
+            .await?;
+        Ok(())
+    }
+
+    async fn deployment(&self, name: &str) -> anyhow::Result<RobotDeployment> {
+        Ok(
+            Api::<RobotDeployment>::namespaced(self.client.clone(), &self.ns)
+                .get(name)
+                .await?,
+        )
+    }
+
+    /// Waits for a terminal phase (from the current generation) and returns the deployment.
+    async fn finished(&self, name: &str, timeout: Duration) -> anyhow::Result<RobotDeployment> {
+        wait_for(&format!("rollout {name} to end"), timeout, || async {
+            let d = self.deployment(name).await.ok()?;
+            let st = d.status.as_ref()?;
+            (st.observed_generation == d.metadata.generation
+                && matches!(
+                    st.phase,
+                    Some(RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed)
+                ))
+            .then_some(d)
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\noperator log tail:\n{}", tail(&self.op.log_text())))
+    }
+
+    async fn robots(&self) -> anyhow::Result<Vec<Robot>> {
+        Ok(Api::<Robot>::namespaced(self.client.clone(), &self.ns)
+            .list(&ListParams::default())
+            .await?
+            .items)
+    }
+
+    async fn wait_online(&self, n: usize) -> anyhow::Result<()> {
+        wait_for(
+            &format!("{n} robots Online"),
+            Duration::from_secs(120),
+            || async {
+                let robots = self.robots().await.ok()?;
+                let online = robots
+                    .iter()
+                    .filter(|r| r.status.as_ref().and_then(|s| s.phase) == Some(RobotPhase::Online))
+                    .count();
+                (online >= n).then_some(())
+            },
+        )
+        .await
+    }
+
+    /// Robots by the release they report.
+    async fn releases(&self) -> anyhow::Result<BTreeMap<String, usize>> {
+        let mut by = BTreeMap::new();
+        for r in self.robots().await? {
+            let v = r
+                .status
+                .and_then(|s| s.current_release)
+                .map_or("-".to_owned(), |r| r.version);
+            *by.entry(v).or_default() += 1;
+        }
+        Ok(by)
+    }
+
+    async fn api_token(&self) -> anyhow::Result<String> {
+        let s = Api::<Secret>::namespaced(self.client.clone(), &self.ns)
+            .get("lekiwi-api")
+            .await?;
+        Ok(String::from_utf8(
+            s.data
+                .context("no data")?
+                .remove("token")
+                .context("no token")?
+                .0,
+        )?)
+    }
+
+    /// Bytes the gateway served to one robot, counted by the gateway.
+    async fn bytes_served(&self, robot: &str) -> anyhow::Result<u64> {
+        let token = self.api_token().await?;
+        let (code, _, body) = http_get_with(
+            self.op.gateway_port,
+            &format!("/v1/blobs-served?robot={}/{robot}", self.ns),
+            &[("authorization", &format!("Bearer {token}"))],
+        )
+        .await?;
+        if code != 200 {
+            bail!("blobs-served answered {code}: {body}");
+        }
+        let v: Value = serde_json::from_str(&body)?;
+        Ok(v["bytes"].as_u64().unwrap_or_default())
+    }
+}
+
+fn tail(s: &str) -> String {
+    let lines: Vec<&str> = s.lines().collect();
+    lines[lines.len().saturating_sub(40)..].join("\n")
+}
+
+/// `lekiwi-fleet`: N real agents in one process.
+struct Fleet {
+    child: Child,
+    args: Vec<String>,
+    state_root: PathBuf,
+    log: PathBuf,
+}
+
+impl Fleet {
+    fn start(site: &Site, robots: usize, extra: &[&str]) -> anyhow::Result<Self> {
+        let state_root = site.dir.path().join("robots");
+        let log = log_dir().join(format!("fleet-{}.log", site.ns));
+        std::fs::File::create(&log)?;
+        let mut args: Vec<String> = [
+            "--gateway",
+            &gateway_url(&site.op),
+            "--enrollment-token-file",
+            site.token_file.to_str().unwrap(),
+            "--namespace",
+            &site.ns,
+            "--robots",
+            &robots.to_string(),
+            "--state-root",
+            state_root.to_str().unwrap(),
+            "--health-command",
+            HEALTH,
+            "--health-timeout-s",
+            "2",
+            "--backoff-max-ms",
+            "2000",
+            "--report-every",
+            "2",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let child = spawn_fleet(&args, &log)?;
+        Ok(Self {
+            child,
+            args,
+            state_root,
+            log,
+        })
+    }
+
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    fn restart(&mut self) -> anyhow::Result<()> {
+        self.kill();
+        self.child = spawn_fleet(&self.args, &self.log)?;
+        Ok(())
+    }
+
+    fn state(&self, robot: &str) -> PathBuf {
+        self.state_root.join(robot)
+    }
+}
+
+fn spawn_fleet(args: &[String], log: &Path) -> anyhow::Result<Child> {
+    let file = std::fs::OpenOptions::new()
+        .append(true)
+        .create(true)
+        .open(log)?;
+    Ok(Command::new(bin("lekiwi-fleet"))
+        .args(args)
+        .env("RUST_LOG", "warn,lekiwi_agent::release=info")
+        .stdin(Stdio::null())
+        .stdout(file.try_clone()?)
+        .stderr(file)
+        .spawn()?)
+}
+
+impl Drop for Fleet {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// A release directory: `files` small files plus a 256 KiB "policy checkpoint"; `changed`
+/// names files whose content differs (by `tag`).
+fn release_dir(root: &Path, files: usize, tag: &str, changed: &[usize]) -> anyhow::Result<PathBuf> {
+    let dir = root.join(format!("release-{tag}"));
+    std::fs::create_dir_all(dir.join("lekiwi/config"))?;
+    for i in 0..files {
+        let content = if changed.contains(&i) {
+            format!("file {i} of release {tag}\n").repeat(200)
+        } else {
+            format!("file {i}\n").repeat(200)
+        };
+        let sub = if i % 3 == 0 {
+            "lekiwi/config"
+        } else {
+            "lekiwi"
+        };
+        std::fs::write(dir.join(sub).join(format!("f{i:03}.py")), content)?;
+    }
+    let policy: Vec<u8> = (0..256 * 1024u32).map(|i| (i * 7 % 251) as u8).collect();
+    std::fs::write(dir.join("policy.safetensors"), policy)?;
+    Ok(dir)
+}
+
+fn strategy(batch: i32, canary: i32) -> RolloutStrategy {
+    RolloutStrategy {
+        batch_size: IntOrString::Int(batch),
+        canary,
+        success_threshold: 0.8,
+        robot_timeout_seconds: 60,
+        pause_between_batches_seconds: 0,
+        teleoperated: UnavailablePolicy::Wait,
+        unavailable: UnavailablePolicy::Wait,
+        wait_timeout_seconds: 120,
+    }
+}
+
+fn robot_name(i: usize) -> String {
+    format!("kiwi-{i:03}")
+}
+
+/// 50 agents: a clean rollout (canary, then batches); then a second release whose second batch
+/// has 3 of 10 robots failing their health check, so every updated robot goes back; transfers
+/// are differential (bytes counted by the gateway).
+#[tokio::test]
+async fn fifty_agents_clean_rollout_then_automatic_rollback() -> anyhow::Result<()> {
+    let site = Site::new("rollout").await?;
+    let _fleet = site.fleet(50, &[])?;
+    site.wait_online(50).await?;
+
+    let v1_dir = release_dir(site.dir.path(), 40, "1", &[])?;
+    let v1 = site.push(&v1_dir, "1.0.0")?;
+    let started = std::time::Instant::now();
+    site.deploy("fleet", &v1, strategy(13, 1), LabelSelector::default())
+        .await?;
+    let d = site.finished("fleet", Duration::from_secs(180)).await?;
+    let st = d.status.clone().unwrap();
+    eprintln!(
+        "v1 to 50 robots: {:?} in {:?}: {:?}",
+        st.phase,
+        started.elapsed(),
+        st.message
+    );
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
+    assert_eq!((st.updated, st.failed, st.targeted), (50, 0, 50));
+    assert_eq!(st.total_batches, Some(5), "canary + 4 batches of 13");
+    wait_for(
+        "all robots report 1.0.0",
+        Duration::from_secs(30),
+        || async {
+            let by = site.releases().await.ok()?;
+            (by.get("1.0.0") == Some(&50)).then_some(())
+        },
+    )
+    .await?;
+    let full = site.bytes_served("kiwi-000").await?;
+    let release_bytes: u64 = walk(&v1_dir)
+        .iter()
+        .map(|p| p.metadata().unwrap().len())
+        .sum();
+    eprintln!("first deploy: {full} bytes to kiwi-000 for a {release_bytes}-byte release");
+    assert!(full >= release_bytes, "the first deploy fetches everything");
+
+    // v2 changes 2 of 41 files. Robots 2, 5 and 8 (batch 1 of 10, after a canary of 1) fail
+    // their health check: 70% < 80%.
+    for i in [2, 5, 8] {
+        std::fs::write(_fleet.state(&robot_name(i)).join("fail-health"), "")?;
+    }
+    let v2_dir = release_dir(site.dir.path(), 40, "2", &[4, 17])?;
+    let v2 = site.push(&v2_dir, "2.0.0")?;
+    let before: BTreeMap<usize, u64> = {
+        let mut m = BTreeMap::new();
+        for i in 0..11 {
+            m.insert(i, site.bytes_served(&robot_name(i)).await?);
+        }
+        m
+    };
+    let patch = json!({"spec": {"release": v2, "strategy": {"batchSize": 10, "canary": 1}}});
+    Api::<RobotDeployment>::namespaced(site.client.clone(), &site.ns)
+        .patch("fleet", &PatchParams::default(), &Patch::Merge(&patch))
+        .await?;
+    let failing_batch = std::time::Instant::now();
+    let d = site.finished("fleet", Duration::from_secs(180)).await?;
+    let st = d.status.clone().unwrap();
+    eprintln!(
+        "v2: {:?} after {:?}: {:?}",
+        st.phase,
+        failing_batch.elapsed(),
+        st.message
+    );
+    assert_eq!(st.phase, Some(RolloutPhase::RolledBack), "{:?}", st.message);
+    let msg = st.message.clone().unwrap_or_default();
+    assert!(msg.contains("3 of 10"), "{msg}");
+    wait_for(
+        "every robot back on 1.0.0",
+        Duration::from_secs(60),
+        || async {
+            let by = site.releases().await.ok()?;
+            (by.get("1.0.0") == Some(&50)).then_some(())
+        },
+    )
+    .await?;
+    // Nobody beyond batch 1 was touched.
+    let robots = site.robots().await?;
+    let touched = robots
+        .iter()
+        .filter(|r| r.spec.release.as_ref() == Some(&v2))
+        .count();
+    assert_eq!(touched, 0, "every robot's spec is back on 1.0.0");
+    // Differential transfer: each updated robot fetched the manifest and the 2 changed files.
+    let changed: u64 = [4usize, 17]
+        .iter()
+        .map(|i| {
+            let sub = if i % 3 == 0 {
+                "lekiwi/config"
+            } else {
+                "lekiwi"
+            };
+            std::fs::metadata(v2_dir.join(sub).join(format!("f{i:03}.py")))
+                .unwrap()
+                .len()
+        })
+        .sum();
+    for (i, b) in &before {
+        let delta = site.bytes_served(&robot_name(*i)).await? - b;
+        eprintln!("kiwi-{i:03}: {delta} bytes for v2 ({changed} bytes of changed files)");
+        assert!(
+            delta >= changed && delta < changed + 16 * 1024,
+            "kiwi-{i:03} fetched {delta} bytes; changed files are {changed} bytes"
+        );
+    }
+    Ok(())
+}
+
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}
+
+/// The operator is SIGKILLed mid-rollout and restarted; the agents are SIGKILLed mid-download
+/// and mid-switch (restart command of 2 s) and come back; robots go offline and return. The
+/// rollout completes, no robot that had finished is deployed again, and every robot's
+/// `current` points at a complete release.
+#[tokio::test]
+async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
+    let mut site = Site::new("rollcrash").await?;
+    let mut fleet = site.fleet(20, &["--restart-command", "sleep 2"])?;
+    site.wait_online(20).await?;
+    let v1_dir = release_dir(site.dir.path(), 30, "1", &[])?;
+    let v1 = site.push(&v1_dir, "1.0.0")?;
+    site.deploy("crash", &v1, strategy(4, 0), LabelSelector::default())
+        .await?;
+
+    // Kill the whole fleet while some robots are in their restart command (switched, not yet
+    // confirmed) and others download.
+    let store = Store::connect(&format!("sqlite://{}", site.op.store_path.display())).await?;
+    let restarting = wait_for("a robot restarting", Duration::from_secs(60), || async {
+        for i in 0..20 {
+            let key = RobotKey::new(site.ns.clone(), robot_name(i));
+            let events = store.events(&key, None, 1000).await.ok()?;
+            if events.iter().any(|e| e.data["phase"] == "restarting") {
+                return Some(robot_name(i));
+            }
+        }
+        None
+    })
+    .await?;
+    fleet.kill();
+    eprintln!("fleet killed while {restarting} was restarting");
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    fleet.restart()?;
+
+    // Kill the operator once the second batch is under way.
+    wait_for("batch 1 started", Duration::from_secs(120), || async {
+        let d = site.deployment("crash").await.ok()?;
+        (d.status?.current_batch? >= 1).then_some(())
+    })
+    .await?;
+    site.op.kill();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    site.op.restart()?;
+    site.op.wait_ready().await?;
+
+    let t = std::time::Instant::now();
+    let d = site.finished("crash", Duration::from_secs(240)).await?;
+    eprintln!("finished after {:?}", t.elapsed());
+    let st = d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
+    assert_eq!(st.updated, 20);
+    wait_for(
+        "all robots report 1.0.0",
+        Duration::from_secs(60),
+        || async {
+            let by = site.releases().await.ok()?;
+            (by.get("1.0.0") == Some(&20)).then_some(())
+        },
+    )
+    .await?;
+    eprintln!("all report 1.0.0 after {:?}", t.elapsed());
+    for i in 0..20 {
+        let name = robot_name(i);
+        // `current` points at a complete release.
+        let current = std::fs::read_link(fleet.state(&name).join("current"))?;
+        let dir = fleet.state(&name).join(&current);
+        let meta: Value =
+            serde_json::from_slice(&std::fs::read(dir.join(".lekiwi/release.json"))?)?;
+        assert_eq!(meta["version"], "1.0.0", "{name}");
+        assert_eq!(
+            walk(&dir).len(),
+            31 + 2,
+            "{name}: every file plus the metadata"
+        );
+        // Every robot completed exactly one deploy: the crashes neither lost one (a robot
+        // killed before its switch is told again) nor repeated one (a finished robot is never
+        // started again by the new leader).
+        let key = RobotKey::new(site.ns.clone(), name.clone());
+        let done = store
+            .events(&key, None, 10_000)
+            .await?
+            .iter()
+            .filter(|e| e.kind == "progress" && e.data["phase"] == "done")
+            .count();
+        assert_eq!(done, 1, "{name}: deployed exactly once");
+    }
+    Ok(())
+}
+
+/// A teleoperated robot is waited for, never interrupted, and updated once idle; an invalid
+/// release digest is reported clearly.
+#[tokio::test]
+async fn teleoperated_robot_is_waited_for_and_invalid_release_is_clear() -> anyhow::Result<()> {
+    let site = Site::new("rollteleop").await?;
+    // A real agent whose teleoperation indicator is a real ESTABLISHED connection on a port
+    // held by a real process.
+    let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+    let port = listener.local_addr()?.port();
+    let state = site.dir.path().join("teleop-robot");
+    let agent = AgentProcess::start(
+        &gateway_url(&site.op),
+        &format!("{}/kiwi-t", site.ns),
+        &site.token_file,
+        &state,
+        &[
+            "--teleop-command-ports",
+            &port.to_string(),
+            "--teleop-process-weight",
+            "0",
+            "--teleop-serial-weight",
+            "0",
+            "--teleop-video-weight",
+            "0",
+            "--teleop-stream-weight",
+            "0",
+            "--teleop-threshold",
+            "0.5",
+        ],
+    )?;
+    site.wait_online(1).await?;
+    let client_conn = std::net::TcpStream::connect(("127.0.0.1", port))?;
+    let (_server_conn, _) = listener.accept()?;
+    let robots: Api<Robot> = Api::namespaced(site.client.clone(), &site.ns);
+    wait_for("teleoperation seen", Duration::from_secs(20), || async {
+        let r = robots.get("kiwi-t").await.ok()?;
+        r.status?.teleoperation?.active.then_some(())
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", agent.log_text()))?;
+
+    let v1_dir = release_dir(site.dir.path(), 5, "1", &[])?;
+    let v1 = site.push(&v1_dir, "1.0.0")?;
+    site.deploy("teleop", &v1, strategy(1, 0), LabelSelector::default())
+        .await?;
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let d = site.deployment("teleop").await?;
+    let st = d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Progressing));
+    assert!(
+        st.robots
+            .iter()
+            .any(|r| r.robot == "kiwi-t" && r.message.as_deref() == Some("waiting: teleoperated")),
+        "{:?}",
+        st.robots
+    );
+    let r = robots.get("kiwi-t").await?;
+    assert_eq!(
+        r.spec.release, None,
+        "not told to switch while teleoperated"
+    );
+
+    // The operator goes home: the robot is updated.
+    drop(client_conn);
+    let d = site.finished("teleop", Duration::from_secs(60)).await?;
+    assert_eq!(d.status.unwrap().phase, Some(RolloutPhase::Completed));
+    let r = robots.get("kiwi-t").await?;
+    assert_eq!(
+        r.status.and_then(|s| s.current_release).map(|r| r.version),
+        Some("1.0.0".into())
+    );
+
+    // A digest nobody pushed.
+    let bogus = ReleaseRef {
+        version: "9.9.9".into(),
+        digest: format!("sha256:{}", "0".repeat(64)),
+    };
+    site.deploy("bogus", &bogus, strategy(1, 0), LabelSelector::default())
+        .await?;
+    let d = site.finished("bogus", Duration::from_secs(30)).await?;
+    let st = d.status.unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Failed));
+    let msg = st.message.unwrap_or_default();
+    assert!(msg.contains("not found in the blob store"), "{msg}");
+    let valid = st
+        .conditions
+        .iter()
+        .find(|c| c.r#type == "ReleaseValid")
+        .unwrap();
+    assert_eq!(valid.reason, "InvalidRelease");
+    drop(agent);
+    Ok(())
+}
