@@ -43,7 +43,8 @@ pub enum Error {
     name = "lekiwi-agent",
     version,
     about = "Connects a LeKiwi robot to its fleet's gateway: heartbeats, telemetry, a durable \
-             event outbox, teleoperation detection and mDNS discovery",
+             event outbox, teleoperation detection, mDNS discovery and release updates",
+    long_about = None,
     after_help = "Every flag is also a key of the config file (camelCase, e.g. `stateDir`) and an \
                   environment variable (shown above). Precedence: flag, environment, file, default."
 )]

@@ -122,7 +122,7 @@ pub async fn poll(
         target_digest: desired.as_ref().map(|r| r.digest.clone()),
         manifest_url: desired
             .as_ref()
-            .map(|r| format!("/v1/releases/{}/manifest", r.digest)),
+            .map(|r| lekiwi_protocol::release::blob_path(&r.digest)),
         poll_interval_seconds: state.shared.limits.heartbeat_interval.as_secs().max(1),
     };
     // The robot's release is known exactly when it runs the desired version.
