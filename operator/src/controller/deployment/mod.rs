@@ -154,12 +154,22 @@ fn selected<'a>(robots: &'a [Arc<Robot>], ns: &str, sel: &Selector) -> Vec<&'a A
         .collect()
 }
 
-fn view(r: &Robot) -> RobotView {
+fn view(r: &Robot, now: Timestamp, grace: std::time::Duration) -> RobotView {
     let status = r.status.clone().unwrap_or_default();
+    // `phase` is the Robot controller's verdict, which may lag (e.g. right after an operator
+    // restart); a rollout only counts a robot Online with a live connection and a fresh heartbeat.
+    let fresh = status.connected == Some(true)
+        && status.last_heartbeat_time.as_ref().is_some_and(|t| {
+            now.duration_since(t.0) <= jiff::SignedDuration::try_from(grace).unwrap_or_default()
+        });
+    let phase = match status.phase {
+        Some(lekiwi_crds::RobotPhase::Online) if !fresh => Some(lekiwi_crds::RobotPhase::Offline),
+        p => p,
+    };
     RobotView {
         name: r.name_any(),
         maintenance: r.spec.maintenance,
-        phase: status.phase,
+        phase,
         healthy: status.health.as_ref().is_none_or(|h| h.healthy),
         teleoperated: status.teleoperation.as_ref().is_some_and(|t| t.active),
         desired: r.spec.release.clone(),
@@ -294,7 +304,16 @@ async fn reconcile(
         );
         let facts = Facts {
             now,
-            robots: ours.iter().map(|r| view(r)).collect(),
+            robots: ours
+                .iter()
+                .map(|r| {
+                    view(
+                        r,
+                        now,
+                        std::time::Duration::from_secs(ctx.config.heartbeat_grace_seconds),
+                    )
+                })
+                .collect(),
             release,
             overlaps,
             active_deployments: active,

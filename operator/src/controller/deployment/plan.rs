@@ -71,6 +71,9 @@ pub struct Mark {
     /// Why it failed or was skipped.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
+    /// It failed before it was rolled back (kept so the count of failures survives rollback).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub failed: bool,
 }
 
 /// The facts about one selected robot that a rollout needs.
@@ -688,6 +691,16 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
             (_, Some(MarkState::RollingBack)) | (RobotState::RollingBack(..), _) => {
                 let b = mark.map_or(0, |m| m.batch);
                 let back = previous.as_ref().is_none_or(|p| r.runs(p));
+                let why = match mark.filter(|m| m.failed) {
+                    Some(m) => {
+                        failed += 1;
+                        format!(
+                            "failed ({}); ",
+                            m.message.as_deref().unwrap_or("no details")
+                        )
+                    }
+                    None => String::new(),
+                };
                 (
                     if back {
                         RobotRolloutState::RolledBack
@@ -696,9 +709,9 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
                     },
                     b,
                     Some(if back {
-                        "back on its previous release".to_owned()
+                        format!("{why}back on its previous release")
                     } else {
-                        "switching back to its previous release".to_owned()
+                        format!("{why}switching back to its previous release")
                     }),
                 )
             }
@@ -889,6 +902,7 @@ fn unreachable_mark(d: &str, rid: &str) -> Mark {
         since: Timestamp::UNIX_EPOCH,
         previous: None,
         message: None,
+        failed: false,
     }
 }
 
@@ -922,6 +936,10 @@ fn start_rollback(
         };
         let mut m = mark.clone();
         m.deployment = d.to_owned();
+        if let RobotState::Failed(_, why) = s {
+            m.failed = true;
+            m.message = Some(why.clone());
+        }
         m.state = MarkState::RollingBack;
         m.since = now;
         // A robot that ran nothing before keeps the new release: there is nothing to return to.
@@ -1046,6 +1064,7 @@ fn progress(
                     since: now,
                     previous: r.current.clone(),
                     message,
+                    failed: false,
                 },
                 release: (state == MarkState::Started).then(|| target.clone()),
             });

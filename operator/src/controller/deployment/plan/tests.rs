@@ -213,6 +213,7 @@ fn a_failing_batch_rolls_every_updated_robot_back() {
         .filter(|r| r.state == RobotRolloutState::RolledBack)
         .count();
     assert_eq!(rolled_back, 20);
+    assert_eq!(st.failed, 3, "failures still counted after the rollback");
 }
 
 #[test]
@@ -396,6 +397,7 @@ fn robots_held_by_another_deployment_are_not_touched() {
         since: sim.now,
         previous: None,
         message: None,
+        failed: false,
     });
     let mut facts = sim.facts();
     facts.active_deployments.push("other".into());
