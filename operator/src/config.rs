@@ -120,6 +120,13 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_RETENTION_DAYS", default_value_t = 30)]
     pub retention_days: u64,
 
+    /// Export per-robot gauges from heartbeats (`lekiwi_robot_cpu_percent`, `_memory_percent`,
+    /// `_temperature_celsius`, `_release_info`, labelled by namespace and robot): about five
+    /// series per connected robot, dropped on disconnect. For fleets whose Prometheus can afford
+    /// that.
+    #[arg(long, env = "LEKIWI_PER_ROBOT_METRICS")]
+    pub per_robot_metrics: bool,
+
     /// Heartbeat interval the gateway asks agents for.
     #[arg(long, env = "LEKIWI_HEARTBEAT_INTERVAL_SECONDS", default_value_t = 30)]
     pub heartbeat_interval_seconds: u64,

@@ -59,7 +59,7 @@ pub async fn run(config: Config) -> Result<()> {
     let client = client(&config).await?;
     crds::ensure(client.clone(), config.install_crds).await?;
 
-    let metrics = Metrics::default();
+    let metrics = Metrics::new(config.per_robot_metrics);
     let cancel = CancellationToken::new();
     let (leader_tx, leader_rx) = watch::channel(false);
     let ready = Arc::new(AtomicBool::new(false));

@@ -260,6 +260,12 @@ impl Presence {
                 }
                 e.info.teleoperation = Some(t);
             }
+            self.metrics.per_robot.record(
+                &key.namespace,
+                &key.name,
+                &e.vitals,
+                e.info.release.as_ref(),
+            );
             if changed {
                 s.enqueue(key, Priority::High);
             }
@@ -329,6 +335,7 @@ impl Presence {
                 return false;
             };
             e.connected = false;
+            self.metrics.per_robot.forget(&key.namespace, &key.name);
             s.enqueue(key, Priority::High);
             true
         });

@@ -131,10 +131,19 @@ async fn watch_gateways(
             HashMap::new();
         let mut phases: HashMap<&'static str, i64> =
             RobotPhase::ALL.iter().map(|p| (p.as_str(), 0)).collect();
+        let mut teleoperating = 0;
         for guard in &all {
             let Ok(robot) = &guard.0 else { continue };
             if let Some(phase) = robot.status.as_ref().and_then(|s| s.phase) {
                 *phases.entry(phase.as_str()).or_default() += 1;
+            }
+            if robot
+                .status
+                .as_ref()
+                .and_then(|s| s.teleoperation.as_ref())
+                .is_some_and(|t| t.active)
+            {
+                teleoperating += 1;
             }
             if let Some(gw) = robot.status.as_ref().and_then(|s| s.gateway.clone()) {
                 by_gateway
@@ -143,6 +152,7 @@ async fn watch_gateways(
                     .push(ObjectRef::from_obj(guard.as_ref()));
             }
         }
+        ctx.metrics.robots_teleoperating.set(teleoperating);
         for (phase, n) in phases {
             ctx.metrics
                 .robots
