@@ -1,9 +1,14 @@
-//! `kubectl lekiwi`: the fleet's kubectl plugin. Lists robots, pushes and inspects releases,
-//! steers rollouts; enrollment and discovery commands follow with the features they drive.
+//! `kubectl lekiwi`: the fleet's kubectl plugin. Lists and registers robots, makes enrollment
+//! tokens, discovers agents on the network, pushes and inspects releases, steers rollouts and
+//! shows a robot's stored events.
 
+pub mod discover;
+pub mod duration;
+pub mod events;
 pub mod release;
 pub mod robots;
 pub mod rollout;
+pub mod tokens;
 
 use std::path::PathBuf;
 
@@ -51,6 +56,21 @@ pub struct Cli {
 pub enum Command {
     /// List robots with phase, release, teleoperation and last heartbeat.
     Robots,
+    /// Register robots by hand.
+    Robot {
+        /// What to do.
+        #[command(subcommand)]
+        command: tokens::RobotCommand,
+    },
+    /// Create (or rotate) the namespace's fleet enrollment token and print it once.
+    EnrollToken(tokens::EnrollArgs),
+    /// Find agents on the network (mDNS and --probe) and show which are registered.
+    ///
+    /// Lists every agent found, whatever namespace it names; `-n` narrows the list to one
+    /// namespace (a robot advertising a bare name counts as in the current namespace).
+    Discover(discover::DiscoverArgs),
+    /// Show a robot's stored events (from the gateway's event store).
+    Events(events::EventsArgs),
     /// Watch and steer a RobotDeployment's rollout.
     Rollout {
         /// What to do.
@@ -70,6 +90,19 @@ pub enum Command {
 
 /// Runs one command.
 pub async fn run(cli: Cli) -> anyhow::Result<()> {
+    if let Command::Discover(_) = &cli.command {
+        // Discovery works without a cluster: it only cannot say what is registered then.
+        let (client, default_ns) = match client(&cli).await {
+            Ok((c, ns)) => (Ok(c), ns),
+            Err(e) => (Err(e), "default".to_owned()),
+        };
+        let namespace = cli.namespace.clone().unwrap_or(default_ns);
+        let only = (!cli.all_namespaces && cli.namespace.is_some()).then_some(namespace.as_str());
+        let Command::Discover(args) = cli.command else {
+            unreachable!("matched above")
+        };
+        return discover::run(client, &namespace, only, cli.output, args).await;
+    }
     let (client, default_ns) = client(&cli).await?;
     let namespace = cli.namespace.clone().unwrap_or(default_ns);
     match cli.command {
@@ -87,6 +120,18 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Release { server, command } => {
             release::run(client, &server, cli.output, command).await?;
+        }
+        Command::Robot {
+            command: tokens::RobotCommand::Add(args),
+        } => {
+            tokens::robot_add(client, &namespace, cli.output, args).await?;
+        }
+        Command::EnrollToken(args) => {
+            tokens::enroll_token(client, &namespace, cli.output, args).await?;
+        }
+        Command::Discover(_) => unreachable!("handled before the client is required"),
+        Command::Events(args) => {
+            events::run(client, &namespace, cli.output, args).await?;
         }
     }
     Ok(())

@@ -262,9 +262,9 @@ async fn hash_all(files: Vec<LocalFile>) -> anyhow::Result<Vec<HashedFile>> {
 }
 
 /// The gateway's HTTP API with the API token.
-struct Gateway {
+pub(crate) struct Gateway {
     http: reqwest::Client,
-    base: String,
+    pub(crate) base: String,
     token: String,
 }
 
@@ -308,7 +308,7 @@ fn transient(status: StatusCode) -> bool {
 }
 
 /// The gateway's message in an error answer, or the body as it is.
-async fn message(resp: reqwest::Response) -> String {
+pub(crate) async fn message(resp: reqwest::Response) -> String {
     let status = resp.status();
     let text = resp.text().await.unwrap_or_default();
     match serde_json::from_str::<ApiError>(&text) {
@@ -319,7 +319,7 @@ async fn message(resp: reqwest::Response) -> String {
 }
 
 impl Gateway {
-    async fn connect(client: kube::Client, server: &ServerArgs) -> anyhow::Result<Self> {
+    pub(crate) async fn connect(client: kube::Client, server: &ServerArgs) -> anyhow::Result<Self> {
         let token = api_token(client, &server.operator_namespace, &server.token_secret).await?;
         let mut http = reqwest::Client::builder()
             .connect_timeout(Duration::from_secs(10))
@@ -338,7 +338,7 @@ impl Gateway {
         })
     }
 
-    fn request(&self, method: Method, path: &str) -> reqwest::RequestBuilder {
+    pub(crate) fn request(&self, method: Method, path: &str) -> reqwest::RequestBuilder {
         self.http
             .request(method, format!("{}{path}", self.base))
             .bearer_auth(&self.token)

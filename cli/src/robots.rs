@@ -84,6 +84,11 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
         }
         rows.push(row);
     }
+    format_table(rows)
+}
+
+/// Left-aligned columns separated by three spaces; the first row is the header.
+pub(crate) fn format_table(rows: Vec<Vec<String>>) -> String {
     let widths: Vec<usize> = (0..rows[0].len())
         .map(|i| rows.iter().map(|r| r[i].len()).max().unwrap_or(0))
         .collect();
@@ -101,7 +106,7 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
 }
 
 /// kubectl-style age: `45s`, `3m`, `5h`, `2d`.
-fn age(now: Timestamp, then: Timestamp) -> String {
+pub(crate) fn age(now: Timestamp, then: Timestamp) -> String {
     let secs = now.duration_since(then).as_secs().max(0);
     match secs {
         s if s < 120 => format!("{s}s ago"),

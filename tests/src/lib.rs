@@ -793,7 +793,7 @@ impl AgentProcess {
     /// Starts an agent for `robot` (`namespace/name`) against `gateway`, enrolling with the
     /// token in `enrollment_token_file` when its state directory has no credentials yet. Quick
     /// test settings: backoff 200 ms to 2 s, teleoperation checks every 0.5 s, no mDNS; `extra`
-    /// flags come last and win.
+    /// flags are appended and must not repeat one of these (the agent refuses repeated flags).
     pub fn start(
         gateway: &str,
         robot: &str,

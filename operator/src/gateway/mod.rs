@@ -5,6 +5,7 @@
 pub mod auth;
 pub mod blobs;
 pub mod dispatch;
+pub mod events_api;
 pub mod lease;
 pub mod legacy;
 pub mod presence;
@@ -131,6 +132,7 @@ pub fn router(state: GatewayState) -> Router {
         .route("/v1/poll", get(legacy::poll))
         .route("/healthz", get(|| async { "ok\n" }))
         .merge(blobs::routes())
+        .merge(events_api::routes())
         .with_state(state)
 }
 

@@ -1,0 +1,224 @@
+//! `kubectl lekiwi events ROBOT`: a robot's stored events, read from the gateway's event store
+//! over `GET /v1/robots/{namespace}/{name}/events` with the API token.
+
+use std::time::Duration;
+
+use anyhow::bail;
+use clap::Args;
+use jiff::Timestamp;
+use reqwest::{Method, StatusCode};
+use serde::{Deserialize, Serialize};
+
+use crate::Output;
+use crate::release::{Gateway, ServerArgs, message};
+
+/// Events one request asks for (the gateway's maximum).
+const PAGE: u32 = 1000;
+/// Pages read at most, so a huge store cannot keep the command busy.
+const MAX_PAGES: usize = 200;
+
+/// Arguments of `events`.
+#[derive(Debug, Args)]
+pub struct EventsArgs {
+    /// The robot: `name` (in -n's namespace) or `namespace/name`.
+    pub robot: String,
+    /// Only events from this long ago until now (e.g. 30m, 1h, 2d).
+    #[arg(long, default_value = "1h", value_parser = crate::duration::parse)]
+    pub since: Duration,
+    /// Show at most this many, the newest.
+    #[arg(long, default_value_t = 100)]
+    pub limit: usize,
+    /// Only events of this kind (e.g. agent_started); repeatable.
+    #[arg(long)]
+    pub kind: Vec<String>,
+    /// Where the gateway is and how to get its API token.
+    #[command(flatten)]
+    pub server: ServerArgs,
+}
+
+/// One stored event, as the gateway answers it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoredEvent {
+    /// The robot's sequence number.
+    pub seq: u64,
+    /// When it happened on the robot, Unix milliseconds.
+    pub ts_ms: i64,
+    /// What happened.
+    pub kind: String,
+    /// `info`, `warning` or `error`.
+    pub severity: String,
+    /// Human-readable text.
+    pub message: String,
+    /// Structured details.
+    #[serde(default)]
+    pub data: serde_json::Value,
+}
+
+/// Runs `events`.
+pub async fn run(
+    client: kube::Client,
+    namespace: &str,
+    output: Output,
+    args: EventsArgs,
+) -> anyhow::Result<()> {
+    let (ns, name) = match args.robot.split_once('/') {
+        Some((ns, name)) => (ns.to_owned(), name.to_owned()),
+        None => (namespace.to_owned(), args.robot.clone()),
+    };
+    let gateway = Gateway::connect(client, &args.server).await?;
+    let now = Timestamp::now();
+    let since_ms = now.as_millisecond() - i64::try_from(args.since.as_millis()).unwrap_or(i64::MAX);
+    let events = fetch(&gateway, &ns, &name).await?;
+    let shown = select(events, since_ms, &args.kind, args.limit);
+    print!("{}", render(&shown, output, now)?);
+    Ok(())
+}
+
+/// Reads every stored event of the robot, page by page.
+async fn fetch(gateway: &Gateway, ns: &str, name: &str) -> anyhow::Result<Vec<StoredEvent>> {
+    let mut all = Vec::new();
+    let mut after: Option<u64> = None;
+    for _ in 0..MAX_PAGES {
+        let mut path = format!("/v1/robots/{ns}/{name}/events?limit={PAGE}");
+        if let Some(seq) = after {
+            path.push_str(&format!("&after_seq={seq}"));
+        }
+        let resp = match gateway.request(Method::GET, &path).send().await {
+            Ok(r) => r,
+            Err(e) => bail!(
+                "the gateway at {} did not answer ({e}); check --server or LEKIWI_SERVER",
+                gateway.base
+            ),
+        };
+        match resp.status() {
+            StatusCode::OK => {}
+            StatusCode::UNAUTHORIZED => bail!(
+                "the gateway at {} refused the API token (401): is --server the gateway of the operator in --operator-namespace?",
+                gateway.base
+            ),
+            StatusCode::NOT_FOUND => bail!(
+                "the gateway at {} has no events API (404): is it older than this plugin?",
+                gateway.base
+            ),
+            s => bail!(
+                "reading events of {ns}/{name}: {s}: {}",
+                message(resp).await
+            ),
+        }
+        let page: Vec<StoredEvent> = resp.json().await?;
+        let full = page.len() >= PAGE as usize;
+        after = page.last().map(|e| e.seq).or(after);
+        all.extend(page);
+        if !full {
+            return Ok(all);
+        }
+    }
+    eprintln!("warning: stopped after {} events", all.len());
+    Ok(all)
+}
+
+/// The newest `limit` events at or after `since_ms` of the given kinds (all if none), oldest
+/// first.
+pub fn select(
+    events: Vec<StoredEvent>,
+    since_ms: i64,
+    kinds: &[String],
+    limit: usize,
+) -> Vec<StoredEvent> {
+    let mut kept: Vec<StoredEvent> = events
+        .into_iter()
+        .filter(|e| e.ts_ms >= since_ms && (kinds.is_empty() || kinds.contains(&e.kind)))
+        .collect();
+    let skip = kept.len().saturating_sub(limit);
+    kept.drain(..skip);
+    kept
+}
+
+/// Renders events in the given format; `now` is passed in so ages are testable.
+pub fn render(events: &[StoredEvent], output: Output, now: Timestamp) -> anyhow::Result<String> {
+    Ok(match output {
+        Output::Json => serde_json::to_string_pretty(events)? + "\n",
+        Output::Yaml => serde_yaml::to_string(events)?,
+        Output::Table | Output::Wide => {
+            let wide = output == Output::Wide;
+            let mut rows = vec![
+                ["SEQ", "AGE", "SEVERITY", "KIND", "MESSAGE", "DATA"]
+                    .iter()
+                    .take(if wide { 6 } else { 5 })
+                    .map(|s| s.to_string())
+                    .collect::<Vec<_>>(),
+            ];
+            for e in events {
+                let age = Timestamp::from_millisecond(e.ts_ms)
+                    .map(|t| crate::robots::age(now, t))
+                    .unwrap_or_else(|_| "-".into());
+                let mut row = vec![
+                    e.seq.to_string(),
+                    age,
+                    e.severity.clone(),
+                    e.kind.clone(),
+                    e.message.clone(),
+                ];
+                if wide {
+                    row.push(if e.data.is_null() {
+                        "-".into()
+                    } else {
+                        e.data.to_string()
+                    });
+                }
+                rows.push(row);
+            }
+            if events.is_empty() {
+                return Ok("No events found.\n".into());
+            }
+            crate::robots::format_table(rows)
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ev(seq: u64, ts_ms: i64, kind: &str) -> StoredEvent {
+        StoredEvent {
+            seq,
+            ts_ms,
+            kind: kind.into(),
+            severity: "info".into(),
+            message: format!("event {seq}"),
+            data: serde_json::Value::Null,
+        }
+    }
+
+    #[test]
+    fn select_keeps_the_newest_of_the_window_and_kinds() {
+        let events = vec![
+            ev(1, 100, "agent_started"),
+            ev(2, 200, "x"),
+            ev(3, 300, "agent_started"),
+            ev(4, 400, "agent_started"),
+        ];
+        let got = select(events.clone(), 150, &["agent_started".into()], 10);
+        assert_eq!(got.iter().map(|e| e.seq).collect::<Vec<_>>(), [3, 4]);
+        let got = select(events, 0, &[], 2);
+        assert_eq!(got.iter().map(|e| e.seq).collect::<Vec<_>>(), [3, 4]);
+    }
+
+    #[test]
+    fn table_has_age_and_kind() {
+        let now: Timestamp = "2026-01-01T00:01:00Z".parse().unwrap();
+        let out = render(
+            &[ev(7, now.as_millisecond() - 30_000, "agent_started")],
+            Output::Table,
+            now,
+        )
+        .unwrap();
+        let lines: Vec<&str> = out.lines().collect();
+        assert!(lines[0].starts_with("SEQ"));
+        assert_eq!(
+            lines[1].split_whitespace().collect::<Vec<_>>(),
+            ["7", "30s", "ago", "info", "agent_started", "event", "7"]
+        );
+    }
+}

@@ -1,0 +1,427 @@
+//! `kubectl lekiwi robot add NAME` and `kubectl lekiwi enroll-token`: register a robot with its
+//! own token, or make the namespace's fleet enrollment token. Tokens are printed once and kept
+//! in the cluster only as SHA-256 hashes, in Secrets shaped exactly as the gateway reads them.
+
+use std::collections::BTreeMap;
+
+use anyhow::{Context as _, bail};
+use clap::{Args, Subcommand};
+use k8s_openapi::ByteString;
+use k8s_openapi::api::core::v1::Secret;
+use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
+use kube::{Api, Resource};
+use lekiwi_crds::Robot;
+use rand::RngCore;
+use serde::Serialize;
+use sha2::{Digest, Sha256};
+
+use crate::Output;
+
+/// Label on every token Secret; its value says which kind (as the gateway's `auth.rs`).
+pub const TOKEN_LABEL: &str = "fleet.lekiwi.io/token";
+/// `TOKEN_LABEL` value of a fleet enrollment token.
+pub const KIND_ENROLLMENT: &str = "enrollment";
+/// `TOKEN_LABEL` value of a per-robot token.
+pub const KIND_ROBOT: &str = "robot";
+/// Label naming the robot a per-robot token belongs to.
+pub const ROBOT_LABEL: &str = "fleet.lekiwi.io/robot";
+/// Key in a token Secret's data holding the hex SHA-256 of the token.
+pub const HASH_KEY: &str = "sha256";
+/// Name of the fleet enrollment token Secret (as `scripts/quickstart.sh` makes it).
+pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
+/// Field manager of what this plugin applies.
+pub const FIELD_MANAGER: &str = "kubectl-lekiwi";
+/// The agent's default state directory (agent `stateDir`).
+pub const AGENT_STATE_DIR: &str = "/var/lib/lekiwi";
+/// The agent's default config file.
+pub const AGENT_CONFIG: &str = "/etc/lekiwi/agent.yaml";
+
+/// `robot` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum RobotCommand {
+    /// Register a robot: create the Robot and its own token, print the agent's configuration.
+    ///
+    /// The agent then connects with that token and needs no enrollment token. The token is
+    /// printed once; the cluster keeps only its SHA-256.
+    Add(AddArgs),
+}
+
+/// Arguments of `robot add`.
+#[derive(Debug, Args)]
+pub struct AddArgs {
+    /// Name of the Robot resource.
+    pub name: String,
+    /// Name people use for the robot.
+    #[arg(long)]
+    pub display_name: Option<String>,
+    /// Label of the Robot, `key=value` (repeatable).
+    #[arg(long = "label", short = 'l', value_parser = parse_label)]
+    pub labels: Vec<(String, String)>,
+    /// WebSocket URL of the gateway for the agent config (default: from LEKIWI_SERVER).
+    #[arg(long, env = "LEKIWI_GATEWAY_URL")]
+    pub gateway: Option<String>,
+    /// If the Robot exists, issue it a new token (the old one stops working) instead of failing.
+    #[arg(long)]
+    pub rotate_token: bool,
+}
+
+/// Arguments of `enroll-token`.
+#[derive(Debug, Args)]
+pub struct EnrollArgs {
+    /// Replace an existing enrollment token (robots already enrolled keep their own tokens).
+    #[arg(long)]
+    pub rotate: bool,
+}
+
+fn parse_label(s: &str) -> Result<(String, String), String> {
+    let (k, v) = s
+        .split_once('=')
+        .ok_or_else(|| format!("label {s:?} is not key=value"))?;
+    if k.is_empty() {
+        return Err(format!("label {s:?} has an empty key"));
+    }
+    Ok((k.to_owned(), v.to_owned()))
+}
+
+/// Hex SHA-256 of a token, as the gateway stores it.
+pub fn hash_token(token: &str) -> String {
+    hex::encode(Sha256::digest(token.as_bytes()))
+}
+
+/// A fresh random token with a kind prefix (`lkr_` robot, `lke_` enrollment).
+pub fn new_token(prefix: &str) -> String {
+    let mut bytes = [0u8; 32];
+    rand::rng().fill_bytes(&mut bytes);
+    format!("{prefix}{}", hex::encode(bytes))
+}
+
+/// Name of the Secret holding a robot's token hash (the gateway's `robot_secret_name`).
+pub fn robot_secret_name(robot: &str) -> String {
+    format!("{robot}-agent-token")
+}
+
+/// The agent's WebSocket URL derived from the gateway's HTTP base URL.
+pub fn gateway_from_server(server: &str) -> String {
+    let server = server.trim_end_matches('/');
+    let ws = if let Some(rest) = server.strip_prefix("https://") {
+        format!("wss://{rest}")
+    } else if let Some(rest) = server.strip_prefix("http://") {
+        format!("ws://{rest}")
+    } else {
+        server.to_owned()
+    };
+    format!("{ws}{}", lekiwi_protocol::AGENT_PATH)
+}
+
+/// What `robot add` hands to the robot.
+#[derive(Clone, Debug, Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct AgentSetup {
+    /// `namespace/name`.
+    pub robot: String,
+    /// Contents of `/etc/lekiwi/agent.yaml`.
+    pub agent_config: AgentConfig,
+    /// Contents of `<stateDir>/credentials.json` (mode 0600).
+    pub credentials: Credentials,
+}
+
+/// The agent config keys `robot add` sets.
+#[derive(Clone, Debug, Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct AgentConfig {
+    /// Gateway WebSocket URL.
+    pub gateway: String,
+    /// `namespace/name`.
+    pub robot_name: String,
+    /// Where the agent keeps its credentials.
+    pub state_dir: String,
+}
+
+/// The agent's `credentials.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct Credentials {
+    /// `namespace/name`.
+    pub robot: String,
+    /// The per-robot token.
+    pub token: String,
+}
+
+impl AgentSetup {
+    /// Shell commands that install the configuration on the robot.
+    pub fn install_script(&self) -> anyhow::Result<String> {
+        let yaml = serde_yaml::to_string(&self.agent_config)?;
+        let creds = serde_json::to_string(&self.credentials)?;
+        let dir = &self.agent_config.state_dir;
+        Ok(format!(
+            "# On the robot, as root:\n\
+             install -d -m 0755 /etc/lekiwi\n\
+             install -d -m 0700 {dir}\n\
+             cat > {AGENT_CONFIG} <<'EOF'\n{yaml}EOF\n\
+             (umask 077 && cat > {dir}/credentials.json <<'EOF'\n{creds}\nEOF\n)\n\
+             chmod 0600 {dir}/credentials.json\n\
+             systemctl restart lekiwi-agent  # or start lekiwi-agent by hand\n"
+        ))
+    }
+}
+
+/// Runs `robot add`.
+pub async fn robot_add(
+    client: kube::Client,
+    namespace: &str,
+    output: Output,
+    args: AddArgs,
+) -> anyhow::Result<()> {
+    let setup = add(client, namespace, &args).await?;
+    match output {
+        Output::Json => println!("{}", serde_json::to_string_pretty(&setup)?),
+        Output::Yaml => print!("{}", serde_yaml::to_string(&setup)?),
+        Output::Table | Output::Wide => {
+            eprintln!(
+                "robot {} registered; its token is shown once (the cluster keeps only its hash)",
+                setup.robot
+            );
+            print!("{}", setup.install_script()?);
+        }
+    }
+    Ok(())
+}
+
+/// Creates the Robot (or, with `--rotate-token`, keeps an existing one) and its token Secret.
+pub async fn add(
+    client: kube::Client,
+    namespace: &str,
+    args: &AddArgs,
+) -> anyhow::Result<AgentSetup> {
+    let gateway = match &args.gateway {
+        Some(g) => g.clone(),
+        None => match std::env::var("LEKIWI_SERVER") {
+            Ok(server) if !server.is_empty() => gateway_from_server(&server),
+            _ => {
+                eprintln!(
+                    "warning: no --gateway (or LEKIWI_GATEWAY_URL / LEKIWI_SERVER): edit `gateway` in the printed config"
+                );
+                "wss://GATEWAY-HOST/v1/agent".to_owned()
+            }
+        },
+    };
+    let robots: Api<Robot> = Api::namespaced(client.clone(), namespace);
+    let robot = Robot {
+        metadata: ObjectMeta {
+            name: Some(args.name.clone()),
+            labels: (!args.labels.is_empty()).then(|| args.labels.iter().cloned().collect()),
+            ..ObjectMeta::default()
+        },
+        spec: lekiwi_crds::RobotSpec {
+            display_name: args.display_name.clone(),
+            ..lekiwi_crds::RobotSpec::default()
+        },
+        ..Robot::default()
+    };
+    let robot = match robots.create(&PostParams::default(), &robot).await {
+        Ok(r) => r,
+        Err(kube::Error::Api(s)) if s.code == 409 => {
+            if !args.rotate_token {
+                bail!(
+                    "robot {namespace}/{} already exists; pass --rotate-token to issue it a new token (its current token stops working)",
+                    args.name
+                );
+            }
+            robots.get(&args.name).await?
+        }
+        Err(kube::Error::Api(s)) if s.code == 422 || s.code == 400 => {
+            bail!(
+                "cannot create robot {namespace}/{}: {}",
+                args.name,
+                s.message
+            )
+        }
+        Err(e) => {
+            return Err(e)
+                .with_context(|| format!("cannot create robot {namespace}/{}", args.name));
+        }
+    };
+    let token = new_token("lkr_");
+    let secret = Secret {
+        metadata: ObjectMeta {
+            name: Some(robot_secret_name(&args.name)),
+            labels: Some(BTreeMap::from([
+                (TOKEN_LABEL.to_owned(), KIND_ROBOT.to_owned()),
+                (ROBOT_LABEL.to_owned(), args.name.clone()),
+            ])),
+            owner_references: robot.controller_owner_ref(&()).map(|r| vec![r]),
+            ..ObjectMeta::default()
+        },
+        data: Some(BTreeMap::from([(
+            HASH_KEY.to_owned(),
+            ByteString(hash_token(&token).into_bytes()),
+        )])),
+        type_: Some("Opaque".to_owned()),
+        ..Secret::default()
+    };
+    let secrets: Api<Secret> = Api::namespaced(client, namespace);
+    secrets
+        .patch(
+            &robot_secret_name(&args.name),
+            &PatchParams::apply(FIELD_MANAGER).force(),
+            &Patch::Apply(&secret),
+        )
+        .await
+        .with_context(|| {
+            format!(
+                "cannot write Secret {namespace}/{} with the robot's token hash",
+                robot_secret_name(&args.name)
+            )
+        })?;
+    let full = format!("{namespace}/{}", args.name);
+    Ok(AgentSetup {
+        robot: full.clone(),
+        agent_config: AgentConfig {
+            gateway,
+            robot_name: full.clone(),
+            state_dir: AGENT_STATE_DIR.to_owned(),
+        },
+        credentials: Credentials { robot: full, token },
+    })
+}
+
+/// What `enroll-token` prints.
+#[derive(Clone, Debug, Serialize)]
+#[serde(rename_all = "camelCase")]
+pub struct EnrollmentToken {
+    /// Namespace robots enrolling with it are registered in.
+    pub namespace: String,
+    /// The Secret holding its hash.
+    pub secret: String,
+    /// The token.
+    pub token: String,
+}
+
+/// Runs `enroll-token`.
+pub async fn enroll_token(
+    client: kube::Client,
+    namespace: &str,
+    output: Output,
+    args: EnrollArgs,
+) -> anyhow::Result<()> {
+    let made = make_enrollment_token(client, namespace, args.rotate).await?;
+    match output {
+        Output::Json => println!("{}", serde_json::to_string_pretty(&made)?),
+        Output::Yaml => print!("{}", serde_yaml::to_string(&made)?),
+        Output::Table | Output::Wide => {
+            eprintln!(
+                "fleet enrollment token for namespace {namespace} (Secret {}; shown once, the cluster keeps only its hash).\n\
+                 On each robot: write it to a file readable only by root, e.g. /etc/lekiwi/enrollment-token,\n\
+                 and set in {AGENT_CONFIG}:\n  enrollmentTokenFile: /etc/lekiwi/enrollment-token\n  robotName: {namespace}/<name>",
+                made.secret
+            );
+            println!("{}", made.token);
+        }
+    }
+    Ok(())
+}
+
+/// Creates the namespace's enrollment token Secret, or replaces its hash with `rotate`.
+pub async fn make_enrollment_token(
+    client: kube::Client,
+    namespace: &str,
+    rotate: bool,
+) -> anyhow::Result<EnrollmentToken> {
+    let secrets: Api<Secret> = Api::namespaced(client, namespace);
+    let token = new_token("lke_");
+    let secret = Secret {
+        metadata: ObjectMeta {
+            name: Some(ENROLLMENT_SECRET.to_owned()),
+            labels: Some(BTreeMap::from([(
+                TOKEN_LABEL.to_owned(),
+                KIND_ENROLLMENT.to_owned(),
+            )])),
+            ..ObjectMeta::default()
+        },
+        data: Some(BTreeMap::from([(
+            HASH_KEY.to_owned(),
+            ByteString(hash_token(&token).into_bytes()),
+        )])),
+        type_: Some("Opaque".to_owned()),
+        ..Secret::default()
+    };
+    let what = || format!("cannot write Secret {namespace}/{ENROLLMENT_SECRET}");
+    if rotate {
+        secrets
+            .patch(
+                ENROLLMENT_SECRET,
+                &PatchParams::apply(FIELD_MANAGER).force(),
+                &Patch::Apply(&secret),
+            )
+            .await
+            .with_context(what)?;
+    } else {
+        match secrets.create(&PostParams::default(), &secret).await {
+            Ok(_) => {}
+            Err(kube::Error::Api(s)) if s.code == 409 => bail!(
+                "namespace {namespace} already has an enrollment token (Secret {ENROLLMENT_SECRET}); \
+                 it cannot be shown again: pass --rotate to replace it"
+            ),
+            Err(e) => return Err(e).with_context(what),
+        }
+    }
+    Ok(EnrollmentToken {
+        namespace: namespace.to_owned(),
+        secret: ENROLLMENT_SECRET.to_owned(),
+        token,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tokens_hash_like_the_gateway() {
+        let t = new_token("lkr_");
+        assert!(t.starts_with("lkr_") && t.len() == 68);
+        assert_eq!(
+            hash_token("abc"),
+            "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+        );
+        assert_eq!(robot_secret_name("kiwi-1"), "kiwi-1-agent-token");
+    }
+
+    #[test]
+    fn gateway_url_from_server() {
+        assert_eq!(
+            gateway_from_server("http://127.0.0.1:8081/"),
+            "ws://127.0.0.1:8081/v1/agent"
+        );
+        assert_eq!(
+            gateway_from_server("https://fleet.example.com"),
+            "wss://fleet.example.com/v1/agent"
+        );
+    }
+
+    #[test]
+    fn labels_parse() {
+        assert_eq!(parse_label("a=b=c"), Ok(("a".into(), "b=c".into())));
+        assert!(parse_label("nokey").is_err());
+        assert!(parse_label("=v").is_err());
+    }
+
+    #[test]
+    fn install_script_writes_private_credentials() {
+        let setup = AgentSetup {
+            robot: "lab/kiwi".into(),
+            agent_config: AgentConfig {
+                gateway: "ws://gw/v1/agent".into(),
+                robot_name: "lab/kiwi".into(),
+                state_dir: AGENT_STATE_DIR.into(),
+            },
+            credentials: Credentials {
+                robot: "lab/kiwi".into(),
+                token: "lkr_x".into(),
+            },
+        };
+        let script = setup.install_script().unwrap();
+        assert!(script.contains("robotName: lab/kiwi"));
+        assert!(script.contains(r#"{"robot":"lab/kiwi","token":"lkr_x"}"#));
+        assert!(script.contains("chmod 0600 /var/lib/lekiwi/credentials.json"));
+    }
+}
