@@ -1,15 +1,26 @@
-//! The Helm chart: lints, renders to objects the API server accepts, installs, and its RBAC is
-//! exactly enough: the operator runs the Robot controller with the chart's ServiceAccount token
-//! and never meets a Forbidden.
+//! The Helm chart: lints with every option, refuses bad values through its schema, renders to
+//! objects the API server accepts (SQLite on a volume, TLS, external PostgreSQL), installs, ships
+//! the dashboards kept in sync with `manifests/dashboards/`, and its RBAC is exactly enough: the
+//! operator runs controllers and gateway with the chart's ServiceAccount token (enrollment, a
+//! release push and a rollout included) and never meets a Forbidden.
 
+use std::path::Path;
+use std::process::{Command, Output};
 use std::time::Duration;
 
-use lekiwi_crds::RobotPhase;
+use kube::Api;
+use kube::api::{Patch, PatchParams};
+use lekiwi_crds::{Robot, RobotDeployment, RobotPhase};
 use lekiwi_tests::{
-    ControlPlane, GatewayStandIn, OperatorProcess, create_robot, get_robot, namespace, wait_for,
+    ControlPlane, GatewayStandIn, OperatorProcess, bin, create_robot, get_robot, namespace,
+    repo_root, wait_for,
 };
+use serde_json::json;
+use serde_yaml::Value;
 
-fn ok(out: std::process::Output, what: &str) -> String {
+const CHART: &str = "charts/lekiwi-operator";
+
+fn ok(out: Output, what: &str) -> String {
     let text = format!(
         "{}{}",
         String::from_utf8_lossy(&out.stdout),
@@ -19,47 +30,568 @@ fn ok(out: std::process::Output, what: &str) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// Helm without a cluster (lint, template with the default capabilities).
+fn helm(args: &[&str]) -> Output {
+    Command::new(lekiwi_tests::tool("helm"))
+        .args(args)
+        .env("KUBECONFIG", "/dev/null")
+        .current_dir(repo_root())
+        .output()
+        .expect("run helm")
+}
+
+/// The rendered documents, as YAML values (comments and empty documents dropped).
+fn documents(rendered: &str) -> Vec<Value> {
+    rendered
+        .split("\n---")
+        .filter_map(|doc| serde_yaml::from_str::<Value>(doc).ok())
+        .filter(|v| v.is_mapping())
+        .collect()
+}
+
+fn find<'a>(docs: &'a [Value], kind: &str, name: &str) -> &'a Value {
+    docs.iter()
+        .find(|d| d["kind"] == kind && d["metadata"]["name"] == name)
+        .unwrap_or_else(|| panic!("no {kind} {name} rendered"))
+}
+
+fn json_files(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut files: Vec<_> = std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .filter_map(|e| e.ok())
+                .map(|e| e.path())
+                .filter(|p| p.extension().is_some_and(|x| x == "json"))
+                .map(|p| {
+                    let name = p.file_name().unwrap().to_string_lossy().into_owned();
+                    (name, std::fs::read(&p).expect("read dashboard"))
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    files.sort();
+    files
+}
+
+/// Every option switched on (replicas above one with PostgreSQL and ReadWriteMany blobs).
+const ALL_OPTIONS: &str = r#"
+nameOverride: kiwi
+image: {repository: registry.example.com/lekiwi/operator, tag: 0.2.0-rc.1, pullPolicy: Always}
+imagePullSecrets: [{name: regcred}]
+replicaCount: 3
+operator:
+  role: all
+  logFormat: text
+  logLevel: debug
+  watchNamespace: robots
+  heartbeatGraceSeconds: 120
+  concurrency: 4
+  retentionDays: 7
+  perRobotMetrics: true
+  installCrds: true
+  apiTokenSecret: fleet-api
+  leaderElection: {leaseName: kiwi-leader, leaseDurationSeconds: 20, leaseRetrySeconds: 3}
+  extraArgs: [--max-frame-bytes=65536]
+httpPort: 9090
+gateway:
+  port: 9443
+  heartbeatIntervalSeconds: 15
+  maxConnections: 5000
+  maxBlobBytes: 1073741824
+  service:
+    type: LoadBalancer
+    port: 443
+    nodePort: 30443
+    annotations: {service.beta.kubernetes.io/aws-load-balancer-type: nlb}
+    externalTrafficPolicy: Local
+    loadBalancerSourceRanges: [10.0.0.0/8]
+  tls: {secretName: gateway-tls}
+metrics:
+  service: {port: 9090, labels: {scrape: "yes"}, annotations: {a: b}}
+serviceMonitor:
+  enabled: true
+  labels: {release: kube-prometheus-stack}
+  interval: 15s
+  scrapeTimeout: 10s
+  namespace: monitoring
+dashboards:
+  enabled: true
+  label: grafana_dashboard_lekiwi
+  labelValue: "yes"
+  annotations: {grafana_folder: LeKiwi}
+  namespace: monitoring
+store:
+  postgres: {existingSecret: lekiwi-postgres, key: dsn}
+persistence:
+  enabled: true
+  size: 50Gi
+  storageClass: nfs
+  accessModes: [ReadWriteMany]
+  annotations: {backup: daily}
+podDisruptionBudget: {enabled: true, minAvailable: 2, maxUnavailable: null}
+otel:
+  endpoint: http://otel-collector.observability:4317
+  protocol: grpc
+  serviceName: lekiwi-fleet
+  resourceAttributes: {deployment.environment: prod}
+extraEnv: [{name: LEKIWI_AGENT_RATE, value: "10"}]
+rbac: {create: true}
+serviceAccount: {create: true, name: kiwi-operator, annotations: {team: robots}}
+podAnnotations: {a: b}
+podLabels: {team: robots}
+priorityClassName: system-cluster-critical
+resources: {requests: {cpu: 100m, memory: 128Mi}, limits: {cpu: "1", memory: 512Mi}}
+nodeSelector: {kubernetes.io/arch: amd64}
+tolerations: [{key: dedicated, operator: Exists}]
+affinity: {}
+topologySpreadConstraints:
+  - {maxSkew: 1, topologyKey: topology.kubernetes.io/zone, whenUnsatisfiable: ScheduleAnyway}
+"#;
+
+#[test]
+fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
+    ok(helm(&["lint", "--strict", CHART]), "helm lint (defaults)");
+    let dir = tempfile::tempdir()?;
+    let values = dir.path().join("all.yaml");
+    std::fs::write(&values, ALL_OPTIONS)?;
+    let values = values.to_str().unwrap();
+    ok(
+        helm(&["lint", "--strict", CHART, "-f", values]),
+        "helm lint (every option)",
+    );
+    let docs = documents(&ok(
+        helm(&["template", "r", CHART, "-n", "fleet", "-f", values]),
+        "helm template (every option)",
+    ));
+    let deploy = find(&docs, "Deployment", "r-kiwi");
+    let pod = &deploy["spec"]["template"]["spec"];
+    let c = &pod["containers"][0];
+    let args: Vec<&str> = c["args"]
+        .as_sequence()
+        .unwrap()
+        .iter()
+        .filter_map(|a| a.as_str())
+        .collect();
+    for want in [
+        "--tls-cert=/etc/lekiwi/tls/tls.crt",
+        "--tls-key=/etc/lekiwi/tls/tls.key",
+        "--gateway-addr=0.0.0.0:9443",
+        "--http-addr=0.0.0.0:9090",
+        "--watch-namespace=robots",
+        "--install-crds",
+        "--api-token-secret=fleet-api",
+        "--leader-lease=kiwi-leader",
+        "--max-blob-bytes=1073741824",
+        "--blob-dir=/var/lib/lekiwi/blobs",
+        "--max-frame-bytes=65536",
+    ] {
+        assert!(args.contains(&want), "{want} missing from {args:?}");
+    }
+    assert!(
+        !args.iter().any(|a| a.starts_with("--store-url")),
+        "PostgreSQL comes from the Secret, not a flag: {args:?}"
+    );
+    assert!(
+        deploy["spec"]["strategy"].is_null(),
+        "rolling updates with PostgreSQL"
+    );
+    let env = c["env"].as_sequence().unwrap();
+    let var = |name: &str| {
+        env.iter()
+            .find(|e| e["name"] == name)
+            .unwrap_or_else(|| panic!("env {name} missing: {env:?}"))
+    };
+    assert_eq!(
+        var("LEKIWI_STORE_URL")["valueFrom"]["secretKeyRef"],
+        serde_yaml::from_str::<Value>("{name: lekiwi-postgres, key: dsn}")?
+    );
+    assert_eq!(
+        var("OTEL_EXPORTER_OTLP_ENDPOINT")["value"],
+        "http://otel-collector.observability:4317"
+    );
+    assert_eq!(var("OTEL_EXPORTER_OTLP_PROTOCOL")["value"], "grpc");
+    assert_eq!(var("OTEL_SERVICE_NAME")["value"], "lekiwi-fleet");
+    assert!(
+        var("OTEL_RESOURCE_ATTRIBUTES")["value"]
+            .as_str()
+            .unwrap()
+            .contains("deployment.environment=prod")
+    );
+    assert_eq!(var("LEKIWI_AGENT_RATE")["value"], "10");
+    for port in c["ports"].as_sequence().unwrap() {
+        assert_eq!(port["protocol"], "TCP", "{port:?}");
+    }
+    let volumes = serde_yaml::to_string(&pod["volumes"])?;
+    assert!(
+        volumes.contains("claimName: r-kiwi-data") && volumes.contains("secretName: gateway-tls"),
+        "{volumes}"
+    );
+    let pvc = find(&docs, "PersistentVolumeClaim", "r-kiwi-data");
+    assert_eq!(pvc["spec"]["accessModes"][0], "ReadWriteMany");
+    assert_eq!(pvc["spec"]["storageClassName"], "nfs");
+    assert_eq!(
+        find(&docs, "PodDisruptionBudget", "r-kiwi")["spec"]["minAvailable"],
+        2
+    );
+    let gw = find(&docs, "Service", "r-kiwi-gateway");
+    assert_eq!(gw["spec"]["type"], "LoadBalancer");
+    assert_eq!(gw["spec"]["ports"][0]["nodePort"], 30443);
+    // watchNamespace: the fleet permissions only in that namespace; the leases and the API
+    // token Secret in the release's.
+    let binding = find(&docs, "RoleBinding", "r-kiwi");
+    assert_eq!(binding["metadata"]["namespace"], "robots");
+    assert_eq!(binding["roleRef"]["kind"], "ClusterRole");
+    assert!(
+        !docs
+            .iter()
+            .any(|d| d["kind"] == "ClusterRoleBinding" && d["metadata"]["name"] == "r-kiwi"),
+        "no cluster-wide fleet binding with watchNamespace"
+    );
+    let local = serde_yaml::to_string(&find(&docs, "Role", "r-kiwi-local")["rules"])?;
+    assert!(local.contains("fleet-api"), "{local}");
+    let crds = serde_yaml::to_string(&find(&docs, "ClusterRole", "r-kiwi-crds")["rules"])?;
+    assert!(crds.contains("create") && crds.contains("patch"), "{crds}");
+    Ok(())
+}
+
+#[test]
+fn chart_servicemonitor_renders_only_when_enabled() -> anyhow::Result<()> {
+    let off = ok(helm(&["template", "r", CHART, "-n", "fleet"]), "template");
+    assert!(!off.contains("ServiceMonitor\n"), "{off}");
+    let docs = documents(&ok(
+        helm(&[
+            "template",
+            "r",
+            CHART,
+            "-n",
+            "fleet",
+            "--set",
+            "serviceMonitor.enabled=true",
+            "--set",
+            "serviceMonitor.labels.release=prom",
+            "--set",
+            "serviceMonitor.interval=10s",
+        ]),
+        "helm template with the ServiceMonitor",
+    ));
+    let sm = find(&docs, "ServiceMonitor", "r-lekiwi-operator");
+    assert_eq!(sm["apiVersion"], "monitoring.coreos.com/v1");
+    assert_eq!(sm["metadata"]["namespace"], "fleet");
+    assert_eq!(sm["metadata"]["labels"]["release"], "prom");
+    assert_eq!(
+        sm["metadata"]["labels"]["app.kubernetes.io/managed-by"],
+        "Helm"
+    );
+    let endpoint = &sm["spec"]["endpoints"][0];
+    assert_eq!(endpoint["port"], "http-metrics");
+    assert_eq!(endpoint["path"], "/metrics");
+    assert_eq!(endpoint["interval"], "10s");
+    assert_eq!(sm["spec"]["namespaceSelector"]["matchNames"][0], "fleet");
+    // It selects the metrics Service, and only it, whose port is named as the endpoint says.
+    let metrics = find(&docs, "Service", "r-lekiwi-operator-metrics");
+    let selector = sm["spec"]["selector"]["matchLabels"].as_mapping().unwrap();
+    for (k, v) in selector {
+        assert_eq!(&metrics["metadata"]["labels"][k], v, "label {k:?}");
+    }
+    let gateway = find(&docs, "Service", "r-lekiwi-operator-gateway");
+    assert!(
+        selector
+            .iter()
+            .any(|(k, v)| &gateway["metadata"]["labels"][k] != v),
+        "the ServiceMonitor must not select the gateway Service"
+    );
+    assert_eq!(metrics["spec"]["ports"][0]["name"], "http-metrics");
+    assert_eq!(metrics["spec"]["ports"][0]["port"], 8080);
+    Ok(())
+}
+
+#[test]
+fn chart_schema_refuses_bad_values_naming_the_field() {
+    let cases: &[(&[&str], &str)] = &[
+        (&["--set", "replicaCount=0"], "/replicaCount"),
+        (
+            &["--set", "gateway.service.type=Bogus"],
+            "/gateway/service/type",
+        ),
+        (&["--set", "gateway.port=abc"], "/gateway/port"),
+        (&["--set", "httpPort=70000"], "/httpPort"),
+        (&["--set", "replicaCont=2"], "replicaCont"),
+        (&["--set", "persistence.size=10GB"], "/persistence/size"),
+        (&["--set", "image.tag=bad tag!"], "/image/tag"),
+        (&["--set", "operator.role=boss"], "/operator/role"),
+        (&["--set", "operator.logFormat=xml"], "/operator/logFormat"),
+        (
+            &["--set", "resources.requests.memory=lots"],
+            "/resources/requests/memory",
+        ),
+        (
+            &["--set", "persistence.accessModes={ReadWriteSometimes}"],
+            "/persistence/accessModes",
+        ),
+        (
+            &["--set", "gateway.tls.secretName=Not_A_Name"],
+            "/gateway/tls/secretName",
+        ),
+    ];
+    for (args, field) in cases {
+        for cmd in ["template", "lint"] {
+            let mut all = vec![cmd];
+            if cmd == "template" {
+                all.push("r");
+            }
+            all.push(CHART);
+            all.extend_from_slice(args);
+            let out = helm(&all);
+            let text = format!(
+                "{}{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+            assert!(!out.status.success(), "helm {all:?} accepted it:\n{text}");
+            assert!(
+                text.contains(field) && text.contains("schema"),
+                "helm {all:?} must name {field}:\n{text}"
+            );
+        }
+    }
+    // Rules relating several values: the templates refuse them and say what to change.
+    let topology: &[(&[&str], &str)] = &[
+        (
+            &["--set", "replicaCount=2"],
+            "store.postgres.existingSecret",
+        ),
+        (
+            &[
+                "--set",
+                "replicaCount=2",
+                "--set",
+                "store.postgres.existingSecret=pg",
+            ],
+            "ReadWriteMany",
+        ),
+        (
+            &[
+                "--set",
+                "replicaCount=2",
+                "--set",
+                "store.postgres.existingSecret=pg",
+                "--set",
+                "persistence.enabled=false",
+            ],
+            "emptyDir",
+        ),
+    ];
+    for (args, says) in topology {
+        let mut all = vec!["template", "r", CHART];
+        all.extend_from_slice(args);
+        let out = helm(&all);
+        let text = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(!out.status.success(), "helm {all:?} accepted it");
+        assert!(text.contains(says), "helm {all:?} must say {says}:\n{text}");
+    }
+}
+
+#[test]
+fn chart_dashboards_match_manifests_and_render_as_configmaps() -> anyhow::Result<()> {
+    let root = repo_root();
+    let source = json_files(&root.join("manifests/dashboards"));
+    let copy = json_files(&root.join(CHART).join("dashboards"));
+    let names = |files: &[(String, Vec<u8>)]| files.iter().map(|f| f.0.clone()).collect::<Vec<_>>();
+    assert_eq!(
+        names(&copy),
+        names(&source),
+        "charts/lekiwi-operator/dashboards/ differs from manifests/dashboards/: \
+         cp manifests/dashboards/*.json charts/lekiwi-operator/dashboards/ (and remove stale ones)"
+    );
+    for ((name, a), (_, b)) in source.iter().zip(&copy) {
+        assert!(
+            a == b,
+            "dashboards/{name} differs from manifests/dashboards/{name}: cp manifests/dashboards/*.json charts/lekiwi-operator/dashboards/"
+        );
+    }
+
+    let maps = |args: &[&str]| -> Vec<Value> {
+        let mut all = vec!["template", "r", CHART, "-n", "fleet"];
+        all.extend_from_slice(args);
+        documents(&ok(helm(&all), "helm template"))
+            .into_iter()
+            .filter(|d| d["kind"] == "ConfigMap")
+            .collect()
+    };
+    let rendered = maps(&[]);
+    assert_eq!(rendered.len(), source.len());
+    for (name, bytes) in &source {
+        let cm = rendered
+            .iter()
+            .find(|cm| cm["data"][name.as_str()].is_string())
+            .unwrap_or_else(|| panic!("no ConfigMap holds {name}"));
+        assert_eq!(cm["metadata"]["labels"]["grafana_dashboard"], "1");
+        let text = cm["data"][name.as_str()].as_str().unwrap();
+        let parsed: serde_json::Value = serde_json::from_str(text)?;
+        assert_eq!(parsed, serde_json::from_slice::<serde_json::Value>(bytes)?);
+    }
+    let custom = maps(&[
+        "--set",
+        "dashboards.label=dash",
+        "--set",
+        "dashboards.labelValue=lekiwi",
+    ]);
+    assert!(
+        custom
+            .iter()
+            .all(|cm| cm["metadata"]["labels"]["dash"] == "lekiwi"
+                && cm["metadata"]["labels"]["grafana_dashboard"].is_null())
+    );
+    assert!(maps(&["--set", "dashboards.enabled=false"]).is_empty());
+
+    // A chart without dashboard files renders no ConfigMap (and no empty document).
+    let tmp = tempfile::tempdir()?;
+    let chart = tmp.path().join("lekiwi-operator");
+    copy_dir(&root.join(CHART), &chart)?;
+    for (name, _) in &copy {
+        std::fs::remove_file(chart.join("dashboards").join(name))?;
+    }
+    let out = ok(
+        helm(&["template", "r", chart.to_str().unwrap()]),
+        "helm template without dashboards",
+    );
+    assert!(!out.contains("kind: ConfigMap"), "{out}");
+    Ok(())
+}
+
+fn copy_dir(from: &Path, to: &Path) -> std::io::Result<()> {
+    std::fs::create_dir_all(to)?;
+    for entry in std::fs::read_dir(from)? {
+        let entry = entry?;
+        let target = to.join(entry.file_name());
+        if entry.file_type()?.is_dir() {
+            copy_dir(&entry.path(), &target)?;
+        } else {
+            std::fs::copy(entry.path(), target)?;
+        }
+    }
+    Ok(())
+}
+
+#[tokio::test]
+async fn chart_variants_are_accepted_by_the_api_server() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "chart-dry").await?;
+    ok(
+        cp.kubectl(&[
+            "create",
+            "secret",
+            "generic",
+            "gateway-tls",
+            "-n",
+            &ns,
+            "--type=kubernetes.io/tls",
+            "--from-literal=tls.crt=cert",
+            "--from-literal=tls.key=key",
+        ]),
+        "create the TLS Secret",
+    );
+    ok(
+        cp.kubectl(&[
+            "create",
+            "secret",
+            "generic",
+            "lekiwi-postgres",
+            "-n",
+            &ns,
+            "--from-literal=url=postgres://lekiwi:secret@postgres:5432/lekiwi",
+        ]),
+        "create the PostgreSQL Secret",
+    );
+    let watch = format!("operator.watchNamespace={ns}");
+    let variants: &[(&str, &[&str])] = &[
+        ("sqlite", &[]),
+        ("no-persistence", &["--set", "persistence.enabled=false"]),
+        (
+            "tls",
+            &[
+                "--set",
+                "gateway.tls.secretName=gateway-tls",
+                "--set",
+                "gateway.service.type=LoadBalancer",
+                "--set",
+                "otel.endpoint=http://otel:4317",
+            ],
+        ),
+        (
+            "postgres",
+            &[
+                "--set",
+                "store.postgres.existingSecret=lekiwi-postgres",
+                "--set",
+                "store.postgres.key=url",
+                "--set",
+                "replicaCount=3",
+                "--set",
+                "persistence.accessModes={ReadWriteMany}",
+                "--set",
+                "podDisruptionBudget.minAvailable=2",
+            ],
+        ),
+    ];
+    let dir = tempfile::tempdir()?;
+    for (name, args) in variants {
+        let release = format!("{ns}-{name}");
+        let mut all = vec![
+            "template",
+            &release,
+            CHART,
+            "-n",
+            &ns,
+            "--set",
+            &watch,
+            // The server's capabilities: its PodDisruptionBudget version (1.20: policy/v1beta1).
+            // (Helm refuses to combine this with --include-crds: the CRDs are applied from crds/.)
+            "--dry-run=server",
+        ];
+        all.extend_from_slice(args);
+        let rendered = ok(cp.tool("helm", &all), &format!("helm template ({name})"));
+        let file = dir.path().join(format!("{name}.yaml"));
+        std::fs::write(&file, &rendered)?;
+        let applied = ok(
+            cp.kubectl(&[
+                "apply",
+                "--dry-run=server",
+                "-n",
+                &ns,
+                "-f",
+                file.to_str().unwrap(),
+                "-f",
+                &format!("{CHART}/crds"),
+            ]),
+            &format!("server dry-run of the rendered chart ({name})"),
+        );
+        for kind in [
+            "deployment.apps",
+            "service/",
+            "poddisruptionbudget.policy",
+            "serviceaccount/",
+            "role.rbac",
+            "configmap/",
+        ] {
+            assert!(applied.contains(kind), "{name}: no {kind} in\n{applied}");
+        }
+        assert_eq!(
+            applied.contains("persistentvolumeclaim/"),
+            *name != "no-persistence",
+            "{name}: {applied}"
+        );
+    }
+    Ok(())
+}
+
 #[tokio::test]
 async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "chart").await?;
     let watch = format!("operator.watchNamespace={ns}");
-
-    ok(
-        cp.tool("helm", &["lint", "--strict", "charts/lekiwi-operator"]),
-        "helm lint",
-    );
-    let rendered = ok(
-        cp.tool(
-            "helm",
-            &[
-                "template",
-                &ns,
-                "charts/lekiwi-operator",
-                "-n",
-                &ns,
-                "--include-crds",
-                "--set",
-                &watch,
-            ],
-        ),
-        "helm template",
-    );
-    let dir = tempfile::tempdir()?;
-    let file = dir.path().join("rendered.yaml");
-    std::fs::write(&file, &rendered)?;
-    ok(
-        cp.kubectl(&[
-            "apply",
-            "--dry-run=server",
-            "-n",
-            &ns,
-            "-f",
-            file.to_str().unwrap(),
-        ]),
-        "server dry-run of the rendered chart",
-    );
 
     // Release named after the namespace so cluster-scoped RBAC objects never collide.
     ok(
@@ -78,9 +610,74 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
         ),
         "helm install",
     );
-    let sa = format!("{ns}-lekiwi-operator");
+    // The objects as the API server keeps them (no kubelet here: the pods never run).
+    let dir = tempfile::tempdir()?;
+    let full = format!("{ns}-lekiwi-operator");
+    let get = |what: &str| -> anyhow::Result<serde_json::Value> {
+        Ok(serde_json::from_str(&ok(
+            cp.kubectl(&["get", what, "-n", &ns, "-o", "json"]),
+            &format!("get {what}"),
+        ))?)
+    };
+    let deploy = get(&format!("deployment/{full}"))?;
+    let pod = &deploy["spec"]["template"]["spec"];
+    assert_eq!(deploy["spec"]["replicas"], 1);
+    assert_eq!(deploy["spec"]["strategy"]["type"], "Recreate");
+    assert_eq!(pod["serviceAccountName"], full.as_str());
+    assert_eq!(
+        pod["volumes"][0]["persistentVolumeClaim"]["claimName"],
+        format!("{full}-data")
+    );
+    let c = &pod["containers"][0];
+    assert!(
+        c["args"]
+            .as_array()
+            .unwrap()
+            .contains(&json!("--store-url=sqlite:///var/lib/lekiwi/events.db"))
+    );
+    assert_eq!(c["securityContext"]["readOnlyRootFilesystem"], true);
+    assert_eq!(c["livenessProbe"]["httpGet"]["path"], "/healthz");
+    assert_eq!(c["readinessProbe"]["httpGet"]["path"], "/readyz");
+    let gateway = get(&format!("service/{full}-gateway"))?;
+    assert_eq!(gateway["spec"]["type"], "ClusterIP");
+    assert_eq!(gateway["spec"]["ports"][0]["name"], "gateway");
+    assert_eq!(gateway["spec"]["ports"][0]["port"], 8081);
+    let metrics = get(&format!("service/{full}-metrics"))?;
+    assert_eq!(metrics["spec"]["ports"][0]["name"], "http-metrics");
+    assert_eq!(metrics["spec"]["ports"][0]["port"], 8080);
+    let pvc = get(&format!("persistentvolumeclaim/{full}-data"))?;
+    assert_eq!(pvc["spec"]["resources"]["requests"]["storage"], "10Gi");
+    assert_eq!(
+        get(&format!("poddisruptionbudget/{full}"))?["spec"]["maxUnavailable"],
+        1
+    );
+    let dashboards = get("configmaps")?;
+    let dashboards = dashboards["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|cm| cm["metadata"]["labels"]["grafana_dashboard"] == "1")
+        .count();
+    assert_eq!(
+        dashboards,
+        json_files(&repo_root().join("manifests/dashboards")).len()
+    );
+    let notes = ok(
+        cp.tool("helm", &["get", "notes", &ns, "-n", &ns]),
+        "helm get notes",
+    );
+    for want in [
+        format!("port-forward svc/{full}-gateway 8081:8081"),
+        "fleet.lekiwi.io/token=enrollment".to_owned(),
+        "sha256sum".to_owned(),
+        "enrollmentTokenFile".to_owned(),
+        "lekiwi-api".to_owned(),
+        "kubectl lekiwi release push".to_owned(),
+    ] {
+        assert!(notes.contains(&want), "NOTES lack {want}:\n{notes}");
+    }
     let token = ok(
-        cp.kubectl(&["create", "token", &sa, "-n", &ns, "--duration=1h"]),
+        cp.kubectl(&["create", "token", &full, "-n", &ns, "--duration=1h"]),
         "kubectl create token",
     );
     let kubeconfig = dir.path().join("kubeconfig-sa");
@@ -107,6 +704,57 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
             (get_robot(&client, &ns, "kiwi-1").await.ok()?.status?.phase
                 == Some(RobotPhase::Online))
             .then_some(())
+        },
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
+    // A release pushed to the gateway (which made the API token Secret under the chart's RBAC)
+    // and rolled out: the controller watches the RobotDeployment, patches the robot's
+    // spec.release and writes the deployment's status.
+    let release = dir.path().join("release");
+    std::fs::create_dir_all(release.join("lekiwi"))?;
+    std::fs::write(release.join("lekiwi/config.yaml"), "robot_type: lekiwi\n")?;
+    let pushed = Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args([
+            "release",
+            "push",
+            release.to_str().unwrap(),
+            "--version",
+            "1.0.0",
+        ])
+        .args(["--operator-namespace", &ns])
+        .args(["--server", &format!("http://127.0.0.1:{}", op.gateway_port)])
+        .env_remove("LEKIWI_SERVER")
+        .output()?;
+    let digest = ok(pushed, "kubectl lekiwi release push").trim().to_owned();
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch(
+            "kiwi-1",
+            &PatchParams::default(),
+            &Patch::Merge(json!({"metadata": {"labels": {"fleet.lekiwi.io/group": "chart"}}})),
+        )
+        .await?;
+    let rollout: RobotDeployment = serde_json::from_value(json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1",
+        "kind": "RobotDeployment",
+        "metadata": {"name": "chart-rollout"},
+        "spec": {
+            "selector": {"matchLabels": {"fleet.lekiwi.io/group": "chart"}},
+            "release": {"version": "1.0.0", "digest": digest},
+            "strategy": {"batchSize": 1, "canary": 0, "robotTimeoutSeconds": 60}
+        }
+    }))?;
+    let deployments = Api::<RobotDeployment>::namespaced(client.clone(), &ns);
+    deployments.create(&Default::default(), &rollout).await?;
+    wait_for(
+        "the rollout to reach kiwi-1",
+        Duration::from_secs(30),
+        || async {
+            let robot = get_robot(&client, &ns, "kiwi-1").await.ok()?;
+            let status = deployments.get("chart-rollout").await.ok()?.status?;
+            (robot.spec.release?.digest == digest && status.targeted == 1).then_some(())
         },
     )
     .await
@@ -180,5 +828,10 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
         "RBAC gap:\n{log}"
     );
     assert!(log.contains("released the leader Lease"), "{log}");
+    // Cluster-scoped objects go with the release (the volume claim is kept by its policy).
+    ok(
+        cp.tool("helm", &["uninstall", &ns, "-n", &ns]),
+        "helm uninstall",
+    );
     Ok(())
 }
