@@ -1,26 +1,114 @@
-//! Logging setup: `tracing` with an env-filter, as text or JSON.
+//! Logging and tracing: `tracing` with an env-filter, as text or JSON, plus OpenTelemetry span
+//! export over OTLP when the standard `OTEL_EXPORTER_OTLP_ENDPOINT` (or
+//! `OTEL_EXPORTER_OTLP_TRACES_ENDPOINT`) is set; off otherwise.
+//!
+//! Exported spans are the ones the operator already makes: `reconcile` (per controller and
+//! object), `session` (one agent connection), `blob_download` and `blob_upload`. The exporter
+//! follows the standard variables: `OTEL_EXPORTER_OTLP_PROTOCOL` (`http/protobuf`, the default,
+//! or `http/json`), `OTEL_SERVICE_NAME` (default `lekiwi-operator`), `OTEL_RESOURCE_ATTRIBUTES`,
+//! `OTEL_EXPORTER_OTLP_HEADERS`, `OTEL_BSP_SCHEDULE_DELAY`, ...
 
-use tracing_subscriber::{EnvFilter, fmt, prelude::*};
+use opentelemetry::trace::TracerProvider as _;
+use opentelemetry_otlp::{Protocol, WithExportConfig};
+use opentelemetry_sdk::Resource;
+use opentelemetry_sdk::trace::SdkTracerProvider;
+use tracing_subscriber::{EnvFilter, Layer, fmt, prelude::*};
 
 use crate::config::LogFormat;
 
-/// Installs the global subscriber.
+/// Keeps the span exporter alive; [`Telemetry::shutdown`] flushes what is buffered.
+pub struct Telemetry {
+    provider: Option<SdkTracerProvider>,
+}
+
+impl Telemetry {
+    /// Whether spans are exported.
+    pub fn exporting(&self) -> bool {
+        self.provider.is_some()
+    }
+
+    /// Flushes and stops the exporter (at most a few seconds).
+    pub fn shutdown(self) {
+        if let Some(p) = self.provider
+            && let Err(e) = p.shutdown()
+        {
+            eprintln!("lekiwi-operator: flushing OpenTelemetry spans failed: {e}");
+        }
+    }
+}
+
+fn env_set(name: &str) -> bool {
+    std::env::var(name).is_ok_and(|v| !v.trim().is_empty())
+}
+
+/// The OTLP span exporter and its provider, when the environment asks for one.
+fn otlp() -> Result<Option<SdkTracerProvider>, Box<dyn std::error::Error + Send + Sync>> {
+    if !env_set("OTEL_EXPORTER_OTLP_ENDPOINT") && !env_set("OTEL_EXPORTER_OTLP_TRACES_ENDPOINT") {
+        return Ok(None);
+    }
+    let protocol = match std::env::var("OTEL_EXPORTER_OTLP_TRACES_PROTOCOL")
+        .or_else(|_| std::env::var("OTEL_EXPORTER_OTLP_PROTOCOL"))
+        .unwrap_or_default()
+        .trim()
+    {
+        "" | "http/protobuf" => Protocol::HttpBinary,
+        "http/json" => Protocol::HttpJson,
+        other => {
+            return Err(format!(
+                "OTEL_EXPORTER_OTLP_PROTOCOL={other:?} is not supported: use http/protobuf or http/json"
+            )
+            .into());
+        }
+    };
+    // The endpoint and headers come from the standard variables, read by the exporter.
+    let exporter = opentelemetry_otlp::SpanExporter::builder()
+        .with_http()
+        .with_protocol(protocol)
+        .build()?;
+    let service =
+        std::env::var("OTEL_SERVICE_NAME").unwrap_or_else(|_| "lekiwi-operator".to_owned());
+    let resource = Resource::builder()
+        .with_service_name(service)
+        .with_attribute(opentelemetry::KeyValue::new(
+            "service.version",
+            env!("CARGO_PKG_VERSION"),
+        ))
+        .build();
+    Ok(Some(
+        SdkTracerProvider::builder()
+            .with_batch_exporter(exporter)
+            .with_resource(resource)
+            .build(),
+    ))
+}
+
+/// Installs the global subscriber: logs, and spans over OTLP when configured.
 pub fn init(
     format: &LogFormat,
     filter: &str,
-) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+) -> Result<Telemetry, Box<dyn std::error::Error + Send + Sync>> {
     let filter = EnvFilter::try_new(filter)?;
-    let registry = tracing_subscriber::registry().with(filter);
-    match format {
-        LogFormat::Json => registry
-            .with(
-                fmt::layer()
-                    .json()
-                    .flatten_event(true)
-                    .with_current_span(true),
-            )
-            .try_init()?,
-        LogFormat::Text => registry.with(fmt::layer().with_target(false)).try_init()?,
+    let provider = otlp()?;
+    let otel = provider.as_ref().map(|p| {
+        tracing_opentelemetry::layer()
+            .with_tracer(p.tracer("lekiwi-operator"))
+            .boxed()
+    });
+    let logs = match format {
+        LogFormat::Json => fmt::layer()
+            .json()
+            .flatten_event(true)
+            .with_current_span(true)
+            .boxed(),
+        LogFormat::Text => fmt::layer().with_target(false).boxed(),
+    };
+    tracing_subscriber::registry()
+        .with(filter)
+        .with(logs)
+        .with(otel)
+        .try_init()?;
+    if provider.is_some() {
+        tracing::info!("exporting spans over OTLP");
     }
-    Ok(())
+    Ok(Telemetry { provider })
 }

@@ -306,6 +306,7 @@ pub struct OperatorProcess {
     /// Its log file.
     pub log: PathBuf,
     args: Vec<String>,
+    env: Vec<(String, String)>,
 }
 
 impl OperatorProcess {
@@ -319,6 +320,17 @@ impl OperatorProcess {
         Self::start_with_kubeconfig(&cp.kubeconfig(), namespace, identity, extra)
     }
 
+    /// As [`Self::start`], with extra environment variables.
+    pub fn start_with_env(
+        cp: &ControlPlane,
+        namespace: &str,
+        identity: &str,
+        extra: &[&str],
+        env: &[(&str, &str)],
+    ) -> Result<Self> {
+        Self::spawn(&cp.kubeconfig(), namespace, identity, extra, env)
+    }
+
     /// As [`Self::start`], with other credentials.
     pub fn start_with_kubeconfig(
         kubeconfig: &Path,
@@ -326,6 +338,20 @@ impl OperatorProcess {
         identity: &str,
         extra: &[&str],
     ) -> Result<Self> {
+        Self::spawn(kubeconfig, namespace, identity, extra, &[])
+    }
+
+    fn spawn(
+        kubeconfig: &Path,
+        namespace: &str,
+        identity: &str,
+        extra: &[&str],
+        env: &[(&str, &str)],
+    ) -> Result<Self> {
+        let env: Vec<(String, String)> = env
+            .iter()
+            .map(|(k, v)| (k.to_string(), v.to_string()))
+            .collect();
         let http_port = free_port();
         let gateway_port = free_port();
         let log = log_dir().join(format!("{namespace}-{identity}.log"));
@@ -359,7 +385,7 @@ impl OperatorProcess {
             push(&["--blob-dir", blobs.to_str().unwrap()]);
         }
         push(extra);
-        let child = spawn_operator(&args, &log)?;
+        let child = spawn_operator(&args, &env, &log)?;
         Ok(Self {
             child,
             http_port,
@@ -367,6 +393,7 @@ impl OperatorProcess {
             store_path,
             log,
             args,
+            env,
         })
     }
 
@@ -374,7 +401,7 @@ impl OperatorProcess {
     /// [`Self::terminate`]); the log is appended to.
     pub fn restart(&mut self) -> Result<()> {
         self.kill();
-        self.child = spawn_operator(&self.args, &self.log)?;
+        self.child = spawn_operator(&self.args, &self.env, &self.log)?;
         Ok(())
     }
 
@@ -448,7 +475,7 @@ impl OperatorProcess {
     }
 }
 
-fn spawn_operator(args: &[String], log: &Path) -> Result<Child> {
+fn spawn_operator(args: &[String], env: &[(String, String)], log: &Path) -> Result<Child> {
     let file = std::fs::OpenOptions::new()
         .append(true)
         .create(true)
@@ -456,6 +483,7 @@ fn spawn_operator(args: &[String], log: &Path) -> Result<Child> {
     Command::new(bin("lekiwi-operator"))
         .args(args)
         .env("RUST_LOG", "info,kube=warn,lekiwi_operator=debug")
+        .envs(env.iter().map(|(k, v)| (k, v)))
         .stdin(Stdio::null())
         .stdout(file.try_clone()?)
         .stderr(file)
