@@ -207,15 +207,18 @@ pub struct RobotStatus {
     pub last_update: Option<UpdateReport>,
 }
 
-/// How an agent's release update ended.
+/// How an agent's release update ended. Every field is optional: a gateway that restarts forgets
+/// the report, and Kubernetes 1.20's server-side apply then nulls the fields it owned.
 #[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
 #[serde(rename_all = "camelCase")]
 pub struct UpdateReport {
     /// The release the agent was told to run.
-    pub release: ReleaseRef,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub release: Option<ReleaseRef>,
     /// `done`, `failed` (nothing switched) or `rolled_back` (switched, unhealthy, switched
     /// back).
-    pub phase: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub phase: Option<String>,
     /// The agent's explanation.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,

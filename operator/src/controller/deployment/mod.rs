@@ -176,7 +176,7 @@ fn view(r: &Robot, now: Timestamp, grace: std::time::Duration) -> RobotView {
         current: status.current_release.clone(),
         last_update: status
             .last_update
-            .map(|u| (u.release, u.phase, u.message, u.time.map(|t| t.0))),
+            .and_then(|u| Some((u.release?, u.phase?, u.message, u.time.map(|t| t.0)))),
         mark: r
             .annotations()
             .get(MARK_ANNOTATION)
