@@ -550,6 +550,19 @@ async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
             .count();
         assert_eq!(done, 1, "{name}: deployed exactly once");
     }
+
+    // After the restart the gateway numbers its sessions from 1 again: its commands must still
+    // be new to agents that finished commands of the previous gateway process.
+    let v2_dir = release_dir(site.dir.path(), 30, "2", &[3])?;
+    let v2 = site.push(&v2_dir, "2.0.0")?;
+    let patch = json!({"spec": {"release": v2}});
+    Api::<RobotDeployment>::namespaced(site.client.clone(), &site.ns)
+        .patch("crash", &PatchParams::default(), &Patch::Merge(&patch))
+        .await?;
+    let d = site.finished("crash", Duration::from_secs(120)).await?;
+    let st = d.status.unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
+    assert_eq!(st.updated, 20);
     Ok(())
 }
 

@@ -156,6 +156,12 @@ impl DesiredReleases {
     }
 }
 
+/// A short id of this gateway process, different after every restart.
+fn boot_id() -> &'static str {
+    static BOOT: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+    BOOT.get_or_init(|| format!("{:x}", Timestamp::now().as_millisecond()))
+}
+
 /// What a session knows about the robot's release and the deploy command it sent.
 struct Rollout {
     current: Option<Release>,
@@ -176,7 +182,9 @@ impl Rollout {
             return None;
         }
         self.counter += 1;
-        let command_id = format!("{gateway}-{session}-{}", self.counter);
+        // Unique across gateway restarts too: agents remember finished command ids and do not
+        // run one twice, and session numbers start over with every process.
+        let command_id = format!("{gateway}-{}-{session}-{}", boot_id(), self.counter);
         self.sent = Some((command_id.clone(), desired.clone()));
         Some(ServerMessage::Command {
             command_id,
