@@ -128,16 +128,15 @@ fn is_active(d: &DeserializeGuard<RobotDeployment>) -> bool {
                         | RolloutPhase::Paused
                         | RolloutPhase::RollingBack
                 )
-            }) || d.status.as_ref().and_then(|s| s.rollout_id.as_deref())
-                != Some(
-                    plan::rollout_id(
-                        &d.spec.release,
-                        d.annotations()
-                            .get(plan::RESTART_ANNOTATION)
-                            .map(String::as_str),
-                    )
-                    .as_str(),
-                )
+            }) || !plan::same_rollout(
+                d.status.as_ref().and_then(|s| s.rollout_id.as_deref()),
+                &plan::rollout_id(
+                    &d.spec.release,
+                    d.annotations()
+                        .get(plan::RESTART_ANNOTATION)
+                        .map(String::as_str),
+                ),
+            )
         }
         Err(_) => false,
     }

@@ -211,7 +211,9 @@ pub struct Plan {
     pub finished: bool,
 }
 
-/// A short id of a rollout: the release digest and the restart annotation, hashed.
+/// What a rollout is of: the release digest and the restart annotation, hashed. A rollout's id is
+/// this key, `-`, and its start time, so rolling the same release out again later (after another
+/// release, or a rollback) is a new rollout whose robots' old marks do not count.
 pub fn rollout_id(release: &ReleaseRef, restart: Option<&str>) -> String {
     use sha2::Digest;
     let mut h = sha2::Sha256::new();
@@ -219,6 +221,12 @@ pub fn rollout_id(release: &ReleaseRef, restart: Option<&str>) -> String {
     h.update(b"\0");
     h.update(restart.unwrap_or_default().as_bytes());
     hex::encode(&h.finalize()[..5])
+}
+
+/// Whether the rollout `id` is of the spec whose key is `key` (see [`rollout_id`]).
+pub fn same_rollout(id: Option<&str>, key: &str) -> bool {
+    id.and_then(|id| id.strip_prefix(key))
+        .is_some_and(|rest| rest.starts_with('-'))
 }
 
 /// Robots per batch after the canary: a count or a percentage of `targeted`, rounded up, at
@@ -354,11 +362,18 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
     let strategy = &spec.strategy;
     let target = &spec.release;
     let annotations = d.metadata.annotations.clone().unwrap_or_default();
-    let rid = rollout_id(
+    let key = rollout_id(
         target,
         annotations.get(RESTART_ANNOTATION).map(String::as_str),
     );
     let old = d.status.clone().unwrap_or_default();
+    // A new release or a restart: a new rollout, from the canary batch.
+    let new_rollout = !same_rollout(old.rollout_id.as_deref(), &key);
+    let rid = if new_rollout {
+        format!("{key}-{:x}", now.as_millisecond())
+    } else {
+        old.rollout_id.clone().unwrap_or_default()
+    };
     let robot_timeout = secs(strategy.robot_timeout_seconds);
     let wait_timeout = secs(strategy.wait_timeout_seconds);
 
@@ -380,8 +395,6 @@ pub fn plan(d: &RobotDeployment, facts: &Facts) -> Plan {
             | Some(RolloutPhase::RollingBack)
     );
 
-    // A new release or a restart: a new rollout, from the canary batch.
-    let new_rollout = old.rollout_id.as_deref() != Some(rid.as_str());
     if new_rollout {
         status.rollout_id = Some(rid.clone());
         status.phase = Some(RolloutPhase::Pending);

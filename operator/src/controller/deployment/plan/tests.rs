@@ -430,3 +430,25 @@ fn undo_rolls_back_a_completed_rollout_and_new_robots_join_a_completed_one() {
     assert_eq!(sim.phase(), RolloutPhase::RolledBack);
     assert!(sim.robots.iter().all(|r| r.current == Some(rel("1"))));
 }
+
+#[test]
+fn rolling_a_release_out_again_ignores_the_marks_of_its_earlier_rollout() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(4), 0), 4);
+    // 2 fails on one robot of four: rolled back; the robots keep marks of that rollout.
+    sim.failing = vec!["kiwi-01".into()];
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::RolledBack);
+    // Back to 1, which every robot runs: done at once, no robot written.
+    sim.d.spec.release = rel("1");
+    sim.advance(1);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    // 2 again, now healthy: a new rollout that updates everyone.
+    sim.failing.clear();
+    sim.d.spec.release = rel("2");
+    sim.advance(1);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert!(sim.robots.iter().all(|r| r.current == Some(rel("2"))));
+    assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
+}
