@@ -67,13 +67,17 @@ impl Hooks {
                 .max(Duration::from_millis(100));
             match self.run_for(&self.health, env, left).await {
                 Ok(()) => return Ok(()),
-                Err(why) if Instant::now() + self.health_interval >= deadline => {
-                    return Err(format!(
-                        "not healthy within {}s ({attempts} attempts); last: {why}",
-                        self.health_timeout.as_secs_f64()
-                    ));
+                Err(why) => {
+                    // The last attempt runs at the deadline, not an interval before it.
+                    let now = Instant::now();
+                    if now >= deadline {
+                        return Err(format!(
+                            "not healthy within {}s ({attempts} attempts); last: {why}",
+                            self.health_timeout.as_secs_f64()
+                        ));
+                    }
+                    tokio::time::sleep(self.health_interval.min(deadline - now)).await;
                 }
-                Err(_) => tokio::time::sleep(self.health_interval).await,
             }
         }
     }
@@ -139,5 +143,51 @@ impl Hooks {
             (false, false) => format!(": {text}"),
             (false, true) => format!(": …{text}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A service that turns healthy 1.5 s after the switch passes a 2 s health timeout: the last
+    /// attempt runs at the deadline, not an interval before it.
+    #[tokio::test]
+    async fn the_last_health_attempt_runs_at_the_deadline() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = Config {
+            state_dir: dir.path().to_owned(),
+            release_health_command: format!("test -e {}", dir.path().join("healthy").display()),
+            release_health_timeout_s: 2,
+            ..Config::default()
+        };
+        let hooks = Hooks::from_config(&config);
+        let env = HookEnv {
+            dir: dir.path().to_owned(),
+            release: Release {
+                version: "1".into(),
+                digest: format!("sha256:{}", "0".repeat(64)),
+            },
+            previous: None,
+        };
+        let healthy = dir.path().join("healthy");
+        let started = Instant::now();
+        tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_millis(1500)).await;
+            std::fs::write(healthy, "").unwrap();
+        });
+        hooks.health_check(&env).await.unwrap();
+        assert!(started.elapsed() >= Duration::from_millis(1500));
+
+        // Never healthy: refused after the whole timeout.
+        std::fs::remove_file(dir.path().join("healthy")).unwrap();
+        let started = Instant::now();
+        let err = hooks.health_check(&env).await.unwrap_err();
+        assert!(err.contains("not healthy within 2s"), "{err}");
+        assert!(
+            started.elapsed() >= Duration::from_secs(2),
+            "{:?}",
+            started.elapsed()
+        );
     }
 }
