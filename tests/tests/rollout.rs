@@ -458,6 +458,9 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
     out
 }
 
+/// Robots of the crash test.
+const CRASH_ROBOTS: usize = 50;
+
 /// The operator is SIGKILLed mid-rollout and restarted; the agents are SIGKILLed mid-download
 /// and mid-switch (restart command of 2 s) and come back; robots go offline and return. The
 /// rollout completes, no robot that had finished is deployed again, and every robot's
@@ -465,18 +468,18 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
 #[tokio::test]
 async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
     let mut site = Site::new("rollcrash").await?;
-    let mut fleet = site.fleet(20, &["--restart-command", "sleep 2"])?;
-    site.wait_online(20).await?;
+    let mut fleet = site.fleet(CRASH_ROBOTS, &["--restart-command", "sleep 2"])?;
+    site.wait_online(CRASH_ROBOTS).await?;
     let v1_dir = release_dir(site.dir.path(), 30, "1", &[])?;
     let v1 = site.push(&v1_dir, "1.0.0")?;
-    site.deploy("crash", &v1, strategy(4, 0), LabelSelector::default())
+    site.deploy("crash", &v1, strategy(10, 0), LabelSelector::default())
         .await?;
 
     // Kill the whole fleet while some robots are in their restart command (switched, not yet
     // confirmed) and others download.
     let store = Store::connect(&format!("sqlite://{}", site.op.store_path.display())).await?;
     let restarting = wait_for("a robot restarting", Duration::from_secs(60), || async {
-        for i in 0..20 {
+        for i in 0..CRASH_ROBOTS {
             let key = RobotKey::new(site.ns.clone(), robot_name(i));
             let events = store.events(&key, None, 1000).await.ok()?;
             if events.iter().any(|e| e.data["phase"] == "restarting") {
@@ -507,7 +510,7 @@ async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
     eprintln!("finished after {:?}", t.elapsed());
     let st = d.status.clone().unwrap();
     assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
-    assert_eq!(st.updated, 20);
+    assert_eq!(st.updated, CRASH_ROBOTS as i32);
     // The restarted gateway forgot the update reports its predecessor wrote; its status writes
     // must still be accepted (Kubernetes 1.20 nulls the fields a manager stops sending).
     assert!(
@@ -520,12 +523,12 @@ async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
         Duration::from_secs(60),
         || async {
             let by = site.releases().await.ok()?;
-            (by.get("1.0.0") == Some(&20)).then_some(())
+            (by.get("1.0.0") == Some(&CRASH_ROBOTS)).then_some(())
         },
     )
     .await?;
     eprintln!("all report 1.0.0 after {:?}", t.elapsed());
-    for i in 0..20 {
+    for i in 0..CRASH_ROBOTS {
         let name = robot_name(i);
         // `current` points at a complete release.
         let current = std::fs::read_link(fleet.state(&name).join("current"))?;
@@ -562,7 +565,7 @@ async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
     let d = site.finished("crash", Duration::from_secs(120)).await?;
     let st = d.status.unwrap();
     assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
-    assert_eq!(st.updated, 20);
+    assert_eq!(st.updated, CRASH_ROBOTS as i32);
     Ok(())
 }
 
