@@ -238,6 +238,11 @@ pub struct Flags {
     #[arg(long, env = "LEKIWI_RELEASE_HEALTH_TIMEOUT_S")]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub release_health_timeout_s: Option<u64>,
+    /// Seconds the pre-switch and the restart command may each run before they count as
+    /// failed (and are killed).
+    #[arg(long, env = "LEKIWI_RELEASE_HOOK_TIMEOUT_S")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_hook_timeout_s: Option<u64>,
     /// Releases kept on disk (the current one included) for instant rollback.
     #[arg(long, env = "LEKIWI_RELEASE_KEEP")]
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -360,6 +365,8 @@ pub struct Config {
     pub release_health_command: String,
     /// Health timeout, s.
     pub release_health_timeout_s: u64,
+    /// Pre-switch and restart command timeout, s.
+    pub release_hook_timeout_s: u64,
     /// Releases kept.
     pub release_keep: u32,
 }
@@ -409,6 +416,7 @@ impl Default for Config {
             release_restart_command: String::new(),
             release_health_command: String::new(),
             release_health_timeout_s: 60,
+            release_hook_timeout_s: 300,
             release_keep: 3,
         }
     }
@@ -462,6 +470,9 @@ impl Config {
                 "releaseKeep ({}) must be at least 2: the current release and the one to roll back to",
                 self.release_keep
             ));
+        }
+        if self.release_hook_timeout_s == 0 {
+            return bad("releaseHookTimeoutS must be at least 1".into());
         }
         if self.outbox_window == 0 {
             return bad("outboxWindow must be at least 1".into());
@@ -651,5 +662,66 @@ mod tests {
             .count();
         // config and print-config (and clap's help/version, which have no long here) aside.
         assert_eq!(flag_count - 2, keys.len(), "a flag without a file key");
+    }
+
+    /// The README's configuration table has one row per key, with its flag, environment
+    /// variable, default and help text as the agent has them.
+    #[test]
+    fn the_readme_table_matches_the_flags() {
+        use clap::CommandFactory;
+        let readme =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+        let rows: Vec<Vec<&str>> = readme
+            .lines()
+            .filter(|l| l.starts_with("| `") && l.contains("` | `--"))
+            .map(|l| l.trim_matches('|').split(" | ").map(str::trim).collect())
+            .collect();
+        let defaults = serde_json::to_value(Config::default()).unwrap();
+        let cmd = Flags::command();
+        let mut documented = 0;
+        for arg in cmd.get_arguments() {
+            let Some(long) = arg.get_long() else { continue };
+            if long == "config" || long == "print-config" {
+                continue;
+            }
+            let key = long
+                .split('-')
+                .enumerate()
+                .map(|(i, w)| {
+                    if i == 0 {
+                        w.to_owned()
+                    } else {
+                        w[..1].to_ascii_uppercase() + &w[1..]
+                    }
+                })
+                .collect::<String>();
+            let row = rows
+                .iter()
+                .find(|r| r[0] == format!("`{key}`"))
+                .unwrap_or_else(|| panic!("README: no row for `{key}`"));
+            documented += 1;
+            assert_eq!(row[1], format!("`--{long}`"), "{key}");
+            let env = arg.get_env().unwrap().to_str().unwrap();
+            assert_eq!(row[2], format!("`{env}`"), "{key}");
+            let default = match (key.as_str(), &defaults[&key]) {
+                ("gateway", _) => "(required)".to_owned(),
+                ("robotName", _) => "`host name`".to_owned(),
+                (_, serde_json::Value::Null) => "—".to_owned(),
+                (_, serde_json::Value::String(s)) if s.is_empty() => "`(none)`".to_owned(),
+                (_, serde_json::Value::String(s)) => format!("`{s}`"),
+                (_, serde_json::Value::Array(a)) => format!(
+                    "`{}`",
+                    a.iter()
+                        .map(|v| v.to_string())
+                        .collect::<Vec<_>>()
+                        .join(",")
+                ),
+                (_, v) => format!("`{v}`"),
+            };
+            assert_eq!(row[3], default, "default of {key}");
+            let help = arg.get_help().unwrap().to_string();
+            assert_eq!(row[4], help.trim_end_matches('.'), "help of {key}");
+        }
+        assert_eq!(documented, rows.len(), "README rows without a flag");
     }
 }

@@ -10,8 +10,6 @@ use tokio::time::Instant;
 
 use crate::config::Config;
 
-/// Longest run of the pre-switch or restart command.
-const HOOK_TIMEOUT: Duration = Duration::from_secs(300);
 /// Output kept for a failure message, bytes.
 const OUTPUT_TAIL: u64 = 2048;
 /// Pause between two runs of the health command.
@@ -34,6 +32,8 @@ pub(super) struct Hooks {
     pub health: String,
     pub health_timeout: Duration,
     pub health_interval: Duration,
+    /// Longest run of the pre-switch or restart command.
+    pub hook_timeout: Duration,
     /// Where a command's output goes (a file rather than a pipe, so that a daemon the command
     /// leaves behind cannot keep the agent waiting for the end of its output).
     log: PathBuf,
@@ -47,13 +47,14 @@ impl Hooks {
             health: config.release_health_command.trim().to_owned(),
             health_timeout: Duration::from_secs(config.release_health_timeout_s),
             health_interval: HEALTH_INTERVAL,
+            hook_timeout: Duration::from_secs(config.release_hook_timeout_s),
             log: config.state_dir.join("release-hook.log"),
         }
     }
 
-    /// Runs `command` to its end (at most [`HOOK_TIMEOUT`]); `Err` says why it failed.
+    /// Runs `command` to its end (at most the hook timeout); `Err` says why it failed.
     pub(super) async fn run(&self, command: &str, env: &HookEnv) -> Result<(), String> {
-        self.run_for(command, env, HOOK_TIMEOUT).await
+        self.run_for(command, env, self.hook_timeout).await
     }
 
     /// Runs the health command until it passes or the health timeout ends.
@@ -103,12 +104,17 @@ impl Hooks {
             .stdout(out)
             .stderr(err)
             .kill_on_drop(true)
+            // Its own process group, so that a timeout ends what the command started too.
+            .process_group(0)
             .spawn()
             .map_err(|e| format!("cannot start `sh -c {command}`: {e}"))?;
         let status = match tokio::time::timeout(timeout, child.wait()).await {
             Ok(Ok(status)) => status,
             Ok(Err(e)) => return Err(format!("waiting for `{command}`: {e}")),
             Err(_) => {
+                if let Some(pid) = child.id() {
+                    kill_group(pid);
+                }
                 let _ = child.kill().await;
                 return Err(format!(
                     "`{command}` timed out after {}s{}",
@@ -143,6 +149,20 @@ impl Hooks {
             (false, false) => format!(": {text}"),
             (false, true) => format!(": …{text}"),
         }
+    }
+}
+
+/// Sends SIGKILL to the process group `pgid` (the crate forbids `unsafe`, so by `kill(1)`);
+/// a failure leaves only the group leader to kill, which the caller does anyway.
+fn kill_group(pgid: u32) {
+    let result = std::process::Command::new("kill")
+        .args(["-s", "KILL", "--", &format!("-{pgid}")])
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .status();
+    if !matches!(result, Ok(status) if status.success()) {
+        tracing::warn!(pgid, "could not kill the hook's process group: {result:?}");
     }
 }
 
@@ -189,5 +209,50 @@ mod tests {
             "{:?}",
             started.elapsed()
         );
+    }
+
+    /// A restart command that hangs is stopped at the hook timeout, with what it started.
+    #[tokio::test]
+    async fn a_hanging_hook_times_out_with_its_children() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = Config {
+            state_dir: dir.path().to_owned(),
+            release_hook_timeout_s: 1,
+            ..Config::default()
+        };
+        let hooks = Hooks::from_config(&config);
+        let env = HookEnv {
+            dir: dir.path().to_owned(),
+            release: Release {
+                version: "1".into(),
+                digest: format!("sha256:{}", "0".repeat(64)),
+            },
+            previous: None,
+        };
+        let pid_file = dir.path().join("child.pid");
+        let command = format!(
+            "sleep 60 & echo $! > {}; echo started; wait",
+            pid_file.display()
+        );
+        let started = Instant::now();
+        let err = hooks.run(&command, &env).await.unwrap_err();
+        assert!(err.contains("timed out after 1s: started"), "{err}");
+        assert!(started.elapsed() < Duration::from_secs(10));
+        let child = std::fs::read_to_string(&pid_file).unwrap();
+        let stat = format!("/proc/{}/stat", child.trim());
+        let gone = || {
+            std::fs::read_to_string(&stat)
+                .map(|s| {
+                    s.split(") ")
+                        .nth(1)
+                        .is_some_and(|rest| rest.starts_with('Z'))
+                })
+                .unwrap_or(true)
+        };
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while !gone() && Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        assert!(gone(), "the command's child {} still runs", child.trim());
     }
 }
