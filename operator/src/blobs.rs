@@ -214,6 +214,47 @@ impl BlobStore {
         lock.lock_owned().await
     }
 
+    /// Deletes the interrupted uploads nobody resumed for `max_age` (by the partial file's
+    /// modification time); an upload in flight is never touched. Returns how many partials
+    /// went and their bytes.
+    pub async fn remove_stale_uploads(&self, max_age: std::time::Duration) -> Result<(usize, u64)> {
+        let dir = self.upload_dir();
+        let mut entries = match tokio::fs::read_dir(&dir).await {
+            Ok(e) => e,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok((0, 0)),
+            Err(e) => return Err(io(&dir)(e)),
+        };
+        let (mut files, mut bytes) = (0, 0);
+        while let Some(entry) = entries.next_entry().await.map_err(io(&dir))? {
+            let name = entry.file_name();
+            let Some(hex) = name.to_str().and_then(|n| n.strip_suffix(".partial")) else {
+                continue;
+            };
+            let path = entry.path();
+            let stale = |meta: &std::fs::Metadata| {
+                meta.modified()
+                    .ok()
+                    .and_then(|m| m.elapsed().ok())
+                    .is_some_and(|age| age > max_age)
+            };
+            match tokio::fs::metadata(&path).await {
+                Ok(meta) if stale(&meta) => {}
+                _ => continue,
+            }
+            // Held while deciding, so that no upload writes the partial in between.
+            let _guard = self.lock(hex).await;
+            let Ok(meta) = tokio::fs::metadata(&path).await else {
+                continue;
+            };
+            if stale(&meta) {
+                remove_if_exists(&path).await?;
+                files += 1;
+                bytes += meta.len();
+            }
+        }
+        Ok((files, bytes))
+    }
+
     /// Writes `body` into the upload of `digest` at `offset`.
     ///
     /// With `total`, the body is a chunk of a blob of `total` bytes: `offset` must equal the
@@ -508,6 +549,43 @@ mod tests {
         let empty = digest(b"");
         let state = store.write_at(&empty, 0, None, body(&[])).await.unwrap();
         assert_eq!(state, UploadState::Complete { size: 0 });
+    }
+
+    /// Interrupted uploads older than the limit go; fresh ones, stored blobs and other files stay.
+    #[tokio::test]
+    async fn stale_partial_uploads_are_removed() {
+        let (_dir, store) = store(1024);
+        let content: Vec<u8> = (0..100u8).collect();
+        let (old, fresh) = (digest(&content), digest(&content[..50]));
+        for d in [&old, &fresh] {
+            let state = store
+                .write_at(d, 0, Some(100), body(&[&content[..10]]))
+                .await;
+            assert_eq!(state.unwrap(), UploadState::Partial { offset: 10 });
+        }
+        let stored = digest(b"kept");
+        store
+            .write_at(&stored, 0, None, body(&[b"kept"]))
+            .await
+            .unwrap();
+        let uploads = store.root().join("uploads");
+        std::fs::write(uploads.join("notes.txt"), "not a partial").unwrap();
+        let two_days_ago =
+            std::time::SystemTime::now() - std::time::Duration::from_secs(2 * 86_400);
+        std::fs::File::options()
+            .write(true)
+            .open(uploads.join(format!("{}.partial", &old[7..])))
+            .unwrap()
+            .set_modified(two_days_ago)
+            .unwrap();
+
+        let day = std::time::Duration::from_secs(86_400);
+        assert_eq!(store.remove_stale_uploads(day).await.unwrap(), (1, 10));
+        assert_eq!(store.partial_offset(&old).await.unwrap(), 0);
+        assert_eq!(store.partial_offset(&fresh).await.unwrap(), 10);
+        assert_eq!(store.stat(&stored).await.unwrap(), Some(4));
+        assert!(uploads.join("notes.txt").exists());
+        assert_eq!(store.remove_stale_uploads(day).await.unwrap(), (0, 0));
     }
 
     #[tokio::test]

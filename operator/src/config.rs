@@ -180,6 +180,11 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_BLOB_DIR", default_value = "/var/lib/lekiwi/blobs")]
     pub blob_dir: PathBuf,
 
+    /// Hours an interrupted blob upload is kept for resuming before it is deleted (checked at
+    /// start and every hour).
+    #[arg(long, env = "LEKIWI_STALE_UPLOAD_HOURS", default_value_t = 24)]
+    pub stale_upload_hours: u64,
+
     /// Largest release blob the gateway accepts, in bytes.
     #[arg(long, env = "LEKIWI_MAX_BLOB_BYTES", default_value_t = 4 * 1024 * 1024 * 1024)]
     pub max_blob_bytes: u64,
@@ -222,5 +227,42 @@ impl Config {
             let host = std::fs::read_to_string("/etc/hostname").unwrap_or_else(|_| "lekiwi".into());
             format!("{}-{}", host.trim(), std::process::id())
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Every flag (and its environment variable) has a row in the README's operator table.
+    #[test]
+    fn the_readme_table_lists_every_flag() {
+        use clap::CommandFactory;
+        let readme =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+        let section = readme
+            .split("## Operator configuration")
+            .nth(1)
+            .and_then(|s| s.split("\n## ").next())
+            .unwrap();
+        let rows: Vec<Vec<&str>> = section
+            .lines()
+            .filter(|l| l.starts_with("| `--"))
+            .map(|l| l.trim_matches('|').split(" | ").map(str::trim).collect())
+            .collect();
+        for arg in Config::command().get_arguments() {
+            let Some(long) = arg.get_long() else { continue };
+            let flag = format!("`--{long}`");
+            let row = rows
+                .iter()
+                .find(|r| r[0].split(", ").any(|f| f == flag))
+                .unwrap_or_else(|| panic!("README: no row for --{long}"));
+            let env = arg.get_env().unwrap().to_str().unwrap();
+            assert!(
+                row[1].split(", ").any(|e| e == format!("`{env}`")),
+                "README: --{long} has environment variable {env}, the row says {}",
+                row[1]
+            );
+        }
     }
 }

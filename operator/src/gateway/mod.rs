@@ -172,12 +172,21 @@ async fn agent_ws(
 /// The blob routes' state: the store's directories and the API token Secret are made now when
 /// possible; if not, the gateway still serves agents and the blob routes retry (uploads answer
 /// 500, a missing token Secret is made at the next API-token request).
-async fn blob_api(config: &Config, client: &kube::Client) -> blobs::BlobApi {
+async fn blob_api(
+    config: &Config,
+    client: &kube::Client,
+    cancel: CancellationToken,
+) -> blobs::BlobApi {
     let store = crate::blobs::BlobStore::new(&config.blob_dir, config.max_blob_bytes);
     match store.ensure_dirs().await {
         Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
         Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
     }
+    tokio::spawn(remove_stale_uploads(
+        store.clone(),
+        Duration::from_secs(config.stale_upload_hours.saturating_mul(3600)),
+        cancel,
+    ));
     let token = auth::ApiToken::new(client.clone(), &config.namespace, &config.api_token_secret);
     if let Err(e) = token.refresh().await {
         warn!(
@@ -188,6 +197,26 @@ async fn blob_api(config: &Config, client: &kube::Client) -> blobs::BlobApi {
         );
     }
     blobs::BlobApi::new(store, token)
+}
+
+/// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
+async fn remove_stale_uploads(
+    store: crate::blobs::BlobStore,
+    max_age: Duration,
+    cancel: CancellationToken,
+) {
+    let mut every = tokio::time::interval(Duration::from_secs(3600));
+    loop {
+        tokio::select! {
+            _ = cancel.cancelled() => return,
+            _ = every.tick() => {}
+        }
+        match store.remove_stale_uploads(max_age).await {
+            Ok((0, _)) => {}
+            Ok((files, bytes)) => info!(files, bytes, "removed interrupted blob uploads"),
+            Err(e) => warn!(error = %e, "cannot remove interrupted blob uploads"),
+        }
+    }
 }
 
 /// Runs the gateway until `cancel` fires.
@@ -266,7 +295,7 @@ pub async fn run(
         client: client.clone(),
         releases: Arc::default(),
         connections: Arc::new(Semaphore::new(config.max_connections)),
-        blobs: Arc::new(blob_api(&config, &client).await),
+        blobs: Arc::new(blob_api(&config, &client, cancel.clone()).await),
     };
 
     // The writer outlives the sessions so their disconnects still reach the API server.
