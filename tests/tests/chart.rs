@@ -683,6 +683,23 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     let kubeconfig = dir.path().join("kubeconfig-sa");
     cp.kubeconfig_with_token(token.trim(), &kubeconfig)?;
 
+    // The Lease of a gateway gone for two hours, which no robot names: deleted by the
+    // controller (under the chart's RBAC).
+    let leases = Api::<k8s_openapi::api::coordination::v1::Lease>::namespaced(client.clone(), &ns);
+    let two_hours_ago = jiff::Timestamp::now() - jiff::SignedDuration::from_hours(2);
+    leases
+        .create(
+            &Default::default(),
+            &serde_json::from_value(json!({
+                "metadata": {"name": "gateway-gone", "labels": {"fleet.lekiwi.io/gateway": "true"}},
+                "spec": {
+                    "holderIdentity": "gateway-gone",
+                    "leaseDurationSeconds": 15,
+                    "renewTime": two_hours_ago.strftime("%Y-%m-%dT%H:%M:%S%.6fZ").to_string(),
+                }
+            }))?,
+        )
+        .await?;
     let mut op = OperatorProcess::start_with_kubeconfig(
         &kubeconfig,
         &ns,
@@ -759,6 +776,24 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     )
     .await
     .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
+    wait_for(
+        "the stale gateway Lease deleted",
+        Duration::from_secs(20),
+        || async {
+            leases
+                .get_opt("gateway-gone")
+                .await
+                .ok()?
+                .is_none()
+                .then_some(())
+        },
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
+    assert!(
+        leases.get_opt("gateway-c").await?.is_some(),
+        "a live gateway's Lease stays"
+    );
     gw.disconnect("kiwi-1").await?;
     wait_for("Offline", Duration::from_secs(10), || async {
         (get_robot(&client, &ns, "kiwi-1").await.ok()?.status?.phase == Some(RobotPhase::Offline))

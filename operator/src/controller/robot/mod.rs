@@ -109,8 +109,84 @@ fn gateway_state(
     }
 }
 
+/// A gateway Lease expired this long and held by no robot is deleted.
+const STALE_GATEWAY_LEASE: Duration = Duration::from_secs(3600);
+/// Time between two looks for stale gateway Leases.
+const LEASE_GC_EVERY: Duration = Duration::from_secs(60);
+
+/// Gateway Leases (by their label) that expired more than `stale` ago and that no robot's
+/// `status.gateway` names, as (name, resourceVersion). Deleting one changes no robot's state:
+/// a missing Lease reads as a dead gateway, like an expired one.
+fn stale_gateway_leases(
+    leases: &[Arc<Lease>],
+    referenced: &std::collections::HashSet<&str>,
+    now: Timestamp,
+    stale: Duration,
+) -> Vec<(String, Option<String>)> {
+    leases
+        .iter()
+        .filter(|l| {
+            l.labels()
+                .contains_key(crate::gateway::lease::GATEWAY_LEASE_LABEL)
+        })
+        .filter(|l| !referenced.contains(l.name_any().as_str()))
+        .filter(|l| {
+            let Some(spec) = l.spec.as_ref() else {
+                return true;
+            };
+            let Some(renew) = spec.renew_time.as_ref() else {
+                return true;
+            };
+            let valid = jiff::SignedDuration::from_secs(i64::from(
+                spec.lease_duration_seconds.unwrap_or_default().max(0),
+            ));
+            let Ok(stale) = jiff::SignedDuration::try_from(stale) else {
+                return false;
+            };
+            now.duration_since(renew.0) > valid + stale
+        })
+        .map(|l| (l.name_any(), l.resource_version()))
+        .collect()
+}
+
+/// Deletes stale gateway Leases (see [`stale_gateway_leases`]); the resourceVersion
+/// precondition spares a Lease its gateway renewed meanwhile.
+async fn remove_stale_gateway_leases(
+    ctx: &Context,
+    leases: &Store<Lease>,
+    robots: &[Arc<DeserializeGuard<Robot>>],
+) {
+    let referenced: std::collections::HashSet<&str> = robots
+        .iter()
+        .filter_map(|g| g.0.as_ref().ok())
+        .filter_map(|r| r.status.as_ref()?.gateway.as_deref())
+        .collect();
+    let stale = stale_gateway_leases(
+        &leases.state(),
+        &referenced,
+        Timestamp::now(),
+        STALE_GATEWAY_LEASE,
+    );
+    let api: Api<Lease> = Api::namespaced(ctx.client.clone(), &ctx.config.namespace);
+    for (name, version) in stale {
+        let params = kube::api::DeleteParams {
+            preconditions: Some(kube::api::Preconditions {
+                resource_version: version,
+                uid: None,
+            }),
+            ..kube::api::DeleteParams::default()
+        };
+        match api.delete(&name, &params).await {
+            Ok(_) => info!(lease = %name, "deleted the Lease of a gateway gone for over an hour"),
+            Err(kube::Error::Api(e)) if e.code == 404 || e.code == 409 => {}
+            Err(e) => warn!(lease = %name, error = %e, "cannot delete a stale gateway Lease"),
+        }
+    }
+}
+
 /// Once a second: when a gateway's Lease expires (or comes back), re-reconciles the robots it
-/// held; also refreshes the robots-by-phase gauge.
+/// held; also refreshes the robots-by-phase gauge. Every minute, deletes the Leases of gateways
+/// gone for good.
 async fn watch_gateways(
     ctx: Arc<Context>,
     robots: Store<DeserializeGuard<Robot>>,
@@ -120,6 +196,7 @@ async fn watch_gateways(
 ) {
     let mut last: HashMap<String, GatewayState> = HashMap::new();
     let mut tick = tokio::time::interval(Duration::from_secs(1));
+    let mut last_gc: Option<std::time::Instant> = None;
     loop {
         tokio::select! {
             () = cancel.cancelled() => return,
@@ -127,6 +204,13 @@ async fn watch_gateways(
         }
         let now = Timestamp::now();
         let all = robots.state();
+        // Only with every robot known: an unlisted robot may still name a gateway.
+        let robots_known =
+            futures::FutureExt::now_or_never(robots.wait_until_ready()).is_some_and(|r| r.is_ok());
+        if robots_known && last_gc.is_none_or(|t| t.elapsed() >= LEASE_GC_EVERY) {
+            remove_stale_gateway_leases(&ctx, &leases, &all).await;
+            last_gc = Some(std::time::Instant::now());
+        }
         let mut by_gateway: HashMap<String, Vec<ObjectRef<DeserializeGuard<Robot>>>> =
             HashMap::new();
         let mut phases: HashMap<&'static str, i64> =
@@ -263,4 +347,59 @@ fn error_policy(guard: Arc<DeserializeGuard<Robot>>, error: &Error, ctx: Arc<Con
     let delay = ctx.next_backoff(&name, &namespace);
     warn!(robot = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed");
     Action::requeue(delay)
+}
+
+#[cfg(test)]
+mod tests {
+    use k8s_openapi::api::coordination::v1::LeaseSpec;
+    use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
+    use kube::api::ObjectMeta;
+
+    use super::*;
+
+    fn lease(name: &str, gateway: bool, renewed_ago_s: i64) -> Arc<Lease> {
+        let now = Timestamp::now();
+        Arc::new(Lease {
+            metadata: ObjectMeta {
+                name: Some(name.into()),
+                resource_version: Some("7".into()),
+                labels: gateway.then(|| {
+                    [(
+                        crate::gateway::lease::GATEWAY_LEASE_LABEL.to_owned(),
+                        "true".to_owned(),
+                    )]
+                    .into()
+                }),
+                ..ObjectMeta::default()
+            },
+            spec: Some(LeaseSpec {
+                holder_identity: Some(name.into()),
+                lease_duration_seconds: Some(15),
+                renew_time: Some(MicroTime(
+                    now - jiff::SignedDuration::from_secs(renewed_ago_s),
+                )),
+                ..LeaseSpec::default()
+            }),
+        })
+    }
+
+    /// Only gateway Leases expired for longer than the limit and named by no robot go.
+    #[test]
+    fn stale_gateway_leases_are_old_unreferenced_gateway_leases() {
+        let leases = [
+            lease("gw-alive", true, 5),
+            lease("gw-recently-dead", true, 600),
+            lease("gw-old", true, 7200),
+            lease("gw-old-but-held", true, 7200),
+            lease("lekiwi-operator", false, 7200),
+        ];
+        let referenced = ["gw-old-but-held"].into_iter().collect();
+        let stale = stale_gateway_leases(
+            &leases,
+            &referenced,
+            Timestamp::now(),
+            Duration::from_secs(3600),
+        );
+        assert_eq!(stale, vec![("gw-old".to_owned(), Some("7".to_owned()))]);
+    }
 }
