@@ -805,6 +805,32 @@ pub async fn http_get_with(
     Ok((code, hdrs, body.to_owned()))
 }
 
+/// Makes, with openssl, a self-signed CA (`ca.crt`) and a server certificate it signed for
+/// 127.0.0.1 and localhost (`tls.crt`, `tls.key`) in `dir`.
+pub fn test_ca(dir: &Path) -> Result<()> {
+    let d = dir.display();
+    let sh = |cmd: String| -> Result<()> {
+        let out = Command::new("bash").arg("-c").arg(&cmd).output()?;
+        if !out.status.success() {
+            bail!("{cmd}: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        Ok(())
+    };
+    sh(format!(
+        "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=lekiwi-test-ca -keyout {d}/ca.key -out {d}/ca.crt"
+    ))?;
+    sh(format!(
+        "openssl req -newkey rsa:2048 -nodes -subj /CN=127.0.0.1 -keyout {d}/tls.key -out {d}/tls.csr"
+    ))?;
+    std::fs::write(
+        dir.join("ext"),
+        "subjectAltName=IP:127.0.0.1,DNS:localhost\nbasicConstraints=CA:FALSE\n",
+    )?;
+    sh(format!(
+        "openssl x509 -req -in {d}/tls.csr -CA {d}/ca.crt -CAkey {d}/ca.key -CAcreateserial -days 1 -extfile {d}/ext -out {d}/tls.crt"
+    ))
+}
+
 /// A real `lekiwi-agent` process with its own state directory, for tests.
 pub struct AgentProcess {
     child: Child,

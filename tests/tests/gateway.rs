@@ -637,35 +637,9 @@ async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
     let client = cp.client().await?;
     let ns = namespace(&client, "gwtls").await?;
 
-    // A self-signed CA and a server certificate for 127.0.0.1, made with openssl.
     let dir = tempfile::tempdir()?;
+    lekiwi_tests::test_ca(dir.path())?;
     let d = dir.path().display().to_string();
-    let sh = |cmd: String| {
-        let out = std::process::Command::new("bash")
-            .arg("-c")
-            .arg(&cmd)
-            .output()
-            .expect("bash");
-        assert!(
-            out.status.success(),
-            "{cmd}: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    };
-    sh(format!(
-        "openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=lekiwi-test-ca -keyout {d}/ca.key -out {d}/ca.crt 2>/dev/null"
-    ));
-    sh(format!(
-        "openssl req -newkey rsa:2048 -nodes -subj /CN=127.0.0.1 -keyout {d}/tls.key -out {d}/tls.csr 2>/dev/null"
-    ));
-    std::fs::write(
-        dir.path().join("ext"),
-        "subjectAltName=IP:127.0.0.1,DNS:localhost\nbasicConstraints=CA:FALSE\n",
-    )?;
-    sh(format!(
-        "openssl x509 -req -in {d}/tls.csr -CA {d}/ca.crt -CAkey {d}/ca.key -CAcreateserial -days 1 -extfile {d}/ext -out {d}/tls.crt 2>/dev/null"
-    ));
-
     let cert = format!("{d}/tls.crt");
     let key = format!("{d}/tls.key");
     let op = start(

@@ -674,3 +674,120 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
     }
     Ok(())
 }
+
+/// Everything over TLS with a private CA: `release push` to an https:// gateway with
+/// `--certificate-authority`, a real agent on wss:// with `--ca-file` that downloads the
+/// release's blobs over https:// from the same gateway and switches to it; an agent that does
+/// not trust the CA never connects.
+#[tokio::test]
+async fn releases_travel_over_tls_with_a_private_ca() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "reltls").await?;
+    let certs = tempfile::tempdir()?;
+    lekiwi_tests::test_ca(certs.path())?;
+    let ca = certs.path().join("ca.crt");
+    let (cert, key) = (certs.path().join("tls.crt"), certs.path().join("tls.key"));
+    let (op, _blobs) = start(
+        cp,
+        &ns,
+        "rel-tls",
+        &[
+            "--tls-cert",
+            cert.to_str().unwrap(),
+            "--tls-key",
+            key.to_str().unwrap(),
+        ],
+    )
+    .await?;
+    let port = op.gateway_port;
+
+    let dir = tempfile::tempdir()?;
+    std::fs::create_dir_all(dir.path().join("release/lekiwi"))?;
+    std::fs::write(
+        dir.path().join("release/lekiwi/config.yaml"),
+        "speed: 0.3\n",
+    )?;
+    std::fs::write(dir.path().join("release/policy.bin"), vec![7u8; 300_000])?;
+    let push = |server: String, extra: &[&str]| {
+        std::process::Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(cp.kubeconfig())
+            .arg("release")
+            .arg("push")
+            .arg(dir.path().join("release"))
+            .args(["--version", "1.0.0", "--operator-namespace", &ns])
+            .args(["--server", &server])
+            .args(extra)
+            .env_remove("LEKIWI_SERVER")
+            .output()
+            .expect("run kubectl-lekiwi")
+    };
+    let server = format!("https://127.0.0.1:{port}");
+    let refused = push(server.clone(), &[]);
+    assert!(
+        !refused.status.success(),
+        "an untrusted certificate was accepted"
+    );
+    let pushed = push(server, &["--certificate-authority", ca.to_str().unwrap()]);
+    let (out, err) = text(&pushed);
+    assert!(pushed.status.success(), "{err}");
+    let digest = out.trim().to_owned();
+
+    let token_file = dir.path().join("enroll-token");
+    std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+    let url = format!("wss://127.0.0.1:{port}/v1/agent");
+    let robot = format!("{ns}/kiwi-tls");
+    let agent = lekiwi_tests::AgentProcess::start(
+        &url,
+        &robot,
+        &token_file,
+        &dir.path().join("state"),
+        &["--ca-file", ca.to_str().unwrap()],
+    )?;
+    let untrusting = lekiwi_tests::AgentProcess::start(
+        &url,
+        &format!("{ns}/kiwi-untrusting"),
+        &token_file,
+        &dir.path().join("state-untrusting"),
+        &[],
+    )?;
+    let robots = Api::<lekiwi_crds::Robot>::namespaced(client.clone(), &ns);
+    lekiwi_tests::wait_for("kiwi-tls enrolled", Duration::from_secs(20), || async {
+        robots.get_opt("kiwi-tls").await.ok()?.map(|_| ())
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", agent.log_text()))?;
+    let patch = serde_json::json!({"spec": {"release": {"version": "1.0.0", "digest": digest}}});
+    robots
+        .patch(
+            "kiwi-tls",
+            &kube::api::PatchParams::default(),
+            &kube::api::Patch::Merge(&patch),
+        )
+        .await?;
+    lekiwi_tests::wait_for("1.0.0 running", Duration::from_secs(30), || async {
+        let r = robots.get("kiwi-tls").await.ok()?;
+        (r.status?.current_release?.version == "1.0.0").then_some(())
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", agent.log_text()))?;
+    let current = dir.path().join("state/current");
+    assert_eq!(
+        std::fs::read(current.join("policy.bin"))?,
+        vec![7u8; 300_000]
+    );
+    assert_eq!(
+        std::fs::read_to_string(current.join("lekiwi/config.yaml"))?,
+        "speed: 0.3\n"
+    );
+
+    // The agent without the CA never got in, and says why.
+    assert!(robots.get_opt("kiwi-untrusting").await?.is_none());
+    let log = untrusting.log_text();
+    assert!(
+        log.contains("certificate") || log.contains("UnknownIssuer"),
+        "{log}"
+    );
+    Ok(())
+}
