@@ -89,6 +89,16 @@ impl Site {
         })
     }
 
+    /// Runs `kubectl-lekiwi -n NS ARGS...` against the test control plane.
+    fn cli(&self, args: &[&str]) -> anyhow::Result<std::process::Output> {
+        Ok(Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(self.cp.kubeconfig())
+            .args(["-n", &self.ns])
+            .args(args)
+            .output()?)
+    }
+
     fn fleet(&self, robots: usize, extra: &[&str]) -> anyhow::Result<Fleet> {
         Fleet::start(self, robots, extra)
     }
@@ -660,5 +670,134 @@ async fn teleoperated_robot_is_waited_for_and_invalid_release_is_clear() -> anyh
         .unwrap();
     assert_eq!(valid.reason, "InvalidRelease");
     drop(agent);
+    Ok(())
+}
+
+/// Robots of the plugin test.
+const CLI_ROBOTS: usize = 6;
+
+/// `kubectl lekiwi rollout ...` steers a real rollout: `pause` holds it (robots updating finish,
+/// no new one starts), `resume` lets it finish and `status` follows it to the end (exit 0);
+/// `undo` takes every robot back to the release it ran before (`status` exits non-zero and
+/// says so); `restart` rolls the release out again from the first batch.
+#[tokio::test]
+async fn the_plugin_pauses_resumes_undoes_and_restarts_a_rollout() -> anyhow::Result<()> {
+    let site = Site::new("rollcli").await?;
+    // A restart command of 1 s, so that one robot at a time takes a moment.
+    let _fleet = site.fleet(CLI_ROBOTS, &["--restart-command", "sleep 1"])?;
+    site.wait_online(CLI_ROBOTS).await?;
+    let v1 = site.push(&release_dir(site.dir.path(), 5, "1", &[])?, "1.0.0")?;
+    let v2 = site.push(&release_dir(site.dir.path(), 5, "2", &[2])?, "2.0.0")?;
+    site.deploy("cli", &v1, strategy(1, 0), LabelSelector::default())
+        .await?;
+    let d = site.finished("cli", Duration::from_secs(120)).await?;
+    assert_eq!(d.status.unwrap().phase, Some(RolloutPhase::Completed));
+
+    let api = Api::<RobotDeployment>::namespaced(site.client.clone(), &site.ns);
+    api.patch(
+        "cli",
+        &PatchParams::default(),
+        &Patch::Merge(&json!({"spec": {"release": v2}})),
+    )
+    .await?;
+    wait_for("the first v2 robot", Duration::from_secs(30), || async {
+        let by = site.releases().await.ok()?;
+        by.contains_key("2.0.0").then_some(())
+    })
+    .await?;
+    let out = site.cli(&["rollout", "pause", "cli"])?;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("paused"));
+    wait_for("Paused", Duration::from_secs(20), || async {
+        let st = site.deployment("cli").await.ok()?.status?;
+        (st.phase == Some(RolloutPhase::Paused)).then_some(())
+    })
+    .await?;
+    // The robot updating when the pause came finishes; then nothing moves.
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    let held = site.releases().await?;
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    assert_eq!(site.releases().await?, held, "a robot started while paused");
+    let on_v2 = held.get("2.0.0").copied().unwrap_or_default();
+    assert!((1..CLI_ROBOTS).contains(&on_v2), "paused mid-way: {held:?}");
+    let out = site.cli(&["rollout", "status", "cli", "--watch=false"])?;
+    assert!(String::from_utf8_lossy(&out.stdout).contains("Paused"));
+
+    let out = site.cli(&["rollout", "resume", "cli"])?;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let out = site.cli(&["rollout", "status", "cli", "--timeout", "120"])?;
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("Completed"), "{text}");
+    assert_eq!(
+        site.releases().await?.get("2.0.0"),
+        Some(&CLI_ROBOTS),
+        "all on v2"
+    );
+
+    let out = site.cli(&["rollout", "undo", "cli"])?;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let d = wait_for("RolledBack", Duration::from_secs(60), || async {
+        let d = site.deployment("cli").await.ok()?;
+        (d.status.as_ref()?.phase == Some(RolloutPhase::RolledBack)).then_some(d)
+    })
+    .await?;
+    let message = d.status.unwrap().message.unwrap_or_default();
+    assert!(message.contains("rollout undo"), "{message}");
+    wait_for("all robots back on v1", Duration::from_secs(60), || async {
+        let by = site.releases().await.ok()?;
+        (by.get("1.0.0") == Some(&CLI_ROBOTS)).then_some(())
+    })
+    .await?;
+    let out = site.cli(&["rollout", "status", "cli", "--timeout", "30"])?;
+    assert!(
+        !out.status.success(),
+        "status exits non-zero after a rollback"
+    );
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("rolled back"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+
+    let out = site.cli(&["rollout", "restart", "cli"])?;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    wait_for("v2 rolled out again", Duration::from_secs(120), || async {
+        let st = site.deployment("cli").await.ok()?.status?;
+        let by = site.releases().await.ok()?;
+        (st.phase == Some(RolloutPhase::Completed) && by.get("2.0.0") == Some(&CLI_ROBOTS))
+            .then_some(())
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", tail(&site.op.log_text())))?;
+
+    // A rollout that does not exist is a clear error.
+    let out = site.cli(&["rollout", "pause", "nope"])?;
+    assert!(!out.status.success());
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("not found"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     Ok(())
 }
