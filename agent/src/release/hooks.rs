@@ -170,6 +170,18 @@ fn kill_group(pgid: u32) {
 mod tests {
     use super::*;
 
+    /// Release 1 in `dir`, with nothing before it.
+    fn env_in(dir: &std::path::Path) -> HookEnv {
+        HookEnv {
+            dir: dir.to_owned(),
+            release: Release {
+                version: "1".into(),
+                digest: format!("sha256:{}", "0".repeat(64)),
+            },
+            previous: None,
+        }
+    }
+
     /// A service that turns healthy 1.5 s after the switch passes a 2 s health timeout: the last
     /// attempt runs at the deadline, not an interval before it.
     #[tokio::test]
@@ -182,14 +194,7 @@ mod tests {
             ..Config::default()
         };
         let hooks = Hooks::from_config(&config);
-        let env = HookEnv {
-            dir: dir.path().to_owned(),
-            release: Release {
-                version: "1".into(),
-                digest: format!("sha256:{}", "0".repeat(64)),
-            },
-            previous: None,
-        };
+        let env = env_in(dir.path());
         let healthy = dir.path().join("healthy");
         let started = Instant::now();
         tokio::spawn(async move {
@@ -221,14 +226,7 @@ mod tests {
             ..Config::default()
         };
         let hooks = Hooks::from_config(&config);
-        let env = HookEnv {
-            dir: dir.path().to_owned(),
-            release: Release {
-                version: "1".into(),
-                digest: format!("sha256:{}", "0".repeat(64)),
-            },
-            previous: None,
-        };
+        let env = env_in(dir.path());
         let pid_file = dir.path().join("child.pid");
         let command = format!(
             "sleep 60 & echo $! > {}; echo started; wait",
