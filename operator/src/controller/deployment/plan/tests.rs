@@ -452,3 +452,36 @@ fn rolling_a_release_out_again_ignores_the_marks_of_its_earlier_rollout() {
     assert!(sim.robots.iter().all(|r| r.current == Some(rel("2"))));
     assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
 }
+
+#[test]
+fn a_robot_that_vanishes_mid_update_leaves_a_consistent_rollout() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(3), 0), 9);
+    let first = sim.step();
+    assert_eq!(first.writes.len(), 3);
+    // kiwi-01, told to switch, is deleted (or loses its label) before it reports; its batch
+    // is judged on the robots that remain, and no later robot is pulled forward into batch 0.
+    sim.robots.retain(|r| r.name != "kiwi-01");
+    sim.agents();
+    sim.advance(1);
+    let plan = sim.step();
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(st.targeted, 8);
+    assert!(
+        plan.writes.iter().all(|w| w.mark.batch != 0),
+        "nobody joins a formed batch: {:?}",
+        plan.writes
+    );
+    sim.run_until_done(50);
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
+    assert_eq!((st.updated, st.failed, st.targeted), (8, 0, 8));
+    assert!(sim.robots.iter().all(|r| r.current == Some(rel("2"))));
+    // Batch membership never changed for the robots that stayed.
+    let marks: Vec<(String, i32)> = sim
+        .robots
+        .iter()
+        .map(|r| (r.name.clone(), r.mark.as_ref().unwrap().batch))
+        .collect();
+    assert_eq!(marks[..2], [("kiwi-00".into(), 0), ("kiwi-02".into(), 0)]);
+    assert!(marks[2..5].iter().all(|(_, b)| *b == 1), "{marks:?}");
+}
