@@ -131,19 +131,23 @@ fn stale_gateway_leases(
         })
         .filter(|l| !referenced.contains(l.name_any().as_str()))
         .filter(|l| {
-            let Some(spec) = l.spec.as_ref() else {
-                return true;
-            };
-            let Some(renew) = spec.renew_time.as_ref() else {
-                return true;
+            let spec = l.spec.as_ref();
+            // Never renewed: counted from its creation.
+            let Some(last) = spec
+                .and_then(|s| s.renew_time.as_ref().map(|t| t.0))
+                .or_else(|| l.metadata.creation_timestamp.as_ref().map(|t| t.0))
+            else {
+                return false;
             };
             let valid = jiff::SignedDuration::from_secs(i64::from(
-                spec.lease_duration_seconds.unwrap_or_default().max(0),
+                spec.and_then(|s| s.lease_duration_seconds)
+                    .unwrap_or_default()
+                    .max(0),
             ));
             let Ok(stale) = jiff::SignedDuration::try_from(stale) else {
                 return false;
             };
-            now.duration_since(renew.0) > valid + stale
+            now.duration_since(last) > valid + stale
         })
         .map(|l| (l.name_any(), l.resource_version()))
         .collect()
@@ -352,7 +356,7 @@ fn error_policy(guard: Arc<DeserializeGuard<Robot>>, error: &Error, ctx: Arc<Con
 #[cfg(test)]
 mod tests {
     use k8s_openapi::api::coordination::v1::LeaseSpec;
-    use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
+    use k8s_openapi::apimachinery::pkg::apis::meta::v1::{MicroTime, Time};
     use kube::api::ObjectMeta;
 
     use super::*;
@@ -386,7 +390,18 @@ mod tests {
     /// Only gateway Leases expired for longer than the limit and named by no robot go.
     #[test]
     fn stale_gateway_leases_are_old_unreferenced_gateway_leases() {
+        let mut unrenewed = (*lease("gw-never-renewed", true, 0)).clone();
+        unrenewed.spec = None;
+        let mut young = unrenewed.clone();
+        young.metadata.name = Some("gw-just-created".into());
+        unrenewed.metadata.creation_timestamp =
+            Some(Time(Timestamp::now() - jiff::SignedDuration::from_hours(3)));
+        young.metadata.creation_timestamp = Some(
+            k8s_openapi::apimachinery::pkg::apis::meta::v1::Time(Timestamp::now()),
+        );
         let leases = [
+            Arc::new(unrenewed),
+            Arc::new(young),
             lease("gw-alive", true, 5),
             lease("gw-recently-dead", true, 600),
             lease("gw-old", true, 7200),
@@ -400,6 +415,12 @@ mod tests {
             Timestamp::now(),
             Duration::from_secs(3600),
         );
-        assert_eq!(stale, vec![("gw-old".to_owned(), Some("7".to_owned()))]);
+        assert_eq!(
+            stale,
+            vec![
+                ("gw-never-renewed".to_owned(), Some("7".to_owned())),
+                ("gw-old".to_owned(), Some("7".to_owned()))
+            ]
+        );
     }
 }
