@@ -83,18 +83,25 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     Ok(())
 }
 
-/// Whether a Lease was renewed within its duration.
+/// The end of a Lease's validity: its last renewal plus its duration (`None` without either).
+fn valid_until(lease: &Lease) -> Option<Timestamp> {
+    let spec = lease.spec.as_ref()?;
+    let renew = spec.renew_time.as_ref()?.0;
+    renew
+        .checked_add(jiff::SignedDuration::from_secs(i64::from(
+            spec.lease_duration_seconds?,
+        )))
+        .ok()
+}
+
+/// Whether a Lease has a holder and was renewed within its duration.
 fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
-    let Some(spec) = lease.spec.as_ref() else {
-        return false;
-    };
-    let (Some(renew), Some(secs)) = (spec.renew_time.as_ref(), spec.lease_duration_seconds) else {
-        return false;
-    };
-    spec.holder_identity
-        .as_deref()
+    lease
+        .spec
+        .as_ref()
+        .and_then(|s| s.holder_identity.as_deref())
         .is_some_and(|h| !h.is_empty())
-        && now.duration_since(renew.0) <= jiff::SignedDuration::from_secs(i64::from(secs))
+        && valid_until(lease).is_some_and(|end| now <= end)
 }
 
 fn gateway_state(
@@ -110,18 +117,19 @@ fn gateway_state(
 }
 
 /// A gateway Lease expired this long and held by no robot is deleted.
-const STALE_GATEWAY_LEASE: Duration = Duration::from_secs(3600);
+const STALE_GATEWAY_LEASE: jiff::SignedDuration = jiff::SignedDuration::from_hours(1);
 /// Time between two looks for stale gateway Leases.
 const LEASE_GC_EVERY: Duration = Duration::from_secs(60);
 
-/// Gateway Leases (by their label) that expired more than `stale` ago and that no robot's
-/// `status.gateway` names, as (name, resourceVersion). Deleting one changes no robot's state:
-/// a missing Lease reads as a dead gateway, like an expired one.
+/// Gateway Leases (by their label) that expired more than `stale` ago (a Lease never renewed
+/// counts from its creation) and that no robot's `status.gateway` names (`held`), as (name,
+/// resourceVersion). Deleting one changes no robot's state: a missing Lease reads as a dead
+/// gateway, like an expired one.
 fn stale_gateway_leases(
     leases: &[Arc<Lease>],
-    referenced: &std::collections::HashSet<&str>,
+    held: impl Fn(&str) -> bool,
     now: Timestamp,
-    stale: Duration,
+    stale: jiff::SignedDuration,
 ) -> Vec<(String, Option<String>)> {
     leases
         .iter()
@@ -129,25 +137,11 @@ fn stale_gateway_leases(
             l.labels()
                 .contains_key(crate::gateway::lease::GATEWAY_LEASE_LABEL)
         })
-        .filter(|l| !referenced.contains(l.name_any().as_str()))
+        .filter(|l| !held(&l.name_any()))
         .filter(|l| {
-            let spec = l.spec.as_ref();
-            // Never renewed: counted from its creation.
-            let Some(last) = spec
-                .and_then(|s| s.renew_time.as_ref().map(|t| t.0))
+            valid_until(l)
                 .or_else(|| l.metadata.creation_timestamp.as_ref().map(|t| t.0))
-            else {
-                return false;
-            };
-            let valid = jiff::SignedDuration::from_secs(i64::from(
-                spec.and_then(|s| s.lease_duration_seconds)
-                    .unwrap_or_default()
-                    .max(0),
-            ));
-            let Ok(stale) = jiff::SignedDuration::try_from(stale) else {
-                return false;
-            };
-            now.duration_since(last) > valid + stale
+                .is_some_and(|end| now.duration_since(end) > stale)
         })
         .map(|l| (l.name_any(), l.resource_version()))
         .collect()
@@ -158,19 +152,10 @@ fn stale_gateway_leases(
 async fn remove_stale_gateway_leases(
     ctx: &Context,
     leases: &Store<Lease>,
-    robots: &[Arc<DeserializeGuard<Robot>>],
+    held: impl Fn(&str) -> bool,
+    now: Timestamp,
 ) {
-    let referenced: std::collections::HashSet<&str> = robots
-        .iter()
-        .filter_map(|g| g.0.as_ref().ok())
-        .filter_map(|r| r.status.as_ref()?.gateway.as_deref())
-        .collect();
-    let stale = stale_gateway_leases(
-        &leases.state(),
-        &referenced,
-        Timestamp::now(),
-        STALE_GATEWAY_LEASE,
-    );
+    let stale = stale_gateway_leases(&leases.state(), held, now, STALE_GATEWAY_LEASE);
     let api: Api<Lease> = Api::namespaced(ctx.client.clone(), &ctx.config.namespace);
     for (name, version) in stale {
         let params = kube::api::DeleteParams {
@@ -208,13 +193,6 @@ async fn watch_gateways(
         }
         let now = Timestamp::now();
         let all = robots.state();
-        // Only with every robot known: an unlisted robot may still name a gateway.
-        let robots_known =
-            futures::FutureExt::now_or_never(robots.wait_until_ready()).is_some_and(|r| r.is_ok());
-        if robots_known && last_gc.is_none_or(|t| t.elapsed() >= LEASE_GC_EVERY) {
-            remove_stale_gateway_leases(&ctx, &leases, &all).await;
-            last_gc = Some(std::time::Instant::now());
-        }
         let mut by_gateway: HashMap<String, Vec<ObjectRef<DeserializeGuard<Robot>>>> =
             HashMap::new();
         let mut phases: HashMap<&'static str, i64> =
@@ -246,6 +224,14 @@ async fn watch_gateways(
                 .robots
                 .get_or_create(&PhaseLabels { phase })
                 .set(n);
+        }
+        // Only with every robot known: an unlisted robot may still name a gateway.
+        let robots_known =
+            futures::FutureExt::now_or_never(robots.wait_until_ready()).is_some_and(|r| r.is_ok());
+        if robots_known && last_gc.is_none_or(|t| t.elapsed() >= LEASE_GC_EVERY) {
+            let held = |name: &str| by_gateway.contains_key(name);
+            remove_stale_gateway_leases(&ctx, &leases, held, now).await;
+            last_gc = Some(std::time::Instant::now());
         }
         let mut current = HashMap::new();
         for (gateway, refs) in by_gateway {
@@ -396,9 +382,7 @@ mod tests {
         young.metadata.name = Some("gw-just-created".into());
         unrenewed.metadata.creation_timestamp =
             Some(Time(Timestamp::now() - jiff::SignedDuration::from_hours(3)));
-        young.metadata.creation_timestamp = Some(
-            k8s_openapi::apimachinery::pkg::apis::meta::v1::Time(Timestamp::now()),
-        );
+        young.metadata.creation_timestamp = Some(Time(Timestamp::now()));
         let leases = [
             Arc::new(unrenewed),
             Arc::new(young),
@@ -408,12 +392,17 @@ mod tests {
             lease("gw-old-but-held", true, 7200),
             lease("lekiwi-operator", false, 7200),
         ];
-        let referenced = ["gw-old-but-held"].into_iter().collect();
+        let alive: Vec<bool> = leases
+            .iter()
+            .map(|l| lease_alive(l, Timestamp::now()))
+            .collect();
+        // Only the Lease renewed 5 s ago is alive (one without a renewal never is).
+        assert_eq!(alive, [false, false, true, false, false, false, false]);
         let stale = stale_gateway_leases(
             &leases,
-            &referenced,
+            |name| name == "gw-old-but-held",
             Timestamp::now(),
-            Duration::from_secs(3600),
+            STALE_GATEWAY_LEASE,
         );
         assert_eq!(
             stale,
