@@ -340,7 +340,7 @@ async fn probe(http: &reqwest::Client, addr: SocketAddr) -> anyhow::Result<Statu
         .get(format!("http://{addr}/status"))
         .send()
         .await
-        .map_err(|e| anyhow::anyhow!("{}", without_url(&e)))?;
+        .map_err(|e| anyhow::anyhow!("{}", crate::http_error(&e)))?;
     if !resp.status().is_success() {
         bail!("answered {}", resp.status());
     }
@@ -352,23 +352,6 @@ async fn probe(http: &reqwest::Client, addr: SocketAddr) -> anyhow::Result<Statu
         bail!("not a LeKiwi agent status endpoint (no robot)");
     }
     Ok(status)
-}
-
-/// A reqwest error's cause chain without the URL (the caller names the address).
-fn without_url(e: &reqwest::Error) -> String {
-    let mut text = if e.is_timeout() {
-        "timed out".to_owned()
-    } else if e.is_connect() {
-        "cannot connect".to_owned()
-    } else {
-        "request failed".to_owned()
-    };
-    let mut source = std::error::Error::source(e);
-    while let Some(s) = source {
-        text.push_str(&format!(": {s}"));
-        source = s.source();
-    }
-    text
 }
 
 /// Splits an agent's robot name into namespace and name; a bare name is in `namespace`.

@@ -86,8 +86,9 @@ async fn fetch(gateway: &Gateway, ns: &str, name: &str) -> anyhow::Result<Vec<St
         let resp = match gateway.request(Method::GET, &path).send().await {
             Ok(r) => r,
             Err(e) => bail!(
-                "the gateway at {} did not answer ({e}); check --server or LEKIWI_SERVER",
-                gateway.base
+                "the gateway at {} did not answer ({}); check --server or LEKIWI_SERVER",
+                gateway.base,
+                crate::http_error(&e)
             ),
         };
         match resp.status() {

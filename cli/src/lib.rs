@@ -154,3 +154,41 @@ async fn client(cli: &Cli) -> anyhow::Result<(kube::Client, String)> {
     let ns = config.default_namespace.clone();
     Ok((kube::Client::try_from(config)?, ns))
 }
+
+/// A reqwest error with its cause chain (where a certificate or a connection failed) and without
+/// the URL (the caller names the address).
+pub(crate) fn http_error(e: &reqwest::Error) -> String {
+    let mut text = if e.is_timeout() {
+        "timed out".to_owned()
+    } else if e.is_connect() {
+        "cannot connect".to_owned()
+    } else {
+        "request failed".to_owned()
+    };
+    let mut source = std::error::Error::source(e);
+    while let Some(s) = source {
+        text.push_str(&format!(": {s}"));
+        source = s.source();
+    }
+    text
+}
+
+/// Whether a request failed in the TLS handshake (an untrusted or wrong certificate): trying
+/// again cannot help.
+pub(crate) fn tls_refused(e: &reqwest::Error) -> bool {
+    /// `e` or what it wraps or was caused by is a rustls error (I/O errors carry it inside).
+    fn rustls_inside(e: &(dyn std::error::Error + 'static)) -> bool {
+        if e.is::<rustls::Error>() {
+            return true;
+        }
+        if let Some(inner) = e
+            .downcast_ref::<std::io::Error>()
+            .and_then(|io| io.get_ref())
+            && rustls_inside(inner)
+        {
+            return true;
+        }
+        e.source().is_some_and(rustls_inside)
+    }
+    std::error::Error::source(e).is_some_and(rustls_inside)
+}

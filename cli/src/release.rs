@@ -356,7 +356,12 @@ impl Gateway {
             let failure = match self.request(method.clone(), path).send().await {
                 Ok(resp) if !transient(resp.status()) => return Ok(resp),
                 Ok(resp) => format!("{}: {}", resp.status(), message(resp).await),
-                Err(e) => format!("{e}"),
+                Err(e) if crate::tls_refused(&e) => bail!(
+                    "{what}: TLS with the gateway at {} failed ({}); check --certificate-authority",
+                    self.base,
+                    crate::http_error(&e)
+                ),
+                Err(e) => crate::http_error(&e),
             };
             attempt += 1;
             if attempt >= ATTEMPTS {
@@ -487,7 +492,7 @@ impl Gateway {
                         message(resp).await
                     ),
                 },
-                Err(e) => format!("{e}"),
+                Err(e) => crate::http_error(&e),
             };
             attempt += 1;
             if attempt >= ATTEMPTS {
