@@ -59,23 +59,18 @@ impl Site {
 
     /// Pushes `dir` as `version` with the real CLI; returns the release.
     fn push(&self, dir: &Path, version: &str) -> anyhow::Result<ReleaseRef> {
-        let out = Command::new(bin("kubectl-lekiwi"))
-            .arg("--kubeconfig")
-            .arg(self.cp.kubeconfig())
-            .args([
-                "release",
-                "push",
-                dir.to_str().unwrap(),
-                "--version",
-                version,
-            ])
-            .args(["--operator-namespace", &self.ns])
-            .args([
-                "--server",
-                &format!("http://127.0.0.1:{}", self.op.gateway_port),
-            ])
-            .env_remove("LEKIWI_SERVER")
-            .output()?;
+        let server = format!("http://127.0.0.1:{}", self.op.gateway_port);
+        let out = self.cli(&[
+            "release",
+            "push",
+            dir.to_str().unwrap(),
+            "--version",
+            version,
+            "--operator-namespace",
+            &self.ns,
+            "--server",
+            &server,
+        ])?;
         if !out.status.success() {
             bail!(
                 "release push failed: {}",
@@ -96,6 +91,7 @@ impl Site {
             .arg(self.cp.kubeconfig())
             .args(["-n", &self.ns])
             .args(args)
+            .env_remove("LEKIWI_SERVER")
             .output()?)
     }
 
