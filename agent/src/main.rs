@@ -29,7 +29,7 @@ fn main() -> anyhow::Result<()> {
         };
         lekiwi_agent::state::ensure_dir(&config.state_dir)?;
         let mut outbox = Outbox::open(&config.state_dir, config.outbox_max_bytes)?;
-        let ts_ms = now_ms();
+        let ts_ms = lekiwi_protocol::now_ms();
         let lane = if *critical {
             Lane::Critical
         } else {
@@ -61,13 +61,6 @@ fn main() -> anyhow::Result<()> {
         agent.run(shutdown_signal()).await?;
         Ok(())
     })
-}
-
-fn now_ms() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_millis() as i64)
-        .unwrap_or_default()
 }
 
 fn init_logging(format: &str) {

@@ -38,7 +38,6 @@ use futures::stream::FuturesUnordered;
 use futures::{FutureExt, StreamExt};
 use lekiwi_protocol::release::{ManifestError, ReleaseManifest, blob_path, digest_hex};
 use lekiwi_protocol::{AgentMessage, Release};
-use serde::{Deserialize, Serialize};
 use tokio::sync::mpsc::UnboundedSender;
 use tracing::{info, warn};
 
@@ -158,55 +157,8 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T> + Send + 'sta
         .map_err(|_| Error::Task("a blocking file system task panicked".into()))?
 }
 
-/// Phase of a command, as reported in `progress.phase`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Phase {
-    /// Fetching the manifest and missing blobs.
-    Downloading,
-    /// Checking the blobs already held.
-    Verifying,
-    /// Building `releases/<version>/`.
-    Assembling,
-    /// Running the pre-switch command.
-    PreSwitch,
-    /// Pointing `current` at a release.
-    Switching,
-    /// Running the restart command.
-    Restarting,
-    /// Waiting for the health command to pass.
-    HealthCheck,
-    /// Finished: the release runs.
-    Done,
-    /// Finished: nothing was switched (or the switch was interrupted before it happened).
-    Failed,
-    /// Finished: the release was switched to, failed, and the previous one runs again.
-    RolledBack,
-}
-
-impl Phase {
-    /// The wire name.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Phase::Downloading => "downloading",
-            Phase::Verifying => "verifying",
-            Phase::Assembling => "assembling",
-            Phase::PreSwitch => "pre_switch",
-            Phase::Switching => "switching",
-            Phase::Restarting => "restarting",
-            Phase::HealthCheck => "health_check",
-            Phase::Done => "done",
-            Phase::Failed => "failed",
-            Phase::RolledBack => "rolled_back",
-        }
-    }
-}
-
-impl std::fmt::Display for Phase {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
+/// Phase of a command, as reported in `progress.phase` (the protocol's own type).
+pub use lekiwi_protocol::ProgressPhase as Phase;
 
 /// One progress report of a command; the last one of a command has phase `done`, `failed` or
 /// `rolled_back` and matches the [`Outcome`].

@@ -7,7 +7,7 @@
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::pin::Pin;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use futures::{SinkExt, StreamExt};
 use lekiwi_protocol::{
@@ -23,7 +23,7 @@ use crate::config::Config;
 use crate::connection::{ConnectError, Credentials as ConnCredentials, Socket, Welcome};
 use crate::discovery::{Advertiser, StatusSnapshot};
 use crate::outbox::{Lane, Outbox};
-use crate::release::{GatewayAccess, Outcome, Progress, Releases};
+use crate::release::{GatewayAccess, Outcome, Phase, Progress, Releases};
 use crate::state::{self, Credentials};
 use crate::telemetry::Telemetry;
 use crate::teleop::{Detector, Verdict};
@@ -72,13 +72,6 @@ const ACK_FLUSH: Duration = Duration::from_millis(250);
 const STATUS_EVERY: Duration = Duration::from_secs(1);
 /// Missing heartbeat acks for this many intervals ends the session.
 const DEAD_INTERVALS: u32 = 3;
-
-fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
-        .unwrap_or_default()
-}
 
 /// WebSocket bytes of a client text frame carrying `len` payload bytes (header + mask key).
 fn ws_frame_bytes(len: usize) -> u64 {
@@ -242,7 +235,7 @@ impl Agent {
             outbox_pending: outbox.depth()?.messages,
             last_rtt_ms: None,
             bytes_sent: 0,
-            started_at_ms: now_ms(),
+            started_at_ms: lekiwi_protocol::now_ms(),
         };
         let (status, status_rx) = tokio::sync::watch::channel(snapshot.clone());
         let mut status_port = 0;
@@ -345,7 +338,7 @@ impl Agent {
         message: String,
         data: serde_json::Value,
     ) -> Result<u64, Error> {
-        let ts_ms = now_ms();
+        let ts_ms = lekiwi_protocol::now_ms();
         Ok(self.outbox.push(lane, ts_ms, |seq| AgentMessage::Event {
             seq,
             ts_ms,
@@ -361,9 +354,8 @@ impl Agent {
             let n = self.pending_samples.len().min(1000);
             let samples: Vec<Sample> = self.pending_samples.drain(..n).collect();
             self.outbox
-                .push(Lane::Telemetry, now_ms(), |seq| AgentMessage::Telemetry {
-                    seq,
-                    samples,
+                .push(Lane::Telemetry, lekiwi_protocol::now_ms(), |seq| {
+                    AgentMessage::Telemetry { seq, samples }
                 })?;
         }
         Ok(())
@@ -415,7 +407,7 @@ impl Agent {
 
     async fn send_heartbeat(&mut self, session: &mut Session) -> bool {
         let hb = AgentMessage::Heartbeat {
-            sent_at_ms: now_ms(),
+            sent_at_ms: lekiwi_protocol::now_ms(),
             rtt_ms: self.last_rtt_ms,
             vitals: self.telemetry.vitals(),
             current_release: self.current_release.clone(),
@@ -544,7 +536,7 @@ impl Agent {
                 }
             }
             ServerMessage::HeartbeatAck { sent_at_ms, .. } => {
-                let rtt = (now_ms() - sent_at_ms).max(0) as f64;
+                let rtt = (lekiwi_protocol::now_ms() - sent_at_ms).max(0) as f64;
                 self.last_rtt_ms = Some(rtt);
                 debug!(rtt_ms = rtt, "heartbeat acknowledged");
             }
@@ -612,7 +604,7 @@ impl Agent {
                     if let Some((queued_id, _)) = self.queued.take() {
                         self.report_final(
                             &queued_id,
-                            "failed",
+                            Phase::Failed,
                             "cancelled before it started".into(),
                         )?;
                     }
@@ -620,14 +612,18 @@ impl Agent {
                     // down half-way.
                     self.report_final(
                         &command_id,
-                        "failed",
+                        Phase::Failed,
                         "a deployment in progress is not interrupted; it finishes or rolls back"
                             .into(),
                     )?;
                 }
                 other => {
                     if let Some((old, _)) = self.queued.replace((command_id, other)) {
-                        self.report_final(&old, "failed", "superseded by a newer command".into())?;
+                        self.report_final(
+                            &old,
+                            Phase::Failed,
+                            "superseded by a newer command".into(),
+                        )?;
                     }
                 }
             }
@@ -635,7 +631,7 @@ impl Agent {
         }
         match command {
             Command::Cancel => {
-                self.report_final(&command_id, "done", "nothing to cancel".into())?
+                self.report_final(&command_id, Phase::Done, "nothing to cancel".into())?
             }
             other => self.start_command(command_id, other),
         }
@@ -645,15 +641,15 @@ impl Agent {
     fn report_final(
         &mut self,
         command_id: &str,
-        phase: &str,
+        phase: Phase,
         message: String,
     ) -> Result<(), Error> {
-        let ts = now_ms();
+        let ts = lekiwi_protocol::now_ms();
         self.outbox
             .push(Lane::Critical, ts, |seq| AgentMessage::Progress {
                 seq,
                 command_id: command_id.to_owned(),
-                phase: phase.to_owned(),
+                phase: phase.as_str().to_owned(),
                 percent: None,
                 message,
             })?;
@@ -748,7 +744,7 @@ impl Agent {
                 "deployment finished"
             );
             for alias in &done.aliases {
-                self.report_final(alias, o.phase.as_str(), o.message.clone())?;
+                self.report_final(alias, o.phase, o.message.clone())?;
             }
         }
         let release = self.current_release.clone();
@@ -881,7 +877,9 @@ impl Agent {
             match wake {
                 Wake::Shutdown => break,
                 Wake::Telemetry => {
-                    let samples = self.telemetry.collect_due(Instant::now(), now_ms());
+                    let samples = self
+                        .telemetry
+                        .collect_due(Instant::now(), lekiwi_protocol::now_ms());
                     self.pending_samples.extend(samples);
                     if self.pending_samples.len() >= 1000 {
                         self.flush_samples()?;
@@ -1006,7 +1004,7 @@ impl Agent {
                 Wake::Pump => {}
                 Wake::Progress(p) => {
                     if let Some(p) = p {
-                        let ts = now_ms();
+                        let ts = lekiwi_protocol::now_ms();
                         self.outbox
                             .push(Lane::Critical, ts, |seq| p.to_message(seq))?;
                     }
@@ -1014,7 +1012,7 @@ impl Agent {
                 Wake::Deployed(r) => {
                     // Progress sent before the end goes out first.
                     while let Ok(p) = self.progress_rx.try_recv() {
-                        let ts = now_ms();
+                        let ts = lekiwi_protocol::now_ms();
                         self.outbox
                             .push(Lane::Critical, ts, |seq| p.to_message(seq))?;
                     }

@@ -3,7 +3,7 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use clap::Parser;
 use futures::{SinkExt, StreamExt};
@@ -123,13 +123,6 @@ fn percentile(sorted: &[u32], p: f64) -> f64 {
     }
     let idx = ((sorted.len() as f64 - 1.0) * p).round() as usize;
     f64::from(sorted[idx.min(sorted.len() - 1)]) / 1000.0
-}
-
-fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_millis() as i64)
-        .unwrap_or(0)
 }
 
 /// Runs the simulation and returns its summary.
@@ -330,7 +323,7 @@ async fn heartbeats(ws: crate::connection::Socket, interval: Duration, stats: &S
     loop {
         tokio::select! {
             _ = tick.tick() => {
-                let sent_at_ms = now_ms();
+                let sent_at_ms = lekiwi_protocol::now_ms();
                 let hb = AgentMessage::Heartbeat {
                     sent_at_ms,
                     rtt_ms: last_rtt,

@@ -7,7 +7,6 @@ use anyhow::bail;
 use clap::Args;
 use jiff::Timestamp;
 use reqwest::{Method, StatusCode};
-use serde::{Deserialize, Serialize};
 
 use crate::Output;
 use crate::release::{Gateway, ServerArgs, message};
@@ -36,23 +35,7 @@ pub struct EventsArgs {
     pub server: ServerArgs,
 }
 
-/// One stored event, as the gateway answers it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct StoredEvent {
-    /// The robot's sequence number.
-    pub seq: u64,
-    /// When it happened on the robot, Unix milliseconds.
-    pub ts_ms: i64,
-    /// What happened.
-    pub kind: String,
-    /// `info`, `warning` or `error`.
-    pub severity: String,
-    /// Human-readable text.
-    pub message: String,
-    /// Structured details.
-    #[serde(default)]
-    pub data: serde_json::Value,
-}
+pub use lekiwi_protocol::StoredEvent;
 
 /// Runs `events`.
 pub async fn run(

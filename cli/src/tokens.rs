@@ -2,35 +2,19 @@
 //! own token, or make the namespace's fleet enrollment token. Tokens are printed once and kept
 //! in the cluster only as SHA-256 hashes, in Secrets shaped exactly as the gateway reads them.
 
-use std::collections::BTreeMap;
-
 use anyhow::{Context as _, bail};
 use clap::{Args, Subcommand};
-use k8s_openapi::ByteString;
 use k8s_openapi::api::core::v1::Secret;
 use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
 use kube::{Api, Resource};
 use lekiwi_crds::Robot;
-use rand::RngCore;
+use lekiwi_crds::contract::{
+    ENROLLMENT_SECRET, enrollment_token_secret, managers, new_token, robot_token_secret,
+};
 use serde::Serialize;
-use sha2::{Digest, Sha256};
 
 use crate::Output;
 
-/// Label on every token Secret; its value says which kind (as the gateway's `auth.rs`).
-pub const TOKEN_LABEL: &str = "fleet.lekiwi.io/token";
-/// `TOKEN_LABEL` value of a fleet enrollment token.
-pub const KIND_ENROLLMENT: &str = "enrollment";
-/// `TOKEN_LABEL` value of a per-robot token.
-pub const KIND_ROBOT: &str = "robot";
-/// Label naming the robot a per-robot token belongs to.
-pub const ROBOT_LABEL: &str = "fleet.lekiwi.io/robot";
-/// Key in a token Secret's data holding the hex SHA-256 of the token.
-pub const HASH_KEY: &str = "sha256";
-/// Name of the fleet enrollment token Secret (as `scripts/quickstart.sh` makes it).
-pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
-/// Field manager of what this plugin applies.
-pub const FIELD_MANAGER: &str = "kubectl-lekiwi";
 /// The agent's default state directory (agent `stateDir`).
 pub const AGENT_STATE_DIR: &str = "/var/lib/lekiwi";
 /// The agent's default config file.
@@ -81,23 +65,6 @@ fn parse_label(s: &str) -> Result<(String, String), String> {
         return Err(format!("label {s:?} has an empty key"));
     }
     Ok((k.to_owned(), v.to_owned()))
-}
-
-/// Hex SHA-256 of a token, as the gateway stores it.
-pub fn hash_token(token: &str) -> String {
-    hex::encode(Sha256::digest(token.as_bytes()))
-}
-
-/// A fresh random token with a kind prefix (`lkr_` robot, `lke_` enrollment).
-pub fn new_token(prefix: &str) -> String {
-    let mut bytes = [0u8; 32];
-    rand::rng().fill_bytes(&mut bytes);
-    format!("{prefix}{}", hex::encode(bytes))
-}
-
-/// Name of the Secret holding a robot's token hash (the gateway's `robot_secret_name`).
-pub fn robot_secret_name(robot: &str) -> String {
-    format!("{robot}-agent-token")
 }
 
 /// The agent's WebSocket URL derived from the gateway's HTTP base URL.
@@ -241,35 +208,19 @@ pub async fn add(
         }
     };
     let token = new_token("lkr_");
-    let secret = Secret {
-        metadata: ObjectMeta {
-            name: Some(robot_secret_name(&args.name)),
-            labels: Some(BTreeMap::from([
-                (TOKEN_LABEL.to_owned(), KIND_ROBOT.to_owned()),
-                (ROBOT_LABEL.to_owned(), args.name.clone()),
-            ])),
-            owner_references: robot.controller_owner_ref(&()).map(|r| vec![r]),
-            ..ObjectMeta::default()
-        },
-        data: Some(BTreeMap::from([(
-            HASH_KEY.to_owned(),
-            ByteString(hash_token(&token).into_bytes()),
-        )])),
-        type_: Some("Opaque".to_owned()),
-        ..Secret::default()
-    };
+    let secret = robot_token_secret(&args.name, &token, robot.controller_owner_ref(&()));
     let secrets: Api<Secret> = Api::namespaced(client, namespace);
     secrets
         .patch(
-            &robot_secret_name(&args.name),
-            &PatchParams::apply(FIELD_MANAGER).force(),
+            &lekiwi_crds::contract::robot_secret_name(&args.name),
+            &PatchParams::apply(managers::CLI).force(),
             &Patch::Apply(&secret),
         )
         .await
         .with_context(|| {
             format!(
                 "cannot write Secret {namespace}/{} with the robot's token hash",
-                robot_secret_name(&args.name)
+                lekiwi_crds::contract::robot_secret_name(&args.name)
             )
         })?;
     let full = format!("{namespace}/{}", args.name);
@@ -328,28 +279,13 @@ pub async fn make_enrollment_token(
 ) -> anyhow::Result<EnrollmentToken> {
     let secrets: Api<Secret> = Api::namespaced(client, namespace);
     let token = new_token("lke_");
-    let secret = Secret {
-        metadata: ObjectMeta {
-            name: Some(ENROLLMENT_SECRET.to_owned()),
-            labels: Some(BTreeMap::from([(
-                TOKEN_LABEL.to_owned(),
-                KIND_ENROLLMENT.to_owned(),
-            )])),
-            ..ObjectMeta::default()
-        },
-        data: Some(BTreeMap::from([(
-            HASH_KEY.to_owned(),
-            ByteString(hash_token(&token).into_bytes()),
-        )])),
-        type_: Some("Opaque".to_owned()),
-        ..Secret::default()
-    };
+    let secret = enrollment_token_secret(&token);
     let what = || format!("cannot write Secret {namespace}/{ENROLLMENT_SECRET}");
     if rotate {
         secrets
             .patch(
                 ENROLLMENT_SECRET,
-                &PatchParams::apply(FIELD_MANAGER).force(),
+                &PatchParams::apply(managers::CLI).force(),
                 &Patch::Apply(&secret),
             )
             .await
@@ -374,6 +310,7 @@ pub async fn make_enrollment_token(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use lekiwi_crds::contract::{hash_token, robot_secret_name};
 
     #[test]
     fn tokens_hash_like_the_gateway() {

@@ -28,3 +28,12 @@ impl std::fmt::Display for ReleaseRef {
         write!(f, "{} ({})", self.version, &short[..short.len().min(12)])
     }
 }
+
+impl From<&ReleaseRef> for lekiwi_protocol::Release {
+    fn from(release: &ReleaseRef) -> Self {
+        lekiwi_protocol::Release {
+            version: release.version.clone(),
+            digest: release.digest.clone(),
+        }
+    }
+}

@@ -14,6 +14,38 @@ use tracing::{info, warn};
 
 use crate::error::{Error, Result};
 use crate::metrics::Metrics;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::registry::Registry;
+
+/// What leader election exports.
+#[derive(Clone)]
+pub struct LeaderMetrics {
+    /// 1 while this replica holds the leader Lease.
+    pub is_leader: Gauge,
+    /// Times this replica became leader.
+    pub acquisitions: Counter,
+}
+
+impl LeaderMetrics {
+    pub(crate) fn register(registry: &mut Registry) -> Self {
+        let m = Self {
+            is_leader: Gauge::default(),
+            acquisitions: Counter::default(),
+        };
+        registry.register(
+            "lekiwi_leader_election_is_leader",
+            "1 while this replica holds the leader Lease, else 0",
+            m.is_leader.clone(),
+        );
+        registry.register(
+            "lekiwi_leader_election_acquisitions",
+            "Times this replica became leader",
+            m.acquisitions.clone(),
+        );
+        m
+    }
+}
 
 /// One replica's view of the election.
 pub struct LeaderElector {
@@ -63,8 +95,8 @@ impl LeaderElector {
                     last_renew = Instant::now();
                     if !is_leader {
                         info!(identity = %self.identity, lease = %self.name, "became leader");
-                        metrics.leader_acquisitions.inc();
-                        metrics.is_leader.set(1);
+                        metrics.leader.acquisitions.inc();
+                        metrics.leader.is_leader.set(1);
                         leader.send_replace(true);
                     }
                 }
@@ -72,7 +104,7 @@ impl LeaderElector {
                     if is_leader {
                         warn!(identity = %self.identity, "lost the leader Lease to another replica");
                     }
-                    metrics.is_leader.set(0);
+                    metrics.leader.is_leader.set(0);
                     leader.send_replace(false);
                 }
                 Err(e) => {
@@ -81,7 +113,7 @@ impl LeaderElector {
                     if is_leader && last_renew.elapsed() >= self.duration.saturating_sub(self.retry)
                     {
                         warn!("cannot renew the leader Lease in time; stepping down");
-                        metrics.is_leader.set(0);
+                        metrics.leader.is_leader.set(0);
                         leader.send_replace(false);
                     }
                 }
@@ -93,7 +125,7 @@ impl LeaderElector {
         }
         if *leader.borrow() {
             leader.send_replace(false);
-            metrics.is_leader.set(0);
+            metrics.leader.is_leader.set(0);
             match self.release().await {
                 Ok(()) => info!("released the leader Lease"),
                 Err(e) => warn!(error = %e, "could not release the leader Lease"),

@@ -1,16 +1,14 @@
 //! The LeKiwi fleet operator: wires the Kubernetes client, leader election, controllers and the
 //! HTTP endpoints together and runs them until a signal.
 
-pub mod blobs;
 pub mod config;
 pub mod controller;
-pub mod crds;
+pub mod crd_install;
 pub mod error;
 pub mod gateway;
 pub mod http;
 pub mod leader;
 pub mod metrics;
-pub mod store;
 pub mod telemetry;
 
 use std::sync::Arc;
@@ -57,7 +55,7 @@ pub async fn run(config: Config) -> Result<()> {
     let config = Arc::new(config);
     let identity = config.identity();
     let client = client(&config).await?;
-    crds::ensure(client.clone(), config.install_crds).await?;
+    crd_install::ensure(client.clone(), config.install_crds).await?;
 
     let metrics = Metrics::new(config.per_robot_metrics);
     let cancel = CancellationToken::new();
@@ -126,7 +124,7 @@ pub async fn run(config: Config) -> Result<()> {
         tasks.spawn(async move { ("controllers", run_while_leader(ctx, leader_rx, c).await) });
     }
     if config.runs_gateway() {
-        let store = store::Store::connect(&config.store_url).await?;
+        let store = gateway::event_store::Store::connect(&config.store_url).await?;
         info!(backend = store.backend(), "event store ready");
         let (cfg, cl, m, c) = (
             config.clone(),

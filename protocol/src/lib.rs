@@ -156,6 +156,118 @@ pub struct Vitals {
     pub battery_percent: Option<f64>,
 }
 
+/// Phase of a command in `progress.phase` (§12). The agent sends these; the gateway and the
+/// rollout planner match on them instead of on strings.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProgressPhase {
+    /// Fetching the manifest and missing blobs.
+    Downloading,
+    /// Checking the blobs already held.
+    Verifying,
+    /// Building `releases/<version>/`.
+    Assembling,
+    /// Running the pre-switch command.
+    PreSwitch,
+    /// Pointing `current` at a release.
+    Switching,
+    /// Running the restart command.
+    Restarting,
+    /// Waiting for the health command to pass.
+    HealthCheck,
+    /// Finished: the release runs.
+    Done,
+    /// Finished: nothing was switched (or the switch was interrupted before it happened).
+    Failed,
+    /// Finished: the release was switched to, failed, and the previous one runs again.
+    RolledBack,
+}
+
+impl ProgressPhase {
+    /// The wire name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ProgressPhase::Downloading => "downloading",
+            ProgressPhase::Verifying => "verifying",
+            ProgressPhase::Assembling => "assembling",
+            ProgressPhase::PreSwitch => "pre_switch",
+            ProgressPhase::Switching => "switching",
+            ProgressPhase::Restarting => "restarting",
+            ProgressPhase::HealthCheck => "health_check",
+            ProgressPhase::Done => "done",
+            ProgressPhase::Failed => "failed",
+            ProgressPhase::RolledBack => "rolled_back",
+        }
+    }
+}
+
+impl std::fmt::Display for ProgressPhase {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl ProgressPhase {
+    /// Every phase, in the order a deploy goes through them.
+    pub const ALL: [ProgressPhase; 10] = [
+        ProgressPhase::Downloading,
+        ProgressPhase::Verifying,
+        ProgressPhase::Assembling,
+        ProgressPhase::PreSwitch,
+        ProgressPhase::Switching,
+        ProgressPhase::Restarting,
+        ProgressPhase::HealthCheck,
+        ProgressPhase::Done,
+        ProgressPhase::Failed,
+        ProgressPhase::RolledBack,
+    ];
+
+    /// The phase a wire name stands for; `None` for a name this version does not know.
+    pub fn parse(name: &str) -> Option<ProgressPhase> {
+        Self::ALL.into_iter().find(|p| p.as_str() == name)
+    }
+
+    /// Whether the command is over (`done`, `failed` or `rolled_back`).
+    pub fn is_final(self) -> bool {
+        matches!(
+            self,
+            ProgressPhase::Done | ProgressPhase::Failed | ProgressPhase::RolledBack
+        )
+    }
+
+    /// Whether the command ended without its release running (`failed` or `rolled_back`).
+    pub fn is_failure(self) -> bool {
+        matches!(self, ProgressPhase::Failed | ProgressPhase::RolledBack)
+    }
+}
+
+/// One stored agent event as the gateway's events endpoint answers it (and as its store keeps
+/// it): durable `event` frames, and `progress` frames with kind `progress`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StoredEvent {
+    /// The robot's sequence number, shared with telemetry.
+    pub seq: u64,
+    /// When it happened on the robot, Unix milliseconds.
+    pub ts_ms: i64,
+    /// What happened, e.g. `teleoperation_started` or `progress`.
+    pub kind: String,
+    /// `info`, `warning` or `error`.
+    pub severity: String,
+    /// Human-readable text.
+    pub message: String,
+    /// Structured details; `null` when there are none.
+    #[serde(default)]
+    pub data: serde_json::Value,
+}
+
+/// Milliseconds since the Unix epoch by this machine's clock (0 before 1970; saturates).
+pub fn now_ms() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| i64::try_from(d.as_millis()).unwrap_or(i64::MAX))
+        .unwrap_or_default()
+}
+
 /// Severity of an agent event.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
 #[serde(rename_all = "snake_case")]
@@ -278,7 +390,8 @@ pub enum AgentMessage {
         seq: u64,
         /// The command this reports on.
         command_id: String,
-        /// Phase, e.g. `downloading`, `switching`, `health_check`, `done`, `failed`, `rolled_back`.
+        /// Phase: a [`ProgressPhase`] wire name (`downloading`, ..., `done`, `failed`,
+        /// `rolled_back`); kept as text so a newer agent's phase is still stored.
         phase: String,
         /// Percent done, 0 to 100.
         #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -525,7 +525,7 @@ pub async fn http_get(port: u16, path: &str) -> Result<(u16, String)> {
 }
 
 /// Field manager the real gateway uses for the presence fields of Robot status.
-pub const GATEWAY_FIELD_MANAGER: &str = "lekiwi-gateway";
+pub const GATEWAY_FIELD_MANAGER: &str = lekiwi_crds::contract::managers::GATEWAY;
 
 /// Plays the gateway's part until the gateway exists: renews a gateway Lease and writes the
 /// presence fields of Robot status by server-side apply under the gateway's field manager,
@@ -725,25 +725,9 @@ pub fn gateway_url(op: &OperatorProcess) -> String {
 
 /// Creates a fleet enrollment token for `namespace` (stored as a hash) and returns it.
 pub async fn enrollment_token(client: &Client, namespace: &str) -> Result<String> {
-    use k8s_openapi::ByteString;
     use k8s_openapi::api::core::v1::Secret;
-    use sha2::Digest;
-    let token = format!(
-        "lke_{}",
-        hex::encode(sha2::Sha256::digest(
-            format!("{namespace}{:?}", Instant::now()).as_bytes()
-        ))
-    );
-    let hash = hex::encode(sha2::Sha256::digest(token.as_bytes()));
-    let secret = Secret {
-        metadata: ObjectMeta {
-            name: Some("fleet-enrollment".into()),
-            labels: Some([("fleet.lekiwi.io/token".to_owned(), "enrollment".to_owned())].into()),
-            ..ObjectMeta::default()
-        },
-        data: Some([("sha256".to_owned(), ByteString(hash.into_bytes()))].into()),
-        ..Secret::default()
-    };
+    let token = lekiwi_crds::contract::new_token("lke_");
+    let secret = lekiwi_crds::contract::enrollment_token_secret(&token);
     Api::<Secret>::namespaced(client.clone(), namespace)
         .create(&PostParams::default(), &secret)
         .await?;

@@ -6,7 +6,7 @@ use std::os::unix::fs::PermissionsExt;
 use std::time::Duration;
 
 use lekiwi_crds::RobotPhase;
-use lekiwi_operator::store::{RobotKey, Store};
+use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
     AgentProcess, ControlPlane, OperatorProcess, enrollment_token, gateway_url, get_robot,
     namespace, wait_for,

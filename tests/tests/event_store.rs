@@ -4,7 +4,9 @@
 use std::sync::Arc;
 
 use anyhow::{Result, ensure};
-use lekiwi_operator::store::{ConnectionRecord, PruneCounts, RobotKey, Sample, Store, StoredEvent};
+use lekiwi_operator::gateway::event_store::{
+    ConnectionRecord, PruneCounts, RobotKey, Sample, Store, StoredEvent,
+};
 use lekiwi_tests::postgres::Postgres;
 use serde_json::json;
 use tokio::sync::Barrier;

@@ -15,7 +15,7 @@ use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
-use lekiwi_operator::store::{RobotKey, Store};
+use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
     AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token, gateway_url, http_get_with,
     log_dir, namespace, wait_for,

@@ -6,7 +6,6 @@
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI64, AtomicU64, Ordering};
-use std::time::{SystemTime, UNIX_EPOCH};
 
 use anyhow::Context as _;
 use clap::Parser;
@@ -132,13 +131,6 @@ impl Stats {
     }
 }
 
-fn now_ms() -> i64 {
-    SystemTime::now()
-        .duration_since(UNIX_EPOCH)
-        .map(|d| d.as_millis() as i64)
-        .unwrap_or(0)
-}
-
 /// One agent connection: upgrade at `/v1/agent`, then answer frames until it closes.
 async fn session(stream: TcpStream, stats: Arc<Stats>, heartbeat_interval_s: u32) {
     let mut robot = None;
@@ -197,7 +189,7 @@ async fn session(stream: TcpStream, stats: Arc<Stats>, heartbeat_interval_s: u32
                 stats.heartbeats.fetch_add(1, Ordering::Relaxed);
                 ServerMessage::HeartbeatAck {
                     sent_at_ms,
-                    server_time_ms: now_ms(),
+                    server_time_ms: lekiwi_protocol::now_ms(),
                 }
             }
             Ok(other) => {

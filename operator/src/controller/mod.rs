@@ -1,6 +1,7 @@
 //! Controllers and the state they share.
 
 pub mod deployment;
+pub mod metrics;
 pub mod robot;
 
 use std::collections::HashMap;

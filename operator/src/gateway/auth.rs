@@ -10,23 +10,12 @@ use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
 use kube::runtime::reflector::{ObjectRef, Store};
 use kube::{Api, Resource};
 use lekiwi_crds::Robot;
-use rand::RngCore;
-use sha2::{Digest, Sha256};
+use lekiwi_crds::contract::{
+    HASH_KEY, KIND_ENROLLMENT, TOKEN_LABEL, hash_token, managers, new_token, robot_secret_name,
+    robot_token_secret,
+};
 
-use crate::store::RobotKey;
-
-/// Label on every token Secret; its value says which kind.
-pub const TOKEN_LABEL: &str = "fleet.lekiwi.io/token";
-/// `TOKEN_LABEL` value of a fleet enrollment token.
-pub const KIND_ENROLLMENT: &str = "enrollment";
-/// `TOKEN_LABEL` value of a per-robot token.
-pub const KIND_ROBOT: &str = "robot";
-/// Label naming the robot a per-robot token belongs to.
-pub const ROBOT_LABEL: &str = "fleet.lekiwi.io/robot";
-/// Key in a token Secret's data holding the hex SHA-256 of the token.
-pub const HASH_KEY: &str = "sha256";
-/// Field manager of what the gateway writes.
-pub const FIELD_MANAGER: &str = "lekiwi-gateway";
+use crate::gateway::event_store::RobotKey;
 
 /// Why a connection was refused (logged and counted; never with the token).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -68,18 +57,6 @@ impl Grant {
     }
 }
 
-/// Hex SHA-256 of a token.
-pub fn hash_token(token: &str) -> String {
-    hex::encode(Sha256::digest(token.as_bytes()))
-}
-
-/// A fresh random token with a kind prefix (`lkr_` robot, `lke_` enrollment).
-pub fn new_token(prefix: &str) -> String {
-    let mut bytes = [0u8; 32];
-    rand::rng().fill_bytes(&mut bytes);
-    format!("{prefix}{}", hex::encode(bytes))
-}
-
 /// Compares two hashes without an early exit, so timing says nothing about the token.
 fn same_hash(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
@@ -87,11 +64,6 @@ fn same_hash(a: &[u8], b: &[u8]) -> bool {
 
 fn secret_hash(secret: &Secret) -> Option<Vec<u8>> {
     secret.data.as_ref()?.get(HASH_KEY).map(|b| b.0.clone())
-}
-
-/// Name of the Secret holding a robot's token hash.
-pub fn robot_secret_name(robot: &str) -> String {
-    format!("{robot}-agent-token")
 }
 
 /// Whether `name` is a valid Kubernetes object name (RFC 1123 subdomain).
@@ -256,28 +228,12 @@ impl Authenticator {
             }
         };
         let token = new_token("lkr_");
-        let secret = Secret {
-            metadata: ObjectMeta {
-                name: Some(robot_secret_name(&robot.name)),
-                labels: Some(BTreeMap::from([
-                    (TOKEN_LABEL.to_owned(), KIND_ROBOT.to_owned()),
-                    (ROBOT_LABEL.to_owned(), robot.name.clone()),
-                ])),
-                owner_references: existing.controller_owner_ref(&()).map(|r| vec![r]),
-                ..ObjectMeta::default()
-            },
-            data: Some(BTreeMap::from([(
-                HASH_KEY.to_owned(),
-                ByteString(hash_token(&token).into_bytes()),
-            )])),
-            type_: Some("Opaque".to_owned()),
-            ..Secret::default()
-        };
+        let secret = robot_token_secret(&robot.name, &token, existing.controller_owner_ref(&()));
         let secrets: Api<Secret> = Api::namespaced(self.client.clone(), &robot.namespace);
         secrets
             .patch(
                 &robot_secret_name(&robot.name),
-                &PatchParams::apply(FIELD_MANAGER).force(),
+                &PatchParams::apply(managers::GATEWAY).force(),
                 &Patch::Apply(&secret),
             )
             .await?;

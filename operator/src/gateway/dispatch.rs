@@ -14,7 +14,7 @@ use tracing::debug;
 
 use super::session::{DesiredReleases, Registry};
 use crate::error::{Error, Result};
-use crate::store::RobotKey;
+use crate::gateway::event_store::RobotKey;
 
 /// Starts the Robot watch; returns the cache sessions read their desired release from once it
 /// is ready, and the task that forwards changes to sessions.
@@ -45,10 +45,7 @@ pub async fn start(
                 r = stream.next() => match r { Some(Ok(r)) => r, Some(Err(_)) => continue, None => return },
             };
             let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
-            let desired = robot.spec.release.as_ref().map(|r| Release {
-                version: r.version.clone(),
-                digest: r.digest.clone(),
-            });
+            let desired = robot.spec.release.as_ref().map(Release::from);
             if seen.get(&key) != Some(&desired) {
                 let told = registry.desire(&key, desired.clone());
                 debug!(robot = %key, release = ?desired.as_ref().map(|r| &r.version), told, "desired release changed");

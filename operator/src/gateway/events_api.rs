@@ -10,7 +10,7 @@ use serde::Deserialize;
 
 use super::auth::{Refusal, valid_name};
 use super::{ApiError, GatewayState, bearer};
-use crate::store::{RobotKey, StoredEvent};
+use crate::gateway::event_store::{RobotKey, StoredEvent};
 
 /// Events answered per request unless the query says otherwise.
 pub const DEFAULT_LIMIT: u32 = 100;

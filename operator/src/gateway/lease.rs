@@ -12,10 +12,7 @@ use std::collections::BTreeMap;
 use tokio_util::sync::CancellationToken;
 use tracing::warn;
 
-use super::auth::FIELD_MANAGER;
-
-/// Label marking gateway Leases.
-pub const GATEWAY_LEASE_LABEL: &str = "fleet.lekiwi.io/gateway";
+use lekiwi_crds::contract::{GATEWAY_LEASE_LABEL, managers};
 
 /// Renews `namespace/name` every third of `duration` until cancelled.
 pub async fn renew(
@@ -50,7 +47,7 @@ pub async fn renew(
         match api
             .patch(
                 &name,
-                &PatchParams::apply(FIELD_MANAGER).force(),
+                &PatchParams::apply(managers::GATEWAY).force(),
                 &Patch::Apply(&lease),
             )
             .await

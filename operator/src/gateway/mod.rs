@@ -3,12 +3,16 @@
 //! stores every durable agent message before acknowledging it.
 
 pub mod auth;
-pub mod blobs;
+pub mod blob_api;
+pub mod blob_store;
 pub mod dispatch;
+pub mod event_store;
 pub mod events_api;
 pub mod lease;
-pub mod legacy;
+pub mod metrics;
+pub mod poll;
 pub mod presence;
+pub mod rate;
 pub mod session;
 
 use std::net::SocketAddr;
@@ -30,13 +34,14 @@ use tokio::sync::Semaphore;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use self::auth::{Authenticator, Refusal, TOKEN_LABEL};
+use self::auth::{Authenticator, Refusal};
 use self::presence::{Presence, PresenceConfig};
 use self::session::{Limits, Registry, Shared};
 use crate::config::Config;
 use crate::error::{Error, Result};
+use crate::gateway::event_store::Store;
 use crate::metrics::{KindLabels, Metrics};
-use crate::store::Store;
+use lekiwi_crds::contract::TOKEN_LABEL;
 
 /// Errors answered over HTTP, as JSON; internal details are logged, never returned.
 #[derive(Debug)]
@@ -99,18 +104,19 @@ pub struct GatewayState {
     /// Kubernetes client.
     pub client: kube::Client,
     /// Legacy-poll answers.
-    pub releases: legacy::SharedCache,
+    pub releases: poll::SharedCache,
     /// Caps concurrent connections.
     pub connections: Arc<Semaphore>,
     /// Release blobs, uploads and the API token.
-    pub blobs: Arc<blobs::BlobApi>,
+    pub blobs: Arc<blob_api::BlobApi>,
 }
 
 impl GatewayState {
     fn refused(&self, reason: Refusal) -> ApiError {
         self.shared
             .metrics
-            .gateway_refused
+            .gateway
+            .refused
             .get_or_create(&KindLabels {
                 kind: reason.as_str(),
             })
@@ -129,9 +135,9 @@ impl GatewayState {
 pub fn router(state: GatewayState) -> Router {
     Router::new()
         .route(AGENT_PATH, get(agent_ws))
-        .route("/v1/poll", get(legacy::poll))
+        .route("/v1/poll", get(poll::poll))
         .route("/healthz", get(|| async { "ok\n" }))
-        .merge(blobs::routes())
+        .merge(blob_api::routes())
         .merge(events_api::routes())
         .with_state(state)
 }
@@ -176,8 +182,8 @@ async fn blob_api(
     config: &Config,
     client: &kube::Client,
     cancel: CancellationToken,
-) -> blobs::BlobApi {
-    let store = crate::blobs::BlobStore::new(&config.blob_dir, config.max_blob_bytes);
+) -> blob_api::BlobApi {
+    let store = crate::gateway::blob_store::BlobStore::new(&config.blob_dir, config.max_blob_bytes);
     match store.ensure_dirs().await {
         Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
         Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
@@ -196,12 +202,12 @@ async fn blob_api(
             "cannot read or create the API token Secret; retrying on use"
         );
     }
-    blobs::BlobApi::new(store, token)
+    blob_api::BlobApi::new(store, token)
 }
 
 /// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
 async fn remove_stale_uploads(
-    store: crate::blobs::BlobStore,
+    store: crate::gateway::blob_store::BlobStore,
     max_age: Duration,
     cancel: CancellationToken,
 ) {

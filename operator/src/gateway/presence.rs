@@ -23,9 +23,9 @@ use tokio::sync::{Notify, Semaphore};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
-use super::auth::FIELD_MANAGER;
+use crate::gateway::event_store::RobotKey;
 use crate::metrics::Metrics;
-use crate::store::RobotKey;
+use lekiwi_crds::contract::managers;
 
 /// Write priority.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -187,11 +187,13 @@ impl Presence {
         let mut state = self.state.lock().unwrap_or_else(|p| p.into_inner());
         let out = f(&mut state);
         self.metrics
-            .gateway_status_queue
+            .gateway
+            .status_queue
             .get_or_create(&crate::metrics::PriorityLabels { priority: "high" })
             .set(state.high.len() as i64);
         self.metrics
-            .gateway_status_queue
+            .gateway
+            .status_queue
             .get_or_create(&crate::metrics::PriorityLabels { priority: "low" })
             .set(state.low.len() as i64);
         out
@@ -282,7 +284,7 @@ impl Presence {
             let Some(e) = s.robots.get_mut(key).filter(|e| e.session == session) else {
                 return false;
             };
-            if outcome.phase == "done" {
+            if outcome.phase == lekiwi_protocol::ProgressPhase::Done.as_str() {
                 e.info.release = Some(outcome.release.clone());
             }
             e.last_update = Some(outcome);
@@ -470,7 +472,7 @@ impl Presence {
     /// Writes queued robots until cancelled.
     pub async fn run_writer(self, client: kube::Client, cancel: CancellationToken) {
         let slots = Arc::new(Semaphore::new(self.config.concurrency.max(1)));
-        let mut bucket = TokenBucket::new(self.config.qps, self.config.burst);
+        let mut bucket = super::rate::TokenBucket::new(self.config.qps, self.config.burst);
         loop {
             let next = self.with_state(|s| s.pop());
             let Some((key, priority)) = next else {
@@ -543,7 +545,8 @@ impl Presence {
                     }
                 };
                 me.metrics
-                    .gateway_status_writes
+                    .gateway
+                    .status_writes
                     .get_or_create(&crate::metrics::WriteLabels {
                         priority: priority.label(),
                         result: outcome,
@@ -583,7 +586,7 @@ impl Presence {
         match api
             .patch_status(
                 &key.name,
-                &PatchParams::apply(FIELD_MANAGER).force(),
+                &PatchParams::apply(managers::GATEWAY).force(),
                 &Patch::Apply(&patch),
             )
             .await
@@ -599,40 +602,6 @@ enum WriteError {
     Gone,
     Superseded,
     Api(kube::Error),
-}
-
-/// A token bucket: `rate` per second sustained, `burst` at once.
-struct TokenBucket {
-    rate: f64,
-    burst: f64,
-    tokens: f64,
-    last: tokio::time::Instant,
-}
-
-impl TokenBucket {
-    fn new(rate: f64, burst: u32) -> Self {
-        let burst = f64::from(burst.max(1));
-        Self {
-            rate: rate.max(0.001),
-            burst,
-            tokens: burst,
-            last: tokio::time::Instant::now(),
-        }
-    }
-
-    async fn take(&mut self) {
-        loop {
-            let now = tokio::time::Instant::now();
-            self.tokens = (self.tokens + now.duration_since(self.last).as_secs_f64() * self.rate)
-                .min(self.burst);
-            self.last = now;
-            if self.tokens >= 1.0 {
-                self.tokens -= 1.0;
-                return;
-            }
-            tokio::time::sleep(Duration::from_secs_f64((1.0 - self.tokens) / self.rate)).await;
-        }
-    }
 }
 
 #[cfg(test)]
@@ -748,16 +717,5 @@ mod tests {
         let patch = p.with_state(|s| p.patch_for(&s.robots[&key("a")]));
         assert_eq!(patch["status"]["teleoperation"]["active"], json!(true));
         assert_eq!(patch["status"]["gateway"], json!("gw"));
-    }
-
-    #[tokio::test(start_paused = true)]
-    async fn token_bucket_limits_the_rate() {
-        let mut b = TokenBucket::new(10.0, 5);
-        let start = tokio::time::Instant::now();
-        for _ in 0..25 {
-            b.take().await;
-        }
-        // 5 at once, then 20 at 10 per second.
-        assert_eq!(start.elapsed().as_secs(), 2);
     }
 }

@@ -11,7 +11,8 @@ use axum::extract::ws::{CloseFrame, Message, Utf8Bytes};
 use futures::{Sink, SinkExt, Stream, StreamExt};
 use jiff::Timestamp;
 use lekiwi_protocol::{
-    AgentMessage, ErrorCode, PROTOCOL_VERSION, Release, ServerMessage, decode, encode,
+    AgentMessage, ErrorCode, PROTOCOL_VERSION, ProgressPhase, Release, ServerMessage, decode,
+    encode,
 };
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -20,8 +21,8 @@ use tracing::{Instrument, debug, info, info_span, warn};
 
 use super::auth::{Authenticator, Grant};
 use super::presence::{ConnectInfo, HeartbeatInfo, Presence, UpdateOutcome};
+use crate::gateway::event_store::{ConnectionRecord, RobotKey, Store, StoredEvent};
 use crate::metrics::{KindLabels, Metrics};
-use crate::store::{ConnectionRecord, RobotKey, Store, StoredEvent};
 
 /// Limits one session enforces.
 #[derive(Clone, Debug)]
@@ -147,12 +148,9 @@ impl DesiredReleases {
     /// The release `key` should run, if its Robot names one.
     pub fn get(&self, key: &RobotKey) -> Option<Release> {
         let obj = kube::runtime::reflector::ObjectRef::new(&key.name).within(&key.namespace);
-        self.0.get(&obj).and_then(|r| {
-            r.spec.release.as_ref().map(|rel| Release {
-                version: rel.version.clone(),
-                digest: rel.digest.clone(),
-            })
-        })
+        self.0
+            .get(&obj)
+            .and_then(|r| r.spec.release.as_ref().map(Release::from))
     }
 }
 
@@ -245,7 +243,8 @@ impl<W: Sink<Message> + Unpin> Conn<W> {
             .copied()
             .unwrap_or("other");
         self.metrics
-            .gateway_errors
+            .gateway
+            .errors
             .get_or_create(&KindLabels { kind: label })
             .inc();
         self.send(&ServerMessage::Error {
@@ -262,7 +261,8 @@ impl<W: Sink<Message> + Unpin> Conn<W> {
             return self.error(code, message, false).await;
         }
         self.metrics
-            .gateway_errors
+            .gateway
+            .errors
             .get_or_create(&KindLabels {
                 kind: "store_unavailable",
             })
@@ -361,7 +361,8 @@ async fn run_inner<W, R, E>(
             conn.close(CLOSE_POLICY, "handshake timeout").await;
             shared
                 .metrics
-                .gateway_sessions_ended
+                .gateway
+                .sessions_ended
                 .get_or_create(&KindLabels {
                     kind: "handshake_timeout",
                 })
@@ -478,7 +479,7 @@ async fn run_inner<W, R, E>(
             address,
         },
     );
-    shared.metrics.gateway_connections.inc();
+    shared.metrics.gateway.connections.inc();
     info!(session = id, ?stored_seq, "agent connected");
 
     let welcome = ServerMessage::Welcome {
@@ -529,10 +530,11 @@ async fn run_inner<W, R, E>(
     if !matches!(end, End::Replaced) {
         shared.presence.disconnect(&key, id);
     }
-    shared.metrics.gateway_connections.dec();
+    shared.metrics.gateway.connections.dec();
     shared
         .metrics
-        .gateway_sessions_ended
+        .gateway
+        .sessions_ended
         .get_or_create(&KindLabels { kind: end.label() })
         .inc();
     if let Some(record_id) = record_id
@@ -580,7 +582,7 @@ where
     let limits = &shared.limits;
     let silence = limits.heartbeat_interval * limits.missed_heartbeats.max(1);
     let mut deadline = Instant::now() + silence;
-    let mut bucket = Bucket::new(limits.rate, limits.burst);
+    let mut bucket = super::rate::TokenBucket::new(f64::from(limits.rate.max(1)), limits.burst);
     let mut strikes: u32 = 0;
     if let Some(cmd) = rollout.command(&shared.gateway, id) {
         info!(release = ?rollout.desired.as_ref().map(|r| &r.version), "sending deploy command");
@@ -686,7 +688,8 @@ where
         };
         shared
             .metrics
-            .gateway_frames
+            .gateway
+            .frames
             .get_or_create(&KindLabels {
                 kind: frame_label(&msg),
             })
@@ -707,7 +710,7 @@ where
                 teleoperation,
             } => {
                 if let Some(rtt) = rtt_ms.filter(|r| r.is_finite() && *r >= 0.0) {
-                    shared.metrics.gateway_heartbeat_rtt.observe(rtt / 1000.0);
+                    shared.metrics.gateway.heartbeat_rtt.observe(rtt / 1000.0);
                 }
                 if current_release.is_some() && current_release != rollout.current {
                     rollout.current = current_release.clone();
@@ -771,12 +774,13 @@ where
                 percent,
                 message,
             } => {
-                if matches!(phase.as_str(), "done" | "failed" | "rolled_back")
+                let known = ProgressPhase::parse(&phase);
+                if known.is_some_and(ProgressPhase::is_final)
                     && let Some((sent_id, release)) = &rollout.sent
                     && *sent_id == command_id
                 {
                     info!(%phase, release = %release.version, %message, "update finished");
-                    if phase == "done" {
+                    if known == Some(ProgressPhase::Done) {
                         rollout.current = Some(release.clone());
                     }
                     shared.presence.update_finished(
@@ -794,7 +798,7 @@ where
                     seq,
                     ts_ms: Timestamp::now().as_millisecond(),
                     kind: "progress".into(),
-                    severity: if phase == "failed" {
+                    severity: if known == Some(ProgressPhase::Failed) {
                         "error".into()
                     } else {
                         "info".into()
@@ -823,12 +827,17 @@ where
 
 /// The answer to a durable message: an ack once stored (or already stored), else an error so
 /// the agent keeps it and resends.
-fn durable(shared: &Shared, seq: u64, stored: crate::store::Result<bool>) -> ServerMessage {
+fn durable(
+    shared: &Shared,
+    seq: u64,
+    stored: crate::gateway::event_store::Result<bool>,
+) -> ServerMessage {
     match stored {
         Ok(new) => {
             shared
                 .metrics
-                .gateway_durable
+                .gateway
+                .durable
                 .get_or_create(&KindLabels {
                     kind: if new { "stored" } else { "replay" },
                 })
@@ -837,7 +846,7 @@ fn durable(shared: &Shared, seq: u64, stored: crate::store::Result<bool>) -> Ser
         }
         // A sequence number the store cannot hold will never be stored: say so, do not ask
         // for a resend.
-        Err(crate::store::Error::SeqOutOfRange(_)) => ServerMessage::Error {
+        Err(crate::gateway::event_store::Error::SeqOutOfRange(_)) => ServerMessage::Error {
             code: ErrorCode::Malformed,
             message: format!(
                 "sequence number {seq} is out of range (at most 2^63-1); this message cannot be stored"
@@ -857,45 +866,12 @@ fn durable(shared: &Shared, seq: u64, stored: crate::store::Result<bool>) -> Ser
     }
 }
 
-/// Per-connection token bucket (no sleeping: excess is refused).
-struct Bucket {
-    rate: f64,
-    burst: f64,
-    tokens: f64,
-    last: Instant,
-}
-
-impl Bucket {
-    fn new(rate: u32, burst: u32) -> Self {
-        let burst = f64::from(burst.max(1));
-        Self {
-            rate: f64::from(rate.max(1)),
-            burst,
-            tokens: burst,
-            last: Instant::now(),
-        }
-    }
-
-    fn try_take(&mut self) -> bool {
-        let now = Instant::now();
-        self.tokens =
-            (self.tokens + now.duration_since(self.last).as_secs_f64() * self.rate).min(self.burst);
-        self.last = now;
-        if self.tokens >= 1.0 {
-            self.tokens -= 1.0;
-            true
-        } else {
-            false
-        }
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::gateway::auth::Authenticator;
+    use crate::gateway::event_store::RobotKey;
     use crate::gateway::presence::{Presence, PresenceConfig};
-    use crate::store::RobotKey;
 
     #[tokio::test]
     async fn an_idle_session_is_small() {

@@ -3,6 +3,7 @@
 //! robots (`spec.release` plus the rollout mark, by server-side apply under the rollout's own
 //! field manager), applies status, records Events and exports metrics.
 
+pub mod metrics;
 pub mod plan;
 
 use std::collections::BTreeMap;
@@ -18,6 +19,7 @@ use kube::runtime::events::{Event, EventType};
 use kube::runtime::reflector::{ObjectRef, Store};
 use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, Resource, ResourceExt};
+use lekiwi_crds::contract::managers;
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment};
 use lekiwi_protocol::release::{ReleaseManifest, digest_hex};
@@ -31,11 +33,6 @@ use crate::error::{Error, Result};
 use crate::metrics::{
     ControllerName, DeploymentLabels, DeploymentPhaseLabels, ErrorLabels, OutcomeLabels,
 };
-
-/// Field manager of the robot fields a rollout writes (`spec.release` and the mark).
-pub const ROLLOUT_FIELD_MANAGER: &str = "lekiwi-rollout";
-/// Field manager of RobotDeployment status.
-pub const STATUS_FIELD_MANAGER: &str = "lekiwi-deployment-controller";
 
 /// Robot writes in flight at once.
 const WRITE_CONCURRENCY: usize = 16;
@@ -252,7 +249,10 @@ async fn reconcile(
     let span = info_span!("reconcile", controller = "deployment", deployment = %name, %namespace);
     async move {
         let ctx = &state.ctx;
-        let _timer = ctx.metrics.reconcile_started(ControllerName::deployment);
+        let _timer = ctx
+            .metrics
+            .controllers
+            .reconcile_started(ControllerName::deployment);
         let now = Timestamp::now();
         let all_robots = state.robots.state();
         let Some(sel) = selector(d) else {
@@ -364,7 +364,7 @@ async fn reconcile(
             });
             api.patch_status(
                 &name,
-                &PatchParams::apply(STATUS_FIELD_MANAGER).force(),
+                &PatchParams::apply(managers::DEPLOYMENT_STATUS).force(),
                 &Patch::Apply(&patch),
             )
             .await
@@ -423,7 +423,7 @@ async fn write_robot(
     }
     api.patch(
         name,
-        &PatchParams::apply(ROLLOUT_FIELD_MANAGER).force(),
+        &PatchParams::apply(managers::ROLLOUT).force(),
         &Patch::Apply(&patch),
     )
     .await
@@ -522,6 +522,7 @@ fn error_policy(
     state
         .ctx
         .metrics
+        .controllers
         .reconcile_errors
         .get_or_create(&ErrorLabels {
             controller: ControllerName::deployment,

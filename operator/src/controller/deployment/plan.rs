@@ -322,7 +322,8 @@ fn classify(
             }
             if let Some((release, phase, message, at)) = &robot.last_update
                 && release == target
-                && matches!(phase.as_str(), "failed" | "rolled_back")
+                && lekiwi_protocol::ProgressPhase::parse(phase)
+                    .is_some_and(lekiwi_protocol::ProgressPhase::is_failure)
                 && at.is_none_or(|at| at >= mark.since)
             {
                 return RobotState::Failed(

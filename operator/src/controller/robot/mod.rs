@@ -135,7 +135,7 @@ fn stale_gateway_leases(
         .iter()
         .filter(|l| {
             l.labels()
-                .contains_key(crate::gateway::lease::GATEWAY_LEASE_LABEL)
+                .contains_key(lekiwi_crds::contract::GATEWAY_LEASE_LABEL)
         })
         .filter(|l| !held(&l.name_any()))
         .filter(|l| {
@@ -218,9 +218,13 @@ async fn watch_gateways(
                     .push(ObjectRef::from_obj(guard.as_ref()));
             }
         }
-        ctx.metrics.robots_teleoperating.set(teleoperating);
+        ctx.metrics
+            .controllers
+            .robots_teleoperating
+            .set(teleoperating);
         for (phase, n) in phases {
             ctx.metrics
+                .controllers
                 .robots
                 .get_or_create(&PhaseLabels { phase })
                 .set(n);
@@ -262,7 +266,10 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     let namespace = robot.namespace().unwrap_or_default();
     let span = info_span!("reconcile", controller = "robot", robot = %name, %namespace);
     async move {
-        let _timer = ctx.metrics.reconcile_started(ControllerName::robot);
+        let _timer = ctx
+            .metrics
+            .controllers
+            .reconcile_started(ControllerName::robot);
         let now = Timestamp::now();
         let gateway = robot
             .status
@@ -285,6 +292,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
             if let Some(reason) = plan::transition_reason(old_phase, plan.phase) {
                 info!(from = ?old_phase, to = %plan.phase, "robot phase changed");
                 ctx.metrics
+                    .controllers
                     .robot_transitions
                     .get_or_create(&PhaseLabels {
                         phase: plan.phase.as_str(),
@@ -328,6 +336,7 @@ async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &p
 fn error_policy(guard: Arc<DeserializeGuard<Robot>>, error: &Error, ctx: Arc<Context>) -> Action {
     let (name, namespace) = (guard.name_any(), guard.namespace().unwrap_or_default());
     ctx.metrics
+        .controllers
         .reconcile_errors
         .get_or_create(&ErrorLabels {
             controller: ControllerName::robot,
@@ -355,7 +364,7 @@ mod tests {
                 resource_version: Some("7".into()),
                 labels: gateway.then(|| {
                     [(
-                        crate::gateway::lease::GATEWAY_LEASE_LABEL.to_owned(),
+                        lekiwi_crds::contract::GATEWAY_LEASE_LABEL.to_owned(),
                         "true".to_owned(),
                     )]
                     .into()

@@ -8,10 +8,6 @@ use serde_json::json;
 use super::plan::Plan;
 use crate::error::{Error, Result};
 
-/// Field manager of everything the Robot controller writes. The gateway uses its own, so the
-/// two never overwrite each other's fields.
-pub const FIELD_MANAGER: &str = "lekiwi-robot-controller";
-
 /// Applies `phase`, `conditions` and `observedGeneration`, and nothing else.
 pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan) -> Result<()> {
     let mut status = json!({ "phase": plan.phase, "conditions": plan.conditions });
@@ -23,7 +19,7 @@ pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan) -> Result<()> {
         json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": status });
     api.patch_status(
         name,
-        &PatchParams::apply(FIELD_MANAGER).force(),
+        &PatchParams::apply(lekiwi_crds::contract::managers::ROBOT_CONTROLLER).force(),
         &Patch::Apply(&patch),
     )
     .await

@@ -9,8 +9,6 @@ use tracing::info;
 
 use crate::error::{Error, Result};
 
-const FIELD_MANAGER: &str = "lekiwi-operator";
-
 /// Ensures every CRD exists and is Established, installing them first when asked to.
 pub async fn ensure(client: kube::Client, install: bool) -> Result<()> {
     let api: Api<CustomResourceDefinition> = Api::all(client);
@@ -19,7 +17,7 @@ pub async fn ensure(client: kube::Client, install: bool) -> Result<()> {
         if install {
             api.patch(
                 &name,
-                &PatchParams::apply(FIELD_MANAGER).force(),
+                &PatchParams::apply(lekiwi_crds::contract::managers::CRD_INSTALLER).force(),
                 &Patch::Apply(&crd),
             )
             .await

@@ -18,8 +18,8 @@ use sha2::{Digest, Sha256};
 
 use super::presence::ConnectInfo;
 use super::{ApiError, GatewayState, bearer};
+use crate::gateway::event_store::RobotKey;
 use crate::metrics::KindLabels;
-use crate::store::RobotKey;
 
 /// How long an answer may be served from the cache.
 pub const CACHE_TTL: Duration = Duration::from_secs(60);
@@ -126,10 +126,9 @@ pub async fn poll(
         poll_interval_seconds: state.shared.limits.heartbeat_interval.as_secs().max(1),
     };
     // The robot's release is known exactly when it runs the desired version.
-    let release = desired.filter(|r| r.version == q.version).map(|r| Release {
-        version: r.version,
-        digest: r.digest,
-    });
+    let release = desired
+        .filter(|r| r.version == q.version)
+        .map(|r| Release::from(&r));
     state.shared.presence.poll(
         &key,
         ConnectInfo {
@@ -154,7 +153,8 @@ pub async fn poll(
         state
             .shared
             .metrics
-            .gateway_polls
+            .gateway
+            .polls
             .get_or_create(&KindLabels { kind: "304" })
             .inc();
         StatusCode::NOT_MODIFIED.into_response()
@@ -162,7 +162,8 @@ pub async fn poll(
         state
             .shared
             .metrics
-            .gateway_polls
+            .gateway
+            .polls
             .get_or_create(&KindLabels { kind: "200" })
             .inc();
         ([(header::CONTENT_TYPE, "application/json")], body).into_response()

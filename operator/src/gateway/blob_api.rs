@@ -47,9 +47,9 @@ use tracing::{Instrument, debug, info_span, warn};
 
 use super::auth::{ApiToken, Grant, Refusal, parse_robot};
 use super::{ApiError, GatewayState, bearer};
-use crate::blobs::{BlobStore, Error as StoreError, UploadState};
+use crate::gateway::blob_store::{BlobStore, Error as StoreError, UploadState};
+use crate::gateway::event_store::RobotKey;
 use crate::metrics::KindLabels;
-use crate::store::RobotKey;
 
 /// Bytes read from disk per chunk of a download.
 const READ_CHUNK: usize = 64 * 1024;
@@ -223,7 +223,8 @@ async fn authorize(
                 state
                     .shared
                     .metrics
-                    .gateway_refused
+                    .gateway
+                    .refused
                     .get_or_create(&KindLabels {
                         kind: "enrollment_token",
                     })
@@ -415,7 +416,7 @@ async fn get_blob(
         let stream = Counted {
             inner: ReaderStream::with_capacity(file.take(len), READ_CHUNK),
             api: state.blobs.clone(),
-            metric: state.shared.metrics.gateway_blob_bytes_served.clone(),
+            metric: state.shared.metrics.gateway.blob_bytes_served.clone(),
             robot,
             caller: caller.name(),
             digest: digest.clone(),
@@ -493,7 +494,8 @@ async fn put_blob(
         let metrics = &state.shared.metrics;
         let count = |kind: &'static str| {
             metrics
-                .gateway_blob_uploads
+                .gateway
+                .blob_uploads
                 .get_or_create(&KindLabels { kind })
                 .inc();
         };
@@ -579,7 +581,7 @@ async fn upload(
             (start, Some(total))
         }
     };
-    let metric = state.shared.metrics.gateway_blob_bytes_received.clone();
+    let metric = state.shared.metrics.gateway.blob_bytes_received.clone();
     let received = Arc::new(std::sync::atomic::AtomicU64::new(0));
     let counter = received.clone();
     let stream = body.into_data_stream().inspect(move |chunk| {

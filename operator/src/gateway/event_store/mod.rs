@@ -26,8 +26,9 @@ pub use self::error::{Error, Result};
 /// One telemetry sample as the agent sends it; [`Store::insert_telemetry`] takes a batch.
 pub use lekiwi_protocol::Sample;
 
-static SQLITE_MIGRATIONS: Migrator = sqlx::migrate!("./migrations/sqlite");
-static POSTGRES_MIGRATIONS: Migrator = sqlx::migrate!("./migrations/postgres");
+static SQLITE_MIGRATIONS: Migrator = sqlx::migrate!("./src/gateway/event_store/migrations/sqlite");
+static POSTGRES_MIGRATIONS: Migrator =
+    sqlx::migrate!("./src/gateway/event_store/migrations/postgres");
 
 /// How long a SQLite writer waits for another to finish before giving up.
 const SQLITE_BUSY_TIMEOUT: Duration = Duration::from_secs(10);
@@ -66,22 +67,7 @@ impl fmt::Display for RobotKey {
     }
 }
 
-/// One durable agent event (also used for deployment progress, with kind "progress").
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct StoredEvent {
-    /// The robot's sequence number, shared with telemetry.
-    pub seq: u64,
-    /// When it happened on the robot, Unix milliseconds.
-    pub ts_ms: i64,
-    /// What happened, e.g. `teleoperation_started` or `progress`.
-    pub kind: String,
-    /// `info`, `warning` or `error`.
-    pub severity: String,
-    /// Human-readable text.
-    pub message: String,
-    /// Structured details; `null` when there are none.
-    pub data: serde_json::Value,
-}
+pub use lekiwi_protocol::StoredEvent;
 
 /// One stored telemetry sample.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

@@ -1,0 +1,122 @@
+//! Contracts that several binaries share about objects other than our own resources: the token
+//! Secrets (written by `kubectl lekiwi` and the gateway, read by the gateway), the gateway Lease
+//! label and the server-side-apply field managers of every writer.
+
+use std::collections::BTreeMap;
+
+use k8s_openapi::ByteString;
+use k8s_openapi::api::core::v1::Secret;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::OwnerReference;
+use kube::api::ObjectMeta;
+use sha2::{Digest, Sha256};
+
+/// Label on every token Secret; its value says which kind ([`KIND_ENROLLMENT`], [`KIND_ROBOT`]).
+pub const TOKEN_LABEL: &str = "fleet.lekiwi.io/token";
+/// [`TOKEN_LABEL`] value of a fleet enrollment token.
+pub const KIND_ENROLLMENT: &str = "enrollment";
+/// [`TOKEN_LABEL`] value of a per-robot token.
+pub const KIND_ROBOT: &str = "robot";
+/// Label naming the robot a per-robot token belongs to.
+pub const ROBOT_LABEL: &str = "fleet.lekiwi.io/robot";
+/// Key in a token Secret's data holding the hex SHA-256 of the token.
+pub const HASH_KEY: &str = "sha256";
+/// Name of the fleet enrollment token Secret `kubectl lekiwi enroll-token` makes.
+pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
+/// Label on the Lease each gateway renews; its value is the gateway's name.
+pub const GATEWAY_LEASE_LABEL: &str = "fleet.lekiwi.io/gateway";
+
+/// Server-side-apply field managers, one per writer, so `managedFields` say who wrote what.
+pub mod managers {
+    /// The gateway: robot token Secrets, its Lease, presence in `Robot.status`.
+    pub const GATEWAY: &str = "lekiwi-gateway";
+    /// The operator's CRD installer (`--install-crds`).
+    pub const CRD_INSTALLER: &str = "lekiwi-operator";
+    /// The Robot controller: phase and conditions in `Robot.status`.
+    pub const ROBOT_CONTROLLER: &str = "lekiwi-robot-controller";
+    /// The RobotDeployment controller's rollouts: `Robot.spec.release` and the rollout mark.
+    pub const ROLLOUT: &str = "lekiwi-rollout";
+    /// The RobotDeployment controller: `RobotDeployment.status`.
+    pub const DEPLOYMENT_STATUS: &str = "lekiwi-deployment-controller";
+    /// `kubectl lekiwi`: tokens and rollout actions.
+    pub const CLI: &str = "kubectl-lekiwi";
+}
+
+/// Hex SHA-256 of a token: the only form in which the cluster keeps it.
+pub fn hash_token(token: &str) -> String {
+    hex::encode(Sha256::digest(token.as_bytes()))
+}
+
+/// A fresh random token (256 bits) with a kind prefix (`lkr_` robot, `lke_` enrollment).
+pub fn new_token(prefix: &str) -> String {
+    use rand::RngCore;
+    let mut bytes = [0u8; 32];
+    rand::rng().fill_bytes(&mut bytes);
+    format!("{prefix}{}", hex::encode(bytes))
+}
+
+/// Name of the Secret holding a robot's token hash.
+pub fn robot_secret_name(robot: &str) -> String {
+    format!("{robot}-agent-token")
+}
+
+/// The Secret that holds the hash of a robot's own token, owned by its `Robot` so it goes with it.
+pub fn robot_token_secret(robot: &str, token: &str, owner: Option<OwnerReference>) -> Secret {
+    token_secret(
+        robot_secret_name(robot),
+        BTreeMap::from([
+            (TOKEN_LABEL.to_owned(), KIND_ROBOT.to_owned()),
+            (ROBOT_LABEL.to_owned(), robot.to_owned()),
+        ]),
+        token,
+        owner,
+    )
+}
+
+/// The Secret that holds the hash of a namespace's fleet enrollment token.
+pub fn enrollment_token_secret(token: &str) -> Secret {
+    token_secret(
+        ENROLLMENT_SECRET.to_owned(),
+        BTreeMap::from([(TOKEN_LABEL.to_owned(), KIND_ENROLLMENT.to_owned())]),
+        token,
+        None,
+    )
+}
+
+fn token_secret(
+    name: String,
+    labels: BTreeMap<String, String>,
+    token: &str,
+    owner: Option<OwnerReference>,
+) -> Secret {
+    Secret {
+        metadata: ObjectMeta {
+            name: Some(name),
+            labels: Some(labels),
+            owner_references: owner.map(|r| vec![r]),
+            ..ObjectMeta::default()
+        },
+        data: Some(BTreeMap::from([(
+            HASH_KEY.to_owned(),
+            ByteString(hash_token(token).into_bytes()),
+        )])),
+        type_: Some("Opaque".to_owned()),
+        ..Secret::default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn robot_secret_carries_the_hash_and_the_labels_the_gateway_reads() {
+        let s = robot_token_secret("kiwi-1", "lkr_x", None);
+        assert_eq!(s.metadata.name.as_deref(), Some("kiwi-1-agent-token"));
+        let labels = s.metadata.labels.unwrap();
+        assert_eq!(labels[TOKEN_LABEL], KIND_ROBOT);
+        assert_eq!(labels[ROBOT_LABEL], "kiwi-1");
+        let hash = &s.data.unwrap()[HASH_KEY];
+        assert_eq!(hash.0, hash_token("lkr_x").into_bytes());
+        assert_ne!(hash_token("lkr_x"), hash_token("lkr_y"));
+    }
+}

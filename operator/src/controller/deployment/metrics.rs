@@ -1,0 +1,124 @@
+//! Metrics of the RobotDeployment controller: rollout phases, progress, outcomes and durations,
+//! one series set per RobotDeployment.
+
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+/// Labels of per-deployment series (bounded by the number of RobotDeployments, which people
+/// create by hand).
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct DeploymentLabels {
+    /// Namespace.
+    pub namespace: String,
+    /// RobotDeployment name.
+    pub deployment: String,
+}
+
+/// Labels of rollout outcome series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct OutcomeLabels {
+    /// `completed`, `rolled_back` or `failed` (rollouts); `succeeded` or `failed` (batches).
+    pub outcome: &'static str,
+}
+
+/// Labels of per-deployment phase series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct DeploymentPhaseLabels {
+    /// Namespace.
+    pub namespace: String,
+    /// RobotDeployment name.
+    pub deployment: String,
+    /// Its phase.
+    pub phase: &'static str,
+}
+
+/// What the RobotDeployment controller exports.
+#[derive(Clone)]
+pub struct RolloutMetrics {
+    /// 1 for the phase each deployment is in, 0 for the others.
+    pub phase: Family<DeploymentPhaseLabels, Gauge>,
+    /// Targeted, updated and failed robots per deployment.
+    pub targeted: Family<DeploymentLabels, Gauge>,
+    /// Robots running the release.
+    pub updated: Family<DeploymentLabels, Gauge>,
+    /// Robots that failed.
+    pub failed: Family<DeploymentLabels, Gauge>,
+    /// Index of the batch being rolled out.
+    pub current_batch: Family<DeploymentLabels, Gauge>,
+    /// Finished rollouts, by outcome.
+    pub finished: Family<OutcomeLabels, Counter>,
+    /// How long finished rollouts took, by outcome.
+    pub duration: Family<OutcomeLabels, Histogram>,
+    /// Finished batches, by outcome.
+    pub batches: Family<OutcomeLabels, Counter>,
+    /// Success ratio of finished batches.
+    pub batch_success: Histogram,
+}
+
+impl RolloutMetrics {
+    pub(crate) fn register(registry: &mut Registry) -> Self {
+        let m = Self {
+            phase: Family::default(),
+            targeted: Family::default(),
+            updated: Family::default(),
+            failed: Family::default(),
+            current_batch: Family::default(),
+            finished: Family::default(),
+            duration: Family::new_with_constructor(|| {
+                Histogram::new(exponential_buckets(1.0, 2.0, 16))
+            }),
+            batches: Family::default(),
+            batch_success: Histogram::new([0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 0.99, 1.0]),
+        };
+        registry.register(
+            "lekiwi_rollout_phase",
+            "1 for the phase each RobotDeployment is in",
+            m.phase.clone(),
+        );
+        registry.register(
+            "lekiwi_rollout_targeted_robots",
+            "Robots a RobotDeployment targets",
+            m.targeted.clone(),
+        );
+        registry.register(
+            "lekiwi_rollout_updated_robots",
+            "Robots of a RobotDeployment running its release",
+            m.updated.clone(),
+        );
+        registry.register(
+            "lekiwi_rollout_failed_robots",
+            "Robots of a RobotDeployment that failed to update",
+            m.failed.clone(),
+        );
+        registry.register(
+            "lekiwi_rollout_current_batch",
+            "Index of the batch a RobotDeployment is rolling out",
+            m.current_batch.clone(),
+        );
+        registry.register(
+            "lekiwi_rollouts_finished",
+            "Rollouts finished, by outcome",
+            m.finished.clone(),
+        );
+        registry.register(
+            "lekiwi_rollout_duration_seconds",
+            "Duration of finished rollouts, by outcome",
+            m.duration.clone(),
+        );
+        registry.register(
+            "lekiwi_rollout_batches",
+            "Rollout batches finished, by outcome",
+            m.batches.clone(),
+        );
+        registry.register(
+            "lekiwi_rollout_batch_success_ratio",
+            "Share of a finished batch's robots that updated",
+            m.batch_success.clone(),
+        );
+        m
+    }
+}

@@ -1,0 +1,349 @@
+//! Metrics of the agent gateway (`lekiwi_gateway_*`): sessions, frames, status writes, polls,
+//! blobs, and the opt-in per-robot series (`lekiwi_robot_*`).
+
+use std::collections::HashMap;
+use std::sync::atomic::AtomicU64;
+use std::sync::{Arc, Mutex};
+
+use lekiwi_protocol::{Release, Vitals};
+use prometheus_client::encoding::EncodeLabelSet;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
+use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
+use prometheus_client::registry::Registry;
+
+use crate::metrics::KindLabels;
+
+/// Labels of gateway status-queue series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct PriorityLabels {
+    /// `high` or `low`.
+    pub priority: &'static str,
+}
+
+/// Labels of gateway status writes.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct WriteLabels {
+    /// `high` or `low`.
+    pub priority: &'static str,
+    /// `ok`, `error`, `gone` or `superseded`.
+    pub result: &'static str,
+}
+
+/// What the gateway exports.
+#[derive(Clone)]
+pub struct GatewayMetrics {
+    /// Agent connections open now.
+    pub connections: Gauge,
+    /// Sessions ended, by how (`closed`, `replaced`, `heartbeat_timeout`, `error`, ...).
+    pub sessions_ended: Family<KindLabels, Counter>,
+    /// Upgrade requests refused, by reason.
+    pub refused: Family<KindLabels, Counter>,
+    /// Frames received, by message type.
+    pub frames: Family<KindLabels, Counter>,
+    /// Error frames sent, by code.
+    pub errors: Family<KindLabels, Counter>,
+    /// Durable messages acknowledged, `stored` or `replay`.
+    pub durable: Family<KindLabels, Counter>,
+    /// Heartbeat round-trip time the agents report.
+    pub heartbeat_rtt: Histogram,
+    /// Robots waiting for a status write, by priority.
+    pub status_queue: Family<PriorityLabels, Gauge>,
+    /// Status writes, by priority and result.
+    pub status_writes: Family<WriteLabels, Counter>,
+    /// Legacy polls answered, `200` or `304`.
+    pub polls: Family<KindLabels, Counter>,
+    /// Blob bytes sent to robots and clients (no per-robot label: robots are unbounded).
+    pub blob_bytes_served: Counter,
+    /// Blob bytes received in uploads.
+    pub blob_bytes_received: Counter,
+    /// Blob upload requests, by outcome (`created`, `partial`, `exists`, `conflict`, ...).
+    pub blob_uploads: Family<KindLabels, Counter>,
+}
+
+impl GatewayMetrics {
+    pub(crate) fn register(registry: &mut Registry) -> Self {
+        let m = Self {
+            connections: Gauge::default(),
+            sessions_ended: Family::default(),
+            refused: Family::default(),
+            frames: Family::default(),
+            errors: Family::default(),
+            durable: Family::default(),
+            heartbeat_rtt: Histogram::new(exponential_buckets(0.0005, 2.0, 14)),
+            status_queue: Family::default(),
+            status_writes: Family::default(),
+            polls: Family::default(),
+            blob_bytes_served: Counter::default(),
+            blob_bytes_received: Counter::default(),
+            blob_uploads: Family::default(),
+        };
+        registry.register(
+            "lekiwi_gateway_connections",
+            "Agent connections open now",
+            m.connections.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_sessions_ended",
+            "Agent sessions ended, by how",
+            m.sessions_ended.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_refused",
+            "Agent upgrade requests refused, by reason",
+            m.refused.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_frames",
+            "Frames received from agents, by message type",
+            m.frames.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_error_frames",
+            "Error frames sent to agents, by code",
+            m.errors.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_durable_messages",
+            "Durable agent messages acknowledged, stored or replay",
+            m.durable.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_heartbeat_rtt_seconds",
+            "Heartbeat round-trip time as reported by agents",
+            m.heartbeat_rtt.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_status_queue",
+            "Robots waiting for a status write, by priority",
+            m.status_queue.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_status_writes",
+            "Robot status writes, by priority and result",
+            m.status_writes.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_polls",
+            "Legacy polls answered, by status code",
+            m.polls.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_blob_bytes_served",
+            "Release blob bytes sent to robots and clients",
+            m.blob_bytes_served.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_blob_bytes_received",
+            "Release blob bytes received in uploads",
+            m.blob_bytes_received.clone(),
+        );
+        registry.register(
+            "lekiwi_gateway_blob_uploads",
+            "Release blob upload requests, by outcome",
+            m.blob_uploads.clone(),
+        );
+        m
+    }
+}
+
+/// Labels of per-robot series: one set per robot connected to this gateway.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct RobotLabels {
+    /// Namespace of the Robot.
+    pub namespace: String,
+    /// Robot name.
+    pub robot: String,
+}
+
+/// Labels of the per-robot release series: one version per robot at a time.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct RobotReleaseLabels {
+    /// Namespace of the Robot.
+    pub namespace: String,
+    /// Robot name.
+    pub robot: String,
+    /// Release version the robot runs.
+    pub version: String,
+}
+
+/// Per-robot gauges from heartbeats, behind `--per-robot-metrics`. Cost: about five series per
+/// connected robot (a 10 000-robot fleet adds 50 000 series to every gateway's scrape), removed
+/// when the robot disconnects; off by default.
+#[derive(Clone)]
+pub struct RobotMetrics {
+    enabled: bool,
+    /// CPU use, percent of all cores.
+    pub cpu: Family<RobotLabels, Gauge<f64, AtomicU64>>,
+    /// Memory in use, percent.
+    pub memory: Family<RobotLabels, Gauge<f64, AtomicU64>>,
+    /// SoC temperature.
+    pub temperature: Family<RobotLabels, Gauge<f64, AtomicU64>>,
+    /// 1 for the release version each robot runs.
+    pub release: Family<RobotReleaseLabels, Gauge>,
+    /// The version each robot's release series carries, to drop it when the version changes.
+    versions: Arc<Mutex<HashMap<RobotLabels, String>>>,
+}
+
+impl RobotMetrics {
+    pub(crate) fn register(registry: &mut Registry, enabled: bool) -> Self {
+        let m = Self {
+            enabled,
+            cpu: Family::default(),
+            memory: Family::default(),
+            temperature: Family::default(),
+            release: Family::default(),
+            versions: Arc::default(),
+        };
+        registry.register(
+            "lekiwi_robot_cpu_percent",
+            "CPU use of each connected robot, percent of all cores, from its last heartbeat \
+             (only with --per-robot-metrics; one series per connected robot)",
+            m.cpu.clone(),
+        );
+        registry.register(
+            "lekiwi_robot_memory_percent",
+            "Memory in use on each connected robot, percent, from its last heartbeat (only with \
+             --per-robot-metrics; one series per connected robot)",
+            m.memory.clone(),
+        );
+        registry.register(
+            "lekiwi_robot_temperature_celsius",
+            "SoC temperature of each connected robot, from its last heartbeat (only with \
+             --per-robot-metrics; one series per connected robot)",
+            m.temperature.clone(),
+        );
+        registry.register(
+            "lekiwi_robot_release_info",
+            "1 for the release version each connected robot runs (only with \
+             --per-robot-metrics; one series per connected robot, its version label changes \
+             with each update)",
+            m.release.clone(),
+        );
+        m
+    }
+
+    /// Records a heartbeat's vitals and the release the robot runs; nothing when disabled.
+    pub fn record(&self, namespace: &str, robot: &str, vitals: &Vitals, release: Option<&Release>) {
+        if !self.enabled {
+            return;
+        }
+        let labels = RobotLabels {
+            namespace: namespace.to_owned(),
+            robot: robot.to_owned(),
+        };
+        for (family, value) in [
+            (&self.cpu, vitals.cpu_percent),
+            (&self.memory, vitals.memory_percent),
+            (&self.temperature, vitals.temperature_c),
+        ] {
+            match value.filter(|v| v.is_finite()) {
+                Some(v) => {
+                    family.get_or_create(&labels).set(v);
+                }
+                None => {
+                    family.remove(&labels);
+                }
+            }
+        }
+        let mut versions = self.versions.lock().unwrap_or_else(|p| p.into_inner());
+        let new = release.map(|r| r.version.clone());
+        if versions.get(&labels) == new.as_ref() {
+            return;
+        }
+        if let Some(old) = versions.remove(&labels) {
+            self.release.remove(&release_labels(&labels, old));
+        }
+        if let Some(version) = new {
+            self.release
+                .get_or_create(&release_labels(&labels, version.clone()))
+                .set(1);
+            versions.insert(labels, version);
+        }
+    }
+
+    /// Drops every series of a robot that disconnected.
+    pub fn forget(&self, namespace: &str, robot: &str) {
+        if !self.enabled {
+            return;
+        }
+        let labels = RobotLabels {
+            namespace: namespace.to_owned(),
+            robot: robot.to_owned(),
+        };
+        self.cpu.remove(&labels);
+        self.memory.remove(&labels);
+        self.temperature.remove(&labels);
+        let old = self
+            .versions
+            .lock()
+            .unwrap_or_else(|p| p.into_inner())
+            .remove(&labels);
+        if let Some(old) = old {
+            self.release.remove(&release_labels(&labels, old));
+        }
+    }
+}
+
+fn release_labels(robot: &RobotLabels, version: String) -> RobotReleaseLabels {
+    RobotReleaseLabels {
+        namespace: robot.namespace.clone(),
+        robot: robot.robot.clone(),
+        version,
+    }
+}
+
+#[cfg(test)]
+mod robot_tests {
+    use super::*;
+    use crate::metrics::Metrics;
+
+    #[test]
+    fn per_robot_series_follow_heartbeats_and_disconnects() {
+        let release = |v: &str| Release {
+            version: v.into(),
+            digest: "sha256:00".into(),
+        };
+        let vitals = Vitals {
+            cpu_percent: Some(12.5),
+            temperature_c: Some(51.0),
+            ..Vitals::default()
+        };
+        let off = Metrics::default();
+        off.per_robot
+            .record("ns", "r2d2", &vitals, Some(&release("1.0.0")));
+        assert!(!off.encode().contains("r2d2\""), "disabled by default");
+
+        let m = Metrics::new(true);
+        m.per_robot
+            .record("ns", "r2d2", &vitals, Some(&release("1.0.0")));
+        m.per_robot
+            .record("ns", "r2d2", &vitals, Some(&release("2.0.0")));
+        let text = m.encode();
+        assert!(
+            text.contains("lekiwi_robot_cpu_percent{namespace=\"ns\",robot=\"r2d2\"} 12.5"),
+            "{text}"
+        );
+        assert!(
+            text.contains("lekiwi_robot_temperature_celsius{namespace=\"ns\",robot=\"r2d2\"} 51.0"),
+            "{text}"
+        );
+        assert!(
+            !text.contains("lekiwi_robot_memory_percent{"),
+            "no reading, no series: {text}"
+        );
+        assert!(
+            text.contains(
+                "lekiwi_robot_release_info{namespace=\"ns\",robot=\"r2d2\",version=\"2.0.0\"} 1"
+            ),
+            "{text}"
+        );
+        assert!(
+            !text.contains("version=\"1.0.0\""),
+            "the old version's series is gone: {text}"
+        );
+        m.per_robot.forget("ns", "r2d2");
+        assert!(!m.encode().contains("r2d2\""), "{}", m.encode());
+    }
+}
