@@ -12,6 +12,8 @@ log "cargo fmt --check"
 cargo fmt --all -- --check
 log "cargo clippy --all-targets -- -D warnings"
 cargo clippy --quiet --workspace --all-targets -- -D warnings
+log "code shape: no fn over 80 lines, no module over 400 without a written reason"
+python3 scripts/shape.py --check
 log "building binaries"
 cargo build --quiet --workspace --bins
 # The tests' own control plane, apart from the quickstart's (whose operator watches everything).
