@@ -17,7 +17,7 @@ pub const DEFAULT_LIMIT: u32 = 100;
 /// Most events one request answers; a client pages with `after_seq`.
 pub const MAX_LIMIT: u32 = 1000;
 
-/// The events route.
+/// The events route, merged into the gateway's [`super::router`].
 pub fn routes() -> Router<AppState> {
     Router::new().route("/v1/robots/{namespace}/{name}/events", get(events))
 }

@@ -94,7 +94,7 @@ struct Opened {
     stored_seq: Option<u64>,
 }
 
-/// Runs one session to its end.
+/// Runs one session to its end, in a `session` span naming the robot.
 pub async fn run<W, R, E>(
     shared: Arc<Shared>,
     grant: Grant,
