@@ -98,3 +98,62 @@ impl CommandLedger {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn release(version: &str) -> Release {
+        Release {
+            version: version.into(),
+            digest: format!("sha256:{}", "a".repeat(64)),
+        }
+    }
+
+    fn deployed(cmd: Option<ServerMessage>) -> Option<(String, String)> {
+        match cmd? {
+            ServerMessage::Command {
+                command_id,
+                command: Command::Deploy { release, .. },
+            } => Some((command_id, release.version)),
+            _ => None,
+        }
+    }
+
+    #[test]
+    fn a_deploy_goes_out_once_per_desired_release() {
+        let mut ledger = CommandLedger::new(Some(release("1")), Some(release("1")));
+        assert!(ledger.next_deploy("gw", 7).is_none(), "already runs it");
+        ledger.set_desired(Some(release("2")));
+        let (id, version) = deployed(ledger.next_deploy("gw", 7)).unwrap();
+        assert_eq!(version, "2");
+        assert!(id.starts_with("gw-") && id.ends_with("-7-1"), "{id}");
+        assert!(ledger.next_deploy("gw", 7).is_none(), "not repeated");
+        assert_eq!(ledger.finished(&id, Some(ProgressPhase::Downloading)), None);
+        assert_eq!(ledger.finished("other", Some(ProgressPhase::Done)), None);
+        assert_eq!(
+            ledger.finished(&id, Some(ProgressPhase::Done)),
+            Some(release("2"))
+        );
+        assert!(
+            !ledger.reported(&Some(release("2"))),
+            "done made it current"
+        );
+    }
+
+    #[test]
+    fn a_robot_that_switched_elsewhere_is_asked_again_with_a_new_id() {
+        let mut ledger = CommandLedger::new(None, Some(release("2")));
+        let (first, _) = deployed(ledger.next_deploy("gw", 1)).unwrap();
+        assert!(ledger.reported(&Some(release("1"))));
+        assert!(ledger.next_deploy("gw", 1).is_none(), "sent already for 2");
+        ledger.set_desired(Some(release("3")));
+        let (second, version) = deployed(ledger.next_deploy("gw", 1)).unwrap();
+        assert_eq!(version, "3");
+        assert_ne!(first, second);
+        assert!(
+            !ledger.reported(&None),
+            "a heartbeat without a release changes nothing"
+        );
+    }
+}
