@@ -17,6 +17,7 @@ use lekiwi_protocol::Release;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use super::desired::DesiredReleases;
 use super::presence::ConnectInfo;
 use super::session::Limits;
 use super::{ApiError, AppState, bearer};
@@ -59,7 +60,7 @@ pub struct PollAnswer {
 /// The release each robot's polls were last answered with, and when: an answer stays the same
 /// for up to [`CACHE_TTL`] after the Robot changed, as legacy agents have always been answered.
 /// Its source is the gateway's Robot watch
-/// ([`DesiredReleases`](super::desired::DesiredReleases)); the API server is read only for a
+/// ([`DesiredReleases`]); the API server is read only for a
 /// robot the watch does not hold.
 #[derive(Default)]
 pub struct PollMemo {
@@ -68,15 +69,20 @@ pub struct PollMemo {
 
 impl PollMemo {
     /// The release `key` should run, as its polls are answered now.
-    async fn desired(&self, state: &AppState, key: &RobotKey) -> Result<Option<Release>, ApiError> {
+    async fn desired(
+        &self,
+        watch: Option<&DesiredReleases>,
+        client: &kube::Client,
+        key: &RobotKey,
+    ) -> Result<Option<Release>, ApiError> {
         if let Some(release) = self.answered(key) {
             return Ok(release);
         }
-        let release = match state.shared.desired.as_ref().and_then(|d| d.lookup(key)) {
+        let release = match watch.and_then(|d| d.lookup(key)) {
             Some(release) => release,
             // Not in the watch's cache: a Robot created a moment ago may not have arrived yet,
             // and the API server also tells a robot that does not exist.
-            None => read_release(&state.client, key).await?,
+            None => read_release(client, key).await?,
         };
         self.lock()
             .insert(key.clone(), (Instant::now(), release.clone()));
@@ -131,7 +137,10 @@ pub async fn poll(
             "robot must be given as namespace/name".into(),
         ));
     }
-    let desired = state.poll_memo.desired(&state, &key).await?;
+    let desired = state
+        .poll_memo
+        .desired(state.shared.desired.as_ref(), &state.client, &key)
+        .await?;
     let answer = PollAnswer::new(&q, desired.as_ref(), &state.shared.limits);
     // The robot's release is known exactly when it runs the desired version.
     let release = desired.filter(|r| r.version == q.version);
