@@ -27,29 +27,8 @@ where
     W: Sink<Message> + Unpin,
     R: Stream<Item = Result<Message, E>> + Unpin,
 {
-    let limits = &shared.limits;
-    let text = match tokio::time::timeout(limits.handshake_timeout, next_text(stream)).await {
-        Err(_) => {
-            conn.fail(
-                ErrorCode::HandshakeTimeout,
-                format!("no hello within {:?}", limits.handshake_timeout),
-                (CLOSE_POLICY, "handshake timeout"),
-            )
-            .await;
-            shared
-                .metrics
-                .gateway
-                .sessions_ended
-                .get_or_create(&KindLabels {
-                    kind: "handshake_timeout",
-                })
-                .inc();
-            return Err(Refused);
-        }
-        Ok(None) => return Err(Refused),
-        Ok(Some(text)) => text,
-    };
-    match decode::<AgentMessage>(&text, limits.max_frame_bytes) {
+    let text = first_text(shared, conn, stream).await?;
+    match decode::<AgentMessage>(&text, shared.limits.max_frame_bytes) {
         Ok(AgentMessage::Hello {
             protocol_version, ..
         }) if protocol_version != PROTOCOL_VERSION => {
@@ -93,6 +72,41 @@ where
                 (CLOSE_POLICY, "bad hello"),
             )
             .await;
+            Err(Refused)
+        }
+    }
+}
+
+/// The first text frame, within the handshake timeout; [`Refused`] when none came in time (said
+/// to the agent and counted) or the socket closed.
+async fn first_text<W, R, E>(
+    shared: &Shared,
+    conn: &mut Conn<W>,
+    stream: &mut R,
+) -> Result<String, Refused>
+where
+    W: Sink<Message> + Unpin,
+    R: Stream<Item = Result<Message, E>> + Unpin,
+{
+    let timeout = shared.limits.handshake_timeout;
+    match tokio::time::timeout(timeout, next_text(stream)).await {
+        Ok(Some(text)) => Ok(text),
+        Ok(None) => Err(Refused),
+        Err(_) => {
+            conn.fail(
+                ErrorCode::HandshakeTimeout,
+                format!("no hello within {timeout:?}"),
+                (CLOSE_POLICY, "handshake timeout"),
+            )
+            .await;
+            shared
+                .metrics
+                .gateway
+                .sessions_ended
+                .get_or_create(&KindLabels {
+                    kind: "handshake_timeout",
+                })
+                .inc();
             Err(Refused)
         }
     }
