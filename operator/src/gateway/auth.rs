@@ -102,7 +102,7 @@ pub struct Authenticator {
     lookups: std::sync::Arc<tokio::sync::Semaphore>,
 }
 
-/// Enrollments in flight at once.
+/// Enrollments in flight at once; more wait for a permit.
 const MAX_CONCURRENT_ENROLLMENTS: usize = 16;
 
 impl Authenticator {
@@ -243,7 +243,7 @@ impl Authenticator {
 
 /// Key of the API token in its Secret's data.
 pub const API_TOKEN_KEY: &str = "token";
-/// Label on the API token Secret.
+/// The standard part-of label, set to `lekiwi` on the API token Secret the gateway creates.
 pub const PART_OF_LABEL: &str = "app.kubernetes.io/part-of";
 /// How often a token that does not match may trigger a re-read of the API token Secret.
 const API_TOKEN_REFRESH: std::time::Duration = std::time::Duration::from_secs(5);

@@ -46,7 +46,7 @@ use tokio_util::io::ReaderStream;
 use tracing::{Instrument, debug, info_span, warn};
 
 use super::auth::{ApiToken, Grant, Refusal, parse_robot};
-use super::{ApiError, GatewayState, bearer};
+use super::{ApiError, AppState, bearer};
 use crate::gateway::blob_store::{BlobStore, Error as StoreError, UploadState};
 use crate::gateway::event_store::RobotKey;
 use crate::metrics::KindLabels;
@@ -101,7 +101,7 @@ impl BlobApi {
 }
 
 /// The blob, upload and release routes.
-pub fn routes() -> Router<GatewayState> {
+pub fn routes() -> Router<AppState> {
     Router::new()
         .route(
             "/v1/blobs/{digest}",
@@ -202,11 +202,7 @@ impl Caller {
 
 /// Authenticates a request: with the robot header as a robot (when `robots` allows), else by
 /// the API token.
-async fn authorize(
-    state: &GatewayState,
-    headers: &HeaderMap,
-    robots: bool,
-) -> Result<Caller, Failure> {
+async fn authorize(state: &AppState, headers: &HeaderMap, robots: bool) -> Result<Caller, Failure> {
     let Some(token) = bearer(headers).filter(|t| !t.is_empty()) else {
         return Err(state.refused(Refusal::MissingToken).into());
     };
@@ -349,7 +345,7 @@ fn blob_headers(digest: &str, len: u64) -> HeaderMap {
 
 /// `HEAD /v1/blobs/{digest}`: whether a blob is stored, and its size.
 async fn head_blob(
-    State(state): State<GatewayState>,
+    State(state): State<AppState>,
     Path(digest): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
@@ -364,7 +360,7 @@ async fn head_blob(
 
 /// `GET /v1/blobs/{digest}`: the blob, streamed, whole or one byte range.
 async fn get_blob(
-    State(state): State<GatewayState>,
+    State(state): State<AppState>,
     Path(digest): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
@@ -483,7 +479,7 @@ impl<S> Drop for Counted<S> {
 
 /// `PUT /v1/blobs/{digest}`: a whole blob, or one chunk with `Content-Range`.
 async fn put_blob(
-    State(state): State<GatewayState>,
+    State(state): State<AppState>,
     Path(digest): Path<String>,
     headers: HeaderMap,
     body: Body,
@@ -537,7 +533,7 @@ async fn put_blob(
 
 /// Checks an upload's headers and writes its body; also returns the bytes received.
 async fn upload(
-    state: &GatewayState,
+    state: &AppState,
     digest: &str,
     headers: &HeaderMap,
     body: Body,
@@ -600,7 +596,7 @@ async fn upload(
 
 /// `GET /v1/uploads/{digest}`: where an upload stands, to resume it.
 async fn upload_status(
-    State(state): State<GatewayState>,
+    State(state): State<AppState>,
     Path(digest): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
@@ -622,7 +618,7 @@ async fn upload_status(
 
 /// `GET /v1/releases/{digest}`: the manifest with the blobs it references that are missing.
 async fn get_release(
-    State(state): State<GatewayState>,
+    State(state): State<AppState>,
     Path(digest): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
@@ -654,7 +650,7 @@ struct ServedQuery {
 
 /// `GET /v1/blobs-served[?robot=ns/name]`: bytes and downloads served per robot since start.
 async fn blobs_served(
-    State(state): State<GatewayState>,
+    State(state): State<AppState>,
     Query(q): Query<ServedQuery>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {

@@ -12,7 +12,8 @@ use lekiwi_protocol::Release;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
 
-use super::session::{DesiredReleases, Registry};
+use super::desired::DesiredReleases;
+use super::registry::Registry;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::RobotKey;
 
@@ -47,7 +48,7 @@ pub async fn start(
             let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
             let desired = robot.spec.release.as_ref().map(Release::from);
             if seen.get(&key) != Some(&desired) {
-                let told = registry.desire(&key, desired.clone());
+                let told = registry.notify_desired_release(&key, desired.clone());
                 debug!(robot = %key, release = ?desired.as_ref().map(|r| &r.version), told, "desired release changed");
                 seen.insert(key, desired);
             }

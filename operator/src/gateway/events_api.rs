@@ -9,7 +9,7 @@ use axum::routing::get;
 use serde::Deserialize;
 
 use super::auth::{Refusal, valid_name};
-use super::{ApiError, GatewayState, bearer};
+use super::{ApiError, AppState, bearer};
 use crate::gateway::event_store::{RobotKey, StoredEvent};
 
 /// Events answered per request unless the query says otherwise.
@@ -17,8 +17,8 @@ pub const DEFAULT_LIMIT: u32 = 100;
 /// Most events one request answers; a client pages with `after_seq`.
 pub const MAX_LIMIT: u32 = 1000;
 
-/// The events route.
-pub fn routes() -> Router<GatewayState> {
+/// The events route, merged into the gateway's [`super::router`].
+pub fn routes() -> Router<AppState> {
     Router::new().route("/v1/robots/{namespace}/{name}/events", get(events))
 }
 
@@ -34,7 +34,7 @@ struct EventsQuery {
 /// `GET /v1/robots/{namespace}/{name}/events?after_seq=&limit=`: the robot's stored events in
 /// ascending sequence order, as a JSON array of [`StoredEvent`].
 async fn events(
-    State(state): State<GatewayState>,
+    State(state): State<AppState>,
     Path((namespace, name)): Path<(String, String)>,
     Query(query): Query<EventsQuery>,
     headers: HeaderMap,

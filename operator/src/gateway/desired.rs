@@ -1,0 +1,29 @@
+//! The robots' desired releases (`spec.release`) as the gateway's Robot watch last saw them: what
+//! sessions send deploy commands for and what the legacy poll answers.
+
+use kube::runtime::reflector::{ObjectRef, Store};
+use lekiwi_crds::Robot;
+use lekiwi_protocol::Release;
+
+use crate::gateway::event_store::RobotKey;
+
+/// Looks up a robot's `spec.release` in the gateway's Robot cache (a reflector store filled by
+/// [`super::dispatch::start`]).
+#[derive(Clone)]
+pub struct DesiredReleases(pub Store<Robot>);
+
+impl DesiredReleases {
+    /// The release `key` should run, if its Robot is in the cache and names one.
+    pub fn get(&self, key: &RobotKey) -> Option<Release> {
+        self.lookup(key).flatten()
+    }
+
+    /// `None` when the Robot is not in the cache (it may not exist, or the watch has not
+    /// delivered it yet); otherwise its `spec.release`, which may be unset.
+    pub fn lookup(&self, key: &RobotKey) -> Option<Option<Release>> {
+        let obj = ObjectRef::new(&key.name).within(&key.namespace);
+        self.0
+            .get(&obj)
+            .map(|r| r.spec.release.as_ref().map(Release::from))
+    }
+}

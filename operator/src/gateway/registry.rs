@@ -1,0 +1,85 @@
+//! The sessions this gateway holds, one per robot: how a newer connection replaces an older one
+//! and how the rest of the gateway reaches a robot's session.
+
+use std::collections::HashMap;
+use std::sync::Mutex;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use lekiwi_protocol::{Release, ServerMessage};
+use tokio::sync::mpsc;
+
+use crate::gateway::event_store::RobotKey;
+
+/// What the rest of the gateway tells a running session.
+#[derive(Debug)]
+pub enum Control {
+    /// A newer connection of the same robot took over; this one closes.
+    Replaced,
+    /// Send this to the agent.
+    /// Boxed: the channel's slots are allocated per connection, so keep them pointer-sized.
+    Send(Box<ServerMessage>),
+    /// The robot's `spec.release` changed to this; the session sends a deploy command if due.
+    Desired(Option<Box<Release>>),
+}
+
+/// The sessions of this gateway, one per robot, each with the channel that reaches it.
+#[derive(Default)]
+pub struct Registry {
+    next: AtomicU64,
+    sessions: Mutex<HashMap<RobotKey, (u64, mpsc::Sender<Control>)>>,
+}
+
+impl Registry {
+    /// Registers a new session for `key`, telling an older one that it was replaced; returns the
+    /// session's id and the channel it reads its [`Control`] messages from.
+    pub(super) fn register(&self, key: &RobotKey) -> (u64, mpsc::Receiver<Control>) {
+        let id = self.next.fetch_add(1, Ordering::Relaxed) + 1;
+        let (tx, rx) = mpsc::channel(16);
+        let old = self.lock().insert(key.clone(), (id, tx));
+        if let Some((_, old)) = old {
+            let _ = old.try_send(Control::Replaced);
+        }
+        (id, rx)
+    }
+
+    /// Removes the session unless a newer one replaced it already.
+    pub(super) fn unregister(&self, key: &RobotKey, id: u64) {
+        let mut sessions = self.lock();
+        if sessions.get(key).is_some_and(|(current, _)| *current == id) {
+            sessions.remove(key);
+        }
+    }
+
+    /// Tells a robot's session that its desired release changed; false when the robot has no
+    /// session here or its channel is full.
+    pub fn notify_desired_release(&self, key: &RobotKey, release: Option<Release>) -> bool {
+        self.try_send(key, Control::Desired(release.map(Box::new)))
+    }
+
+    /// Sends a message to a robot's session; false when the robot has no session here or its
+    /// channel is full.
+    pub fn send(&self, key: &RobotKey, msg: ServerMessage) -> bool {
+        self.try_send(key, Control::Send(Box::new(msg)))
+    }
+
+    /// Sessions open now.
+    pub fn len(&self) -> usize {
+        self.lock().len()
+    }
+
+    /// Whether no session is open.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    fn try_send(&self, key: &RobotKey, control: Control) -> bool {
+        self.lock()
+            .get(key)
+            .is_some_and(|(_, tx)| tx.try_send(control).is_ok())
+    }
+
+    /// The sessions map; a panic elsewhere while holding it leaves the map itself consistent.
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<RobotKey, (u64, mpsc::Sender<Control>)>> {
+        self.sessions.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}

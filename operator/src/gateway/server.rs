@@ -1,0 +1,331 @@
+//! The gateway process's life: it watches the token Secrets and Robots, builds the handlers'
+//! shared state, starts the background tasks, serves plain HTTP or TLS until cancelled, and
+//! drains the status writer before it returns.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use axum::Router;
+use futures::StreamExt;
+use k8s_openapi::api::core::v1::Secret;
+use kube::Api;
+use kube::runtime::{WatchStreamExt, reflector, watcher};
+use lekiwi_crds::contract::TOKEN_LABEL;
+use tokio::sync::Semaphore;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use super::auth::{self, Authenticator};
+use super::blob_store::BlobStore;
+use super::presence::{Presence, PresenceConfig};
+use super::registry::Registry;
+use super::session::{Limits, Shared};
+use super::{AppState, blob_api, dispatch, lease, router};
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::gateway::event_store::Store;
+use crate::metrics::Metrics;
+
+/// The blob routes' state: the store's directories and the API token Secret are made now when
+/// possible; if not, the gateway still serves agents and the blob routes retry (uploads answer
+/// 500, a missing token Secret is made at the next API-token request).
+async fn blob_api_state(
+    config: &Config,
+    client: &kube::Client,
+    cancel: CancellationToken,
+) -> blob_api::BlobApi {
+    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes);
+    match store.ensure_dirs().await {
+        Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
+        Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
+    }
+    tokio::spawn(remove_stale_uploads(
+        store.clone(),
+        Duration::from_secs(config.stale_upload_hours.saturating_mul(3600)),
+        cancel,
+    ));
+    let token = auth::ApiToken::new(client.clone(), &config.namespace, &config.api_token_secret);
+    if let Err(e) = token.refresh().await {
+        warn!(
+            secret = %config.api_token_secret,
+            namespace = %config.namespace,
+            error = %e,
+            "cannot read or create the API token Secret; retrying on use"
+        );
+    }
+    blob_api::BlobApi::new(store, token)
+}
+
+/// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
+async fn remove_stale_uploads(store: BlobStore, max_age: Duration, cancel: CancellationToken) {
+    let mut every = tokio::time::interval(Duration::from_secs(3600));
+    loop {
+        tokio::select! {
+            _ = cancel.cancelled() => return,
+            _ = every.tick() => {}
+        }
+        match store.remove_stale_uploads(max_age).await {
+            Ok((0, _)) => {}
+            Ok((files, bytes)) => info!(files, bytes, "removed interrupted blob uploads"),
+            Err(e) => warn!(error = %e, "cannot remove interrupted blob uploads"),
+        }
+    }
+}
+
+/// Runs the gateway until `cancel` fires.
+/// `listening` is set once the gateway accepts connections.
+pub async fn run(
+    config: Arc<Config>,
+    client: kube::Client,
+    metrics: Metrics,
+    store: Store,
+    listening: Arc<AtomicBool>,
+    cancel: CancellationToken,
+) -> Result<()> {
+    let name = config.gateway_name();
+    let Some((secret_store, secret_task)) = watch_token_secrets(&config, &client, &cancel).await?
+    else {
+        return Ok(());
+    };
+    let presence = Presence::new(
+        PresenceConfig {
+            gateway: name.clone(),
+            status_refresh: Duration::from_secs(config.status_refresh_seconds),
+            poll_grace: Duration::from_secs(config.poll_grace_seconds),
+            qps: config.status_qps,
+            burst: config.status_burst,
+            concurrency: 8,
+        },
+        metrics.clone(),
+    );
+    let registry = Arc::new(Registry::default());
+    let (desired, dispatch_task) =
+        dispatch::start(watched(&config, &client), registry.clone(), cancel.clone()).await?;
+    let shared = Shared {
+        presence: presence.clone(),
+        store: store.clone(),
+        auth: Authenticator::new(client.clone(), secret_store),
+        registry,
+        limits: limits(&config),
+        metrics,
+        gateway: name.clone(),
+        cancel: cancel.clone(),
+        desired: Some(desired),
+    };
+    let state = AppState {
+        shared: Arc::new(shared),
+        client: client.clone(),
+        poll_memo: Arc::default(),
+        connections: Arc::new(Semaphore::new(config.max_connections)),
+        blobs: Arc::new(blob_api_state(&config, &client, cancel.clone()).await),
+    };
+    close_stale_connections(&store, &name).await;
+    let mut tasks = start_background(&config, &name, &client, &presence, &store, &cancel);
+    tasks.aborted.extend([secret_task, dispatch_task]);
+    let addr = config.gateway_addr;
+    let served = serve(&config, &name, router(state), listening, &cancel).await?;
+    cancel.cancel();
+    drain(&presence, tasks).await;
+    served.map_err(|source| Error::Serve { addr, source })
+}
+
+/// The resources of kind `K` this gateway watches: those of `--watch-namespace`, or all.
+fn watched<K>(config: &Config, client: &kube::Client) -> Api<K>
+where
+    K: kube::Resource<Scope = k8s_openapi::NamespaceResourceScope>,
+    K::DynamicType: Default,
+{
+    match &config.watch_namespace {
+        Some(ns) => Api::namespaced(client.clone(), ns),
+        None => Api::all(client.clone()),
+    }
+}
+
+/// Starts the watch of the robots' token Secrets and waits until it has listed them all;
+/// `None` when `cancel` fired first.
+async fn watch_token_secrets(
+    config: &Config,
+    client: &kube::Client,
+    cancel: &CancellationToken,
+) -> Result<Option<(reflector::Store<Secret>, JoinHandle<()>)>> {
+    let (secret_store, writer) = reflector::store();
+    // Keep only what authentication reads: at 10,000 robots the managed fields and annotations
+    // of the token Secrets would cost more memory than the hashes themselves.
+    let token_secrets = watcher(
+        watched::<Secret>(config, client),
+        watcher::Config::default().labels(TOKEN_LABEL),
+    )
+    .default_backoff()
+    .modify(|secret: &mut Secret| {
+        secret.metadata.managed_fields = None;
+        secret.metadata.annotations = None;
+        secret.metadata.owner_references = None;
+    });
+    let secret_watch = reflector(writer, token_secrets)
+        .touched_objects()
+        .for_each(|_| futures::future::ready(()));
+    let secret_task = tokio::spawn(secret_watch);
+    tokio::select! {
+        () = cancel.cancelled() => { secret_task.abort(); Ok(None) }
+        r = secret_store.wait_until_ready() => match r {
+            Ok(()) => Ok(Some((secret_store, secret_task))),
+            Err(_) => Err(Error::TaskStopped("token secret reflector")),
+        }
+    }
+}
+
+/// The limits every session enforces, from the configuration.
+fn limits(config: &Config) -> Limits {
+    Limits {
+        max_frame_bytes: config.max_frame_bytes,
+        rate: config.agent_rate,
+        burst: config.agent_burst,
+        abuse_threshold: config.agent_burst * 2,
+        handshake_timeout: Duration::from_secs(config.handshake_timeout_seconds),
+        heartbeat_interval: Duration::from_secs(config.heartbeat_interval_seconds),
+        missed_heartbeats: config.missed_heartbeats,
+    }
+}
+
+/// The gateway's long-lived tasks besides serving.
+struct Background {
+    /// Stops the status writer, which outlives the sessions so their disconnects still reach
+    /// the API server.
+    writer_cancel: CancellationToken,
+    writer_task: JoinHandle<()>,
+    /// Tasks that stop by being aborted once serving ended.
+    aborted: Vec<JoinHandle<()>>,
+}
+
+/// Starts the status writer, the presence ticker, the Lease of gateway `name` and the event
+/// store's retention.
+fn start_background(
+    config: &Config,
+    name: &str,
+    client: &kube::Client,
+    presence: &Presence,
+    store: &Store,
+    cancel: &CancellationToken,
+) -> Background {
+    let writer_cancel = CancellationToken::new();
+    let writer_task = tokio::spawn(
+        presence
+            .clone()
+            .run_writer(client.clone(), writer_cancel.clone()),
+    );
+    let ticker = tokio::spawn(tick_presence(presence.clone(), cancel.clone()));
+    let lease_task = tokio::spawn(lease::renew(
+        client.clone(),
+        config.namespace.clone(),
+        name.to_owned(),
+        Duration::from_secs(config.gateway_lease_seconds),
+        cancel.clone(),
+    ));
+    let retention = store.spawn_retention(
+        Duration::from_secs(config.retention_days.saturating_mul(86_400)),
+        Duration::from_secs(3600),
+        cancel.clone(),
+    );
+    Background {
+        writer_cancel,
+        writer_task,
+        aborted: vec![ticker, lease_task, retention],
+    }
+}
+
+/// Closes the connection records an earlier run of gateway `name` left open when it crashed.
+async fn close_stale_connections(store: &Store, name: &str) {
+    match store
+        .close_open_connections(
+            name,
+            jiff::Timestamp::now().as_millisecond(),
+            "gateway_restarted",
+        )
+        .await
+    {
+        Ok(0) => {}
+        Ok(n) => info!(
+            records = n,
+            "closed connection records left open by an earlier run"
+        ),
+        Err(e) => warn!(error = %e, "cannot close stale connection records"),
+    }
+}
+
+/// Lets presence notice silent robots, once a second until `cancel`.
+async fn tick_presence(presence: Presence, cancel: CancellationToken) {
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    loop {
+        tokio::select! {
+            () = cancel.cancelled() => return,
+            _ = tick.tick() => presence.tick(),
+        }
+    }
+}
+
+/// Serves `app` with TLS when a certificate and key are configured, else in plain HTTP, until
+/// `cancel` fires; the outer error is a failure to start, the inner one of serving.
+async fn serve(
+    config: &Config,
+    name: &str,
+    app: Router,
+    listening: Arc<AtomicBool>,
+    cancel: &CancellationToken,
+) -> Result<std::io::Result<()>> {
+    let app = app.into_make_service_with_connect_info::<SocketAddr>();
+    let addr = config.gateway_addr;
+    match (&config.tls_cert, &config.tls_key) {
+        (Some(cert), Some(key)) => {
+            let _ = rustls::crypto::ring::default_provider().install_default();
+            let tls = axum_server::tls_rustls::RustlsConfig::from_pem_file(cert, key)
+                .await
+                .map_err(|source| Error::Serve { addr, source })?;
+            let handle = axum_server::Handle::new();
+            let h = handle.clone();
+            let c = cancel.clone();
+            tokio::spawn(async move {
+                c.cancelled().await;
+                h.graceful_shutdown(Some(Duration::from_secs(5)));
+            });
+            let server = axum_server::bind_rustls(addr, tls).handle(handle.clone());
+            tokio::spawn(async move {
+                if handle.listening().await.is_some() {
+                    listening.store(true, Ordering::Release);
+                }
+            });
+            info!(%addr, gateway = %name, tls = true, "gateway listening");
+            Ok(server.serve(app).await)
+        }
+        _ => {
+            let listener = tokio::net::TcpListener::bind(addr)
+                .await
+                .map_err(|source| Error::Serve { addr, source })?;
+            info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), gateway = %name, tls = false, "gateway listening");
+            listening.store(true, Ordering::Release);
+            let c = cancel.clone();
+            Ok(axum::serve(listener, app)
+                .with_graceful_shutdown(async move { c.cancelled().await })
+                .await)
+        }
+    }
+}
+
+/// Lets the status writer flush the sessions' disconnects (bounded) before the process goes,
+/// then stops the background tasks.
+async fn drain(presence: &Presence, tasks: Background) {
+    let flush = async {
+        while presence.queued() > 0 {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    };
+    let _ = tokio::time::timeout(Duration::from_secs(5), flush).await;
+    tasks.writer_cancel.cancel();
+    let _ = tasks.writer_task.await;
+    for t in tasks.aborted {
+        t.abort();
+    }
+}

@@ -1,0 +1,163 @@
+//! The sending half of a session: JSON frames, error frames counted by code, and the Close
+//! frame that ends a session with a reason.
+
+use axum::extract::ws::{CloseFrame, Message, Utf8Bytes};
+use futures::{Sink, SinkExt};
+use lekiwi_protocol::{ErrorCode, ServerMessage, encode};
+use serde::Serialize;
+
+use crate::metrics::{KindLabels, Metrics};
+
+/// WebSocket close code for a session ended by policy (limits, replacement).
+pub(super) const CLOSE_POLICY: u16 = 1008;
+/// WebSocket close code "going away" (shutdown, silence).
+pub(super) const CLOSE_AWAY: u16 = 1001;
+
+/// Why a session ended; its label is the `sessions_ended` metric's kind and the disconnect
+/// record's reason.
+pub(super) enum End {
+    /// The agent closed the socket, or it broke.
+    Closed,
+    /// A newer connection of the same robot took over.
+    Replaced,
+    /// The agent stayed silent past the missed-heartbeat limit.
+    HeartbeatTimeout,
+    /// The agent kept sending above its rate limit.
+    Abuse,
+    /// The gateway is shutting down.
+    Shutdown,
+}
+
+impl End {
+    pub(super) fn label(&self) -> &'static str {
+        match self {
+            End::Closed => "closed",
+            End::Replaced => "replaced",
+            End::HeartbeatTimeout => "heartbeat_timeout",
+            End::Abuse => "rate_limit_abuse",
+            End::Shutdown => "shutdown",
+        }
+    }
+}
+
+/// Whether the session goes on (`Ok`) or how it ended.
+pub(super) type Flow = Result<(), End>;
+
+/// Error codes counted under their own label; any other counts as `other`, so the metric's
+/// labels stay bounded whatever the protocol adds.
+const ERROR_LABELS: &[&str] = &[
+    "malformed",
+    "unknown_message",
+    "frame_too_large",
+    "unsupported_version",
+    "unexpected_message",
+    "rate_limited",
+    "handshake_timeout",
+    "replaced",
+    "store_unavailable",
+    "shutting_down",
+    "internal",
+];
+
+/// How `value` is spelled on the wire (a unit enum's snake_case name), or empty.
+pub(super) fn wire_name<T: Serialize>(value: &T) -> String {
+    serde_json::to_value(value)
+        .ok()
+        .and_then(|v| v.as_str().map(str::to_owned))
+        .unwrap_or_default()
+}
+
+/// The socket's sending half, with the metrics its error frames count in.
+pub(super) struct Conn<W> {
+    sink: W,
+    metrics: Metrics,
+}
+
+impl<W: Sink<Message> + Unpin> Conn<W> {
+    pub(super) fn new(sink: W, metrics: Metrics) -> Self {
+        Self { sink, metrics }
+    }
+
+    /// Sends one frame; `Err(Closed)` when the socket is gone.
+    pub(super) async fn send(&mut self, msg: &ServerMessage) -> Flow {
+        self.sink
+            .send(Message::Text(Utf8Bytes::from(encode(msg))))
+            .await
+            .map_err(|_| End::Closed)
+    }
+
+    /// Sends an error frame without a sequence number, counted by its code.
+    pub(super) async fn error(
+        &mut self,
+        code: ErrorCode,
+        message: impl Into<String>,
+        fatal: bool,
+    ) -> Flow {
+        let label = wire_name(&code);
+        let label: &'static str = ERROR_LABELS
+            .iter()
+            .find(|l| **l == label)
+            .copied()
+            .unwrap_or("other");
+        self.count_error(label);
+        self.send(&ServerMessage::Error {
+            code,
+            message: message.into(),
+            fatal,
+            seq: None,
+        })
+        .await
+    }
+
+    /// Refuses a message: a durable one (with `seq`) is counted as `store_unavailable` whatever
+    /// the code, so the agent keeps and resends it; others as [`Conn::error`].
+    pub(super) async fn refuse(
+        &mut self,
+        code: ErrorCode,
+        message: String,
+        seq: Option<u64>,
+    ) -> Flow {
+        if seq.is_none() {
+            return self.error(code, message, false).await;
+        }
+        self.count_error("store_unavailable");
+        self.send(&ServerMessage::Error {
+            code,
+            message,
+            fatal: false,
+            seq,
+        })
+        .await
+    }
+
+    /// Ends the session: a fatal error frame, then a Close frame with `close` code and reason.
+    pub(super) async fn fail(
+        &mut self,
+        code: ErrorCode,
+        message: impl Into<String>,
+        close: (u16, &str),
+    ) {
+        let _ = self.error(code, message, true).await;
+        self.close(close.0, close.1).await;
+    }
+
+    /// Sends a Close frame and closes the sink; errors mean the socket is gone already.
+    pub(super) async fn close(&mut self, code: u16, reason: &str) {
+        let _ = self
+            .sink
+            .send(Message::Close(Some(CloseFrame {
+                code,
+                reason: Utf8Bytes::from(reason),
+            })))
+            .await;
+        let _ = self.sink.close().await;
+    }
+
+    fn count_error(&self, kind: &'static str) {
+        self.metrics
+            .gateway
+            .errors
+            .get_or_create(&KindLabels { kind })
+            .inc();
+    }
+}

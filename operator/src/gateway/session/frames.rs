@@ -1,0 +1,202 @@
+//! One handler per agent message type (as mini-redis has one `apply` per command): each does
+//! what its message asks and answers with the frame to send back.
+
+use axum::extract::ws::Message;
+use futures::Sink;
+use jiff::Timestamp;
+use lekiwi_protocol::{AgentMessage, ErrorCode, ProgressPhase, Sample, ServerMessage};
+use tracing::{info, warn};
+
+use super::Session;
+use super::conn::{End, Flow, wire_name};
+use crate::gateway::event_store::{self, StoredEvent};
+use crate::gateway::presence::{HeartbeatInfo, UpdateOutcome};
+use crate::metrics::KindLabels;
+
+impl<W> Session<'_, W>
+where
+    W: Sink<Message> + Unpin + Send,
+{
+    /// Applies one agent message; `Err` when the session ended meanwhile.
+    pub(super) async fn apply(&mut self, msg: AgentMessage) -> Result<ServerMessage, End> {
+        Ok(match msg {
+            AgentMessage::Hello { .. } => ServerMessage::Error {
+                code: ErrorCode::UnexpectedMessage,
+                message: "hello was already received".into(),
+                fatal: false,
+                seq: None,
+            },
+            AgentMessage::Heartbeat {
+                sent_at_ms,
+                rtt_ms,
+                vitals,
+                current_release,
+                health,
+                teleoperation,
+            } => {
+                let info = HeartbeatInfo {
+                    release: current_release,
+                    health,
+                    teleoperation,
+                    vitals,
+                };
+                self.heartbeat(sent_at_ms, rtt_ms, info).await?
+            }
+            AgentMessage::Event {
+                seq,
+                ts_ms,
+                kind,
+                severity,
+                message,
+                data,
+            } => {
+                let ev = StoredEvent {
+                    seq,
+                    ts_ms,
+                    kind,
+                    severity: wire_name(&severity),
+                    message,
+                    data,
+                };
+                self.event(&ev).await
+            }
+            AgentMessage::Telemetry { seq, samples } => self.telemetry(seq, &samples).await,
+            AgentMessage::Progress {
+                seq,
+                command_id,
+                phase,
+                percent,
+                message,
+            } => {
+                self.progress(seq, command_id, phase, percent, message)
+                    .await
+            }
+        })
+    }
+
+    /// Sends a handler's answer: an error frame is a refusal (counted by [`super::conn::Conn::refuse`]).
+    pub(super) async fn reply(&mut self, reply: ServerMessage) -> Flow {
+        match reply {
+            ServerMessage::Error {
+                code, message, seq, ..
+            } => self.conn.refuse(code, message, seq).await,
+            other => self.conn.send(&other).await,
+        }
+    }
+
+    /// A heartbeat: round-trip time, the release the robot runs (a deploy may be due again),
+    /// presence; answered with an ack carrying the server's clock.
+    async fn heartbeat(
+        &mut self,
+        sent_at_ms: i64,
+        rtt_ms: Option<f64>,
+        info: HeartbeatInfo,
+    ) -> Result<ServerMessage, End> {
+        if let Some(rtt) = rtt_ms.filter(|r| r.is_finite() && *r >= 0.0) {
+            self.shared
+                .metrics
+                .gateway
+                .heartbeat_rtt
+                .observe(rtt / 1000.0);
+        }
+        // Switched elsewhere than asked (e.g. finished an older deploy): ask again.
+        if self.commands.reported(&info.release)
+            && let Some(cmd) = self.commands.next_deploy(&self.shared.gateway, self.id)
+        {
+            self.conn.send(&cmd).await?;
+        }
+        self.shared.presence.heartbeat(self.key, self.id, info);
+        Ok(ServerMessage::HeartbeatAck {
+            sent_at_ms,
+            server_time_ms: Timestamp::now().as_millisecond(),
+        })
+    }
+
+    /// A durable event: stored, then acked.
+    async fn event(&self, ev: &StoredEvent) -> ServerMessage {
+        let stored = Box::pin(self.shared.store.insert_event(self.key, ev)).await;
+        self.durable(ev.seq, stored)
+    }
+
+    /// A durable batch of telemetry samples: stored, then acked.
+    async fn telemetry(&self, seq: u64, samples: &[Sample]) -> ServerMessage {
+        let stored = Box::pin(self.shared.store.insert_telemetry(self.key, seq, samples)).await;
+        self.durable(seq, stored)
+    }
+
+    /// A deploy command's progress: a final phase of the command this session sent tells
+    /// presence how the update ended; every report is stored as a durable `progress` event.
+    async fn progress(
+        &mut self,
+        seq: u64,
+        command_id: String,
+        phase: String,
+        percent: Option<f64>,
+        message: String,
+    ) -> ServerMessage {
+        let known = ProgressPhase::parse(&phase);
+        if let Some(release) = self.commands.finished(&command_id, known) {
+            info!(%phase, release = %release.version, %message, "update finished");
+            self.shared.presence.update_finished(
+                self.key,
+                self.id,
+                UpdateOutcome {
+                    release,
+                    phase: phase.clone(),
+                    message: (!message.is_empty()).then(|| message.clone()),
+                    time: Timestamp::now(),
+                },
+            );
+        }
+        let ev = StoredEvent {
+            seq,
+            ts_ms: Timestamp::now().as_millisecond(),
+            kind: "progress".into(),
+            severity: if known == Some(ProgressPhase::Failed) {
+                "error".into()
+            } else {
+                "info".into()
+            },
+            message,
+            data: serde_json::json!({ "command_id": command_id, "phase": phase, "percent": percent }),
+        };
+        self.event(&ev).await
+    }
+
+    /// The answer to a durable message: an ack once stored (or already stored), else an error
+    /// so the agent keeps it and resends.
+    fn durable(&self, seq: u64, stored: event_store::Result<bool>) -> ServerMessage {
+        match stored {
+            Ok(new) => {
+                self.shared
+                    .metrics
+                    .gateway
+                    .durable
+                    .get_or_create(&KindLabels {
+                        kind: if new { "stored" } else { "replay" },
+                    })
+                    .inc();
+                ServerMessage::Ack { seq }
+            }
+            // A sequence number the store cannot hold will never be stored: say so, do not
+            // ask for a resend.
+            Err(event_store::Error::SeqOutOfRange(_)) => ServerMessage::Error {
+                code: ErrorCode::Malformed,
+                message: format!(
+                    "sequence number {seq} is out of range (at most 2^63-1); this message cannot be stored"
+                ),
+                fatal: false,
+                seq: Some(seq),
+            },
+            Err(e) => {
+                warn!(seq, error = %e, "cannot store a durable message");
+                ServerMessage::Error {
+                    code: ErrorCode::StoreUnavailable,
+                    message: format!("message {seq} was not stored; resend it later"),
+                    fatal: false,
+                    seq: Some(seq),
+                }
+            }
+        }
+    }
+}

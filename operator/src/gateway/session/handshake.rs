@@ -1,0 +1,159 @@
+//! The start of a session: the agent's `hello` within the handshake timeout, and the robot's
+//! own token when it enrolls. A refused start sends a fatal error frame and closes the socket.
+
+use axum::extract::ws::Message;
+use futures::{Sink, Stream, StreamExt};
+use lekiwi_protocol::{AgentMessage, ErrorCode, PROTOCOL_VERSION, decode};
+use tracing::{info, warn};
+
+use super::Shared;
+use super::conn::{CLOSE_AWAY, CLOSE_POLICY, Conn};
+use crate::gateway::auth::Grant;
+use crate::gateway::presence::ConnectInfo;
+use crate::metrics::KindLabels;
+
+/// The session was refused (and its socket closed, if the agent had not closed it already).
+pub(super) struct Refused;
+
+/// Waits for the agent's `hello`: what it says about the robot, for presence (without the
+/// peer address), or [`Refused`] when it came late, was something else or spoke another
+/// protocol version.
+pub(super) async fn hello<W, R, E>(
+    shared: &Shared,
+    conn: &mut Conn<W>,
+    stream: &mut R,
+) -> Result<ConnectInfo, Refused>
+where
+    W: Sink<Message> + Unpin,
+    R: Stream<Item = Result<Message, E>> + Unpin,
+{
+    let text = first_text(shared, conn, stream).await?;
+    match decode::<AgentMessage>(&text, shared.limits.max_frame_bytes) {
+        Ok(AgentMessage::Hello {
+            protocol_version, ..
+        }) if protocol_version != PROTOCOL_VERSION => {
+            conn.fail(
+                ErrorCode::UnsupportedVersion,
+                format!("this gateway speaks protocol version {PROTOCOL_VERSION}, not {protocol_version}"),
+                (CLOSE_POLICY, "unsupported protocol version"),
+            )
+            .await;
+            Err(Refused)
+        }
+        Ok(AgentMessage::Hello {
+            agent_version,
+            system,
+            current_release,
+            health,
+            teleoperation,
+            ..
+        }) => Ok(ConnectInfo {
+            protocol: "websocket",
+            agent_version,
+            release: current_release,
+            health,
+            teleoperation,
+            system,
+            address: None,
+        }),
+        Ok(_) => {
+            conn.fail(
+                ErrorCode::UnexpectedMessage,
+                "the first message must be hello",
+                (CLOSE_POLICY, "expected hello"),
+            )
+            .await;
+            Err(Refused)
+        }
+        Err(e) => {
+            conn.fail(
+                e.code(),
+                format!("first frame: {e}"),
+                (CLOSE_POLICY, "bad hello"),
+            )
+            .await;
+            Err(Refused)
+        }
+    }
+}
+
+/// The first text frame, within the handshake timeout; [`Refused`] when none came in time (said
+/// to the agent and counted) or the socket closed.
+async fn first_text<W, R, E>(
+    shared: &Shared,
+    conn: &mut Conn<W>,
+    stream: &mut R,
+) -> Result<String, Refused>
+where
+    W: Sink<Message> + Unpin,
+    R: Stream<Item = Result<Message, E>> + Unpin,
+{
+    let timeout = shared.limits.handshake_timeout;
+    match tokio::time::timeout(timeout, next_text(stream)).await {
+        Ok(Some(text)) => Ok(text),
+        Ok(None) => Err(Refused),
+        Err(_) => {
+            conn.fail(
+                ErrorCode::HandshakeTimeout,
+                format!("no hello within {timeout:?}"),
+                (CLOSE_POLICY, "handshake timeout"),
+            )
+            .await;
+            shared
+                .metrics
+                .gateway
+                .sessions_ended
+                .get_or_create(&KindLabels {
+                    kind: "handshake_timeout",
+                })
+                .inc();
+            Err(Refused)
+        }
+    }
+}
+
+/// The next text frame; pings and pongs are skipped, anything else ends the wait.
+async fn next_text<R, E>(stream: &mut R) -> Option<String>
+where
+    R: Stream<Item = Result<Message, E>> + Unpin,
+{
+    loop {
+        match stream.next().await? {
+            Ok(Message::Text(t)) => return Some(t.as_str().to_owned()),
+            Ok(Message::Ping(_) | Message::Pong(_)) => continue,
+            Ok(Message::Binary(_)) => return Some(String::new()),
+            Ok(Message::Close(_)) | Err(_) => return None,
+        }
+    }
+}
+
+/// Enrollment mints the robot's own token (sent in `welcome`); a robot that has its own token
+/// gets `None`. [`Refused`] when the token cannot be made.
+pub(super) async fn enroll<W>(
+    shared: &Shared,
+    grant: &Grant,
+    conn: &mut Conn<W>,
+) -> Result<Option<String>, Refused>
+where
+    W: Sink<Message> + Unpin,
+{
+    let Grant::Enroll(robot) = grant else {
+        return Ok(None);
+    };
+    match Box::pin(shared.auth.register(robot)).await {
+        Ok(token) => {
+            info!("robot enrolled; issued its own token");
+            Ok(Some(token))
+        }
+        Err(e) => {
+            warn!(error = %e, "enrollment failed");
+            conn.fail(
+                ErrorCode::Internal,
+                "enrollment failed; try again later",
+                (CLOSE_AWAY, "enrollment failed"),
+            )
+            .await;
+            Err(Refused)
+        }
+    }
+}

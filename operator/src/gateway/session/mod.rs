@@ -1,0 +1,330 @@
+//! One agent's WebSocket session: handshake, heartbeats, durable ingest with acks, limits,
+//! replacement by a newer connection. Generic over the socket halves, so unit tests drive it
+//! with channels and the gateway with a real WebSocket.
+
+mod commands;
+mod conn;
+mod frames;
+mod handshake;
+mod serve;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::extract::ws::Message;
+use futures::{Sink, Stream, StreamExt};
+use jiff::Timestamp;
+use lekiwi_protocol::{PROTOCOL_VERSION, ServerMessage};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{Instrument, info, info_span, warn};
+
+use self::commands::CommandLedger;
+use self::conn::{Conn, End};
+use super::auth::{Authenticator, Grant};
+use super::desired::DesiredReleases;
+use super::presence::{ConnectInfo, Presence};
+use super::registry::{Control, Registry};
+use crate::gateway::event_store::{ConnectionRecord, RobotKey, Store};
+use crate::metrics::{KindLabels, Metrics};
+
+/// Limits one session enforces.
+#[derive(Clone, Debug)]
+pub struct Limits {
+    /// Largest frame accepted; larger ones get an error frame.
+    pub max_frame_bytes: usize,
+    /// Messages per second sustained; more are refused with a `rate_limited` error frame.
+    pub rate: u32,
+    /// Messages accepted at once above the sustained rate.
+    pub burst: u32,
+    /// Net refused frames (each refusal adds one, each accepted frame takes one away) above
+    /// which the session is closed as abusive.
+    pub abuse_threshold: u32,
+    /// Time allowed for the `hello`.
+    pub handshake_timeout: Duration,
+    /// Heartbeat interval announced in `welcome`.
+    pub heartbeat_interval: Duration,
+    /// Silent intervals after which the session is closed.
+    pub missed_heartbeats: u32,
+}
+
+/// What every session shares.
+#[derive(Clone)]
+pub struct Shared {
+    /// Each robot's connection state in memory, written to `Robot` status sparingly.
+    pub presence: Presence,
+    /// Where durable agent messages and connection records are stored before they are acked.
+    pub store: Store,
+    /// Token checks and registration.
+    pub auth: Authenticator,
+    /// Open sessions, so a newer connection replaces an older one.
+    pub registry: Arc<Registry>,
+    /// What each session enforces.
+    pub limits: Limits,
+    /// Where sessions count frames, errors and ends.
+    pub metrics: Metrics,
+    /// This gateway's name: in connection records and deploy command ids.
+    pub gateway: String,
+    /// Fires on shutdown: every session says so to its agent and closes.
+    pub cancel: CancellationToken,
+    /// The robots' desired releases (`spec.release`), when this gateway watches Robots.
+    pub desired: Option<DesiredReleases>,
+}
+
+/// A session past its handshake: what its loop and its frame handlers work with.
+struct Session<'a, W> {
+    shared: &'a Shared,
+    key: &'a RobotKey,
+    /// This session's number in the registry.
+    id: u64,
+    conn: Conn<W>,
+    /// Boxed: the session future lives as long as the connection, so keep it small.
+    commands: Box<CommandLedger>,
+}
+
+/// What opening a session left to close at its end.
+struct Opened {
+    /// This session's number in the registry.
+    id: u64,
+    /// Where the registry reaches this session.
+    control: mpsc::Receiver<Control>,
+    /// The connection record to close, if the store took it.
+    record_id: Option<i64>,
+    /// The highest sequence number stored for the robot, announced in `welcome`.
+    stored_seq: Option<u64>,
+}
+
+/// Runs one session to its end, in a `session` span naming the robot.
+pub async fn run<W, R, E>(
+    shared: Arc<Shared>,
+    grant: Grant,
+    address: Option<String>,
+    sink: W,
+    stream: R,
+) where
+    W: Sink<Message> + Unpin + Send,
+    R: Stream<Item = Result<Message, E>> + Unpin + Send,
+    E: std::fmt::Display,
+{
+    let key = grant.robot().clone();
+    let span = info_span!("session", robot = %key.name, namespace = %key.namespace);
+    run_inner(shared, grant, address, sink, stream)
+        .instrument(span)
+        .await;
+}
+
+async fn run_inner<W, R, E>(
+    shared: Arc<Shared>,
+    grant: Grant,
+    address: Option<String>,
+    sink: W,
+    mut stream: R,
+) where
+    W: Sink<Message> + Unpin + Send,
+    R: Stream<Item = Result<Message, E>> + Unpin + Send,
+    E: std::fmt::Display,
+{
+    let key = grant.robot().clone();
+    let mut conn = Conn::new(sink, shared.metrics.clone());
+    // 1. The hello, within the handshake timeout.
+    let Ok(hello) = handshake::hello(&shared, &mut conn, &mut stream).await else {
+        return;
+    };
+    // 2. Enrollment mints the robot's own token.
+    let Ok(robot_token) = handshake::enroll(&shared, &grant, &mut conn).await else {
+        return;
+    };
+    // 3. Take over from an older session, record the connection, tell presence.
+    let current = hello.release.clone();
+    let mut opened = open(&shared, &key, ConnectInfo { address, ..hello }).await;
+    let mut session = Session {
+        shared: &shared,
+        key: &key,
+        id: opened.id,
+        conn,
+        commands: Box::new(CommandLedger::new(
+            current,
+            shared.desired.as_ref().and_then(|d| d.get(&key)),
+        )),
+    };
+    let welcomed = session
+        .conn
+        .send(&welcome(
+            &shared.limits,
+            &key,
+            opened.stored_seq,
+            robot_token,
+        ))
+        .await;
+    let end = match welcomed {
+        Ok(()) => session.serve(&mut stream, &mut opened.control).await,
+        Err(end) => end,
+    };
+    if !matches!(end, End::Closed) {
+        drain_until_close(&mut stream).await;
+    }
+    // 4. Clean up: a replaced session leaves presence to its successor.
+    close(&shared, &key, &opened, &end).await;
+}
+
+/// Registers the session (replacing an older one), records the connection and tells presence.
+async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
+    let (id, control) = shared.registry.register(key);
+    let record = ConnectionRecord {
+        gateway: shared.gateway.clone(),
+        protocol: "websocket".into(),
+        address: hello.address.clone(),
+        connected_at_ms: Timestamp::now().as_millisecond(),
+        disconnected_at_ms: None,
+        reason: None,
+    };
+    let record_id = match Box::pin(shared.store.record_connect(key, &record)).await {
+        Ok(id) => Some(id),
+        Err(e) => {
+            warn!(error = %e, "cannot record the connection in the event store");
+            None
+        }
+    };
+    let stored_seq = Box::pin(shared.store.last_seq(key))
+        .await
+        .unwrap_or_else(|e| {
+            warn!(error = %e, "cannot read the last stored sequence number");
+            None
+        });
+    shared.presence.connect(key, id, hello);
+    shared.metrics.gateway.connections.inc();
+    info!(session = id, ?stored_seq, "agent connected");
+    Opened {
+        id,
+        control,
+        record_id,
+        stored_seq,
+    }
+}
+
+/// The `welcome` frame: the limits the agent must keep and what the gateway already stored.
+fn welcome(
+    limits: &Limits,
+    key: &RobotKey,
+    stored_seq: Option<u64>,
+    robot_token: Option<String>,
+) -> ServerMessage {
+    ServerMessage::Welcome {
+        protocol_version: PROTOCOL_VERSION,
+        robot: format!("{}/{}", key.namespace, key.name),
+        heartbeat_interval_s: limits.heartbeat_interval.as_secs().max(1) as u32,
+        max_frame_bytes: limits.max_frame_bytes,
+        max_messages_per_second: limits.rate,
+        stored_seq,
+        robot_token,
+    }
+}
+
+/// After we sent a Close frame, reads (and drops) what the agent still sends until its Close,
+/// for at most a second: closing a socket with unread data makes the kernel send RST, which
+/// destroys the error frame and close reason we just sent before the agent reads them.
+async fn drain_until_close<R, E>(stream: &mut R)
+where
+    R: Stream<Item = Result<Message, E>> + Unpin,
+{
+    let _ = tokio::time::timeout(Duration::from_secs(1), async {
+        while let Some(Ok(frame)) = stream.next().await {
+            if matches!(frame, Message::Close(_)) {
+                break;
+            }
+        }
+    })
+    .await;
+}
+
+/// Unregisters the session, tells presence (unless a newer session took over), counts the end
+/// and closes the connection record.
+async fn close(shared: &Shared, key: &RobotKey, opened: &Opened, end: &End) {
+    shared.registry.unregister(key, opened.id);
+    if !matches!(end, End::Replaced) {
+        shared.presence.disconnect(key, opened.id);
+    }
+    shared.metrics.gateway.connections.dec();
+    shared
+        .metrics
+        .gateway
+        .sessions_ended
+        .get_or_create(&KindLabels { kind: end.label() })
+        .inc();
+    if let Some(record_id) = opened.record_id
+        && let Err(e) = Box::pin(shared.store.record_disconnect(
+            record_id,
+            Timestamp::now().as_millisecond(),
+            end.label(),
+        ))
+        .await
+    {
+        warn!(error = %e, "cannot record the disconnect");
+    }
+    info!(
+        session = opened.id,
+        reason = end.label(),
+        "agent disconnected"
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gateway::auth::Authenticator;
+    use crate::gateway::event_store::RobotKey;
+    use crate::gateway::presence::{Presence, PresenceConfig};
+
+    #[tokio::test]
+    async fn an_idle_session_is_small() {
+        let client =
+            kube::Client::try_from(kube::Config::new("http://127.0.0.1:1".parse().unwrap()))
+                .unwrap();
+        let (_writer, secrets) = {
+            let (store, writer) =
+                kube::runtime::reflector::store::<k8s_openapi::api::core::v1::Secret>();
+            (writer, store)
+        };
+        let metrics = Metrics::default();
+        let shared = Arc::new(Shared {
+            presence: Presence::new(
+                PresenceConfig {
+                    gateway: "gw".into(),
+                    status_refresh: Duration::from_secs(300),
+                    poll_grace: Duration::from_secs(180),
+                    qps: 1.0,
+                    burst: 1,
+                    concurrency: 1,
+                },
+                metrics.clone(),
+            ),
+            store: Store::connect("sqlite::memory:").await.unwrap(),
+            auth: Authenticator::new(client, secrets),
+            registry: Arc::default(),
+            limits: Limits {
+                max_frame_bytes: 1024,
+                rate: 10,
+                burst: 10,
+                abuse_threshold: 20,
+                handshake_timeout: Duration::from_secs(1),
+                heartbeat_interval: Duration::from_secs(1),
+                missed_heartbeats: 3,
+            },
+            metrics,
+            gateway: "gw".into(),
+            cancel: CancellationToken::new(),
+            desired: None,
+        });
+        let (sink, _rx) = futures::channel::mpsc::channel::<Message>(1);
+        let (_tx, stream) = futures::channel::mpsc::channel::<Result<Message, std::io::Error>>(1);
+        let grant = Grant::Robot(RobotKey {
+            namespace: "lab".into(),
+            name: "kiwi".into(),
+        });
+        let session = run(shared, grant, None, sink, stream);
+        let size = std::mem::size_of_val(&session);
+        println!("session future: {size} bytes");
+        // Every connection holds one of these for its whole life: keep it well under 8 KiB.
+        assert!(size < 8 * 1024, "session future is {size} bytes");
+    }
+}

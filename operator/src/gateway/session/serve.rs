@@ -1,0 +1,239 @@
+//! A session's main loop after `welcome`: it waits for shutdown, a control message, silence or
+//! the agent's next frame, paces the agent's frames, and hands each message to its handler.
+
+use std::time::Duration;
+
+use axum::extract::ws::Message;
+use futures::{Sink, Stream, StreamExt};
+use lekiwi_protocol::{AgentMessage, ErrorCode, decode};
+use tokio::sync::mpsc;
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+
+use super::Limits;
+use super::Session;
+use super::conn::{CLOSE_AWAY, CLOSE_POLICY, End, Flow};
+use crate::gateway::rate::TokenBucket;
+use crate::gateway::registry::Control;
+use crate::metrics::KindLabels;
+
+/// What woke the session up.
+enum Wake<E> {
+    /// The gateway is shutting down.
+    Shutdown,
+    /// The registry's message, or `None` when the registry dropped this session.
+    Control(Option<Control>),
+    /// No frame arrived within the missed-heartbeat limit.
+    Silence,
+    /// The socket's next item; `None` when it ended.
+    Socket(Option<Result<Message, E>>),
+}
+
+/// How the agent's frames are paced: when silence ends the session, and the rate limit with
+/// its tally of refusals.
+struct Pace {
+    /// Time without a frame after which the session is closed.
+    silence: Duration,
+    /// When the current silence reaches `silence`.
+    deadline: Instant,
+    bucket: TokenBucket,
+    /// Net refused frames: each refusal adds one, each accepted frame takes one away.
+    strikes: u32,
+}
+
+impl Pace {
+    fn new(limits: &Limits) -> Self {
+        let silence = limits.heartbeat_interval * limits.missed_heartbeats.max(1);
+        Self {
+            silence,
+            deadline: Instant::now() + silence,
+            bucket: TokenBucket::new(f64::from(limits.rate.max(1)), limits.burst),
+            strikes: 0,
+        }
+    }
+
+    /// A frame arrived: the silence starts over.
+    fn heard(&mut self) {
+        self.deadline = Instant::now() + self.silence;
+    }
+
+    /// Whether the rate limit lets this frame in; counts the strike either way.
+    fn admit(&mut self) -> bool {
+        if self.bucket.try_take() {
+            self.strikes = self.strikes.saturating_sub(1);
+            true
+        } else {
+            self.strikes += 1;
+            false
+        }
+    }
+}
+
+impl<W> Session<'_, W>
+where
+    W: Sink<Message> + Unpin + Send,
+{
+    /// Serves the agent until the session ends, and says why it ended.
+    pub(super) async fn serve<R, E>(
+        &mut self,
+        stream: &mut R,
+        control: &mut mpsc::Receiver<Control>,
+    ) -> End
+    where
+        R: Stream<Item = Result<Message, E>> + Unpin + Send,
+        E: std::fmt::Display,
+    {
+        let mut pace = Pace::new(&self.shared.limits);
+        if let Err(end) = self.send_deploy().await {
+            return end;
+        }
+        loop {
+            let wake = tokio::select! {
+                () = self.shared.cancel.cancelled() => Wake::Shutdown,
+                ctl = control.recv() => Wake::Control(ctl),
+                () = tokio::time::sleep_until(pace.deadline) => Wake::Silence,
+                frame = stream.next() => Wake::Socket(frame),
+            };
+            let flow = match wake {
+                Wake::Shutdown => self.shut_down().await,
+                Wake::Control(ctl) => self.on_control(ctl).await,
+                Wake::Silence => self.silent(pace.silence).await,
+                Wake::Socket(frame) => self.on_socket(frame, &mut pace).await,
+            };
+            if let Err(end) = flow {
+                return end;
+            }
+        }
+    }
+
+    /// Sends the deploy command the ledger says is due, if any.
+    async fn send_deploy(&mut self) -> Flow {
+        let Some(cmd) = self.commands.next_deploy(&self.shared.gateway, self.id) else {
+            return Ok(());
+        };
+        info!(release = ?self.commands.desired().map(|r| &r.version), "sending deploy command");
+        self.conn.send(&cmd).await
+    }
+
+    async fn shut_down(&mut self) -> Flow {
+        self.conn
+            .fail(
+                ErrorCode::ShuttingDown,
+                "gateway shutting down; reconnect",
+                (CLOSE_AWAY, "gateway shutting down"),
+            )
+            .await;
+        Err(End::Shutdown)
+    }
+
+    async fn on_control(&mut self, control: Option<Control>) -> Flow {
+        match control {
+            Some(Control::Send(msg)) => self.conn.send(&msg).await,
+            Some(Control::Desired(release)) => {
+                self.commands.set_desired(release.map(|r| *r));
+                self.send_deploy().await
+            }
+            Some(Control::Replaced) | None => {
+                self.conn
+                    .fail(
+                        ErrorCode::Replaced,
+                        "a newer connection of this robot replaced this one",
+                        (CLOSE_POLICY, "replaced by a newer connection"),
+                    )
+                    .await;
+                Err(End::Replaced)
+            }
+        }
+    }
+
+    async fn silent(&mut self, silence: Duration) -> Flow {
+        warn!(
+            ?silence,
+            "no frame within the missed-heartbeat limit; closing"
+        );
+        self.conn.close(CLOSE_AWAY, "heartbeat timeout").await;
+        Err(End::HeartbeatTimeout)
+    }
+
+    /// Takes the socket's next item: paces it, decodes it, applies it and sends the reply.
+    async fn on_socket<E: std::fmt::Display>(
+        &mut self,
+        frame: Option<Result<Message, E>>,
+        pace: &mut Pace,
+    ) -> Flow {
+        let text = match frame {
+            None | Some(Ok(Message::Close(_))) => return Err(End::Closed),
+            Some(Err(e)) => {
+                debug!(error = %e, "socket error");
+                return Err(End::Closed);
+            }
+            // Pings keep the socket open but are no heartbeat: they do not reset the deadline.
+            Some(Ok(Message::Ping(_) | Message::Pong(_))) => return Ok(()),
+            Some(Ok(Message::Binary(_))) => None,
+            Some(Ok(Message::Text(t))) => Some(t),
+        };
+        pace.heard();
+        if !pace.admit() {
+            return self.rate_limited(pace.strikes).await;
+        }
+        let Some(text) = text else {
+            return self
+                .conn
+                .error(
+                    ErrorCode::Malformed,
+                    "binary frames are not part of the protocol; send JSON text",
+                    false,
+                )
+                .await;
+        };
+        let msg = match decode::<AgentMessage>(text.as_str(), self.shared.limits.max_frame_bytes) {
+            Ok(m) => m,
+            Err(e) => return self.conn.error(e.code(), e.to_string(), false).await,
+        };
+        self.shared
+            .metrics
+            .gateway
+            .frames
+            .get_or_create(&KindLabels {
+                kind: frame_label(&msg),
+            })
+            .inc();
+        // Boxed: a message's handling lives only while it runs; inline, its largest handler
+        // would grow every idle session's future, held for the connection's whole life.
+        let reply = Box::pin(self.apply(msg)).await?;
+        self.reply(reply).await
+    }
+
+    /// Refuses a frame over the rate limit; past the abuse threshold, ends the session.
+    async fn rate_limited(&mut self, strikes: u32) -> Flow {
+        let limits = &self.shared.limits;
+        if strikes > limits.abuse_threshold {
+            self.conn
+                .fail(
+                    ErrorCode::RateLimited,
+                    "sustained message rate above the limit; closing",
+                    (CLOSE_POLICY, "rate limit exceeded"),
+                )
+                .await;
+            return Err(End::Abuse);
+        }
+        let message = format!(
+            "more than {} messages per second; message dropped, resend later",
+            limits.rate
+        );
+        self.conn
+            .error(ErrorCode::RateLimited, message, false)
+            .await
+    }
+}
+
+/// The bounded `frames` metric label of an agent message.
+fn frame_label(msg: &AgentMessage) -> &'static str {
+    match msg {
+        AgentMessage::Hello { .. } => "hello",
+        AgentMessage::Heartbeat { .. } => "heartbeat",
+        AgentMessage::Event { .. } => "event",
+        AgentMessage::Telemetry { .. } => "telemetry",
+        AgentMessage::Progress { .. } => "progress",
+    }
+}
