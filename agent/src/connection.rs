@@ -47,9 +47,9 @@ pub enum ConnectError {
     /// The gateway answered `hello` with an error.
     #[error("the gateway refused the session ({code:?}): {message}")]
     Refused {
-        /// Its code.
+        /// Why, for the agent to decide whether retrying helps.
         code: ErrorCode,
-        /// Its text.
+        /// The gateway's explanation, for the log.
         message: String,
     },
     /// No `welcome` in time, or the connection closed first.

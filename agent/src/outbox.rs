@@ -27,7 +27,7 @@ pub enum Error {
     Sqlite {
         /// The database file.
         path: PathBuf,
-        /// The cause.
+        /// What SQLite reported.
         source: rusqlite::Error,
     },
 }
@@ -62,9 +62,9 @@ impl Lane {
 /// One queued message.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Entry {
-    /// Its sequence number.
+    /// Its sequence number, also inside `frame`; the gateway acknowledges it.
     pub seq: u64,
-    /// Its lane.
+    /// Its lane, which decides when it is sent and whether it may be dropped.
     pub lane: Lane,
     /// The encoded frame, ready to send.
     pub frame: String,
@@ -82,9 +82,9 @@ pub struct Dropped {
 /// Queue depth.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Depth {
-    /// Messages queued.
+    /// Messages not yet acknowledged.
     pub messages: u64,
-    /// Bytes queued.
+    /// Their encoded size, which the bound limits.
     pub bytes: u64,
 }
 

@@ -95,7 +95,7 @@ struct Stats {
 /// Summary of a run.
 #[derive(Debug, serde::Serialize)]
 pub struct Summary {
-    /// Robots simulated.
+    /// Robots simulated (`--robots`).
     pub robots: usize,
     /// Robots connected at the end.
     pub connected: u64,
@@ -103,17 +103,17 @@ pub struct Summary {
     pub all_connected_seconds: Option<f64>,
     /// Heartbeats acknowledged.
     pub heartbeats: u64,
-    /// Round-trip percentiles, milliseconds.
+    /// Median heartbeat round trip, milliseconds.
     pub rtt_p50_ms: f64,
-    /// 99th percentile.
+    /// 99th percentile of the heartbeat round trip, milliseconds.
     pub rtt_p99_ms: f64,
-    /// Maximum.
+    /// Slowest heartbeat round trip, milliseconds.
     pub rtt_max_ms: f64,
     /// Failed connection attempts.
     pub connect_errors: u64,
     /// Sessions re-established after a drop.
     pub reconnects: u64,
-    /// Error frames received.
+    /// Error frames the gateway sent (rate limits, refusals, replacements).
     pub error_frames: u64,
 }
 
