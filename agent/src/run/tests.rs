@@ -8,7 +8,7 @@ use std::time::Duration;
 use futures::channel::{mpsc, oneshot};
 use futures::{Sink, Stream, StreamExt};
 use lekiwi_protocol::{
-    AgentMessage, MAX_FRAME_BYTES, PROTOCOL_VERSION, ServerMessage, decode, encode,
+    AgentMessage, ErrorCode, MAX_FRAME_BYTES, PROTOCOL_VERSION, ServerMessage, decode, encode,
 };
 use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 
@@ -105,6 +105,20 @@ impl Gateway {
                 other => return Some(other),
             }
         }
+    }
+
+    /// Waits for the agent to close the session (a close frame or the end of the stream).
+    async fn closed(&mut self) {
+        let closing = async {
+            while let Some(m) = self.rx.next().await {
+                if matches!(m, Message::Close(_)) {
+                    return;
+                }
+            }
+        };
+        tokio::time::timeout(PATIENCE, closing)
+            .await
+            .expect("the agent closes the session");
     }
 
     /// Reads `hello`, answers `welcome` (with a robot token when `token` is given), and returns
@@ -313,6 +327,52 @@ async fn a_malformed_frame_from_the_gateway_does_not_end_the_session() {
         let hb = gw.recv().await;
         assert!(matches!(hb, AgentMessage::Heartbeat { .. }), "{hb:?}");
         assert!(conns.try_recv().is_err(), "no second connection");
+    })
+    .await;
+}
+
+#[tokio::test]
+async fn a_refused_durable_message_is_sent_again_after_a_pause() {
+    let dir = tempfile::tempdir().unwrap();
+    with_agent(config(dir.path()), |mut conns| async move {
+        let (mut gw, _) = session_up(&mut conns).await;
+        gw.send(&ServerMessage::Error {
+            code: ErrorCode::RateLimited,
+            message: "slow down".into(),
+            fatal: false,
+            seq: Some(1),
+        });
+        // Held for a second, not resent at once...
+        assert_eq!(gw.durable_within(Duration::from_millis(500)).await, None);
+        // ...then sent again.
+        let again = gw.durable_within(PATIENCE).await.expect("a resend");
+        assert_eq!(seq_of(&again), Some(1), "{again:?}");
+        assert!(conns.try_recv().is_err(), "the session held");
+    })
+    .await;
+}
+
+#[tokio::test]
+async fn a_fatal_error_ends_the_session_and_the_agent_comes_back() {
+    let dir = tempfile::tempdir().unwrap();
+    with_agent(config(dir.path()), |mut conns| async move {
+        let (mut gw, _) = session_up(&mut conns).await;
+        gw.send(&ServerMessage::Error {
+            code: ErrorCode::Replaced,
+            message: "a newer connection took over".into(),
+            fatal: true,
+            seq: None,
+        });
+        gw.closed().await;
+        let mut gw = tokio::time::timeout(PATIENCE, conns.next())
+            .await
+            .expect("a new connection")
+            .unwrap();
+        let hello = gw.welcome(Some("robot-token")).await;
+        assert!(matches!(hello, AgentMessage::Hello { .. }), "{hello:?}");
+        // Not acknowledged in the first session: sent again in the second.
+        let again = gw.durable_within(PATIENCE).await.expect("the event again");
+        assert_eq!(seq_of(&again), Some(1), "{again:?}");
     })
     .await;
 }
