@@ -145,6 +145,15 @@ fn heartbeat_ack(sent_at_ms: i64) -> ServerMessage {
     }
 }
 
+fn error_frame(code: ErrorCode, fatal: bool, seq: Option<u64>) -> ServerMessage {
+    ServerMessage::Error {
+        code,
+        message: format!("{code:?}"),
+        fatal,
+        seq,
+    }
+}
+
 fn seq_of(msg: &AgentMessage) -> Option<u64> {
     match msg {
         AgentMessage::Event { seq, .. }
@@ -336,12 +345,7 @@ async fn a_refused_durable_message_is_sent_again_after_a_pause() {
     let dir = tempfile::tempdir().unwrap();
     with_agent(config(dir.path()), |mut conns| async move {
         let (mut gw, _) = session_up(&mut conns).await;
-        gw.send(&ServerMessage::Error {
-            code: ErrorCode::RateLimited,
-            message: "slow down".into(),
-            fatal: false,
-            seq: Some(1),
-        });
+        gw.send(&error_frame(ErrorCode::RateLimited, false, Some(1)));
         // Held for a second, not resent at once...
         assert_eq!(gw.durable_within(Duration::from_millis(500)).await, None);
         // ...then sent again.
@@ -357,12 +361,7 @@ async fn a_fatal_error_ends_the_session_and_the_agent_comes_back() {
     let dir = tempfile::tempdir().unwrap();
     with_agent(config(dir.path()), |mut conns| async move {
         let (mut gw, _) = session_up(&mut conns).await;
-        gw.send(&ServerMessage::Error {
-            code: ErrorCode::Replaced,
-            message: "a newer connection took over".into(),
-            fatal: true,
-            seq: None,
-        });
+        gw.send(&error_frame(ErrorCode::Replaced, true, None));
         gw.closed().await;
         let mut gw = tokio::time::timeout(PATIENCE, conns.next())
             .await
