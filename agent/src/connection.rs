@@ -3,18 +3,31 @@
 
 use std::time::Duration;
 
-use futures::{SinkExt, StreamExt};
+use futures::{Sink, SinkExt, Stream, StreamExt};
 use lekiwi_protocol::{
     AgentMessage, ErrorCode, MAX_FRAME_BYTES, ROBOT_HEADER, ServerMessage, decode, encode,
 };
 use tokio::net::TcpStream;
-use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::handshake::client::Request;
 use tokio_tungstenite::tungstenite::http::HeaderValue;
+use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
 /// An open WebSocket to the gateway.
 pub type Socket = WebSocketStream<MaybeTlsStream<TcpStream>>;
+
+/// A connection to the gateway as a session uses it: WebSocket messages in and out. The real
+/// [`Socket`] in production; unit tests use channels.
+pub trait Transport:
+    Sink<Message, Error = WsError> + Stream<Item = Result<Message, WsError>> + Unpin
+{
+}
+
+impl<T> Transport for T where
+    T: Sink<Message, Error = WsError> + Stream<Item = Result<Message, WsError>> + Unpin
+{
+}
 
 /// Why a session could not be established.
 #[derive(Debug, thiserror::Error)]
@@ -30,13 +43,13 @@ pub enum ConnectError {
     Request(String),
     /// Network or WebSocket failure.
     #[error("cannot reach the gateway: {0}")]
-    Transport(#[from] tokio_tungstenite::tungstenite::Error),
+    Transport(#[from] WsError),
     /// The gateway answered `hello` with an error.
     #[error("the gateway refused the session ({code:?}): {message}")]
     Refused {
-        /// Its code.
+        /// Why, for the agent to decide whether retrying helps.
         code: ErrorCode,
-        /// Its text.
+        /// The gateway's explanation, for the log.
         message: String,
     },
     /// No `welcome` in time, or the connection closed first.
@@ -124,9 +137,13 @@ pub async fn connect_with_ca(
     timeout: Duration,
     ca_file: Option<&std::path::Path>,
 ) -> Result<(Socket, Welcome), ConnectError> {
-    // tokio-tungstenite's default TLS connector needs a process-wide crypto provider.
-    let _ = rustls::crypto::ring::default_provider().install_default();
-    let connector = ca_file.map(tls_connector).transpose()?;
+    let mut ws = open(url, creds, timeout, ca_file).await?;
+    let welcome = handshake(&mut ws, hello, timeout).await?;
+    Ok((ws, welcome))
+}
+
+/// The WebSocket upgrade request: the URL with the robot's token and name as headers.
+fn upgrade_request(url: &str, creds: &Credentials) -> Result<Request, ConnectError> {
     let mut request = url
         .into_client_request()
         .map_err(|e| ConnectError::Request(e.to_string()))?;
@@ -136,65 +153,96 @@ pub async fn connect_with_ca(
         HeaderValue::from_str(&creds.robot).map_err(|e| ConnectError::Request(e.to_string()))?;
     request.headers_mut().insert("authorization", auth);
     request.headers_mut().insert(ROBOT_HEADER, robot);
-    let (mut ws, _) = match tokio::time::timeout(
+    Ok(request)
+}
+
+/// Opens the WebSocket (TCP, TLS for `wss://`, upgrade) within `timeout`; an HTTP answer
+/// instead of the upgrade says why the gateway refused.
+async fn open(
+    url: &str,
+    creds: &Credentials,
+    timeout: Duration,
+    ca_file: Option<&std::path::Path>,
+) -> Result<Socket, ConnectError> {
+    // tokio-tungstenite's default TLS connector needs a process-wide crypto provider.
+    let _ = rustls::crypto::ring::default_provider().install_default();
+    let connector = ca_file.map(tls_connector).transpose()?;
+    let request = upgrade_request(url, creds)?;
+    match tokio::time::timeout(
         timeout,
         tokio_tungstenite::connect_async_tls_with_config(request, None, false, connector),
     )
     .await
     {
-        Err(_) => return Err(ConnectError::NoWelcome("connect timed out")),
-        Ok(Err(tokio_tungstenite::tungstenite::Error::Http(resp))) => {
-            let body = resp
-                .body()
-                .as_ref()
-                .map(|b| String::from_utf8_lossy(b).into_owned())
-                .unwrap_or_default();
-            return Err(match resp.status().as_u16() {
-                401 => ConnectError::Unauthorized(body),
-                _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
-            });
-        }
-        Ok(r) => r?,
-    };
+        Err(_) => Err(ConnectError::NoWelcome("connect timed out")),
+        Ok(Err(WsError::Http(resp))) => Err(refusal(&resp)),
+        Ok(r) => Ok(r?.0),
+    }
+}
+
+/// The error for an HTTP answer to the upgrade: 401 is a refused token, anything else means
+/// the gateway cannot take the session now.
+fn refusal(resp: &tokio_tungstenite::tungstenite::http::Response<Option<Vec<u8>>>) -> ConnectError {
+    let body = resp
+        .body()
+        .as_ref()
+        .map(|b| String::from_utf8_lossy(b).into_owned())
+        .unwrap_or_default();
+    match resp.status().as_u16() {
+        401 => ConnectError::Unauthorized(body),
+        _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
+    }
+}
+
+/// Sends `hello` over an open connection and waits up to `timeout` for `welcome`, skipping
+/// other frames. Generic over the socket so the run loop's tests can drive it with channels.
+pub async fn handshake(
+    ws: &mut impl Transport,
+    hello: &AgentMessage,
+    timeout: Duration,
+) -> Result<Welcome, ConnectError> {
     ws.send(Message::text(encode(hello))).await?;
-    let welcome = tokio::time::timeout(timeout, async {
+    tokio::time::timeout(timeout, async {
         while let Some(frame) = ws.next().await {
             match frame? {
-                Message::Text(t) => match decode::<ServerMessage>(t.as_str(), MAX_FRAME_BYTES) {
-                    Ok(ServerMessage::Welcome {
-                        robot,
-                        heartbeat_interval_s,
-                        max_frame_bytes,
-                        max_messages_per_second,
-                        stored_seq,
-                        robot_token,
-                        ..
-                    }) => {
-                        return Ok(Welcome {
-                            robot,
-                            heartbeat_interval: Duration::from_secs(u64::from(
-                                heartbeat_interval_s.max(1),
-                            )),
-                            max_frame_bytes,
-                            max_messages_per_second,
-                            stored_seq,
-                            robot_token,
-                        });
+                Message::Text(t) => {
+                    if let Some(answer) = answer_to_hello(t.as_str()) {
+                        return answer;
                     }
-                    Ok(ServerMessage::Error { code, message, .. }) => {
-                        return Err(ConnectError::Refused { code, message });
-                    }
-                    _ => continue,
-                },
-                Message::Close(_) => {
-                    return Err(ConnectError::NoWelcome("connection closed before welcome"));
                 }
-                _ => continue,
+                Message::Close(_) => break,
+                _ => {}
             }
         }
         Err(ConnectError::NoWelcome("connection closed before welcome"))
     })
     .await
-    .map_err(|_| ConnectError::NoWelcome("welcome timed out"))??;
-    Ok((ws, welcome))
+    .map_err(|_| ConnectError::NoWelcome("welcome timed out"))?
+}
+
+/// What a text frame during the handshake means: `welcome`, a refusal, or (`None`) nothing
+/// the handshake waits for.
+fn answer_to_hello(text: &str) -> Option<Result<Welcome, ConnectError>> {
+    match decode::<ServerMessage>(text, MAX_FRAME_BYTES) {
+        Ok(ServerMessage::Welcome {
+            robot,
+            heartbeat_interval_s,
+            max_frame_bytes,
+            max_messages_per_second,
+            stored_seq,
+            robot_token,
+            ..
+        }) => Some(Ok(Welcome {
+            robot,
+            heartbeat_interval: Duration::from_secs(u64::from(heartbeat_interval_s.max(1))),
+            max_frame_bytes,
+            max_messages_per_second,
+            stored_seq,
+            robot_token,
+        })),
+        Ok(ServerMessage::Error { code, message, .. }) => {
+            Some(Err(ConnectError::Refused { code, message }))
+        }
+        _ => None,
+    }
 }

@@ -80,25 +80,14 @@ pub fn robot_config(args: &Args, name: &str) -> Config {
         backoff_max_ms: args.backoff_max_ms,
         status_listen: "off".into(),
         mdns: false,
-        // One machine, many robots: no per-robot vitals worth sampling.
-        telemetry_cpu_interval_s: 3600,
-        telemetry_memory_interval_s: 3600,
-        telemetry_network_interval_s: 3600,
-        telemetry_temperature_interval_s: 3600,
-        telemetry_disk_interval_s: 3600,
-        telemetry_batch_interval_s: 3600,
-        teleop_interval_s: 3600.0,
-        teleop_process_weight: 0.0,
-        teleop_command_weight: 0.0,
-        teleop_video_weight: 0.0,
-        teleop_stream_weight: 0.0,
-        teleop_serial_weight: 0.0,
         release_restart_command: args.restart_command.clone(),
         release_health_command: args.health_command.clone(),
         release_pre_switch_command: args.pre_switch_command.clone(),
         release_health_timeout_s: args.health_timeout_s,
         ..Config::default()
     }
+    // One machine, many robots: no per-robot vitals worth sampling.
+    .without_sensors()
 }
 
 /// Runs the fleet until `shutdown` completes.

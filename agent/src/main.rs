@@ -9,42 +9,8 @@ use lekiwi_protocol::{AgentMessage, Severity};
 
 fn main() -> anyhow::Result<()> {
     let flags = Flags::parse();
-    if let Some(Command::Event {
-        kind,
-        message,
-        severity,
-        data,
-        critical,
-    }) = &flags.command
-    {
-        let config = Config::merge(&flags)?;
-        let data: serde_json::Value = match data {
-            Some(d) => serde_json::from_str(d).context("--data is not valid JSON")?,
-            None => serde_json::Value::Null,
-        };
-        let severity = match severity.as_str() {
-            "warning" => Severity::Warning,
-            "error" => Severity::Error,
-            _ => Severity::Info,
-        };
-        lekiwi_agent::state::ensure_dir(&config.state_dir)?;
-        let mut outbox = Outbox::open(&config.state_dir, config.outbox_max_bytes)?;
-        let ts_ms = lekiwi_protocol::now_ms();
-        let lane = if *critical {
-            Lane::Critical
-        } else {
-            Lane::Event
-        };
-        let seq = outbox.push(lane, ts_ms, |seq| AgentMessage::Event {
-            seq,
-            ts_ms,
-            kind: kind.clone(),
-            severity,
-            message: message.clone(),
-            data,
-        })?;
-        println!("{seq}");
-        return Ok(());
+    if let Some(command) = &flags.command {
+        return queue_event(&flags, command);
     }
     let hostname = std::fs::read_to_string("/etc/hostname").unwrap_or_default();
     let config = Config::load(&flags, hostname.trim())?;
@@ -61,6 +27,46 @@ fn main() -> anyhow::Result<()> {
         agent.run(shutdown_signal()).await?;
         Ok(())
     })
+}
+
+/// `lekiwi-agent event`: stores the event in the outbox (the running agent sends it) and
+/// prints its sequence number.
+fn queue_event(flags: &Flags, command: &Command) -> anyhow::Result<()> {
+    let Command::Event {
+        kind,
+        message,
+        severity,
+        data,
+        critical,
+    } = command;
+    let config = Config::merge(flags)?;
+    let data: serde_json::Value = match data {
+        Some(d) => serde_json::from_str(d).context("--data is not valid JSON")?,
+        None => serde_json::Value::Null,
+    };
+    let severity = match severity.as_str() {
+        "warning" => Severity::Warning,
+        "error" => Severity::Error,
+        _ => Severity::Info,
+    };
+    lekiwi_agent::state::ensure_dir(&config.state_dir)?;
+    let mut outbox = Outbox::open(&config.state_dir, config.outbox_max_bytes)?;
+    let ts_ms = lekiwi_protocol::now_ms();
+    let lane = if *critical {
+        Lane::Critical
+    } else {
+        Lane::Event
+    };
+    let seq = outbox.push(lane, ts_ms, |seq| AgentMessage::Event {
+        seq,
+        ts_ms,
+        kind: kind.clone(),
+        severity,
+        message: message.clone(),
+        data,
+    })?;
+    println!("{seq}");
+    Ok(())
 }
 
 fn init_logging(format: &str) {

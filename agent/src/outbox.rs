@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use lekiwi_protocol::{AgentMessage, encode};
-use rusqlite::{Connection, OptionalExtension, TransactionBehavior, params};
+use rusqlite::{Connection, OptionalExtension, Transaction, TransactionBehavior, params};
 
 /// Outbox errors.
 #[derive(Debug, thiserror::Error)]
@@ -27,7 +27,7 @@ pub enum Error {
     Sqlite {
         /// The database file.
         path: PathBuf,
-        /// The cause.
+        /// What SQLite reported.
         source: rusqlite::Error,
     },
 }
@@ -62,9 +62,9 @@ impl Lane {
 /// One queued message.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Entry {
-    /// Its sequence number.
+    /// Its sequence number, also inside `frame`; the gateway acknowledges it.
     pub seq: u64,
-    /// Its lane.
+    /// Its lane, which decides when it is sent and whether it may be dropped.
     pub lane: Lane,
     /// The encoded frame, ready to send.
     pub frame: String,
@@ -82,9 +82,9 @@ pub struct Dropped {
 /// Queue depth.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Depth {
-    /// Messages queued.
+    /// Messages not yet acknowledged.
     pub messages: u64,
-    /// Bytes queued.
+    /// Their encoded size, which the bound limits.
     pub bytes: u64,
 }
 
@@ -142,6 +142,25 @@ impl Outbox {
         }
     }
 
+    /// Runs `work` in one immediate (write-locking) transaction and commits it; an error rolls
+    /// everything back.
+    fn write<T>(
+        &mut self,
+        work: impl FnOnce(&Transaction<'_>) -> rusqlite::Result<T>,
+    ) -> Result<T> {
+        let err = |source| Error::Sqlite {
+            path: self.path.clone(),
+            source,
+        };
+        let tx = self
+            .conn
+            .transaction_with_behavior(TransactionBehavior::Immediate)
+            .map_err(err)?;
+        let out = work(&tx).map_err(err)?;
+        tx.commit().map_err(err)?;
+        Ok(out)
+    }
+
     /// Appends a message built by `build` from its newly allocated sequence number, durably
     /// (fsync'd) before returning; then enforces the bound. Returns the sequence number.
     pub fn push(
@@ -150,34 +169,18 @@ impl Outbox {
         ts_ms: i64,
         build: impl FnOnce(u64) -> AgentMessage,
     ) -> Result<u64> {
-        let path = self.path.clone();
-        let err = move |source| Error::Sqlite {
-            path: path.clone(),
-            source,
-        };
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)
-            .map_err(&err)?;
-        let seq: i64 = tx
-            .query_row("SELECT value FROM meta WHERE key = 'next_seq'", [], |r| {
-                r.get(0)
-            })
-            .map_err(&err)?;
-        let frame = encode(&build(seq as u64));
-        tx.execute(
-            "INSERT INTO outbox (seq, lane, frame, bytes, created_ms) VALUES (?1, ?2, ?3, ?4, ?5)",
-            params![seq, lane as i64, frame, frame.len() as i64, ts_ms],
-        )
-        .map_err(&err)?;
-        tx.execute(
-            "UPDATE meta SET value = ?1 WHERE key = 'next_seq'",
-            params![seq + 1],
-        )
-        .map_err(&err)?;
-        enforce_bound(&tx, self.max_bytes).map_err(&err)?;
-        tx.commit().map_err(&err)?;
-        Ok(seq as u64)
+        let max_bytes = self.max_bytes;
+        self.write(|tx| {
+            let seq = read_meta(tx, "next_seq")?;
+            let frame = encode(&build(seq as u64));
+            tx.execute(
+                "INSERT INTO outbox (seq, lane, frame, bytes, created_ms) VALUES (?1, ?2, ?3, ?4, ?5)",
+                params![seq, lane as i64, frame, frame.len() as i64, ts_ms],
+            )?;
+            set_next_seq(tx, seq + 1)?;
+            enforce_bound(tx, max_bytes)?;
+            Ok(seq as u64)
+        })
     }
 
     /// Up to `limit` messages of `lane` with a sequence number above `after`, in order.
@@ -224,30 +227,18 @@ impl Outbox {
         if seqs.is_empty() {
             return Ok(());
         }
-        let path = self.path.clone();
-        let err = move |source| Error::Sqlite {
-            path: path.clone(),
-            source,
-        };
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)
-            .map_err(&err)?;
-        {
-            let mut del = tx
-                .prepare_cached("DELETE FROM outbox WHERE seq = ?1")
-                .map_err(&err)?;
+        self.write(|tx| {
+            let mut del = tx.prepare_cached("DELETE FROM outbox WHERE seq = ?1")?;
             for seq in seqs {
-                del.execute(params![*seq as i64]).map_err(&err)?;
+                del.execute(params![*seq as i64])?;
             }
-        }
-        let max = seqs.iter().copied().max().unwrap_or_default() as i64;
-        tx.execute(
-            "UPDATE meta SET value = max(value, ?1) WHERE key = 'last_acked_seq'",
-            params![max],
-        )
-        .map_err(&err)?;
-        tx.commit().map_err(&err)?;
+            let max = seqs.iter().copied().max().unwrap_or_default() as i64;
+            tx.execute(
+                "UPDATE meta SET value = max(value, ?1) WHERE key = 'last_acked_seq'",
+                params![max],
+            )?;
+            Ok(())
+        })?;
         // Give freed pages back a little at a time, so the file shrinks after a backlog.
         let _ = self.conn.execute_batch("PRAGMA incremental_vacuum(64);");
         Ok(())
@@ -269,55 +260,26 @@ impl Outbox {
     /// renumbered consecutively from `stored + 1`, in order, and numbering continues after them.
     /// Returns how many messages were renumbered, or `None` when nothing had to change.
     pub fn renumber_after(&mut self, stored: u64) -> Result<Option<u64>> {
-        let path = self.path.clone();
-        let err = move |source| Error::Sqlite {
-            path: path.clone(),
-            source,
-        };
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)
-            .map_err(&err)?;
-        let next: i64 = tx
-            .query_row("SELECT value FROM meta WHERE key = 'next_seq'", [], |r| {
-                r.get(0)
-            })
-            .map_err(&err)?;
-        if (stored as i64) < next {
-            return Ok(None);
-        }
-        let rows: Vec<(i64, String)> = {
-            let mut stmt = tx
-                .prepare("SELECT seq, frame FROM outbox ORDER BY seq")
-                .map_err(&err)?;
-            stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
-                .map_err(&err)?
-                .collect::<Result<_, _>>()
-                .map_err(&err)?
-        };
-        let mut seq = stored as i64 + 1;
-        for (old, frame) in &rows {
-            let frame = match serde_json::from_str::<serde_json::Value>(frame) {
-                Ok(mut v) => {
-                    v["seq"] = serde_json::Value::from(seq);
-                    v.to_string()
-                }
-                Err(_) => frame.clone(),
-            };
-            tx.execute(
-                "UPDATE outbox SET seq = ?1, frame = ?2, bytes = ?3 WHERE seq = ?4",
-                params![seq, frame, frame.len() as i64, old],
-            )
-            .map_err(&err)?;
-            seq += 1;
-        }
-        tx.execute(
-            "UPDATE meta SET value = ?1 WHERE key = 'next_seq'",
-            params![seq],
-        )
-        .map_err(&err)?;
-        tx.commit().map_err(&err)?;
-        Ok(Some(rows.len() as u64))
+        self.write(|tx| {
+            if (stored as i64) < read_meta(tx, "next_seq")? {
+                return Ok(None);
+            }
+            let rows: Vec<(i64, String)> = tx
+                .prepare("SELECT seq, frame FROM outbox ORDER BY seq")?
+                .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))?
+                .collect::<Result<_, _>>()?;
+            let mut seq = stored as i64 + 1;
+            for (old, frame) in &rows {
+                let frame = with_seq(frame, seq);
+                tx.execute(
+                    "UPDATE outbox SET seq = ?1, frame = ?2, bytes = ?3 WHERE seq = ?4",
+                    params![seq, frame, frame.len() as i64, old],
+                )?;
+                seq += 1;
+            }
+            set_next_seq(tx, seq)?;
+            Ok(Some(rows.len() as u64))
+        })
     }
 
     /// Messages and bytes queued.
@@ -338,32 +300,17 @@ impl Outbox {
 
     /// Drops counted since the last call, and resets the counters.
     pub fn take_dropped(&mut self) -> Result<Dropped> {
-        let path = self.path.clone();
-        let err = move |source| Error::Sqlite {
-            path: path.clone(),
-            source,
-        };
-        let tx = self
-            .conn
-            .transaction_with_behavior(TransactionBehavior::Immediate)
-            .map_err(&err)?;
-        let get = |key: &str| -> rusqlite::Result<u64> {
-            tx.query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| {
-                r.get::<_, i64>(0)
-            })
-            .map(|v| v as u64)
-        };
-        let dropped = Dropped {
-            telemetry: get("dropped_telemetry").map_err(&err)?,
-            events: get("dropped_events").map_err(&err)?,
-        };
-        tx.execute(
-            "UPDATE meta SET value = 0 WHERE key IN ('dropped_telemetry', 'dropped_events')",
-            [],
-        )
-        .map_err(&err)?;
-        tx.commit().map_err(&err)?;
-        Ok(dropped)
+        self.write(|tx| {
+            let dropped = Dropped {
+                telemetry: read_meta(tx, "dropped_telemetry")? as u64,
+                events: read_meta(tx, "dropped_events")? as u64,
+            };
+            tx.execute(
+                "UPDATE meta SET value = 0 WHERE key IN ('dropped_telemetry', 'dropped_events')",
+                [],
+            )?;
+            Ok(dropped)
+        })
     }
 
     fn meta(&self, key: &str) -> Result<u64> {
@@ -377,8 +324,31 @@ impl Outbox {
     }
 }
 
+/// A counter of the `meta` table.
+fn read_meta(tx: &Transaction<'_>, key: &str) -> rusqlite::Result<i64> {
+    tx.query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get(0))
+}
+
+fn set_next_seq(tx: &Transaction<'_>, seq: i64) -> rusqlite::Result<usize> {
+    tx.execute(
+        "UPDATE meta SET value = ?1 WHERE key = 'next_seq'",
+        params![seq],
+    )
+}
+
+/// `frame` with its `seq` field set to `seq` (a frame that is not JSON stays as it is).
+fn with_seq(frame: &str, seq: i64) -> String {
+    match serde_json::from_str::<serde_json::Value>(frame) {
+        Ok(mut v) => {
+            v["seq"] = serde_json::Value::from(seq);
+            v.to_string()
+        }
+        Err(_) => frame.to_owned(),
+    }
+}
+
 /// Deletes the oldest telemetry, then the oldest ordinary events, until the queue fits.
-fn enforce_bound(tx: &rusqlite::Transaction<'_>, max_bytes: u64) -> rusqlite::Result<()> {
+fn enforce_bound(tx: &Transaction<'_>, max_bytes: u64) -> rusqlite::Result<()> {
     let total: i64 = tx.query_row("SELECT coalesce(sum(bytes), 0) FROM outbox", [], |r| {
         r.get(0)
     })?;

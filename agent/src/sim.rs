@@ -73,7 +73,7 @@ pub struct Args {
 type Tokens = Arc<Mutex<std::collections::BTreeMap<String, String>>>;
 
 fn save_tokens(path: &std::path::Path, tokens: &Tokens) -> anyhow::Result<()> {
-    let json = serde_json::to_string(&*tokens.lock().unwrap_or_else(|p| p.into_inner()))?;
+    let json = serde_json::to_string(&*lock(tokens))?;
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, json)?;
     std::fs::rename(tmp, path)?;
@@ -95,7 +95,7 @@ struct Stats {
 /// Summary of a run.
 #[derive(Debug, serde::Serialize)]
 pub struct Summary {
-    /// Robots simulated.
+    /// Robots simulated (`--robots`).
     pub robots: usize,
     /// Robots connected at the end.
     pub connected: u64,
@@ -103,17 +103,17 @@ pub struct Summary {
     pub all_connected_seconds: Option<f64>,
     /// Heartbeats acknowledged.
     pub heartbeats: u64,
-    /// Round-trip percentiles, milliseconds.
+    /// Median heartbeat round trip, milliseconds.
     pub rtt_p50_ms: f64,
-    /// 99th percentile.
+    /// 99th percentile of the heartbeat round trip, milliseconds.
     pub rtt_p99_ms: f64,
-    /// Maximum.
+    /// Slowest heartbeat round trip, milliseconds.
     pub rtt_max_ms: f64,
     /// Failed connection attempts.
     pub connect_errors: u64,
     /// Sessions re-established after a drop.
     pub reconnects: u64,
-    /// Error frames received.
+    /// Error frames the gateway sent (rate limits, refusals, replacements).
     pub error_frames: u64,
 }
 
@@ -128,109 +128,184 @@ fn percentile(sorted: &[u32], p: f64) -> f64 {
 /// Runs the simulation and returns its summary.
 pub async fn run(args: Args) -> anyhow::Result<Summary> {
     let _ = rlimit::increase_nofile_limit(u64::MAX);
-    let stats = Arc::new(Stats::default());
-    let tokens: Tokens = Arc::new(Mutex::new(match &args.token_file {
-        Some(path) if path.exists() => serde_json::from_str(&std::fs::read_to_string(path)?)?,
-        _ => Default::default(),
-    }));
-    let start = Instant::now();
-    let release = Release {
-        version: args.release_version.clone(),
-        digest: format!("sha256:{}", "0".repeat(64)),
+    let fleet = Fleet {
+        stats: Arc::new(Stats::default()),
+        tokens: load_tokens(&args)?,
+        start: Instant::now(),
+        release: Release {
+            version: args.release_version.clone(),
+            digest: format!("sha256:{}", "0".repeat(64)),
+        },
+        args,
     };
-    let mut tasks = Vec::with_capacity(args.robots);
-    let gap = Duration::from_secs_f64(1.0 / args.connect_rate.max(1.0));
-    for i in 0..args.robots {
-        let name = format!("{}-{:05}", args.prefix, i + 1);
-        tasks.push(tokio::spawn(robot(
-            args.clone(),
-            name,
-            release.clone(),
-            stats.clone(),
-            tokens.clone(),
-            start,
-        )));
-        tokio::time::sleep(gap).await;
-    }
-    let deadline = args.duration.map(|d| start + Duration::from_secs_f64(d));
-    let mut last_report = Instant::now();
-    loop {
-        tokio::time::sleep(Duration::from_millis(200)).await;
-        if last_report.elapsed().as_secs_f64() >= args.report_every {
-            last_report = Instant::now();
-            let mut rtts =
-                std::mem::take(&mut *stats.rtts_us.lock().unwrap_or_else(|p| p.into_inner()));
-            rtts.sort_unstable();
-            println!(
-                "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}",
-                start.elapsed().as_secs_f64(),
-                stats.connected.load(Ordering::Relaxed),
-                args.robots,
-                stats.heartbeats.load(Ordering::Relaxed),
-                percentile(&rtts, 0.5),
-                percentile(&rtts, 0.99),
-                percentile(&rtts, 1.0),
-                stats.connect_errors.load(Ordering::Relaxed),
-                stats.reconnects.load(Ordering::Relaxed),
-                stats.error_frames.load(Ordering::Relaxed),
-            );
-            // Keep them for the final summary too.
-            stats
-                .rtts_us
-                .lock()
-                .unwrap_or_else(|p| p.into_inner())
-                .extend(rtts);
-        }
-        if deadline.is_some_and(|d| Instant::now() >= d)
-            || (args.exit_when_connected
-                && stats.ever_connected.load(Ordering::Relaxed) as usize >= args.robots)
-        {
-            break;
-        }
-    }
+    let tasks = fleet.spawn_robots().await;
+    fleet.wait_until_done().await;
     for t in &tasks {
         t.abort();
     }
-    if let Some(path) = &args.token_file {
-        save_tokens(path, &tokens)?;
+    if let Some(path) = &fleet.args.token_file {
+        save_tokens(path, &fleet.tokens)?;
     }
-    let mut rtts = std::mem::take(&mut *stats.rtts_us.lock().unwrap_or_else(|p| p.into_inner()));
-    rtts.sort_unstable();
-    let summary = Summary {
-        robots: args.robots,
-        connected: stats.connected.load(Ordering::Relaxed),
-        all_connected_seconds: stats
-            .all_connected_after
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .map(|d| d.as_secs_f64()),
-        heartbeats: stats.heartbeats.load(Ordering::Relaxed),
-        rtt_p50_ms: percentile(&rtts, 0.5),
-        rtt_p99_ms: percentile(&rtts, 0.99),
-        rtt_max_ms: percentile(&rtts, 1.0),
-        connect_errors: stats.connect_errors.load(Ordering::Relaxed),
-        reconnects: stats.reconnects.load(Ordering::Relaxed),
-        error_frames: stats.error_frames.load(Ordering::Relaxed),
-    };
-    if let Some(path) = &args.json {
+    let summary = fleet.summary();
+    if let Some(path) = &fleet.args.json {
         std::fs::write(path, serde_json::to_string_pretty(&summary)?)?;
     }
     Ok(summary)
 }
 
-async fn robot(
+/// The robots' tokens from `--token-file`, if it exists.
+fn load_tokens(args: &Args) -> anyhow::Result<Tokens> {
+    Ok(Arc::new(Mutex::new(match &args.token_file {
+        Some(path) if path.exists() => serde_json::from_str(&std::fs::read_to_string(path)?)?,
+        _ => Default::default(),
+    })))
+}
+
+/// What every simulated robot shares: the arguments, the counters, the token store, the start
+/// time and the release they all report.
+#[derive(Clone)]
+struct Fleet {
     args: Args,
-    name: String,
-    release: Release,
     stats: Arc<Stats>,
     tokens: Tokens,
     start: Instant,
-) {
-    let own = tokens
-        .lock()
-        .unwrap_or_else(|p| p.into_inner())
-        .get(&name)
-        .cloned();
+    release: Release,
+}
+
+impl Fleet {
+    /// Starts one task per robot, at `--connect-rate` per second.
+    async fn spawn_robots(&self) -> Vec<tokio::task::JoinHandle<()>> {
+        let mut tasks = Vec::with_capacity(self.args.robots);
+        let gap = Duration::from_secs_f64(1.0 / self.args.connect_rate.max(1.0));
+        for i in 0..self.args.robots {
+            let name = format!("{}-{:05}", self.args.prefix, i + 1);
+            tasks.push(tokio::spawn(robot(self.clone(), name)));
+            tokio::time::sleep(gap).await;
+        }
+        tasks
+    }
+
+    /// Prints progress every `--report-every` seconds until `--duration` ends or, with
+    /// `--exit-when-connected`, every robot has connected once.
+    async fn wait_until_done(&self) {
+        let deadline = self
+            .args
+            .duration
+            .map(|d| self.start + Duration::from_secs_f64(d));
+        let mut last_report = Instant::now();
+        loop {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            if last_report.elapsed().as_secs_f64() >= self.args.report_every {
+                last_report = Instant::now();
+                self.report();
+            }
+            if deadline.is_some_and(|d| Instant::now() >= d)
+                || (self.args.exit_when_connected
+                    && self.stats.ever_connected.load(Ordering::Relaxed) as usize
+                        >= self.args.robots)
+            {
+                break;
+            }
+        }
+    }
+
+    /// One progress line on stdout.
+    fn report(&self) {
+        let stats = &self.stats;
+        let rtts = take_sorted_rtts(stats);
+        println!(
+            "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}",
+            self.start.elapsed().as_secs_f64(),
+            stats.connected.load(Ordering::Relaxed),
+            self.args.robots,
+            stats.heartbeats.load(Ordering::Relaxed),
+            percentile(&rtts, 0.5),
+            percentile(&rtts, 0.99),
+            percentile(&rtts, 1.0),
+            stats.connect_errors.load(Ordering::Relaxed),
+            stats.reconnects.load(Ordering::Relaxed),
+            stats.error_frames.load(Ordering::Relaxed),
+        );
+        // Keep them for the final summary too.
+        lock(&stats.rtts_us).extend(rtts);
+    }
+
+    fn summary(&self) -> Summary {
+        let stats = &self.stats;
+        let rtts = take_sorted_rtts(stats);
+        Summary {
+            robots: self.args.robots,
+            connected: stats.connected.load(Ordering::Relaxed),
+            all_connected_seconds: lock(&stats.all_connected_after).map(|d| d.as_secs_f64()),
+            heartbeats: stats.heartbeats.load(Ordering::Relaxed),
+            rtt_p50_ms: percentile(&rtts, 0.5),
+            rtt_p99_ms: percentile(&rtts, 0.99),
+            rtt_max_ms: percentile(&rtts, 1.0),
+            connect_errors: stats.connect_errors.load(Ordering::Relaxed),
+            reconnects: stats.reconnects.load(Ordering::Relaxed),
+            error_frames: stats.error_frames.load(Ordering::Relaxed),
+        }
+    }
+
+    /// Counts a session: the first of a robot (noting when the whole fleet had connected
+    /// once), or a reconnect.
+    fn count_session(&self, first: bool) {
+        let stats = &self.stats;
+        if first {
+            let n = stats.ever_connected.fetch_add(1, Ordering::Relaxed) + 1;
+            if n as usize == self.args.robots {
+                *lock(&stats.all_connected_after) = Some(self.start.elapsed());
+            }
+        } else {
+            stats.reconnects.fetch_add(1, Ordering::Relaxed);
+        }
+        stats.connected.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+/// Locks a mutex of the counters; a panicked robot task does not poison them for the rest.
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// The round trips measured since the last call, sorted.
+fn take_sorted_rtts(stats: &Stats) -> Vec<u32> {
+    let mut rtts = std::mem::take(&mut *lock(&stats.rtts_us));
+    rtts.sort_unstable();
+    rtts
+}
+
+/// The `hello` of a simulated robot: a Raspberry Pi running the fleet's release.
+fn hello(name: &str, release: &Release) -> AgentMessage {
+    AgentMessage::Hello {
+        protocol_version: PROTOCOL_VERSION,
+        agent_version: concat!("sim-", env!("CARGO_PKG_VERSION")).to_owned(),
+        system: SystemFacts {
+            hostname: Some(name.to_owned()),
+            os: Some("Debian GNU/Linux 12 (bookworm)".into()),
+            arch: Some("aarch64".into()),
+            cpus: Some(4),
+            memory_bytes: Some(8 << 30),
+            kernel: None,
+        },
+        current_release: Some(release.clone()),
+        last_acked_seq: None,
+        health: Some(Health {
+            healthy: true,
+            message: None,
+        }),
+        teleoperation: Some(Teleoperation {
+            active: false,
+            score: Some(0.0),
+        }),
+    }
+}
+
+/// One simulated robot: connects (enrolling the first time), heartbeats until the session
+/// ends, and reconnects with backoff, forever.
+async fn robot(fleet: Fleet, name: String) {
+    let args = &fleet.args;
+    let own = lock(&fleet.tokens).get(&name).cloned();
     let mut creds = Credentials {
         token: own.unwrap_or_else(|| args.enrollment_token.clone()),
         robot: format!("{}/{}", args.namespace, name),
@@ -238,69 +313,33 @@ async fn robot(
     let mut first = true;
     let mut backoff =
         crate::backoff::Backoff::new(Duration::from_millis(500), Duration::from_secs(30));
+    let timeout = Duration::from_secs_f64(args.connect_timeout);
     loop {
-        let hello = AgentMessage::Hello {
-            protocol_version: PROTOCOL_VERSION,
-            agent_version: concat!("sim-", env!("CARGO_PKG_VERSION")).to_owned(),
-            system: SystemFacts {
-                hostname: Some(name.clone()),
-                os: Some("Debian GNU/Linux 12 (bookworm)".into()),
-                arch: Some("aarch64".into()),
-                cpus: Some(4),
-                memory_bytes: Some(8 << 30),
-                kernel: None,
-            },
-            current_release: Some(release.clone()),
-            last_acked_seq: None,
-            health: Some(Health {
-                healthy: true,
-                message: None,
-            }),
-            teleoperation: Some(Teleoperation {
-                active: false,
-                score: Some(0.0),
-            }),
-        };
         match connect(
             &args.gateway,
             &creds,
-            &hello,
-            Duration::from_secs_f64(args.connect_timeout),
+            &hello(&name, &fleet.release),
+            timeout,
         )
         .await
         {
             Ok((ws, welcome)) => {
                 backoff.reset();
                 if let Some(token) = welcome.robot_token.clone() {
-                    tokens
-                        .lock()
-                        .unwrap_or_else(|p| p.into_inner())
-                        .insert(name.clone(), token.clone());
+                    lock(&fleet.tokens).insert(name.clone(), token.clone());
                     creds.token = token;
                 }
                 creds.robot = welcome.robot.clone();
-                if first {
-                    first = false;
-                    let n = stats.ever_connected.fetch_add(1, Ordering::Relaxed) + 1;
-                    if n as usize == args.robots {
-                        *stats
-                            .all_connected_after
-                            .lock()
-                            .unwrap_or_else(|p| p.into_inner()) = Some(start.elapsed());
-                    }
-                } else {
-                    stats.reconnects.fetch_add(1, Ordering::Relaxed);
-                }
-                stats.connected.fetch_add(1, Ordering::Relaxed);
+                fleet.count_session(std::mem::take(&mut first));
                 let interval = args
                     .heartbeat_interval
                     .map(Duration::from_secs_f64)
                     .unwrap_or(welcome.heartbeat_interval);
-                heartbeats(ws, interval, &stats).await;
-                stats.connected.fetch_sub(1, Ordering::Relaxed);
+                heartbeats(ws, interval, &fleet.stats).await;
+                fleet.stats.connected.fetch_sub(1, Ordering::Relaxed);
             }
             Err(e) => {
-                stats.connect_errors.fetch_add(1, Ordering::Relaxed);
+                fleet.stats.connect_errors.fetch_add(1, Ordering::Relaxed);
                 if matches!(e, ConnectError::Unauthorized(_)) {
                     eprintln!("{name}: {e}");
                     // A stale token (rotated elsewhere): enroll again.
@@ -350,7 +389,7 @@ async fn heartbeats(ws: crate::connection::Socket, interval: Duration, stats: &S
                             let rtt = at.elapsed();
                             last_rtt = Some(rtt.as_secs_f64() * 1000.0);
                             stats.heartbeats.fetch_add(1, Ordering::Relaxed);
-                            stats.rtts_us.lock().unwrap_or_else(|p| p.into_inner()).push(rtt.as_micros().min(u128::from(u32::MAX)) as u32);
+                            lock(&stats.rtts_us).push(rtt.as_micros().min(u128::from(u32::MAX)) as u32);
                         }
                     }
                     Ok(ServerMessage::Error { code, fatal, .. }) => {

@@ -12,17 +12,17 @@ pub enum Error {
     /// A file or directory could not be read or written.
     #[error("state directory: {path}: {source}")]
     Io {
-        /// The path.
+        /// The file or directory (in the state directory) that failed.
         path: PathBuf,
-        /// The cause.
+        /// Why: permissions, a full disk, a missing mount.
         source: std::io::Error,
     },
     /// The credentials file is not what this agent writes.
     #[error("state directory: {path} is corrupt ({source}); delete it to enroll again")]
     Corrupt {
-        /// The path.
+        /// The credentials file.
         path: PathBuf,
-        /// The cause.
+        /// Where its JSON is not what this agent writes.
         source: serde_json::Error,
     },
 }
@@ -30,9 +30,9 @@ pub enum Error {
 /// The robot's own credentials, issued by the gateway at enrollment.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Credentials {
-    /// `namespace/name`.
+    /// `namespace/name`, as the gateway named the robot in `welcome`.
     pub robot: String,
-    /// The per-robot token.
+    /// The per-robot token, sent instead of the enrollment token from now on.
     pub token: String,
 }
 

@@ -1,0 +1,159 @@
+//! The configuration's precedence, its errors, and the flag/env/README tables kept in step.
+
+use clap::Parser;
+
+use super::*;
+
+#[test]
+fn flags_override_file_and_file_overrides_defaults() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("agent.yaml");
+    std::fs::write(
+        &path,
+        "gateway: wss://file/agent\nrobotName: from-file\ntelemetryCpuIntervalS: 7\nteleopCommandPorts: [6000, 6001]\n",
+    )
+    .unwrap();
+    let flags = Flags::parse_from([
+        "lekiwi-agent",
+        "--config",
+        path.to_str().unwrap(),
+        "--robot-name",
+        "kiwi-9",
+        "--teleop-video-ports",
+        "7000,7001",
+        "--mdns",
+        "false",
+    ]);
+    let cfg = Config::load(&flags, "host").unwrap();
+    assert_eq!(cfg.gateway, "wss://file/agent");
+    assert_eq!(cfg.robot_name, "kiwi-9");
+    assert_eq!(cfg.state_dir, PathBuf::from("/var/lib/lekiwi"));
+    assert_eq!(cfg.telemetry_cpu_interval_s, 7);
+    assert_eq!(cfg.teleop_command_ports, vec![6000, 6001]);
+    assert_eq!(cfg.teleop_video_ports, vec![7000, 7001]);
+    assert!(!cfg.mdns);
+    assert_eq!(cfg.telemetry_memory_interval_s, 10);
+}
+
+#[test]
+fn bad_file_and_missing_gateway_are_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("agent.yaml");
+    std::fs::write(&path, "gatewy: typo\n").unwrap();
+    let flags = Flags::parse_from(["lekiwi-agent", "--config", path.to_str().unwrap()]);
+    let err = Config::load(&flags, "h").unwrap_err().to_string();
+    assert!(err.contains("unknown field `gatewy`"), "{err}");
+
+    std::fs::write(&path, "gateway: ws://x\ntelemetryCpuIntervalS: fast\n").unwrap();
+    let err = Config::load(&flags, "h").unwrap_err().to_string();
+    assert!(err.contains("invalid type"), "{err}");
+
+    std::fs::write(&path, "gateway: ws://x\nstatusListen: nowhere\n").unwrap();
+    let err = Config::load(&flags, "h").unwrap_err().to_string();
+    assert!(err.contains("statusListen"), "{err}");
+
+    let flags = Flags::parse_from(["lekiwi-agent", "--config", "/nonexistent/agent.yaml"]);
+    let err = Config::load(&flags, "h").unwrap_err().to_string();
+    assert!(err.contains("LEKIWI_GATEWAY_URL"), "{err}");
+}
+
+/// Every file key (camelCase) with the flag of the same name in kebab case; panics when a
+/// key has no flag.
+fn keys_and_flags() -> Vec<(String, clap::Arg)> {
+    use clap::CommandFactory;
+    let cmd = Flags::command();
+    let serde_json::Value::Object(keys) = serde_json::to_value(Config::default()).unwrap() else {
+        unreachable!()
+    };
+    // The token itself is never printed, so it is not serialized.
+    keys.keys()
+        .cloned()
+        .chain(["enrollmentToken".to_owned()])
+        .map(|key| {
+            let kebab: String = key
+                .chars()
+                .flat_map(|c| {
+                    if c.is_ascii_uppercase() {
+                        vec!['-', c.to_ascii_lowercase()]
+                    } else {
+                        vec![c]
+                    }
+                })
+                .collect();
+            let arg = cmd
+                .get_arguments()
+                .find(|a| a.get_long() == Some(kebab.as_str()))
+                .unwrap_or_else(|| panic!("no flag --{kebab} for key {key}"));
+            (key, arg.clone())
+        })
+        .collect()
+}
+
+/// Every file key has a flag of the same name in kebab case and an env var; and back.
+#[test]
+fn every_key_is_a_flag_and_an_env_var() {
+    use clap::CommandFactory;
+    let keys = keys_and_flags();
+    for (key, arg) in &keys {
+        let kebab = arg.get_long().unwrap();
+        let env = arg
+            .get_env()
+            .unwrap_or_else(|| panic!("--{kebab} has no env var"));
+        let want = if key == "gateway" {
+            "LEKIWI_GATEWAY_URL".to_owned()
+        } else {
+            format!("LEKIWI_{}", kebab.replace('-', "_").to_ascii_uppercase())
+        };
+        assert_eq!(env.to_str().unwrap(), want, "env var of --{kebab}");
+    }
+    let flag_count = Flags::command()
+        .get_arguments()
+        .filter(|a| a.get_long().is_some())
+        .count();
+    // config and print-config (and clap's help/version, which have no long here) aside.
+    assert_eq!(flag_count - 2, keys.len(), "a flag without a file key");
+}
+
+/// The README's configuration table has one row per key, with its flag, environment
+/// variable, default and help text as the agent has them.
+#[test]
+fn the_readme_table_matches_the_flags() {
+    let readme =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
+    let rows: Vec<Vec<&str>> = readme
+        .lines()
+        .filter(|l| l.starts_with("| `") && l.contains("` | `--"))
+        .map(|l| l.trim_matches('|').split(" | ").map(str::trim).collect())
+        .collect();
+    let defaults = serde_json::to_value(Config::default()).unwrap();
+    let keys = keys_and_flags();
+    for (key, arg) in &keys {
+        let long = arg.get_long().unwrap();
+        let row = rows
+            .iter()
+            .find(|r| r[0] == format!("`{key}`"))
+            .unwrap_or_else(|| panic!("README: no row for `{key}`"));
+        assert_eq!(row[1], format!("`--{long}`"), "{key}");
+        let env = arg.get_env().unwrap().to_str().unwrap();
+        assert_eq!(row[2], format!("`{env}`"), "{key}");
+        let default = match (key.as_str(), &defaults[key]) {
+            ("gateway", _) => "(required)".to_owned(),
+            ("robotName", _) => "`host name`".to_owned(),
+            (_, serde_json::Value::Null) => "—".to_owned(),
+            (_, serde_json::Value::String(s)) if s.is_empty() => "`(none)`".to_owned(),
+            (_, serde_json::Value::String(s)) => format!("`{s}`"),
+            (_, serde_json::Value::Array(a)) => format!(
+                "`{}`",
+                a.iter()
+                    .map(|v| v.to_string())
+                    .collect::<Vec<_>>()
+                    .join(",")
+            ),
+            (_, v) => format!("`{v}`"),
+        };
+        assert_eq!(row[3], default, "default of {key}");
+        let help = arg.get_help().unwrap().to_string();
+        assert_eq!(row[4], help.trim_end_matches('.'), "help of {key}");
+    }
+    assert_eq!(keys.len(), rows.len(), "README rows without a flag");
+}

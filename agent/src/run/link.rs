@@ -1,0 +1,159 @@
+//! The connection's life: a connection attempt with the right credentials, the session that
+//! follows, and the wait before the next attempt (backoff with full jitter, longer when retrying
+//! soon cannot help).
+
+use std::future::Future;
+use std::pin::Pin;
+use std::time::Duration;
+
+use futures::SinkExt;
+use lekiwi_protocol::{AgentMessage, ErrorCode};
+use tokio::time::Instant;
+use tokio_tungstenite::tungstenite::Message;
+use tracing::{error, info, warn};
+
+use super::driver::{Ending, Loop};
+use super::session::Session;
+use super::{Agent, Error};
+use crate::backoff::Backoff;
+use crate::config::Config;
+use crate::connection::{ConnectError, Credentials, Socket, Transport, Welcome};
+
+/// A connection attempt: the open connection and the gateway's `welcome`, or why not.
+pub(super) type Connecting<S> = Pin<Box<dyn Future<Output = Result<(S, Welcome), ConnectError>>>>;
+
+/// Starts a connection attempt with these credentials and this `hello`.
+pub(super) type Connector<S> = Box<dyn FnMut(Credentials, AgentMessage) -> Connecting<S>>;
+
+/// Connects over a real WebSocket to the configured gateway.
+pub(super) fn websocket(config: &Config) -> Connector<Socket> {
+    let url = config.gateway.clone();
+    let ca = config.ca_file.clone();
+    let timeout = Duration::from_secs(config.connect_timeout_s);
+    Box::new(move |creds, hello| {
+        let (url, ca) = (url.clone(), ca.clone());
+        Box::pin(async move {
+            crate::connection::connect_with_ca(&url, &creds, &hello, timeout, ca.as_deref()).await
+        })
+    })
+}
+
+impl Agent {
+    /// Starts a connection attempt, with the robot's own token or the enrollment token.
+    pub(super) fn start_connecting<S>(&mut self, lp: &mut Loop<S>) -> Result<(), Error> {
+        let (creds, enrolling) = self.credentials()?;
+        let hello = self.hello()?;
+        info!(
+            gateway = %self.config.gateway,
+            robot = %creds.robot,
+            enrolling,
+            attempt = lp.backoff.attempts(),
+            "connecting"
+        );
+        lp.connecting = Some(((lp.connect)(creds, hello), enrolling));
+        Ok(())
+    }
+
+    /// A connection attempt ended: the session starts, or the next attempt is scheduled.
+    pub(super) async fn on_connected<S: Transport>(
+        &mut self,
+        lp: &mut Loop<S>,
+        res: Result<(S, Welcome), ConnectError>,
+    ) -> Result<Option<Ending>, Error> {
+        let enrolling = lp.connecting.take().is_some_and(|(_, e)| e);
+        match res {
+            Ok((ws, welcome)) => self.start_session(lp, ws, welcome, enrolling).await,
+            Err(e) => {
+                self.on_connect_failed(lp, &e, enrolling);
+                Ok(None)
+            }
+        }
+    }
+
+    /// The gateway welcomed us: apply the welcome and send the first heartbeat.
+    async fn start_session<S: Transport>(
+        &mut self,
+        lp: &mut Loop<S>,
+        ws: S,
+        welcome: Welcome,
+        enrolling: bool,
+    ) -> Result<Option<Ending>, Error> {
+        info!(
+            robot = %welcome.robot,
+            heartbeat_s = welcome.heartbeat_interval.as_secs(),
+            stored_seq = ?welcome.stored_seq,
+            "connected"
+        );
+        let mut s = Session::new(ws, welcome);
+        self.on_welcome(&s.welcome, enrolling)?;
+        self.status
+            .send_modify(|st| st.robot = s.welcome.robot.clone());
+        let ending = (!self.send_heartbeat(&mut s).await).then(Ending::send_failed);
+        lp.session = Some(s);
+        Ok(ending)
+    }
+
+    /// Schedules the next attempt; a refused robot token switches to the enrollment token
+    /// once, other refusals retry at the slowest rate.
+    fn on_connect_failed<S>(&mut self, lp: &mut Loop<S>, e: &ConnectError, enrolling: bool) {
+        let backoff = &mut lp.backoff;
+        if matches!(e, ConnectError::Unauthorized(_)) {
+            if self.enrollment_token.is_some() && !enrolling {
+                warn!(error = %e, "the robot's token was refused; enrolling again with the enrollment token");
+                self.reenroll = true;
+            } else {
+                error!(error = %e, "credentials refused; retrying at the slowest rate");
+                backoff.saturate();
+                lp.reconnect_at = Instant::now() + backoff.ceiling();
+            }
+        } else if !e.retryable() {
+            error!(error = %e, "cannot connect; retrying at the slowest rate");
+            backoff.saturate();
+        }
+        let delay = backoff.next_delay();
+        warn!(error = %e, retry_in_ms = delay.as_millis() as u64, attempt = backoff.attempts(), "connection failed");
+        // A refused token waits at least the cap (set above).
+        lp.reconnect_at = lp.reconnect_at.max(Instant::now() + delay);
+    }
+
+    /// Ends the session: deletes what was acknowledged, closes the socket, and schedules the
+    /// next attempt.
+    pub(super) async fn end_session<S: Transport>(
+        &mut self,
+        lp: &mut Loop<S>,
+        mut s: Session<S>,
+        ending: Ending,
+    ) -> Result<(), Error> {
+        self.flush_acks()?;
+        lp.next_ack_flush = None;
+        let _ = tokio::time::timeout(Duration::from_secs(1), s.ws.send(Message::Close(None))).await;
+        let lasted = s.started.elapsed();
+        // A session that held for a heartbeat interval was a success (PROTOCOL.md §11).
+        if lasted >= s.welcome.heartbeat_interval {
+            lp.backoff.reset();
+        }
+        let delay = retry_delay(&mut lp.backoff, ending.code);
+        warn!(
+            reason = ending.why,
+            lasted_s = lasted.as_secs(),
+            retry_in_ms = delay.as_millis() as u64,
+            "disconnected"
+        );
+        lp.reconnect_at = Instant::now() + delay;
+        Ok(())
+    }
+}
+
+/// How long to wait before reconnecting after a session the gateway ended with `code`.
+fn retry_delay(backoff: &mut Backoff, code: Option<ErrorCode>) -> Duration {
+    match code {
+        // Another replica takes over: come back soon, spread over 5 s.
+        Some(ErrorCode::ShuttingDown) => Duration::from_millis(rand::random_range(0..=5000)),
+        // Retrying soon cannot help.
+        Some(ErrorCode::Replaced | ErrorCode::UnsupportedVersion) => {
+            backoff.saturate();
+            backoff.ceiling() + backoff.next_delay()
+        }
+        _ => backoff.next_delay(),
+    }
+}
