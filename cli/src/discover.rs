@@ -15,8 +15,8 @@ use clap::Args;
 use futures::StreamExt;
 use kube::Api;
 use kube::api::ListParams;
-use lekiwi_agent::discovery::{Found, StatusSnapshot};
 use lekiwi_crds::Robot;
+use lekiwi_discovery::{Found, StatusSnapshot};
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
@@ -152,7 +152,7 @@ async fn browse(timeout: Duration, give_up: Instant) -> anyhow::Result<Vec<Found
     std::thread::Builder::new()
         .name("mdns-browse".into())
         .spawn(move || {
-            let _ = tx.send(lekiwi_agent::discovery::browse(timeout));
+            let _ = tx.send(lekiwi_discovery::browse(timeout));
         })
         .context("cannot start the mDNS browser thread")?;
     match tokio::time::timeout_at(give_up, rx).await {
@@ -519,7 +519,7 @@ mod tests {
 
     fn found(robot: &str, ip: &str) -> Found {
         Found {
-            instance: lekiwi_agent::discovery::instance_name(robot),
+            instance: lekiwi_discovery::instance_name(robot),
             robot: robot.into(),
             agent_version: "0.1.0".into(),
             release: None,
