@@ -35,9 +35,9 @@ mod blob;
 pub struct GatewayAccess {
     /// `http(s)://host[:port]`, without a path.
     pub base_url: String,
-    /// The robot's token.
+    /// The robot's token, sent as `Authorization: Bearer`.
     pub token: String,
-    /// `namespace/name`.
+    /// The robot, `namespace/name`, sent in the robot header the gateway checks the token for.
     pub robot: String,
     /// PEM file of the CA to trust for `https://` instead of the public web roots.
     pub ca_file: Option<PathBuf>,

@@ -19,11 +19,11 @@ pub use lekiwi_protocol::ProgressPhase as Phase;
 pub struct Progress {
     /// The command reported on.
     pub command_id: String,
-    /// Its phase.
+    /// Where the command stands; a terminal phase ends its reports.
     pub phase: Phase,
     /// Percent done, while downloading and at the end.
     pub percent: Option<f64>,
-    /// Details.
+    /// What happens, for people (e.g. `downloading 3 files, 1200 bytes`).
     pub message: String,
     /// Bytes received so far.
     pub bytes_downloaded: u64,
