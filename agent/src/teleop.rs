@@ -489,6 +489,13 @@ mod tests {
         )
     }
 
+    /// A `/proc/net/tcp{,6}` table: the header and one [`line`] per `(local, remote, state)`.
+    fn table(lines: &[(&str, &str, &str)]) -> String {
+        lines
+            .iter()
+            .fold(HEADER.to_owned(), |t, (l, r, st)| t + &line(l, r, st))
+    }
+
     #[test]
     fn parses_ipv4_lines() {
         let lines: Vec<_> = TCP.lines().map(parse_tcp_line).collect();
@@ -693,11 +700,10 @@ mod tests {
     fn an_established_command_connection_is_teleoperation() {
         let fake = FakeProc::new();
         fake.idle_host();
-        let tcp = format!(
-            "{HEADER}{}{}",
-            line("00000000:15B3", "00000000:0000", "0A"),
-            line("0A00002A:15B3", "0A000017:E1C2", "01"),
-        );
+        let tcp = table(&[
+            ("00000000:15B3", "00000000:0000", "0A"),
+            ("0A00002A:15B3", "0A000017:E1C2", "01"),
+        ]);
         fake.sockets(&tcp, HEADER);
         let v = fake.check(&fake.config());
         assert_eq!(names(&v), [PROCESS, COMMAND_CONNECTION, SERIAL_DEVICE]);
@@ -729,13 +735,12 @@ mod tests {
         fake.idle_host();
         // This host is the client of somebody else's 5555 (and 8554): not the LeKiwi host
         // being driven. Closing states are not connections.
-        let tcp = format!(
-            "{HEADER}{}{}{}{}",
-            line("0A00002A:D2F0", "0A000017:15B3", "01"),
-            line("0A00002A:D2F1", "0A000017:216A", "01"),
-            line("0A00002A:15B3", "0A000017:D2F2", "06"),
-            line("0A00002A:15B3", "0A000017:D2F3", "08"),
-        );
+        let tcp = table(&[
+            ("0A00002A:D2F0", "0A000017:15B3", "01"),
+            ("0A00002A:D2F1", "0A000017:216A", "01"),
+            ("0A00002A:15B3", "0A000017:D2F2", "06"),
+            ("0A00002A:15B3", "0A000017:D2F3", "08"),
+        ]);
         fake.sockets(&tcp, HEADER);
         let v = fake.check(&fake.config());
         assert_eq!(names(&v), [PROCESS, SERIAL_DEVICE]);
@@ -766,11 +771,10 @@ mod tests {
     fn weights_and_threshold() {
         let fake = FakeProc::new();
         fake.idle_host();
-        let tcp = format!(
-            "{HEADER}{}{}",
-            line("0A00002A:15B3", "0A000017:E1C2", "01"),
-            line("0A00002A:216A", "0A000017:E1C3", "01"),
-        );
+        let tcp = table(&[
+            ("0A00002A:15B3", "0A000017:E1C2", "01"),
+            ("0A00002A:216A", "0A000017:E1C3", "01"),
+        ]);
         fake.sockets(&tcp, HEADER);
         let all = fake.check(&fake.config());
         assert_eq!(
