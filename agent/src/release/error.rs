@@ -10,9 +10,9 @@ pub enum Error {
     /// A file or directory of the release store could not be read or written.
     #[error("release store: {path}: {source}")]
     Io {
-        /// The path.
+        /// The file or directory the operation was on.
         path: PathBuf,
-        /// The cause.
+        /// What the operating system said.
         source: std::io::Error,
     },
     /// The gateway's URL, the CA file or a header value is unusable.
@@ -40,7 +40,7 @@ pub enum Error {
     /// A blob of the manifest is not on the gateway (HTTP 404).
     #[error("blob {digest} of {path} unknown to the gateway")]
     UnknownBlob {
-        /// Its digest.
+        /// The digest the manifest names for it (`sha256:<hex>`).
         digest: String,
         /// The first file that has this content.
         path: String,
