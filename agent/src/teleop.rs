@@ -489,6 +489,16 @@ mod tests {
         )
     }
 
+    /// An idle host ([`FakeProc::idle_host`]) whose `/proc/net/tcp` holds `lines` (returned
+    /// too), and an empty `/proc/net/tcp6`.
+    fn idle_host_with(lines: &[(&str, &str, &str)]) -> (FakeProc, String) {
+        let fake = FakeProc::new();
+        fake.idle_host();
+        let tcp = table(lines);
+        fake.sockets(&tcp, HEADER);
+        (fake, tcp)
+    }
+
     /// A `/proc/net/tcp{,6}` table: the header and one [`line`] per `(local, remote, state)`.
     fn table(lines: &[(&str, &str, &str)]) -> String {
         lines
@@ -698,13 +708,10 @@ mod tests {
 
     #[test]
     fn an_established_command_connection_is_teleoperation() {
-        let fake = FakeProc::new();
-        fake.idle_host();
-        let tcp = table(&[
+        let (fake, tcp) = idle_host_with(&[
             ("00000000:15B3", "00000000:0000", "0A"),
             ("0A00002A:15B3", "0A000017:E1C2", "01"),
         ]);
-        fake.sockets(&tcp, HEADER);
         let v = fake.check(&fake.config());
         assert_eq!(names(&v), [PROCESS, COMMAND_CONNECTION, SERIAL_DEVICE]);
         assert_eq!(v.score, 0.9);
@@ -731,17 +738,14 @@ mod tests {
 
     #[test]
     fn only_the_local_port_counts() {
-        let fake = FakeProc::new();
-        fake.idle_host();
         // This host is the client of somebody else's 5555 (and 8554): not the LeKiwi host
         // being driven. Closing states are not connections.
-        let tcp = table(&[
+        let (fake, _) = idle_host_with(&[
             ("0A00002A:D2F0", "0A000017:15B3", "01"),
             ("0A00002A:D2F1", "0A000017:216A", "01"),
             ("0A00002A:15B3", "0A000017:D2F2", "06"),
             ("0A00002A:15B3", "0A000017:D2F3", "08"),
         ]);
-        fake.sockets(&tcp, HEADER);
         let v = fake.check(&fake.config());
         assert_eq!(names(&v), [PROCESS, SERIAL_DEVICE]);
     }
@@ -769,13 +773,10 @@ mod tests {
 
     #[test]
     fn weights_and_threshold() {
-        let fake = FakeProc::new();
-        fake.idle_host();
-        let tcp = table(&[
+        let (fake, _) = idle_host_with(&[
             ("0A00002A:15B3", "0A000017:E1C2", "01"),
             ("0A00002A:216A", "0A000017:E1C3", "01"),
         ]);
-        fake.sockets(&tcp, HEADER);
         let all = fake.check(&fake.config());
         assert_eq!(
             names(&all),
