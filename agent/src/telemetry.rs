@@ -38,202 +38,25 @@
 use std::fmt;
 use std::time::Duration;
 
-use lekiwi_protocol::{Sample, SystemFacts, Vitals};
-use serde::Serialize;
-use sysinfo::{
-    Components, CpuRefreshKind, DiskRefreshKind, Disks, MemoryRefreshKind, Networks, System,
-};
+use lekiwi_protocol::{Sample, Vitals};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
 use crate::config::Config;
 
+mod delta;
+mod probe;
+
+pub use delta::{
+    CompressionStats, DeltaFilter, Metric, MetricStats, NETWORK_DELTA_FLOOR_BYTES_PER_S, Threshold,
+};
+pub use probe::system_facts;
+use probe::{Probe, SystemProbe};
+
 /// Delay from [`Telemetry::new`] to the first collection: long enough for a meaningful first CPU
 /// reading (it needs two counter snapshots), short enough that the fleet sees the robot's state
 /// right after start.
 pub const FIRST_SAMPLE_DELAY: Duration = Duration::from_secs(1);
-
-/// Network rate changes smaller than this many bytes/s are never sent (except in full samples):
-/// an idle link carries a few hundred bytes/s of heartbeats and mDNS whose relative jitter would
-/// otherwise beat any fractional threshold.
-pub const NETWORK_DELTA_FLOOR_BYTES_PER_S: f64 = 1024.0;
-
-/// A telemetry metric; its wire name is [`Metric::as_str`].
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum Metric {
-    /// `cpu_percent`: CPU use, percent of all cores, averaged over the sampling interval.
-    CpuPercent,
-    /// `memory_percent`: memory in use, percent of RAM.
-    MemoryPercent,
-    /// `memory_used_bytes`: memory in use, bytes.
-    MemoryUsedBytes,
-    /// `net_rx_bytes_per_s`: bytes received per second, all interfaces but loopback.
-    NetRxBytesPerS,
-    /// `net_tx_bytes_per_s`: bytes sent per second, all interfaces but loopback.
-    NetTxBytesPerS,
-    /// `temperature_c`: hottest CPU/SoC sensor, degrees Celsius.
-    TemperatureC,
-    /// `disk_percent`: root file system use, percent.
-    DiskPercent,
-}
-
-impl Metric {
-    /// Every metric, in the order samples and stats list them.
-    pub const ALL: [Metric; 7] = [
-        Metric::CpuPercent,
-        Metric::MemoryPercent,
-        Metric::MemoryUsedBytes,
-        Metric::NetRxBytesPerS,
-        Metric::NetTxBytesPerS,
-        Metric::TemperatureC,
-        Metric::DiskPercent,
-    ];
-
-    /// The metric's name on the wire (`Sample::metric`).
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Metric::CpuPercent => "cpu_percent",
-            Metric::MemoryPercent => "memory_percent",
-            Metric::MemoryUsedBytes => "memory_used_bytes",
-            Metric::NetRxBytesPerS => "net_rx_bytes_per_s",
-            Metric::NetTxBytesPerS => "net_tx_bytes_per_s",
-            Metric::TemperatureC => "temperature_c",
-            Metric::DiskPercent => "disk_percent",
-        }
-    }
-
-    /// The value as sent: 0.1 resolution for percent and °C, whole bytes otherwise. Finer
-    /// digits are sensor noise and would only lengthen the frames.
-    fn round(self, value: f64) -> f64 {
-        match self {
-            Metric::CpuPercent
-            | Metric::MemoryPercent
-            | Metric::TemperatureC
-            | Metric::DiskPercent => (value * 10.0).round() / 10.0,
-            Metric::MemoryUsedBytes | Metric::NetRxBytesPerS | Metric::NetTxBytesPerS => {
-                value.round()
-            }
-        }
-    }
-
-    fn index(self) -> usize {
-        self as usize
-    }
-}
-
-impl fmt::Display for Metric {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-/// How far a value must move from the last sent one to be sent again.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Threshold {
-    /// By more than this many units (percentage points, °C).
-    Absolute(f64),
-    /// By more than `fraction` of the last sent value's magnitude, and by more than `floor`
-    /// units (so that values near zero do not count every wobble as a large relative change).
-    Relative {
-        /// Fraction of the last sent value, e.g. 0.25.
-        fraction: f64,
-        /// Smallest change that counts, in the metric's unit.
-        floor: f64,
-    },
-}
-
-impl Threshold {
-    /// Whether moving from `last_sent` to `value` crosses the threshold.
-    pub fn exceeded(self, last_sent: f64, value: f64) -> bool {
-        let delta = (value - last_sent).abs();
-        match self {
-            Threshold::Absolute(limit) => delta > limit,
-            Threshold::Relative { fraction, floor } => {
-                delta > (fraction * last_sent.abs()).max(floor)
-            }
-        }
-    }
-}
-
-/// Delta compression of one metric: remembers the last value sent and decides whether a new
-/// reading is worth sending.
-///
-/// A reading is sent when it is the first, when it differs from the last *sent* value (not the
-/// last reading, so a slow drift is sent once it adds up) by more than the [`Threshold`], or when
-/// `full_interval` has passed since the metric was last sent. The receiver's picture therefore
-/// never deviates from the truth by more than the threshold, and is never older than the full
-/// interval plus one sampling interval.
-#[derive(Clone, Debug)]
-pub struct DeltaFilter {
-    threshold: Threshold,
-    full_interval: Duration,
-    last_sent: Option<(f64, Instant)>,
-}
-
-impl DeltaFilter {
-    /// A filter that has sent nothing yet.
-    pub fn new(threshold: Threshold, full_interval: Duration) -> Self {
-        Self {
-            threshold,
-            full_interval,
-            last_sent: None,
-        }
-    }
-
-    /// Offers a reading taken at `now`; returns whether to send it (and if so, remembers it as
-    /// sent). A value that is not finite is never sent.
-    pub fn offer(&mut self, value: f64, now: Instant) -> bool {
-        if !value.is_finite() {
-            return false;
-        }
-        let send = match self.last_sent {
-            None => true,
-            Some((last, at)) => {
-                self.threshold.exceeded(last, value)
-                    || now.saturating_duration_since(at) >= self.full_interval
-            }
-        };
-        if send {
-            self.last_sent = Some((value, now));
-        }
-        send
-    }
-
-    /// The last value sent, if any.
-    pub fn last_sent(&self) -> Option<f64> {
-        self.last_sent.map(|(value, _)| value)
-    }
-}
-
-/// Samples taken and sent for one metric.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
-pub struct MetricStats {
-    /// Metric name.
-    pub metric: &'static str,
-    /// Readings taken.
-    pub taken: u64,
-    /// Readings sent (passed delta compression or were part of a full sample).
-    pub emitted: u64,
-}
-
-/// How much delta compression saved since the agent started.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize)]
-pub struct CompressionStats {
-    /// Readings taken, all metrics.
-    pub taken: u64,
-    /// Readings sent, all metrics.
-    pub emitted: u64,
-    /// Per metric, in [`Metric::ALL`] order.
-    pub metrics: Vec<MetricStats>,
-}
-
-impl CompressionStats {
-    /// Readings taken per reading sent (e.g. 8.0 means 8× fewer samples on the wire), or `None`
-    /// before anything was sent.
-    pub fn ratio(&self) -> Option<f64> {
-        (self.emitted > 0).then(|| self.taken as f64 / self.emitted as f64)
-    }
-}
 
 /// A group of metrics read together by one refresh, on one interval.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -273,33 +96,6 @@ impl Sampler {
             Sampler::Disk => config.telemetry_disk_interval_s,
         }
     }
-}
-
-/// A reading of the memory sampler.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct MemoryReading {
-    percent: f64,
-    used_bytes: u64,
-}
-
-/// A reading of the network sampler.
-#[derive(Clone, Copy, Debug, PartialEq)]
-struct NetworkReading {
-    rx_bytes_per_s: f64,
-    tx_bytes_per_s: f64,
-}
-
-/// Where readings come from: the machine ([`SystemProbe`]) or, in tests, a synthetic world.
-/// `None` means "no reading" (no sensor, no root file system, a read failed).
-trait Probe: Send + Sync {
-    fn cpu_percent(&mut self) -> Option<f64>;
-    fn memory(&mut self) -> Option<MemoryReading>;
-    /// Rates since the previous call.
-    fn network(&mut self) -> Option<NetworkReading>;
-    fn temperature_c(&mut self) -> Option<f64>;
-    fn disk_percent(&mut self) -> Option<f64>;
-    fn uptime_s(&self) -> Option<u64>;
-    fn load1(&self) -> Option<f64>;
 }
 
 /// One sampler's schedule.
@@ -560,215 +356,13 @@ impl Telemetry {
     }
 }
 
-/// Facts about this computer for `hello`.
-pub fn system_facts() -> SystemFacts {
-    let mut system = System::new();
-    system.refresh_memory_specifics(MemoryRefreshKind::nothing().with_ram());
-    system.refresh_cpu_list(CpuRefreshKind::nothing());
-    let arch = System::cpu_arch();
-    SystemFacts {
-        hostname: System::host_name(),
-        os: System::long_os_version(),
-        kernel: System::kernel_version(),
-        arch: (!arch.is_empty()).then_some(arch),
-        cpus: u32::try_from(system.cpus().len()).ok().filter(|&n| n > 0),
-        memory_bytes: Some(system.total_memory()).filter(|&b| b > 0),
-    }
-}
-
-/// Reads this machine through `sysinfo`, refreshing only what each sampler needs.
-struct SystemProbe {
-    /// CPU usage and memory only; never processes.
-    system: System,
-    networks: Networks,
-    networks_at: std::time::Instant,
-    components: Components,
-    /// Indices into `components` of the sensors that count (see [`pick_sensors`]).
-    sensors: Vec<usize>,
-    disks: Disks,
-    /// Index into `disks` of the root file system.
-    root_disk: Option<usize>,
-}
-
-impl SystemProbe {
-    fn new() -> Self {
-        let mut system = System::new();
-        // CPU use is a difference of counters: take the first snapshot now.
-        system.refresh_cpu_usage();
-        let networks = Networks::new_with_refreshed_list();
-        let components = Components::new_with_refreshed_list();
-        let sensors = pick_sensors(components.list().iter().map(sysinfo::Component::label));
-        let disks =
-            Disks::new_with_refreshed_list_specifics(DiskRefreshKind::nothing().with_storage());
-        let root_disk = pick_root_disk(&disks);
-        info!(
-            sensors = ?sensors
-                .iter()
-                .map(|&i| components.list()[i].label())
-                .collect::<Vec<_>>(),
-            disk = ?root_disk.map(|i| disks.list()[i].mount_point()),
-            "telemetry samplers ready"
-        );
-        Self {
-            system,
-            networks,
-            networks_at: std::time::Instant::now(),
-            components,
-            sensors,
-            disks,
-            root_disk,
-        }
-    }
-}
-
-impl Probe for SystemProbe {
-    fn cpu_percent(&mut self) -> Option<f64> {
-        self.system.refresh_cpu_usage();
-        if self.system.cpus().is_empty() {
-            return None;
-        }
-        Some(f64::from(self.system.global_cpu_usage()))
-    }
-
-    fn memory(&mut self) -> Option<MemoryReading> {
-        self.system
-            .refresh_memory_specifics(MemoryRefreshKind::nothing().with_ram());
-        let total = self.system.total_memory();
-        let used = self.system.used_memory();
-        (total > 0).then(|| MemoryReading {
-            percent: used as f64 * 100.0 / total as f64,
-            used_bytes: used,
-        })
-    }
-
-    fn network(&mut self) -> Option<NetworkReading> {
-        // `true`: forget interfaces that are gone; a new one starts from its current counters.
-        self.networks.refresh(true);
-        let now = std::time::Instant::now();
-        let elapsed = now.duration_since(self.networks_at).as_secs_f64();
-        self.networks_at = now;
-        if elapsed < 0.001 {
-            return None;
-        }
-        let (rx, tx) = self
-            .networks
-            .iter()
-            .filter(|(name, data)| !is_loopback(name, data))
-            .fold((0u64, 0u64), |(rx, tx), (_, data)| {
-                (
-                    rx.saturating_add(data.received()),
-                    tx.saturating_add(data.transmitted()),
-                )
-            });
-        Some(NetworkReading {
-            rx_bytes_per_s: rx as f64 / elapsed,
-            tx_bytes_per_s: tx as f64 / elapsed,
-        })
-    }
-
-    fn temperature_c(&mut self) -> Option<f64> {
-        if self.sensors.is_empty() {
-            // Sensors may appear late (a driver loading after the agent started): look again,
-            // which costs one directory listing when there are none.
-            self.components.refresh(true);
-            self.sensors =
-                pick_sensors(self.components.list().iter().map(sysinfo::Component::label));
-            if !self.sensors.is_empty() {
-                info!("temperature sensors found");
-            }
-        } else {
-            let list = self.components.list_mut();
-            for &i in &self.sensors {
-                if let Some(component) = list.get_mut(i) {
-                    component.refresh();
-                }
-            }
-        }
-        let list = self.components.list();
-        let hottest = self
-            .sensors
-            .iter()
-            .filter_map(|&i| list.get(i)?.temperature())
-            .map(f64::from)
-            .filter(|t| t.is_finite())
-            .reduce(f64::max);
-        if hottest.is_none() {
-            // Every chosen sensor failed: list them afresh next time.
-            self.sensors.clear();
-        }
-        hottest
-    }
-
-    fn disk_percent(&mut self) -> Option<f64> {
-        if self.root_disk.is_none() {
-            self.disks
-                .refresh_specifics(true, DiskRefreshKind::nothing().with_storage());
-            self.root_disk = pick_root_disk(&self.disks);
-        }
-        let disk = self.disks.list_mut().get_mut(self.root_disk?)?;
-        disk.refresh_specifics(DiskRefreshKind::nothing().with_storage());
-        used_percent(disk.total_space(), disk.available_space())
-    }
-
-    fn uptime_s(&self) -> Option<u64> {
-        Some(System::uptime()).filter(|&s| s > 0)
-    }
-
-    fn load1(&self) -> Option<f64> {
-        let load = System::load_average().one;
-        load.is_finite().then_some(load)
-    }
-}
-
-fn is_loopback(name: &str, data: &sysinfo::NetworkData) -> bool {
-    name == "lo"
-        || (!data.ip_networks().is_empty()
-            && data.ip_networks().iter().all(|n| n.addr.is_loopback()))
-}
-
-/// Indices of the sensors whose maximum is "the temperature": the CPU/SoC ones if any
-/// (`cpu_thermal` on a Raspberry Pi, `k10temp`/`coretemp` on x86), else all of them (a disk or
-/// Wi-Fi sensor is still better than nothing).
-fn pick_sensors<'a>(labels: impl Iterator<Item = &'a str>) -> Vec<usize> {
-    const CPU_LIKE: [&str; 6] = ["cpu", "soc", "k10temp", "coretemp", "thermal", "tctl"];
-    let labels: Vec<String> = labels.map(str::to_ascii_lowercase).collect();
-    let cpu_like: Vec<usize> = labels
-        .iter()
-        .enumerate()
-        .filter(|(_, label)| CPU_LIKE.iter().any(|key| label.contains(key)))
-        .map(|(i, _)| i)
-        .collect();
-    if cpu_like.is_empty() {
-        (0..labels.len()).collect()
-    } else {
-        cpu_like
-    }
-}
-
-/// The disk mounted at `/`, else the largest.
-fn pick_root_disk(disks: &Disks) -> Option<usize> {
-    let list = disks.list();
-    list.iter()
-        .position(|d| d.mount_point() == std::path::Path::new("/"))
-        .or_else(|| {
-            list.iter()
-                .enumerate()
-                .max_by_key(|(_, d)| d.total_space())
-                .map(|(i, _)| i)
-        })
-}
-
-/// Percent of a file system in use, counting reserved blocks as used.
-fn used_percent(total: u64, available: u64) -> Option<f64> {
-    (total > 0).then(|| total.saturating_sub(available) as f64 * 100.0 / total as f64)
-}
-
 #[cfg(test)]
 mod tests {
     use std::sync::{Arc, Mutex};
 
     use lekiwi_protocol::{AgentMessage, encode};
 
+    use super::probe::{MemoryReading, NetworkReading, pick_sensors, used_percent};
     use super::*;
 
     fn secs(s: u64) -> Duration {

@@ -7,12 +7,18 @@
 //! match. An indicator with a weight of 0 costs nothing; an absent serial device costs no fd
 //! scan.
 
-use std::fs::{self, File};
-use std::io::{self, Read as _};
-use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::fs;
+use std::io;
 use std::path::{Path, PathBuf};
 
 use crate::config::Config;
+
+mod procfs;
+
+use procfs::{READ_CHUNK, canonical_if_different, join, join_pid, read_proc, read_table};
+pub use procfs::{
+    TCP_ESTABLISHED, TCP_LISTEN, TcpSocket, cmdline_contains, parse_hex_socket_addr, parse_tcp_line,
+};
 
 /// Indicator: a process whose command line contains the configured pattern runs.
 pub const PROCESS: &str = "process";
@@ -24,11 +30,6 @@ pub const VIDEO_CONNECTION: &str = "video_connection";
 pub const STREAM_CONNECTION: &str = "stream_connection";
 /// Indicator: a process other than the agent holds the serial device open.
 pub const SERIAL_DEVICE: &str = "serial_device";
-
-/// `st` of an established connection in `/proc/net/tcp` (`include/net/tcp_states.h`).
-pub const TCP_ESTABLISHED: u8 = 0x01;
-/// `st` of a listening socket in `/proc/net/tcp`.
-pub const TCP_LISTEN: u8 = 0x0A;
 
 /// Scores are rounded to this many parts so that `0.1 + 0.2` reads `0.3` and sums that are
 /// meant to equal the threshold do not miss it by one ulp.
@@ -56,68 +57,18 @@ impl Verdict {
     }
 }
 
-/// One socket line of `/proc/net/tcp` or `/proc/net/tcp6`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct TcpSocket {
-    /// This host's end.
-    pub local: SocketAddr,
-    /// The peer's end (unspecified for a listening socket).
-    pub remote: SocketAddr,
-    /// Kernel TCP state, e.g. [`TCP_ESTABLISHED`] or [`TCP_LISTEN`].
-    pub state: u8,
+/// Which process indicators a scan of `/proc` looks for.
+#[derive(Clone, Copy, Debug)]
+struct Wanted {
+    process: bool,
+    serial: bool,
 }
 
-/// Parses one line of `/proc/net/tcp` or `/proc/net/tcp6`; `None` for the header or a line
-/// of another shape.
-pub fn parse_tcp_line(line: &str) -> Option<TcpSocket> {
-    let mut fields = line.split_ascii_whitespace();
-    let _slot = fields.next()?;
-    let local = parse_hex_socket_addr(fields.next()?)?;
-    let remote = parse_hex_socket_addr(fields.next()?)?;
-    let state = u8::from_str_radix(fields.next()?, 16).ok()?;
-    Some(TcpSocket {
-        local,
-        remote,
-        state,
-    })
-}
-
-/// Parses `0100007F:15B3` (IPv4) or `00000000000000000000000001000000:15B3` (IPv6) as the
-/// kernel prints them: the address as 32-bit words in host byte order, the port in hex.
-pub fn parse_hex_socket_addr(s: &str) -> Option<SocketAddr> {
-    let (addr, port) = s.split_once(':')?;
-    let port = u16::from_str_radix(port, 16).ok()?;
-    // The kernel prints each network-order word with `%08X` as a native integer, so the
-    // native-endian bytes of the parsed word are the address bytes on either endianness.
-    let word = |hex: &str| u32::from_str_radix(hex, 16).ok().map(u32::to_ne_bytes);
-    let ip = match addr.len() {
-        8 => IpAddr::V4(Ipv4Addr::from(word(addr)?)),
-        32 => {
-            let mut octets = [0u8; 16];
-            for (i, chunk) in octets.chunks_exact_mut(4).enumerate() {
-                chunk.copy_from_slice(&word(addr.get(i * 8..i * 8 + 8)?)?);
-            }
-            IpAddr::V6(Ipv6Addr::from(octets))
-        }
-        _ => return None,
-    };
-    Some(SocketAddr::new(ip, port))
-}
-
-/// Whether `cmdline` (the raw bytes of `/proc/PID/cmdline`, arguments separated by NULs)
-/// contains `pattern` once NULs read as spaces. Rewrites `cmdline` in place.
-pub fn cmdline_contains(cmdline: &mut [u8], pattern: &[u8]) -> bool {
-    let end = cmdline
-        .iter()
-        .rposition(|&b| b != 0)
-        .map_or(0, |last| last + 1);
-    let cmdline = &mut cmdline[..end];
-    for b in cmdline.iter_mut() {
-        if *b == 0 {
-            *b = b' ';
-        }
+impl Wanted {
+    /// Whether every indicator looked for has fired, so the scan can stop.
+    fn satisfied(self, process_hit: bool, serial_hit: bool) -> bool {
+        (!self.process || process_hit) && (!self.serial || serial_hit)
     }
-    !pattern.is_empty() && cmdline.windows(pattern.len()).any(|w| w == pattern)
 }
 
 /// "A connection on one of these local ports is ESTABLISHED".
@@ -333,8 +284,21 @@ impl Detector {
 
     /// Whether the process and the serial indicators fired, from one pass over `/proc`.
     fn scan_processes(&mut self) -> (bool, bool) {
-        let want_process = self.process.is_some();
-        let want_serial = match &mut self.serial {
+        let want = Wanted {
+            process: self.process.is_some(),
+            serial: self.serial_wanted(),
+        };
+        let (mut process_hit, mut serial_hit) = self.recheck_last(want);
+        if !want.satisfied(process_hit, serial_hit) {
+            (process_hit, serial_hit) = self.scan_all(want, process_hit, serial_hit);
+        }
+        self.remember(process_hit, serial_hit);
+        (process_hit, serial_hit)
+    }
+
+    /// Whether the serial indicator needs an fd scan: not when it is off or its device absent.
+    fn serial_wanted(&mut self) -> bool {
+        match &mut self.serial {
             None => false,
             // An absent device is held by nobody: skip the fd scan, the costly part.
             Some(s) if !s.configured.exists() => {
@@ -347,15 +311,18 @@ impl Detector {
                 }
                 true
             }
-        };
+        }
+    }
+
+    /// Checks the processes that fired last time: the host found last time is most likely
+    /// still there and still holds the device.
+    fn recheck_last(&mut self, want: Wanted) -> (bool, bool) {
         let mut process_hit = false;
         let mut serial_hit = false;
-
-        // The host found last time is most likely still there and still holds the device.
         if let Some(pid) = self.process.as_ref().and_then(|p| p.last_match) {
             process_hit = matches!(self.cmdline_matches(pid), Some(Cmdline::Matches));
         }
-        if want_serial {
+        if want.serial {
             let last_holder = self.serial.as_ref().and_then(|s| s.last_holder);
             let host = self.process.as_ref().and_then(|p| p.last_match);
             for pid in [last_holder, host.filter(|_| process_hit)]
@@ -368,19 +335,21 @@ impl Detector {
                 }
             }
         }
-        let done = |process_hit: bool, serial_hit: bool| {
-            (!want_process || process_hit) && (!want_serial || serial_hit)
-        };
-        if done(process_hit, serial_hit) {
-            self.remember(process_hit, serial_hit);
-            return (process_hit, serial_hit);
-        }
+        (process_hit, serial_hit)
+    }
 
+    /// One pass over `/proc/[pid]` until every wanted indicator fired; both `false` when the
+    /// process list cannot be read.
+    fn scan_all(
+        &mut self,
+        want: Wanted,
+        mut process_hit: bool,
+        mut serial_hit: bool,
+    ) -> (bool, bool) {
         let entries = match fs::read_dir(&self.proc_root) {
             Ok(entries) => entries,
             Err(e) => {
                 tracing::debug!(proc = %self.proc_root.display(), error = %e, "cannot list processes");
-                self.remember(false, false);
                 return (false, false);
             }
         };
@@ -394,7 +363,7 @@ impl Detector {
                 continue;
             }
             let mut kernel_thread = false;
-            if want_process && !process_hit {
+            if want.process && !process_hit {
                 match self.cmdline_matches(pid) {
                     // Gone since the listing.
                     None => continue,
@@ -409,7 +378,7 @@ impl Detector {
                 }
             }
             // Kernel threads (and zombies) have no open files.
-            if want_serial && !serial_hit && !kernel_thread {
+            if want.serial && !serial_hit && !kernel_thread {
                 match self.holds_serial(pid) {
                     Holding::Yes => {
                         serial_hit = true;
@@ -421,10 +390,16 @@ impl Detector {
                     Holding::Denied => denied += 1,
                 }
             }
-            if done(process_hit, serial_hit) {
+            if want.satisfied(process_hit, serial_hit) {
                 break;
             }
         }
+        self.log_denied_once(denied);
+        (process_hit, serial_hit)
+    }
+
+    /// Says once per agent that some processes' open files are unreadable (not root).
+    fn log_denied_once(&mut self, denied: u32) {
         if denied > 0 && !self.denied_logged {
             self.denied_logged = true;
             tracing::debug!(
@@ -433,8 +408,6 @@ impl Detector {
                  not seen (logged once)"
             );
         }
-        self.remember(process_hit, serial_hit);
-        (process_hit, serial_hit)
     }
 
     /// Forgets the pids of indicators that did not fire, so the next check scans afresh.
@@ -489,89 +462,11 @@ impl Detector {
     }
 }
 
-/// Bytes asked for by each `read` of a `/proc` file (at least two pages).
-const READ_CHUNK: usize = 16 * 1024;
-/// What one `read` of a seq_file returns at most when the table goes on (a page, 4 KiB or
-/// more) ...
-const TABLE_PAGE: usize = 4096;
-/// ... and more than the longest line of `/proc/net/tcp` or `/proc/net/tcp6` (150 and about
-/// 180 bytes).
-const TABLE_LINE_MAX: usize = 512;
-
-/// Reads a `/proc/net/tcp{,6}` table into `buf`.
-///
-/// Each time a read of these files reaches the end of the table, the kernel walks its whole
-/// TCP hash table (hundreds of thousands of buckets on a machine with much memory): that walk,
-/// not the few lines, is the cost of a check, and the customary read that returns 0 to confirm
-/// the end does it once more. A seq_file read returns whole lines until the table ends or the
-/// next line would overflow its page, so a read shorter than a page by more than a line holds
-/// the table's end, and no read follows it.
-fn read_table<'a>(path: &Path, buf: &'a mut Vec<u8>) -> io::Result<&'a str> {
-    let len = read_proc(path, buf, TABLE_PAGE - TABLE_LINE_MAX + 1)?;
-    std::str::from_utf8(&buf[..len]).map_err(|e| io::Error::new(io::ErrorKind::InvalidData, e))
-}
-
-/// Reads the file at `path` into `buf` (which keeps its length and capacity between calls)
-/// and returns its length, taking a read of fewer than `end_below` bytes (of the at least
-/// [`READ_CHUNK`] asked) as its end. Unlike `read_to_end`, no `statx`, `lseek` or final empty
-/// read: a `/proc` file has no size, and the empty read is what costs in `/proc/net`.
-fn read_proc(path: &Path, buf: &mut Vec<u8>, end_below: usize) -> io::Result<usize> {
-    let mut file = File::open(path)?;
-    let mut len = 0;
-    loop {
-        if buf.len() < len + READ_CHUNK {
-            buf.resize(len + READ_CHUNK, 0);
-        }
-        match file.read(&mut buf[len..]) {
-            Ok(n) => {
-                len += n;
-                if n == 0 || n < end_below {
-                    return Ok(len);
-                }
-            }
-            Err(e) if e.kind() == io::ErrorKind::Interrupted => {}
-            Err(e) => return Err(e),
-        }
-    }
-}
-
-/// The canonical path of `path` if it exists and differs.
-fn canonical_if_different(path: &Path) -> Option<PathBuf> {
-    fs::canonicalize(path).ok().filter(|c| c != path)
-}
-
-/// `root/parts...` in the reused `scratch`.
-fn join<'a>(scratch: &'a mut PathBuf, root: &Path, parts: &[&str]) -> &'a Path {
-    scratch.as_mut_os_string().clear();
-    scratch.push(root);
-    for part in parts {
-        scratch.push(part);
-    }
-    scratch
-}
-
-/// `root/pid/file` in the reused `scratch`.
-fn join_pid<'a>(scratch: &'a mut PathBuf, root: &Path, pid: u32, file: &str) -> &'a Path {
-    // Decimal digits on the stack: a `to_string()` per process per check adds up.
-    let mut digits = [0u8; 10];
-    let mut start = digits.len();
-    let mut n = pid;
-    loop {
-        start -= 1;
-        digits[start] = b'0' + (n % 10) as u8;
-        n /= 10;
-        if n == 0 {
-            break;
-        }
-    }
-    let pid = std::str::from_utf8(&digits[start..]).unwrap_or_default();
-    join(scratch, root, &[pid, file])
-}
-
 #[cfg(test)]
 mod tests {
     use std::os::unix::fs::symlink;
 
+    use super::procfs::TABLE_PAGE;
     use super::*;
 
     // Lines captured from this kind of machine (little-endian: x86_64, aarch64).
@@ -592,6 +487,23 @@ mod tests {
         format!(
             "   7: {local} {remote} {state} 00000000:00000000 00:00000000 00000000  1000        0 4242 1 0000000000000000 20 0 0 10 -1\n"
         )
+    }
+
+    /// An idle host ([`FakeProc::idle_host`]) whose `/proc/net/tcp` holds `lines` (returned
+    /// too), and an empty `/proc/net/tcp6`.
+    fn idle_host_with(lines: &[(&str, &str, &str)]) -> (FakeProc, String) {
+        let fake = FakeProc::new();
+        fake.idle_host();
+        let tcp = table(lines);
+        fake.sockets(&tcp, HEADER);
+        (fake, tcp)
+    }
+
+    /// A `/proc/net/tcp{,6}` table: the header and one [`line`] per `(local, remote, state)`.
+    fn table(lines: &[(&str, &str, &str)]) -> String {
+        lines
+            .iter()
+            .fold(HEADER.to_owned(), |t, (l, r, st)| t + &line(l, r, st))
     }
 
     #[test]
@@ -796,14 +708,10 @@ mod tests {
 
     #[test]
     fn an_established_command_connection_is_teleoperation() {
-        let fake = FakeProc::new();
-        fake.idle_host();
-        let tcp = format!(
-            "{HEADER}{}{}",
-            line("00000000:15B3", "00000000:0000", "0A"),
-            line("0A00002A:15B3", "0A000017:E1C2", "01"),
-        );
-        fake.sockets(&tcp, HEADER);
+        let (fake, tcp) = idle_host_with(&[
+            ("00000000:15B3", "00000000:0000", "0A"),
+            ("0A00002A:15B3", "0A000017:E1C2", "01"),
+        ]);
         let v = fake.check(&fake.config());
         assert_eq!(names(&v), [PROCESS, COMMAND_CONNECTION, SERIAL_DEVICE]);
         assert_eq!(v.score, 0.9);
@@ -830,18 +738,14 @@ mod tests {
 
     #[test]
     fn only_the_local_port_counts() {
-        let fake = FakeProc::new();
-        fake.idle_host();
         // This host is the client of somebody else's 5555 (and 8554): not the LeKiwi host
         // being driven. Closing states are not connections.
-        let tcp = format!(
-            "{HEADER}{}{}{}{}",
-            line("0A00002A:D2F0", "0A000017:15B3", "01"),
-            line("0A00002A:D2F1", "0A000017:216A", "01"),
-            line("0A00002A:15B3", "0A000017:D2F2", "06"),
-            line("0A00002A:15B3", "0A000017:D2F3", "08"),
-        );
-        fake.sockets(&tcp, HEADER);
+        let (fake, _) = idle_host_with(&[
+            ("0A00002A:D2F0", "0A000017:15B3", "01"),
+            ("0A00002A:D2F1", "0A000017:216A", "01"),
+            ("0A00002A:15B3", "0A000017:D2F2", "06"),
+            ("0A00002A:15B3", "0A000017:D2F3", "08"),
+        ]);
         let v = fake.check(&fake.config());
         assert_eq!(names(&v), [PROCESS, SERIAL_DEVICE]);
     }
@@ -869,14 +773,10 @@ mod tests {
 
     #[test]
     fn weights_and_threshold() {
-        let fake = FakeProc::new();
-        fake.idle_host();
-        let tcp = format!(
-            "{HEADER}{}{}",
-            line("0A00002A:15B3", "0A000017:E1C2", "01"),
-            line("0A00002A:216A", "0A000017:E1C3", "01"),
-        );
-        fake.sockets(&tcp, HEADER);
+        let (fake, _) = idle_host_with(&[
+            ("0A00002A:15B3", "0A000017:E1C2", "01"),
+            ("0A00002A:216A", "0A000017:E1C3", "01"),
+        ]);
         let all = fake.check(&fake.config());
         assert_eq!(
             names(&all),

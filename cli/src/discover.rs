@@ -6,8 +6,6 @@
 //! then each robot found is looked up (one GET each, bounded in time); none waits for another: a method that fails or hangs costs a warning on
 //! stderr, never the others' results.
 
-use std::collections::{BTreeMap, BTreeSet};
-use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::time::Duration;
 
 use anyhow::{Context as _, bail};
@@ -15,19 +13,22 @@ use clap::Args;
 use futures::StreamExt;
 use kube::Api;
 use kube::api::ListParams;
-use lekiwi_agent::discovery::{Found, StatusSnapshot};
 use lekiwi_crds::Robot;
+use lekiwi_discovery::Found;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
 
 use crate::Output;
 
-/// Most addresses one `discover` probes, so a typo like `/8` does not scan a network for hours.
-pub const MAX_PROBE_ADDRESSES: usize = 4096;
-/// Probes in flight at once.
-const PROBE_CONCURRENCY: usize = 256;
-/// Time to establish a probe's TCP connection; a LAN host answers in well under this.
-const PROBE_CONNECT_TIMEOUT: Duration = Duration::from_millis(300);
+mod merge;
+mod probe;
+mod targets;
+
+pub use merge::{merge, render};
+pub use probe::Probed;
+use probe::probe_all;
+pub use targets::{MAX_PROBE_ADDRESSES, parse_targets};
+
 /// Time the Robot lookups of the found agents may take after the deadline.
 const LOOKUP_BUDGET: Duration = Duration::from_millis(300);
 /// Robot lookups in flight at once.
@@ -77,15 +78,6 @@ pub struct Discovered {
     pub gateway: String,
     /// Whether its gateway connection is up (known from a probe only).
     pub connected: Option<bool>,
-}
-
-/// What a probe of one status endpoint found.
-#[derive(Clone, Debug)]
-pub struct Probed {
-    /// Where.
-    pub address: SocketAddr,
-    /// What it said.
-    pub status: StatusSnapshot,
 }
 
 /// Runs `discover`. `client` is an error when no cluster configuration was found; the robots
@@ -152,7 +144,7 @@ async fn browse(timeout: Duration, give_up: Instant) -> anyhow::Result<Vec<Found
     std::thread::Builder::new()
         .name("mdns-browse".into())
         .spawn(move || {
-            let _ = tx.send(lekiwi_agent::discovery::browse(timeout));
+            let _ = tx.send(lekiwi_discovery::browse(timeout));
         })
         .context("cannot start the mDNS browser thread")?;
     match tokio::time::timeout_at(give_up, rx).await {
@@ -196,298 +188,12 @@ async fn mark_registered(client: &kube::Client, found: &mut [Discovered]) -> usi
     unknown
 }
 
-/// Parses `--probe` values into status endpoints, in order and without repeats.
-pub fn parse_targets(values: &[String], default_port: u16) -> anyhow::Result<Vec<SocketAddr>> {
-    let mut out = Vec::new();
-    let mut seen = BTreeSet::new();
-    for value in values {
-        for addr in parse_target(value.trim(), default_port)? {
-            if seen.insert(addr) {
-                out.push(addr);
-            }
-            if out.len() > MAX_PROBE_ADDRESSES {
-                bail!(
-                    "--probe covers more than {MAX_PROBE_ADDRESSES} addresses; probe smaller networks"
-                );
-            }
-        }
-    }
-    Ok(out)
-}
-
-fn parse_target(value: &str, port: u16) -> anyhow::Result<Vec<SocketAddr>> {
-    if let Some((ip, prefix)) = value.split_once('/') {
-        let ip: IpAddr = ip
-            .parse()
-            .with_context(|| format!("--probe {value}: {ip:?} is not an IP address"))?;
-        let prefix: u32 = prefix
-            .parse()
-            .with_context(|| format!("--probe {value}: {prefix:?} is not a prefix length"))?;
-        let bits = if ip.is_ipv4() { 32 } else { 128 };
-        if prefix > bits {
-            bail!("--probe {value}: prefix longer than {bits} bits");
-        }
-        let host_bits = bits - prefix;
-        if host_bits > 12 {
-            bail!(
-                "--probe {value} covers {} addresses, more than {MAX_PROBE_ADDRESSES}; probe smaller networks",
-                if host_bits >= 64 {
-                    "too many".to_owned()
-                } else {
-                    (1u64 << host_bits).to_string()
-                }
-            );
-        }
-        let count = 1u128 << host_bits;
-        let hosts: Vec<IpAddr> = match ip {
-            IpAddr::V4(v4) => {
-                let base = u32::from(v4) & !((count - 1) as u32);
-                let (first, last) = if host_bits >= 2 {
-                    // Skip the network and broadcast addresses.
-                    (1, count - 2)
-                } else {
-                    (0, count - 1)
-                };
-                (first..=last)
-                    .map(|i| IpAddr::V4(Ipv4Addr::from(base + i as u32)))
-                    .collect()
-            }
-            IpAddr::V6(v6) => {
-                let base = u128::from(v6) & !(count - 1);
-                (0..count)
-                    .map(|i| IpAddr::V6(Ipv6Addr::from(base + i)))
-                    .collect()
-            }
-        };
-        return Ok(hosts
-            .into_iter()
-            .map(|ip| SocketAddr::new(ip, port))
-            .collect());
-    }
-    if let Ok(addr) = value.parse::<SocketAddr>() {
-        return Ok(vec![addr]);
-    }
-    let ip: IpAddr = value
-        .trim_start_matches('[')
-        .trim_end_matches(']')
-        .parse()
-        .with_context(|| {
-            format!("--probe {value}: not an address, address:port or CIDR (e.g. 10.0.0.0/24)")
-        })?;
-    Ok(vec![SocketAddr::new(ip, port)])
-}
-
-/// Probes every target until `deadline`; returns the agents that answered and warnings about
-/// targets that were named one by one and did not (silence from most of a CIDR is normal).
-async fn probe_all(
-    targets: &[SocketAddr],
-    timeout: Duration,
-    deadline: Instant,
-) -> (Vec<Probed>, Vec<String>) {
-    let mut warnings = Vec::new();
-    if targets.is_empty() {
-        return (Vec::new(), warnings);
-    }
-    let http = match reqwest::Client::builder()
-        .no_proxy()
-        .connect_timeout(PROBE_CONNECT_TIMEOUT)
-        .timeout(timeout.min(Duration::from_secs(1)))
-        .pool_max_idle_per_host(0)
-        .build()
-    {
-        Ok(c) => c,
-        Err(e) => {
-            warnings.push(format!("probes unavailable: {e}"));
-            return (Vec::new(), warnings);
-        }
-    };
-    let single = targets.len() == 1;
-    let mut results = futures::stream::iter(targets.iter().copied())
-        .map(|addr| {
-            let http = http.clone();
-            async move { (addr, probe(&http, addr).await) }
-        })
-        .buffer_unordered(PROBE_CONCURRENCY);
-    let mut found = Vec::new();
-    let mut answered = 0usize;
-    loop {
-        match tokio::time::timeout_at(deadline, results.next()).await {
-            Ok(Some((address, Ok(status)))) => {
-                answered += 1;
-                found.push(Probed { address, status });
-            }
-            Ok(Some((address, Err(e)))) => {
-                answered += 1;
-                if single {
-                    warnings.push(format!("probe of {address}: {e:#}"));
-                }
-            }
-            Ok(None) => break,
-            Err(_) => {
-                warnings.push(format!(
-                    "probing stopped at the deadline: {answered} of {} addresses answered or failed",
-                    targets.len()
-                ));
-                break;
-            }
-        }
-    }
-    (found, warnings)
-}
-
-async fn probe(http: &reqwest::Client, addr: SocketAddr) -> anyhow::Result<StatusSnapshot> {
-    let resp = http
-        .get(format!("http://{addr}/status"))
-        .send()
-        .await
-        .map_err(|e| anyhow::anyhow!("{}", crate::http_error(&e)))?;
-    if !resp.status().is_success() {
-        bail!("answered {}", resp.status());
-    }
-    let status: StatusSnapshot = resp
-        .json()
-        .await
-        .context("not a LeKiwi agent status endpoint")?;
-    if status.robot.is_empty() {
-        bail!("not a LeKiwi agent status endpoint (no robot)");
-    }
-    Ok(status)
-}
-
-/// Splits an agent's robot name into namespace and name; a bare name is in `namespace`.
-fn split_robot(robot: &str, namespace: &str) -> (String, String) {
-    match robot.split_once('/') {
-        Some((ns, name)) => (ns.to_owned(), name.to_owned()),
-        None => (namespace.to_owned(), robot.to_owned()),
-    }
-}
-
-/// Merges both methods' findings by robot, without duplicates, sorted by namespace and name.
-pub fn merge(
-    namespace: &str,
-    mdns: &[Found],
-    probed: &[Probed],
-    registered: Option<&BTreeSet<(String, String)>>,
-) -> Vec<Discovered> {
-    let entry = |robot: &str| {
-        let key = split_robot(robot, namespace);
-        Discovered {
-            robot: robot.to_owned(),
-            registered: registered.map(|r| r.contains(&key)),
-            namespace: key.0,
-            name: key.1,
-            ..Discovered::default()
-        }
-    };
-    let mut merged: BTreeMap<(String, String), Discovered> = BTreeMap::new();
-    for f in mdns.iter().filter(|f| !f.robot.is_empty()) {
-        let d = merged
-            .entry(split_robot(&f.robot, namespace))
-            .or_insert_with(|| entry(&f.robot));
-        d.addresses.extend(
-            f.addresses
-                .iter()
-                .map(|ip| SocketAddr::new(*ip, f.port).to_string()),
-        );
-        d.via.push("mdns".into());
-        d.agent_version.clone_from(&f.agent_version);
-        d.release.clone_from(&f.release);
-        d.gateway.clone_from(&f.gateway);
-    }
-    for p in probed {
-        let d = merged
-            .entry(split_robot(&p.status.robot, namespace))
-            .or_insert_with(|| entry(&p.status.robot));
-        d.addresses.push(p.address.to_string());
-        d.via.push("probe".into());
-        d.agent_version.clone_from(&p.status.agent_version);
-        d.release = p.status.release.as_ref().map(|r| r.version.clone());
-        d.gateway.clone_from(&p.status.gateway);
-        d.connected = Some(p.status.connected);
-    }
-    merged
-        .into_values()
-        .map(|mut d| {
-            d.addresses.sort();
-            d.addresses.dedup();
-            d.via.sort();
-            d.via.dedup();
-            d
-        })
-        .collect()
-}
-
-/// Renders the found agents in the given format.
-pub fn render(found: &[Discovered], output: Output) -> anyhow::Result<String> {
-    Ok(match output {
-        Output::Json => serde_json::to_string_pretty(found)? + "\n",
-        Output::Yaml => serde_yaml::to_string(found)?,
-        Output::Table | Output::Wide => {
-            if found.is_empty() {
-                return Ok("No agents found.\n".into());
-            }
-            let wide = output == Output::Wide;
-            let mut header = vec!["NAMESPACE", "NAME", "REGISTERED", "ADDRESS", "VIA"];
-            if wide {
-                header.extend(["AGENT", "RELEASE", "CONNECTED", "GATEWAY"]);
-            }
-            let mut rows = vec![header.iter().map(|s| s.to_string()).collect::<Vec<_>>()];
-            for d in found {
-                let address = if wide {
-                    d.addresses.join(",")
-                } else {
-                    match d.addresses.len() {
-                        0 => "-".to_owned(),
-                        1 => d.addresses[0].clone(),
-                        n => format!("{} (+{})", preferred(&d.addresses), n - 1),
-                    }
-                };
-                let mut row = vec![
-                    d.namespace.clone(),
-                    d.name.clone(),
-                    match d.registered {
-                        Some(true) => "yes".into(),
-                        Some(false) => "no".into(),
-                        None => "unknown".into(),
-                    },
-                    address,
-                    d.via.join(","),
-                ];
-                if wide {
-                    let dash = |s: &str| {
-                        if s.is_empty() {
-                            "-".into()
-                        } else {
-                            s.to_owned()
-                        }
-                    };
-                    row.push(dash(&d.agent_version));
-                    row.push(dash(d.release.as_deref().unwrap_or_default()));
-                    row.push(match d.connected {
-                        Some(true) => "yes".into(),
-                        Some(false) => "no".into(),
-                        None => "-".into(),
-                    });
-                    row.push(dash(&d.gateway));
-                }
-                rows.push(row);
-            }
-            crate::robots::format_table(rows)
-        }
-    })
-}
-
-/// The address to show first: IPv4 before IPv6, as people type them.
-fn preferred(addresses: &[String]) -> String {
-    addresses
-        .iter()
-        .find(|a| a.parse::<SocketAddr>().is_ok_and(|s| s.is_ipv4()))
-        .unwrap_or(&addresses[0])
-        .clone()
-}
-
 #[cfg(test)]
 mod tests {
+    use std::collections::BTreeSet;
+
+    use lekiwi_discovery::StatusSnapshot;
+
     use super::*;
 
     #[test]
@@ -519,7 +225,7 @@ mod tests {
 
     fn found(robot: &str, ip: &str) -> Found {
         Found {
-            instance: lekiwi_agent::discovery::instance_name(robot),
+            instance: lekiwi_discovery::instance_name(robot),
             robot: robot.into(),
             agent_version: "0.1.0".into(),
             release: None,

@@ -2,7 +2,6 @@
 //! with keep-alive connections reused across blobs and `Range` to resume partial downloads.
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -10,17 +9,15 @@ use futures::FutureExt;
 use http_body_util::{BodyExt, Empty};
 use hyper::body::{Bytes, Incoming};
 use hyper::client::conn::http1::{self, SendRequest};
-use hyper::header::{AUTHORIZATION, CONTENT_RANGE, HOST, RANGE};
+use hyper::header::{AUTHORIZATION, HOST, RANGE};
 use hyper::{Request, Response, StatusCode, Uri};
 use hyper_util::rt::TokioIo;
 use lekiwi_protocol::ROBOT_HEADER;
-use lekiwi_protocol::release::blob_path;
-use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpStream;
 use tracing::debug;
 
-use super::store::{Hasher, Layout};
-use super::{Error, Result, Wanted, blocking};
+use super::{Error, Result};
 
 /// Time to open a connection (TCP and TLS).
 const CONNECT_TIMEOUT: Duration = Duration::from_secs(15);
@@ -31,14 +28,16 @@ const ERROR_BODY_LIMIT: usize = 4096;
 /// Idle connections kept for reuse.
 const POOL_SIZE: usize = 4;
 
+mod blob;
+
 /// How to reach the gateway's blob API.
 #[derive(Clone)]
 pub struct GatewayAccess {
     /// `http(s)://host[:port]`, without a path.
     pub base_url: String,
-    /// The robot's token.
+    /// The robot's token, sent as `Authorization: Bearer`.
     pub token: String,
-    /// `namespace/name`.
+    /// The robot, `namespace/name`, sent in the robot header the gateway checks the token for.
     pub robot: String,
     /// PEM file of the CA to trust for `https://` instead of the public web roots.
     pub ca_file: Option<PathBuf>,
@@ -305,149 +304,6 @@ impl Client {
         Ok(bytes)
     }
 
-    /// Downloads one blob into `blobs/tmp/<hex>.partial` (resuming what is there), verifies it
-    /// while streaming and moves it into the store.
-    pub(super) async fn fetch_blob(
-        &self,
-        layout: &Layout,
-        w: &Wanted,
-        counter: &AtomicU64,
-    ) -> Result<Fetched> {
-        let partial = layout.partial_path(&w.digest)?;
-        let what = format!("blob {} of {}", w.digest, w.path);
-        // What an earlier attempt (or agent) left: hash it to continue the digest.
-        let p = partial.clone();
-        let (mut hasher, mut have) = blocking(move || hash_partial(&p)).await?;
-        let resumed = have > 0;
-        if have > w.size {
-            have = 0;
-            hasher = Hasher::new();
-        }
-        if have == w.size {
-            // Complete already (killed before the move): verify and promote.
-            return self
-                .promote(layout, w, &what, &partial, hasher, resumed)
-                .await;
-        }
-        let path = blob_path(&w.digest);
-        let url = self.url(&path);
-        let (response, sender) = self.get(&path, have).boxed().await?;
-        let status = response.status();
-        let range_start = response
-            .headers()
-            .get(CONTENT_RANGE)
-            .and_then(|v| v.to_str().ok())
-            .and_then(content_range_start);
-        let mut body = response.into_body();
-        let append = match status {
-            StatusCode::PARTIAL_CONTENT if have > 0 => {
-                let from = range_start;
-                if from != Some(have) {
-                    return Err(Error::Transport {
-                        url,
-                        message: format!("asked for bytes from {have}, got {from:?}"),
-                    });
-                }
-                true
-            }
-            StatusCode::OK => false,
-            StatusCode::RANGE_NOT_SATISFIABLE => {
-                // The partial is wrong (longer than the blob?): start over next attempt.
-                remove_partial(&partial).await;
-                return Err(Error::Transport {
-                    url,
-                    message: "the gateway refused to resume; starting over".into(),
-                });
-            }
-            _ => return Err(self.status_error(&url, status, body).await),
-        };
-        if !append {
-            have = 0;
-            hasher = Hasher::new();
-        }
-        let p = partial.clone();
-        let file = blocking(move || {
-            std::fs::OpenOptions::new()
-                .create(true)
-                .write(true)
-                .append(append)
-                .truncate(!append)
-                .open(&p)
-                .map_err(super::io(&p))
-        })
-        .await?;
-        let file = tokio::fs::File::from_std(file);
-        // Unbuffered on purpose: each chunk reaches the file at once (tokio writes it in the
-        // background), so an agent killed mid-transfer loses at most the chunk in flight.
-        let mut out = file;
-        let streamed: Result<()> = async {
-            while let Some(chunk) = next_chunk(&mut body, &url).await? {
-                if have + chunk.len() as u64 > w.size {
-                    remove_partial(&partial).await;
-                    return Err(Error::TooLarge {
-                        what: what.clone(),
-                        size: w.size,
-                    });
-                }
-                hasher.update(&chunk);
-                out.write_all(&chunk).await.map_err(super::io(&partial))?;
-                have += chunk.len() as u64;
-                counter.fetch_add(chunk.len() as u64, Ordering::Relaxed);
-            }
-            Ok(())
-        }
-        .await;
-        // Keep what arrived, also when the transfer broke off: the next attempt resumes it.
-        let flushed = out.flush().await.map_err(super::io(&partial));
-        streamed?;
-        flushed?;
-        self.release(sender);
-        if have < w.size {
-            return Err(Error::Transport {
-                url,
-                message: format!("the body ended after {have} of {} bytes", w.size),
-            });
-        }
-        out.sync_all().await.map_err(super::io(&partial))?;
-        drop(out);
-        self.promote(layout, w, &what, &partial, hasher, resumed)
-            .await
-    }
-
-    /// Checks the digest of a complete partial file and moves it into the store.
-    async fn promote(
-        &self,
-        layout: &Layout,
-        w: &Wanted,
-        what: &str,
-        partial: &std::path::Path,
-        hasher: Hasher,
-        resumed: bool,
-    ) -> Result<Fetched> {
-        let actual = hasher.finish();
-        if actual != w.digest {
-            remove_partial(partial).await;
-            if resumed {
-                // The partial file from before may be what is wrong: one more try from scratch.
-                return Err(Error::Transport {
-                    url: self.url(&blob_path(&w.digest)),
-                    message: format!(
-                        "the resumed download of {what} did not verify; starting over"
-                    ),
-                });
-            }
-            return Err(Error::DigestMismatch {
-                what: what.to_owned(),
-                expected: w.digest.clone(),
-                actual,
-            });
-        }
-        let blob = layout.blob_path(&w.digest)?;
-        let partial = partial.to_owned();
-        blocking(move || std::fs::rename(&partial, &blob).map_err(super::io(&blob))).await?;
-        Ok(Fetched)
-    }
-
     /// The error for a non-success status, with the gateway's `message` if it sent one.
     async fn status_error(&self, url: &str, status: StatusCode, mut body: Incoming) -> Error {
         let mut bytes = Vec::new();
@@ -476,16 +332,6 @@ impl Client {
             },
         }
     }
-}
-
-/// The first byte of `Content-Range: bytes <first>-<last>/<len>`.
-fn content_range_start(v: &str) -> Option<u64> {
-    v.strip_prefix("bytes ")?
-        .split('-')
-        .next()?
-        .trim()
-        .parse()
-        .ok()
 }
 
 fn clone_request(r: &Request<Empty<Bytes>>) -> Request<Empty<Bytes>> {
@@ -519,29 +365,6 @@ async fn next_chunk(body: &mut Incoming, url: &str) -> Result<Option<Bytes>> {
                 }
             }
         }
-    }
-}
-
-/// Deletes a partial download (that turned out wrong); a failure only costs disk space.
-async fn remove_partial(partial: &std::path::Path) {
-    let p = partial.to_owned();
-    let _ = blocking(move || {
-        let _ = std::fs::remove_file(&p);
-        Ok(())
-    })
-    .await;
-}
-
-/// The length of a partial file and the hash state of its content.
-fn hash_partial(path: &std::path::Path) -> Result<(Hasher, u64)> {
-    let mut hasher = Hasher::new();
-    match std::fs::File::open(path) {
-        Ok(mut f) => {
-            let n = std::io::copy(&mut f, &mut hasher).map_err(super::io(path))?;
-            Ok((hasher, n))
-        }
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok((hasher, 0)),
-        Err(e) => Err(super::io(path)(e)),
     }
 }
 

@@ -19,7 +19,7 @@ const HEALTH_INTERVAL: Duration = Duration::from_secs(1);
 pub(super) struct HookEnv {
     /// `releases/<version>`, the working directory.
     pub dir: PathBuf,
-    /// The release.
+    /// The release the hook is about (the target, or the one switched back to).
     pub release: Release,
     /// The version that ran before (or, when switching back, the one that failed).
     pub previous: Option<String>,

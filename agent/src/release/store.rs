@@ -1,25 +1,23 @@
 //! The release store on disk: content-addressed blobs, assembled releases, the `current`
 //! symlink and the deploy journal. Blocking file system code, run via `spawn_blocking`.
 
-use std::collections::{BTreeSet, HashSet, VecDeque};
+use std::collections::{BTreeSet, HashSet};
 use std::io::Write;
 use std::os::unix::fs::{MetadataExt, PermissionsExt};
 use std::path::{Path, PathBuf};
 
 use lekiwi_protocol::Release;
 use lekiwi_protocol::release::{ReleaseManifest, digest_hex};
-use serde::{Deserialize, Serialize};
 use tracing::warn;
 
-use super::{Error, Phase, Result, Wanted, io};
+use super::{Error, Result, Wanted, io};
+
+mod journal;
+
+pub(super) use journal::{Active, Finished, Journal, JournalPhase};
 
 /// Directory inside each release that holds the agent's own files.
 pub(super) const META_DIR: &str = ".lekiwi";
-/// Command ids remembered so that a repeated command is not executed twice.
-const RECENT_COMMANDS: usize = 64;
-/// Versions remembered in activation order (for garbage collection).
-const HISTORY: usize = 64;
-
 /// `sha256:<hex>` of `bytes`.
 pub(super) fn sha256_digest(bytes: &[u8]) -> String {
     let mut h = Hasher::new();
@@ -60,72 +58,6 @@ impl Write for Hasher {
 
     fn flush(&mut self) -> std::io::Result<()> {
         Ok(())
-    }
-}
-
-/// Where the journal says a deployment stands.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub(super) enum JournalPhase {
-    /// Downloading or assembling; `current` untouched.
-    Preparing,
-    /// About to switch, or switched and restarting / health-checking.
-    Switching,
-    /// Switching back to `previous`.
-    RollingBack,
-}
-
-/// The deployment in progress.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub(super) struct Active {
-    pub command_id: String,
-    pub target: Release,
-    pub previous: Option<Release>,
-    pub phase: JournalPhase,
-    /// Why a rollback happens.
-    #[serde(default, skip_serializing_if = "String::is_empty")]
-    pub reason: String,
-}
-
-/// A finished command.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub(super) struct Finished {
-    pub command_id: String,
-    pub phase: Phase,
-    pub message: String,
-}
-
-/// `deploy.json`.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub(super) struct Journal {
-    /// The deployment in progress, if any.
-    #[serde(default)]
-    pub active: Option<Active>,
-    /// Recently finished commands, oldest first.
-    #[serde(default)]
-    pub recent: VecDeque<Finished>,
-    /// Versions in the order they were last current, oldest first.
-    #[serde(default)]
-    pub history: Vec<String>,
-}
-
-impl Journal {
-    pub(super) fn remember(&mut self, finished: Finished) {
-        self.recent.retain(|f| f.command_id != finished.command_id);
-        self.recent.push_back(finished);
-        while self.recent.len() > RECENT_COMMANDS {
-            self.recent.pop_front();
-        }
-    }
-
-    /// Marks `version` as the most recently current.
-    pub(super) fn touch(&mut self, version: &str) {
-        self.history.retain(|v| v != version);
-        self.history.push(version.to_owned());
-        if self.history.len() > HISTORY {
-            let excess = self.history.len() - HISTORY;
-            self.history.drain(..excess);
-        }
     }
 }
 
@@ -214,29 +146,6 @@ impl Layout {
             std::fs::create_dir_all(&dir).map_err(io(&dir))?;
         }
         Ok(())
-    }
-
-    pub(super) fn load_journal(&self) -> Result<Journal> {
-        let path = self.journal();
-        match std::fs::read(&path) {
-            Ok(bytes) => match serde_json::from_slice(&bytes) {
-                Ok(j) => Ok(j),
-                Err(e) => {
-                    // Atomic writes make this unlikely; do not let it block every deployment.
-                    warn!(path = %path.display(), error = %e, "corrupt deploy journal; set aside");
-                    let aside = self.root.join("deploy.json.corrupt");
-                    std::fs::rename(&path, &aside).map_err(io(&path))?;
-                    Ok(Journal::default())
-                }
-            },
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Journal::default()),
-            Err(e) => Err(io(&path)(e)),
-        }
-    }
-
-    pub(super) fn save_journal(&self, journal: &Journal) -> Result<()> {
-        let bytes = serde_json::to_vec_pretty(journal).unwrap_or_default();
-        write_atomic(&self.journal(), &bytes)
     }
 
     /// The release `current` points at: its `.lekiwi/release.json`.

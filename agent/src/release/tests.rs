@@ -104,6 +104,15 @@ impl Server {
         self.state.lock().unwrap().seen.clone()
     }
 
+    /// The `Range` start of each request for `path`, in order (`None`: the whole blob).
+    fn ranges(&self, path: &str) -> Vec<Option<u64>> {
+        self.seen()
+            .iter()
+            .filter(|s| s.path == path)
+            .map(|s| s.range)
+            .collect()
+    }
+
     fn requests(&self) -> usize {
         self.state.lock().unwrap().seen.len()
     }
@@ -524,13 +533,7 @@ async fn an_interrupted_download_resumes_with_range() {
     let mut r = fx.open();
     let (out, _) = deploy(&mut r, "c1", &v1).await;
     assert_eq!(out.phase, Phase::Done, "{}", out.message);
-    let ranges: Vec<Option<u64>> = fx
-        .server
-        .seen()
-        .iter()
-        .filter(|s| s.path == path)
-        .map(|s| s.range)
-        .collect();
+    let ranges = fx.server.ranges(&path);
     assert_eq!(ranges, [None, Some(70_000)]);
     assert_eq!(fx.server.state.lock().unwrap().sent[&path], 200_000);
     assert_eq!(
@@ -548,13 +551,7 @@ async fn an_interrupted_download_resumes_with_range() {
     std::fs::write(&partial, &big2[..12_345]).unwrap();
     let (out, _) = deploy(&mut r, "c2", &v2).await;
     assert_eq!(out.phase, Phase::Done, "{}", out.message);
-    let seen: Vec<Option<u64>> = fx
-        .server
-        .seen()
-        .iter()
-        .filter(|s| s.path == format!("/v1/blobs/{d2}"))
-        .map(|s| s.range)
-        .collect();
+    let seen = fx.server.ranges(&format!("/v1/blobs/{d2}"));
     assert_eq!(seen, [Some(12_345)]);
     assert_eq!(
         out.bytes_downloaded,
@@ -576,13 +573,7 @@ async fn an_interrupted_download_resumes_with_range() {
     let (out, _) = deploy(&mut r, "c3", &v3).await;
     assert_eq!(out.phase, Phase::Done, "{}", out.message);
     let path3 = format!("/v1/blobs/{d3}");
-    let seen: Vec<Option<u64>> = fx
-        .server
-        .seen()
-        .iter()
-        .filter(|s| s.path == path3)
-        .map(|s| s.range)
-        .collect();
+    let seen = fx.server.ranges(&path3);
     assert_eq!(seen, [None]);
     assert_eq!(
         std::fs::read(fx.state.join("current/model.bin")).unwrap(),

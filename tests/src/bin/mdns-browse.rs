@@ -1,6 +1,6 @@
 //! `mdns-browse`: prints the DNS-SD services it resolves as JSON lines, as they arrive.
 //!
-//! It uses mdns-sd directly rather than `lekiwi_agent::discovery`, so the tests check the
+//! It uses mdns-sd directly rather than `lekiwi_discovery`, so the tests check the
 //! agent's advertisement with code that shares nothing with the advertiser but the protocol.
 //!
 //! ```text

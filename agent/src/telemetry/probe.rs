@@ -1,0 +1,238 @@
+//! Where telemetry readings come from: the [`Probe`] interface and its `sysinfo` implementation
+//! for this machine, which refreshes only what each sampler reads.
+
+use lekiwi_protocol::SystemFacts;
+use sysinfo::{
+    Components, CpuRefreshKind, DiskRefreshKind, Disks, MemoryRefreshKind, Networks, System,
+};
+use tracing::info;
+
+/// A reading of the memory sampler.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct MemoryReading {
+    pub(super) percent: f64,
+    pub(super) used_bytes: u64,
+}
+
+/// A reading of the network sampler.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct NetworkReading {
+    pub(super) rx_bytes_per_s: f64,
+    pub(super) tx_bytes_per_s: f64,
+}
+
+/// Where readings come from: the machine ([`SystemProbe`]) or, in tests, a synthetic world.
+/// `None` means "no reading" (no sensor, no root file system, a read failed).
+pub(super) trait Probe: Send + Sync {
+    fn cpu_percent(&mut self) -> Option<f64>;
+    fn memory(&mut self) -> Option<MemoryReading>;
+    /// Rates since the previous call.
+    fn network(&mut self) -> Option<NetworkReading>;
+    fn temperature_c(&mut self) -> Option<f64>;
+    fn disk_percent(&mut self) -> Option<f64>;
+    fn uptime_s(&self) -> Option<u64>;
+    fn load1(&self) -> Option<f64>;
+}
+
+/// Facts about this computer for `hello`.
+pub fn system_facts() -> SystemFacts {
+    let mut system = System::new();
+    system.refresh_memory_specifics(MemoryRefreshKind::nothing().with_ram());
+    system.refresh_cpu_list(CpuRefreshKind::nothing());
+    let arch = System::cpu_arch();
+    SystemFacts {
+        hostname: System::host_name(),
+        os: System::long_os_version(),
+        kernel: System::kernel_version(),
+        arch: (!arch.is_empty()).then_some(arch),
+        cpus: u32::try_from(system.cpus().len()).ok().filter(|&n| n > 0),
+        memory_bytes: Some(system.total_memory()).filter(|&b| b > 0),
+    }
+}
+
+/// Reads this machine through `sysinfo`, refreshing only what each sampler needs.
+pub(super) struct SystemProbe {
+    /// CPU usage and memory only; never processes.
+    system: System,
+    networks: Networks,
+    networks_at: std::time::Instant,
+    components: Components,
+    /// Indices into `components` of the sensors that count (see [`pick_sensors`]).
+    sensors: Vec<usize>,
+    disks: Disks,
+    /// Index into `disks` of the root file system.
+    root_disk: Option<usize>,
+}
+
+impl SystemProbe {
+    pub(super) fn new() -> Self {
+        let mut system = System::new();
+        // CPU use is a difference of counters: take the first snapshot now.
+        system.refresh_cpu_usage();
+        let networks = Networks::new_with_refreshed_list();
+        let components = Components::new_with_refreshed_list();
+        let sensors = pick_sensors(components.list().iter().map(sysinfo::Component::label));
+        let disks =
+            Disks::new_with_refreshed_list_specifics(DiskRefreshKind::nothing().with_storage());
+        let root_disk = pick_root_disk(&disks);
+        info!(
+            sensors = ?sensors
+                .iter()
+                .map(|&i| components.list()[i].label())
+                .collect::<Vec<_>>(),
+            disk = ?root_disk.map(|i| disks.list()[i].mount_point()),
+            "telemetry samplers ready"
+        );
+        Self {
+            system,
+            networks,
+            networks_at: std::time::Instant::now(),
+            components,
+            sensors,
+            disks,
+            root_disk,
+        }
+    }
+}
+
+impl Probe for SystemProbe {
+    fn cpu_percent(&mut self) -> Option<f64> {
+        self.system.refresh_cpu_usage();
+        if self.system.cpus().is_empty() {
+            return None;
+        }
+        Some(f64::from(self.system.global_cpu_usage()))
+    }
+
+    fn memory(&mut self) -> Option<MemoryReading> {
+        self.system
+            .refresh_memory_specifics(MemoryRefreshKind::nothing().with_ram());
+        let total = self.system.total_memory();
+        let used = self.system.used_memory();
+        (total > 0).then(|| MemoryReading {
+            percent: used as f64 * 100.0 / total as f64,
+            used_bytes: used,
+        })
+    }
+
+    fn network(&mut self) -> Option<NetworkReading> {
+        // `true`: forget interfaces that are gone; a new one starts from its current counters.
+        self.networks.refresh(true);
+        let now = std::time::Instant::now();
+        let elapsed = now.duration_since(self.networks_at).as_secs_f64();
+        self.networks_at = now;
+        if elapsed < 0.001 {
+            return None;
+        }
+        let (rx, tx) = self
+            .networks
+            .iter()
+            .filter(|(name, data)| !is_loopback(name, data))
+            .fold((0u64, 0u64), |(rx, tx), (_, data)| {
+                (
+                    rx.saturating_add(data.received()),
+                    tx.saturating_add(data.transmitted()),
+                )
+            });
+        Some(NetworkReading {
+            rx_bytes_per_s: rx as f64 / elapsed,
+            tx_bytes_per_s: tx as f64 / elapsed,
+        })
+    }
+
+    fn temperature_c(&mut self) -> Option<f64> {
+        if self.sensors.is_empty() {
+            // Sensors may appear late (a driver loading after the agent started): look again,
+            // which costs one directory listing when there are none.
+            self.components.refresh(true);
+            self.sensors =
+                pick_sensors(self.components.list().iter().map(sysinfo::Component::label));
+            if !self.sensors.is_empty() {
+                info!("temperature sensors found");
+            }
+        } else {
+            let list = self.components.list_mut();
+            for &i in &self.sensors {
+                if let Some(component) = list.get_mut(i) {
+                    component.refresh();
+                }
+            }
+        }
+        let list = self.components.list();
+        let hottest = self
+            .sensors
+            .iter()
+            .filter_map(|&i| list.get(i)?.temperature())
+            .map(f64::from)
+            .filter(|t| t.is_finite())
+            .reduce(f64::max);
+        if hottest.is_none() {
+            // Every chosen sensor failed: list them afresh next time.
+            self.sensors.clear();
+        }
+        hottest
+    }
+
+    fn disk_percent(&mut self) -> Option<f64> {
+        if self.root_disk.is_none() {
+            self.disks
+                .refresh_specifics(true, DiskRefreshKind::nothing().with_storage());
+            self.root_disk = pick_root_disk(&self.disks);
+        }
+        let disk = self.disks.list_mut().get_mut(self.root_disk?)?;
+        disk.refresh_specifics(DiskRefreshKind::nothing().with_storage());
+        used_percent(disk.total_space(), disk.available_space())
+    }
+
+    fn uptime_s(&self) -> Option<u64> {
+        Some(System::uptime()).filter(|&s| s > 0)
+    }
+
+    fn load1(&self) -> Option<f64> {
+        let load = System::load_average().one;
+        load.is_finite().then_some(load)
+    }
+}
+
+fn is_loopback(name: &str, data: &sysinfo::NetworkData) -> bool {
+    name == "lo"
+        || (!data.ip_networks().is_empty()
+            && data.ip_networks().iter().all(|n| n.addr.is_loopback()))
+}
+
+/// Indices of the sensors whose maximum is "the temperature": the CPU/SoC ones if any
+/// (`cpu_thermal` on a Raspberry Pi, `k10temp`/`coretemp` on x86), else all of them (a disk or
+/// Wi-Fi sensor is still better than nothing).
+pub(super) fn pick_sensors<'a>(labels: impl Iterator<Item = &'a str>) -> Vec<usize> {
+    const CPU_LIKE: [&str; 6] = ["cpu", "soc", "k10temp", "coretemp", "thermal", "tctl"];
+    let labels: Vec<String> = labels.map(str::to_ascii_lowercase).collect();
+    let cpu_like: Vec<usize> = labels
+        .iter()
+        .enumerate()
+        .filter(|(_, label)| CPU_LIKE.iter().any(|key| label.contains(key)))
+        .map(|(i, _)| i)
+        .collect();
+    if cpu_like.is_empty() {
+        (0..labels.len()).collect()
+    } else {
+        cpu_like
+    }
+}
+
+/// The disk mounted at `/`, else the largest.
+fn pick_root_disk(disks: &Disks) -> Option<usize> {
+    let list = disks.list();
+    list.iter()
+        .position(|d| d.mount_point() == std::path::Path::new("/"))
+        .or_else(|| {
+            list.iter()
+                .enumerate()
+                .max_by_key(|(_, d)| d.total_space())
+                .map(|(i, _)| i)
+        })
+}
+
+/// Percent of a file system in use, counting reserved blocks as used.
+pub(super) fn used_percent(total: u64, available: u64) -> Option<f64> {
+    (total > 0).then(|| total.saturating_sub(available) as f64 * 100.0 / total as f64)
+}
