@@ -4,90 +4,8 @@
 use super::*;
 
 use jiff::Timestamp;
-use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_protocol::{Health, Release, SystemFacts, Teleoperation, Vitals};
 use serde_json::{Value, json};
-
-/// The hand-written patch the gateway sent before the typed one (kept to prove equality).
-fn legacy_patch(gateway: &str, e: &Entry) -> Value {
-    let time = |t: Timestamp| serde_json::to_value(Time(t)).unwrap_or(Value::Null);
-    let mut status = json!({
-        "connected": e.connected,
-        "gateway": gateway,
-        "protocol": e.info.protocol,
-        "connectedSince": time(e.connected_since),
-        "lastHeartbeatTime": time(e.last_heartbeat),
-    });
-    if !e.info.agent_version.is_empty() {
-        status["agentVersion"] = json!(e.info.agent_version);
-    }
-    if let Some(r) = &e.info.release {
-        status["currentRelease"] = json!({ "version": r.version, "digest": r.digest });
-    }
-    if let Some(a) = &e.info.address {
-        status["address"] = json!(a);
-    }
-    if let Some(h) = &e.info.health {
-        status["health"] = json!(h);
-        if h.message.is_none() {
-            status["health"] = json!({ "healthy": h.healthy });
-        }
-    }
-    if let Some(t) = &e.info.teleoperation {
-        let mut v = json!({ "active": t.active });
-        if let Some(score) = t.score {
-            v["score"] = json!(score.clamp(0.0, 1.0));
-        }
-        if let Some(since) = e.teleoperation_since {
-            v["since"] = time(since);
-        }
-        status["teleoperation"] = v;
-    }
-    let sys = &e.info.system;
-    let mut system = serde_json::Map::new();
-    for (k, v) in [
-        ("hostname", sys.hostname.as_ref().map(|x| json!(x))),
-        ("os", sys.os.as_ref().map(|x| json!(x))),
-        ("kernel", sys.kernel.as_ref().map(|x| json!(x))),
-        ("arch", sys.arch.as_ref().map(|x| json!(x))),
-        ("cpus", sys.cpus.map(|x| json!(x))),
-        ("memoryBytes", sys.memory_bytes.map(|x| json!(x))),
-    ] {
-        if let Some(v) = v {
-            system.insert(k.to_owned(), v);
-        }
-    }
-    if !system.is_empty() {
-        status["system"] = Value::Object(system);
-    }
-    let v = &e.vitals;
-    let mut telemetry = serde_json::Map::new();
-    for (k, x) in [
-        ("cpuPercent", v.cpu_percent),
-        ("memoryPercent", v.memory_percent),
-        ("temperatureCelsius", v.temperature_c),
-        ("batteryPercent", v.battery_percent),
-    ] {
-        if let Some(x) = x.filter(|x| x.is_finite()) {
-            telemetry.insert(k.to_owned(), json!(x));
-        }
-    }
-    if !telemetry.is_empty() {
-        status["telemetry"] = Value::Object(telemetry);
-    }
-    if let Some(u) = &e.last_update {
-        let mut v = json!({
-            "release": { "version": u.release.version, "digest": u.release.digest },
-            "phase": u.phase,
-            "time": time(u.time),
-        });
-        if let Some(m) = &u.message {
-            v["message"] = json!(m.chars().take(1024).collect::<String>());
-        }
-        status["lastUpdate"] = v;
-    }
-    json!({ "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot", "status": status })
-}
 
 fn at(s: &str) -> Timestamp {
     s.parse().unwrap()
@@ -213,14 +131,171 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
     ]
 }
 
+/// What the hand-written patch of the gateway before the typed one sent for each of
+/// [`representative_robots`], in its order (checked against that code when it was replaced).
+fn hand_written_patches() -> Vec<Value> {
+    vec![
+        // connected with vitals
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "address": "10.0.0.7:40112",
+                "agentVersion": "0.9.1",
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": {
+                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
+                    "version": "1.4.2"
+                },
+                "gateway": "gw-0",
+                "health": {
+                    "healthy": false,
+                    "message": "camera missing"
+                },
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "websocket",
+                "system": {
+                    "arch": "aarch64",
+                    "cpus": 4,
+                    "hostname": "kiwi-7",
+                    "memoryBytes": 8_589_934_592_u64,
+                    "os": "Debian GNU/Linux 12 (bookworm)"
+                },
+                "telemetry": {
+                    "cpuPercent": 12.5,
+                    "temperatureCelsius": 51.0
+                },
+                "teleoperation": {
+                    "active": true,
+                    "score": 1.0,
+                    "since": "2026-11-20T08:04:00Z"
+                }
+            }
+        }),
+        // healthy, not teleoperated
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "address": "10.0.0.7:40112",
+                "agentVersion": "0.9.1",
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": {
+                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
+                    "version": "1.4.2"
+                },
+                "gateway": "gw-0",
+                "health": {
+                    "healthy": true
+                },
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "websocket",
+                "system": {
+                    "arch": "aarch64",
+                    "cpus": 4,
+                    "hostname": "kiwi-7",
+                    "memoryBytes": 8_589_934_592_u64,
+                    "os": "Debian GNU/Linux 12 (bookworm)"
+                },
+                "teleoperation": {
+                    "active": false
+                }
+            }
+        }),
+        // disconnected
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "agentVersion": "0.9.1",
+                "connected": false,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "websocket"
+            }
+        }),
+        // legacy poll
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "address": "192.168.1.20",
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": {
+                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
+                    "version": "1.0.0"
+                },
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "poll"
+            }
+        }),
+        // update outcome
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": {
+                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
+                    "version": "1.4.2"
+                },
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "lastUpdate": {
+                    "message": "é".repeat(1024),
+                    "phase": "rolled_back",
+                    "release": {
+                        "digest": "sha256:abababababababababababababababababababababababababababababababab",
+                        "version": "1.5.0"
+                    },
+                    "time": "2026-11-20T08:06:00Z"
+                },
+                "protocol": "websocket"
+            }
+        }),
+        // disconnected after an update
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "connected": false,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": {
+                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
+                    "version": "1.4.2"
+                },
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "lastUpdate": {
+                    "phase": "done",
+                    "release": {
+                        "digest": "sha256:abababababababababababababababababababababababababababababababab",
+                        "version": "1.5.0"
+                    },
+                    "time": "2026-11-20T08:06:00Z"
+                },
+                "protocol": "websocket"
+            }
+        }),
+    ]
+}
+
 #[test]
 fn typed_status_patch_matches_the_hand_written_one() {
-    for (what, e) in representative_robots() {
+    let robots = representative_robots();
+    assert_eq!(robots.len(), hand_written_patches().len());
+    for ((what, e), expected) in robots.into_iter().zip(hand_written_patches()) {
         let typed = patch::status_patch("gw-0", &e, None);
-        assert_eq!(typed, legacy_patch("gw-0", &e), "{what}");
+        assert_eq!(typed, expected, "{what}");
         assert_eq!(
             serde_json::to_string(&typed).unwrap(),
-            serde_json::to_string(&legacy_patch("gw-0", &e)).unwrap(),
+            serde_json::to_string(&expected).unwrap(),
             "{what}: the same bytes on the wire"
         );
         let guarded = patch::status_patch(
@@ -230,9 +305,9 @@ fn typed_status_patch_matches_the_hand_written_one() {
                 resource_version: Some("4711".into()),
             }),
         );
-        let mut legacy = legacy_patch("gw-0", &e);
-        legacy["metadata"] = json!({ "resourceVersion": "4711" });
-        assert_eq!(guarded, legacy, "{what}, guarded");
+        let mut expected = expected;
+        expected["metadata"] = json!({ "resourceVersion": "4711" });
+        assert_eq!(guarded, expected, "{what}, guarded");
     }
 }
 fn key(n: &str) -> RobotKey {
