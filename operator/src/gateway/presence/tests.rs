@@ -68,16 +68,28 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
         battery_percent: None,
         ..Vitals::default()
     };
-    let mut healthy = with_vitals.clone();
-    healthy.info.health = Some(Health {
-        healthy: true,
-        message: None,
-    });
-    healthy.info.teleoperation = Some(Teleoperation {
-        active: false,
-        score: None,
-    });
-    healthy.teleoperation_since = None;
+    let mut healthy = entry(
+        true,
+        ConnectInfo {
+            protocol: "websocket",
+            agent_version: "1.0.0-rc.1".into(),
+            release: Some(release("2.0.0")),
+            health: Some(Health {
+                healthy: true,
+                message: None,
+            }),
+            teleoperation: Some(Teleoperation {
+                active: false,
+                score: None,
+            }),
+            system: SystemFacts {
+                kernel: Some("6.6.31+rpt-rpi-2712".into()),
+                memory_bytes: Some(4 << 30),
+                ..SystemFacts::default()
+            },
+            address: None,
+        },
+    );
     healthy.vitals = Vitals {
         battery_percent: Some(f64::INFINITY),
         ..Vitals::default()
@@ -178,13 +190,12 @@ fn hand_written_patches() -> Vec<Value> {
             "apiVersion": "fleet.lekiwi.io/v1alpha1",
             "kind": "Robot",
             "status": {
-                "address": "10.0.0.7:40112",
-                "agentVersion": "0.9.1",
+                "agentVersion": "1.0.0-rc.1",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
                 "currentRelease": {
                     "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                    "version": "1.4.2"
+                    "version": "2.0.0"
                 },
                 "gateway": "gw-0",
                 "health": {
@@ -193,11 +204,8 @@ fn hand_written_patches() -> Vec<Value> {
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
                 "protocol": "websocket",
                 "system": {
-                    "arch": "aarch64",
-                    "cpus": 4,
-                    "hostname": "kiwi-7",
-                    "memoryBytes": 8_589_934_592_u64,
-                    "os": "Debian GNU/Linux 12 (bookworm)"
+                    "kernel": "6.6.31+rpt-rpi-2712",
+                    "memoryBytes": 4_294_967_296_u64
                 },
                 "teleoperation": {
                     "active": false
