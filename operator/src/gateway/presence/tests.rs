@@ -18,6 +18,11 @@ fn release(v: &str) -> Release {
     }
 }
 
+/// The JSON of [`release`]`(version)`.
+fn release_json(version: &str) -> Value {
+    json!({ "digest": format!("sha256:{}", "ab".repeat(32)), "version": version })
+}
+
 fn entry(connected: bool, info: ConnectInfo) -> Entry {
     Entry {
         session: 7,
@@ -127,11 +132,13 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
     });
     let mut done = updated.clone();
     done.connected = false;
+    // A `done` outcome also makes its release the current one.
+    done.info.release = Some(release("1.5.0"));
     done.last_update = Some(UpdateOutcome {
         release: release("1.5.0"),
         phase: "done".into(),
         message: None,
-        time: at("2026-11-20T08:06:00Z"),
+        time: at("2026-11-20T08:07:00Z"),
     });
     vec![
         ("connected with vitals", with_vitals),
@@ -156,10 +163,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "agentVersion": "0.9.1",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
-                "currentRelease": {
-                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                    "version": "1.4.2"
-                },
+                "currentRelease": release_json("1.4.2"),
                 "gateway": "gw-0",
                 "health": {
                     "healthy": false,
@@ -193,10 +197,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "agentVersion": "1.0.0-rc.1",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
-                "currentRelease": {
-                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                    "version": "2.0.0"
-                },
+                "currentRelease": release_json("2.0.0"),
                 "gateway": "gw-0",
                 "health": {
                     "healthy": true
@@ -233,10 +234,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "address": "192.168.1.20",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
-                "currentRelease": {
-                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                    "version": "1.0.0"
-                },
+                "currentRelease": release_json("1.0.0"),
                 "gateway": "gw-0",
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
                 "protocol": "poll"
@@ -249,19 +247,13 @@ fn hand_written_patches() -> Vec<Value> {
             "status": {
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
-                "currentRelease": {
-                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                    "version": "1.4.2"
-                },
+                "currentRelease": release_json("1.4.2"),
                 "gateway": "gw-0",
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
                 "lastUpdate": {
                     "message": "é".repeat(1024),
                     "phase": "rolled_back",
-                    "release": {
-                        "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                        "version": "1.5.0"
-                    },
+                    "release": release_json("1.5.0"),
                     "time": "2026-11-20T08:06:00Z"
                 },
                 "protocol": "websocket"
@@ -274,19 +266,13 @@ fn hand_written_patches() -> Vec<Value> {
             "status": {
                 "connected": false,
                 "connectedSince": "2026-11-20T08:00:00Z",
-                "currentRelease": {
-                    "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                    "version": "1.4.2"
-                },
+                "currentRelease": release_json("1.5.0"),
                 "gateway": "gw-0",
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
                 "lastUpdate": {
                     "phase": "done",
-                    "release": {
-                        "digest": "sha256:abababababababababababababababababababababababababababababababab",
-                        "version": "1.5.0"
-                    },
-                    "time": "2026-11-20T08:06:00Z"
+                    "release": release_json("1.5.0"),
+                    "time": "2026-11-20T08:07:00Z"
                 },
                 "protocol": "websocket"
             }
