@@ -116,7 +116,7 @@ pub enum UploadState {
 pub struct ReleaseInfo {
     /// Digest of the manifest.
     pub digest: String,
-    /// The manifest.
+    /// The manifest's version and files, inlined in the JSON answer.
     #[serde(flatten)]
     pub manifest: ReleaseManifest,
     /// Digests of referenced blobs that are not stored, sorted, each once.
