@@ -5,7 +5,7 @@
 use std::sync::Arc;
 
 use prometheus_client::encoding::EncodeLabelSet;
-use prometheus_client::registry::Registry;
+use prometheus_client::registry::{Metric, Registry};
 
 pub use crate::controller::deployment::metrics::{
     DeploymentLabels, DeploymentPhaseLabels, OutcomeLabels, RolloutMetrics,
@@ -23,6 +23,23 @@ pub use crate::leader::LeaderMetrics;
 pub struct KindLabels {
     /// The kind (frame type, error code, refusal reason, ...).
     pub kind: &'static str,
+}
+
+/// Registers a subsystem's metrics and hands each back, so that its struct names every metric
+/// once, with its exported name and help beside it. Metrics are encoded in registration order.
+pub(crate) struct Registrar<'a>(pub(crate) &'a mut Registry);
+
+impl Registrar<'_> {
+    /// A new metric of its default shape, registered as `name`.
+    pub(crate) fn add<M: Metric + Clone + Default>(&mut self, name: &str, help: &str) -> M {
+        self.with(name, help, M::default())
+    }
+
+    /// `metric`, registered as `name`.
+    pub(crate) fn with<M: Metric + Clone>(&mut self, name: &str, help: &str, metric: M) -> M {
+        self.0.register(name, help, metric.clone());
+        metric
+    }
 }
 
 /// All metrics, cheap to clone.

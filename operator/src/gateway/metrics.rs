@@ -13,7 +13,7 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 
-use crate::metrics::KindLabels;
+use crate::metrics::{KindLabels, Registrar};
 
 /// Labels of gateway status-queue series.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -64,87 +64,59 @@ pub struct GatewayMetrics {
 
 impl GatewayMetrics {
     pub(crate) fn register(registry: &mut Registry) -> Self {
-        let m = Self {
-            connections: Gauge::default(),
-            sessions_ended: Family::default(),
-            refused: Family::default(),
-            frames: Family::default(),
-            errors: Family::default(),
-            durable: Family::default(),
-            heartbeat_rtt: Histogram::new(exponential_buckets(0.0005, 2.0, 14)),
-            status_queue: Family::default(),
-            status_writes: Family::default(),
-            polls: Family::default(),
-            blob_bytes_served: Counter::default(),
-            blob_bytes_received: Counter::default(),
-            blob_uploads: Family::default(),
-        };
-        registry.register(
-            "lekiwi_gateway_connections",
-            "Agent connections open now",
-            m.connections.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_sessions_ended",
-            "Agent sessions ended, by how",
-            m.sessions_ended.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_refused",
-            "Agent upgrade requests refused, by reason",
-            m.refused.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_frames",
-            "Frames received from agents, by message type",
-            m.frames.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_error_frames",
-            "Error frames sent to agents, by code",
-            m.errors.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_durable_messages",
-            "Durable agent messages acknowledged, stored or replay",
-            m.durable.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_heartbeat_rtt_seconds",
-            "Heartbeat round-trip time as reported by agents",
-            m.heartbeat_rtt.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_status_queue",
-            "Robots waiting for a status write, by priority",
-            m.status_queue.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_status_writes",
-            "Robot status writes, by priority and result",
-            m.status_writes.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_polls",
-            "Legacy polls answered, by status code",
-            m.polls.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_blob_bytes_served",
-            "Release blob bytes sent to robots and clients",
-            m.blob_bytes_served.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_blob_bytes_received",
-            "Release blob bytes received in uploads",
-            m.blob_bytes_received.clone(),
-        );
-        registry.register(
-            "lekiwi_gateway_blob_uploads",
-            "Release blob upload requests, by outcome",
-            m.blob_uploads.clone(),
-        );
-        m
+        let mut r = Registrar(registry);
+        Self {
+            connections: r.add("lekiwi_gateway_connections", "Agent connections open now"),
+            sessions_ended: r.add(
+                "lekiwi_gateway_sessions_ended",
+                "Agent sessions ended, by how",
+            ),
+            refused: r.add(
+                "lekiwi_gateway_refused",
+                "Agent upgrade requests refused, by reason",
+            ),
+            frames: r.add(
+                "lekiwi_gateway_frames",
+                "Frames received from agents, by message type",
+            ),
+            errors: r.add(
+                "lekiwi_gateway_error_frames",
+                "Error frames sent to agents, by code",
+            ),
+            durable: r.add(
+                "lekiwi_gateway_durable_messages",
+                "Durable agent messages acknowledged, stored or replay",
+            ),
+            heartbeat_rtt: r.with(
+                "lekiwi_gateway_heartbeat_rtt_seconds",
+                "Heartbeat round-trip time as reported by agents",
+                Histogram::new(exponential_buckets(0.0005, 2.0, 14)),
+            ),
+            status_queue: r.add(
+                "lekiwi_gateway_status_queue",
+                "Robots waiting for a status write, by priority",
+            ),
+            status_writes: r.add(
+                "lekiwi_gateway_status_writes",
+                "Robot status writes, by priority and result",
+            ),
+            polls: r.add(
+                "lekiwi_gateway_polls",
+                "Legacy polls answered, by status code",
+            ),
+            blob_bytes_served: r.add(
+                "lekiwi_gateway_blob_bytes_served",
+                "Release blob bytes sent to robots and clients",
+            ),
+            blob_bytes_received: r.add(
+                "lekiwi_gateway_blob_bytes_received",
+                "Release blob bytes received in uploads",
+            ),
+            blob_uploads: r.add(
+                "lekiwi_gateway_blob_uploads",
+                "Release blob upload requests, by outcome",
+            ),
+        }
     }
 }
 
@@ -188,40 +160,32 @@ pub struct RobotMetrics {
 
 impl RobotMetrics {
     pub(crate) fn register(registry: &mut Registry, enabled: bool) -> Self {
-        let m = Self {
+        let mut r = Registrar(registry);
+        Self {
             enabled,
-            cpu: Family::default(),
-            memory: Family::default(),
-            temperature: Family::default(),
-            release: Family::default(),
+            cpu: r.add(
+                "lekiwi_robot_cpu_percent",
+                "CPU use of each connected robot, percent of all cores, from its last heartbeat \
+                 (only with --per-robot-metrics; one series per connected robot)",
+            ),
+            memory: r.add(
+                "lekiwi_robot_memory_percent",
+                "Memory in use on each connected robot, percent, from its last heartbeat (only with \
+                 --per-robot-metrics; one series per connected robot)",
+            ),
+            temperature: r.add(
+                "lekiwi_robot_temperature_celsius",
+                "SoC temperature of each connected robot, from its last heartbeat (only with \
+                 --per-robot-metrics; one series per connected robot)",
+            ),
+            release: r.add(
+                "lekiwi_robot_release_info",
+                "1 for the release version each connected robot runs (only with \
+                 --per-robot-metrics; one series per connected robot, its version label changes \
+                 with each update)",
+            ),
             versions: Arc::default(),
-        };
-        registry.register(
-            "lekiwi_robot_cpu_percent",
-            "CPU use of each connected robot, percent of all cores, from its last heartbeat \
-             (only with --per-robot-metrics; one series per connected robot)",
-            m.cpu.clone(),
-        );
-        registry.register(
-            "lekiwi_robot_memory_percent",
-            "Memory in use on each connected robot, percent, from its last heartbeat (only with \
-             --per-robot-metrics; one series per connected robot)",
-            m.memory.clone(),
-        );
-        registry.register(
-            "lekiwi_robot_temperature_celsius",
-            "SoC temperature of each connected robot, from its last heartbeat (only with \
-             --per-robot-metrics; one series per connected robot)",
-            m.temperature.clone(),
-        );
-        registry.register(
-            "lekiwi_robot_release_info",
-            "1 for the release version each connected robot runs (only with \
-             --per-robot-metrics; one series per connected robot, its version label changes \
-             with each update)",
-            m.release.clone(),
-        );
-        m
+        }
     }
 
     /// Records a heartbeat's vitals and the release the robot runs; nothing when disabled.

@@ -17,9 +17,9 @@ pub enum Error {
     /// The directory for the SQLite file could not be created.
     #[error("cannot create directory {path} for the SQLite event store: {source}")]
     CreateDir {
-        /// The directory.
+        /// The directory the SQLite URL's file lives in.
         path: PathBuf,
-        /// The cause.
+        /// The operating system's error, e.g. permission denied.
         source: std::io::Error,
     },
     /// Opening the database failed.
@@ -27,7 +27,7 @@ pub enum Error {
     Connect {
         /// `sqlite` or `postgres`.
         backend: &'static str,
-        /// The cause.
+        /// The database driver's error.
         source: sqlx::Error,
     },
     /// The database did not answer in time.
@@ -43,7 +43,7 @@ pub enum Error {
     Migrate {
         /// `sqlite` or `postgres`.
         backend: &'static str,
-        /// The cause.
+        /// Which migration failed, and the database's error.
         source: sqlx::migrate::MigrateError,
     },
     /// Storing something failed; it was not stored and must not be acknowledged.
@@ -53,7 +53,7 @@ pub enum Error {
         what: &'static str,
         /// `namespace/name` of the robot.
         robot: String,
-        /// The cause.
+        /// The database driver's error.
         source: sqlx::Error,
     },
     /// Updating a stored record failed.
@@ -61,7 +61,7 @@ pub enum Error {
     Update {
         /// What was being updated.
         what: &'static str,
-        /// The cause.
+        /// The database driver's error.
         source: sqlx::Error,
     },
     /// Reading failed.
@@ -69,7 +69,7 @@ pub enum Error {
     Query {
         /// What was being read.
         what: &'static str,
-        /// The cause.
+        /// The database driver's error.
         source: sqlx::Error,
     },
     /// Deleting old records failed.

@@ -1,0 +1,316 @@
+//! Writing and reading the store's records: events, telemetry batches and connections, each
+//! stored once per `(robot, seq)` or connection id.
+
+use sqlx::types::Json;
+use sqlx::{FromRow, QueryBuilder};
+
+use super::{
+    ConnectionRecord, Error, Result, RobotKey, Sample, Store, StoredEvent, StoredSample,
+    from_db_seq, to_db_seq,
+};
+
+/// Six parameters a row keeps one statement under SQLite's 32766 and PostgreSQL's 65535.
+const SAMPLES_PER_STATEMENT: usize = 1000;
+
+#[derive(FromRow)]
+struct EventRow {
+    seq: i64,
+    ts_ms: i64,
+    kind: String,
+    severity: String,
+    message: String,
+    data: Json<serde_json::Value>,
+}
+
+impl From<EventRow> for StoredEvent {
+    fn from(row: EventRow) -> Self {
+        StoredEvent {
+            seq: from_db_seq(row.seq),
+            ts_ms: row.ts_ms,
+            kind: row.kind,
+            severity: row.severity,
+            message: row.message,
+            data: row.data.0,
+        }
+    }
+}
+
+#[derive(FromRow)]
+struct SampleRow {
+    seq: i64,
+    metric: String,
+    ts_ms: i64,
+    value: f64,
+}
+
+impl From<SampleRow> for StoredSample {
+    fn from(row: SampleRow) -> Self {
+        StoredSample {
+            seq: from_db_seq(row.seq),
+            metric: row.metric,
+            ts_ms: row.ts_ms,
+            value: row.value,
+        }
+    }
+}
+
+const INSERT_EVENT: &str = "INSERT INTO events (namespace, robot, seq, ts_ms, kind, severity, message, data) \
+     VALUES ($1, $2, $3, $4, $5, $6, $7, $8) ON CONFLICT (namespace, robot, seq) DO NOTHING";
+const INSERT_BATCH: &str = "INSERT INTO telemetry_batches (namespace, robot, seq, max_ts_ms) \
+     VALUES ($1, $2, $3, $4) ON CONFLICT (namespace, robot, seq) DO NOTHING";
+const LAST_SEQ: &str = "SELECT MAX(seq) FROM (\
+     SELECT MAX(seq) AS seq FROM events WHERE namespace = $1 AND robot = $2 \
+     UNION ALL \
+     SELECT MAX(seq) AS seq FROM telemetry_batches WHERE namespace = $1 AND robot = $2) AS m";
+const INSERT_CONNECTION: &str = "INSERT INTO connections \
+     (namespace, robot, gateway, protocol, address, connected_at_ms, disconnected_at_ms, reason) \
+     VALUES ($1, $2, $3, $4, $5, $6, $7, $8) RETURNING id";
+// The first disconnect wins: a late duplicate must not rewrite when or why it closed.
+const CLOSE_CONNECTION: &str = "UPDATE connections SET disconnected_at_ms = $2, reason = $3 \
+     WHERE id = $1 AND disconnected_at_ms IS NULL";
+const CLOSE_GATEWAY_CONNECTIONS: &str = "UPDATE connections SET disconnected_at_ms = $2, reason = $3 \
+     WHERE gateway = $1 AND disconnected_at_ms IS NULL";
+const SELECT_EVENTS: &str = "SELECT seq, ts_ms, kind, severity, message, data FROM events \
+     WHERE namespace = $1 AND robot = $2 AND seq > $3 ORDER BY seq LIMIT $4";
+const SELECT_SAMPLES: &str = "SELECT seq, metric, ts_ms, value FROM samples \
+     WHERE namespace = $1 AND robot = $2 AND ts_ms >= $3 ORDER BY ts_ms, seq, id LIMIT $4";
+const SELECT_METRIC_SAMPLES: &str = "SELECT seq, metric, ts_ms, value FROM samples \
+     WHERE namespace = $1 AND robot = $2 AND ts_ms >= $3 AND metric = $4 \
+     ORDER BY ts_ms, seq, id LIMIT $5";
+const SELECT_CONNECTIONS: &str = "SELECT gateway, protocol, address, connected_at_ms, disconnected_at_ms, reason \
+     FROM connections WHERE namespace = $1 AND robot = $2 \
+     ORDER BY connected_at_ms DESC, id DESC LIMIT $3";
+
+impl Store {
+    /// Stores an event; `Ok(true)` if newly stored, `Ok(false)` if `(robot, seq)` was already
+    /// stored (a replay, never a second row). Once this returns `Ok`, the event is durable.
+    pub async fn insert_event(&self, robot: &RobotKey, ev: &StoredEvent) -> Result<bool> {
+        let seq = to_db_seq(ev.seq)?;
+        let inserted = with_pool!(self, pool => {
+            sqlx::query(INSERT_EVENT)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(seq)
+                .bind(ev.ts_ms)
+                .bind(&ev.kind)
+                .bind(&ev.severity)
+                .bind(&ev.message)
+                .bind(Json(&ev.data))
+                .execute(pool)
+                .await
+                .map(|r| r.rows_affected())
+        })
+        .map_err(|source| Error::Insert {
+            what: "event",
+            robot: robot.to_string(),
+            source,
+        })?;
+        Ok(inserted == 1)
+    }
+
+    /// Stores one telemetry batch under its `seq`, all samples or none; `Ok(false)` if that seq
+    /// was already stored (a replay: nothing is inserted twice).
+    pub async fn insert_telemetry(
+        &self,
+        robot: &RobotKey,
+        seq: u64,
+        samples: &[Sample],
+    ) -> Result<bool> {
+        let seq = to_db_seq(seq)?;
+        // An empty batch still claims its seq; retention drops it on its next round.
+        let max_ts_ms = samples.iter().map(|s| s.ts_ms).max().unwrap_or(0);
+        let inserted = with_pool!(self, pool, begin => async {
+            let mut tx = pool.begin_with(begin).await?;
+            let claimed = sqlx::query(INSERT_BATCH)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(seq)
+                .bind(max_ts_ms)
+                .execute(&mut *tx)
+                .await?
+                .rows_affected();
+            if claimed == 0 {
+                // Dropping the transaction rolls it back; nothing was written anyway.
+                return Ok(false);
+            }
+            for chunk in samples.chunks(SAMPLES_PER_STATEMENT) {
+                let mut insert = QueryBuilder::new(
+                    "INSERT INTO samples (namespace, robot, seq, metric, ts_ms, value) ",
+                );
+                insert.push_values(chunk, |mut row, s| {
+                    row.push_bind(&robot.namespace)
+                        .push_bind(&robot.name)
+                        .push_bind(seq)
+                        .push_bind(&s.metric)
+                        .push_bind(s.ts_ms)
+                        .push_bind(s.value);
+                });
+                insert.build().execute(&mut *tx).await?;
+            }
+            tx.commit().await?;
+            Ok::<_, sqlx::Error>(true)
+        }
+        .await)
+        .map_err(|source| Error::Insert {
+            what: "telemetry",
+            robot: robot.to_string(),
+            source,
+        })?;
+        Ok(inserted)
+    }
+
+    /// Highest seq stored for the robot across events and telemetry; `None` if nothing is
+    /// (retention may have deleted it).
+    pub async fn last_seq(&self, robot: &RobotKey) -> Result<Option<u64>> {
+        let seq: Option<i64> = with_pool!(self, pool => {
+            sqlx::query_scalar(LAST_SEQ)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .fetch_one(pool)
+                .await
+        })
+        .map_err(|source| Error::Query {
+            what: "last seq",
+            source,
+        })?;
+        Ok(seq.map(from_db_seq))
+    }
+
+    /// Records a new connection; returns its id for [`Store::record_disconnect`].
+    pub async fn record_connect(&self, robot: &RobotKey, rec: &ConnectionRecord) -> Result<i64> {
+        with_pool!(self, pool => {
+            sqlx::query_scalar(INSERT_CONNECTION)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(&rec.gateway)
+                .bind(&rec.protocol)
+                .bind(&rec.address)
+                .bind(rec.connected_at_ms)
+                .bind(rec.disconnected_at_ms)
+                .bind(&rec.reason)
+                .fetch_one(pool)
+                .await
+        })
+        .map_err(|source| Error::Insert {
+            what: "connection",
+            robot: robot.to_string(),
+            source,
+        })
+    }
+
+    /// Marks connection `id` closed at `at_ms`. A connection already closed keeps its first
+    /// time and reason; an unknown id changes nothing.
+    pub async fn record_disconnect(&self, id: i64, at_ms: i64, reason: &str) -> Result<()> {
+        with_pool!(self, pool => {
+            sqlx::query(CLOSE_CONNECTION)
+                .bind(id)
+                .bind(at_ms)
+                .bind(reason)
+                .execute(pool)
+                .await
+                .map(|_| ())
+        })
+        .map_err(|source| Error::Update {
+            what: "connection",
+            source,
+        })?;
+        Ok(())
+    }
+
+    /// Closes every record `gateway` left open, e.g. when it restarts after a crash; returns how
+    /// many it closed.
+    pub async fn close_open_connections(
+        &self,
+        gateway: &str,
+        at_ms: i64,
+        reason: &str,
+    ) -> Result<u64> {
+        with_pool!(self, pool => {
+            sqlx::query(CLOSE_GATEWAY_CONNECTIONS)
+                .bind(gateway)
+                .bind(at_ms)
+                .bind(reason)
+                .execute(pool)
+                .await
+                .map(|r| r.rows_affected())
+        })
+        .map_err(|source| Error::Update {
+            what: "open connections",
+            source,
+        })
+    }
+
+    /// Up to `limit` events with seq above `after_seq` (all if `None`), in ascending seq.
+    pub async fn events(
+        &self,
+        robot: &RobotKey,
+        after_seq: Option<u64>,
+        limit: u32,
+    ) -> Result<Vec<StoredEvent>> {
+        let after = match after_seq.map(i64::try_from) {
+            None => -1,
+            Some(Ok(seq)) => seq,
+            // Nothing storable comes after it.
+            Some(Err(_)) => return Ok(Vec::new()),
+        };
+        let rows: Vec<EventRow> = with_pool!(self, pool => {
+            sqlx::query_as(SELECT_EVENTS)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(after)
+                .bind(i64::from(limit))
+                .fetch_all(pool)
+                .await
+        })
+        .map_err(|source| Error::Query {
+            what: "events",
+            source,
+        })?;
+        Ok(rows.into_iter().map(StoredEvent::from).collect())
+    }
+
+    /// Up to `limit` samples taken at or after `since_ms`, of one metric or all, oldest first.
+    pub async fn samples(
+        &self,
+        robot: &RobotKey,
+        metric: Option<&str>,
+        since_ms: i64,
+        limit: u32,
+    ) -> Result<Vec<StoredSample>> {
+        let rows: Vec<SampleRow> = with_pool!(self, pool => {
+            let query = match metric {
+                None => sqlx::query_as(SELECT_SAMPLES)
+                    .bind(&robot.namespace)
+                    .bind(&robot.name)
+                    .bind(since_ms),
+                Some(metric) => sqlx::query_as(SELECT_METRIC_SAMPLES)
+                    .bind(&robot.namespace)
+                    .bind(&robot.name)
+                    .bind(since_ms)
+                    .bind(metric),
+            };
+            query.bind(i64::from(limit)).fetch_all(pool).await
+        })
+        .map_err(|source| Error::Query {
+            what: "samples",
+            source,
+        })?;
+        Ok(rows.into_iter().map(StoredSample::from).collect())
+    }
+
+    /// Up to `limit` connection records of the robot, newest first.
+    pub async fn connections(&self, robot: &RobotKey, limit: u32) -> Result<Vec<ConnectionRecord>> {
+        with_pool!(self, pool => {
+            sqlx::query_as(SELECT_CONNECTIONS)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(i64::from(limit))
+                .fetch_all(pool)
+                .await
+        })
+        .map_err(|source| Error::Query {
+            what: "connections",
+            source,
+        })
+    }
+}

@@ -1,0 +1,339 @@
+//! Presence: what each connected robot last said, kept in memory, and the one writer that turns
+//! meaningful changes into `Robot` status by server-side apply without flooding the API server.
+//!
+//! Every robot has at most one entry in one of two queues: transitions (connect, disconnect,
+//! release, health or teleoperation change) go to the high-priority queue, routine heartbeat
+//! refreshes (at most every `status_refresh`) to the low one. The writer takes high before low,
+//! writes the *latest* state of the robot when its turn comes (so bursts coalesce), respects a
+//! rate limit, and retries failures with backoff; nothing is dropped and memory is bounded by
+//! the number of robots.
+
+mod patch;
+mod queue;
+#[cfg(test)]
+mod tests;
+mod writer;
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use jiff::Timestamp;
+use lekiwi_protocol::{Health, Release, SystemFacts, Teleoperation, Vitals};
+use tokio::sync::Notify;
+
+use self::queue::State;
+use crate::gateway::event_store::RobotKey;
+use crate::metrics::Metrics;
+
+/// Which queue a robot waits in for its status write: transitions overtake routine refreshes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Priority {
+    /// Connects, disconnects and other transitions.
+    High,
+    /// Routine `lastHeartbeatTime` refreshes.
+    Low,
+}
+
+impl Priority {
+    fn label(self) -> &'static str {
+        match self {
+            Priority::High => "high",
+            Priority::Low => "low",
+        }
+    }
+}
+
+/// What a robot told us at connect time.
+#[derive(Clone, Debug, Default)]
+pub struct ConnectInfo {
+    /// `websocket` or `poll`.
+    pub protocol: &'static str,
+    /// Agent software version.
+    pub agent_version: String,
+    /// Release it runs, written to `status.currentRelease`.
+    pub release: Option<Release>,
+    /// Its health verdict at connect, if it sent one.
+    pub health: Option<Health>,
+    /// Its teleoperation verdict at connect, if it sent one.
+    pub teleoperation: Option<Teleoperation>,
+    /// Hostname, OS, kernel, CPUs and memory, written to `status.system`.
+    pub system: SystemFacts,
+    /// The peer address the connection came from, written to `status.address`.
+    pub address: Option<String>,
+}
+
+/// What a heartbeat carries that matters for status.
+#[derive(Clone, Debug, Default)]
+pub struct HeartbeatInfo {
+    /// Release it runs now; a change is written at once.
+    pub release: Option<Release>,
+    /// Its health verdict; a change is written at once.
+    pub health: Option<Health>,
+    /// Its teleoperation verdict; a change of `active` is written at once.
+    pub teleoperation: Option<Teleoperation>,
+    /// CPU, memory, temperature and battery readings, written with the next status refresh.
+    pub vitals: Vitals,
+}
+
+/// How an agent's release update ended, as it reported it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct UpdateOutcome {
+    /// The release it was told to run.
+    pub release: Release,
+    /// `done`, `failed` or `rolled_back`.
+    pub phase: String,
+    /// Its explanation.
+    pub message: Option<String>,
+    /// When the gateway got it.
+    pub time: Timestamp,
+}
+
+/// What the gateway knows of one robot, and how far its status write has caught up.
+#[derive(Clone, Debug)]
+struct Entry {
+    session: u64,
+    connected: bool,
+    info: ConnectInfo,
+    connected_since: Timestamp,
+    last_heartbeat: Timestamp,
+    written_heartbeat: Option<Timestamp>,
+    teleoperation_since: Option<Timestamp>,
+    vitals: Vitals,
+    retries: u32,
+    last_update: Option<UpdateOutcome>,
+}
+
+/// Settings of the presence tracker and its writer.
+#[derive(Clone, Debug)]
+pub struct PresenceConfig {
+    /// This gateway's name (also its Lease's name), written to `status.gateway`.
+    pub gateway: String,
+    /// Refresh `lastHeartbeatTime` at most this often when nothing else changes.
+    pub status_refresh: Duration,
+    /// A polling robot that has not polled for this long is Offline.
+    pub poll_grace: Duration,
+    /// Sustained status writes per second.
+    pub qps: f64,
+    /// Burst of status writes.
+    pub burst: u32,
+    /// Writes in flight at once.
+    pub concurrency: usize,
+}
+
+/// The presence tracker; cheap to clone.
+#[derive(Clone)]
+pub struct Presence {
+    state: Arc<Mutex<State>>,
+    notify: Arc<Notify>,
+    config: Arc<PresenceConfig>,
+    metrics: Metrics,
+}
+
+impl Presence {
+    /// An empty tracker.
+    pub fn new(config: PresenceConfig, metrics: Metrics) -> Self {
+        Self {
+            state: Arc::default(),
+            notify: Arc::default(),
+            config: Arc::new(config),
+            metrics,
+        }
+    }
+
+    fn with_state<T>(&self, f: impl FnOnce(&mut State) -> T) -> T {
+        let mut state = self.state.lock().unwrap_or_else(|p| p.into_inner());
+        let out = f(&mut state);
+        self.metrics
+            .gateway
+            .status_queue
+            .get_or_create(&crate::metrics::PriorityLabels { priority: "high" })
+            .set(state.high.len() as i64);
+        self.metrics
+            .gateway
+            .status_queue
+            .get_or_create(&crate::metrics::PriorityLabels { priority: "low" })
+            .set(state.low.len() as i64);
+        out
+    }
+
+    fn wake(&self) {
+        self.notify.notify_one();
+    }
+
+    /// A session of `key` started.
+    pub fn connect(&self, key: &RobotKey, session: u64, info: ConnectInfo) {
+        let now = Timestamp::now();
+        self.with_state(|s| {
+            let teleoperation_since = info.teleoperation.as_ref().map(|_| now);
+            // Keep the last update's outcome: rollouts read it, and a manager that stops
+            // sending a field makes server-side apply drop it.
+            let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
+            s.robots.insert(
+                key.clone(),
+                Entry {
+                    session,
+                    connected: true,
+                    info,
+                    connected_since: now,
+                    last_heartbeat: now,
+                    written_heartbeat: None,
+                    teleoperation_since,
+                    vitals: Vitals::default(),
+                    retries: 0,
+                    last_update,
+                },
+            );
+            s.enqueue(key, Priority::High);
+        });
+        self.wake();
+    }
+
+    /// A heartbeat of the session `session`: kept in memory; written at once only if the
+    /// release, health or teleoperation changed.
+    pub fn heartbeat(&self, key: &RobotKey, session: u64, hb: HeartbeatInfo) {
+        let now = Timestamp::now();
+        let changed = self.with_state(|s| {
+            let Some(e) = s.live_session(key, session) else {
+                return false;
+            };
+            e.last_heartbeat = now;
+            e.vitals = hb.vitals;
+            let mut changed = false;
+            if hb.release.is_some() && hb.release != e.info.release {
+                e.info.release = hb.release;
+                changed = true;
+            }
+            if hb.health.is_some() && hb.health != e.info.health {
+                e.info.health = hb.health;
+                changed = true;
+            }
+            if let Some(t) = hb.teleoperation {
+                let was = e.info.teleoperation.as_ref().map(|t| t.active);
+                if was != Some(t.active) {
+                    e.teleoperation_since = Some(now);
+                    changed = true;
+                }
+                e.info.teleoperation = Some(t);
+            }
+            self.metrics.per_robot.record(
+                &key.namespace,
+                &key.name,
+                &e.vitals,
+                e.info.release.as_ref(),
+            );
+            if changed {
+                s.enqueue(key, Priority::High);
+            }
+            changed
+        });
+        if changed {
+            self.wake();
+        }
+    }
+
+    /// An update commanded in session `session` ended; written at once.
+    pub fn update_finished(&self, key: &RobotKey, session: u64, outcome: UpdateOutcome) {
+        let done = self.with_state(|s| {
+            let Some(e) = s.robots.get_mut(key).filter(|e| e.session == session) else {
+                return false;
+            };
+            if outcome.phase == lekiwi_protocol::ProgressPhase::Done.as_str() {
+                e.info.release = Some(outcome.release.clone());
+            }
+            e.last_update = Some(outcome);
+            s.enqueue(key, Priority::High);
+            true
+        });
+        if done {
+            self.wake();
+        }
+    }
+
+    /// A poll from a legacy agent counts as a heartbeat (and as a connect the first time).
+    pub fn poll(&self, key: &RobotKey, info: ConnectInfo) {
+        enum Act {
+            Connect,
+            Wake,
+            Nothing,
+        }
+        let act = self.with_state(|s| match s.robots.get_mut(key) {
+            Some(e) if e.connected && e.info.protocol == "poll" => {
+                e.last_heartbeat = Timestamp::now();
+                if info.release != e.info.release || info.agent_version != e.info.agent_version {
+                    e.info.release = info.release.clone();
+                    e.info.agent_version = info.agent_version.clone();
+                    s.enqueue(key, Priority::High);
+                    Act::Wake
+                } else {
+                    Act::Nothing
+                }
+            }
+            // Connected over WebSocket: the session is the authority; the poll changes nothing.
+            Some(e) if e.connected => Act::Nothing,
+            _ => Act::Connect,
+        });
+        match act {
+            Act::Connect => self.connect(key, 0, info),
+            Act::Wake => self.wake(),
+            Act::Nothing => {}
+        }
+    }
+
+    /// The session `session` ended; ignored if a newer session already took over.
+    pub fn disconnect(&self, key: &RobotKey, session: u64) {
+        let done = self.with_state(|s| {
+            let Some(e) = s.live_session(key, session) else {
+                return false;
+            };
+            e.connected = false;
+            self.metrics.per_robot.forget(&key.namespace, &key.name);
+            s.enqueue(key, Priority::High);
+            true
+        });
+        if done {
+            self.wake();
+        }
+    }
+
+    /// Robots waiting for a write.
+    pub fn queued(&self) -> usize {
+        self.with_state(|s| s.queued.len())
+    }
+
+    /// Number of robots connected right now.
+    pub fn connected(&self) -> usize {
+        self.with_state(|s| s.robots.values().filter(|e| e.connected).count())
+    }
+
+    /// Queues routine refreshes and ends silent polling sessions; call every second.
+    pub fn tick(&self) {
+        let now = Timestamp::now();
+        let refresh =
+            jiff::SignedDuration::try_from(self.config.status_refresh).unwrap_or_default();
+        let poll_grace = jiff::SignedDuration::try_from(self.config.poll_grace).unwrap_or_default();
+        let queued = self.with_state(|s| {
+            let mut due = Vec::new();
+            for (key, e) in s.robots.iter_mut() {
+                if !e.connected {
+                    continue;
+                }
+                if e.info.protocol == "poll" && now.duration_since(e.last_heartbeat) > poll_grace {
+                    e.connected = false;
+                    due.push((key.clone(), Priority::High));
+                } else if e
+                    .written_heartbeat
+                    .is_some_and(|w| now.duration_since(w) >= refresh && e.last_heartbeat > w)
+                {
+                    due.push((key.clone(), Priority::Low));
+                }
+            }
+            for (key, p) in &due {
+                s.enqueue(key, *p);
+            }
+            !due.is_empty()
+        });
+        if queued {
+            self.wake();
+        }
+    }
+}

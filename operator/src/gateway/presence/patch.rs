@@ -1,0 +1,133 @@
+//! The gateway's server-side-apply patch of a `Robot` status, built from the `crds` types so
+//! that a renamed or retyped status field fails to compile here instead of silently writing a
+//! key the CRD schema does not know.
+//!
+//! The patch holds exactly the fields the gateway owns: server-side apply drops a field its
+//! manager stops sending, so an unset fact is left out (every `RobotStatus` field is skipped
+//! when `None`), never sent as `null`.
+
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use kube::Resource;
+use lekiwi_crds::release::ReleaseRef;
+use lekiwi_crds::robot::{
+    HealthReport, Robot, RobotStatus, SystemInfo, TelemetrySummary, TeleoperationReport,
+    UpdateReport,
+};
+use lekiwi_protocol::{Release, SystemFacts, Vitals};
+use serde::Serialize;
+use serde_json::Value;
+
+use super::{Entry, UpdateOutcome};
+
+/// The agent's explanation of an update outcome is cut to this many characters.
+const MAX_UPDATE_MESSAGE_CHARS: usize = 1024;
+
+/// A `Robot` apply patch that touches only `status` (and, for a guarded write, the
+/// `resourceVersion` precondition).
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+struct StatusPatch {
+    api_version: String,
+    kind: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    metadata: Option<Precondition>,
+    status: RobotStatus,
+}
+
+/// Makes the API server refuse the write if the robot changed since it was read.
+#[derive(Serialize)]
+#[serde(rename_all = "camelCase")]
+pub(super) struct Precondition {
+    /// The `metadata.resourceVersion` of the robot as read.
+    pub(super) resource_version: Option<String>,
+}
+
+/// The apply patch of the robot's status as `gateway` sees it in `e`; with a `precondition`,
+/// the write only succeeds against that version of the robot.
+pub(super) fn status_patch(gateway: &str, e: &Entry, precondition: Option<Precondition>) -> Value {
+    let patch = StatusPatch {
+        api_version: Robot::api_version(&()).into_owned(),
+        kind: Robot::kind(&()).into_owned(),
+        metadata: precondition,
+        status: gateway_status(gateway, e),
+    };
+    // A `Value` keeps the keys sorted, as the hand-written patch had them on the wire.
+    serde_json::to_value(patch).unwrap_or(Value::Null)
+}
+
+/// The status fields the gateway owns. Every field is named, none defaulted, so that a field
+/// added to `RobotStatus` must be placed here or explicitly left to the controller.
+fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
+    let info = &e.info;
+    RobotStatus {
+        // Owned by the Robot controller.
+        phase: None,
+        conditions: Vec::new(),
+        observed_generation: None,
+        // Owned by the gateway.
+        connected: Some(e.connected),
+        gateway: Some(gateway.to_owned()),
+        protocol: Some(info.protocol.to_owned()),
+        last_heartbeat_time: Some(Time(e.last_heartbeat)),
+        connected_since: Some(Time(e.connected_since)),
+        agent_version: Some(info.agent_version.clone()).filter(|v| !v.is_empty()),
+        current_release: info.release.as_ref().map(release_ref),
+        address: info.address.clone(),
+        health: info.health.as_ref().map(|h| HealthReport {
+            healthy: h.healthy,
+            message: h.message.clone(),
+        }),
+        teleoperation: info.teleoperation.as_ref().map(|t| TeleoperationReport {
+            active: t.active,
+            score: t.score.map(|s| s.clamp(0.0, 1.0)),
+            since: e.teleoperation_since.map(Time),
+        }),
+        system: system_info(&info.system),
+        telemetry: telemetry_summary(&e.vitals),
+        last_update: e.last_update.as_ref().map(update_report),
+    }
+}
+
+fn release_ref(r: &Release) -> ReleaseRef {
+    ReleaseRef {
+        version: r.version.clone(),
+        digest: r.digest.clone(),
+    }
+}
+
+/// The system facts the agent sent, or `None` when it sent none (no empty object).
+fn system_info(sys: &SystemFacts) -> Option<SystemInfo> {
+    let info = SystemInfo {
+        hostname: sys.hostname.clone(),
+        os: sys.os.clone(),
+        kernel: sys.kernel.clone(),
+        arch: sys.arch.clone(),
+        cpus: sys.cpus,
+        memory_bytes: sys.memory_bytes,
+    };
+    (info != SystemInfo::default()).then_some(info)
+}
+
+/// The finite readings of the last heartbeat, or `None` when there is none: JSON has no NaN.
+fn telemetry_summary(v: &Vitals) -> Option<TelemetrySummary> {
+    let finite = |x: Option<f64>| x.filter(|x| x.is_finite());
+    let summary = TelemetrySummary {
+        cpu_percent: finite(v.cpu_percent),
+        memory_percent: finite(v.memory_percent),
+        temperature_celsius: finite(v.temperature_c),
+        battery_percent: finite(v.battery_percent),
+    };
+    (summary != TelemetrySummary::default()).then_some(summary)
+}
+
+fn update_report(u: &UpdateOutcome) -> UpdateReport {
+    UpdateReport {
+        release: Some(release_ref(&u.release)),
+        phase: Some(u.phase.clone()),
+        message: u
+            .message
+            .as_ref()
+            .map(|m| m.chars().take(MAX_UPDATE_MESSAGE_CHARS).collect()),
+        time: Some(Time(u.time)),
+    }
+}

@@ -1,0 +1,417 @@
+//! The presence queue and its coalescing, and the typed status patch against the JSON the
+//! gateway has always written.
+
+use super::*;
+
+use jiff::Timestamp;
+use lekiwi_protocol::{Health, Release, SystemFacts, Teleoperation, Vitals};
+use serde_json::{Value, json};
+
+fn at(s: &str) -> Timestamp {
+    s.parse().unwrap()
+}
+
+fn release(v: &str) -> Release {
+    Release {
+        version: v.into(),
+        digest: format!("sha256:{}", "ab".repeat(32)),
+    }
+}
+
+/// The JSON of [`release`]`(version)`.
+fn release_json(version: &str) -> Value {
+    json!({ "digest": format!("sha256:{}", "ab".repeat(32)), "version": version })
+}
+
+fn entry(connected: bool, info: ConnectInfo) -> Entry {
+    Entry {
+        session: 7,
+        connected,
+        info,
+        connected_since: at("2026-11-20T08:00:00Z"),
+        last_heartbeat: at("2026-11-20T08:05:30.250Z"),
+        written_heartbeat: None,
+        teleoperation_since: None,
+        vitals: Vitals::default(),
+        retries: 0,
+        last_update: None,
+    }
+}
+
+/// A few representative robots: what the typed patch writes is what the gateway always wrote.
+fn representative_robots() -> Vec<(&'static str, Entry)> {
+    let mut with_vitals = entry(
+        true,
+        ConnectInfo {
+            protocol: "websocket",
+            agent_version: "0.9.1".into(),
+            release: Some(release("1.4.2")),
+            health: Some(Health {
+                healthy: false,
+                message: Some("camera missing".into()),
+            }),
+            teleoperation: Some(Teleoperation {
+                active: true,
+                score: Some(1.7),
+            }),
+            system: SystemFacts {
+                hostname: Some("kiwi-7".into()),
+                os: Some("Debian GNU/Linux 12 (bookworm)".into()),
+                kernel: None,
+                arch: Some("aarch64".into()),
+                cpus: Some(4),
+                memory_bytes: Some(8 << 30),
+            },
+            address: Some("10.0.0.7:40112".into()),
+        },
+    );
+    with_vitals.teleoperation_since = Some(at("2026-11-20T08:04:00Z"));
+    with_vitals.vitals = Vitals {
+        cpu_percent: Some(12.5),
+        memory_percent: Some(f64::NAN),
+        temperature_c: Some(51.0),
+        battery_percent: None,
+        ..Vitals::default()
+    };
+    let mut healthy = entry(
+        true,
+        ConnectInfo {
+            protocol: "websocket",
+            agent_version: "1.0.0-rc.1".into(),
+            release: Some(release("2.0.0")),
+            health: Some(Health {
+                healthy: true,
+                message: None,
+            }),
+            teleoperation: Some(Teleoperation {
+                active: false,
+                score: None,
+            }),
+            system: SystemFacts {
+                kernel: Some("6.6.31+rpt-rpi-2712".into()),
+                memory_bytes: Some(4 << 30),
+                ..SystemFacts::default()
+            },
+            address: None,
+        },
+    );
+    healthy.vitals = Vitals {
+        battery_percent: Some(f64::INFINITY),
+        ..Vitals::default()
+    };
+    let disconnected = entry(
+        false,
+        ConnectInfo {
+            protocol: "websocket",
+            agent_version: "0.9.1".into(),
+            ..ConnectInfo::default()
+        },
+    );
+    let legacy_poll = entry(
+        true,
+        ConnectInfo {
+            protocol: "poll",
+            release: Some(release("1.0.0")),
+            address: Some("192.168.1.20".into()),
+            ..ConnectInfo::default()
+        },
+    );
+    let mut updated = entry(
+        true,
+        ConnectInfo {
+            protocol: "websocket",
+            release: Some(release("1.4.2")),
+            ..ConnectInfo::default()
+        },
+    );
+    updated.last_update = Some(UpdateOutcome {
+        release: release("1.5.0"),
+        phase: "rolled_back".into(),
+        message: Some("é".repeat(1500)),
+        time: at("2026-11-20T08:06:00Z"),
+    });
+    let mut done = updated.clone();
+    done.connected = false;
+    // A `done` outcome also makes its release the current one.
+    done.info.release = Some(release("1.5.0"));
+    done.last_update = Some(UpdateOutcome {
+        release: release("1.5.0"),
+        phase: "done".into(),
+        message: None,
+        time: at("2026-11-20T08:07:00Z"),
+    });
+    vec![
+        ("connected with vitals", with_vitals),
+        ("healthy, not teleoperated", healthy),
+        ("disconnected", disconnected),
+        ("legacy poll", legacy_poll),
+        ("update outcome", updated),
+        ("disconnected after an update", done),
+    ]
+}
+
+/// What the hand-written patch of the gateway before the typed one sent for each of
+/// [`representative_robots`], in its order (checked against that code when it was replaced).
+fn hand_written_patches() -> Vec<Value> {
+    vec![
+        // connected with vitals
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "address": "10.0.0.7:40112",
+                "agentVersion": "0.9.1",
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": release_json("1.4.2"),
+                "gateway": "gw-0",
+                "health": {
+                    "healthy": false,
+                    "message": "camera missing"
+                },
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "websocket",
+                "system": {
+                    "arch": "aarch64",
+                    "cpus": 4,
+                    "hostname": "kiwi-7",
+                    "memoryBytes": 8_589_934_592_u64,
+                    "os": "Debian GNU/Linux 12 (bookworm)"
+                },
+                "telemetry": {
+                    "cpuPercent": 12.5,
+                    "temperatureCelsius": 51.0
+                },
+                "teleoperation": {
+                    "active": true,
+                    "score": 1.0,
+                    "since": "2026-11-20T08:04:00Z"
+                }
+            }
+        }),
+        // healthy, not teleoperated
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "agentVersion": "1.0.0-rc.1",
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": release_json("2.0.0"),
+                "gateway": "gw-0",
+                "health": {
+                    "healthy": true
+                },
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "websocket",
+                "system": {
+                    "kernel": "6.6.31+rpt-rpi-2712",
+                    "memoryBytes": 4_294_967_296_u64
+                },
+                "teleoperation": {
+                    "active": false
+                }
+            }
+        }),
+        // disconnected
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "agentVersion": "0.9.1",
+                "connected": false,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "websocket"
+            }
+        }),
+        // legacy poll
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "address": "192.168.1.20",
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": release_json("1.0.0"),
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "protocol": "poll"
+            }
+        }),
+        // update outcome
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "connected": true,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": release_json("1.4.2"),
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "lastUpdate": {
+                    "message": "é".repeat(1024),
+                    "phase": "rolled_back",
+                    "release": release_json("1.5.0"),
+                    "time": "2026-11-20T08:06:00Z"
+                },
+                "protocol": "websocket"
+            }
+        }),
+        // disconnected after an update
+        json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "status": {
+                "connected": false,
+                "connectedSince": "2026-11-20T08:00:00Z",
+                "currentRelease": release_json("1.5.0"),
+                "gateway": "gw-0",
+                "lastHeartbeatTime": "2026-11-20T08:05:30Z",
+                "lastUpdate": {
+                    "phase": "done",
+                    "release": release_json("1.5.0"),
+                    "time": "2026-11-20T08:07:00Z"
+                },
+                "protocol": "websocket"
+            }
+        }),
+    ]
+}
+
+#[test]
+fn typed_status_patch_matches_the_hand_written_one() {
+    let robots = representative_robots();
+    assert_eq!(robots.len(), hand_written_patches().len());
+    for ((what, e), expected) in robots.into_iter().zip(hand_written_patches()) {
+        let typed = patch::status_patch("gw-0", &e, None);
+        assert_eq!(typed, expected, "{what}");
+        assert_eq!(
+            serde_json::to_string(&typed).unwrap(),
+            serde_json::to_string(&expected).unwrap(),
+            "{what}: the same bytes on the wire"
+        );
+        let guarded = patch::status_patch(
+            "gw-0",
+            &e,
+            Some(patch::Precondition {
+                resource_version: Some("4711".into()),
+            }),
+        );
+        let mut expected = expected;
+        expected["metadata"] = json!({ "resourceVersion": "4711" });
+        assert_eq!(guarded, expected, "{what}, guarded");
+    }
+}
+fn key(n: &str) -> RobotKey {
+    RobotKey {
+        namespace: "lab".into(),
+        name: n.into(),
+    }
+}
+
+fn presence() -> Presence {
+    Presence::new(
+        PresenceConfig {
+            gateway: "gw".into(),
+            status_refresh: Duration::from_secs(300),
+            poll_grace: Duration::from_secs(180),
+            qps: 10.0,
+            burst: 10,
+            concurrency: 2,
+        },
+        Metrics::default(),
+    )
+}
+
+#[test]
+fn transitions_jump_the_queue_and_bursts_coalesce() {
+    let p = presence();
+    p.with_state(|s| {
+        s.robots.insert(
+            key("a"),
+            Entry {
+                session: 1,
+                connected: true,
+                info: ConnectInfo::default(),
+                connected_since: Timestamp::now(),
+                last_heartbeat: Timestamp::now(),
+                written_heartbeat: None,
+                teleoperation_since: None,
+                vitals: Vitals::default(),
+                retries: 0,
+                last_update: None,
+            },
+        );
+        s.enqueue(&key("a"), Priority::Low);
+    });
+    p.connect(&key("b"), 2, ConnectInfo::default());
+    p.connect(&key("b"), 3, ConnectInfo::default());
+    p.disconnect(&key("b"), 2); // stale session: ignored
+    p.with_state(|s| {
+        assert_eq!(
+            s.pop(),
+            Some((key("b"), Priority::High)),
+            "high first, once"
+        );
+        assert_eq!(s.pop(), Some((key("a"), Priority::Low)));
+        assert_eq!(s.pop(), None);
+        assert!(s.robots[&key("b")].connected);
+    });
+}
+
+#[test]
+fn routine_heartbeats_write_nothing_until_refresh_but_changes_do() {
+    let p = presence();
+    p.connect(
+        &key("a"),
+        1,
+        ConnectInfo {
+            teleoperation: Some(Teleoperation {
+                active: false,
+                score: None,
+            }),
+            ..ConnectInfo::default()
+        },
+    );
+    p.with_state(|s| {
+        s.pop();
+        s.robots.get_mut(&key("a")).unwrap().written_heartbeat = Some(Timestamp::now());
+    });
+    for _ in 0..100 {
+        p.heartbeat(
+            &key("a"),
+            1,
+            HeartbeatInfo {
+                teleoperation: Some(Teleoperation {
+                    active: false,
+                    score: None,
+                }),
+                ..Default::default()
+            },
+        );
+    }
+    p.tick();
+    assert_eq!(
+        p.with_state(|s| s.pop()),
+        None,
+        "unchanged heartbeats within the refresh period"
+    );
+    p.heartbeat(
+        &key("a"),
+        1,
+        HeartbeatInfo {
+            teleoperation: Some(Teleoperation {
+                active: true,
+                score: Some(0.9),
+            }),
+            ..Default::default()
+        },
+    );
+    assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+    let patch =
+        p.with_state(|s| patch::status_patch(&p.config.gateway, &s.robots[&key("a")], None));
+    assert_eq!(patch["status"]["teleoperation"]["active"], json!(true));
+    assert_eq!(patch["status"]["gateway"], json!("gw"));
+}
