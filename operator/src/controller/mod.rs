@@ -11,6 +11,12 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use futures::{Stream, StreamExt};
+use kube::runtime::controller::{Action, Config as ControllerConfig, Controller};
+use kube::runtime::reflector::ObjectRef;
+use kube::runtime::watcher;
+use serde::de::DeserializeOwned;
+use std::fmt::Debug;
+use tokio_util::sync::CancellationToken;
 
 use k8s_openapi::api::coordination::v1::Lease;
 use kube::api::{Patch, PatchParams};
@@ -105,7 +111,7 @@ pub async fn apply_status<K>(
     manager: &str,
 ) -> Result<()>
 where
-    K: Resource<DynamicType = ()> + Clone + serde::de::DeserializeOwned + std::fmt::Debug,
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug,
 {
     let patch = json!({
         "apiVersion": K::api_version(&()),
@@ -125,13 +131,37 @@ where
     Ok(())
 }
 
-/// Drives a controller's result stream to its end (graceful shutdown). Failed items were
-/// already logged and counted by the error policy, hence only `debug` here.
-pub(crate) async fn log_until_stopped<T, E: std::fmt::Display>(
-    results: impl Stream<Item = std::result::Result<T, E>>,
+/// A controller of `api` with this process's reconcile concurrency.
+pub(crate) fn controller_for<K>(api: Api<K>, ctx: &Context) -> Controller<K>
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + Sync + 'static,
+{
+    Controller::new(api, watcher::Config::default().any_semantic())
+        .with_config(ControllerConfig::default().concurrency(ctx.config.concurrency))
+}
+
+/// Runs `controller`, also woken by `requests`, until `cancel` fires and the reconciles in
+/// flight finish. Failed items were already logged and counted by the error policy, hence
+/// only `debug` here.
+pub(crate) async fn drive<K, Ctx, Fut>(
+    controller: Controller<K>,
+    requests: impl Stream<Item = ObjectRef<K>> + Send + 'static,
+    (reconcile, error_policy): (
+        impl FnMut(Arc<K>, Arc<Ctx>) -> Fut,
+        impl Fn(Arc<K>, &Error, Arc<Ctx>) -> Action,
+    ),
+    ctx: Arc<Ctx>,
+    cancel: CancellationToken,
     what: &'static str,
-) {
-    results
+) where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + Sync + 'static,
+    Fut: Future<Output = Result<Action>> + Send + 'static,
+    Ctx: Send + Sync + 'static,
+{
+    controller
+        .reconcile_on(requests)
+        .graceful_shutdown_on(async move { cancel.cancelled().await })
+        .run(reconcile, error_policy, ctx)
         .for_each(|res| {
             if let Err(e) = res {
                 tracing::debug!(error = %e, "{what}");

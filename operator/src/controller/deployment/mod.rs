@@ -13,7 +13,7 @@ use std::sync::Arc;
 use futures::StreamExt;
 use jiff::Timestamp;
 use kube::core::DeserializeGuard;
-use kube::runtime::controller::{Action, Controller};
+use kube::runtime::controller::Action;
 use kube::runtime::reflector::{ObjectRef, Store};
 use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, ResourceExt};
@@ -45,10 +45,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
             ),
             None => (Api::all(ctx.client.clone()), Api::all(ctx.client.clone())),
         };
-    let controller = Controller::new(deploys, watcher::Config::default().any_semantic())
-        .with_config(
-            kube::runtime::controller::Config::default().concurrency(ctx.config.concurrency),
-        );
+    let controller = super::controller_for(deploys, &ctx);
     let deployment_store = controller.store();
     let (wake, wake_requests) = trigger();
     let (robot_store, robot_watch) = watch_robots(robots, deployment_store.clone(), wake);
@@ -64,12 +61,16 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         deployments: deployment_store,
     });
     info!("robot deployment controller started");
-    let shutdown = cancel.clone();
-    let results = controller
-        .reconcile_on(wake_requests)
-        .graceful_shutdown_on(async move { shutdown.cancelled().await })
-        .run(reconcile, error_policy, state);
-    super::log_until_stopped(results, "deployment controller stream item").await;
+    let handlers = (reconcile, error_policy);
+    super::drive(
+        controller,
+        wake_requests,
+        handlers,
+        state,
+        cancel.clone(),
+        "deployment controller stream item",
+    )
+    .await;
     robot_task.abort();
     info!("robot deployment controller stopped");
     Ok(())

@@ -12,7 +12,7 @@ use futures::StreamExt;
 use jiff::Timestamp;
 use k8s_openapi::api::coordination::v1::Lease;
 use kube::core::DeserializeGuard;
-use kube::runtime::controller::{Action, Controller};
+use kube::runtime::controller::Action;
 use kube::runtime::events::{Event, EventType};
 use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, Resource, ResourceExt};
@@ -50,10 +50,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         ..(*ctx).clone()
     });
 
-    let controller = Controller::new(robots, watcher::Config::default().any_semantic())
-        .with_config(
-            kube::runtime::controller::Config::default().concurrency(ctx.config.concurrency),
-        );
+    let controller = super::controller_for(robots, &ctx);
     let robot_store = controller.store();
     let (wake, wake_requests) = trigger();
     let liveness = tokio::spawn(watch_gateways(
@@ -65,12 +62,16 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     ));
 
     info!("robot controller started");
-    let shutdown = cancel.clone();
-    let results = controller
-        .reconcile_on(wake_requests)
-        .graceful_shutdown_on(async move { shutdown.cancelled().await })
-        .run(reconcile, error_policy, ctx);
-    super::log_until_stopped(results, "robot controller stream item").await;
+    let handlers = (reconcile, error_policy);
+    super::drive(
+        controller,
+        wake_requests,
+        handlers,
+        ctx,
+        cancel.clone(),
+        "robot controller stream item",
+    )
+    .await;
     liveness.abort();
     lease_task.abort();
     info!("robot controller stopped");
