@@ -38,7 +38,7 @@ pub struct Context {
     pub recorder: Recorder,
     /// Every metric of the process (controllers record into theirs).
     pub metrics: Metrics,
-    /// Operator configuration.
+    /// Operator configuration (namespaces, concurrency, heartbeat grace, blob directory).
     pub config: Arc<Config>,
     /// Leases of the gateways, once the Robot controller has started watching them.
     pub gateway_leases: Option<Store<Lease>>,

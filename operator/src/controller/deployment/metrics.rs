@@ -18,9 +18,9 @@ use super::plan::Plan;
 /// create by hand).
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct DeploymentLabels {
-    /// Namespace.
+    /// The deployment's namespace.
     pub namespace: String,
-    /// RobotDeployment name.
+    /// The deployment's name (unique within the namespace).
     pub deployment: String,
 }
 
@@ -38,7 +38,7 @@ pub struct DeploymentPhaseLabels {
     pub namespace: String,
     /// RobotDeployment name.
     pub deployment: String,
-    /// Its phase.
+    /// One of the seven rollout phases; the series of the current one is 1, the others 0.
     pub phase: &'static str,
 }
 
