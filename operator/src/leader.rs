@@ -140,15 +140,18 @@ impl LeaderElector {
         }
     }
 
+    /// The Lease as stored now, if it exists.
+    async fn read(&self) -> Result<Option<Lease>> {
+        self.api
+            .get_opt(&self.name)
+            .await
+            .map_err(|e| self.lease_error(e))
+    }
+
     /// One round: true when this replica holds the Lease afterwards.
     async fn try_acquire_or_renew(&mut self) -> Result<bool> {
         let now = MicroTime(Timestamp::now());
-        let Some(mut lease) = self
-            .api
-            .get_opt(&self.name)
-            .await
-            .map_err(|e| self.lease_error(e))?
-        else {
+        let Some(mut lease) = self.read().await? else {
             let lease = Lease {
                 metadata: ObjectMeta {
                     name: Some(self.name.clone()),
@@ -216,12 +219,7 @@ impl LeaderElector {
     }
 
     async fn release(&self) -> Result<()> {
-        let Some(mut lease) = self
-            .api
-            .get_opt(&self.name)
-            .await
-            .map_err(|e| self.lease_error(e))?
-        else {
+        let Some(mut lease) = self.read().await? else {
             return Ok(());
         };
         let Some(spec) = lease.spec.as_mut() else {

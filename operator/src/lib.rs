@@ -50,102 +50,149 @@ pub async fn client(config: &Config) -> Result<kube::Client> {
     kube::Client::try_from(kube_config).map_err(|e| Error::KubeConfig(e.to_string()))
 }
 
+/// Every long-lived task reports its name and outcome; the first to end stops the rest.
+type Tasks = tokio::task::JoinSet<(&'static str, Result<()>)>;
+
+/// What the long-lived tasks of one process share.
+struct Shared {
+    config: Arc<Config>,
+    identity: String,
+    client: kube::Client,
+    metrics: Metrics,
+    cancel: CancellationToken,
+}
+
 /// Runs the operator until SIGTERM/SIGINT; returns an error if a long-lived task dies.
 pub async fn run(config: Config) -> Result<()> {
     let config = Arc::new(config);
-    let identity = config.identity();
     let client = client(&config).await?;
     crd_install::ensure(client.clone(), config.install_crds).await?;
-
-    let metrics = Metrics::new(config.per_robot_metrics);
-    let cancel = CancellationToken::new();
+    let shared = Shared {
+        identity: config.identity(),
+        metrics: Metrics::new(config.per_robot_metrics),
+        cancel: CancellationToken::new(),
+        config,
+        client,
+    };
     let (leader_tx, leader_rx) = watch::channel(false);
     let ready = Arc::new(AtomicBool::new(false));
-
-    let listener = tokio::net::TcpListener::bind(config.http_addr)
-        .await
-        .map_err(|source| Error::Serve {
-            addr: config.http_addr,
-            source,
-        })?;
-    info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), "serving /metrics, /healthz and /readyz");
-    let gateway_ready = config
+    let gateway_ready = shared
+        .config
         .runs_gateway()
         .then(|| Arc::new(AtomicBool::new(false)));
+    let mut tasks = Tasks::new();
     let app = http::router(http::HttpState {
-        metrics: metrics.clone(),
+        metrics: shared.metrics.clone(),
         ready: ready.clone(),
         leader: leader_rx.clone(),
         gateway_ready: gateway_ready.clone(),
     });
-    // Every long-lived task reports its name and outcome; the first to end stops the rest.
-    let mut tasks: tokio::task::JoinSet<(&'static str, Result<()>)> = tokio::task::JoinSet::new();
-    let http_cancel = cancel.clone();
-    let http_addr = config.http_addr;
+    serve_http(&shared, app, &mut tasks).await?;
+    if shared.config.runs_controllers() {
+        start_controllers(&shared, leader_tx, leader_rx, &mut tasks);
+    }
+    if shared.config.runs_gateway() {
+        start_gateway(&shared, gateway_ready.unwrap_or_default(), &mut tasks).await?;
+    }
+    tokio::spawn(shutdown_on_signal(shared.cancel.clone()));
+    ready.store(true, Ordering::Release);
+    let config = &shared.config;
+    info!(identity = %shared.identity, namespace = %config.namespace, role = ?config.role, "lekiwi-operator started");
+    let outcome = wait_first_end(&shared.cancel, &mut tasks).await;
+    shared.cancel.cancel();
+    ready.store(false, Ordering::Release);
+    drain(tasks).await;
+    info!("lekiwi-operator stopped");
+    outcome
+}
+
+/// Binds the HTTP address and serves /metrics, /healthz and /readyz until cancelled.
+async fn serve_http(shared: &Shared, app: axum::Router, tasks: &mut Tasks) -> Result<()> {
+    let addr = shared.config.http_addr;
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|source| Error::Serve { addr, source })?;
+    info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), "serving /metrics, /healthz and /readyz");
+    let cancel = shared.cancel.clone();
     tasks.spawn(async move {
         let served = axum::serve(listener, app)
-            .with_graceful_shutdown(async move { http_cancel.cancelled().await })
+            .with_graceful_shutdown(async move { cancel.cancelled().await })
             .await
-            .map_err(|source| Error::Serve {
-                addr: http_addr,
-                source,
-            });
+            .map_err(|source| Error::Serve { addr, source });
         ("http server", served)
     });
+    Ok(())
+}
 
-    if config.runs_controllers() {
-        let elector = leader::LeaderElector::new(
-            client.clone(),
-            &config.namespace,
-            &config.leader_lease,
-            identity.clone(),
-            config.lease_duration(),
-            config.lease_retry(),
-        );
-        let (m, c) = (metrics.clone(), cancel.clone());
-        tasks.spawn(async move {
-            elector.run(leader_tx, m, c).await;
-            ("leader election", Ok(()))
-        });
-        let recorder = Recorder::new(
-            client.clone(),
-            Reporter {
-                controller: "lekiwi-operator".into(),
-                instance: Some(identity.clone()),
-            },
-        );
-        let ctx = Arc::new(Context::new(
-            client.clone(),
-            recorder,
-            metrics.clone(),
-            config.clone(),
-        ));
-        let c = cancel.clone();
-        tasks.spawn(async move { ("controllers", run_while_leader(ctx, leader_rx, c).await) });
-    }
-    if config.runs_gateway() {
-        let store = gateway::event_store::Store::connect(&config.store_url).await?;
-        info!(backend = store.backend(), "event store ready");
-        let (cfg, cl, m, c) = (
-            config.clone(),
-            client.clone(),
-            metrics.clone(),
-            cancel.clone(),
-        );
-        let listening = gateway_ready.clone().unwrap_or_default();
-        tasks.spawn(async move {
-            (
-                "gateway",
-                gateway::run(cfg, cl, m, store, listening, c).await,
-            )
-        });
-    }
+/// Campaigns for the leader Lease and runs the controllers while this replica leads.
+fn start_controllers(
+    shared: &Shared,
+    leader_tx: watch::Sender<bool>,
+    leader_rx: watch::Receiver<bool>,
+    tasks: &mut Tasks,
+) {
+    let config = &shared.config;
+    let elector = leader::LeaderElector::new(
+        shared.client.clone(),
+        &config.namespace,
+        &config.leader_lease,
+        shared.identity.clone(),
+        config.lease_duration(),
+        config.lease_retry(),
+    );
+    let (metrics, cancel) = (shared.metrics.clone(), shared.cancel.clone());
+    tasks.spawn(async move {
+        elector.run(leader_tx, metrics, cancel).await;
+        ("leader election", Ok(()))
+    });
+    let recorder = Recorder::new(
+        shared.client.clone(),
+        Reporter {
+            controller: "lekiwi-operator".into(),
+            instance: Some(shared.identity.clone()),
+        },
+    );
+    let ctx = Arc::new(Context::new(
+        shared.client.clone(),
+        recorder,
+        shared.metrics.clone(),
+        config.clone(),
+    ));
+    let cancel = shared.cancel.clone();
+    tasks.spawn(async move {
+        (
+            "controllers",
+            run_while_leader(ctx, leader_rx, cancel).await,
+        )
+    });
+}
 
-    tokio::spawn(shutdown_on_signal(cancel.clone()));
-    ready.store(true, Ordering::Release);
-    info!(%identity, namespace = %config.namespace, role = ?config.role, "lekiwi-operator started");
+/// Connects the event store and runs the gateway; `listening` turns true once it accepts.
+async fn start_gateway(
+    shared: &Shared,
+    listening: Arc<AtomicBool>,
+    tasks: &mut Tasks,
+) -> Result<()> {
+    let store = gateway::event_store::Store::connect(&shared.config.store_url).await?;
+    info!(backend = store.backend(), "event store ready");
+    let (config, client, metrics, cancel) = (
+        shared.config.clone(),
+        shared.client.clone(),
+        shared.metrics.clone(),
+        shared.cancel.clone(),
+    );
+    tasks.spawn(async move {
+        (
+            "gateway",
+            gateway::run(config, client, metrics, store, listening, cancel).await,
+        )
+    });
+    Ok(())
+}
 
-    let outcome = tokio::select! {
+/// Waits for a signal or for the first task to end; a task ending on its own is an error.
+async fn wait_first_end(cancel: &CancellationToken, tasks: &mut Tasks) -> Result<()> {
+    tokio::select! {
         biased;
         () = cancel.cancelled() => Ok(()),
         Some(joined) = tasks.join_next() => match joined {
@@ -155,10 +202,12 @@ pub async fn run(config: Config) -> Result<()> {
             Ok((_, Err(e))) => Err(e),
             Err(_) => Err(Error::TaskStopped("a task panicked")),
         },
-    };
-    cancel.cancel();
-    ready.store(false, Ordering::Release);
-    // Let the controllers drain, the Lease be released, the gateway flush and HTTP close.
+    }
+}
+
+/// Lets the controllers drain, the Lease be released, the gateway flush and HTTP close, for
+/// at most 10 s.
+async fn drain(mut tasks: Tasks) {
     let drained = tokio::time::timeout(std::time::Duration::from_secs(10), async {
         while tasks.join_next().await.is_some() {}
     })
@@ -166,8 +215,6 @@ pub async fn run(config: Config) -> Result<()> {
     if drained.is_err() {
         tracing::warn!("shutdown did not finish within 10s; exiting anyway");
     }
-    info!("lekiwi-operator stopped");
-    outcome
 }
 
 /// Starts the controllers whenever this replica leads and stops them when it no longer does.

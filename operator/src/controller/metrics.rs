@@ -23,14 +23,14 @@ pub enum ControllerName {
 /// Labels of per-controller series.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct ControllerLabels {
-    /// The controller.
+    /// Which controller the series is of (`robot` or `deployment`).
     pub controller: ControllerName,
 }
 
 /// Labels of per-controller error series.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct ErrorLabels {
-    /// The controller.
+    /// Which controller failed (`robot` or `deployment`).
     pub controller: ControllerName,
     /// Bounded error category.
     pub reason: &'static str,
@@ -46,11 +46,11 @@ pub struct PhaseLabels {
 /// What the controllers export.
 #[derive(Clone)]
 pub struct ControllerMetrics {
-    /// Reconciles started.
+    /// Reconciles started, whether they succeed or fail.
     pub reconciliations: Family<ControllerLabels, Counter>,
     /// Reconciles that failed.
     pub reconcile_errors: Family<ErrorLabels, Counter>,
-    /// Reconcile latency.
+    /// Seconds from the start to the end of a reconcile, including its API writes.
     pub reconcile_duration: Family<ControllerLabels, Histogram>,
     /// Robots by phase, as the leader last saw them.
     pub robots: Family<PhaseLabels, Gauge>,

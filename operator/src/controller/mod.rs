@@ -1,19 +1,33 @@
-//! Controllers and the state they share.
+//! Controllers and the state they share: the reconcile [`Context`], the status write both
+//! controllers make, and the [`trigger`] they are woken by besides their own watch.
 
 pub mod deployment;
 pub mod metrics;
 pub mod robot;
+pub mod trigger;
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use futures::{Stream, StreamExt};
+use kube::runtime::controller::{Action, Config as ControllerConfig, Controller};
+use kube::runtime::reflector::ObjectRef;
+use kube::runtime::watcher;
+use serde::de::DeserializeOwned;
+use std::fmt::Debug;
+use tokio_util::sync::CancellationToken;
+
 use k8s_openapi::api::coordination::v1::Lease;
+use kube::api::{Patch, PatchParams};
 use kube::runtime::events::Recorder;
 use kube::runtime::reflector::Store;
+use kube::{Api, Resource};
+use serde_json::json;
 
 use crate::config::Config;
-use crate::metrics::Metrics;
+use crate::error::{Error, Result};
+use crate::metrics::{ControllerName, ErrorLabels, Metrics};
 
 /// What every reconcile gets.
 #[derive(Clone)]
@@ -22,9 +36,9 @@ pub struct Context {
     pub client: kube::Client,
     /// The one Event recorder of this process.
     pub recorder: Recorder,
-    /// Metrics.
+    /// Every metric of the process (controllers record into theirs).
     pub metrics: Metrics,
-    /// Operator configuration.
+    /// Operator configuration (namespaces, concurrency, heartbeat grace, blob directory).
     pub config: Arc<Config>,
     /// Leases of the gateways, once the Robot controller has started watching them.
     pub gateway_leases: Option<Store<Lease>>,
@@ -60,9 +74,99 @@ impl Context {
         Duration::from_secs(1u64 << (*n - 1).min(8)).min(Duration::from_secs(300))
     }
 
+    /// Counts a failed reconcile of `name` by its reason and returns how long to back off.
+    pub fn reconcile_failed(
+        &self,
+        controller: ControllerName,
+        name: &str,
+        namespace: &str,
+        error: &Error,
+    ) -> Duration {
+        self.metrics
+            .controllers
+            .reconcile_errors
+            .get_or_create(&ErrorLabels {
+                controller,
+                reason: error.metric_reason(),
+            })
+            .inc();
+        self.next_backoff(name, namespace)
+    }
+
     /// Forgets an object's failures after a successful reconcile.
     pub fn reset_backoff(&self, name: &str, namespace: &str) {
         let mut failures = self.failures.lock().unwrap_or_else(|p| p.into_inner());
         failures.remove(&(namespace.to_owned(), name.to_owned()));
     }
+}
+
+/// Writes `status` to the object `name` by server-side apply under `manager`, forcing
+/// ownership: each controller owns its status fields outright, so a conflict means a stale
+/// writer (e.g. a former leader) that must lose. `object` names it in the error.
+pub async fn apply_status<K>(
+    api: &Api<K>,
+    name: &str,
+    object: &str,
+    status: serde_json::Value,
+    manager: &str,
+) -> Result<()>
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug,
+{
+    let patch = json!({
+        "apiVersion": K::api_version(&()),
+        "kind": K::kind(&()),
+        "status": status,
+    });
+    api.patch_status(
+        name,
+        &PatchParams::apply(manager).force(),
+        &Patch::Apply(&patch),
+    )
+    .await
+    .map_err(|source| Error::PatchStatus {
+        object: object.to_owned(),
+        source,
+    })?;
+    Ok(())
+}
+
+/// A controller of `api` with this process's reconcile concurrency.
+pub(crate) fn controller_for<K>(api: Api<K>, ctx: &Context) -> Controller<K>
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + Sync + 'static,
+{
+    Controller::new(api, watcher::Config::default().any_semantic())
+        .with_config(ControllerConfig::default().concurrency(ctx.config.concurrency))
+}
+
+/// Runs `controller`, also woken by `requests`, until `cancel` fires and the reconciles in
+/// flight finish. Failed items were already logged and counted by the error policy, hence
+/// only `debug` here.
+pub(crate) async fn drive<K, Ctx, Fut>(
+    controller: Controller<K>,
+    requests: impl Stream<Item = ObjectRef<K>> + Send + 'static,
+    (reconcile, error_policy): (
+        impl FnMut(Arc<K>, Arc<Ctx>) -> Fut,
+        impl Fn(Arc<K>, &Error, Arc<Ctx>) -> Action,
+    ),
+    ctx: Arc<Ctx>,
+    cancel: CancellationToken,
+    what: &'static str,
+) where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + Sync + 'static,
+    Fut: Future<Output = Result<Action>> + Send + 'static,
+    Ctx: Send + Sync + 'static,
+{
+    controller
+        .reconcile_on(requests)
+        .graceful_shutdown_on(async move { cancel.cancelled().await })
+        .run(reconcile, error_policy, ctx)
+        .for_each(|res| {
+            if let Err(e) = res {
+                tracing::debug!(error = %e, "{what}");
+            }
+            futures::future::ready(())
+        })
+        .await;
 }

@@ -1,6 +1,10 @@
 //! Metrics of the RobotDeployment controller: rollout phases, progress, outcomes and durations,
 //! one series set per RobotDeployment.
 
+use jiff::Timestamp;
+use kube::ResourceExt;
+use lekiwi_crds::RobotDeployment;
+use lekiwi_crds::deployment::RolloutPhase;
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -8,13 +12,15 @@ use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 use prometheus_client::registry::Registry;
 
+use super::plan::Plan;
+
 /// Labels of per-deployment series (bounded by the number of RobotDeployments, which people
 /// create by hand).
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct DeploymentLabels {
-    /// Namespace.
+    /// The deployment's namespace.
     pub namespace: String,
-    /// RobotDeployment name.
+    /// The deployment's name (unique within the namespace).
     pub deployment: String,
 }
 
@@ -32,7 +38,7 @@ pub struct DeploymentPhaseLabels {
     pub namespace: String,
     /// RobotDeployment name.
     pub deployment: String,
-    /// Its phase.
+    /// One of the seven rollout phases; the series of the current one is 1, the others 0.
     pub phase: &'static str,
 }
 
@@ -41,7 +47,7 @@ pub struct DeploymentPhaseLabels {
 pub struct RolloutMetrics {
     /// 1 for the phase each deployment is in, 0 for the others.
     pub phase: Family<DeploymentPhaseLabels, Gauge>,
-    /// Targeted, updated and failed robots per deployment.
+    /// Robots a deployment targets (selected, not in maintenance).
     pub targeted: Family<DeploymentLabels, Gauge>,
     /// Robots running the release.
     pub updated: Family<DeploymentLabels, Gauge>,
@@ -120,5 +126,87 @@ impl RolloutMetrics {
             m.batch_success.clone(),
         );
         m
+    }
+}
+
+impl RolloutMetrics {
+    /// Records what one plan of `deployment` says: gauges always, batch and rollout outcomes
+    /// only in the plan that ended them.
+    pub(super) fn record(&self, deployment: &RobotDeployment, plan: &Plan, now: Timestamp) {
+        let (namespace, name) = (
+            deployment.namespace().unwrap_or_default(),
+            deployment.name_any(),
+        );
+        let labels = DeploymentLabels {
+            namespace: namespace.clone(),
+            deployment: name.clone(),
+        };
+        let status = &plan.status;
+        self.targeted
+            .get_or_create(&labels)
+            .set(i64::from(status.targeted));
+        self.updated
+            .get_or_create(&labels)
+            .set(i64::from(status.updated));
+        self.failed
+            .get_or_create(&labels)
+            .set(i64::from(status.failed));
+        self.current_batch
+            .get_or_create(&labels)
+            .set(i64::from(status.current_batch.unwrap_or(0)));
+        for phase in PHASES {
+            self.phase
+                .get_or_create(&DeploymentPhaseLabels {
+                    namespace: namespace.clone(),
+                    deployment: name.clone(),
+                    phase: phase_str(phase),
+                })
+                .set(i64::from(status.phase == Some(phase)));
+        }
+        if let Some((_, ratio)) = plan.batch_result {
+            self.batch_success.observe(ratio);
+            let outcome = if ratio >= deployment.spec.strategy.success_threshold {
+                "succeeded"
+            } else {
+                "failed"
+            };
+            self.batches.get_or_create(&OutcomeLabels { outcome }).inc();
+        }
+        if plan.finished {
+            let outcome = match status.phase {
+                Some(RolloutPhase::Completed) => "completed",
+                Some(RolloutPhase::RolledBack) => "rolled_back",
+                _ => "failed",
+            };
+            let labels = OutcomeLabels { outcome };
+            self.finished.get_or_create(&labels).inc();
+            if let Some(start) = &status.start_time {
+                let secs = now.duration_since(start.0).as_secs_f64().max(0.0);
+                self.duration.get_or_create(&labels).observe(secs);
+            }
+        }
+    }
+}
+
+/// Every phase, so the gauge of the phases a deployment left drops to 0.
+const PHASES: [RolloutPhase; 7] = [
+    RolloutPhase::Pending,
+    RolloutPhase::Progressing,
+    RolloutPhase::Paused,
+    RolloutPhase::Completed,
+    RolloutPhase::RollingBack,
+    RolloutPhase::RolledBack,
+    RolloutPhase::Failed,
+];
+
+fn phase_str(p: RolloutPhase) -> &'static str {
+    match p {
+        RolloutPhase::Pending => "Pending",
+        RolloutPhase::Progressing => "Progressing",
+        RolloutPhase::Paused => "Paused",
+        RolloutPhase::Completed => "Completed",
+        RolloutPhase::RollingBack => "RollingBack",
+        RolloutPhase::RolledBack => "RolledBack",
+        RolloutPhase::Failed => "Failed",
     }
 }

@@ -8,8 +8,9 @@ use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_crds::condition::merge_conditions;
 use lekiwi_crds::robot::{
     CONDITION_CONNECTED, CONDITION_HEALTHY, CONDITION_TELEOPERATING, CONDITION_UP_TO_DATE,
+    HealthReport, TeleoperationReport,
 };
-use lekiwi_crds::{Condition, ConditionStatus, Robot, RobotPhase};
+use lekiwi_crds::{Condition, ConditionStatus, ReleaseRef, Robot, RobotPhase, RobotStatus};
 
 /// What the controller knows about the gateway named in a robot's status.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -67,14 +68,51 @@ impl Plan {
     }
 }
 
-/// Computes the robot's phase and conditions.
+/// Computes the robot's phase and conditions: where its connection stands, the phase that
+/// follows (maintenance wins), one condition per concern, and when to look again.
 pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
     let status = robot.status.clone().unwrap_or_default();
     let generation = robot.metadata.generation;
     let heartbeat = status.last_heartbeat_time.as_ref().map(|t| t.0);
     let heartbeat_age = heartbeat.map(|t| facts.now.duration_since(t).unsigned_abs());
+    let presence = presence(&status, facts, heartbeat_age);
+    let phase = if robot.spec.maintenance {
+        RobotPhase::Maintenance
+    } else {
+        presence.phase()
+    };
+    let online = presence == Presence::Online;
+    let desired = [
+        connected(presence, status.gateway.as_deref(), facts.heartbeat_grace),
+        healthy(status.health.as_ref(), online),
+        teleoperating(status.teleoperation.as_ref(), online),
+        up_to_date(robot.spec.release.as_ref(), status.current_release.as_ref()),
+    ]
+    .into_iter()
+    .map(|(t, s, r, m)| Condition {
+        last_transition_time: Time(facts.now),
+        ..Condition::new(t, s, r, m, generation)
+    })
+    .collect();
+    let conditions = merge_conditions(&status.conditions, desired);
+    // An Online robot turns Offline when its heartbeat ages past the grace: wake up just then.
+    let requeue_after = match (presence, heartbeat_age) {
+        (Presence::Online, Some(age)) => {
+            Some(facts.heartbeat_grace.saturating_sub(age) + Duration::from_millis(500))
+        }
+        _ => None,
+    };
+    Plan {
+        phase,
+        conditions,
+        observed_generation: generation,
+        requeue_after,
+    }
+}
 
-    let presence = if status.connected == Some(true) {
+/// A connected robot is Online only through a live gateway and with a fresh heartbeat.
+fn presence(status: &RobotStatus, facts: &Facts, heartbeat_age: Option<Duration>) -> Presence {
+    if status.connected == Some(true) {
         if facts.gateway != Some(GatewayState::Alive) {
             Presence::GatewayGone
         } else if heartbeat_age.is_none_or(|age| age > facts.heartbeat_grace) {
@@ -82,26 +120,32 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
         } else {
             Presence::Online
         }
-    } else if heartbeat.is_none() && status.connected_since.is_none() {
+    } else if status.last_heartbeat_time.is_none() && status.connected_since.is_none() {
         Presence::NeverConnected
     } else {
         Presence::Disconnected
-    };
+    }
+}
 
-    let phase = if robot.spec.maintenance {
-        RobotPhase::Maintenance
-    } else {
-        match presence {
+impl Presence {
+    /// The phase of a robot not in maintenance.
+    fn phase(self) -> RobotPhase {
+        match self {
             Presence::NeverConnected => RobotPhase::Pending,
             Presence::Online => RobotPhase::Online,
             Presence::Disconnected | Presence::HeartbeatExpired => RobotPhase::Offline,
             Presence::GatewayGone => RobotPhase::Unknown,
         }
-    };
+    }
+}
 
-    let gateway = status.gateway.as_deref().unwrap_or("none");
-    let grace = facts.heartbeat_grace.as_secs();
-    let connected = match presence {
+/// A condition before its generation and transition time are filled in.
+type Desired = (&'static str, ConditionStatus, &'static str, String);
+
+fn connected(presence: Presence, gateway: Option<&str>, grace: Duration) -> Desired {
+    let gateway = gateway.unwrap_or("none");
+    let grace = grace.as_secs();
+    match presence {
         Presence::Online => cond(
             CONDITION_CONNECTED,
             ConditionStatus::True,
@@ -132,10 +176,11 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
             "GatewayLost",
             format!("gateway {gateway} stopped renewing its Lease; the robot's state is unknown"),
         ),
-    };
+    }
+}
 
-    let online = presence == Presence::Online;
-    let healthy = match (&status.health, online) {
+fn healthy(health: Option<&HealthReport>, online: bool) -> Desired {
+    match (health, online) {
         (_, false) => cond(
             CONDITION_HEALTHY,
             ConditionStatus::Unknown,
@@ -162,8 +207,11 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
                 .clone()
                 .unwrap_or_else(|| "a health check failed".into()),
         ),
-    };
-    let teleoperating = match (&status.teleoperation, online) {
+    }
+}
+
+fn teleoperating(teleoperation: Option<&TeleoperationReport>, online: bool) -> Desired {
+    match (teleoperation, online) {
         (_, false) => cond(
             CONDITION_TELEOPERATING,
             ConditionStatus::Unknown,
@@ -188,8 +236,11 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
             "Idle",
             "no teleoperation detected",
         ),
-    };
-    let up_to_date = match (&robot.spec.release, &status.current_release) {
+    }
+}
+
+fn up_to_date(want: Option<&ReleaseRef>, have: Option<&ReleaseRef>) -> Desired {
+    match (want, have) {
         (None, _) => cond(
             CONDITION_UP_TO_DATE,
             ConditionStatus::True,
@@ -214,40 +265,16 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
             "ReleaseUnknown",
             format!("should run {want}; the robot has not reported its release"),
         ),
-    };
-
-    let desired = [connected, healthy, teleoperating, up_to_date]
-        .into_iter()
-        .map(|(t, s, r, m)| Condition {
-            last_transition_time: Time(facts.now),
-            ..Condition::new(t, s, r, m, generation)
-        })
-        .collect();
-    let conditions = merge_conditions(&status.conditions, desired);
-
-    // An Online robot turns Offline when its heartbeat ages past the grace: wake up just then.
-    let requeue_after = match (presence, heartbeat_age) {
-        (Presence::Online, Some(age)) => {
-            Some(facts.heartbeat_grace.saturating_sub(age) + Duration::from_millis(500))
-        }
-        _ => None,
-    };
-
-    Plan {
-        phase,
-        conditions,
-        observed_generation: generation,
-        requeue_after,
     }
 }
 
 fn cond(
-    t: &'static str,
-    s: ConditionStatus,
+    r#type: &'static str,
+    status: ConditionStatus,
     reason: &'static str,
     message: impl Into<String>,
-) -> (&'static str, ConditionStatus, &'static str, String) {
-    (t, s, reason, message.into())
+) -> Desired {
+    (r#type, status, reason, message.into())
 }
 
 /// The Event reason for entering a phase, or None for the initial `Pending`.

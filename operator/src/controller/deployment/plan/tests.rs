@@ -2,8 +2,9 @@
 
 use super::*;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, ObjectMeta};
+use lekiwi_crds::ConditionStatus;
 use lekiwi_crds::RobotDeploymentSpec;
-use lekiwi_crds::deployment::RolloutStrategy;
+use lekiwi_crds::deployment::{RobotRolloutState, RolloutPhase, RolloutStrategy};
 
 fn rel(v: &str) -> ReleaseRef {
     ReleaseRef {

@@ -1,0 +1,160 @@
+//! Third step of the rollout planner: moves the rollout's phase on, from the gates and the
+//! robots' states: fail on an invalid release, wait for an older deployment, roll back, or
+//! roll forward (see [`super::progress`]).
+
+use jiff::SignedDuration;
+use lekiwi_crds::deployment::RolloutPhase;
+
+use super::classify::{Fleet, RobotState};
+use super::draft::{Draft, Rollout};
+use super::gates::Gates;
+use super::{MarkState, ReleaseCheck, progress, time};
+
+/// Robots whose failure became known now get a permanent mark (and a Warning).
+pub(super) fn mark_new_failures(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
+    for (robot, state) in &fleet.robots {
+        let RobotState::Failed(batch, why) = state else {
+            continue;
+        };
+        if !robot
+            .mark
+            .as_ref()
+            .is_some_and(|m| m.state == MarkState::Started)
+        {
+            continue;
+        }
+        let mut mark = robot
+            .mark
+            .clone()
+            .unwrap_or_else(|| rollout.fallback_mark());
+        mark.state = MarkState::Failed;
+        mark.since = rollout.now;
+        mark.message = Some(why.clone());
+        draft.write(&robot.name, mark, None);
+        draft.warning(
+            "RobotUpdateFailed",
+            format!("{} (batch {batch}): {why}", robot.name),
+        );
+    }
+}
+
+/// Decides the phase this plan ends in, with the writes and Events that go with it.
+pub(super) fn advance(
+    rollout: &Rollout<'_>,
+    fleet: &Fleet<'_>,
+    gates: &Gates<'_>,
+    draft: &mut Draft,
+) {
+    // A completed rollout picks up robots selected later.
+    if draft.phase == RolloutPhase::Completed && fleet.any_pending() && gates.release_ok {
+        draft.phase = RolloutPhase::Progressing;
+        draft.status.completion_time = None;
+    }
+    let undo_now = gates.undo_requested
+        && !matches!(
+            draft.phase,
+            RolloutPhase::RollingBack | RolloutPhase::RolledBack
+        );
+    if undo_now {
+        draft.phase = RolloutPhase::RollingBack;
+        draft.message = "rollback requested by a user (kubectl lekiwi rollout undo)".to_owned();
+        draft.warning("RollbackStarted", draft.message.clone());
+        start_rollback(rollout, fleet, draft);
+    }
+    let phase = draft.phase;
+    match phase {
+        RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
+            if !(phase == RolloutPhase::Failed && gates.release_ok) => {}
+        _ if !gates.release_ok => fail_on_invalid_release(rollout, draft),
+        _ if phase != RolloutPhase::RollingBack => match gates.older_overlap {
+            // Wait for the older deployment; robots already started keep going.
+            Some(older) => {
+                draft.message = format!(
+                    "waiting for the older deployment {} that selects some of the same robots",
+                    older.deployment
+                );
+                draft.wake_at(rollout.now + SignedDuration::from_secs(30));
+            }
+            // Pending, Progressing, Paused, or Failed with a now-valid release.
+            None => progress::roll_forward(rollout, fleet, draft),
+        },
+        RolloutPhase::RollingBack if undo_now => {
+            draft.wake_at(rollout.now + SignedDuration::from_secs(2));
+        }
+        _ => await_rollback(rollout, fleet, draft),
+    }
+}
+
+/// An active rollout of an invalid release fails (a rollback in progress goes on).
+fn fail_on_invalid_release(rollout: &Rollout<'_>, draft: &mut Draft) {
+    if draft.phase == RolloutPhase::RollingBack {
+        return;
+    }
+    draft.phase = RolloutPhase::Failed;
+    draft.message = match rollout.release {
+        ReleaseCheck::Invalid(why) => format!("cannot roll out {}: {why}", rollout.target),
+        _ => String::new(),
+    };
+    if rollout.was_active {
+        draft.warning("InvalidRelease", draft.message.clone());
+        draft.status.completion_time = Some(time(rollout.now));
+    }
+}
+
+/// Tells every robot this rollout started to switch back to the release it ran before.
+pub(super) fn start_rollback(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
+    for (robot, state) in &fleet.robots {
+        let started = matches!(
+            state,
+            RobotState::Updating(..) | RobotState::Succeeded(_) | RobotState::Failed(..)
+        );
+        if !started {
+            continue;
+        }
+        let Some(mark) = robot.mark.as_ref().filter(|m| m.rollout_id == rollout.id) else {
+            continue;
+        };
+        let mut mark = mark.clone();
+        mark.deployment = rollout.name.clone();
+        if let RobotState::Failed(_, why) = state {
+            mark.failed = true;
+            mark.message = Some(why.clone());
+        }
+        mark.state = MarkState::RollingBack;
+        mark.since = rollout.now;
+        // A robot that ran nothing before keeps the new release: there is nothing to return to.
+        let release = mark.previous.clone();
+        draft.writes.retain(|w| w.robot != robot.name);
+        draft.write(&robot.name, mark, release);
+    }
+}
+
+/// Waits until every robot told to switch back runs its previous release (or timed out).
+fn await_rollback(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
+    let now = rollout.now;
+    let mut outstanding = 0;
+    for (robot, state) in &fleet.robots {
+        let RobotState::RollingBack(_, since) = state else {
+            continue;
+        };
+        let back = robot.mark.as_ref().and_then(|m| m.previous.as_ref());
+        let done = back.is_none_or(|p| robot.runs(p));
+        if !done && now.duration_since(*since) <= rollout.robot_timeout {
+            outstanding += 1;
+            draft.wake_at(*since + rollout.robot_timeout + SignedDuration::from_secs(1));
+        }
+    }
+    if outstanding == 0 {
+        draft.phase = RolloutPhase::RolledBack;
+        draft.status.completion_time = Some(time(now));
+        draft.warning(
+            "RolledBack",
+            format!(
+                "every updated robot is back on its previous release: {}",
+                draft.message
+            ),
+        );
+    } else {
+        draft.wake_at(now + SignedDuration::from_secs(10));
+    }
+}
