@@ -1,0 +1,58 @@
+//! Fleet objects a test starts from: Robots, the enrollment token Secret, the gateway's URL.
+
+use anyhow::Result;
+use k8s_openapi::api::core::v1::Secret;
+use kube::api::PostParams;
+use kube::{Api, Client};
+use lekiwi_crds::Robot;
+use serde_json::{Value, json};
+
+use crate::operator::OperatorProcess;
+
+/// Reads a robot.
+pub async fn get_robot(client: &Client, namespace: &str, name: &str) -> Result<Robot> {
+    Ok(Api::<Robot>::namespaced(client.clone(), namespace)
+        .get(name)
+        .await?)
+}
+
+/// Creates a robot with only a display name and `labels` in its spec.
+pub async fn create_robot(
+    client: &Client,
+    namespace: &str,
+    name: &str,
+    labels: &[(&str, &str)],
+) -> Result<Robot> {
+    let labels: serde_json::Map<String, Value> = labels
+        .iter()
+        .map(|(k, v)| (k.to_string(), json!(v)))
+        .collect();
+    let robot: Robot = serde_json::from_value(json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1",
+        "kind": "Robot",
+        "metadata": { "name": name, "labels": labels },
+        "spec": { "displayName": format!("Test robot {name}") }
+    }))?;
+    Ok(Api::<Robot>::namespaced(client.clone(), namespace)
+        .create(&PostParams::default(), &robot)
+        .await?)
+}
+
+/// The gateway's WebSocket URL of an operator process.
+pub fn gateway_url(op: &OperatorProcess) -> String {
+    format!(
+        "ws://127.0.0.1:{}{}",
+        op.gateway_port,
+        lekiwi_protocol::AGENT_PATH
+    )
+}
+
+/// Creates a fleet enrollment token for `namespace` (stored as a hash) and returns it.
+pub async fn enrollment_token(client: &Client, namespace: &str) -> Result<String> {
+    let token = lekiwi_crds::contract::new_token("lke_");
+    let secret = lekiwi_crds::contract::enrollment_token_secret(&token);
+    Api::<Secret>::namespaced(client.clone(), namespace)
+        .create(&PostParams::default(), &secret)
+        .await?;
+    Ok(token)
+}
