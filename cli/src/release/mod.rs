@@ -144,10 +144,9 @@ async fn push_dir(
 
 /// Renders a release in the chosen format.
 pub fn render(info: &ReleaseInfo, output: Output) -> anyhow::Result<String> {
-    Ok(match output {
-        Output::Json => serde_json::to_string_pretty(info)? + "\n",
-        Output::Yaml => serde_yaml::to_string(info)?,
-        Output::Table | Output::Wide => table(info, output == Output::Wide),
+    Ok(match output.structured(info)? {
+        Some(text) => text,
+        None => table(info, output == Output::Wide),
     })
 }
 
