@@ -242,7 +242,7 @@ pub struct EnrollmentToken {
     pub namespace: String,
     /// The Secret holding its hash.
     pub secret: String,
-    /// The token.
+    /// The token itself, shown this once.
     pub token: String,
 }
 

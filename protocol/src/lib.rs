@@ -35,9 +35,9 @@ pub enum Error {
     /// The frame is larger than the limit.
     #[error("frame of {size} bytes exceeds the limit of {limit} bytes")]
     FrameTooLarge {
-        /// Size of the frame.
+        /// Size of the frame, in bytes.
         size: usize,
-        /// The limit.
+        /// The largest frame accepted, in bytes.
         limit: usize,
     },
     /// The frame is not valid JSON of a known message type.

@@ -41,7 +41,7 @@ pub enum ErrorCode {
 pub enum Command {
     /// Download and switch to a release.
     Deploy {
-        /// The release.
+        /// The release to run once the command is done.
         release: Release,
         /// Where to fetch the manifest, relative to the gateway's base URL.
         manifest_url: String,
@@ -88,7 +88,7 @@ pub enum AgentMessage {
         /// Round-trip time of the previous heartbeat, milliseconds.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         rtt_ms: Option<f64>,
-        /// Readings.
+        /// Readings taken for this heartbeat.
         #[serde(default)]
         vitals: Vitals,
         /// Release running now.
@@ -109,7 +109,7 @@ pub enum AgentMessage {
         ts_ms: i64,
         /// Short machine-readable kind, e.g. `teleoperation_started`.
         kind: String,
-        /// Severity.
+        /// How much it matters; an unknown one is stored as `unknown`.
         severity: Severity,
         /// Human-readable text.
         #[serde(default)]
@@ -137,7 +137,7 @@ pub enum AgentMessage {
         /// Percent done, 0 to 100.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         percent: Option<f64>,
-        /// Details.
+        /// Human-readable details of this step (e.g. what failed).
         #[serde(default)]
         message: String,
     },

@@ -130,6 +130,6 @@ pub struct Sample {
     pub metric: String,
     /// When it was taken, Unix milliseconds.
     pub ts_ms: i64,
-    /// The value.
+    /// The reading, in the unit the metric name says.
     pub value: f64,
 }

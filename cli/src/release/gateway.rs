@@ -41,7 +41,7 @@ pub(super) struct UploadAnswer {
 pub struct ReleaseInfo {
     /// Digest of the manifest.
     pub digest: String,
-    /// The manifest.
+    /// The manifest, its fields inline (`mediaType`, `version`, `files`).
     #[serde(flatten)]
     pub manifest: ReleaseManifest,
     /// Referenced blobs the gateway lacks.
