@@ -41,11 +41,8 @@ SAMPLE_EVERY=10
 SCRAPE_EVERY=60
 STATUS_OFFSET=5
 
-usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
-log() { printf '[bench %s] %s\n' "$(date +%T)" "$*" >&2; }
-die() { log "error: $*"; exit 1; }
-
-positive_int() { [[ "$2" =~ ^[1-9][0-9]*$ ]] || die "$1 needs a positive integer, not '$2'"; }
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
 
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -65,77 +62,9 @@ WORK="$(mktemp -d "${TMPDIR:-/tmp}/lekiwi-bench-agent.XXXXXX")"
 CP_DIR="$WORK/control-plane"
 CP_UP=0
 PIDS=()
-
-cleanup() {
-  local rc=$?
-  trap - EXIT INT TERM
-  set +e
-  local pid deadline
-  # SIGTERM first, so the agent withdraws its mDNS advertisement from the LAN; then SIGKILL.
-  for pid in "${PIDS[@]}"; do kill -TERM "$pid" 2>/dev/null; done
-  deadline=$((SECONDS + 3))
-  for pid in "${PIDS[@]}"; do
-    while kill -0 "$pid" 2>/dev/null && [ $SECONDS -lt $deadline ]; do sleep 0.1; done
-    kill -KILL "$pid" 2>/dev/null
-    wait "$pid" 2>/dev/null
-  done
-  if [ $CP_UP = 1 ]; then
-    LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
-  fi
-  if [ $KEEP = 1 ] || [ $rc != 0 ]; then
-    log "work directory kept: $WORK"
-  else
-    rm -rf "$WORK"
-  fi
-  exit $rc
-}
-trap cleanup EXIT
-trap 'log "interrupted"; exit 130' INT
-trap 'log "terminated"; exit 143' TERM
-
-# Starts "$@" in the background with its output in $WORK/<name>.log; sets LAST_PID. The lock's
-# file descriptor stays with this script.
-start() {
-  local name="$1"; shift
-  "$@" >"$WORK/$name.log" 2>&1 8>&- </dev/null &
-  LAST_PID=$!
-  PIDS+=("$LAST_PID")
-}
-
-alive() { kill -0 "$1" 2>/dev/null; }
-
-fact() { printf '%s=%s\n' "$1" "$2" >>"$WORK/facts.env"; }
-
-now() { date +%s.%N; }
-elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
-
-# A free 127.0.0.1 port below the ephemeral range.
-free_port() {
-  python3 - <<'PY'
-import random, socket
-lo = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
-hi, lo = (lo - 1, 10000) if lo > 20000 else (65000, 61000)
-while True:
-    p = random.randint(lo, hi)
-    s = socket.socket()
-    try:
-        s.bind(("127.0.0.1", p))
-    except OSError:
-        continue
-    s.close()
-    print(p)
-    break
-PY
-}
-
-wait_for() { # what timeout_s command...
-  local what="$1" timeout="$2"; shift 2
-  local deadline=$((SECONDS + timeout))
-  until "$@"; do
-    [ $SECONDS -lt $deadline ] || die "$what not ready after ${timeout}s"
-    sleep 0.5
-  done
-}
+# SIGTERM first, so the agent withdraws its mDNS advertisement from the LAN; then SIGKILL.
+CLEANUP_GRACE=3
+trap_cleanup
 
 # "RSS_KIB TICKS THREADS" of a process (utime + stime in clock ticks), or "0 0 0" once it is gone.
 proc_sample() {
@@ -162,12 +91,7 @@ tcp_sent() {
 
 # ---- preparation ----------------------------------------------------------------------------
 # One benchmark at a time on this machine (the same lock as bench/gateway.sh).
-LOCK="${TMPDIR:-/tmp}/lekiwi-bench.lock"
-exec 8>>"$LOCK"
-if ! flock -n 8; then
-  log "another benchmark run holds $LOCK; waiting for it (at most 15 minutes)"
-  flock -w 900 8 || die "another benchmark run still holds $LOCK after 15 minutes"
-fi
+take_bench_lock
 
 log "work directory: $WORK"
 if [ $BUILD = 1 ]; then
