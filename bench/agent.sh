@@ -111,7 +111,7 @@ bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup
 
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, kernel $(uname -r), $(. /etc/os-release && echo "$PRETTY_NAME"), load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
-fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+fact_source
 fact command "$COMMAND"
 fact duration "$DURATION"
 fact warmup "$WARMUP"
@@ -120,28 +120,15 @@ fact agent_version "$("$AGENT_BIN" --version | awk '{ print $NF }')"
 fact node_exporter_version "$("$NODE_EXPORTER" --version 2>&1 | awk 'NR == 1 { print $3 }') (Debian $(dpkg-query -W -f='${Version}' prometheus-node-exporter 2>/dev/null || echo '?'))"
 
 # ---- control plane --------------------------------------------------------------------------
-log "starting a private control plane in $CP_DIR"
-export LEKIWI_CP_DIR="$CP_DIR"
-CP_UP=1
-"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
-  || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
-eval "$("$ROOT/scripts/control-plane.sh" env)"
-# shellcheck disable=SC1091
-. "$CP_DIR/ports.env"
+start_control_plane
 
 NS=bench
 ROBOT=bench-robot
-kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
-kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
 kubectl create namespace lekiwi-system >/dev/null
 kubectl create namespace "$NS" >/dev/null
 # A fleet enrollment token, as scripts/quickstart.sh makes it: the Secret keeps only its SHA-256.
 TOKEN_FILE="$WORK/enrollment-token"
-echo "lke_$(openssl rand -hex 32)" >"$TOKEN_FILE"
-chmod 600 "$TOKEN_FILE"
-kubectl -n "$NS" create secret generic fleet-enrollment \
-  --from-literal=sha256="$(tr -d '\n' <"$TOKEN_FILE" | sha256sum | cut -d' ' -f1)" >/dev/null
-kubectl -n "$NS" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+enrollment_token "$NS" "$TOKEN_FILE"
 
 # ---- operator (controllers + gateway, defaults apart from addresses and the store) ----------
 HTTP_PORT="$(free_port)"

@@ -174,7 +174,7 @@ bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
 fact cpus "$(nproc)"
-fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+fact_source
 fact command "$COMMAND"
 fact robots "$ROBOTS"
 fact interval "$INTERVAL"
@@ -182,17 +182,8 @@ fact status_refresh "$STATUS_REFRESH"
 fact connect_rates "$CONNECT_RATE/s against the gateway, $ECHO_CONNECT_RATE/s against the echo floor"
 
 # ---- control plane --------------------------------------------------------------------------
-log "starting a private control plane in $CP_DIR"
-export LEKIWI_CP_DIR="$CP_DIR"
-CP_UP=1
-"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
-  || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
-eval "$("$ROOT/scripts/control-plane.sh" env)"
-# shellcheck disable=SC1091
-. "$CP_DIR/ports.env"
+start_control_plane
 
-kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
-kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
 kubectl create namespace lekiwi-system >/dev/null
 kubectl create namespace bench >/dev/null
 TOKEN="lke_$(openssl rand -hex 32)"

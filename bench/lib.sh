@@ -120,6 +120,37 @@ wait_for() { # what timeout_s command...
   done
 }
 
+# The commit measured, and how many files differ from it.
+fact_source() {
+  fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+}
+
+# ---- the cluster ----------------------------------------------------------------------------
+# A private control plane in $CP_DIR (taken down by cleanup) with our CRDs established; exports
+# its environment (KUBECONFIG, PATH) and reads its ports (APISERVER_PORT, ...).
+start_control_plane() {
+  log "starting a private control plane in $CP_DIR"
+  export LEKIWI_CP_DIR="$CP_DIR"
+  CP_UP=1
+  "$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
+    || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
+  eval "$("$ROOT/scripts/control-plane.sh" env)"
+  # shellcheck disable=SC1091
+  . "$CP_DIR/ports.env"
+  kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
+  kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
+}
+
+# Writes a new fleet enrollment token to file $2 (mode 600) and its hash to the Secret
+# `fleet-enrollment` in namespace $1, labelled as the gateway looks for it.
+enrollment_token() { # namespace file
+  echo "lke_$(openssl rand -hex 32)" >"$2"
+  chmod 600 "$2"
+  kubectl -n "$1" create secret generic fleet-enrollment \
+    --from-literal=sha256="$(tr -d '\n' <"$2" | sha256sum | cut -d' ' -f1)" >/dev/null
+  kubectl -n "$1" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+}
+
 # ---- one benchmark at a time ----------------------------------------------------------------
 # Two benchmarks would share the 2 cores and disturb each other: takes the machine's benchmark
 # lock on file descriptor 8, waiting at most 15 minutes for another run to finish.

@@ -130,34 +130,21 @@ ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, kernel $(uname -r), $(df -PT "$WORK" | awk 'NR == 2 { print $2 }') at $(df -P "$WORK" | awk 'NR == 2 { print $6 }'), load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
 fact cpus "$(nproc)"
-fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+fact_source
 fact command "$COMMAND"
 fact robots "$ROBOTS"
 fact namespace "$NS"
 fact target_seconds "$TARGET_SECONDS"
 
 # ---- control plane --------------------------------------------------------------------------
-log "starting a private control plane in $CP_DIR"
-export LEKIWI_CP_DIR="$CP_DIR"
-CP_UP=1
-"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
-  || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
-eval "$("$ROOT/scripts/control-plane.sh" env)"
-# shellcheck disable=SC1091
-. "$CP_DIR/ports.env"
+start_control_plane
 export APISERVER_PORT
 
-kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
-kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
 kubectl create namespace "$OPERATOR_NS" >/dev/null
 kubectl create namespace "$NS" >/dev/null
 # A fleet enrollment token, as scripts/quickstart.sh makes it: the Secret keeps only its SHA-256.
 TOKEN_FILE="$WORK/enrollment-token"
-echo "lke_$(openssl rand -hex 32)" >"$TOKEN_FILE"
-chmod 600 "$TOKEN_FILE"
-kubectl -n "$NS" create secret generic fleet-enrollment \
-  --from-literal=sha256="$(tr -d '\n' <"$TOKEN_FILE" | sha256sum | cut -d' ' -f1)" >/dev/null
-kubectl -n "$NS" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+enrollment_token "$NS" "$TOKEN_FILE"
 
 # ---- operator (controllers + gateway; defaults apart from addresses and stores) -------------
 HTTP_PORT="$(free_port)"
