@@ -86,3 +86,26 @@ impl ProgressPhase {
         matches!(self, ProgressPhase::Failed | ProgressPhase::RolledBack)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::ProgressPhase;
+
+    #[test]
+    fn wire_names_round_trip_and_the_spec_lists_them_all() {
+        let spec = include_str!("../PROTOCOL.md");
+        let row = spec
+            .lines()
+            .find(|l| l.starts_with("| `phase`"))
+            .expect("the progress table's phase row");
+        for phase in ProgressPhase::ALL {
+            let json = serde_json::to_string(&phase).unwrap();
+            assert_eq!(json, format!("\"{phase}\""));
+            assert_eq!(ProgressPhase::parse(phase.as_str()), Some(phase));
+            assert!(
+                row.contains(&format!("`{phase}`")),
+                "{phase} missing in {row}"
+            );
+        }
+    }
+}
