@@ -7,7 +7,11 @@ use std::time::Duration;
 use anyhow::{Result, bail};
 use serde_json::Value;
 
+use lekiwi_agent::connection::{ConnectError, Credentials, Socket, Welcome, connect};
+
+use crate::fleet::gateway_url;
 use crate::http::http_get;
+use crate::operator::OperatorProcess;
 use crate::process::{ChildProcess, Launch};
 use crate::{bin, free_port, log_dir};
 
@@ -151,6 +155,20 @@ impl AgentProcess {
         }
         Ok(String::from_utf8_lossy(&out.stdout).trim().parse()?)
     }
+}
+
+/// Connects to `op`'s gateway as an agent would, with the standard [`hello`] and 10 s to be
+/// welcomed: as `robot` (`namespace/name`, or a bare name when enrolling) with `token`.
+pub async fn connect_agent(
+    op: &OperatorProcess,
+    token: &str,
+    robot: &str,
+) -> Result<(Socket, Welcome), ConnectError> {
+    let creds = Credentials {
+        token: token.to_owned(),
+        robot: robot.to_owned(),
+    };
+    connect(&gateway_url(op), &creds, &hello(), Duration::from_secs(10)).await
 }
 
 /// A `hello` as a real agent sends it.

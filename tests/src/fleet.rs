@@ -1,19 +1,37 @@
 //! Fleet objects a test starts from: Robots, the enrollment token Secret, the gateway's URL.
 
+use std::time::Duration;
+
 use anyhow::Result;
 use k8s_openapi::api::core::v1::Secret;
 use kube::api::PostParams;
 use kube::{Api, Client};
-use lekiwi_crds::Robot;
+use lekiwi_crds::{Robot, RobotPhase};
 use serde_json::{Value, json};
 
 use crate::operator::OperatorProcess;
+use crate::wait_for;
 
 /// Reads a robot.
 pub async fn get_robot(client: &Client, namespace: &str, name: &str) -> Result<Robot> {
     Ok(Api::<Robot>::namespaced(client.clone(), namespace)
         .get(name)
         .await?)
+}
+
+/// Waits until robot `name` is in `phase` and returns it; fails after `within`.
+pub async fn wait_phase(
+    client: &Client,
+    namespace: &str,
+    name: &str,
+    phase: RobotPhase,
+    within: Duration,
+) -> Result<Robot> {
+    wait_for(&format!("{name} to be {phase}"), within, || async {
+        let r = get_robot(client, namespace, name).await.ok()?;
+        (r.status.as_ref()?.phase == Some(phase)).then_some(r)
+    })
+    .await
 }
 
 /// Creates a robot with only a display name and `labels` in its spec.

@@ -12,10 +12,9 @@ use std::time::Duration;
 use anyhow::Context as _;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
-use lekiwi_agent::connection::{Credentials, connect};
 use lekiwi_protocol::release::ReleaseManifest;
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, bin, enrollment_token, gateway_url, hello, namespace,
+    ControlPlane, OperatorProcess, bin, connect_agent, enrollment_token, namespace,
 };
 use serde_json::Value;
 use sha2::{Digest, Sha256};
@@ -525,16 +524,7 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
     // A robot enrolls through the gateway and gets its own token.
     let enroll = enrollment_token(&client, &ns).await?;
     let robot = format!("{ns}/kiwi-1");
-    let (ws, welcome) = connect(
-        &gateway_url(&op),
-        &Credentials {
-            token: enroll.clone(),
-            robot: robot.clone(),
-        },
-        &hello(),
-        Duration::from_secs(10),
-    )
-    .await?;
+    let (ws, welcome) = connect_agent(&op, &enroll, &robot).await?;
     drop(ws);
     let robot_token = welcome.robot_token.context("a robot token")?;
     let robot_auth = format!("Bearer {robot_token}");
