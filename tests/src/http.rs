@@ -18,14 +18,16 @@ pub fn sample(text: &str, series: &str) -> Option<f64> {
 
 /// Sends `request` to 127.0.0.1:`port` and reads until the server closes: the response's head
 /// (status line and headers) and body.
-async fn exchange(port: u16, request: &str) -> Result<(String, String)> {
+async fn exchange(port: u16, request: &[u8]) -> Result<(String, Vec<u8>)> {
     let mut stream = tokio::net::TcpStream::connect(("127.0.0.1", port)).await?;
-    stream.write_all(request.as_bytes()).await?;
+    stream.write_all(request).await?;
     let mut buf = Vec::new();
     stream.read_to_end(&mut buf).await?;
-    let text = String::from_utf8_lossy(&buf).into_owned();
-    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
-    Ok((head.to_owned(), body.to_owned()))
+    let Some(split) = buf.windows(4).position(|w| w == b"\r\n\r\n") else {
+        return Ok((String::from_utf8_lossy(&buf).into_owned(), Vec::new()));
+    };
+    let head = String::from_utf8_lossy(&buf[..split]).into_owned();
+    Ok((head, buf[split + 4..].to_vec()))
 }
 
 /// The status code of a status line (0 when there is none).
@@ -40,8 +42,11 @@ fn status_code(status_line: &str) -> u16 {
 /// A minimal HTTP/1.0 GET against 127.0.0.1: status code and body.
 pub async fn http_get(port: u16, path: &str) -> Result<(u16, String)> {
     let request = format!("GET {path} HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n");
-    let (head, body) = exchange(port, &request).await?;
-    Ok((status_code(&head), body))
+    let (head, body) = exchange(port, request.as_bytes()).await?;
+    Ok((
+        status_code(&head),
+        String::from_utf8_lossy(&body).into_owned(),
+    ))
 }
 
 /// A plain HTTP/1.1 GET with headers: status, response headers (lowercase names) and body.
@@ -50,12 +55,31 @@ pub async fn http_get_with(
     path: &str,
     headers: &[(&str, &str)],
 ) -> Result<(u16, Vec<(String, String)>, String)> {
-    let mut request = format!("GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n");
+    let (code, hdrs, body) = http_request(port, "GET", path, headers, None).await?;
+    Ok((code, hdrs, String::from_utf8_lossy(&body).into_owned()))
+}
+
+/// One HTTP/1.1 request on a fresh connection (`Connection: close`, and `Content-Length` when
+/// there is a body): status, response headers (lowercase names) and the body's bytes.
+pub async fn http_request(
+    port: u16,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: Option<&[u8]>,
+) -> Result<(u16, Vec<(String, String)>, Vec<u8>)> {
+    let mut request =
+        format!("{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n");
+    if let Some(body) = body {
+        request.push_str(&format!("Content-Length: {}\r\n", body.len()));
+    }
     for (k, v) in headers {
         request.push_str(&format!("{k}: {v}\r\n"));
     }
     request.push_str("\r\n");
-    let (head, body) = exchange(port, &request).await?;
+    let mut bytes = request.into_bytes();
+    bytes.extend_from_slice(body.unwrap_or_default());
+    let (head, body) = exchange(port, &bytes).await?;
     let mut lines = head.lines();
     let code = lines.next().map(status_code).unwrap_or(0);
     let hdrs = lines
