@@ -13,7 +13,7 @@ use crate::fleet::gateway_url;
 use crate::http::http_get;
 use crate::operator::OperatorProcess;
 use crate::process::{ChildProcess, Launch};
-use crate::{bin, free_port, log_dir};
+use crate::{bin, free_port, log_dir, wait_for};
 
 /// A real `lekiwi-agent` process with its own state directory, for tests; SIGKILLed when dropped.
 pub struct AgentProcess {
@@ -136,6 +136,19 @@ impl AgentProcess {
             bail!("/status answered {code}: {body}");
         }
         Ok(serde_json::from_str(&body)?)
+    }
+
+    /// Waits until its `/status` says it is connected to the gateway; the error carries its log.
+    pub async fn wait_connected(&self, within: Duration) -> Result<()> {
+        wait_for("the agent connected", within, || async {
+            self.status()
+                .await
+                .ok()
+                .filter(|s| s["connected"] == true)
+                .map(|_| ())
+        })
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", self.log_text()))
     }
 
     /// Queues an event with `lekiwi-agent event` (works whether or not the agent runs) and

@@ -1,5 +1,6 @@
 //! Fleet objects a test starts from: Robots, the enrollment token Secret, the gateway's URL.
 
+use std::path::Path;
 use std::time::Duration;
 
 use anyhow::Result;
@@ -63,6 +64,13 @@ pub fn gateway_url(op: &OperatorProcess) -> String {
         op.gateway_port,
         lekiwi_protocol::AGENT_PATH
     )
+}
+
+/// Creates a fleet enrollment token for `namespace` and writes it to `path`, for an agent's
+/// `--enrollment-token-file`.
+pub async fn enrollment_token_file(client: &Client, namespace: &str, path: &Path) -> Result<()> {
+    std::fs::write(path, enrollment_token(client, namespace).await?)?;
+    Ok(())
 }
 
 /// Creates a fleet enrollment token for `namespace` (stored as a hash) and returns it.

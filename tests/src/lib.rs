@@ -22,7 +22,9 @@ use jiff::Timestamp;
 
 pub use agent::{AgentProcess, connect_agent, hello};
 pub use control_plane::{ControlPlane, namespace};
-pub use fleet::{create_robot, enrollment_token, gateway_url, get_robot, wait_phase};
+pub use fleet::{
+    create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot, wait_phase,
+};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::OperatorProcess;
 pub use stand_in::{GATEWAY_FIELD_MANAGER, GatewayStandIn};

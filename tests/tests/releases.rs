@@ -14,7 +14,8 @@ use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use lekiwi_protocol::release::ReleaseManifest;
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, bin, connect_agent, enrollment_token, http_request, namespace,
+    ControlPlane, OperatorProcess, bin, connect_agent, enrollment_token, enrollment_token_file,
+    http_request, namespace,
 };
 use serde_json::Value;
 use sha2::{Digest, Sha256};
@@ -674,7 +675,7 @@ async fn releases_travel_over_tls_with_a_private_ca() -> anyhow::Result<()> {
     let digest = out.trim().to_owned();
 
     let token_file = dir.path().join("enroll-token");
-    std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+    enrollment_token_file(&client, &ns, &token_file).await?;
     let url = format!("wss://127.0.0.1:{port}/v1/agent");
     let robot = format!("{ns}/kiwi-tls");
     let agent = lekiwi_tests::AgentProcess::start(

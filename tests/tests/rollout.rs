@@ -17,8 +17,8 @@ use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token, gateway_url, http_get_with,
-    log_dir, namespace, wait_for,
+    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token_file, gateway_url,
+    http_get_with, log_dir, namespace, wait_for,
 };
 use serde_json::{Value, json};
 
@@ -46,7 +46,7 @@ impl Site {
             OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blobs.to_str().unwrap()])?;
         op.wait_ready().await?;
         let token_file = dir.path().join("enroll");
-        std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+        enrollment_token_file(&client, &ns, &token_file).await?;
         Ok(Self {
             cp,
             client,
