@@ -7,7 +7,8 @@ use anyhow::Result;
 use k8s_openapi::api::core::v1::Secret;
 use kube::api::PostParams;
 use kube::{Api, Client};
-use lekiwi_crds::{Robot, RobotPhase};
+use lekiwi_crds::deployment::RolloutPhase;
+use lekiwi_crds::{Robot, RobotDeployment, RobotPhase};
 use serde_json::{Value, json};
 
 use crate::operator::OperatorProcess;
@@ -31,6 +32,26 @@ pub async fn wait_phase(
     wait_for(&format!("{name} to be {phase}"), within, || async {
         let r = get_robot(client, namespace, name).await.ok()?;
         (r.status.as_ref()?.phase == Some(phase)).then_some(r)
+    })
+    .await
+}
+
+/// Waits until rollout `name` has ended (`Completed`, `RolledBack` or `Failed`, in a status of
+/// its current generation) and returns the RobotDeployment; fails after `within`.
+pub async fn rollout_finished(
+    api: &Api<RobotDeployment>,
+    name: &str,
+    within: Duration,
+) -> Result<RobotDeployment> {
+    wait_for(&format!("rollout {name} to end"), within, || async {
+        let d = api.get(name).await.ok()?;
+        let st = d.status.as_ref()?;
+        (st.observed_generation == d.metadata.generation
+            && matches!(
+                st.phase,
+                Some(RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed)
+            ))
+        .then_some(d)
     })
     .await
 }

@@ -23,7 +23,8 @@ use jiff::Timestamp;
 pub use agent::{AgentProcess, connect_agent, hello};
 pub use control_plane::{ControlPlane, namespace};
 pub use fleet::{
-    create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot, wait_phase,
+    create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot,
+    rollout_finished, wait_phase,
 };
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::OperatorProcess;

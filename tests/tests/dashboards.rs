@@ -17,7 +17,7 @@ use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, bin, enrollment_token, free_port, gateway_url, http_get,
-    log_dir, namespace, repo_root, wait_for,
+    log_dir, namespace, repo_root, rollout_finished, wait_for,
 };
 use serde_json::{Value, json};
 
@@ -236,22 +236,9 @@ async fn finished(
     name: &str,
     op: &OperatorProcess,
 ) -> anyhow::Result<RobotDeployment> {
-    wait_for(
-        &format!("rollout {name} to end"),
-        Duration::from_secs(180),
-        || async {
-            let d = api.get(name).await.ok()?;
-            let st = d.status.as_ref()?;
-            (st.observed_generation == d.metadata.generation
-                && matches!(
-                    st.phase,
-                    Some(RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed)
-                ))
-            .then_some(d)
-        },
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!("{e}; operator log: {}", op.log.display()))
+    rollout_finished(api, name, Duration::from_secs(180))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}; operator log: {}", op.log.display()))
 }
 
 /// Replaces Grafana's variables with the test's values.

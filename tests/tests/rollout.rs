@@ -18,7 +18,7 @@ use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, Robot
 use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
     AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token_file, gateway_url,
-    http_get_with, log_dir, namespace, wait_for,
+    http_get_with, log_dir, namespace, rollout_finished, wait_for,
 };
 use serde_json::{Value, json};
 
@@ -131,18 +131,10 @@ impl Site {
 
     /// Waits for a terminal phase (from the current generation) and returns the deployment.
     async fn finished(&self, name: &str, timeout: Duration) -> anyhow::Result<RobotDeployment> {
-        wait_for(&format!("rollout {name} to end"), timeout, || async {
-            let d = self.deployment(name).await.ok()?;
-            let st = d.status.as_ref()?;
-            (st.observed_generation == d.metadata.generation
-                && matches!(
-                    st.phase,
-                    Some(RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed)
-                ))
-            .then_some(d)
-        })
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}\noperator log tail:\n{}", tail(&self.op.log_text())))
+        let api = Api::<RobotDeployment>::namespaced(self.client.clone(), &self.ns);
+        rollout_finished(&api, name, timeout)
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}\noperator log tail:\n{}", tail(&self.op.log_text())))
     }
 
     async fn robots(&self) -> anyhow::Result<Vec<Robot>> {
