@@ -1,11 +1,13 @@
 //! Test harness: the shared local control plane and private ones for disruptive tests
 //! ([`control_plane`]), our operator and agent processes ([`operator`], [`agent`]), a stand-in
-//! for the gateway's cluster writes ([`stand_in`]), fleet fixtures ([`fleet`]) and bare HTTP
+//! for the gateway's cluster writes ([`stand_in`]), fleet fixtures ([`fleet`]), `lekiwi-fleet`
+//! ([`fleet_process`]) and bare HTTP
 //! helpers ([`http`]), re-exported here so tests import them from the crate root.
 
 pub mod agent;
 pub mod control_plane;
 pub mod fleet;
+pub mod fleet_process;
 pub mod http;
 pub mod operator;
 pub mod postgres;
@@ -26,6 +28,7 @@ pub use fleet::{
     create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot,
     rollout_finished, wait_phase,
 };
+pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::OperatorProcess;
 pub use stand_in::{GATEWAY_FIELD_MANAGER, GatewayStandIn};

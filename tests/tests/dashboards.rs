@@ -16,8 +16,8 @@ use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, bin, enrollment_token, free_port, gateway_url, http_get,
-    log_dir, namespace, repo_root, rollout_finished, wait_for,
+    ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin, enrollment_token, free_port,
+    gateway_url, http_get, log_dir, namespace, repo_root, rollout_finished, wait_for,
 };
 use serde_json::{Value, json};
 
@@ -309,34 +309,17 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
     let token_file = dir.path().join("enroll");
     std::fs::write(&token_file, &token)?;
     let state_root = dir.path().join("robots");
-    let fleet_args: Vec<String> = [
-        "--gateway",
-        &gateway_url(&op),
-        "--enrollment-token-file",
-        token_file.to_str().unwrap(),
-        "--namespace",
-        &ns,
-        "--robots",
-        &FLEET.to_string(),
-        "--state-root",
-        state_root.to_str().unwrap(),
-        "--health-command",
-        HEALTH,
-        "--health-timeout-s",
-        "2",
-        "--backoff-max-ms",
-        "2000",
-        "--report-every",
-        "5",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    let _fleet = spawn(
-        &bin("lekiwi-fleet"),
-        &fleet_args,
-        &log_dir().join(format!("fleet-{ns}.log")),
-    )?;
+    let _fleet = FleetProcess::start(FleetSpec {
+        gateway: &gateway_url(&op),
+        token_file: &token_file,
+        namespace: &ns,
+        robots: FLEET,
+        state_root: &state_root,
+        health_command: HEALTH,
+        report_every: "5",
+        rust_log: "warn",
+        extra: &[],
+    })?;
     let sim_args: Vec<String> = [
         "--gateway",
         &gateway_url(&op),

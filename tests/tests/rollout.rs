@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use anyhow::{Context as _, bail};
@@ -17,8 +17,8 @@ use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token_file, gateway_url,
-    http_get_with, log_dir, namespace, rollout_finished, wait_for,
+    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin,
+    enrollment_token_file, gateway_url, http_get_with, namespace, rollout_finished, wait_for,
 };
 use serde_json::{Value, json};
 
@@ -95,8 +95,19 @@ impl Site {
             .output()?)
     }
 
-    fn fleet(&self, robots: usize, extra: &[&str]) -> anyhow::Result<Fleet> {
-        Fleet::start(self, robots, extra)
+    /// `lekiwi-fleet` with `robots` robots of this site.
+    fn fleet(&self, robots: usize, extra: &[&str]) -> anyhow::Result<FleetProcess> {
+        FleetProcess::start(FleetSpec {
+            gateway: &gateway_url(&self.op),
+            token_file: &self.token_file,
+            namespace: &self.ns,
+            robots,
+            state_root: &self.dir.path().join("robots"),
+            health_command: HEALTH,
+            report_every: "2",
+            rust_log: "warn,lekiwi_agent::release=info",
+            extra,
+        })
     }
 
     async fn deploy(
@@ -206,88 +217,6 @@ impl Site {
 fn tail(s: &str) -> String {
     let lines: Vec<&str> = s.lines().collect();
     lines[lines.len().saturating_sub(40)..].join("\n")
-}
-
-/// `lekiwi-fleet`: N real agents in one process.
-struct Fleet {
-    child: Child,
-    args: Vec<String>,
-    state_root: PathBuf,
-    log: PathBuf,
-}
-
-impl Fleet {
-    fn start(site: &Site, robots: usize, extra: &[&str]) -> anyhow::Result<Self> {
-        let state_root = site.dir.path().join("robots");
-        let log = log_dir().join(format!("fleet-{}.log", site.ns));
-        std::fs::File::create(&log)?;
-        let mut args: Vec<String> = [
-            "--gateway",
-            &gateway_url(&site.op),
-            "--enrollment-token-file",
-            site.token_file.to_str().unwrap(),
-            "--namespace",
-            &site.ns,
-            "--robots",
-            &robots.to_string(),
-            "--state-root",
-            state_root.to_str().unwrap(),
-            "--health-command",
-            HEALTH,
-            "--health-timeout-s",
-            "2",
-            "--backoff-max-ms",
-            "2000",
-            "--report-every",
-            "2",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.extend(extra.iter().map(|s| s.to_string()));
-        let child = spawn_fleet(&args, &log)?;
-        Ok(Self {
-            child,
-            args,
-            state_root,
-            log,
-        })
-    }
-
-    fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-
-    fn restart(&mut self) -> anyhow::Result<()> {
-        self.kill();
-        self.child = spawn_fleet(&self.args, &self.log)?;
-        Ok(())
-    }
-
-    fn state(&self, robot: &str) -> PathBuf {
-        self.state_root.join(robot)
-    }
-}
-
-fn spawn_fleet(args: &[String], log: &Path) -> anyhow::Result<Child> {
-    let file = std::fs::OpenOptions::new()
-        .append(true)
-        .create(true)
-        .open(log)?;
-    Ok(Command::new(bin("lekiwi-fleet"))
-        .args(args)
-        .env("RUST_LOG", "warn,lekiwi_agent::release=info")
-        .stdin(Stdio::null())
-        .stdout(file.try_clone()?)
-        .stderr(file)
-        .spawn()?)
-}
-
-impl Drop for Fleet {
-    fn drop(&mut self) {
-        self.kill();
-    }
 }
 
 /// A release directory: `files` small files plus a 256 KiB "policy checkpoint"; `changed`
