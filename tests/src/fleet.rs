@@ -5,9 +5,10 @@ use std::time::Duration;
 
 use anyhow::Result;
 use k8s_openapi::api::core::v1::Secret;
+use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
 use kube::api::PostParams;
 use kube::{Api, Client};
-use lekiwi_crds::deployment::RolloutPhase;
+use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
 use lekiwi_crds::{Robot, RobotDeployment, RobotPhase};
 use serde_json::{Value, json};
 
@@ -54,6 +55,22 @@ pub async fn rollout_finished(
         .then_some(d)
     })
     .await
+}
+
+/// A rollout strategy for tests: batches of `batch` robots after a canary of `canary`, success
+/// threshold 0.8, robots given 60 s, no pause between batches, teleoperated and unavailable
+/// robots waited for up to 120 s.
+pub fn test_strategy(batch: i32, canary: i32) -> RolloutStrategy {
+    RolloutStrategy {
+        batch_size: IntOrString::Int(batch),
+        canary,
+        success_threshold: 0.8,
+        robot_timeout_seconds: 60,
+        pause_between_batches_seconds: 0,
+        teleoperated: UnavailablePolicy::Wait,
+        unavailable: UnavailablePolicy::Wait,
+        wait_timeout_seconds: 120,
+    }
 }
 
 /// Creates a robot with only a display name and `labels` in its spec.

@@ -26,7 +26,7 @@ pub use agent::{AgentProcess, connect_agent, hello};
 pub use control_plane::{ControlPlane, namespace};
 pub use fleet::{
     create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot,
-    rollout_finished, wait_phase,
+    rollout_finished, test_strategy, wait_phase,
 };
 pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};

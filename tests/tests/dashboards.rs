@@ -10,14 +10,14 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, bail};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, LabelSelectorRequirement};
-use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
 use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
-use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
+use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_tests::{
     ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin, enrollment_token, free_port,
-    gateway_url, http_get, log_dir, namespace, repo_root, rollout_finished, wait_for,
+    gateway_url, http_get, log_dir, namespace, repo_root, rollout_finished, test_strategy,
+    wait_for,
 };
 use serde_json::{Value, json};
 
@@ -218,19 +218,6 @@ fn push(
     })
 }
 
-fn strategy() -> RolloutStrategy {
-    RolloutStrategy {
-        batch_size: IntOrString::Int(3),
-        canary: 1,
-        success_threshold: 0.8,
-        robot_timeout_seconds: 60,
-        pause_between_batches_seconds: 0,
-        teleoperated: UnavailablePolicy::Wait,
-        unavailable: UnavailablePolicy::Wait,
-        wait_timeout_seconds: 120,
-    }
-}
-
 async fn finished(
     api: &Api<RobotDeployment>,
     name: &str,
@@ -391,7 +378,7 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
                 RobotDeploymentSpec {
                     selector,
                     release: v1,
-                    strategy: strategy(),
+                    strategy: test_strategy(3, 1),
                     paused: false,
                 },
             ),

@@ -10,15 +10,15 @@ use std::time::Duration;
 use anyhow::{Context as _, bail};
 use k8s_openapi::api::core::v1::Secret;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
-use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use kube::{Api, Client};
-use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
+use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
     AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin,
-    enrollment_token_file, gateway_url, http_get_with, namespace, rollout_finished, wait_for,
+    enrollment_token_file, gateway_url, http_get_with, namespace, rollout_finished, test_strategy,
+    wait_for,
 };
 use serde_json::{Value, json};
 
@@ -242,19 +242,6 @@ fn release_dir(root: &Path, files: usize, tag: &str, changed: &[usize]) -> anyho
     Ok(dir)
 }
 
-fn strategy(batch: i32, canary: i32) -> RolloutStrategy {
-    RolloutStrategy {
-        batch_size: IntOrString::Int(batch),
-        canary,
-        success_threshold: 0.8,
-        robot_timeout_seconds: 60,
-        pause_between_batches_seconds: 0,
-        teleoperated: UnavailablePolicy::Wait,
-        unavailable: UnavailablePolicy::Wait,
-        wait_timeout_seconds: 120,
-    }
-}
-
 fn robot_name(i: usize) -> String {
     format!("kiwi-{i:03}")
 }
@@ -271,7 +258,7 @@ async fn fifty_agents_clean_rollout_then_automatic_rollback() -> anyhow::Result<
     let v1_dir = release_dir(site.dir.path(), 40, "1", &[])?;
     let v1 = site.push(&v1_dir, "1.0.0")?;
     let started = std::time::Instant::now();
-    site.deploy("fleet", &v1, strategy(13, 1), LabelSelector::default())
+    site.deploy("fleet", &v1, test_strategy(13, 1), LabelSelector::default())
         .await?;
     let d = site.finished("fleet", Duration::from_secs(180)).await?;
     let st = d.status.clone().unwrap();
@@ -399,7 +386,7 @@ async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
     site.wait_online(CRASH_ROBOTS).await?;
     let v1_dir = release_dir(site.dir.path(), 30, "1", &[])?;
     let v1 = site.push(&v1_dir, "1.0.0")?;
-    site.deploy("crash", &v1, strategy(10, 0), LabelSelector::default())
+    site.deploy("crash", &v1, test_strategy(10, 0), LabelSelector::default())
         .await?;
 
     // Kill the whole fleet while some robots are in their restart command (switched, not yet
@@ -539,7 +526,7 @@ async fn teleoperated_robot_is_waited_for_and_invalid_release_is_clear() -> anyh
 
     let v1_dir = release_dir(site.dir.path(), 5, "1", &[])?;
     let v1 = site.push(&v1_dir, "1.0.0")?;
-    site.deploy("teleop", &v1, strategy(1, 0), LabelSelector::default())
+    site.deploy("teleop", &v1, test_strategy(1, 0), LabelSelector::default())
         .await?;
     tokio::time::sleep(Duration::from_secs(5)).await;
     let d = site.deployment("teleop").await?;
@@ -573,8 +560,13 @@ async fn teleoperated_robot_is_waited_for_and_invalid_release_is_clear() -> anyh
         version: "9.9.9".into(),
         digest: format!("sha256:{}", "0".repeat(64)),
     };
-    site.deploy("bogus", &bogus, strategy(1, 0), LabelSelector::default())
-        .await?;
+    site.deploy(
+        "bogus",
+        &bogus,
+        test_strategy(1, 0),
+        LabelSelector::default(),
+    )
+    .await?;
     let d = site.finished("bogus", Duration::from_secs(30)).await?;
     let st = d.status.unwrap();
     assert_eq!(st.phase, Some(RolloutPhase::Failed));
@@ -605,7 +597,7 @@ async fn the_plugin_pauses_resumes_undoes_and_restarts_a_rollout() -> anyhow::Re
     site.wait_online(CLI_ROBOTS).await?;
     let v1 = site.push(&release_dir(site.dir.path(), 5, "1", &[])?, "1.0.0")?;
     let v2 = site.push(&release_dir(site.dir.path(), 5, "2", &[2])?, "2.0.0")?;
-    site.deploy("cli", &v1, strategy(1, 0), LabelSelector::default())
+    site.deploy("cli", &v1, test_strategy(1, 0), LabelSelector::default())
         .await?;
     let d = site.finished("cli", Duration::from_secs(120)).await?;
     assert_eq!(d.status.unwrap().phase, Some(RolloutPhase::Completed));
