@@ -1,8 +1,8 @@
 //! Test harness: the shared local control plane and private ones for disruptive tests
-//! ([`control_plane`]), our operator and agent processes ([`operator`], [`agent`]), a stand-in
-//! for the gateway's cluster writes ([`stand_in`]), fleet fixtures ([`fleet`]), `lekiwi-fleet`
-//! ([`fleet_process`]) and bare HTTP
-//! helpers ([`http`]), re-exported here so tests import them from the crate root.
+//! ([`control_plane`]), our operator, agent and `lekiwi-fleet` processes ([`operator`],
+//! [`agent`], [`fleet_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
+//! fleet fixtures and waits ([`fleet`]) and bare HTTP helpers ([`http`]), re-exported here so
+//! tests import them from the crate root.
 
 pub mod agent;
 pub mod control_plane;

@@ -18,11 +18,15 @@ pub(crate) struct Launch {
     pub what: &'static str,
     /// `RUST_LOG` for the process.
     pub rust_log: &'static str,
+    /// Its flags, kept for restarts.
     pub args: Vec<String>,
+    /// Extra environment variables.
     pub env: Vec<(String, String)>,
+    /// The file stdout and stderr are appended to.
     pub log: PathBuf,
-    /// How long [`ChildProcess::terminate`] waits after SIGTERM, and how often it looks.
+    /// How long [`ChildProcess::terminate`] waits after SIGTERM.
     pub term_deadline: Duration,
+    /// How often [`ChildProcess::terminate`] looks whether it exited.
     pub term_poll: Duration,
 }
 
