@@ -41,11 +41,8 @@ SAMPLE_EVERY=10
 SCRAPE_EVERY=60
 STATUS_OFFSET=5
 
-usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
-log() { printf '[bench %s] %s\n' "$(date +%T)" "$*" >&2; }
-die() { log "error: $*"; exit 1; }
-
-positive_int() { [[ "$2" =~ ^[1-9][0-9]*$ ]] || die "$1 needs a positive integer, not '$2'"; }
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
 
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -65,77 +62,9 @@ WORK="$(mktemp -d "${TMPDIR:-/tmp}/lekiwi-bench-agent.XXXXXX")"
 CP_DIR="$WORK/control-plane"
 CP_UP=0
 PIDS=()
-
-cleanup() {
-  local rc=$?
-  trap - EXIT INT TERM
-  set +e
-  local pid deadline
-  # SIGTERM first, so the agent withdraws its mDNS advertisement from the LAN; then SIGKILL.
-  for pid in "${PIDS[@]}"; do kill -TERM "$pid" 2>/dev/null; done
-  deadline=$((SECONDS + 3))
-  for pid in "${PIDS[@]}"; do
-    while kill -0 "$pid" 2>/dev/null && [ $SECONDS -lt $deadline ]; do sleep 0.1; done
-    kill -KILL "$pid" 2>/dev/null
-    wait "$pid" 2>/dev/null
-  done
-  if [ $CP_UP = 1 ]; then
-    LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
-  fi
-  if [ $KEEP = 1 ] || [ $rc != 0 ]; then
-    log "work directory kept: $WORK"
-  else
-    rm -rf "$WORK"
-  fi
-  exit $rc
-}
-trap cleanup EXIT
-trap 'log "interrupted"; exit 130' INT
-trap 'log "terminated"; exit 143' TERM
-
-# Starts "$@" in the background with its output in $WORK/<name>.log; sets LAST_PID. The lock's
-# file descriptor stays with this script.
-start() {
-  local name="$1"; shift
-  "$@" >"$WORK/$name.log" 2>&1 8>&- </dev/null &
-  LAST_PID=$!
-  PIDS+=("$LAST_PID")
-}
-
-alive() { kill -0 "$1" 2>/dev/null; }
-
-fact() { printf '%s=%s\n' "$1" "$2" >>"$WORK/facts.env"; }
-
-now() { date +%s.%N; }
-elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
-
-# A free 127.0.0.1 port below the ephemeral range.
-free_port() {
-  python3 - <<'PY'
-import random, socket
-lo = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
-hi, lo = (lo - 1, 10000) if lo > 20000 else (65000, 61000)
-while True:
-    p = random.randint(lo, hi)
-    s = socket.socket()
-    try:
-        s.bind(("127.0.0.1", p))
-    except OSError:
-        continue
-    s.close()
-    print(p)
-    break
-PY
-}
-
-wait_for() { # what timeout_s command...
-  local what="$1" timeout="$2"; shift 2
-  local deadline=$((SECONDS + timeout))
-  until "$@"; do
-    [ $SECONDS -lt $deadline ] || die "$what not ready after ${timeout}s"
-    sleep 0.5
-  done
-}
+# SIGTERM first, so the agent withdraws its mDNS advertisement from the LAN; then SIGKILL.
+CLEANUP_GRACE=3
+trap_cleanup
 
 # "RSS_KIB TICKS THREADS" of a process (utime + stime in clock ticks), or "0 0 0" once it is gone.
 proc_sample() {
@@ -162,12 +91,7 @@ tcp_sent() {
 
 # ---- preparation ----------------------------------------------------------------------------
 # One benchmark at a time on this machine (the same lock as bench/gateway.sh).
-LOCK="${TMPDIR:-/tmp}/lekiwi-bench.lock"
-exec 8>>"$LOCK"
-if ! flock -n 8; then
-  log "another benchmark run holds $LOCK; waiting for it (at most 15 minutes)"
-  flock -w 900 8 || die "another benchmark run still holds $LOCK after 15 minutes"
-fi
+take_bench_lock
 
 log "work directory: $WORK"
 if [ $BUILD = 1 ]; then
@@ -187,7 +111,7 @@ bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup
 
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, kernel $(uname -r), $(. /etc/os-release && echo "$PRETTY_NAME"), load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
-fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+fact_source
 fact command "$COMMAND"
 fact duration "$DURATION"
 fact warmup "$WARMUP"
@@ -196,28 +120,15 @@ fact agent_version "$("$AGENT_BIN" --version | awk '{ print $NF }')"
 fact node_exporter_version "$("$NODE_EXPORTER" --version 2>&1 | awk 'NR == 1 { print $3 }') (Debian $(dpkg-query -W -f='${Version}' prometheus-node-exporter 2>/dev/null || echo '?'))"
 
 # ---- control plane --------------------------------------------------------------------------
-log "starting a private control plane in $CP_DIR"
-export LEKIWI_CP_DIR="$CP_DIR"
-CP_UP=1
-"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
-  || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
-eval "$("$ROOT/scripts/control-plane.sh" env)"
-# shellcheck disable=SC1091
-. "$CP_DIR/ports.env"
+start_control_plane
 
 NS=bench
 ROBOT=bench-robot
-kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
-kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
 kubectl create namespace lekiwi-system >/dev/null
 kubectl create namespace "$NS" >/dev/null
 # A fleet enrollment token, as scripts/quickstart.sh makes it: the Secret keeps only its SHA-256.
 TOKEN_FILE="$WORK/enrollment-token"
-echo "lke_$(openssl rand -hex 32)" >"$TOKEN_FILE"
-chmod 600 "$TOKEN_FILE"
-kubectl -n "$NS" create secret generic fleet-enrollment \
-  --from-literal=sha256="$(tr -d '\n' <"$TOKEN_FILE" | sha256sum | cut -d' ' -f1)" >/dev/null
-kubectl -n "$NS" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+enrollment_token "$NS" "$TOKEN_FILE"
 
 # ---- operator (controllers + gateway, defaults apart from addresses and the store) ----------
 HTTP_PORT="$(free_port)"

@@ -58,11 +58,8 @@ BUILD=1
 KEEP=0
 COMMAND="bash bench/gateway.sh $*"
 
-usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
-log() { printf '[bench %s] %s\n' "$(date +%T)" "$*" >&2; }
-die() { log "error: $*"; exit 1; }
-
-positive_int() { [[ "$2" =~ ^[1-9][0-9]*$ ]] || die "$1 needs a positive integer, not '$2'"; }
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
 
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -99,77 +96,7 @@ CP_DIR="$WORK/control-plane"
 CP_UP=0
 PIDS=()
 
-cleanup() {
-  local rc=$?
-  trap - EXIT INT TERM
-  set +e
-  local pid
-  for pid in "${PIDS[@]}"; do
-    kill -KILL "$pid" 2>/dev/null
-    wait "$pid" 2>/dev/null
-  done
-  if [ $CP_UP = 1 ]; then
-    LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
-  fi
-  if [ $KEEP = 1 ] || [ $rc != 0 ]; then
-    log "work directory kept: $WORK"
-  else
-    rm -rf "$WORK"
-  fi
-  exit $rc
-}
-trap cleanup EXIT
-trap 'log "interrupted"; exit 130' INT
-trap 'log "terminated"; exit 143' TERM
-
-# Starts "$@" in the background with its output in $WORK/<name>.log; sets LAST_PID.
-start() {
-  local name="$1"; shift
-  "$@" >"$WORK/$name.log" 2>&1 8>&- &
-  LAST_PID=$!
-  PIDS+=("$LAST_PID")
-}
-
-# Forgets the pid of a process that has ended, so cleanup can never signal a reused pid.
-forget() {
-  local rest=() pid
-  for pid in "${PIDS[@]}"; do [ "$pid" = "$1" ] || rest+=("$pid"); done
-  PIDS=("${rest[@]}")
-}
-
-# Stops one process we started: SIGKILL, reap it, forget it.
-stop() {
-  kill -KILL "$1" 2>/dev/null || true
-  wait "$1" 2>/dev/null || true
-  forget "$1"
-}
-
-alive() { kill -0 "$1" 2>/dev/null; }
-
-fact() { printf '%s=%s\n' "$1" "$2" >>"$WORK/facts.env"; }
-
-now() { date +%s.%N; }
-since() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
-
-# A free 127.0.0.1 port below the ephemeral range, so the simulator's 10,000 client sockets can
-# never take it.
-free_port() {
-  python3 - <<'PY'
-import random, socket
-lo = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
-hi, lo = (lo - 1, 10000) if lo > 20000 else (65000, 61000)
-while True:
-    p = random.randint(lo, hi)
-    s = socket.socket()
-    try:
-        s.bind(("127.0.0.1", p))
-    except OSError:
-        continue
-    s.close()
-    print(p)
-    break
-PY
-}
+trap_cleanup
 
 # The value of the series $2 (exact text up to the value, labels included) in file $1, or empty.
 sample() { awk -v s="$2" 'index($0, s " ") == 1 { print $2; exit }' "$1" 2>/dev/null; }
@@ -204,15 +131,6 @@ machine_busy() {
   awk -v hz="$(getconf CLK_TCK)" '/^cpu / { printf "%.2f", ($2 + $3 + $4 + $7 + $8) / hz }' /proc/stat
 }
 
-wait_for() { # what timeout_s command...
-  local what="$1" timeout="$2"; shift 2
-  local deadline=$((SECONDS + timeout))
-  until "$@"; do
-    [ $SECONDS -lt $deadline ] || die "$what not ready after ${timeout}s"
-    sleep 0.5
-  done
-}
-
 # Records CPU use of the named processes over a window: cpu_snapshot NAME:PID... ; later
 # cpu_report PHASE SECONDS.
 declare -A CPU0=()
@@ -233,12 +151,7 @@ cpu_report() {
 
 # ---- preparation ----------------------------------------------------------------------------
 # One benchmark at a time on this machine: two would share the 2 cores and disturb each other.
-LOCK="${TMPDIR:-/tmp}/lekiwi-bench.lock"
-exec 8>>"$LOCK"
-if ! flock -n 8; then
-  log "another benchmark run holds $LOCK; waiting for it (at most 15 minutes)"
-  flock -w 900 8 || die "another benchmark run still holds $LOCK after 15 minutes"
-fi
+take_bench_lock
 
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 NOFILE="$(ulimit -n)"
@@ -261,7 +174,7 @@ bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
 fact cpus "$(nproc)"
-fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+fact_source
 fact command "$COMMAND"
 fact robots "$ROBOTS"
 fact interval "$INTERVAL"
@@ -269,17 +182,8 @@ fact status_refresh "$STATUS_REFRESH"
 fact connect_rates "$CONNECT_RATE/s against the gateway, $ECHO_CONNECT_RATE/s against the echo floor"
 
 # ---- control plane --------------------------------------------------------------------------
-log "starting a private control plane in $CP_DIR"
-export LEKIWI_CP_DIR="$CP_DIR"
-CP_UP=1
-"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
-  || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
-eval "$("$ROOT/scripts/control-plane.sh" env)"
-# shellcheck disable=SC1091
-. "$CP_DIR/ports.env"
+start_control_plane
 
-kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
-kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
 kubectl create namespace lekiwi-system >/dev/null
 kubectl create namespace bench >/dev/null
 TOKEN="lke_$(openssl rand -hex 32)"
@@ -360,10 +264,10 @@ PY
     wait "$pid" || die "provisioning failed: $(tail -3 "$WORK"/provision-*.log)"
     forget "$pid"
   done
-  log "provisioned in $(since "$T_PROV") s; waiting for the controller to see $ROBOTS Pending robots"
+  log "provisioned in $(elapsed "$T_PROV") s; waiting for the controller to see $ROBOTS Pending robots"
   pending() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Pending"}')" -ge "$ROBOTS" ]; }
   wait_for "all robots Pending" 300 pending
-  fact provision_seconds "$(since "$T_PROV")"
+  fact provision_seconds "$(elapsed "$T_PROV")"
   # Let the controller's Pending writes and Events finish before robots connect.
   sleep 5
   fact gateway_rss_provisioned_kib "$(rss_kib "$GW_PID")"
@@ -399,20 +303,20 @@ wait_all() {
     v="$(current "$url" "$series")"
     if [ -n "$url2" ] && [ -z "$WAITED_SECONDARY" ]; then
       v2="$(current "$url2" "$series2")"
-      [ "$v2" -ge "$ROBOTS" ] && WAITED_SECONDARY="$(since "$t0")"
+      [ "$v2" -ge "$ROBOTS" ] && WAITED_SECONDARY="$(elapsed "$t0")"
     fi
     if [ "$v" -ge "$ROBOTS" ]; then
-      WAITED="$(since "$t0")"
+      WAITED="$(elapsed "$t0")"
       [ -n "$url2" ] && [ -z "$WAITED_SECONDARY" ] && WAITED_SECONDARY="$WAITED"
       return 0
     fi
     for pid in $watch_pid; do alive "$pid" || die "a process exited early; see $WORK/*.log"; done
     if [ $((SECONDS - last_log)) -ge 10 ]; then
       last_log=$SECONDS
-      log "  $(since "$t0") s: $series = $v${url2:+, $series2 = ${v2:-done}}$(progress_extra)"
+      log "  $(elapsed "$t0") s: $series = $v${url2:+, $series2 = ${v2:-done}}$(progress_extra)"
       log "    sim: $(grep -a 'connected' "$sim_log" | tail -1 | sed 's/^\[ *[0-9.]*s\] //')"
     fi
-    if awk -v e="$(since "$t0")" -v t="$timeout" 'BEGIN { exit !(e > t) }'; then
+    if awk -v e="$(elapsed "$t0")" -v t="$timeout" 'BEGIN { exit !(e > t) }'; then
       return 1
     fi
     sleep 1
@@ -439,7 +343,7 @@ measure() {
     if [ "${item%%=*}" = apiserver ]; then scrape_apiserver "$WORK/apiserver-b.txt"
     else scrape "${item#*=}" "$WORK/${item%%=*}-b.txt"; fi
   done
-  WINDOW_SECONDS="$(since "$t0")"
+  WINDOW_SECONDS="$(elapsed "$t0")"
   r="$(rss_kib "$pid")"; [ "$r" -gt $max ] && max=$r
   fact "${phase}_rss_after_kib" "$r"
   fact "${phase}_rss_max_kib" "$max"

@@ -50,11 +50,8 @@ OPERATOR_NS=lekiwi-system
 # A robot whose state directory holds `fail-health` fails its health check after every switch.
 HEALTH='test ! -e "$LEKIWI_RELEASE_DIR/../../fail-health"'
 
-usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
-log() { printf '[bench %s] %s\n' "$(date +%T)" "$*" >&2; }
-die() { log "error: $*"; exit 1; }
-
-positive_int() { [[ "$2" =~ ^[1-9][0-9]*$ ]] || die "$1 needs a positive integer, not '$2'"; }
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
 
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -82,105 +79,28 @@ WORK="$(mktemp -d "${TMPDIR:-/tmp}/lekiwi-bench-rollout.XXXXXX")"
 CP_DIR="$WORK/control-plane"
 CP_UP=0
 PIDS=()
+# `stop` gives a process 5 s after SIGTERM before SIGKILL.
+STOP_GRACE=5
 
-cleanup() {
-  local rc=$?
-  trap - EXIT INT TERM
-  set +e
-  local pid
-  for pid in "${PIDS[@]}"; do
-    kill -KILL "$pid" 2>/dev/null
-    wait "$pid" 2>/dev/null
-  done
-  if [ $CP_UP = 1 ]; then
-    LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
-  fi
+keep_or_remove_work() { # exit status
   if [ $KEEP = 1 ]; then
     log "work directory kept: $WORK"
-  elif [ $rc != 0 ]; then
+  elif [ "$1" != 0 ]; then
     # Logs and records stay for the post-mortem; the robots' copies of the release do not (20 GB).
     rm -rf "$WORK/robots" "$WORK/blobs" "$WORK/releases"/v[0-9]*
     log "work directory kept without the robots' state, the blobs and the releases: $WORK"
   else
     rm -rf "$WORK"
   fi
-  exit $rc
 }
-trap cleanup EXIT
-trap 'log "interrupted"; exit 130' INT
-trap 'log "terminated"; exit 143' TERM
-
-# Starts "$@" in the background with its output in $WORK/<name>.log; sets LAST_PID. The lock's
-# file descriptor stays with this script.
-start() {
-  local name="$1"; shift
-  "$@" >"$WORK/$name.log" 2>&1 8>&- </dev/null &
-  LAST_PID=$!
-  PIDS+=("$LAST_PID")
-}
-
-forget() {
-  local rest=() pid
-  for pid in "${PIDS[@]}"; do [ "$pid" = "$1" ] || rest+=("$pid"); done
-  PIDS=("${rest[@]}")
-}
-
-# Stops one process we started: SIGTERM, up to 5 s, SIGKILL; reaps and forgets it.
-stop() {
-  local deadline=$((SECONDS + 5))
-  kill -TERM "$1" 2>/dev/null || true
-  while kill -0 "$1" 2>/dev/null && [ $SECONDS -lt $deadline ]; do sleep 0.1; done
-  kill -KILL "$1" 2>/dev/null || true
-  wait "$1" 2>/dev/null || true
-  forget "$1"
-}
-
-alive() { kill -0 "$1" 2>/dev/null; }
-
-fact() { printf '%s=%s\n' "$1" "$2" >>"$WORK/facts.env"; }
-
-now() { date +%s.%N; }
-elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
-
-# A free 127.0.0.1 port below the ephemeral range.
-free_port() {
-  python3 - <<'PY'
-import random, socket
-lo = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
-hi, lo = (lo - 1, 10000) if lo > 20000 else (65000, 61000)
-while True:
-    p = random.randint(lo, hi)
-    s = socket.socket()
-    try:
-        s.bind(("127.0.0.1", p))
-    except OSError:
-        continue
-    s.close()
-    print(p)
-    break
-PY
-}
-
-wait_for() { # what timeout_s command...
-  local what="$1" timeout="$2"; shift 2
-  local deadline=$((SECONDS + timeout))
-  until "$@"; do
-    [ $SECONDS -lt $deadline ] || die "$what not ready after ${timeout}s"
-    sleep 0.5
-  done
-}
+trap_cleanup
 
 # Bytes of the blobs in the operator's blob store.
 blob_bytes() { find "$WORK/blobs" -type f -path '*/sha256/*' -printf '%s\n' 2>/dev/null | awk '{ s += $1 } END { printf "%d", s }'; }
 
 # ---- preparation ----------------------------------------------------------------------------
 # One benchmark at a time on this machine (the same lock as bench/gateway.sh and bench/agent.sh).
-LOCK="${TMPDIR:-/tmp}/lekiwi-bench.lock"
-exec 8>>"$LOCK"
-if ! flock -n 8; then
-  log "another benchmark run holds $LOCK; waiting for it (at most 15 minutes)"
-  flock -w 900 8 || die "another benchmark run still holds $LOCK after 15 minutes"
-fi
+take_bench_lock
 
 log "work directory: $WORK"
 # Every robot keeps its own copy of the release (blobs, hard-linked into the release directory),
@@ -210,34 +130,21 @@ ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, kernel $(uname -r), $(df -PT "$WORK" | awk 'NR == 2 { print $2 }') at $(df -P "$WORK" | awk 'NR == 2 { print $6 }'), load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
 fact cpus "$(nproc)"
-fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+fact_source
 fact command "$COMMAND"
 fact robots "$ROBOTS"
 fact namespace "$NS"
 fact target_seconds "$TARGET_SECONDS"
 
 # ---- control plane --------------------------------------------------------------------------
-log "starting a private control plane in $CP_DIR"
-export LEKIWI_CP_DIR="$CP_DIR"
-CP_UP=1
-"$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
-  || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
-eval "$("$ROOT/scripts/control-plane.sh" env)"
-# shellcheck disable=SC1091
-. "$CP_DIR/ports.env"
+start_control_plane
 export APISERVER_PORT
 
-kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
-kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
 kubectl create namespace "$OPERATOR_NS" >/dev/null
 kubectl create namespace "$NS" >/dev/null
 # A fleet enrollment token, as scripts/quickstart.sh makes it: the Secret keeps only its SHA-256.
 TOKEN_FILE="$WORK/enrollment-token"
-echo "lke_$(openssl rand -hex 32)" >"$TOKEN_FILE"
-chmod 600 "$TOKEN_FILE"
-kubectl -n "$NS" create secret generic fleet-enrollment \
-  --from-literal=sha256="$(tr -d '\n' <"$TOKEN_FILE" | sha256sum | cut -d' ' -f1)" >/dev/null
-kubectl -n "$NS" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+enrollment_token "$NS" "$TOKEN_FILE"
 
 # ---- operator (controllers + gateway; defaults apart from addresses and stores) -------------
 HTTP_PORT="$(free_port)"

@@ -120,10 +120,9 @@ pub fn select(
 
 /// Renders events in the given format; `now` is passed in so ages are testable.
 pub fn render(events: &[StoredEvent], output: Output, now: Timestamp) -> anyhow::Result<String> {
-    Ok(match output {
-        Output::Json => serde_json::to_string_pretty(events)? + "\n",
-        Output::Yaml => serde_yaml::to_string(events)?,
-        Output::Table | Output::Wide => {
+    Ok(match output.structured(events)? {
+        Some(text) => text,
+        None => {
             let wide = output == Output::Wide;
             let mut rows = vec![
                 ["SEQ", "AGE", "SEVERITY", "KIND", "MESSAGE", "DATA"]

@@ -28,6 +28,21 @@ pub enum Output {
     Yaml,
 }
 
+impl Output {
+    /// `value` as pretty JSON or YAML when that is the format asked for (JSON with a final
+    /// newline); `None` for the table formats, which each command draws itself.
+    pub fn structured<T: serde::Serialize + ?Sized>(
+        self,
+        value: &T,
+    ) -> anyhow::Result<Option<String>> {
+        Ok(match self {
+            Output::Json => Some(serde_json::to_string_pretty(value)? + "\n"),
+            Output::Yaml => Some(serde_yaml::to_string(value)?),
+            Output::Table | Output::Wide => None,
+        })
+    }
+}
+
 /// Manage a LeKiwi robot fleet.
 #[derive(Debug, Parser)]
 #[command(name = "kubectl-lekiwi", bin_name = "kubectl lekiwi", version, about)]

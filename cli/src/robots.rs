@@ -20,10 +20,9 @@ pub async fn list(
     };
     let mut robots = api.list(&ListParams::default()).await?.items;
     robots.sort_by_key(|r| (r.namespace(), r.name_any()));
-    Ok(match output {
-        Output::Json => serde_json::to_string_pretty(&robots)? + "\n",
-        Output::Yaml => serde_yaml::to_string(&robots)?,
-        Output::Table | Output::Wide => table(
+    Ok(match output.structured(&robots)? {
+        Some(text) => text,
+        None => table(
             &robots,
             namespace.is_none(),
             output == Output::Wide,

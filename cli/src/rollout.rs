@@ -68,38 +68,36 @@ pub async fn run(
             timeout,
         } => status(&api, &name, watch, timeout, output).await,
         RolloutCommand::Pause { name } => {
-            merge(&api, &name, json!({"spec": {"paused": true}})).await?;
-            println!("robotdeployment/{name} paused");
-            Ok(())
+            steer(&api, &name, json!({"spec": {"paused": true}}), "paused").await
         }
         RolloutCommand::Resume { name } => {
-            merge(&api, &name, json!({"spec": {"paused": false}})).await?;
-            println!("robotdeployment/{name} resumed");
-            Ok(())
+            steer(&api, &name, json!({"spec": {"paused": false}}), "resumed").await
         }
         RolloutCommand::Undo { name } => {
-            let at = Timestamp::now().to_string();
-            merge(
-                &api,
-                &name,
-                json!({"metadata": {"annotations": {UNDO_ANNOTATION: at}}}),
-            )
-            .await?;
-            println!("robotdeployment/{name} rolling back");
-            Ok(())
+            steer(&api, &name, stamp(UNDO_ANNOTATION), "rolling back").await
         }
         RolloutCommand::Restart { name } => {
-            let at = Timestamp::now().to_string();
-            merge(
-                &api,
-                &name,
-                json!({"metadata": {"annotations": {RESTART_ANNOTATION: at}}}),
-            )
-            .await?;
-            println!("robotdeployment/{name} restarted");
-            Ok(())
+            steer(&api, &name, stamp(RESTART_ANNOTATION), "restarted").await
         }
     }
+}
+
+/// A patch setting `annotation` to now: the controller acts on each new value once.
+fn stamp(annotation: &str) -> serde_json::Value {
+    json!({"metadata": {"annotations": {annotation: Timestamp::now().to_string()}}})
+}
+
+/// Merge-patches the RobotDeployment and says what was done, as kubectl does
+/// (`robotdeployment/NAME paused`).
+async fn steer(
+    api: &Api<RobotDeployment>,
+    name: &str,
+    patch: serde_json::Value,
+    done: &str,
+) -> anyhow::Result<()> {
+    merge(api, name, patch).await?;
+    println!("robotdeployment/{name} {done}");
+    Ok(())
 }
 
 async fn merge(
@@ -219,10 +217,9 @@ async fn status(
     };
     let d = get().await?;
     if !watch || matches!(output, Output::Json | Output::Yaml) {
-        match output {
-            Output::Json => println!("{}", serde_json::to_string_pretty(&d.status)?),
-            Output::Yaml => print!("{}", serde_yaml::to_string(&d.status)?),
-            _ => print!("{}", report(&d)),
+        match output.structured(&d.status)? {
+            Some(text) => print!("{text}"),
+            None => print!("{}", report(&d)),
         }
         return verdict(&d);
     }
@@ -260,21 +257,15 @@ async fn status(
 }
 
 fn verdict(d: &RobotDeployment) -> anyhow::Result<()> {
+    let message = || {
+        d.status
+            .as_ref()
+            .and_then(|s| s.message.clone())
+            .unwrap_or_default()
+    };
     match terminal(d) {
-        Some(RolloutPhase::RolledBack) => anyhow::bail!(
-            "rollout rolled back: {}",
-            d.status
-                .as_ref()
-                .and_then(|s| s.message.clone())
-                .unwrap_or_default()
-        ),
-        Some(RolloutPhase::Failed) => anyhow::bail!(
-            "rollout failed: {}",
-            d.status
-                .as_ref()
-                .and_then(|s| s.message.clone())
-                .unwrap_or_default()
-        ),
+        Some(RolloutPhase::RolledBack) => anyhow::bail!("rollout rolled back: {}", message()),
+        Some(RolloutPhase::Failed) => anyhow::bail!("rollout failed: {}", message()),
         _ => Ok(()),
     }
 }

@@ -139,10 +139,9 @@ pub async fn robot_add(
     args: AddArgs,
 ) -> anyhow::Result<()> {
     let setup = add(client, namespace, &args).await?;
-    match output {
-        Output::Json => println!("{}", serde_json::to_string_pretty(&setup)?),
-        Output::Yaml => print!("{}", serde_yaml::to_string(&setup)?),
-        Output::Table | Output::Wide => {
+    match output.structured(&setup)? {
+        Some(text) => print!("{text}"),
+        None => {
             eprintln!(
                 "robot {} registered; its token is shown once (the cluster keeps only its hash)",
                 setup.robot
@@ -243,7 +242,7 @@ pub struct EnrollmentToken {
     pub namespace: String,
     /// The Secret holding its hash.
     pub secret: String,
-    /// The token.
+    /// The token itself, shown this once.
     pub token: String,
 }
 
@@ -255,10 +254,9 @@ pub async fn enroll_token(
     args: EnrollArgs,
 ) -> anyhow::Result<()> {
     let made = make_enrollment_token(client, namespace, args.rotate).await?;
-    match output {
-        Output::Json => println!("{}", serde_json::to_string_pretty(&made)?),
-        Output::Yaml => print!("{}", serde_yaml::to_string(&made)?),
-        Output::Table | Output::Wide => {
+    match output.structured(&made)? {
+        Some(text) => print!("{text}"),
+        None => {
             eprintln!(
                 "fleet enrollment token for namespace {namespace} (Secret {}; shown once, the cluster keeps only its hash).\n\
                  On each robot: write it to a file readable only by root, e.g. /etc/lekiwi/enrollment-token,\n\

@@ -22,7 +22,8 @@ pub const ROBOT_LABEL: &str = "fleet.lekiwi.io/robot";
 pub const HASH_KEY: &str = "sha256";
 /// Name of the fleet enrollment token Secret `kubectl lekiwi enroll-token` makes.
 pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
-/// Label on the Lease each gateway renews; its value is the gateway's name.
+/// Label on the Lease each gateway renews (value `true`; the Lease's name is the gateway's):
+/// the Robot controller's stale-Lease sweep considers only Leases that carry it.
 pub const GATEWAY_LEASE_LABEL: &str = "fleet.lekiwi.io/gateway";
 
 /// Server-side-apply field managers, one per writer, so `managedFields` say who wrote what.

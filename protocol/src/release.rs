@@ -36,7 +36,7 @@ pub enum ManifestError {
     /// A mode with bits other than permissions.
     #[error("invalid mode {mode:o} of {path:?}: only permission bits (0o7777 at most)")]
     Mode {
-        /// The file.
+        /// Path of the file in the manifest.
         path: String,
         /// Its mode.
         mode: u32,

@@ -3,12 +3,13 @@
 //! and zero loss of events across a gateway outage and agent crashes.
 
 use std::os::unix::fs::PermissionsExt;
+use std::path::PathBuf;
 use std::time::Duration;
 
 use lekiwi_crds::RobotPhase;
 use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, OperatorProcess, enrollment_token, gateway_url, get_robot,
+    AgentProcess, ControlPlane, OperatorProcess, enrollment_token_file, gateway_url, get_robot,
     namespace, wait_for,
 };
 use serde_json::{Value, json};
@@ -31,17 +32,47 @@ fn lines_with<'a>(lines: &'a [Value], message: &str) -> Vec<&'a Value> {
         .collect()
 }
 
-#[tokio::test]
-async fn agent_enrolls_keeps_its_token_and_reconnects_with_backoff() -> anyhow::Result<()> {
+/// A namespace of the test's own with an operator, and where its agent keeps things.
+struct Setup {
+    client: kube::Client,
+    ns: String,
+    op: OperatorProcess,
+    /// Holds the token file and the state directory.
+    dir: tempfile::TempDir,
+    token_file: PathBuf,
+    state: PathBuf,
+}
+
+async fn setup(prefix: &str, identity: &str) -> anyhow::Result<Setup> {
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
-    let ns = namespace(&client, "agentbo").await?;
-    let mut op = OperatorProcess::start(cp, &ns, "agbo", &[])?;
+    let ns = namespace(&client, prefix).await?;
+    let mut op = OperatorProcess::start(cp, &ns, identity, &[])?;
     op.wait_ready().await?;
     let dir = tempfile::tempdir()?;
     let token_file = dir.path().join("enroll");
-    std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+    enrollment_token_file(&client, &ns, &token_file).await?;
     let state = dir.path().join("state");
+    Ok(Setup {
+        client,
+        ns,
+        op,
+        dir,
+        token_file,
+        state,
+    })
+}
+
+#[tokio::test]
+async fn agent_enrolls_keeps_its_token_and_reconnects_with_backoff() -> anyhow::Result<()> {
+    let Setup {
+        client,
+        ns,
+        mut op,
+        dir: _dir,
+        token_file,
+        state,
+    } = setup("agentbo", "agbo").await?;
     let robot = format!("{ns}/kiwi-a");
     let agent = AgentProcess::start(&gateway_url(&op), &robot, &token_file, &state, &[])?;
 
@@ -100,16 +131,7 @@ async fn agent_enrolls_keeps_its_token_and_reconnects_with_backoff() -> anyhow::
     op.restart()?;
     op.wait_ready().await?;
     let started = std::time::Instant::now();
-    wait_for("the agent reconnected", T, || async {
-        agent
-            .status()
-            .await
-            .ok()
-            .filter(|s| s["connected"] == true)
-            .map(|_| ())
-    })
-    .await
-    .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
+    agent.wait_connected(T).await?;
     let took = started.elapsed();
     eprintln!("reconnected {took:?} after the gateway was ready");
     assert!(took < Duration::from_secs(5), "the cap is 2 s: {took:?}");
@@ -133,15 +155,14 @@ async fn agent_enrolls_keeps_its_token_and_reconnects_with_backoff() -> anyhow::
 /// (and once more while it replays), all reach the event store exactly once, in order.
 #[tokio::test]
 async fn no_event_is_lost_across_a_gateway_outage_and_agent_crashes() -> anyhow::Result<()> {
-    let cp = ControlPlane::shared();
-    let client = cp.client().await?;
-    let ns = namespace(&client, "agentzl").await?;
-    let mut op = OperatorProcess::start(cp, &ns, "agzl", &[])?;
-    op.wait_ready().await?;
-    let dir = tempfile::tempdir()?;
-    let token_file = dir.path().join("enroll");
-    std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
-    let state = dir.path().join("state");
+    let Setup {
+        ns,
+        mut op,
+        dir: _dir,
+        token_file,
+        state,
+        ..
+    } = setup("agentzl", "agzl").await?;
     let robot = format!("{ns}/kiwi-z");
     let mut agent = AgentProcess::start(
         &gateway_url(&op),
@@ -171,16 +192,7 @@ async fn no_event_is_lost_across_a_gateway_outage_and_agent_crashes() -> anyhow:
     };
 
     // Connected: 10 events go straight through.
-    wait_for("connected", T, || async {
-        agent
-            .status()
-            .await
-            .ok()
-            .filter(|s| s["connected"] == true)
-            .map(|_| ())
-    })
-    .await
-    .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
+    agent.wait_connected(T).await?;
     emit(&agent, 10)?;
     wait_for("10 events stored", T, || async {
         (stored_ns(store.clone(), key.clone()).await.ok()?.len() == 10).then_some(())

@@ -5,7 +5,8 @@ use std::time::{Duration, Instant};
 
 use lekiwi_crds::RobotPhase;
 use lekiwi_tests::{
-    ControlPlane, GatewayStandIn, OperatorProcess, create_robot, get_robot, namespace, wait_for,
+    ControlPlane, GatewayStandIn, OperatorProcess, connect_agent, create_robot, get_robot,
+    namespace, wait_for,
 };
 
 #[tokio::test]
@@ -98,7 +99,6 @@ async fn refuses_without_crds_installs_them_and_survives_api_restart() -> anyhow
 /// disconnects during the outage shows Offline once the API server is back.
 #[tokio::test]
 async fn gateway_status_writes_survive_an_api_outage() -> anyhow::Result<()> {
-    use lekiwi_agent::connection::{Credentials, connect};
     let cp = ControlPlane::private()?;
     cp.install_crds()?;
     let client = cp.client().await?;
@@ -106,27 +106,8 @@ async fn gateway_status_writes_survive_an_api_outage() -> anyhow::Result<()> {
     let mut op = OperatorProcess::start(&cp, &ns, "op", &["--heartbeat-grace-seconds", "300"])?;
     op.wait_ready().await?;
     let token = lekiwi_tests::enrollment_token(&client, &ns).await?;
-    let url = lekiwi_tests::gateway_url(&op);
-    let (stays, _) = connect(
-        &url,
-        &Credentials {
-            token: token.clone(),
-            robot: format!("{ns}/stays"),
-        },
-        &lekiwi_tests::hello(),
-        Duration::from_secs(10),
-    )
-    .await?;
-    let (leaves, _) = connect(
-        &url,
-        &Credentials {
-            token,
-            robot: format!("{ns}/leaves"),
-        },
-        &lekiwi_tests::hello(),
-        Duration::from_secs(10),
-    )
-    .await?;
+    let (stays, _) = connect_agent(&op, &token, &format!("{ns}/stays")).await?;
+    let (leaves, _) = connect_agent(&op, &token, &format!("{ns}/leaves")).await?;
     for name in ["stays", "leaves"] {
         wait_for(
             &format!("{name} Online"),

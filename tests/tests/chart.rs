@@ -803,17 +803,7 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     // The gateway under the same credentials: enrollment (creates a Robot and its token Secret),
     // presence, durable events, a legacy poll.
     let enroll = lekiwi_tests::enrollment_token(&client, &ns).await?;
-    let creds = lekiwi_agent::connection::Credentials {
-        token: enroll.clone(),
-        robot: format!("{ns}/kiwi-2"),
-    };
-    let (ws, welcome) = lekiwi_agent::connection::connect(
-        &lekiwi_tests::gateway_url(&op),
-        &creds,
-        &lekiwi_tests::hello(),
-        Duration::from_secs(10),
-    )
-    .await?;
+    let (ws, welcome) = lekiwi_tests::connect_agent(&op, &enroll, &format!("{ns}/kiwi-2")).await?;
     assert!(welcome.robot_token.is_some());
     wait_for("enrolled robot Online", Duration::from_secs(20), || async {
         (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase == Some(RobotPhase::Online))

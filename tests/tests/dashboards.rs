@@ -10,14 +10,14 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context as _, bail};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, LabelSelectorRequirement};
-use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
 use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
-use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
+use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, bin, enrollment_token, free_port, gateway_url, http_get,
-    log_dir, namespace, repo_root, wait_for,
+    ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin, enrollment_token, free_port,
+    gateway_url, http_get, log_dir, namespace, repo_root, rollout_finished, test_strategy,
+    wait_for,
 };
 use serde_json::{Value, json};
 
@@ -218,40 +218,14 @@ fn push(
     })
 }
 
-fn strategy() -> RolloutStrategy {
-    RolloutStrategy {
-        batch_size: IntOrString::Int(3),
-        canary: 1,
-        success_threshold: 0.8,
-        robot_timeout_seconds: 60,
-        pause_between_batches_seconds: 0,
-        teleoperated: UnavailablePolicy::Wait,
-        unavailable: UnavailablePolicy::Wait,
-        wait_timeout_seconds: 120,
-    }
-}
-
 async fn finished(
     api: &Api<RobotDeployment>,
     name: &str,
     op: &OperatorProcess,
 ) -> anyhow::Result<RobotDeployment> {
-    wait_for(
-        &format!("rollout {name} to end"),
-        Duration::from_secs(180),
-        || async {
-            let d = api.get(name).await.ok()?;
-            let st = d.status.as_ref()?;
-            (st.observed_generation == d.metadata.generation
-                && matches!(
-                    st.phase,
-                    Some(RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed)
-                ))
-            .then_some(d)
-        },
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!("{e}; operator log: {}", op.log.display()))
+    rollout_finished(api, name, Duration::from_secs(180))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}; operator log: {}", op.log.display()))
 }
 
 /// Replaces Grafana's variables with the test's values.
@@ -322,34 +296,17 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
     let token_file = dir.path().join("enroll");
     std::fs::write(&token_file, &token)?;
     let state_root = dir.path().join("robots");
-    let fleet_args: Vec<String> = [
-        "--gateway",
-        &gateway_url(&op),
-        "--enrollment-token-file",
-        token_file.to_str().unwrap(),
-        "--namespace",
-        &ns,
-        "--robots",
-        &FLEET.to_string(),
-        "--state-root",
-        state_root.to_str().unwrap(),
-        "--health-command",
-        HEALTH,
-        "--health-timeout-s",
-        "2",
-        "--backoff-max-ms",
-        "2000",
-        "--report-every",
-        "5",
-    ]
-    .iter()
-    .map(|s| s.to_string())
-    .collect();
-    let _fleet = spawn(
-        &bin("lekiwi-fleet"),
-        &fleet_args,
-        &log_dir().join(format!("fleet-{ns}.log")),
-    )?;
+    let _fleet = FleetProcess::start(FleetSpec {
+        gateway: &gateway_url(&op),
+        token_file: &token_file,
+        namespace: &ns,
+        robots: FLEET,
+        state_root: &state_root,
+        health_command: HEALTH,
+        report_every: "5",
+        rust_log: "warn",
+        extra: &[],
+    })?;
     let sim_args: Vec<String> = [
         "--gateway",
         &gateway_url(&op),
@@ -421,7 +378,7 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
                 RobotDeploymentSpec {
                     selector,
                     release: v1,
-                    strategy: strategy(),
+                    strategy: test_strategy(3, 1),
                     paused: false,
                 },
             ),

@@ -11,13 +11,17 @@ use lekiwi_agent::connection::{ConnectError, Credentials, Socket, connect};
 use lekiwi_crds::{Robot, RobotPhase};
 use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, Severity, Vitals, decode, encode};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, enrollment_token, gateway_url, get_robot, hello, http_get_with,
-    namespace, wait_for,
+    ControlPlane, OperatorProcess, connect_agent, enrollment_token, gateway_url, get_robot, hello,
+    http_get_with, namespace, wait_for, wait_phase,
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
 
 const TIMEOUT: Duration = Duration::from_secs(10);
+
+fn secs(s: u64) -> Duration {
+    Duration::from_secs(s)
+}
 
 async fn phase_within(
     client: &kube::Client,
@@ -27,10 +31,7 @@ async fn phase_within(
     within: Duration,
 ) -> anyhow::Result<Duration> {
     let start = Instant::now();
-    wait_for(&format!("{name} {phase}"), within, || async {
-        (get_robot(client, ns, name).await.ok()?.status?.phase == Some(phase)).then_some(())
-    })
-    .await?;
+    wait_phase(client, ns, name, phase, within).await?;
     Ok(start.elapsed())
 }
 
@@ -96,14 +97,7 @@ async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
         .robot_token
         .clone()
         .expect("enrollment returns a robot token");
-    let online = phase_within(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?
+    let online = phase_within(&client, &ns, "kiwi-1", RobotPhase::Online, secs(5)).await?
         + t.elapsed().min(Duration::ZERO);
     println!("enrolled robot Online {:?} after connect", t.elapsed());
     assert!(
@@ -185,14 +179,7 @@ async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
     // A closed connection is Offline within a second.
     drop(ws3);
     let t = Instant::now();
-    phase_within(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Offline,
-        Duration::from_secs(5),
-    )
-    .await?;
+    phase_within(&client, &ns, "kiwi-1", RobotPhase::Offline, secs(5)).await?;
     println!("Offline {:?} after close", t.elapsed());
     assert!(
         t.elapsed() < Duration::from_millis(1500),
@@ -280,16 +267,7 @@ async fn bad_frames_get_error_frames_and_the_session_survives() -> anyhow::Resul
     )
     .await?;
     let enroll = enrollment_token(&client, &ns).await?;
-    let (mut ws, _) = connect(
-        &gateway_url(&op),
-        &Credentials {
-            token: enroll,
-            robot: format!("{ns}/kiwi-1"),
-        },
-        &hello(),
-        TIMEOUT,
-    )
-    .await?;
+    let (mut ws, _) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
 
     let cases: Vec<(Message, ErrorCode)> = vec![
         (Message::text("this is not json"), ErrorCode::Malformed),
@@ -371,16 +349,7 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
     let ns = namespace(&client, "gwevents").await?;
     let op = start(cp, &ns, "gw-ev", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
-    let (mut ws, welcome) = connect(
-        &gateway_url(&op),
-        &Credentials {
-            token: enroll,
-            robot: format!("{ns}/kiwi-1"),
-        },
-        &hello(),
-        TIMEOUT,
-    )
-    .await?;
+    let (mut ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
     assert_eq!(welcome.stored_seq, None);
     let event = |seq| AgentMessage::Event {
         seq,
@@ -428,16 +397,7 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
     assert_eq!(store.last_seq(&key).await?, Some(4));
 
     // A reconnecting agent learns what is stored already.
-    let (_ws, welcome) = connect(
-        &gateway_url(&op),
-        &Credentials {
-            token: welcome.robot_token.unwrap(),
-            robot: welcome.robot,
-        },
-        &hello(),
-        TIMEOUT,
-    )
-    .await?;
+    let (_ws, welcome) = connect_agent(&op, &welcome.robot_token.unwrap(), &welcome.robot).await?;
     assert_eq!(welcome.stored_seq, Some(4));
     let conns = store.connections(&key, 10).await?;
     assert!(
@@ -472,33 +432,10 @@ async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -
     let enroll = enrollment_token(&client, &ns).await?;
 
     // Silence: closed and Offline within 3 intervals (+ write latency).
-    let (ws, _) = connect(
-        &gateway_url(&gw),
-        &Credentials {
-            token: enroll.clone(),
-            robot: format!("{ns}/quiet"),
-        },
-        &hello(),
-        TIMEOUT,
-    )
-    .await?;
-    phase_within(
-        &client,
-        &ns,
-        "quiet",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    let (ws, _) = connect_agent(&gw, &enroll, &format!("{ns}/quiet")).await?;
+    phase_within(&client, &ns, "quiet", RobotPhase::Online, secs(5)).await?;
     let t = Instant::now();
-    phase_within(
-        &client,
-        &ns,
-        "quiet",
-        RobotPhase::Offline,
-        Duration::from_secs(8),
-    )
-    .await?;
+    phase_within(&client, &ns, "quiet", RobotPhase::Offline, secs(8)).await?;
     println!(
         "silent robot Offline after {:?} (3 x 1 s intervals)",
         t.elapsed()
@@ -511,35 +448,12 @@ async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -
     drop(ws);
 
     // A live robot on a gateway that is killed: Unknown once the gateway Lease expires.
-    let (mut ws, _) = connect(
-        &gateway_url(&gw),
-        &Credentials {
-            token: enroll,
-            robot: format!("{ns}/busy"),
-        },
-        &hello(),
-        TIMEOUT,
-    )
-    .await?;
+    let (mut ws, _) = connect_agent(&gw, &enroll, &format!("{ns}/busy")).await?;
     send(&mut ws, &heartbeat()).await;
-    phase_within(
-        &client,
-        &ns,
-        "busy",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    phase_within(&client, &ns, "busy", RobotPhase::Online, secs(5)).await?;
     gw.kill();
     let t = Instant::now();
-    phase_within(
-        &client,
-        &ns,
-        "busy",
-        RobotPhase::Unknown,
-        Duration::from_secs(10),
-    )
-    .await?;
+    phase_within(&client, &ns, "busy", RobotPhase::Unknown, secs(10)).await?;
     println!(
         "robot Unknown {:?} after its gateway was killed (lease 3 s)",
         t.elapsed()
@@ -592,14 +506,7 @@ async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Res
     assert!(body.is_empty());
 
     // The poll made the robot Online, recorded as a polling robot.
-    phase_within(
-        &client,
-        &ns,
-        "old-1",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    phase_within(&client, &ns, "old-1", RobotPhase::Online, secs(5)).await?;
     let status = get_robot(&client, &ns, "old-1").await?.status.unwrap();
     assert_eq!(status.protocol.as_deref(), Some("poll"));
     assert_eq!(status.agent_version.as_deref(), Some("legacy-0.9"));
@@ -678,14 +585,7 @@ async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
         recv(&mut ws).await,
         Some(ServerMessage::HeartbeatAck { .. })
     ));
-    phase_within(
-        &client,
-        &ns,
-        "kiwi-tls",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    phase_within(&client, &ns, "kiwi-tls", RobotPhase::Online, secs(5)).await?;
 
     // The connection cap (1) is reached: the next agent gets 503 before any upgrade.
     let other = Credentials {

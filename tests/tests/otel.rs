@@ -6,7 +6,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, OperatorProcess, enrollment_token, gateway_url, namespace, wait_for,
+    AgentProcess, ControlPlane, OperatorProcess, enrollment_token_file, gateway_url, namespace,
+    wait_for,
 };
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -120,7 +121,7 @@ async fn reconcile_and_session_spans_reach_an_otlp_collector() -> anyhow::Result
     // A robot that connects: its Robot is reconciled, its connection is a `session` span.
     let dir = tempfile::tempdir()?;
     let token_file = dir.path().join("enroll");
-    std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+    enrollment_token_file(&client, &ns, &token_file).await?;
     let mut agent = AgentProcess::start(
         &gateway_url(&op),
         &format!("{ns}/kiwi-otel"),
@@ -128,15 +129,7 @@ async fn reconcile_and_session_spans_reach_an_otlp_collector() -> anyhow::Result
         &dir.path().join("state"),
         &[],
     )?;
-    wait_for("the agent connected", Duration::from_secs(30), || async {
-        agent
-            .status()
-            .await
-            .ok()
-            .filter(|s| s["connected"] == true)
-            .map(|_| ())
-    })
-    .await?;
+    agent.wait_connected(Duration::from_secs(30)).await?;
     // The session span ends when the connection does.
     agent.kill();
     let spans = wait_for(

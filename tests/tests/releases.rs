@@ -12,14 +12,13 @@ use std::time::Duration;
 use anyhow::Context as _;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
-use lekiwi_agent::connection::{Credentials, connect};
 use lekiwi_protocol::release::ReleaseManifest;
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, bin, enrollment_token, gateway_url, hello, namespace,
+    ControlPlane, OperatorProcess, bin, connect_agent, enrollment_token, enrollment_token_file,
+    http_request, namespace,
 };
 use serde_json::Value;
 use sha2::{Digest, Sha256};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
 fn digest(bytes: &[u8]) -> String {
     format!("sha256:{}", hex::encode(Sha256::digest(bytes)))
@@ -89,7 +88,7 @@ fn text(out: &Output) -> (String, String) {
     )
 }
 
-/// One HTTP/1.1 request on a fresh connection: status, headers (lowercase names) and body.
+/// One HTTP/1.1 request with a body (`Content-Length` always sent).
 async fn http(
     port: u16,
     method: &str,
@@ -97,38 +96,7 @@ async fn http(
     headers: &[(&str, &str)],
     body: &[u8],
 ) -> anyhow::Result<(u16, Vec<(String, String)>, Vec<u8>)> {
-    let mut stream = tokio::net::TcpStream::connect(("127.0.0.1", port)).await?;
-    let mut req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\nContent-Length: {}\r\n",
-        body.len()
-    );
-    for (k, v) in headers {
-        req.push_str(&format!("{k}: {v}\r\n"));
-    }
-    req.push_str("\r\n");
-    stream.write_all(req.as_bytes()).await?;
-    stream.write_all(body).await?;
-    let mut buf = Vec::new();
-    stream.read_to_end(&mut buf).await?;
-    let split = buf
-        .windows(4)
-        .position(|w| w == b"\r\n\r\n")
-        .context("no end of headers")?;
-    let head = String::from_utf8_lossy(&buf[..split]).into_owned();
-    let body = buf[split + 4..].to_vec();
-    let mut lines = head.lines();
-    let code = lines
-        .next()
-        .and_then(|l| l.split_whitespace().nth(1))
-        .and_then(|c| c.parse().ok())
-        .unwrap_or(0);
-    let hdrs = lines
-        .filter_map(|l| {
-            l.split_once(':')
-                .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_owned()))
-        })
-        .collect();
-    Ok((code, hdrs, body))
+    http_request(port, method, path, headers, Some(body)).await
 }
 
 fn header<'a>(headers: &'a [(String, String)], name: &str) -> Option<&'a str> {
@@ -359,6 +327,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     let (mut op, blobs) = start(cp, &ns, "rel-up", &["--max-blob-bytes", "1048576"]).await?;
     let token = api_token(&client, &ns).await?;
     let auth = format!("Bearer {token}");
+    let as_api = [("authorization", auth.as_str())];
     let port = op.gateway_port;
     let content: Vec<u8> = (0..100_000u32).map(|i| (i % 253) as u8).collect();
     let d = digest(&content);
@@ -382,18 +351,11 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     let (code, _, body) = put("bytes 0-49999/100000".into(), content[..50_000].to_vec()).await?;
     assert_eq!(code, 202, "{}", String::from_utf8_lossy(&body));
     assert_eq!(json(&body)["offset"], 50_000);
-    let (code, _, body) = http(
-        port,
-        "GET",
-        &format!("/v1/uploads/{d}"),
-        &[("authorization", &auth)],
-        b"",
-    )
-    .await?;
+    let (code, _, body) = http(port, "GET", &format!("/v1/uploads/{d}"), &as_api, b"").await?;
     assert_eq!(code, 200);
     assert_eq!(json(&body)["offset"], 50_000);
     assert_eq!(json(&body)["complete"], false);
-    let (code, _, _) = http(port, "HEAD", &path, &[("authorization", &auth)], b"").await?;
+    let (code, _, _) = http(port, "HEAD", &path, &as_api, b"").await?;
     assert_eq!(code, 404, "an incomplete blob is not served");
 
     // A chunk at the wrong offset: 409 with where the upload stands.
@@ -418,16 +380,9 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
         std::fs::read(blobs.path().join("sha256").join(&d[7..]))?,
         content
     );
-    let (code, _, body) = http(port, "PUT", &path, &[("authorization", &auth)], &content).await?;
+    let (code, _, body) = http(port, "PUT", &path, &as_api, &content).await?;
     assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
-    let (code, _, body) = http(
-        port,
-        "GET",
-        &format!("/v1/uploads/{d}"),
-        &[("authorization", &auth)],
-        b"",
-    )
-    .await?;
+    let (code, _, body) = http(port, "GET", &format!("/v1/uploads/{d}"), &as_api, b"").await?;
     assert_eq!(
         (code, json(&body)["complete"].clone()),
         (200, Value::Bool(true))
@@ -439,7 +394,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
         port,
         "PUT",
         &format!("/v1/blobs/{claimed}"),
-        &[("authorization", &auth)],
+        &as_api,
         b"a tampered policy",
     )
     .await?;
@@ -453,25 +408,11 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
         "{message}"
     );
     assert!(!stored(blobs.path()).contains(&claimed));
-    let (code, _, _) = http(
-        port,
-        "HEAD",
-        &format!("/v1/blobs/{claimed}"),
-        &[("authorization", &auth)],
-        b"",
-    )
-    .await?;
+    let (code, _, _) = http(port, "HEAD", &format!("/v1/blobs/{claimed}"), &as_api, b"").await?;
     assert_eq!(code, 404);
 
     // Bad digests, oversized blobs, and uploads without the API token.
-    let (code, _, body) = http(
-        port,
-        "PUT",
-        "/v1/blobs/sha256:XYZ",
-        &[("authorization", &auth)],
-        b"x",
-    )
-    .await?;
+    let (code, _, body) = http(port, "PUT", "/v1/blobs/sha256:XYZ", &as_api, b"x").await?;
     assert_eq!(code, 400);
     assert!(
         json(&body)["message"]
@@ -507,7 +448,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     op.restart()?;
     op.wait_ready().await?;
     assert_eq!(api_token(&client, &ns).await?, token);
-    let (code, _, _) = http(port, "HEAD", &path, &[("authorization", &auth)], b"").await?;
+    let (code, _, _) = http(port, "HEAD", &path, &as_api, b"").await?;
     assert_eq!(code, 200);
     Ok(())
 }
@@ -520,21 +461,13 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
     let (op, _blobs) = start(cp, &ns, "rel-dl", &[]).await?;
     let token = api_token(&client, &ns).await?;
     let api = format!("Bearer {token}");
+    let as_api = [("authorization", api.as_str())];
     let port = op.gateway_port;
 
     // A robot enrolls through the gateway and gets its own token.
     let enroll = enrollment_token(&client, &ns).await?;
     let robot = format!("{ns}/kiwi-1");
-    let (ws, welcome) = connect(
-        &gateway_url(&op),
-        &Credentials {
-            token: enroll.clone(),
-            robot: robot.clone(),
-        },
-        &hello(),
-        Duration::from_secs(10),
-    )
-    .await?;
+    let (ws, welcome) = connect_agent(&op, &enroll, &robot).await?;
     drop(ws);
     let robot_token = welcome.robot_token.context("a robot token")?;
     let robot_auth = format!("Bearer {robot_token}");
@@ -542,7 +475,7 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
     let content: Vec<u8> = (0..200_000u32).map(|i| (i % 241) as u8).collect();
     let d = digest(&content);
     let path = format!("/v1/blobs/{d}");
-    let (code, _, _) = http(port, "PUT", &path, &[("authorization", &api)], &content).await?;
+    let (code, _, _) = http(port, "PUT", &path, &as_api, &content).await?;
     assert_eq!(code, 201);
 
     let as_robot = [
@@ -595,7 +528,7 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
         port,
         "GET",
         &format!("/v1/blobs-served?robot={robot}"),
-        &[("authorization", &api)],
+        &as_api,
         b"",
     )
     .await?;
@@ -742,7 +675,7 @@ async fn releases_travel_over_tls_with_a_private_ca() -> anyhow::Result<()> {
     let digest = out.trim().to_owned();
 
     let token_file = dir.path().join("enroll-token");
-    std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+    enrollment_token_file(&client, &ns, &token_file).await?;
     let url = format!("wss://127.0.0.1:{port}/v1/agent");
     let robot = format!("{ns}/kiwi-tls");
     let agent = lekiwi_tests::AgentProcess::start(

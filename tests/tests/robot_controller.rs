@@ -9,23 +9,14 @@ use kube::api::{ListParams, Patch, PatchParams};
 use lekiwi_crds::{ConditionStatus, Robot, RobotPhase};
 use lekiwi_tests::{
     ControlPlane, GatewayStandIn, OperatorProcess, create_robot, get_robot, namespace, wait_for,
+    wait_phase,
 };
 use serde_json::json;
 
 const GRACE_SECS: u64 = 4;
 
-async fn wait_phase(
-    client: &kube::Client,
-    ns: &str,
-    name: &str,
-    phase: RobotPhase,
-    within: Duration,
-) -> anyhow::Result<Robot> {
-    wait_for(&format!("{name} to be {phase}"), within, || async {
-        let r = get_robot(client, ns, name).await.ok()?;
-        (r.status.as_ref()?.phase == Some(phase)).then_some(r)
-    })
-    .await
+fn secs(s: u64) -> Duration {
+    Duration::from_secs(s)
 }
 
 fn condition(r: &Robot, t: &str) -> (ConditionStatus, String) {
@@ -74,14 +65,7 @@ async fn status_follows_presence() -> anyhow::Result<()> {
 
     // Never connected: Pending, with every condition present and observedGeneration set.
     create_robot(&client, &ns, "kiwi-1", &[]).await?;
-    let r = wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Pending,
-        Duration::from_secs(20),
-    )
-    .await?;
+    let r = wait_phase(&client, &ns, "kiwi-1", RobotPhase::Pending, secs(20)).await?;
     assert_eq!(r.status.as_ref().unwrap().observed_generation, Some(1));
     assert_eq!(
         condition(&r, "Connected"),
@@ -94,14 +78,7 @@ async fn status_follows_presence() -> anyhow::Result<()> {
     // A gateway connects the robot: Online, healthy, idle.
     let mut gw = GatewayStandIn::start(&client, &ns, "gateway-a", 3).await?;
     gw.connect("kiwi-1").await?;
-    let r = wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    let r = wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, secs(5)).await?;
     assert_eq!(
         condition(&r, "Connected"),
         (ConditionStatus::True, "Connected".into())
@@ -154,7 +131,7 @@ async fn status_follows_presence() -> anyhow::Result<()> {
         &ns,
         "kiwi-1",
         RobotPhase::Offline,
-        Duration::from_secs(GRACE_SECS + 5),
+        secs(GRACE_SECS + 5),
     )
     .await?;
     assert!(
@@ -169,24 +146,10 @@ async fn status_follows_presence() -> anyhow::Result<()> {
 
     // A heartbeat brings it back; a closed connection makes it Offline within a second or so.
     gw.heartbeat("kiwi-1").await?;
-    wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, secs(5)).await?;
     gw.disconnect("kiwi-1").await?;
     let t = Instant::now();
-    let r = wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Offline,
-        Duration::from_secs(5),
-    )
-    .await?;
+    let r = wait_phase(&client, &ns, "kiwi-1", RobotPhase::Offline, secs(5)).await?;
     assert!(
         t.elapsed() < Duration::from_secs(2),
         "disconnect took {:?} to show",
@@ -196,23 +159,9 @@ async fn status_follows_presence() -> anyhow::Result<()> {
 
     // The gateway dies (stops renewing its Lease) while holding the robot: Unknown.
     gw.connect("kiwi-1").await?;
-    wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, secs(5)).await?;
     gw.stop_renewing();
-    let r = wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Unknown,
-        Duration::from_secs(10),
-    )
-    .await?;
+    let r = wait_phase(&client, &ns, "kiwi-1", RobotPhase::Unknown, secs(10)).await?;
     assert_eq!(
         condition(&r, "Connected"),
         (ConditionStatus::Unknown, "GatewayLost".into())
@@ -220,14 +169,7 @@ async fn status_follows_presence() -> anyhow::Result<()> {
     // It comes back: Online again.
     gw.resume_renewing(3);
     gw.heartbeat("kiwi-1").await?;
-    wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, secs(5)).await?;
 
     // Maintenance is a spec change: Maintenance phase, observedGeneration follows the spec.
     let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
@@ -238,14 +180,7 @@ async fn status_follows_presence() -> anyhow::Result<()> {
             &Patch::Merge(json!({"spec": {"maintenance": true}})),
         )
         .await?;
-    let r = wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Maintenance,
-        Duration::from_secs(5),
-    )
-    .await?;
+    let r = wait_phase(&client, &ns, "kiwi-1", RobotPhase::Maintenance, secs(5)).await?;
     assert_eq!(r.status.as_ref().unwrap().observed_generation, Some(2));
     assert_eq!(
         condition(&r, "Connected").0,
@@ -260,14 +195,7 @@ async fn status_follows_presence() -> anyhow::Result<()> {
             &Patch::Merge(json!({"spec": {"maintenance": false, "release": release}})),
         )
         .await?;
-    let r = wait_phase(
-        &client,
-        &ns,
-        "kiwi-1",
-        RobotPhase::Online,
-        Duration::from_secs(5),
-    )
-    .await?;
+    let r = wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, secs(5)).await?;
     assert_eq!(r.status.as_ref().unwrap().observed_generation, Some(3));
     assert_eq!(
         condition(&r, "UpToDate"),
@@ -349,14 +277,7 @@ async fn metrics_scrape_cleanly() -> anyhow::Result<()> {
     }
     let mut gw = GatewayStandIn::start(&client, &ns, "gateway-m", 10).await?;
     gw.connect("kiwi-0").await?;
-    wait_phase(
-        &client,
-        &ns,
-        "kiwi-0",
-        RobotPhase::Online,
-        Duration::from_secs(20),
-    )
-    .await?;
+    wait_phase(&client, &ns, "kiwi-0", RobotPhase::Online, secs(20)).await?;
 
     let text = wait_for("robots gauge", Duration::from_secs(5), || async {
         let t = op.metrics().await.ok()?;

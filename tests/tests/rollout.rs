@@ -4,21 +4,21 @@
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::Duration;
 
 use anyhow::{Context as _, bail};
 use k8s_openapi::api::core::v1::Secret;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
-use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use kube::{Api, Client};
-use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
+use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token, gateway_url, http_get_with,
-    log_dir, namespace, wait_for,
+    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin,
+    enrollment_token_file, gateway_url, http_get_with, namespace, rollout_finished, test_strategy,
+    wait_for,
 };
 use serde_json::{Value, json};
 
@@ -46,7 +46,7 @@ impl Site {
             OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blobs.to_str().unwrap()])?;
         op.wait_ready().await?;
         let token_file = dir.path().join("enroll");
-        std::fs::write(&token_file, enrollment_token(&client, &ns).await?)?;
+        enrollment_token_file(&client, &ns, &token_file).await?;
         Ok(Self {
             cp,
             client,
@@ -95,8 +95,19 @@ impl Site {
             .output()?)
     }
 
-    fn fleet(&self, robots: usize, extra: &[&str]) -> anyhow::Result<Fleet> {
-        Fleet::start(self, robots, extra)
+    /// `lekiwi-fleet` with `robots` robots of this site.
+    fn fleet(&self, robots: usize, extra: &[&str]) -> anyhow::Result<FleetProcess> {
+        FleetProcess::start(FleetSpec {
+            gateway: &gateway_url(&self.op),
+            token_file: &self.token_file,
+            namespace: &self.ns,
+            robots,
+            state_root: &self.dir.path().join("robots"),
+            health_command: HEALTH,
+            report_every: "2",
+            rust_log: "warn,lekiwi_agent::release=info",
+            extra,
+        })
     }
 
     async fn deploy(
@@ -131,18 +142,10 @@ impl Site {
 
     /// Waits for a terminal phase (from the current generation) and returns the deployment.
     async fn finished(&self, name: &str, timeout: Duration) -> anyhow::Result<RobotDeployment> {
-        wait_for(&format!("rollout {name} to end"), timeout, || async {
-            let d = self.deployment(name).await.ok()?;
-            let st = d.status.as_ref()?;
-            (st.observed_generation == d.metadata.generation
-                && matches!(
-                    st.phase,
-                    Some(RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed)
-                ))
-            .then_some(d)
-        })
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}\noperator log tail:\n{}", tail(&self.op.log_text())))
+        let api = Api::<RobotDeployment>::namespaced(self.client.clone(), &self.ns);
+        rollout_finished(&api, name, timeout)
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}\noperator log tail:\n{}", tail(&self.op.log_text())))
     }
 
     async fn robots(&self) -> anyhow::Result<Vec<Robot>> {
@@ -216,88 +219,6 @@ fn tail(s: &str) -> String {
     lines[lines.len().saturating_sub(40)..].join("\n")
 }
 
-/// `lekiwi-fleet`: N real agents in one process.
-struct Fleet {
-    child: Child,
-    args: Vec<String>,
-    state_root: PathBuf,
-    log: PathBuf,
-}
-
-impl Fleet {
-    fn start(site: &Site, robots: usize, extra: &[&str]) -> anyhow::Result<Self> {
-        let state_root = site.dir.path().join("robots");
-        let log = log_dir().join(format!("fleet-{}.log", site.ns));
-        std::fs::File::create(&log)?;
-        let mut args: Vec<String> = [
-            "--gateway",
-            &gateway_url(&site.op),
-            "--enrollment-token-file",
-            site.token_file.to_str().unwrap(),
-            "--namespace",
-            &site.ns,
-            "--robots",
-            &robots.to_string(),
-            "--state-root",
-            state_root.to_str().unwrap(),
-            "--health-command",
-            HEALTH,
-            "--health-timeout-s",
-            "2",
-            "--backoff-max-ms",
-            "2000",
-            "--report-every",
-            "2",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        args.extend(extra.iter().map(|s| s.to_string()));
-        let child = spawn_fleet(&args, &log)?;
-        Ok(Self {
-            child,
-            args,
-            state_root,
-            log,
-        })
-    }
-
-    fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-
-    fn restart(&mut self) -> anyhow::Result<()> {
-        self.kill();
-        self.child = spawn_fleet(&self.args, &self.log)?;
-        Ok(())
-    }
-
-    fn state(&self, robot: &str) -> PathBuf {
-        self.state_root.join(robot)
-    }
-}
-
-fn spawn_fleet(args: &[String], log: &Path) -> anyhow::Result<Child> {
-    let file = std::fs::OpenOptions::new()
-        .append(true)
-        .create(true)
-        .open(log)?;
-    Ok(Command::new(bin("lekiwi-fleet"))
-        .args(args)
-        .env("RUST_LOG", "warn,lekiwi_agent::release=info")
-        .stdin(Stdio::null())
-        .stdout(file.try_clone()?)
-        .stderr(file)
-        .spawn()?)
-}
-
-impl Drop for Fleet {
-    fn drop(&mut self) {
-        self.kill();
-    }
-}
-
 /// A release directory: `files` small files plus a 256 KiB "policy checkpoint"; `changed`
 /// names files whose content differs (by `tag`).
 fn release_dir(root: &Path, files: usize, tag: &str, changed: &[usize]) -> anyhow::Result<PathBuf> {
@@ -321,19 +242,6 @@ fn release_dir(root: &Path, files: usize, tag: &str, changed: &[usize]) -> anyho
     Ok(dir)
 }
 
-fn strategy(batch: i32, canary: i32) -> RolloutStrategy {
-    RolloutStrategy {
-        batch_size: IntOrString::Int(batch),
-        canary,
-        success_threshold: 0.8,
-        robot_timeout_seconds: 60,
-        pause_between_batches_seconds: 0,
-        teleoperated: UnavailablePolicy::Wait,
-        unavailable: UnavailablePolicy::Wait,
-        wait_timeout_seconds: 120,
-    }
-}
-
 fn robot_name(i: usize) -> String {
     format!("kiwi-{i:03}")
 }
@@ -350,7 +258,7 @@ async fn fifty_agents_clean_rollout_then_automatic_rollback() -> anyhow::Result<
     let v1_dir = release_dir(site.dir.path(), 40, "1", &[])?;
     let v1 = site.push(&v1_dir, "1.0.0")?;
     let started = std::time::Instant::now();
-    site.deploy("fleet", &v1, strategy(13, 1), LabelSelector::default())
+    site.deploy("fleet", &v1, test_strategy(13, 1), LabelSelector::default())
         .await?;
     let d = site.finished("fleet", Duration::from_secs(180)).await?;
     let st = d.status.clone().unwrap();
@@ -478,7 +386,7 @@ async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
     site.wait_online(CRASH_ROBOTS).await?;
     let v1_dir = release_dir(site.dir.path(), 30, "1", &[])?;
     let v1 = site.push(&v1_dir, "1.0.0")?;
-    site.deploy("crash", &v1, strategy(10, 0), LabelSelector::default())
+    site.deploy("crash", &v1, test_strategy(10, 0), LabelSelector::default())
         .await?;
 
     // Kill the whole fleet while some robots are in their restart command (switched, not yet
@@ -618,7 +526,7 @@ async fn teleoperated_robot_is_waited_for_and_invalid_release_is_clear() -> anyh
 
     let v1_dir = release_dir(site.dir.path(), 5, "1", &[])?;
     let v1 = site.push(&v1_dir, "1.0.0")?;
-    site.deploy("teleop", &v1, strategy(1, 0), LabelSelector::default())
+    site.deploy("teleop", &v1, test_strategy(1, 0), LabelSelector::default())
         .await?;
     tokio::time::sleep(Duration::from_secs(5)).await;
     let d = site.deployment("teleop").await?;
@@ -652,8 +560,13 @@ async fn teleoperated_robot_is_waited_for_and_invalid_release_is_clear() -> anyh
         version: "9.9.9".into(),
         digest: format!("sha256:{}", "0".repeat(64)),
     };
-    site.deploy("bogus", &bogus, strategy(1, 0), LabelSelector::default())
-        .await?;
+    site.deploy(
+        "bogus",
+        &bogus,
+        test_strategy(1, 0),
+        LabelSelector::default(),
+    )
+    .await?;
     let d = site.finished("bogus", Duration::from_secs(30)).await?;
     let st = d.status.unwrap();
     assert_eq!(st.phase, Some(RolloutPhase::Failed));
@@ -684,7 +597,7 @@ async fn the_plugin_pauses_resumes_undoes_and_restarts_a_rollout() -> anyhow::Re
     site.wait_online(CLI_ROBOTS).await?;
     let v1 = site.push(&release_dir(site.dir.path(), 5, "1", &[])?, "1.0.0")?;
     let v2 = site.push(&release_dir(site.dir.path(), 5, "2", &[2])?, "2.0.0")?;
-    site.deploy("cli", &v1, strategy(1, 0), LabelSelector::default())
+    site.deploy("cli", &v1, test_strategy(1, 0), LabelSelector::default())
         .await?;
     let d = site.finished("cli", Duration::from_secs(120)).await?;
     assert_eq!(d.status.unwrap().phase, Some(RolloutPhase::Completed));

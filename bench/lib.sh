@@ -1,0 +1,164 @@
+# Shared by bench/agent.sh, bench/gateway.sh and bench/rollout.sh (sourced, never run): messages,
+# option checks, the processes a benchmark starts and their cleanup, ports, waiting, the lock that
+# keeps two benchmarks from running at once.
+#
+# The sourcing script sets ROOT, WORK, CP_DIR, KEEP, CP_UP=0 and PIDS=() first, and may set
+# CLEANUP_GRACE (seconds of SIGTERM before SIGKILL at exit; 0, the default: SIGKILL at once),
+# STOP_GRACE (the same for `stop`) and redefine keep_or_remove_work.
+
+# The script's header (the `#!` lines after the shebang) as its help text.
+usage() { sed -n 's/^#!\( \|$\)//p' "$0"; }
+log() { printf '[bench %s] %s\n' "$(date +%T)" "$*" >&2; }
+die() { log "error: $*"; exit 1; }
+
+positive_int() { [[ "$2" =~ ^[1-9][0-9]*$ ]] || die "$1 needs a positive integer, not '$2'"; }
+
+# ---- processes ------------------------------------------------------------------------------
+# Starts "$@" in the background with its output in $WORK/<name>.log; sets LAST_PID. The lock's
+# file descriptor stays with this script.
+start() {
+  local name="$1"; shift
+  "$@" >"$WORK/$name.log" 2>&1 8>&- </dev/null &
+  LAST_PID=$!
+  PIDS+=("$LAST_PID")
+}
+
+# Forgets the pid of a process that has ended, so cleanup can never signal a reused pid.
+forget() {
+  local rest=() pid
+  for pid in "${PIDS[@]}"; do [ "$pid" = "$1" ] || rest+=("$pid"); done
+  PIDS=("${rest[@]}")
+}
+
+# Ends processes we started: with a grace of $1 s, SIGTERM to all first and SIGKILL to those
+# still running when it is over; with none, SIGKILL at once. Reaps them.
+end_processes() {
+  local grace="$1" pid deadline; shift
+  if [ "$grace" -gt 0 ]; then
+    for pid in "$@"; do kill -TERM "$pid" 2>/dev/null; done
+    deadline=$((SECONDS + grace))
+    for pid in "$@"; do
+      while kill -0 "$pid" 2>/dev/null && [ $SECONDS -lt $deadline ]; do sleep 0.1; done
+    done
+  fi
+  for pid in "$@"; do
+    kill -KILL "$pid" 2>/dev/null
+    wait "$pid" 2>/dev/null
+  done
+  return 0
+}
+
+# Stops one process we started (see STOP_GRACE), reaps it and forgets it.
+stop() {
+  end_processes "${STOP_GRACE:-0}" "$1" || true
+  forget "$1"
+}
+
+alive() { kill -0 "$1" 2>/dev/null; }
+
+# Keeps the work directory when asked to or after a failure (for the post-mortem).
+keep_or_remove_work() { # exit status
+  if [ "$KEEP" = 1 ] || [ "$1" != 0 ]; then
+    log "work directory kept: $WORK"
+  else
+    rm -rf "$WORK"
+  fi
+}
+
+cleanup() {
+  local rc=$?
+  trap - EXIT INT TERM
+  set +e
+  end_processes "${CLEANUP_GRACE:-0}" "${PIDS[@]}"
+  if [ "$CP_UP" = 1 ]; then
+    LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
+  fi
+  keep_or_remove_work "$rc"
+  exit $rc
+}
+
+# Cleans up on exit, failure and Ctrl-C.
+trap_cleanup() {
+  trap cleanup EXIT
+  trap 'log "interrupted"; exit 130' INT
+  trap 'log "terminated"; exit 143' TERM
+}
+
+# ---- measuring and waiting ------------------------------------------------------------------
+fact() { printf '%s=%s\n' "$1" "$2" >>"$WORK/facts.env"; }
+
+now() { date +%s.%N; }
+# Seconds since $1 (a `now`), one decimal.
+elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
+
+# A free 127.0.0.1 port below the ephemeral range, so outgoing connections (the gateway
+# simulator's 10,000 client sockets among them) can never take it.
+free_port() {
+  python3 - <<'PY'
+import random, socket
+lo = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
+hi, lo = (lo - 1, 10000) if lo > 20000 else (65000, 61000)
+while True:
+    p = random.randint(lo, hi)
+    s = socket.socket()
+    try:
+        s.bind(("127.0.0.1", p))
+    except OSError:
+        continue
+    s.close()
+    print(p)
+    break
+PY
+}
+
+wait_for() { # what timeout_s command...
+  local what="$1" timeout="$2"; shift 2
+  local deadline=$((SECONDS + timeout))
+  until "$@"; do
+    [ $SECONDS -lt $deadline ] || die "$what not ready after ${timeout}s"
+    sleep 0.5
+  done
+}
+
+# The commit measured, and how many files differ from it.
+fact_source() {
+  fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+}
+
+# ---- the cluster ----------------------------------------------------------------------------
+# A private control plane in $CP_DIR (taken down by cleanup) with our CRDs established; exports
+# its environment (KUBECONFIG, PATH) and reads its ports (APISERVER_PORT, ...).
+start_control_plane() {
+  log "starting a private control plane in $CP_DIR"
+  export LEKIWI_CP_DIR="$CP_DIR"
+  CP_UP=1
+  "$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
+    || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
+  eval "$("$ROOT/scripts/control-plane.sh" env)"
+  # shellcheck disable=SC1091
+  . "$CP_DIR/ports.env"
+  kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
+  kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null
+}
+
+# Writes a new fleet enrollment token to file $2 (mode 600) and its hash to the Secret
+# `fleet-enrollment` in namespace $1, labelled as the gateway looks for it.
+enrollment_token() { # namespace file
+  echo "lke_$(openssl rand -hex 32)" >"$2"
+  chmod 600 "$2"
+  kubectl -n "$1" create secret generic fleet-enrollment \
+    --from-literal=sha256="$(tr -d '\n' <"$2" | sha256sum | cut -d' ' -f1)" >/dev/null
+  kubectl -n "$1" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+}
+
+# ---- one benchmark at a time ----------------------------------------------------------------
+# Two benchmarks would share the 2 cores and disturb each other: takes the machine's benchmark
+# lock on file descriptor 8, waiting at most 15 minutes for another run to finish.
+take_bench_lock() {
+  LOCK="${TMPDIR:-/tmp}/lekiwi-bench.lock"
+  exec 8>>"$LOCK"
+  if ! flock -n 8; then
+    log "another benchmark run holds $LOCK; waiting for it (at most 15 minutes)"
+    flock -w 900 8 || die "another benchmark run still holds $LOCK after 15 minutes"
+  fi
+}

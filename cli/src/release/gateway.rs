@@ -1,0 +1,208 @@
+//! The gateway's release API as the CLI uses it: the API token from its Secret, requests that
+//! retry transient failures, and the answers about blobs, uploads and releases.
+
+use std::time::Duration;
+
+use anyhow::{Context as _, bail};
+use k8s_openapi::api::core::v1::Secret;
+use kube::Api;
+use lekiwi_protocol::release::{ReleaseManifest, blob_path};
+use reqwest::{Method, StatusCode};
+use serde::{Deserialize, Serialize};
+
+use super::ServerArgs;
+
+/// The gateway's HTTP API with the API token.
+pub(crate) struct Gateway {
+    http: reqwest::Client,
+    /// Base URL, without a trailing `/`.
+    pub(crate) base: String,
+    token: String,
+}
+
+/// An error answer of the gateway.
+#[derive(Debug, Deserialize)]
+struct ApiError {
+    message: String,
+}
+
+/// The gateway's answer to an upload request.
+#[derive(Debug, Deserialize)]
+pub(super) struct UploadAnswer {
+    /// Bytes the gateway holds of the blob.
+    pub(super) offset: u64,
+    /// Whether the blob is stored and verified.
+    #[serde(default)]
+    pub(super) complete: bool,
+}
+
+/// A stored release as `GET /v1/releases/{digest}` answers it.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ReleaseInfo {
+    /// Digest of the manifest.
+    pub digest: String,
+    /// The manifest, its fields inline (`mediaType`, `version`, `files`).
+    #[serde(flatten)]
+    pub manifest: ReleaseManifest,
+    /// Referenced blobs the gateway lacks.
+    pub missing: Vec<String>,
+}
+
+/// Attempts of a request that fails transiently (network, 5xx, 429) before giving up.
+pub(super) const ATTEMPTS: u32 = 6;
+
+/// Pause before attempt `attempt`: doubling from 250 ms, at most 5 s.
+pub(super) fn backoff(attempt: u32) -> Duration {
+    Duration::from_millis(250u64 << attempt.min(5)).min(Duration::from_secs(5))
+}
+
+/// Whether an answer is worth repeating the request for.
+pub(super) fn transient(status: StatusCode) -> bool {
+    status.is_server_error()
+        || status == StatusCode::TOO_MANY_REQUESTS
+        || status == StatusCode::REQUEST_TIMEOUT
+}
+
+/// The gateway's message in an error answer, or the body as it is.
+pub(crate) async fn message(resp: reqwest::Response) -> String {
+    let status = resp.status();
+    let text = resp.text().await.unwrap_or_default();
+    match serde_json::from_str::<ApiError>(&text) {
+        Ok(e) => e.message,
+        Err(_) if text.trim().is_empty() => status.to_string(),
+        Err(_) => text.trim().to_owned(),
+    }
+}
+
+impl Gateway {
+    /// Reads the API token and builds the HTTP client (trusting `--certificate-authority`).
+    pub(crate) async fn connect(client: kube::Client, server: &ServerArgs) -> anyhow::Result<Self> {
+        let token = api_token(client, &server.operator_namespace, &server.token_secret).await?;
+        let mut http = reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(10))
+            .read_timeout(Duration::from_secs(120));
+        if let Some(ca) = &server.certificate_authority {
+            let pem = std::fs::read(ca).with_context(|| format!("cannot read {}", ca.display()))?;
+            http = http.add_root_certificate(
+                reqwest::Certificate::from_pem(&pem)
+                    .with_context(|| format!("{} is not a PEM certificate", ca.display()))?,
+            );
+        }
+        Ok(Self {
+            http: http.build()?,
+            base: server.server.trim_end_matches('/').to_owned(),
+            token,
+        })
+    }
+
+    /// A request to `path` on the gateway, with the API token.
+    pub(crate) fn request(&self, method: Method, path: &str) -> reqwest::RequestBuilder {
+        self.http
+            .request(method, format!("{}{path}", self.base))
+            .bearer_auth(&self.token)
+    }
+
+    /// Sends a request that is safe to repeat, retrying transient failures.
+    async fn send(
+        &self,
+        method: Method,
+        path: &str,
+        what: &str,
+    ) -> anyhow::Result<reqwest::Response> {
+        let mut attempt = 0;
+        loop {
+            let failure = match self.request(method.clone(), path).send().await {
+                Ok(resp) if !transient(resp.status()) => return Ok(resp),
+                Ok(resp) => format!("{}: {}", resp.status(), message(resp).await),
+                Err(e) if crate::tls_refused(&e) => bail!(
+                    "{what}: TLS with the gateway at {} failed ({}); check --certificate-authority",
+                    self.base,
+                    crate::http_error(&e)
+                ),
+                Err(e) => crate::http_error(&e),
+            };
+            attempt += 1;
+            if attempt >= ATTEMPTS {
+                bail!(
+                    "{what}: the gateway at {} did not answer ({failure}); check --server or LEKIWI_SERVER",
+                    self.base
+                );
+            }
+            tokio::time::sleep(backoff(attempt)).await;
+        }
+    }
+
+    /// Whether the gateway stores the blob (`HEAD`); a refused token is a clear error.
+    pub(super) async fn has_blob(&self, digest: &str) -> anyhow::Result<bool> {
+        let resp = self
+            .send(Method::HEAD, &blob_path(digest), "checking blobs")
+            .await?;
+        match resp.status() {
+            StatusCode::OK => Ok(true),
+            StatusCode::NOT_FOUND => Ok(false),
+            StatusCode::UNAUTHORIZED => bail!(
+                "the gateway at {} refused the API token (401): is --server the gateway of the operator in --operator-namespace?",
+                self.base
+            ),
+            s => bail!("checking blob {digest}: the gateway answered {s}"),
+        }
+    }
+
+    /// How far an upload of `digest` got (`GET /v1/uploads/{digest}`).
+    pub(super) async fn upload_offset(&self, digest: &str) -> anyhow::Result<UploadAnswer> {
+        let resp = self
+            .send(
+                Method::GET,
+                &format!("/v1/uploads/{digest}"),
+                "resuming an upload",
+            )
+            .await?;
+        if !resp.status().is_success() {
+            bail!("resuming the upload of {digest}: {}", message(resp).await);
+        }
+        Ok(resp.json().await?)
+    }
+
+    /// A stored release and the blobs it lacks.
+    pub(super) async fn release(&self, digest: &str) -> anyhow::Result<ReleaseInfo> {
+        let resp = self
+            .send(
+                Method::GET,
+                &format!("/v1/releases/{digest}"),
+                "reading the release",
+            )
+            .await?;
+        if !resp.status().is_success() {
+            bail!("{}", message(resp).await);
+        }
+        resp.json()
+            .await
+            .with_context(|| format!("reading release {digest}"))
+    }
+}
+
+/// Reads the API token from its Secret with the user's credentials.
+async fn api_token(client: kube::Client, namespace: &str, name: &str) -> anyhow::Result<String> {
+    let api: Api<Secret> = Api::namespaced(client, namespace);
+    let secret = match api.get_opt(name).await {
+        Ok(Some(s)) => s,
+        Ok(None) => bail!(
+            "Secret {namespace}/{name} with the API token not found: is the LeKiwi operator running in namespace {namespace}? (see --operator-namespace, --token-secret)"
+        ),
+        Err(kube::Error::Api(s)) if s.code == 403 => bail!(
+            "not allowed to read Secret {namespace}/{name}: pushing releases needs `get` on the API token Secret ({})",
+            s.message
+        ),
+        Err(e) => {
+            return Err(e).with_context(|| format!("cannot read Secret {namespace}/{name}"));
+        }
+    };
+    secret
+        .data
+        .as_ref()
+        .and_then(|d| d.get("token"))
+        .and_then(|t| String::from_utf8(t.0.clone()).ok())
+        .map(|t| t.trim().to_owned())
+        .filter(|t| !t.is_empty())
+        .with_context(|| format!("Secret {namespace}/{name} has no data.token"))
+}

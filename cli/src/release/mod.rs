@@ -1,0 +1,201 @@
+//! `kubectl lekiwi release push DIR --version V` and `release inspect DIGEST`: upload a directory
+//! to the gateway's blob store as content-addressed blobs plus a manifest, and show a stored
+//! release.
+//!
+//! Push hashes every file, asks the gateway which blobs it has (`HEAD /v1/blobs/{digest}`),
+//! uploads the missing ones a few at a time in chunks (`PUT` with `Content-Range`), resuming
+//! from the gateway's offset (`GET /v1/uploads/{digest}`) after a failure, uploads the manifest
+//! last and confirms with `GET /v1/releases/{digest}` that nothing is missing. Requests carry the
+//! API token, read from a Secret in the operator's namespace with the user's kube credentials.
+
+mod files;
+mod gateway;
+mod push;
+mod upload;
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context as _;
+use clap::{Args, Subcommand};
+use lekiwi_protocol::release::{ReleaseManifest, digest_hex};
+
+use crate::Output;
+
+pub use files::{HashedFile, LocalFile, hash_file, walk};
+pub use gateway::ReleaseInfo;
+pub(crate) use gateway::{Gateway, message};
+use push::PushOptions;
+pub use push::{Pushed, human};
+
+/// Where the gateway is and how to get its API token.
+#[derive(Debug, Args)]
+pub struct ServerArgs {
+    /// Base URL of the gateway (the agents' address, over HTTP).
+    #[arg(
+        long,
+        global = true,
+        env = "LEKIWI_SERVER",
+        default_value = "http://127.0.0.1:8081"
+    )]
+    pub server: String,
+    /// Namespace of the operator, where the API token Secret lives.
+    #[arg(
+        long,
+        global = true,
+        env = "LEKIWI_OPERATOR_NAMESPACE",
+        default_value = "lekiwi-system"
+    )]
+    pub operator_namespace: String,
+    /// Name of the Secret holding the API token (`data.token`).
+    #[arg(long, global = true, default_value = "lekiwi-api")]
+    pub token_secret: String,
+    /// PEM file of a CA to trust for an https:// gateway, besides the public roots.
+    #[arg(long, global = true)]
+    pub certificate_authority: Option<PathBuf>,
+}
+
+/// Release subcommands.
+#[derive(Debug, Subcommand)]
+pub enum ReleaseCommand {
+    /// Upload a directory as a release; prints the manifest digest to put in a RobotDeployment.
+    ///
+    /// Every regular file under DIR becomes part of the release with its path, size and
+    /// permission bits; a symbolic link or special file is an error. Blobs the gateway already
+    /// has are not uploaded again; an interrupted push resumes where it stopped.
+    Push {
+        /// The directory to release.
+        dir: PathBuf,
+        /// Version name (letters, digits, `.`, `_`, `+`, `-`).
+        #[arg(long)]
+        version: String,
+        /// Blobs uploaded at once.
+        #[arg(long, default_value_t = 4)]
+        parallel: usize,
+        /// Bytes per upload request.
+        #[arg(long, default_value_t = 8 * 1024 * 1024)]
+        chunk_bytes: u64,
+    },
+    /// Show a stored release's manifest (`-o table|wide|json|yaml`).
+    Inspect {
+        /// The manifest digest, `sha256:<hex>`.
+        digest: String,
+    },
+}
+
+/// Runs a release subcommand.
+pub async fn run(
+    client: kube::Client,
+    server: &ServerArgs,
+    output: Output,
+    cmd: ReleaseCommand,
+) -> anyhow::Result<()> {
+    match cmd {
+        ReleaseCommand::Push {
+            dir,
+            version,
+            parallel,
+            chunk_bytes,
+        } => {
+            let options = PushOptions {
+                parallel: parallel.max(1),
+                chunk_bytes: chunk_bytes.max(1),
+            };
+            push_dir(client, server, &dir, &version, options).await
+        }
+        ReleaseCommand::Inspect { digest } => {
+            digest_hex(&digest)?;
+            let gateway = Gateway::connect(client, server).await?;
+            let info = gateway.release(&digest).await?;
+            print!("{}", render(&info, output)?);
+            Ok(())
+        }
+    }
+}
+
+/// Pushes `dir` as release `version` and prints its digest (on stdout, for scripts) and how to
+/// use it (on stderr).
+async fn push_dir(
+    client: kube::Client,
+    server: &ServerArgs,
+    dir: &Path,
+    version: &str,
+    options: PushOptions,
+) -> anyhow::Result<()> {
+    // Everything local is checked before the token is read or the gateway asked.
+    let files = walk(dir)?;
+    let hashed = files::hash_all(files).await?;
+    let manifest = ReleaseManifest::new(
+        version.to_owned(),
+        hashed.iter().map(|f| f.manifest.clone()).collect(),
+    );
+    manifest
+        .validate()
+        .with_context(|| format!("cannot make a release of {}", dir.display()))?;
+    let gateway = Gateway::connect(client, server).await?;
+    let pushed = push::push(&gateway, &manifest, &hashed, options).await?;
+    eprintln!("{}", pushed.summary(version));
+    eprintln!(
+        "add to the RobotDeployment's spec:\n  release: {{version: {version}, digest: {}}}",
+        pushed.digest
+    );
+    println!("{}", pushed.digest);
+    Ok(())
+}
+
+/// Renders a release in the chosen format.
+pub fn render(info: &ReleaseInfo, output: Output) -> anyhow::Result<String> {
+    Ok(match output.structured(info)? {
+        Some(text) => text,
+        None => table(info, output == Output::Wide),
+    })
+}
+
+fn table(info: &ReleaseInfo, wide: bool) -> String {
+    let mut out = format!(
+        "Version:  {}\nDigest:   {}\nFiles:    {} ({})\nMissing:  {}\n\n",
+        info.manifest.version,
+        info.digest,
+        info.manifest.files.len(),
+        human(info.manifest.total_bytes()),
+        if info.missing.is_empty() {
+            "none".to_owned()
+        } else {
+            info.missing.join(", ")
+        }
+    );
+    let mut rows = vec![vec![
+        "MODE".to_owned(),
+        "SIZE".to_owned(),
+        "DIGEST".to_owned(),
+        "PATH".to_owned(),
+    ]];
+    for f in &info.manifest.files {
+        let digest = if wide {
+            f.digest.clone()
+        } else {
+            f.digest.chars().take(7 + 12).collect()
+        };
+        rows.push(vec![
+            format!("{:04o}", f.mode),
+            f.size.to_string(),
+            digest,
+            f.path.clone(),
+        ]);
+    }
+    let widths: Vec<usize> = (0..4)
+        .map(|i| rows.iter().map(|r| r[i].len()).max().unwrap_or(0))
+        .collect();
+    for row in rows {
+        let line: Vec<String> = row
+            .iter()
+            .enumerate()
+            .map(|(i, cell)| format!("{cell:<w$}", w = widths[i]))
+            .collect();
+        out.push_str(line.join("   ").trim_end());
+        out.push('\n');
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests;

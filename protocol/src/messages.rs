@@ -1,0 +1,216 @@
+//! The messages themselves: agent to gateway, gateway to agent, commands and error codes.
+
+use serde::{Deserialize, Serialize};
+
+use crate::types::{Health, Release, Sample, Severity, SystemFacts, Teleoperation, Vitals};
+
+/// Machine-readable error codes carried by [`ServerMessage::Error`] and by close frames.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorCode {
+    /// The frame is not JSON.
+    Malformed,
+    /// JSON, but not a message of this protocol version (unknown `type` or missing fields).
+    UnknownMessage,
+    /// The frame exceeded the size limit.
+    FrameTooLarge,
+    /// The `hello` asked for a protocol version the gateway does not speak. Fatal.
+    UnsupportedVersion,
+    /// A message that is not allowed at this point, e.g. a second `hello`.
+    UnexpectedMessage,
+    /// Too many messages per second; the message was dropped. Sustained abuse is fatal.
+    RateLimited,
+    /// No `hello` within the handshake timeout. Fatal.
+    HandshakeTimeout,
+    /// A newer connection of the same robot replaced this one. Fatal.
+    Replaced,
+    /// The gateway could not store a durable message; the agent must resend it later.
+    StoreUnavailable,
+    /// The gateway is shutting down; reconnect (to another replica). Fatal.
+    ShuttingDown,
+    /// Anything else on the gateway's side.
+    Internal,
+    /// A code this version does not know (sent by a newer gateway); honour `fatal`.
+    #[serde(other)]
+    Unknown,
+}
+
+/// A deployment command's payload.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "action", rename_all = "snake_case")]
+pub enum Command {
+    /// Download and switch to a release.
+    Deploy {
+        /// The release to run once the command is done.
+        release: Release,
+        /// Where to fetch the manifest, relative to the gateway's base URL.
+        manifest_url: String,
+    },
+    /// Stop a deployment in progress.
+    Cancel,
+    /// Switch back to the release that ran before.
+    Rollback {
+        /// The release to return to.
+        release: Release,
+    },
+}
+
+/// Messages from the agent to the gateway.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum AgentMessage {
+    /// First frame of every connection.
+    Hello {
+        /// Protocol version the agent speaks.
+        protocol_version: u32,
+        /// Version of the agent software.
+        agent_version: String,
+        /// Facts about the computer.
+        #[serde(default)]
+        system: SystemFacts,
+        /// Release running now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        current_release: Option<Release>,
+        /// Highest sequence number the gateway acknowledged on an earlier connection.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        last_acked_seq: Option<u64>,
+        /// Health at connect time.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        health: Option<Health>,
+        /// Teleoperation at connect time.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        teleoperation: Option<Teleoperation>,
+    },
+    /// Liveness and current state, every `heartbeat_interval_s`.
+    Heartbeat {
+        /// The agent's clock, Unix milliseconds; echoed in the ack for round-trip time.
+        sent_at_ms: i64,
+        /// Round-trip time of the previous heartbeat, milliseconds.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        rtt_ms: Option<f64>,
+        /// Readings taken for this heartbeat.
+        #[serde(default)]
+        vitals: Vitals,
+        /// Release running now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        current_release: Option<Release>,
+        /// Health now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        health: Option<Health>,
+        /// Teleoperation now.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        teleoperation: Option<Teleoperation>,
+    },
+    /// A durable event; acknowledged by `ack` once stored.
+    Event {
+        /// Per-robot sequence number, shared with `telemetry` and `progress`.
+        seq: u64,
+        /// When it happened, Unix milliseconds.
+        ts_ms: i64,
+        /// Short machine-readable kind, e.g. `teleoperation_started`.
+        kind: String,
+        /// How much it matters; an unknown one is stored as `unknown`.
+        severity: Severity,
+        /// Human-readable text.
+        #[serde(default)]
+        message: String,
+        /// Free-form details.
+        #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
+        data: serde_json::Value,
+    },
+    /// A durable batch of telemetry samples.
+    Telemetry {
+        /// Per-robot sequence number.
+        seq: u64,
+        /// The samples, at most 1000.
+        samples: Vec<Sample>,
+    },
+    /// Durable progress of a command.
+    Progress {
+        /// Per-robot sequence number.
+        seq: u64,
+        /// The command this reports on.
+        command_id: String,
+        /// Phase: a [`ProgressPhase`](crate::ProgressPhase) wire name (`downloading`, ..., `done`, `failed`,
+        /// `rolled_back`); kept as text so a newer agent's phase is still stored.
+        phase: String,
+        /// Percent done, 0 to 100.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        percent: Option<f64>,
+        /// Human-readable details of this step (e.g. what failed).
+        #[serde(default)]
+        message: String,
+    },
+}
+
+impl AgentMessage {
+    /// The sequence number of a durable message.
+    pub fn seq(&self) -> Option<u64> {
+        match self {
+            AgentMessage::Event { seq, .. }
+            | AgentMessage::Telemetry { seq, .. }
+            | AgentMessage::Progress { seq, .. } => Some(*seq),
+            AgentMessage::Hello { .. } | AgentMessage::Heartbeat { .. } => None,
+        }
+    }
+}
+
+/// Messages from the gateway to the agent.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ServerMessage {
+    /// Answer to `hello`: the session is established.
+    Welcome {
+        /// Protocol version the gateway speaks.
+        protocol_version: u32,
+        /// The robot's namespace and name as the gateway knows it.
+        robot: String,
+        /// Seconds between heartbeats.
+        heartbeat_interval_s: u32,
+        /// Largest frame the gateway accepts.
+        max_frame_bytes: usize,
+        /// Messages per second the gateway accepts (sustained).
+        max_messages_per_second: u32,
+        /// Highest sequence number stored for this robot; the agent may drop everything up to it.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        stored_seq: Option<u64>,
+        /// A new per-robot token, sent once after enrollment. The agent must persist it and
+        /// use it instead of the enrollment token from now on.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        robot_token: Option<String>,
+    },
+    /// Answer to `heartbeat`.
+    HeartbeatAck {
+        /// The agent's `sent_at_ms`, echoed.
+        sent_at_ms: i64,
+        /// The gateway's clock, Unix milliseconds.
+        server_time_ms: i64,
+    },
+    /// A durable message is stored (or was already stored).
+    Ack {
+        /// Its sequence number.
+        seq: u64,
+    },
+    /// Something to do.
+    Command {
+        /// Unique id, echoed in `progress`.
+        command_id: String,
+        /// What to do.
+        #[serde(flatten)]
+        command: Command,
+    },
+    /// A refused frame or a fatal condition.
+    Error {
+        /// Machine-readable code.
+        code: ErrorCode,
+        /// Human-readable text.
+        message: String,
+        /// Whether the gateway closes the connection after this frame.
+        #[serde(default)]
+        fatal: bool,
+        /// The sequence number of the durable message this refuses, if it was one; the agent
+        /// keeps that message and resends it later.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        seq: Option<u64>,
+    },
+}

@@ -1,0 +1,205 @@
+//! The etcd + kube-apiserver pair the tests run against (`scripts/control-plane.sh`): the shared
+//! one, private ones for tests that restart it, and a namespace per test.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::sync::OnceLock;
+
+use anyhow::{Context as _, Result, bail};
+use k8s_openapi::api::core::v1::Namespace;
+use kube::api::{ObjectMeta, PostParams};
+use kube::config::{KubeConfigOptions, Kubeconfig};
+use kube::{Api, Client};
+
+use crate::{repo_root, tool};
+
+/// A running etcd + kube-apiserver managed by `scripts/control-plane.sh`.
+pub struct ControlPlane {
+    /// State directory of the instance (`LEKIWI_CP_DIR`).
+    pub dir: PathBuf,
+    /// Set for a private instance: purged when dropped.
+    private: Option<tempfile::TempDir>,
+}
+
+impl ControlPlane {
+    /// The control plane shared by the whole test run (started once, reused), with our CRDs.
+    pub fn shared() -> &'static ControlPlane {
+        static SHARED: OnceLock<ControlPlane> = OnceLock::new();
+        SHARED.get_or_init(|| {
+            let dir = std::env::var("LEKIWI_CP_DIR")
+                .map(PathBuf::from)
+                .unwrap_or_else(|_| {
+                    let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
+                    // Not the quickstart's control plane: an operator left running there watches
+                    // every namespace and would fight the tests' own operators.
+                    PathBuf::from(home).join(".cache/lekiwi/test-control-plane")
+                });
+            let cp = ControlPlane { dir, private: None };
+            cp.up().expect("start the shared control plane");
+            cp.install_crds().expect("install CRDs");
+            cp
+        })
+    }
+
+    /// A second control plane of this test's own, on its own ports, for tests that restart it.
+    pub fn private() -> Result<ControlPlane> {
+        let tmp = tempfile::Builder::new().prefix("lekiwi-cp-").tempdir()?;
+        let cp = ControlPlane {
+            dir: tmp.path().to_owned(),
+            private: Some(tmp),
+        };
+        cp.up()?;
+        Ok(cp)
+    }
+
+    fn script(&self, args: &[&str]) -> Result<Output> {
+        let out = Command::new("bash")
+            .arg(repo_root().join("scripts/control-plane.sh"))
+            .args(args)
+            .env("LEKIWI_CP_DIR", &self.dir)
+            .stdin(Stdio::null())
+            .output()?;
+        if !out.status.success() {
+            bail!(
+                "control-plane.sh {args:?} failed: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        Ok(out)
+    }
+
+    /// Starts (or restarts, on the same ports and data) the processes.
+    pub fn up(&self) -> Result<()> {
+        self.script(&["up"]).map(|_| ())
+    }
+
+    /// SIGKILLs etcd and kube-apiserver, keeping their data.
+    pub fn kill(&self) -> Result<()> {
+        self.script(&["kill"]).map(|_| ())
+    }
+
+    /// Path of the admin kubeconfig.
+    pub fn kubeconfig(&self) -> PathBuf {
+        self.dir.join("kubeconfig")
+    }
+
+    /// A client with admin rights.
+    pub async fn client(&self) -> Result<Client> {
+        let kc = Kubeconfig::read_from(self.kubeconfig())?;
+        let config =
+            kube::Config::from_custom_kubeconfig(kc, &KubeConfigOptions::default()).await?;
+        Ok(Client::try_from(config)?)
+    }
+
+    /// A kubeconfig for the same server with another bearer token.
+    pub fn kubeconfig_with_token(&self, token: &str, path: &Path) -> Result<()> {
+        let mut kc: serde_yaml::Value =
+            serde_yaml::from_str(&std::fs::read_to_string(self.kubeconfig())?)?;
+        let users = kc["users"]
+            .as_sequence_mut()
+            .context("kubeconfig has no users")?;
+        for user in users.iter_mut() {
+            user["user"] =
+                serde_yaml::to_value(std::collections::BTreeMap::from([("token", token)]))?;
+        }
+        std::fs::write(path, serde_yaml::to_string(&kc)?)?;
+        Ok(())
+    }
+
+    /// A command for a tool from the cache, pointed at this control plane.
+    fn command(&self, name: &str) -> Command {
+        let mut cmd = Command::new(tool(name));
+        cmd.env("KUBECONFIG", self.kubeconfig())
+            // A fresh discovery cache: a stale one hides CRDs installed a moment ago.
+            .env(
+                "KUBECACHEDIR",
+                self.dir
+                    .join(format!("kubectl-cache-{}", std::process::id())),
+            )
+            .current_dir(repo_root());
+        cmd
+    }
+
+    /// Runs a tool from the cache (`kubectl`, `helm`) against this control plane.
+    pub fn tool(&self, name: &str, args: &[&str]) -> Output {
+        self.command(name).args(args).output().expect("run tool")
+    }
+
+    /// Runs kubectl against this control plane, with the cache's `bin` directory first on
+    /// `PATH`.
+    pub fn kubectl(&self, args: &[&str]) -> Output {
+        let path = format!(
+            "{}:{}",
+            tool("kubectl").parent().unwrap().display(),
+            std::env::var("PATH").unwrap_or_default()
+        );
+        self.command("kubectl")
+            .args(args)
+            .env("PATH", path)
+            .output()
+            .expect("run kubectl")
+    }
+
+    /// Server-side applies our CRDs and waits until they are served.
+    pub fn install_crds(&self) -> Result<()> {
+        let out = self.kubectl(&[
+            "apply",
+            "--server-side",
+            "--force-conflicts",
+            "-f",
+            "manifests/crds/",
+        ]);
+        if !out.status.success() {
+            bail!(
+                "kubectl apply crds: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        let out = self.kubectl(&[
+            "wait",
+            "--for=condition=Established",
+            "--timeout=60s",
+            "crd/robots.fleet.lekiwi.io",
+            "crd/robotdeployments.fleet.lekiwi.io",
+        ]);
+        if !out.status.success() {
+            bail!(
+                "CRDs not established: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        Ok(())
+    }
+}
+
+impl Drop for ControlPlane {
+    fn drop(&mut self) {
+        if self.private.is_some() {
+            let _ = self.script(&["down", "--purge"]);
+        }
+    }
+}
+
+/// Creates a namespace of the test's own. Namespaces are not deleted: without a
+/// controller-manager they would stay Terminating anyway, and `down --purge` removes all.
+pub async fn namespace(client: &Client, prefix: &str) -> Result<String> {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)?
+        .subsec_nanos();
+    let name = format!(
+        "{prefix}-{:x}{:x}",
+        std::process::id() % 4096,
+        nanos % 65536
+    );
+    let ns = Namespace {
+        metadata: ObjectMeta {
+            name: Some(name.clone()),
+            ..ObjectMeta::default()
+        },
+        ..Namespace::default()
+    };
+    Api::<Namespace>::all(client.clone())
+        .create(&PostParams::default(), &ns)
+        .await?;
+    Ok(name)
+}
