@@ -170,52 +170,58 @@ async fn session(stream: TcpStream, stats: Arc<Stats>, heartbeat_interval_s: u32
             Message::Close(_) => break,
             _ => continue,
         };
-        let reply = match decode::<AgentMessage>(text.as_str(), MAX_FRAME_BYTES) {
-            Ok(AgentMessage::Hello { .. }) => ServerMessage::Welcome {
-                protocol_version: PROTOCOL_VERSION,
-                robot: robot.clone(),
-                heartbeat_interval_s,
-                max_frame_bytes: MAX_FRAME_BYTES,
-                max_messages_per_second: 20,
-                stored_seq: None,
-                robot_token: None,
-            },
-            Ok(AgentMessage::Heartbeat {
-                sent_at_ms, rtt_ms, ..
-            }) => {
-                if let Some(rtt) = rtt_ms.filter(|r| r.is_finite() && *r >= 0.0) {
-                    stats.observe_rtt(rtt);
-                }
-                stats.heartbeats.fetch_add(1, Ordering::Relaxed);
-                ServerMessage::HeartbeatAck {
-                    sent_at_ms,
-                    server_time_ms: lekiwi_protocol::now_ms(),
-                }
-            }
-            Ok(other) => {
-                stats.error_frames.fetch_add(1, Ordering::Relaxed);
-                ServerMessage::Error {
-                    code: ErrorCode::UnexpectedMessage,
-                    message: "the benchmark echo server answers only hello and heartbeat".into(),
-                    fatal: false,
-                    seq: other.seq(),
-                }
-            }
-            Err(e) => {
-                stats.error_frames.fetch_add(1, Ordering::Relaxed);
-                ServerMessage::Error {
-                    code: e.code(),
-                    message: e.to_string(),
-                    fatal: false,
-                    seq: None,
-                }
-            }
-        };
+        let reply = answer(text.as_str(), &robot, &stats, heartbeat_interval_s);
         if ws.send(Message::text(encode(&reply))).await.is_err() {
             break;
         }
     }
     stats.connections.fetch_sub(1, Ordering::Relaxed);
+}
+
+/// The echo server's reply to one text frame: `welcome` for `hello`, an ack for a heartbeat,
+/// an error frame for anything else.
+fn answer(frame: &str, robot: &str, stats: &Stats, heartbeat_interval_s: u32) -> ServerMessage {
+    match decode::<AgentMessage>(frame, MAX_FRAME_BYTES) {
+        Ok(AgentMessage::Hello { .. }) => ServerMessage::Welcome {
+            protocol_version: PROTOCOL_VERSION,
+            robot: robot.to_owned(),
+            heartbeat_interval_s,
+            max_frame_bytes: MAX_FRAME_BYTES,
+            max_messages_per_second: 20,
+            stored_seq: None,
+            robot_token: None,
+        },
+        Ok(AgentMessage::Heartbeat {
+            sent_at_ms, rtt_ms, ..
+        }) => {
+            if let Some(rtt) = rtt_ms.filter(|r| r.is_finite() && *r >= 0.0) {
+                stats.observe_rtt(rtt);
+            }
+            stats.heartbeats.fetch_add(1, Ordering::Relaxed);
+            ServerMessage::HeartbeatAck {
+                sent_at_ms,
+                server_time_ms: lekiwi_protocol::now_ms(),
+            }
+        }
+        Ok(other) => {
+            stats.error_frames.fetch_add(1, Ordering::Relaxed);
+            ServerMessage::Error {
+                code: ErrorCode::UnexpectedMessage,
+                message: "the benchmark echo server answers only hello and heartbeat".into(),
+                fatal: false,
+                seq: other.seq(),
+            }
+        }
+        Err(e) => {
+            stats.error_frames.fetch_add(1, Ordering::Relaxed);
+            ServerMessage::Error {
+                code: e.code(),
+                message: e.to_string(),
+                fatal: false,
+                seq: None,
+            }
+        }
+    }
 }
 
 /// A minimal HTTP/1.1 responder for `GET /metrics`; one request per connection.
