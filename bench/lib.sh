@@ -93,23 +93,7 @@ elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
 
 # A free 127.0.0.1 port below the ephemeral range, so outgoing connections (the gateway
 # simulator's 10,000 client sockets among them) can never take it.
-free_port() {
-  python3 - <<'PY'
-import random, socket
-lo = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
-hi, lo = (lo - 1, 10000) if lo > 20000 else (65000, 61000)
-while True:
-    p = random.randint(lo, hi)
-    s = socket.socket()
-    try:
-        s.bind(("127.0.0.1", p))
-    except OSError:
-        continue
-    s.close()
-    print(p)
-    break
-PY
-}
+free_port() { python3 "$ROOT/scripts/free-ports.py" 1; }
 
 wait_for() { # what timeout_s command...
   local what="$1" timeout="$2"; shift 2

@@ -127,24 +127,9 @@ PY
 }
 
 pick_ports() {
-  # Random ports below the kernel's ephemeral range, so outgoing connections (which take ephemeral
-  # local ports) can never occupy them while the control plane is stopped.
-  python3 - <<'PY'
-import random, socket
-lo = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
-hi = lo - 1 if lo > 20000 else 65000
-lo = 10000 if lo > 20000 else 61000
-held, ports = [], []
-while len(ports) < 3:
-    p = random.randint(lo, hi)
-    s = socket.socket()
-    try:
-        s.bind(("127.0.0.1", p))
-    except OSError:
-        continue
-    held.append(s); ports.append(p)
-print("ETCD_PORT=%d\nETCD_PEER_PORT=%d\nAPISERVER_PORT=%d" % tuple(ports))
-PY
+  local ports
+  mapfile -t ports < <(python3 "$SCRIPT_DIR/free-ports.py" 3)
+  printf 'ETCD_PORT=%d\nETCD_PEER_PORT=%d\nAPISERVER_PORT=%d\n' "${ports[@]}"
 }
 
 write_kubeconfig() { # file user token
