@@ -1,6 +1,8 @@
-//! Hostile robots and release blobs (issue 12, point 3): a robot token reads only the blobs that
-//! the releases of its own namespace reference — on a private control plane, with one operator
-//! watching every namespace, as the chart runs it.
+//! Hostile robots, release blobs and terminal output (issue 12, points 3 and 14): a robot token
+//! reads only the blobs that the releases of its own namespace reference (on a private control
+//! plane, with one operator watching every namespace, as the chart runs it); escape sequences a
+//! robot reports never reach the terminal of `kubectl lekiwi`, and logs written to a file carry
+//! no colour codes.
 
 use std::time::{Duration, Instant};
 
@@ -11,7 +13,8 @@ use kube::api::{Patch, PatchParams};
 use lekiwi_crds::Robot;
 use lekiwi_protocol::release::{ManifestFile, ReleaseManifest};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, connect_agent, enrollment_token, http_request, namespace,
+    AgentProcess, ControlPlane, OperatorProcess, bin, connect_agent, enrollment_token,
+    enrollment_token_file, gateway_url, http_request, namespace, wait_for,
 };
 use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
@@ -245,5 +248,119 @@ async fn a_robot_reads_only_the_blobs_of_its_own_namespaces_releases() -> anyhow
     }
     let (code, _) = get(port, &format!("/v1/blobs/{}", rel_y.file), &b.headers()).await;
     assert_eq!(code, 404, "a release no Robot of Y names any more");
+    Ok(())
+}
+
+/// What a hostile robot reports: clear the screen, set the window title, colour the rest.
+const HOSTILE: &str = "\x1b[2Jscreen cleared\x1b]0;pwned\x07 \x1b[31mred\u{9b}1m";
+
+/// `kubectl-lekiwi -n ns ARGS...` (with `op`'s gateway for `events`): stdout, as bytes.
+fn plugin(cp: &ControlPlane, ns: &str, op: &OperatorProcess, args: &[&str]) -> Vec<u8> {
+    let server = format!("http://127.0.0.1:{}", op.gateway_port);
+    let gateway = ["--server", &server, "--operator-namespace", ns];
+    let events = args.contains(&"events");
+    let out = std::process::Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args(["-n", ns])
+        .args(args)
+        .args(if events { &gateway[..] } else { &[] })
+        .env_remove("LEKIWI_SERVER")
+        .output()
+        .expect("run kubectl-lekiwi");
+    assert!(
+        out.status.success(),
+        "kubectl-lekiwi {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out.stdout
+}
+
+#[tokio::test]
+async fn robot_text_reaches_the_cli_escaped_and_logs_have_no_colour() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hostout").await?;
+    let mut op = OperatorProcess::start(cp, &ns, "op", &[])?;
+    op.wait_ready().await?;
+    let dir = tempfile::tempdir()?;
+    let token = dir.path().join("enroll");
+    enrollment_token_file(&client, &ns, &token).await?;
+    let robot = format!("{ns}/kiwi-h");
+    let agent = AgentProcess::start(
+        &gateway_url(&op),
+        &robot,
+        &token,
+        &dir.path().join("s"),
+        &[],
+    )?;
+    agent.wait_connected(Duration::from_secs(20)).await?;
+    agent.emit("note", HOSTILE, &json!({ "detail": HOSTILE }))?;
+
+    let json_args = ["-o", "json", "events", "kiwi-h", "--kind", "note"];
+    let stored: Vec<Value> = wait_for("the hostile event stored", Duration::from_secs(20), || {
+        let out = plugin(cp, &ns, &op, &json_args);
+        async move {
+            let events: Vec<Value> = serde_json::from_slice(&out).ok()?;
+            (!events.is_empty()).then_some(events)
+        }
+    })
+    .await?;
+    assert_eq!(
+        stored[0]["message"], HOSTILE,
+        "stored as sent, escaped in JSON"
+    );
+    for output in ["table", "wide", "json", "yaml"] {
+        let out = plugin(cp, &ns, &op, &["-o", output, "events", "kiwi-h"]);
+        assert!(!out.contains(&0x1b), "-o {output} printed a raw ESC");
+        assert!(
+            !out.contains(&0x07) && !out.windows(2).any(|w| w == [0xc2, 0x9b]),
+            "-o {output} printed a raw BEL or CSI: {}",
+            String::from_utf8_lossy(&out).escape_debug()
+        );
+        if output == "table" || output == "wide" {
+            let text = String::from_utf8(out)?;
+            assert!(
+                text.contains(r"\u{1b}[2Jscreen cleared\u{1b}]0;pwned\u{7}"),
+                "{text}"
+            );
+        }
+    }
+    let robots = plugin(cp, &ns, &op, &["-o", "wide", "robots"]);
+    assert!(!robots.contains(&0x1b));
+
+    // Logs captured to a file (the operator's by the harness; an agent with text logs here, as
+    // under journald) carry no colour codes.
+    let log = op.log_text();
+    assert!(log.contains("INFO"), "{log}");
+    assert!(!log.contains('\x1b'), "the operator's log has ANSI codes");
+    let out = std::fs::File::create(dir.path().join("agent.log"))?;
+    let mut text_agent = std::process::Command::new(bin("lekiwi-agent"))
+        .args([
+            "--config",
+            "/nonexistent.yaml",
+            "--gateway",
+            "ws://127.0.0.1:9/v1/agent",
+        ])
+        .args(["--robot-name", &robot, "--enrollment-token-file"])
+        .arg(&token)
+        .arg("--state-dir")
+        .arg(dir.path().join("text"))
+        .args(["--status-listen", "127.0.0.1:0", "--mdns", "false"])
+        .args(["--log-format", "text"])
+        .env("RUST_LOG", "debug")
+        .env_remove("NO_COLOR")
+        .stdout(out.try_clone()?)
+        .stderr(out)
+        .spawn()?;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    text_agent.kill()?;
+    text_agent.wait()?;
+    let log = std::fs::read_to_string(dir.path().join("agent.log"))?;
+    assert!(log.contains("DEBUG") || log.contains("INFO"), "{log}");
+    assert!(
+        !log.contains('\x1b'),
+        "the agent's text log has ANSI codes:\n{log}"
+    );
     Ok(())
 }
