@@ -115,7 +115,7 @@ pub async fn run(
         Vec::new()
     });
     for w in probe_warnings {
-        eprintln!("warning: {w}");
+        eprintln!("warning: {}", crate::sanitize::text(&w));
     }
     let mut found = merge(namespace, &mdns, &probed, None);
     if let Some(ns) = only_namespace {

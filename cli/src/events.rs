@@ -204,4 +204,16 @@ mod tests {
             ["7", "30s", "ago", "info", "agent_started", "event", "7"]
         );
     }
+
+    #[test]
+    fn tables_escape_what_robots_report() {
+        let now: Timestamp = "2026-01-01T00:01:00Z".parse().unwrap();
+        let mut e = ev(1, now.as_millisecond(), "note");
+        e.message = "\x1b[2Jcleared\nforged row".into();
+        e.data = serde_json::json!({ "x": "\x1b]0;title\x07" });
+        let out = render(&[e], Output::Wide, now).unwrap();
+        assert!(!out.contains(['\x1b', '\x07']), "{out}");
+        assert_eq!(out.lines().count(), 2, "one header, one row: {out}");
+        assert!(out.contains(r"\u{1b}[2Jcleared\u{a}forged row"), "{out}");
+    }
 }

@@ -8,6 +8,7 @@ pub mod events;
 pub mod release;
 pub mod robots;
 pub mod rollout;
+pub mod sanitize;
 pub mod tokens;
 
 use std::path::PathBuf;
@@ -30,13 +31,15 @@ pub enum Output {
 
 impl Output {
     /// `value` as pretty JSON or YAML when that is the format asked for (JSON with a final
-    /// newline); `None` for the table formats, which each command draws itself.
+    /// newline); `None` for the table formats, which each command draws itself. Neither holds a
+    /// raw control character: JSON escapes them (C0 by serde_json, DEL and C1 by
+    /// [`sanitize::json`]), YAML writes such strings double-quoted with escapes.
     pub fn structured<T: serde::Serialize + ?Sized>(
         self,
         value: &T,
     ) -> anyhow::Result<Option<String>> {
         Ok(match self {
-            Output::Json => Some(serde_json::to_string_pretty(value)? + "\n"),
+            Output::Json => Some(sanitize::json(serde_json::to_string_pretty(value)?) + "\n"),
             Output::Yaml => Some(serde_yaml::to_string(value)?),
             Output::Table | Output::Wide => None,
         })

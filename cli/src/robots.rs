@@ -86,8 +86,17 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
     format_table(rows)
 }
 
-/// Left-aligned columns separated by three spaces; the first row is the header.
+/// Left-aligned columns separated by three spaces; the first row is the header. Every cell is
+/// [`crate::sanitize::cell`]ed: tables show robot-supplied text.
 pub(crate) fn format_table(rows: Vec<Vec<String>>) -> String {
+    let rows: Vec<Vec<String>> = rows
+        .into_iter()
+        .map(|r| {
+            r.iter()
+                .map(|c| crate::sanitize::cell(c).into_owned())
+                .collect()
+        })
+        .collect();
     let widths: Vec<usize> = (0..rows[0].len())
         .map(|i| rows.iter().map(|r| r[i].len()).max().unwrap_or(0))
         .collect();

@@ -130,7 +130,7 @@ fn terminal(d: &RobotDeployment) -> Option<RolloutPhase> {
     })
 }
 
-/// One line: phase, a bar, counts, batch.
+/// One line: phase, a bar, counts, batch, message (control characters escaped).
 pub fn summary_line(d: &RobotDeployment) -> String {
     let st = d.status.clone().unwrap_or_default();
     let targeted = st.targeted.max(0) as usize;
@@ -150,11 +150,12 @@ pub fn summary_line(d: &RobotDeployment) -> String {
         st.failed,
         st.skipped,
         st.batch_progress.as_deref().unwrap_or("-"),
-        st.message.as_deref().unwrap_or(""),
+        crate::sanitize::cell(st.message.as_deref().unwrap_or("")),
     )
 }
 
-/// The full report: summary, robots in progress and failures, conditions.
+/// The full report: summary, robots in progress and failures, conditions (their messages may
+/// quote robots: control characters escaped).
 pub fn report(d: &RobotDeployment) -> String {
     let st = d.status.clone().unwrap_or_default();
     let mut out = format!(
@@ -185,7 +186,7 @@ pub fn report(d: &RobotDeployment) -> String {
                 r.robot,
                 r.batch,
                 format!("{:?}", r.state),
-                r.message.as_deref().unwrap_or("")
+                crate::sanitize::cell(r.message.as_deref().unwrap_or(""))
             ));
         }
     }
@@ -193,7 +194,9 @@ pub fn report(d: &RobotDeployment) -> String {
         if c.status == lekiwi_crds::ConditionStatus::True {
             out.push_str(&format!(
                 "condition {}: {} {}\n",
-                c.r#type, c.reason, c.message
+                c.r#type,
+                c.reason,
+                crate::sanitize::cell(&c.message)
             ));
         }
     }

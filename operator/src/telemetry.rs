@@ -12,6 +12,8 @@ use opentelemetry::trace::TracerProvider as _;
 use opentelemetry_otlp::{Protocol, WithExportConfig};
 use opentelemetry_sdk::Resource;
 use opentelemetry_sdk::trace::SdkTracerProvider;
+use std::io::IsTerminal;
+
 use tracing_subscriber::{EnvFilter, Layer, fmt, prelude::*};
 
 use crate::config::LogFormat;
@@ -100,7 +102,11 @@ pub fn init(
             .flatten_event(true)
             .with_current_span(true)
             .boxed(),
-        LogFormat::Text => fmt::layer().with_target(false).boxed(),
+        // No colour codes in a file or the journal: only a terminal gets them.
+        LogFormat::Text => fmt::layer()
+            .with_target(false)
+            .with_ansi(std::io::stdout().is_terminal())
+            .boxed(),
     };
     tracing_subscriber::registry()
         .with(filter)

@@ -31,6 +31,9 @@ struct OperatorSpec<'a> {
     identity: &'a str,
     extra: &'a [&'a str],
     env: &'a [(&'a str, &'a str)],
+    /// Watch every namespace (no `--watch-namespace`): only on a private control plane, where
+    /// no other test's robots live.
+    cluster_wide: bool,
 }
 
 impl OperatorProcess {
@@ -58,6 +61,7 @@ impl OperatorProcess {
             identity,
             extra,
             env,
+            cluster_wide: false,
         })
     }
 
@@ -74,6 +78,26 @@ impl OperatorProcess {
             identity,
             extra,
             env: &[],
+            cluster_wide: false,
+        })
+    }
+
+    /// As [`Self::start`], watching every namespace (its Leases still live in `namespace`).
+    /// Only for a [`ControlPlane::private`]: on the shared one it would act on other tests'
+    /// robots.
+    pub fn start_cluster_wide(
+        cp: &ControlPlane,
+        namespace: &str,
+        identity: &str,
+        extra: &[&str],
+    ) -> Result<Self> {
+        Self::spawn(OperatorSpec {
+            kubeconfig: &cp.kubeconfig(),
+            namespace,
+            identity,
+            extra,
+            env: &[],
+            cluster_wide: true,
         })
     }
 
@@ -184,14 +208,10 @@ fn operator_args(
     let mut args: Vec<String> = Vec::new();
     let mut push = |a: &[&str]| args.extend(a.iter().map(|s| s.to_string()));
     push(&["--kubeconfig", spec.kubeconfig.to_str().unwrap()]);
-    push(&[
-        "--namespace",
-        namespace,
-        "--watch-namespace",
-        namespace,
-        "--identity",
-        identity,
-    ]);
+    push(&["--namespace", namespace, "--identity", identity]);
+    if !spec.cluster_wide {
+        push(&["--watch-namespace", namespace]);
+    }
     push(&["--http-addr", &format!("127.0.0.1:{http_port}")]);
     push(&["--gateway-addr", &format!("127.0.0.1:{gateway_port}")]);
     push(&["--gateway-name", &format!("gw-{identity}")]);

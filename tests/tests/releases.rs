@@ -478,10 +478,23 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
     let (code, _, _) = http(port, "PUT", &path, &as_api, &content).await?;
     assert_eq!(code, 201);
 
+    // A robot reads only what a release of its namespace references: the blob becomes a file
+    // of the release its Robot names.
     let as_robot = [
         ("authorization", robot_auth.as_str()),
         ("x-lekiwi-robot", robot.as_str()),
     ];
+    let (code, _, _) = http(port, "HEAD", &path, &as_robot, b"").await?;
+    assert_eq!(code, 404, "a blob no release references");
+    name_release(&client, &op, &ns, "kiwi-1", &d, content.len()).await?;
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while http(port, "HEAD", &path, &as_robot, b"").await?.0 != 200 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the release never became readable"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
     let (code, headers, body) = http(port, "GET", &path, &as_robot, b"").await?;
     assert_eq!(code, 200);
     assert_eq!(body, content);
@@ -616,6 +629,50 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
         );
     }
     Ok(())
+}
+
+/// Pushes a release manifest listing the blob `file` (of `size` bytes) and names it in the
+/// Robot `name`'s `spec.release`; returns the manifest's digest.
+async fn name_release(
+    client: &kube::Client,
+    op: &OperatorProcess,
+    ns: &str,
+    name: &str,
+    file: &str,
+    size: usize,
+) -> anyhow::Result<String> {
+    use lekiwi_protocol::release::ManifestFile;
+    let token = format!("Bearer {}", api_token(client, ns).await?);
+    let manifest = ReleaseManifest::new(
+        "1.0.0",
+        vec![ManifestFile {
+            path: "policy.bin".into(),
+            digest: file.to_owned(),
+            size: size as u64,
+            mode: 0o644,
+        }],
+    )
+    .to_bytes();
+    let md = digest(&manifest);
+    let path = format!("/v1/blobs/{md}");
+    let (code, _, _) = http(
+        op.gateway_port,
+        "PUT",
+        &path,
+        &[("authorization", token.as_str())],
+        &manifest,
+    )
+    .await?;
+    assert!(code == 201 || code == 200, "manifest upload: {code}");
+    let patch = serde_json::json!({"spec": {"release": {"version": "1.0.0", "digest": md}}});
+    Api::<lekiwi_crds::Robot>::namespaced(client.clone(), ns)
+        .patch(
+            name,
+            &kube::api::PatchParams::default(),
+            &kube::api::Patch::Merge(&patch),
+        )
+        .await?;
+    Ok(md)
 }
 
 /// What rustls says of a certificate signed by a CA it does not trust.

@@ -1,6 +1,9 @@
 //! The robots' desired releases (`spec.release`) as the gateway's Robot watch last saw them: what
 //! sessions send deploy commands for and what the legacy poll answers.
 
+use std::collections::BTreeSet;
+
+use kube::ResourceExt;
 use kube::runtime::reflector::{ObjectRef, Store};
 use lekiwi_crds::Robot;
 use lekiwi_protocol::Release;
@@ -25,5 +28,16 @@ impl DesiredReleases {
         self.0
             .get(&obj)
             .map(|r| r.spec.release.as_ref().map(Release::from))
+    }
+
+    /// The manifest digests the Robots of `namespace` name in `spec.release`: the releases a
+    /// robot of that namespace may download.
+    pub fn digests_in(&self, namespace: &str) -> BTreeSet<String> {
+        self.0
+            .state()
+            .iter()
+            .filter(|r| r.namespace().as_deref() == Some(namespace))
+            .filter_map(|r| r.spec.release.as_ref().map(|rel| rel.digest.clone()))
+            .collect()
     }
 }

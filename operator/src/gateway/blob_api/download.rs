@@ -15,7 +15,9 @@ use tokio::io::{AsyncReadExt, AsyncSeekExt};
 use tokio_util::io::ReaderStream;
 use tracing::{Instrument, debug, info_span};
 
-use super::{BlobApi, Caller, Failure, authorize, check_digest, failure, not_found, store_failure};
+use super::{
+    BlobApi, Caller, Failure, access, authorize, check_digest, failure, not_found, store_failure,
+};
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::{ApiError, AppState};
 
@@ -98,8 +100,11 @@ pub(super) async fn head_blob(
     Path(digest): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
-    authorize(&state, &headers, true).await?;
+    let caller = authorize(&state, &headers, true).await?;
     check_digest(&digest)?;
+    if !access::may_read(&state, &caller, &digest).await {
+        return Ok(StatusCode::NOT_FOUND.into_response());
+    }
     match state.blobs.store.stat(&digest).await {
         Ok(Some(size)) => Ok((StatusCode::OK, blob_headers(&digest, size)).into_response()),
         Ok(None) => Ok(StatusCode::NOT_FOUND.into_response()),
@@ -117,6 +122,9 @@ pub(super) async fn get_blob(
     let span = info_span!("blob_download", robot = %caller.name(), %digest);
     async move {
         check_digest(&digest)?;
+        if !access::may_read(&state, &caller, &digest).await {
+            return Err(not_found(&digest));
+        }
         let Some((mut file, size)) = state
             .blobs
             .store

@@ -19,11 +19,13 @@
 //!
 //! A robot authenticates as on the WebSocket (`Authorization: Bearer <robot token>` and
 //! `x-lekiwi-robot: namespace/name`; an enrollment token is refused); a request without the robot
-//! header must carry the API token. Bytes served are counted as they are sent: in
+//! header must carry the API token. A robot reads only the blobs its namespace's releases
+//! reference (see [`access`]); any other digest is answered as unknown (404). Bytes served are counted as they are sent: in
 //! `lekiwi_gateway_blob_bytes_served_total`, per robot in memory (`/v1/blobs-served`, since this
 //! process started) and in a debug log line `blob download finished` per request with `robot`
 //! and `bytes` fields.
 
+mod access;
 mod download;
 #[cfg(test)]
 mod tests;
@@ -57,6 +59,8 @@ pub struct BlobApi {
     pub store: BlobStore,
     /// The API token uploads present.
     pub api_token: ApiToken,
+    /// File lists of the release manifests robots' reads were checked against.
+    manifests: access::ManifestFiles,
     served: Mutex<HashMap<RobotKey, Served>>,
 }
 
@@ -75,6 +79,7 @@ impl BlobApi {
         Self {
             store,
             api_token,
+            manifests: access::ManifestFiles::default(),
             served: Mutex::default(),
         }
     }
@@ -282,7 +287,14 @@ async fn get_release(
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
     let caller = authorize(&state, &headers, true).await?;
-    match state.blobs.store.release(&digest).await {
+    check_digest(&digest)?;
+    // A release of another namespace is answered as an unknown one.
+    let found = if access::may_read(&state, &caller, &digest).await {
+        state.blobs.store.release(&digest).await
+    } else {
+        Err(StoreError::NotFound(digest.clone()))
+    };
+    match found {
         Ok(info) => {
             debug!(robot = %caller.name(), %digest, missing = info.missing.len(), "served a release");
             Ok(json_response(

@@ -32,3 +32,54 @@ fn content_ranges() {
     assert_eq!(parse_content_range("bytes 5-4/20"), None);
     assert_eq!(parse_content_range("bytes 0-9/*"), None);
 }
+
+/// A blob is readable through a release exactly when it is that release's manifest or a file
+/// the manifest lists; an unknown or unparsable manifest grants nothing and is not remembered.
+#[tokio::test]
+async fn a_release_grants_its_manifest_and_its_files_only() {
+    use std::collections::BTreeSet;
+
+    use lekiwi_protocol::release::{ManifestFile, ReleaseManifest};
+    use sha2::{Digest, Sha256};
+
+    use super::access::ManifestFiles;
+    use crate::gateway::blob_store::BlobStore;
+
+    let digest = |b: &[u8]| format!("sha256:{}", hex::encode(Sha256::digest(b)));
+    let dir = tempfile::tempdir().unwrap();
+    let store = BlobStore::new(dir.path(), 1 << 20);
+    store.ensure_dirs().await.unwrap();
+    let put = |bytes: &[u8]| {
+        let path = dir.path().join("sha256").join(&digest(bytes)[7..]);
+        std::fs::write(path, bytes).unwrap();
+    };
+    let file = digest(b"main.py of X");
+    let manifest = ReleaseManifest::new(
+        "1.0.0",
+        vec![ManifestFile {
+            path: "main.py".into(),
+            digest: file.clone(),
+            size: 12,
+            mode: 0o644,
+        }],
+    )
+    .to_bytes();
+    let (m, other, late) = (digest(&manifest), digest(b"Y's file"), digest(b"late"));
+
+    let files = ManifestFiles::default();
+    let granted = BTreeSet::from([m.clone()]);
+    // Not pushed yet: only the manifest digest itself is granted.
+    assert!(files.referenced(&store, &granted, &m).await);
+    assert!(!files.referenced(&store, &granted, &file).await);
+    put(&manifest);
+    assert!(files.referenced(&store, &granted, &file).await);
+    assert!(!files.referenced(&store, &granted, &other).await);
+    assert!(!files.referenced(&store, &BTreeSet::new(), &m).await);
+    assert!(!files.referenced(&store, &BTreeSet::new(), &file).await);
+
+    // A granted digest that is not a manifest lists no files.
+    put(b"late");
+    let not_a_manifest = BTreeSet::from([late.clone()]);
+    assert!(files.referenced(&store, &not_a_manifest, &late).await);
+    assert!(!files.referenced(&store, &not_a_manifest, &file).await);
+}

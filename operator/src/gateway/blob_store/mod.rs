@@ -255,9 +255,8 @@ impl BlobStore {
         Ok((files, bytes))
     }
 
-    /// Reads and validates the release manifest stored as `digest` and lists the blobs it
-    /// references that the store lacks.
-    pub async fn release(&self, digest: &str) -> Result<ReleaseInfo> {
+    /// Reads and validates the release manifest stored as `digest`.
+    pub async fn manifest(&self, digest: &str) -> Result<ReleaseManifest> {
         let hex = digest_hex(digest).map_err(Error::Digest)?;
         let path = self.blob_path(hex);
         let size = file_size(&path)
@@ -273,7 +272,13 @@ impl BlobStore {
             ))));
         }
         let bytes = tokio::fs::read(&path).await.map_err(io(&path))?;
-        let manifest = ReleaseManifest::parse(&bytes).map_err(manifest_error)?;
+        ReleaseManifest::parse(&bytes).map_err(manifest_error)
+    }
+
+    /// Reads and validates the release manifest stored as `digest` and lists the blobs it
+    /// references that the store lacks.
+    pub async fn release(&self, digest: &str) -> Result<ReleaseInfo> {
+        let manifest = self.manifest(digest).await?;
         let mut missing = Vec::new();
         let wanted: std::collections::BTreeSet<&str> =
             manifest.files.iter().map(|f| f.digest.as_str()).collect();
