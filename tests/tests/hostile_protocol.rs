@@ -237,3 +237,61 @@ async fn an_agent_keeps_working_after_a_forged_seq_and_refuses_oversized_events(
     );
     Ok(())
 }
+
+/// The next `deploy` command's release version within `wait`, skipping other frames.
+async fn deploy_within(ws: &mut Socket, wait: Duration) -> Option<String> {
+    let deadline = tokio::time::Instant::now() + wait;
+    loop {
+        let frame = tokio::time::timeout_at(deadline, ws.next()).await.ok()??;
+        let Ok(Message::Text(t)) = frame else {
+            continue;
+        };
+        if let Ok(ServerMessage::Command {
+            command: lekiwi_protocol::Command::Deploy { release, .. },
+            ..
+        }) = decode(t.as_str(), usize::MAX)
+        {
+            return Some(release.version);
+        }
+    }
+}
+
+#[tokio::test]
+async fn a_switch_away_is_not_redeployed_within_the_session_but_on_reconnect() -> anyhow::Result<()>
+{
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hpdeploy").await?;
+    let op = start(cp, &ns, "hp-deploy").await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    lekiwi_tests::create_robot(&client, &ns, "kiwi-d", &[]).await?;
+    let v2 = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
+    kube::Api::<lekiwi_crds::Robot>::namespaced(client.clone(), &ns)
+        .patch(
+            "kiwi-d",
+            &kube::api::PatchParams::default(),
+            &kube::api::Patch::Merge(json!({"spec": {"release": v2}})),
+        )
+        .await?;
+    let (mut ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-d")).await?;
+    assert_eq!(
+        deploy_within(&mut ws, TIMEOUT).await.as_deref(),
+        Some("2.0.0")
+    );
+
+    // The robot reports another release (e.g. it rolled back): acked, no second deploy.
+    let v1 = json!({"version": "1.0.0", "digest": format!("sha256:{}", "a".repeat(64))});
+    let hb = json!({"type": "heartbeat", "sent_at_ms": 1, "current_release": v1});
+    ws.send(Message::text(hb.to_string())).await?;
+    assert_eq!(deploy_within(&mut ws, Duration::from_secs(3)).await, None);
+    drop(ws);
+
+    // A new session asks again.
+    let token = welcome.robot_token.expect("a robot token");
+    let (mut ws, _) = connect_agent(&op, &token, &welcome.robot).await?;
+    assert_eq!(
+        deploy_within(&mut ws, TIMEOUT).await.as_deref(),
+        Some("2.0.0")
+    );
+    Ok(())
+}
