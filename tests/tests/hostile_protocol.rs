@@ -145,6 +145,16 @@ async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::R
         .map(|e| (e.seq, e.severity.as_str()))
         .collect();
     assert_eq!(seqs, [(5, "unknown"), (MAX_SEQ, "info")]);
+    let (ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
+    assert_eq!(welcome.stored_seq, Some(MAX_SEQ));
+    drop(ws);
+
+    // A seq above the bound, stored by an older gateway, is never announced to an agent.
+    let mut legacy = stored[0].clone();
+    legacy.seq = i64::MAX as u64;
+    store.insert_event(&key, &legacy).await?;
+    let (_ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
+    assert_eq!(welcome.stored_seq, None);
     Ok(())
 }
 
