@@ -31,7 +31,7 @@ async fn recv(ws: &mut Socket) -> Option<ServerMessage> {
     }
 }
 
-/// Sends `text` as one frame and returns the answer, with the length of its raw text.
+/// Sends `text` as one frame and returns the answer.
 async fn ask(ws: &mut Socket, text: String) -> ServerMessage {
     ws.send(Message::text(text)).await.expect("send");
     recv(ws).await.expect("an answer")
