@@ -5,7 +5,7 @@ use clap::Parser;
 use lekiwi_agent::config::{Command, Config, Flags};
 use lekiwi_agent::outbox::{Lane, Outbox};
 use lekiwi_agent::run::Agent;
-use lekiwi_protocol::{AgentMessage, Severity};
+use lekiwi_protocol::{AgentMessage, MAX_FRAME_BYTES, MAX_SEQ, Severity};
 
 fn main() -> anyhow::Result<()> {
     let flags = Flags::parse();
@@ -49,22 +49,30 @@ fn queue_event(flags: &Flags, command: &Command) -> anyhow::Result<()> {
         "error" => Severity::Error,
         _ => Severity::Info,
     };
-    lekiwi_agent::state::ensure_dir(&config.state_dir)?;
-    let mut outbox = Outbox::open(&config.state_dir, config.outbox_max_bytes)?;
     let ts_ms = lekiwi_protocol::now_ms();
-    let lane = if *critical {
-        Lane::Critical
-    } else {
-        Lane::Event
-    };
-    let seq = outbox.push(lane, ts_ms, |seq| AgentMessage::Event {
+    let event = |seq| AgentMessage::Event {
         seq,
         ts_ms,
         kind: kind.clone(),
         severity,
         message: message.clone(),
-        data,
-    })?;
+        data: data.clone(),
+    };
+    // A frame the gateway refuses as too large would never be stored: refuse it here.
+    let size = lekiwi_protocol::encode(&event(MAX_SEQ)).len();
+    if size > MAX_FRAME_BYTES {
+        anyhow::bail!(
+            "the event is {size} bytes as a frame; the gateway accepts at most {MAX_FRAME_BYTES}: shorten --message or --data"
+        );
+    }
+    lekiwi_agent::state::ensure_dir(&config.state_dir)?;
+    let mut outbox = Outbox::open(&config.state_dir, config.outbox_max_bytes)?;
+    let lane = if *critical {
+        Lane::Critical
+    } else {
+        Lane::Event
+    };
+    let seq = outbox.push(lane, ts_ms, event)?;
     println!("{seq}");
     Ok(())
 }

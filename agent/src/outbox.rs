@@ -16,7 +16,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use lekiwi_protocol::{AgentMessage, encode};
+use lekiwi_protocol::{AgentMessage, MAX_SEQ, encode};
 use rusqlite::{Connection, OptionalExtension, Transaction, TransactionBehavior, params};
 
 /// Outbox errors.
@@ -244,6 +244,17 @@ impl Outbox {
         Ok(())
     }
 
+    /// Removes a message the gateway refused for good (`malformed` naming its `seq`, or a frame
+    /// larger than the gateway accepts): it is never sent again, and, unlike [`Outbox::ack`],
+    /// not recorded as acknowledged. Returns whether it was queued.
+    pub fn discard(&mut self, seq: u64) -> Result<bool> {
+        let Ok(seq) = i64::try_from(seq) else {
+            return Ok(false);
+        };
+        let n = self.write(|tx| tx.execute("DELETE FROM outbox WHERE seq = ?1", params![seq]))?;
+        Ok(n > 0)
+    }
+
     /// The highest sequence number the gateway acknowledged (0 when none).
     pub fn last_acked_seq(&self) -> Result<u64> {
         self.meta("last_acked_seq")
@@ -258,10 +269,16 @@ impl Outbox {
     /// every number this outbox ever assigned, the state directory was lost or restored from an
     /// old copy, and queued messages would be taken for replays and never stored. They are
     /// renumbered consecutively from `stored + 1`, in order, and numbering continues after them.
-    /// Returns how many messages were renumbered, or `None` when nothing had to change.
+    /// Returns how many messages were renumbered, or `None` when nothing had to change or
+    /// could: a `stored` so high that the renumbered messages, or the next one after them,
+    /// would pass [`MAX_SEQ`] is not a number the protocol allows, and changes nothing.
     pub fn renumber_after(&mut self, stored: u64) -> Result<Option<u64>> {
         self.write(|tx| {
-            if (stored as i64) < read_meta(tx, "next_seq")? {
+            if stored > MAX_SEQ || (stored as i64) < read_meta(tx, "next_seq")? {
+                return Ok(None);
+            }
+            let queued: i64 = tx.query_row("SELECT count(*) FROM outbox", [], |r| r.get(0))?;
+            if stored + queued as u64 >= MAX_SEQ {
                 return Ok(None);
             }
             let rows: Vec<(i64, String)> = tx
@@ -448,6 +465,25 @@ mod tests {
         assert!(all[0].frame.contains(r#""seq":11"#) && all[0].frame.contains(r#""kind":"c""#));
         assert!(all[1].frame.contains(r#""seq":12"#) && all[1].frame.contains(r#""kind":"d""#));
         assert_eq!(ob.push(Lane::Event, 1, |s| event(s, "e", 1)).unwrap(), 13);
+    }
+
+    #[test]
+    fn a_stored_seq_beyond_the_protocol_maximum_changes_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut ob = Outbox::open(dir.path(), 1 << 20).unwrap();
+        ob.push(Lane::Event, 1, |s| event(s, "a", 1)).unwrap();
+        ob.push(Lane::Event, 1, |s| event(s, "b", 1)).unwrap();
+        for forged in [u64::MAX, i64::MAX as u64, MAX_SEQ + 1, MAX_SEQ, MAX_SEQ - 2] {
+            assert_eq!(ob.renumber_after(forged).unwrap(), None, "{forged}");
+        }
+        assert_eq!(ob.next_seq().unwrap(), 3);
+        assert_eq!(ob.renumber_after(MAX_SEQ - 3).unwrap(), Some(2));
+        assert_eq!(ob.next_seq().unwrap(), MAX_SEQ);
+        assert!(ob.discard(MAX_SEQ - 1).unwrap());
+        assert!(!ob.discard(MAX_SEQ - 1).unwrap());
+        assert!(!ob.discard(u64::MAX).unwrap());
+        assert_eq!(ob.last_acked_seq().unwrap(), 0, "a discard is no ack");
+        assert_eq!(ob.all().unwrap().len(), 1);
     }
 
     #[test]

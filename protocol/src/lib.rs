@@ -29,6 +29,14 @@ pub const AGENT_PATH: &str = "/v1/agent";
 /// Header naming the robot when enrolling with a fleet enrollment token.
 pub const ROBOT_HEADER: &str = "x-lekiwi-robot";
 
+/// Largest sequence number of a durable message, 2^53 - 1: every JSON implementation reads it
+/// exactly (IEEE doubles hold integers up to it), and no counter near it can overflow.
+pub const MAX_SEQ: u64 = (1 << 53) - 1;
+
+/// Most bytes of a refused input that an error message quotes; longer quotes are cut there and
+/// end with `…`.
+pub const MAX_ERROR_QUOTE_BYTES: usize = 64;
+
 /// Errors decoding a frame.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -40,9 +48,44 @@ pub enum Error {
         /// The largest frame accepted, in bytes.
         limit: usize,
     },
-    /// The frame is not valid JSON of a known message type.
-    #[error("malformed frame: {0}")]
+    /// The frame is not valid JSON of a known message type. Its text quotes at most
+    /// [`MAX_ERROR_QUOTE_BYTES`] of the frame, however long the offending value.
+    #[error("malformed frame: {}", brief(.0))]
     Malformed(#[from] serde_json::Error),
+}
+
+/// A decoding error's text, cut to [`MAX_ERROR_QUOTE_BYTES`] (serde's text quotes the offending
+/// value, which may be the whole frame), with its position kept.
+fn brief(e: &serde_json::Error) -> String {
+    let text = e.to_string();
+    let cut = truncate_utf8(&text, MAX_ERROR_QUOTE_BYTES);
+    if cut.len() == text.len() {
+        return text;
+    }
+    format!("{cut}… at line {} column {}", e.line(), e.column())
+}
+
+/// The longest prefix of `text` of at most `max` bytes that ends on a character boundary.
+pub fn truncate_utf8(text: &str, max: usize) -> &str {
+    if text.len() <= max {
+        return text;
+    }
+    let end = (0..=max).rev().find(|i| text.is_char_boundary(*i));
+    &text[..end.unwrap_or(0)]
+}
+
+/// The `protocol_version` of a frame that is a `hello` of any version: an object with
+/// `"type":"hello"` and an integer `protocol_version`, whatever its other fields hold. A gateway
+/// uses it to answer a future version's `hello` it cannot decode with `unsupported_version`.
+pub fn hello_version(frame: &str) -> Option<u32> {
+    #[derive(serde::Deserialize)]
+    struct Probe {
+        #[serde(rename = "type")]
+        kind: String,
+        protocol_version: u32,
+    }
+    let probe: Probe = serde_json::from_str(frame).ok()?;
+    (probe.kind == "hello").then_some(probe.protocol_version)
 }
 
 impl Error {
@@ -163,5 +206,33 @@ mod tests {
             decode::<AgentMessage>(&big, 64).unwrap_err().code(),
             ErrorCode::FrameTooLarge
         );
+    }
+
+    #[test]
+    fn error_text_quotes_only_a_short_prefix_of_the_frame() {
+        let long = format!(r#"{{"type":"{}"}}"#, "é".repeat(100_000));
+        let text = decode::<AgentMessage>(&long, usize::MAX)
+            .unwrap_err()
+            .to_string();
+        assert!(text.len() < 200, "{} bytes: {text}", text.len());
+        assert!(text.contains("… at line 1 column"), "{text}");
+        let short = decode::<AgentMessage>(r#"{"type":"x"}"#, 100).unwrap_err();
+        assert!(short.to_string().contains("`x`"), "{short}");
+        assert_eq!(truncate_utf8("aé", 2), "a");
+    }
+
+    #[test]
+    fn a_future_hello_reveals_its_version() {
+        let v2 = r#"{"type":"hello","protocol_version":2,"agent_version":"9","system":"new"}"#;
+        assert_eq!(hello_version(v2), Some(2));
+        assert_eq!(
+            hello_version(r#"{"type":"heartbeat","protocol_version":2}"#),
+            None
+        );
+        assert_eq!(
+            hello_version(r#"{"type":"hello","protocol_version":"2"}"#),
+            None
+        );
+        assert_eq!(hello_version("not json"), None);
     }
 }

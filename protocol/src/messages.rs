@@ -103,7 +103,8 @@ pub enum AgentMessage {
     },
     /// A durable event; acknowledged by `ack` once stored.
     Event {
-        /// Per-robot sequence number, shared with `telemetry` and `progress`.
+        /// Per-robot sequence number, shared with `telemetry` and `progress`; at most
+        /// [`MAX_SEQ`](crate::MAX_SEQ), a larger one is refused `malformed`.
         seq: u64,
         /// When it happened, Unix milliseconds.
         ts_ms: i64,

@@ -7,7 +7,8 @@ use std::time::Duration;
 
 use futures::SinkExt;
 use lekiwi_protocol::{
-    AgentMessage, ErrorCode, Health, MAX_FRAME_BYTES, ServerMessage, Severity, decode, encode,
+    AgentMessage, ErrorCode, Health, MAX_FRAME_BYTES, MAX_SEQ, ServerMessage, Severity, decode,
+    encode,
 };
 use tokio::time::Instant;
 use tokio_tungstenite::tungstenite::Message;
@@ -201,6 +202,10 @@ impl Agent {
                 }
                 for entry in batch {
                     session.cursor[lane as usize] = entry.seq;
+                    if entry.frame.len() > session.welcome.max_frame_bytes {
+                        self.discard(entry.seq, "larger than the gateway accepts")?;
+                        continue;
+                    }
                     if session.in_flight.insert(entry.seq, now).is_some() {
                         continue;
                     }
@@ -222,7 +227,13 @@ impl Agent {
         } else if enrolling {
             warn!("enrolled without a robot token in welcome; will enroll again next time");
         }
-        if let Some(stored) = welcome.stored_seq
+        if let Some(stored) = welcome.stored_seq.filter(|s| *s > MAX_SEQ) {
+            warn!(
+                stored,
+                max = MAX_SEQ,
+                "protocol error: welcome.stored_seq is above the protocol's maximum; ignored"
+            );
+        } else if let Some(stored) = welcome.stored_seq
             && let Some(renumbered) = self.outbox.renumber_after(stored)?
         {
             warn!(
@@ -244,6 +255,17 @@ impl Agent {
                 ),
                 serde_json::json!({"telemetry": dropped.telemetry, "events": dropped.events}),
             )?;
+        }
+        Ok(())
+    }
+
+    /// Drops a queued durable message the gateway will never store, with a log saying why.
+    fn discard(&mut self, seq: u64, why: &str) -> Result<(), Error> {
+        if self.outbox.discard(seq)? {
+            warn!(
+                seq,
+                why, "durable message dropped: the gateway cannot store it"
+            );
         }
         Ok(())
     }
@@ -303,8 +325,14 @@ impl Agent {
                 fatal,
                 seq,
             } => {
-                if let Some(seq) = seq {
-                    session.retry_refused(seq, code);
+                match seq {
+                    // Never storable (PROTOCOL.md §6 rule 2): dropped, not resent.
+                    Some(seq) if code == ErrorCode::Malformed => {
+                        session.in_flight.remove(&seq);
+                        self.discard(seq, &message)?;
+                    }
+                    Some(seq) => session.retry_refused(seq, code),
+                    None => {}
                 }
                 if fatal {
                     warn!(?code, %message, "the gateway ends the session");

@@ -375,3 +375,47 @@ async fn a_fatal_error_ends_the_session_and_the_agent_comes_back() {
     })
     .await;
 }
+
+#[tokio::test]
+async fn a_durable_message_refused_as_malformed_is_dropped_not_resent() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = config(dir.path());
+    let state_dir = config.state_dir.clone();
+    with_agent(config, |mut conns| async move {
+        let (mut gw, _) = session_up(&mut conns).await;
+        gw.send(&error_frame(ErrorCode::Malformed, false, Some(1)));
+        // Past the resend interval (a heartbeat, 1 s): never sent again.
+        assert_eq!(gw.durable_within(Duration::from_millis(2500)).await, None);
+        let outbox = Outbox::open(&state_dir, 1 << 20).unwrap();
+        assert_eq!(outbox.all().unwrap(), vec![]);
+        assert_eq!(outbox.last_acked_seq().unwrap(), 0, "dropped, not acked");
+        assert!(conns.try_recv().is_err(), "the session held");
+    })
+    .await;
+}
+
+#[tokio::test]
+async fn a_stored_seq_above_the_maximum_is_ignored_and_the_agent_keeps_sending() {
+    let dir = tempfile::tempdir().unwrap();
+    with_agent(config(dir.path()), |mut conns| async move {
+        let mut gw = conns.next().await.unwrap();
+        gw.recv().await; // hello
+        gw.send(&ServerMessage::Welcome {
+            protocol_version: PROTOCOL_VERSION,
+            robot: ROBOT.into(),
+            heartbeat_interval_s: 1,
+            max_frame_bytes: MAX_FRAME_BYTES,
+            max_messages_per_second: 100,
+            stored_seq: Some(i64::MAX as u64),
+            robot_token: Some("robot-token".into()),
+        });
+        // Its own numbering goes on: agent_started is still seq 1, and is sent.
+        let first = gw
+            .durable_within(PATIENCE)
+            .await
+            .expect("a durable message");
+        assert_eq!(seq_of(&first), Some(1), "{first:?}");
+        assert!(conns.try_recv().is_err(), "the session held");
+    })
+    .await;
+}

@@ -93,6 +93,27 @@ impl<W: Sink<Message> + Unpin> Conn<W> {
         message: impl Into<String>,
         fatal: bool,
     ) -> Flow {
+        self.refuse_seq(code, message.into(), fatal, None).await
+    }
+
+    /// Refuses a message (non-fatal), naming its `seq` when it was a parsed durable message;
+    /// counted by its code like [`Conn::error`].
+    pub(super) async fn refuse(
+        &mut self,
+        code: ErrorCode,
+        message: String,
+        seq: Option<u64>,
+    ) -> Flow {
+        self.refuse_seq(code, message, false, seq).await
+    }
+
+    async fn refuse_seq(
+        &mut self,
+        code: ErrorCode,
+        message: String,
+        fatal: bool,
+        seq: Option<u64>,
+    ) -> Flow {
         let label = wire_name(&code);
         let label: &'static str = ERROR_LABELS
             .iter()
@@ -102,29 +123,8 @@ impl<W: Sink<Message> + Unpin> Conn<W> {
         self.count_error(label);
         self.send(&ServerMessage::Error {
             code,
-            message: message.into(),
-            fatal,
-            seq: None,
-        })
-        .await
-    }
-
-    /// Refuses a message: a durable one (with `seq`) is counted as `store_unavailable` whatever
-    /// the code, so the agent keeps and resends it; others as [`Conn::error`].
-    pub(super) async fn refuse(
-        &mut self,
-        code: ErrorCode,
-        message: String,
-        seq: Option<u64>,
-    ) -> Flow {
-        if seq.is_none() {
-            return self.error(code, message, false).await;
-        }
-        self.count_error("store_unavailable");
-        self.send(&ServerMessage::Error {
-            code,
             message,
-            fatal: false,
+            fatal,
             seq,
         })
         .await

@@ -4,7 +4,7 @@
 use axum::extract::ws::Message;
 use futures::Sink;
 use jiff::Timestamp;
-use lekiwi_protocol::{AgentMessage, ErrorCode, ProgressPhase, Sample, ServerMessage};
+use lekiwi_protocol::{AgentMessage, ErrorCode, MAX_SEQ, ProgressPhase, Sample, ServerMessage};
 use tracing::{info, warn};
 
 use super::Session;
@@ -19,6 +19,9 @@ where
 {
     /// Applies one agent message; `Err` when the session ended meanwhile.
     pub(super) async fn apply(&mut self, msg: AgentMessage) -> Result<ServerMessage, End> {
+        if let Some(seq) = msg.seq().filter(|s| *s > MAX_SEQ) {
+            return Ok(seq_out_of_range(seq));
+        }
         Ok(match msg {
             AgentMessage::Hello { .. } => ServerMessage::Error {
                 code: ErrorCode::UnexpectedMessage,
@@ -99,7 +102,8 @@ where
                 .heartbeat_rtt
                 .observe(rtt / 1000.0);
         }
-        // Switched elsewhere than asked (e.g. finished an older deploy): ask again.
+        // A deploy goes out once per desired release and session (PROTOCOL.md §12): a robot
+        // that switched away from it is asked again only for a release not yet sent.
         if self.commands.reported(&info.release)
             && let Some(cmd) = self.commands.next_deploy(&self.shared.gateway, self.id)
         {
@@ -180,14 +184,7 @@ where
             }
             // A sequence number the store cannot hold will never be stored: say so, do not
             // ask for a resend.
-            Err(event_store::Error::SeqOutOfRange(_)) => ServerMessage::Error {
-                code: ErrorCode::Malformed,
-                message: format!(
-                    "sequence number {seq} is out of range (at most 2^63-1); this message cannot be stored"
-                ),
-                fatal: false,
-                seq: Some(seq),
-            },
+            Err(event_store::Error::SeqOutOfRange(_)) => seq_out_of_range(seq),
             Err(e) => {
                 warn!(seq, error = %e, "cannot store a durable message");
                 ServerMessage::Error {
@@ -198,5 +195,18 @@ where
                 }
             }
         }
+    }
+}
+
+/// The refusal of a durable message whose `seq` is above [`MAX_SEQ`]: `malformed` naming it, so
+/// the agent drops it instead of resending it (PROTOCOL.md §6 rule 2).
+fn seq_out_of_range(seq: u64) -> ServerMessage {
+    ServerMessage::Error {
+        code: ErrorCode::Malformed,
+        message: format!(
+            "sequence number {seq} is out of range (at most 2^53-1 = {MAX_SEQ}); this message cannot be stored"
+        ),
+        fatal: false,
+        seq: Some(seq),
     }
 }

@@ -3,7 +3,7 @@
 
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
-use lekiwi_protocol::{AgentMessage, ErrorCode, PROTOCOL_VERSION, decode};
+use lekiwi_protocol::{AgentMessage, ErrorCode, PROTOCOL_VERSION, decode, hello_version};
 use tracing::{info, warn};
 
 use super::Shared;
@@ -28,18 +28,29 @@ where
     R: Stream<Item = Result<Message, E>> + Unpin,
 {
     let text = first_text(shared, conn, stream).await?;
-    match decode::<AgentMessage>(&text, shared.limits.max_frame_bytes) {
+    let decoded = decode::<AgentMessage>(&text, shared.limits.max_frame_bytes);
+    // Another version's hello may carry fields this version reads differently (§13).
+    let other_version = match &decoded {
         Ok(AgentMessage::Hello {
             protocol_version, ..
-        }) if protocol_version != PROTOCOL_VERSION => {
-            conn.fail(
-                ErrorCode::UnsupportedVersion,
-                format!("this gateway speaks protocol version {PROTOCOL_VERSION}, not {protocol_version}"),
-                (CLOSE_POLICY, "unsupported protocol version"),
-            )
-            .await;
-            Err(Refused)
-        }
+        }) => Some(*protocol_version),
+        Ok(_) => None,
+        Err(_) if text.len() <= shared.limits.max_frame_bytes => hello_version(&text),
+        Err(_) => None,
+    }
+    .filter(|v| *v != PROTOCOL_VERSION);
+    if let Some(protocol_version) = other_version {
+        conn.fail(
+            ErrorCode::UnsupportedVersion,
+            format!(
+                "this gateway speaks protocol version {PROTOCOL_VERSION}, not {protocol_version}"
+            ),
+            (CLOSE_POLICY, "unsupported protocol version"),
+        )
+        .await;
+        return Err(Refused);
+    }
+    match decoded {
         Ok(AgentMessage::Hello {
             agent_version,
             system,

@@ -14,7 +14,7 @@ use std::time::Duration;
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
 use jiff::Timestamp;
-use lekiwi_protocol::{PROTOCOL_VERSION, ServerMessage};
+use lekiwi_protocol::{MAX_SEQ, PROTOCOL_VERSION, ServerMessage};
 use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, info, info_span, warn};
@@ -190,7 +190,9 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
         .unwrap_or_else(|e| {
             warn!(error = %e, "cannot read the last stored sequence number");
             None
-        });
+        })
+        // Stored before seqs were bounded: not a number to tell an agent; say nothing.
+        .filter(|s| *s <= MAX_SEQ);
     shared.presence.connect(key, id, hello);
     shared.metrics.gateway.connections.inc();
     info!(session = id, ?stored_seq, "agent connected");
