@@ -26,6 +26,8 @@ pub enum Refusal {
     BadRobotName,
     /// The token matches neither the robot's token nor an enrollment token.
     WrongToken,
+    /// An enrollment token where only the robot's own token may speak for it (legacy polls).
+    EnrollmentToken,
 }
 
 impl Refusal {
@@ -35,6 +37,7 @@ impl Refusal {
             Refusal::MissingToken => "missing_token",
             Refusal::BadRobotName => "bad_robot_name",
             Refusal::WrongToken => "wrong_token",
+            Refusal::EnrollmentToken => "enrollment_token",
         }
     }
 }

@@ -123,6 +123,9 @@ impl AppState {
             Refusal::MissingToken => "missing bearer token",
             Refusal::BadRobotName => "missing or invalid x-lekiwi-robot header (namespace/name)",
             Refusal::WrongToken => "invalid token",
+            Refusal::EnrollmentToken => {
+                "an enrollment token cannot speak for a robot; use the robot's own token"
+            }
         })
     }
 }
