@@ -804,7 +804,9 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     // presence, durable events, a legacy poll.
     let enroll = lekiwi_tests::enrollment_token(&client, &ns).await?;
     let (ws, welcome) = lekiwi_tests::connect_agent(&op, &enroll, &format!("{ns}/kiwi-2")).await?;
-    let own = welcome.robot_token.expect("enrollment returns the robot's token");
+    let own = welcome
+        .robot_token
+        .expect("enrollment returns the robot's token");
     wait_for("enrolled robot Online", Duration::from_secs(20), || async {
         (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase == Some(RobotPhase::Online))
             .then_some(())

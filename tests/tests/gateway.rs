@@ -161,8 +161,20 @@ async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
     assert_eq!(bare_welcome.robot, format!("{ns}/kiwi-bare"));
     drop(bare_ws);
 
-    // Enrolling again (a robot that lost its token) never duplicates the Robot.
+    // Enrolling again (a robot that lost its token) needs a person's permission
+    // (`kubectl lekiwi robot reenroll`; refusals are in hostile_identity) and never duplicates
+    // the Robot.
     drop(ws2);
+    let until = jiff::Timestamp::now() + jiff::SignedDuration::from_secs(600);
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch(
+            "kiwi-1",
+            &PatchParams::default(),
+            &Patch::Merge(json!({"metadata": {"annotations": {
+                lekiwi_crds::contract::REENROLL_ANNOTATION: until.round(jiff::Unit::Second)?.to_string()
+            }}})),
+        )
+        .await?;
     let (ws3, w3) = connect(&url, &creds, &hello(), TIMEOUT).await?;
     assert!(
         w3.robot_token.is_some() && w3.robot_token != Some(token.clone()),
