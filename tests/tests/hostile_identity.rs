@@ -172,8 +172,18 @@ async fn enrollment_never_takes_over_an_enrolled_robot() -> anyhow::Result<()> {
     permit(&client, &ns, "kiwi-1", -60).await?;
     forbidden(&url, &creds(&enroll, &full), "expired").await;
 
-    // A valid permission allows exactly one re-enrollment, even to two racing connections.
-    permit(&client, &ns, "kiwi-1", 600).await?;
+    // A person's permission (`kubectl lekiwi robot reenroll`) allows exactly one
+    // re-enrollment, even to two racing connections.
+    let out = std::process::Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args(["-n", &ns, "robot", "reenroll", "kiwi-1", "--for", "10m"])
+        .output()?;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && stderr.contains("may enroll again once"),
+        "{stderr}"
+    );
     let (racer, greeting) = (creds(&enroll, &full), hello());
     let (a, b) = tokio::join!(
         connect(&url, &racer, &greeting, TIMEOUT),
