@@ -35,6 +35,10 @@ pub enum ConnectError {
     /// The gateway refused the credentials (HTTP 401).
     #[error("the gateway refused the credentials: {0}")]
     Unauthorized(String),
+    /// The gateway refused enrollment (HTTP 403): the robot is enrolled already and no person
+    /// allowed it to enroll again.
+    #[error("the gateway refused enrollment: {0}")]
+    Forbidden(String),
     /// The gateway is full or unavailable (HTTP 503).
     #[error("the gateway is unavailable: {0}")]
     Unavailable(String),
@@ -62,7 +66,7 @@ impl ConnectError {
     pub fn retryable(&self) -> bool {
         !matches!(
             self,
-            ConnectError::Unauthorized(_) | ConnectError::Request(_)
+            ConnectError::Unauthorized(_) | ConnectError::Forbidden(_) | ConnectError::Request(_)
         )
     }
 }
@@ -180,7 +184,8 @@ async fn open(
     }
 }
 
-/// The error for an HTTP answer to the upgrade: 401 is a refused token, anything else means
+/// The error for an HTTP answer to the upgrade: 401 is a refused token, 403 a refused
+/// enrollment, anything else means
 /// the gateway cannot take the session now.
 fn refusal(resp: &tokio_tungstenite::tungstenite::http::Response<Option<Vec<u8>>>) -> ConnectError {
     let body = resp
@@ -190,6 +195,7 @@ fn refusal(resp: &tokio_tungstenite::tungstenite::http::Response<Option<Vec<u8>>
         .unwrap_or_default();
     match resp.status().as_u16() {
         401 => ConnectError::Unauthorized(body),
+        403 => ConnectError::Forbidden(body),
         _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
     }
 }

@@ -144,6 +144,11 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         } => {
             tokens::robot_add(client, &namespace, cli.output, args).await?;
         }
+        Command::Robot {
+            command: tokens::RobotCommand::Reenroll(args),
+        } => {
+            tokens::robot_reenroll(client, &namespace, args).await?;
+        }
         Command::EnrollToken(args) => {
             tokens::enroll_token(client, &namespace, cli.output, args).await?;
         }

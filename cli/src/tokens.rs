@@ -9,7 +9,8 @@ use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
 use kube::{Api, Resource};
 use lekiwi_crds::Robot;
 use lekiwi_crds::contract::{
-    ENROLLMENT_SECRET, enrollment_token_secret, managers, new_token, robot_token_secret,
+    ENROLLMENT_SECRET, MAX_ROBOT_NAME_LEN, REENROLL_ANNOTATION, enrollment_token_secret, managers,
+    new_token, robot_token_secret,
 };
 use serde::Serialize;
 
@@ -28,6 +29,22 @@ pub enum RobotCommand {
     /// The agent then connects with that token and needs no enrollment token. The token is
     /// printed once; the cluster keeps only its SHA-256.
     Add(AddArgs),
+    /// Allow an enrolled robot to enroll again, once, with the enrollment token.
+    ///
+    /// The gateway never lets an enrollment token take over a robot that has its own token; this
+    /// gives that permission once, until it expires. The robot's next enrollment gets a new token
+    /// (its current token stops working) and uses up the permission.
+    Reenroll(ReenrollArgs),
+}
+
+/// Arguments of `robot reenroll`.
+#[derive(Debug, Args)]
+pub struct ReenrollArgs {
+    /// Name of the Robot resource.
+    pub name: String,
+    /// How long the permission holds (e.g. 15m, 1h).
+    #[arg(long = "for", default_value = "15m", value_parser = crate::duration::parse)]
+    pub valid_for: std::time::Duration,
 }
 
 /// Arguments of `robot add`.
@@ -152,13 +169,10 @@ pub async fn robot_add(
     Ok(())
 }
 
-/// Creates the Robot (or, with `--rotate-token`, keeps an existing one) and its token Secret.
-pub async fn add(
-    client: kube::Client,
-    namespace: &str,
-    args: &AddArgs,
-) -> anyhow::Result<AgentSetup> {
-    let gateway = match &args.gateway {
+/// The gateway URL for the agent's config: `--gateway`, else derived from `LEKIWI_SERVER`, else a
+/// placeholder (with a warning) for the person to edit.
+fn agent_gateway(args: &AddArgs) -> String {
+    match &args.gateway {
         Some(g) => g.clone(),
         None => match std::env::var("LEKIWI_SERVER") {
             Ok(server) if !server.is_empty() => gateway_from_server(&server),
@@ -169,7 +183,29 @@ pub async fn add(
                 "wss://GATEWAY-HOST/v1/agent".to_owned()
             }
         },
-    };
+    }
+}
+
+/// Refuses a name no robot with a token can have, before anything is created.
+fn check_name(name: &str) -> anyhow::Result<()> {
+    if name.len() > MAX_ROBOT_NAME_LEN {
+        bail!(
+            "robot name {name:?} is {} characters long; robot names are at most \
+             {MAX_ROBOT_NAME_LEN} (the robot's token Secret carries the name in a label)",
+            name.len()
+        );
+    }
+    Ok(())
+}
+
+/// Creates the Robot (or, with `--rotate-token`, keeps an existing one) and its token Secret.
+pub async fn add(
+    client: kube::Client,
+    namespace: &str,
+    args: &AddArgs,
+) -> anyhow::Result<AgentSetup> {
+    check_name(&args.name)?;
+    let gateway = agent_gateway(args);
     let robots: Api<Robot> = Api::namespaced(client.clone(), namespace);
     let robot = Robot {
         metadata: ObjectMeta {
@@ -232,6 +268,40 @@ pub async fn add(
         },
         credentials: Credentials { robot: full, token },
     })
+}
+
+/// Runs `robot reenroll`: sets the one-time permission on the Robot and says until when.
+pub async fn robot_reenroll(
+    client: kube::Client,
+    namespace: &str,
+    args: ReenrollArgs,
+) -> anyhow::Result<()> {
+    let span = jiff::SignedDuration::try_from(args.valid_for)?;
+    let until = jiff::Timestamp::now()
+        .checked_add(span)?
+        .round(jiff::Unit::Second)?;
+    let robots: Api<Robot> = Api::namespaced(client, namespace);
+    let patch = serde_json::json!({
+        "metadata": { "annotations": { REENROLL_ANNOTATION: until.to_string() } }
+    });
+    match robots
+        .patch(&args.name, &PatchParams::default(), &Patch::Merge(&patch))
+        .await
+    {
+        Ok(_) => {}
+        Err(kube::Error::Api(s)) if s.code == 404 => {
+            bail!("robot {namespace}/{} does not exist", args.name)
+        }
+        Err(e) => {
+            return Err(e)
+                .with_context(|| format!("cannot update robot {namespace}/{}", args.name));
+        }
+    }
+    eprintln!(
+        "robot {namespace}/{} may enroll again once until {until}; its current token stops working when it does",
+        args.name
+    );
+    Ok(())
 }
 
 /// What `enroll-token` prints.

@@ -20,6 +20,13 @@ pub const KIND_ROBOT: &str = "robot";
 pub const ROBOT_LABEL: &str = "fleet.lekiwi.io/robot";
 /// Key in a token Secret's data holding the hex SHA-256 of the token.
 pub const HASH_KEY: &str = "sha256";
+/// Annotation on a `Robot` that lets an enrollment token re-enroll it once (RFC 3339 time until
+/// which the permission holds): set by `kubectl lekiwi robot reenroll`, removed by the gateway
+/// when it issues the new token. Without it, enrollment never touches a robot that has a token.
+pub const REENROLL_ANNOTATION: &str = "fleet.lekiwi.io/reenroll-until";
+/// Longest robot name that can have a token: the name is the value of [`ROBOT_LABEL`] on its
+/// token Secret, and label values are at most 63 characters.
+pub const MAX_ROBOT_NAME_LEN: usize = 63;
 /// Name of the fleet enrollment token Secret `kubectl lekiwi enroll-token` makes.
 pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
 /// Label on the Lease each gateway renews (value `true`; the Lease's name is the gateway's):

@@ -120,3 +120,17 @@ pub async fn enrollment_token(client: &Client, namespace: &str) -> Result<String
         .await?;
     Ok(token)
 }
+
+/// Gives existing robot `name` its own token (as `kubectl lekiwi robot add` does: the hash in
+/// Secret `<name>-agent-token`, owned by the Robot) and returns it.
+pub async fn robot_token(client: &Client, namespace: &str, name: &str) -> Result<String> {
+    use kube::Resource;
+    let robot = get_robot(client, namespace, name).await?;
+    let token = lekiwi_crds::contract::new_token("lkr_");
+    let secret =
+        lekiwi_crds::contract::robot_token_secret(name, &token, robot.controller_owner_ref(&()));
+    Api::<Secret>::namespaced(client.clone(), namespace)
+        .create(&PostParams::default(), &secret)
+        .await?;
+    Ok(token)
+}

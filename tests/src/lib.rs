@@ -25,7 +25,7 @@ use jiff::Timestamp;
 pub use agent::{AgentProcess, connect_agent, hello};
 pub use control_plane::{ControlPlane, namespace};
 pub use fleet::{
-    create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot,
+    create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot, robot_token,
     rollout_finished, test_strategy, wait_phase,
 };
 pub use fleet_process::{FleetProcess, FleetSpec};

@@ -804,7 +804,9 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     // presence, durable events, a legacy poll.
     let enroll = lekiwi_tests::enrollment_token(&client, &ns).await?;
     let (ws, welcome) = lekiwi_tests::connect_agent(&op, &enroll, &format!("{ns}/kiwi-2")).await?;
-    assert!(welcome.robot_token.is_some());
+    let own = welcome
+        .robot_token
+        .expect("enrollment returns the robot's token");
     wait_for("enrolled robot Online", Duration::from_secs(20), || async {
         (get_robot(&client, &ns, "kiwi-2").await.ok()?.status?.phase == Some(RobotPhase::Online))
             .then_some(())
@@ -824,8 +826,8 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     .await?;
     let (code, _, body) = lekiwi_tests::http_get_with(
         op.gateway_port,
-        &format!("/v1/poll?robot={ns}/kiwi-1&version=0.1.0"),
-        &[("authorization", &format!("Bearer {enroll}"))],
+        &format!("/v1/poll?robot={ns}/kiwi-2&version=0.1.0"),
+        &[("authorization", &format!("Bearer {own}"))],
     )
     .await?;
     assert_eq!(code, 200, "{body}");

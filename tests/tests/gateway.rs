@@ -161,8 +161,20 @@ async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
     assert_eq!(bare_welcome.robot, format!("{ns}/kiwi-bare"));
     drop(bare_ws);
 
-    // Enrolling again (a robot that lost its token) never duplicates the Robot.
+    // Enrolling again (a robot that lost its token) needs a person's permission
+    // (`kubectl lekiwi robot reenroll`; refusals are in hostile_identity) and never duplicates
+    // the Robot.
     drop(ws2);
+    let until = jiff::Timestamp::now() + jiff::SignedDuration::from_secs(600);
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch(
+            "kiwi-1",
+            &PatchParams::default(),
+            &Patch::Merge(json!({"metadata": {"annotations": {
+                lekiwi_crds::contract::REENROLL_ANNOTATION: until.round(jiff::Unit::Second)?.to_string()
+            }}})),
+        )
+        .await?;
     let (ws3, w3) = connect(&url, &creds, &hello(), TIMEOUT).await?;
     assert!(
         w3.robot_token.is_some() && w3.robot_token != Some(token.clone()),
@@ -477,7 +489,9 @@ async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Res
             &Patch::Merge(json!({"spec": {"release": release}})),
         )
         .await?;
-    let auth = format!("Bearer {enroll}");
+    // Only the robot's own token may poll for it (an enrollment token gets 401: hostile_identity).
+    let own = lekiwi_tests::robot_token(&client, &ns, "old-1").await?;
+    let auth = format!("Bearer {own}");
     let path = format!("/v1/poll?robot={ns}/old-1&version=1.0.0&agent=legacy-0.9");
     let (code, headers, body) =
         http_get_with(op.gateway_port, &path, &[("authorization", &auth)]).await?;
@@ -526,14 +540,21 @@ async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Res
     let polls = op.metric("lekiwi_gateway_polls_total{kind=\"304\"}").await;
     assert_eq!(polls, Some(2.0));
 
-    // Unknown robots and bad tokens are clear errors.
+    // Another robot's token, the enrollment token and bad tokens are refused.
     let (code, _, body) = http_get_with(
         op.gateway_port,
         &format!("/v1/poll?robot={ns}/nope&version=1"),
         &[("authorization", &auth)],
     )
     .await?;
-    assert_eq!(code, 404, "{body}");
+    assert_eq!(code, 401, "{body}");
+    let (code, _, body) = http_get_with(
+        op.gateway_port,
+        &path,
+        &[("authorization", &format!("Bearer {enroll}"))],
+    )
+    .await?;
+    assert_eq!(code, 401, "{body}");
     let (code, _, _) =
         http_get_with(op.gateway_port, &path, &[("authorization", "Bearer wrong")]).await?;
     assert_eq!(code, 401);

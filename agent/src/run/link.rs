@@ -94,10 +94,20 @@ impl Agent {
     }
 
     /// Schedules the next attempt; a refused robot token switches to the enrollment token
-    /// once, other refusals retry at the slowest rate.
+    /// once, other refusals retry at the slowest rate. A refused enrollment goes back to the
+    /// robot's own token, if it has one: the gateway never lets an enrollment token take over an
+    /// enrolled robot, so the two alternate at the slowest rate until one is accepted.
     fn on_connect_failed<S>(&mut self, lp: &mut Loop<S>, e: &ConnectError, enrolling: bool) {
         let backoff = &mut lp.backoff;
-        if matches!(e, ConnectError::Unauthorized(_)) {
+        if enrolling && matches!(e, ConnectError::Forbidden(_)) {
+            error!(error = %e, "enrollment refused: this robot is enrolled already; retrying at the slowest rate");
+            self.reenroll = false;
+            backoff.saturate();
+            lp.reconnect_at = Instant::now() + backoff.ceiling();
+        } else if matches!(
+            e,
+            ConnectError::Unauthorized(_) | ConnectError::Forbidden(_)
+        ) {
             if self.enrollment_token.is_some() && !enrolling {
                 warn!(error = %e, "the robot's token was refused; enrolling again with the enrollment token");
                 self.reenroll = true;

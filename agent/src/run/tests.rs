@@ -419,3 +419,55 @@ async fn a_stored_seq_above_the_maximum_is_ignored_and_the_agent_keeps_sending()
     })
     .await;
 }
+
+/// A robot whose own token is refused and whose enrollment is refused (403: it is enrolled
+/// already) alternates between the two, and never hammers the gateway.
+#[tokio::test]
+async fn a_refused_enrollment_goes_back_to_the_robot_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = config(dir.path());
+    state::ensure_dir(&config.state_dir).unwrap();
+    let own = state::Credentials {
+        robot: ROBOT.into(),
+        token: "robot-token".into(),
+    };
+    state::save_credentials(&config.state_dir, &own).unwrap();
+    let agent = Agent::new(config).await.unwrap();
+    let (tokens_tx, mut tokens_rx) = mpsc::unbounded::<String>();
+    let connect: Connector<Duplex> = Box::new(move |creds: Credentials, _hello| {
+        let _ = tokens_tx.unbounded_send(creds.token.clone());
+        Box::pin(async move {
+            Err(if creds.token == "robot-token" {
+                crate::connection::ConnectError::Unauthorized("invalid token".into())
+            } else {
+                crate::connection::ConnectError::Forbidden("already enrolled".into())
+            })
+        })
+    });
+    let (stop_tx, stop_rx) = oneshot::channel::<()>();
+    let run = agent.run_with(
+        async {
+            let _ = stop_rx.await;
+        },
+        connect,
+    );
+    let watch = async move {
+        let mut seen = Vec::new();
+        for _ in 0..4 {
+            seen.push(tokens_rx.next().await.unwrap());
+        }
+        let _ = stop_tx.send(());
+        seen
+    };
+    let (res, seen) = tokio::join!(run, watch);
+    res.unwrap();
+    assert_eq!(
+        seen,
+        [
+            "robot-token",
+            "enrollment-token",
+            "robot-token",
+            "enrollment-token"
+        ]
+    );
+}

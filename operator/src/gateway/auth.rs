@@ -6,15 +6,15 @@ use std::collections::BTreeMap;
 
 use k8s_openapi::ByteString;
 use k8s_openapi::api::core::v1::Secret;
+use kube::Api;
 use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
 use kube::runtime::reflector::{ObjectRef, Store};
-use kube::{Api, Resource};
-use lekiwi_crds::Robot;
 use lekiwi_crds::contract::{
-    HASH_KEY, KIND_ENROLLMENT, TOKEN_LABEL, hash_token, managers, new_token, robot_secret_name,
-    robot_token_secret,
+    HASH_KEY, KIND_ENROLLMENT, MAX_ROBOT_NAME_LEN, TOKEN_LABEL, hash_token, new_token,
+    robot_secret_name,
 };
 
+use crate::gateway::enroll;
 use crate::gateway::event_store::RobotKey;
 
 /// Why a connection was refused (logged and counted; never with the token).
@@ -24,8 +24,12 @@ pub enum Refusal {
     MissingToken,
     /// The robot header is absent or not a valid name.
     BadRobotName,
+    /// The robot's name is longer than a robot with a token can have ([`MAX_ROBOT_NAME_LEN`]).
+    RobotNameTooLong,
     /// The token matches neither the robot's token nor an enrollment token.
     WrongToken,
+    /// An enrollment token where only the robot's own token may speak for it (legacy polls).
+    EnrollmentToken,
 }
 
 impl Refusal {
@@ -34,7 +38,9 @@ impl Refusal {
         match self {
             Refusal::MissingToken => "missing_token",
             Refusal::BadRobotName => "bad_robot_name",
+            Refusal::RobotNameTooLong => "robot_name_too_long",
             Refusal::WrongToken => "wrong_token",
+            Refusal::EnrollmentToken => "enrollment_token",
         }
     }
 }
@@ -89,6 +95,15 @@ pub fn parse_robot(header: &str) -> Option<(Option<String>, String)> {
     (valid_name(&name) && ns.as_deref().is_none_or(valid_name)).then_some((ns, name))
 }
 
+/// The robot a request names, if it is a name a robot with a token can have.
+fn robot_of(header: Option<&str>) -> Result<(Option<String>, String), Refusal> {
+    let (namespace, name) = header.and_then(parse_robot).ok_or(Refusal::BadRobotName)?;
+    if name.len() > MAX_ROBOT_NAME_LEN {
+        return Err(Refusal::RobotNameTooLong);
+    }
+    Ok((namespace, name))
+}
+
 /// Checks tokens against the Secrets the gateway watches, falling back to a direct read for a
 /// robot token minted a moment ago that the watch has not delivered yet.
 #[derive(Clone)]
@@ -127,9 +142,7 @@ impl Authenticator {
         let token = token
             .filter(|t| !t.is_empty())
             .ok_or(Refusal::MissingToken)?;
-        let (namespace, name) = robot_header
-            .and_then(parse_robot)
-            .ok_or(Refusal::BadRobotName)?;
+        let (namespace, name) = robot_of(robot_header)?;
         let hash = hash_token(token);
         let hash = hash.as_bytes();
 
@@ -200,44 +213,16 @@ impl Authenticator {
         Err(Refusal::WrongToken)
     }
 
-    /// Registers an enrolling robot: creates its `Robot` unless it exists (re-registration
-    /// never duplicates it) and mints a new per-robot token, stored only as a hash.
-    pub async fn register(&self, robot: &RobotKey) -> Result<String, kube::Error> {
+    /// Whether the enrolling `robot` may enroll (see [`enroll::check`]), before the upgrade.
+    pub async fn may_enroll(&self, robot: &RobotKey) -> Result<(), enroll::Error> {
+        enroll::check(&self.client, &self.secrets, robot).await
+    }
+
+    /// Registers an enrolling robot and mints its token (see [`enroll::register`]), a few at a
+    /// time.
+    pub async fn register(&self, robot: &RobotKey) -> Result<String, enroll::Error> {
         let _slot = self.enrollments.acquire().await;
-        let robots: Api<Robot> = Api::namespaced(self.client.clone(), &robot.namespace);
-        let existing = match robots.get_opt(&robot.name).await? {
-            Some(r) => r,
-            None => {
-                let new = Robot {
-                    metadata: ObjectMeta {
-                        name: Some(robot.name.clone()),
-                        labels: Some(BTreeMap::from([(
-                            "fleet.lekiwi.io/enrolled".to_owned(),
-                            "true".to_owned(),
-                        )])),
-                        ..ObjectMeta::default()
-                    },
-                    ..Robot::default()
-                };
-                match robots.create(&PostParams::default(), &new).await {
-                    Ok(r) => r,
-                    // Two connections enrolling the same robot at once: the other one created it.
-                    Err(kube::Error::Api(s)) if s.code == 409 => robots.get(&robot.name).await?,
-                    Err(e) => return Err(e),
-                }
-            }
-        };
-        let token = new_token("lkr_");
-        let secret = robot_token_secret(&robot.name, &token, existing.controller_owner_ref(&()));
-        let secrets: Api<Secret> = Api::namespaced(self.client.clone(), &robot.namespace);
-        secrets
-            .patch(
-                &robot_secret_name(&robot.name),
-                &PatchParams::apply(managers::GATEWAY).force(),
-                &Patch::Apply(&secret),
-            )
-            .await?;
-        Ok(token)
+        enroll::register(&self.client, robot).await
     }
 }
 

@@ -7,6 +7,7 @@ pub mod blob_api;
 pub mod blob_store;
 pub mod desired;
 pub mod dispatch;
+pub mod enroll;
 pub mod event_store;
 pub mod events_api;
 pub mod lease;
@@ -34,7 +35,8 @@ use lekiwi_protocol::{AGENT_PATH, ROBOT_HEADER};
 use tokio::sync::Semaphore;
 use tracing::warn;
 
-use self::auth::Refusal;
+use self::auth::{Grant, Refusal};
+use self::event_store::RobotKey;
 use self::session::Shared;
 use crate::metrics::KindLabels;
 
@@ -43,6 +45,8 @@ use crate::metrics::KindLabels;
 pub enum ApiError {
     /// Missing or wrong credentials.
     Unauthorized(&'static str),
+    /// Valid credentials that do not allow this (an enrollment token for an enrolled robot).
+    Forbidden(String),
     /// A malformed request.
     BadRequest(String),
     /// The robot does not exist.
@@ -57,6 +61,7 @@ impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let (status, code, message) = match self {
             ApiError::Unauthorized(m) => (StatusCode::UNAUTHORIZED, "unauthorized", m.to_owned()),
+            ApiError::Forbidden(m) => (StatusCode::FORBIDDEN, "forbidden", m),
             ApiError::BadRequest(m) => (StatusCode::BAD_REQUEST, "bad_request", m),
             ApiError::NotFound(m) => (StatusCode::NOT_FOUND, "not_found", m),
             ApiError::Unavailable(m) => {
@@ -122,8 +127,37 @@ impl AppState {
         ApiError::Unauthorized(match reason {
             Refusal::MissingToken => "missing bearer token",
             Refusal::BadRobotName => "missing or invalid x-lekiwi-robot header (namespace/name)",
+            Refusal::RobotNameTooLong => {
+                "robot names are at most 63 characters (the robot's token Secret carries the name in a label)"
+            }
             Refusal::WrongToken => "invalid token",
+            Refusal::EnrollmentToken => {
+                "an enrollment token cannot speak for a robot; use the robot's own token"
+            }
         })
+    }
+}
+
+impl AppState {
+    /// Refuses (403) an enrollment token for a robot that has its own token and no permission
+    /// to enroll again, before the upgrade.
+    async fn may_enroll(&self, robot: &RobotKey) -> Result<(), ApiError> {
+        match self.shared.auth.may_enroll(robot).await {
+            Ok(()) => Ok(()),
+            Err(enroll::Error::Refused(r)) => {
+                self.shared
+                    .metrics
+                    .gateway
+                    .refused
+                    .get_or_create(&KindLabels { kind: r.as_str() })
+                    .inc();
+                warn!(robot = %robot.name, namespace = %robot.namespace, reason = r.as_str(), "refused an enrollment");
+                Err(ApiError::Forbidden(r.message(robot)))
+            }
+            Err(enroll::Error::Kube(e)) => {
+                Err(ApiError::Internal(format!("enrollment check: {e}")))
+            }
+        }
     }
 }
 
@@ -154,6 +188,9 @@ async fn agent_ws(
         .authenticate(bearer(&headers), robot)
         .await
         .map_err(|r| state.refused(r))?;
+    if let Grant::Enroll(robot) = &grant {
+        state.may_enroll(robot).await?;
+    }
     // Frames up to 4x the protocol limit are read and answered with an error frame; beyond
     // that the WebSocket layer closes the connection (1009) without buffering them.
     let hard_cap = state.shared.limits.max_frame_bytes * 4;

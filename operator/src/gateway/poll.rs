@@ -17,6 +17,7 @@ use lekiwi_protocol::Release;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use super::auth::{Grant, Refusal};
 use super::desired::DesiredReleases;
 use super::presence::ConnectInfo;
 use super::session::Limits;
@@ -131,12 +132,10 @@ pub async fn poll(
         .authenticate(bearer(&headers), Some(&q.robot))
         .await
         .map_err(|r| state.refused(r))?;
-    let key = grant.robot().clone();
-    if !q.robot.contains('/') {
-        return Err(ApiError::BadRequest(
-            "robot must be given as namespace/name".into(),
-        ));
-    }
+    // Only the robot's own token may speak for it: an enrollment token would fake presence.
+    let Grant::Robot(key) = grant else {
+        return Err(state.refused(Refusal::EnrollmentToken));
+    };
     let desired = state
         .poll_memo
         .desired(state.shared.desired.as_ref(), &state.client, &key)

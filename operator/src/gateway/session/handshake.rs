@@ -9,6 +9,7 @@ use tracing::{info, warn};
 use super::Shared;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, Conn};
 use crate::gateway::auth::Grant;
+use crate::gateway::enroll;
 use crate::gateway::presence::ConnectInfo;
 use crate::metrics::KindLabels;
 
@@ -156,7 +157,17 @@ where
             info!("robot enrolled; issued its own token");
             Ok(Some(token))
         }
-        Err(e) => {
+        Err(enroll::Error::Refused(r)) => {
+            warn!(reason = r.as_str(), "enrollment refused");
+            conn.fail(
+                ErrorCode::Internal,
+                r.message(robot),
+                (CLOSE_POLICY, "enrollment refused"),
+            )
+            .await;
+            Err(Refused)
+        }
+        Err(enroll::Error::Kube(e)) => {
             warn!(error = %e, "enrollment failed");
             conn.fail(
                 ErrorCode::Internal,

@@ -1,0 +1,281 @@
+//! Identity and authority against hostile peers (issue 12, points 1, 2 and 12): an enrollment
+//! token creates robots but never takes over one that has credentials, never speaks for a robot
+//! in a legacy poll, and robot names the gateway cannot give a token are refused up front.
+
+use std::time::Duration;
+
+use futures::{SinkExt, StreamExt};
+use kube::Api;
+use kube::api::{ListParams, Patch, PatchParams};
+use lekiwi_agent::connection::{ConnectError, Credentials, connect};
+use lekiwi_crds::Robot;
+use lekiwi_crds::contract::REENROLL_ANNOTATION;
+use lekiwi_protocol::{AgentMessage, ServerMessage, Vitals, decode, encode};
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, bin, create_robot, enrollment_token, gateway_url, get_robot,
+    hello, http_get_with, namespace, wait_for,
+};
+use serde_json::json;
+use tokio_tungstenite::tungstenite::Message;
+
+const TIMEOUT: Duration = Duration::from_secs(10);
+
+fn heartbeat() -> AgentMessage {
+    AgentMessage::Heartbeat {
+        sent_at_ms: 42,
+        rtt_ms: None,
+        vitals: Vitals::default(),
+        current_release: None,
+        health: None,
+        teleoperation: None,
+    }
+}
+
+async fn start(cp: &ControlPlane, ns: &str, id: &str) -> anyhow::Result<OperatorProcess> {
+    let mut op = OperatorProcess::start(cp, ns, id, &["--heartbeat-grace-seconds", "60"])?;
+    op.wait_ready().await?;
+    Ok(op)
+}
+
+/// A legacy poll with the enrollment token gets 401 and leaves the Robot's status as it was.
+#[tokio::test]
+async fn poll_with_the_enrollment_token_is_refused_and_fakes_nothing() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hipoll").await?;
+    let op = start(cp, &ns, "hi-poll").await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    create_robot(&client, &ns, "kiwi-1", &[]).await?;
+    let release = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch(
+            "kiwi-1",
+            &PatchParams::default(),
+            &Patch::Merge(json!({"spec": {"release": release}})),
+        )
+        .await?;
+    let auth = format!("Bearer {enroll}");
+    for path in [
+        format!("/v1/poll?robot={ns}/kiwi-1&version=2.0.0&agent=forged"),
+        "/v1/poll?robot=kiwi-1&version=2.0.0".to_owned(),
+    ] {
+        let (code, _, body) =
+            http_get_with(op.gateway_port, &path, &[("authorization", &auth)]).await?;
+        assert_eq!(code, 401, "{path}: {body}");
+        assert!(body.contains("robot's own token"), "{body}");
+    }
+    // Presence is written within a second of a poll; give it three.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let status = get_robot(&client, &ns, "kiwi-1")
+        .await?
+        .status
+        .unwrap_or_default();
+    assert_ne!(status.connected, Some(true), "{status:?}");
+    assert_eq!(status.current_release, None, "{status:?}");
+    assert_eq!(status.agent_version, None, "{status:?}");
+    let robots = Api::<Robot>::namespaced(client.clone(), &ns)
+        .list(&ListParams::default())
+        .await?;
+    assert_eq!(robots.items.len(), 1);
+    Ok(())
+}
+
+fn creds(token: &str, robot: &str) -> Credentials {
+    Credentials {
+        token: token.to_owned(),
+        robot: robot.to_owned(),
+    }
+}
+
+/// Connects with `creds` and expects a 403 before the upgrade whose body contains `says`.
+async fn forbidden(url: &str, creds: &Credentials, says: &str) {
+    match connect(url, creds, &hello(), TIMEOUT).await {
+        Err(ConnectError::Forbidden(body)) => {
+            let v: serde_json::Value = serde_json::from_str(&body).expect("JSON body");
+            assert_eq!(v["error"], "forbidden", "{body}");
+            assert!(body.contains(says), "{body}");
+        }
+        other => panic!("expected 403 ({says}), got {:?}", other.map(|(_, w)| w)),
+    }
+}
+
+/// Sets the re-enrollment permission of `name` to hold until `offset` from now.
+async fn permit(
+    client: &kube::Client,
+    ns: &str,
+    name: &str,
+    offset_secs: i64,
+) -> anyhow::Result<()> {
+    let until = jiff::Timestamp::now() + jiff::SignedDuration::from_secs(offset_secs);
+    Api::<Robot>::namespaced(client.clone(), ns)
+        .patch(
+            name,
+            &PatchParams::default(),
+            &Patch::Merge(json!({"metadata": {"annotations": {REENROLL_ANNOTATION: until.round(jiff::Unit::Second)?.to_string()}}})),
+        )
+        .await?;
+    Ok(())
+}
+
+/// Whether a legacy poll with `token` for `ns/name` is answered (200) rather than refused.
+async fn token_works(
+    op: &OperatorProcess,
+    ns: &str,
+    name: &str,
+    token: &str,
+) -> anyhow::Result<bool> {
+    let (code, _, body) = http_get_with(
+        op.gateway_port,
+        &format!("/v1/poll?robot={ns}/{name}&version=0"),
+        &[("authorization", &format!("Bearer {token}"))],
+    )
+    .await?;
+    assert!(code == 200 || code == 401, "{code}: {body}");
+    Ok(code == 200)
+}
+
+/// An enrollment token never takes over an enrolled robot: refused before the upgrade, the
+/// robot's session and token untouched. A person's permission allows one re-enrollment, which
+/// uses it up; an expired permission allows none; two racing enrollments cannot both use one.
+#[tokio::test]
+async fn enrollment_never_takes_over_an_enrolled_robot() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hienroll").await?;
+    let op = start(cp, &ns, "hi-enroll").await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let url = gateway_url(&op);
+    let full = format!("{ns}/kiwi-1");
+
+    let (mut ws, welcome) = connect(&url, &creds(&enroll, &full), &hello(), TIMEOUT).await?;
+    let own = welcome
+        .robot_token
+        .expect("the first enrollment issues a token");
+    for robot in [full.as_str(), "kiwi-1"] {
+        forbidden(&url, &creds(&enroll, robot), "already enrolled").await;
+    }
+    // The real robot's session was not kicked and its token still works.
+    ws.send(Message::text(encode(&heartbeat()))).await?;
+    match tokio::time::timeout(TIMEOUT, ws.next()).await? {
+        Some(Ok(Message::Text(t))) => assert!(
+            matches!(
+                decode::<ServerMessage>(t.as_str(), 1 << 20)?,
+                ServerMessage::HeartbeatAck { .. }
+            ),
+            "{t}"
+        ),
+        other => panic!("the robot's session ended: {other:?}"),
+    }
+    assert!(token_works(&op, &ns, "kiwi-1", &own).await?);
+
+    // An expired permission allows nothing.
+    permit(&client, &ns, "kiwi-1", -60).await?;
+    forbidden(&url, &creds(&enroll, &full), "expired").await;
+
+    // A person's permission (`kubectl lekiwi robot reenroll`) allows exactly one
+    // re-enrollment, even to two racing connections.
+    let out = std::process::Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args(["-n", &ns, "robot", "reenroll", "kiwi-1", "--for", "10m"])
+        .output()?;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        out.status.success() && stderr.contains("may enroll again once"),
+        "{stderr}"
+    );
+    let (racer, greeting) = (creds(&enroll, &full), hello());
+    let (a, b) = tokio::join!(
+        connect(&url, &racer, &greeting, TIMEOUT),
+        connect(&url, &racer, &greeting, TIMEOUT),
+    );
+    let (winner, loser) = match (a, b) {
+        (Ok(w), Err(e)) | (Err(e), Ok(w)) => (w, e),
+        (a, b) => panic!(
+            "exactly one re-enrollment: {:?} / {:?}",
+            a.map(|(_, w)| w),
+            b.map(|(_, w)| w)
+        ),
+    };
+    let new = winner
+        .1
+        .robot_token
+        .clone()
+        .expect("re-enrollment issues a token");
+    assert_ne!(new, own);
+    assert!(
+        matches!(
+            &loser,
+            ConnectError::Forbidden(_) | ConnectError::Refused { .. }
+        ),
+        "{loser}"
+    );
+    let robot = get_robot(&client, &ns, "kiwi-1").await?;
+    let annotations = robot.metadata.annotations.unwrap_or_default();
+    assert!(
+        !annotations.contains_key(REENROLL_ANNOTATION),
+        "{annotations:?}"
+    );
+    wait_for("the old token refused", TIMEOUT, || async {
+        (!token_works(&op, &ns, "kiwi-1", &own).await.ok()?).then_some(())
+    })
+    .await?;
+    assert!(token_works(&op, &ns, "kiwi-1", &new).await?);
+    // The permission is used up.
+    drop(winner);
+    forbidden(&url, &creds(&enroll, &full), "already enrolled").await;
+    Ok(())
+}
+
+/// A robot name longer than a token Secret's label can hold is refused up front, by the gateway
+/// and by `kubectl lekiwi robot add`, and nothing is created.
+#[tokio::test]
+async fn overlong_robot_names_are_refused_and_create_nothing() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hiname").await?;
+    let op = start(cp, &ns, "hi-name").await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let name = "k".repeat(70);
+    match connect(
+        &gateway_url(&op),
+        &creds(&enroll, &format!("{ns}/{name}")),
+        &hello(),
+        TIMEOUT,
+    )
+    .await
+    {
+        Err(ConnectError::Unauthorized(body)) => {
+            assert!(body.contains("at most 63 characters"), "{body}")
+        }
+        other => panic!("expected 401, got {:?}", other.map(|(_, w)| w)),
+    }
+    let out = std::process::Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args([
+            "-n",
+            &ns,
+            "robot",
+            "add",
+            &name,
+            "--gateway",
+            "ws://127.0.0.1:1/v1/agent",
+        ])
+        .output()?;
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("at most 63"),
+        "{stderr}"
+    );
+    let robots = Api::<Robot>::namespaced(client.clone(), &ns)
+        .list(&ListParams::default())
+        .await?;
+    assert!(robots.items.is_empty(), "{:?}", robots.items);
+    // 63 characters is fine.
+    let name = "k".repeat(63);
+    let (_ws, welcome) =
+        connect(&gateway_url(&op), &creds(&enroll, &name), &hello(), TIMEOUT).await?;
+    assert_eq!(welcome.robot, format!("{ns}/{name}"));
+    Ok(())
+}
