@@ -77,7 +77,11 @@ async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::R
     let ns = namespace(&client, "hpseq").await?;
     let op = start(cp, &ns, "hp-seq").await?;
     let enroll = enrollment_token(&client, &ns).await?;
-    let (mut ws, _) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
+    let (mut ws, enrolled) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
+    // Once enrolled, the robot speaks with its own token (enrollment never takes it over).
+    let own = enrolled
+        .robot_token
+        .ok_or_else(|| anyhow::anyhow!("enrollment gave no robot token"))?;
 
     // The largest allowed seq is stored; anything above is `malformed` naming it: 2^53, the
     // 2^63-1 that once overflowed agents, and 2^63 which the store could never hold.
@@ -145,7 +149,7 @@ async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::R
         .map(|e| (e.seq, e.severity.as_str()))
         .collect();
     assert_eq!(seqs, [(5, "unknown"), (MAX_SEQ, "info")]);
-    let (ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
+    let (ws, welcome) = connect_agent(&op, &own, &format!("{ns}/kiwi-1")).await?;
     assert_eq!(welcome.stored_seq, Some(MAX_SEQ));
     drop(ws);
 
@@ -153,7 +157,7 @@ async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::R
     let mut legacy = stored[0].clone();
     legacy.seq = i64::MAX as u64;
     store.insert_event(&key, &legacy).await?;
-    let (_ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
+    let (_ws, welcome) = connect_agent(&op, &own, &format!("{ns}/kiwi-1")).await?;
     assert_eq!(welcome.stored_seq, None);
     Ok(())
 }
