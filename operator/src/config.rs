@@ -163,6 +163,11 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_HANDSHAKE_TIMEOUT_SECONDS", default_value_t = 10)]
     pub handshake_timeout_seconds: u64,
 
+    /// Seconds one frame to an agent may take to be written; an agent that stops reading has
+    /// its session closed after it and its connection slot freed.
+    #[arg(long, env = "LEKIWI_SEND_TIMEOUT_SECONDS", default_value_t = 10)]
+    pub send_timeout_seconds: u64,
+
     /// Robot status writes per second, sustained, from this gateway.
     #[arg(long, env = "LEKIWI_STATUS_QPS", default_value_t = 50.0)]
     pub status_qps: f64,

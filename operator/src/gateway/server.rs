@@ -187,6 +187,7 @@ fn limits(config: &Config) -> Limits {
         handshake_timeout: Duration::from_secs(config.handshake_timeout_seconds),
         heartbeat_interval: Duration::from_secs(config.heartbeat_interval_seconds),
         missed_heartbeats: config.missed_heartbeats,
+        send_timeout: Duration::from_secs(config.send_timeout_seconds.max(1)),
     }
 }
 

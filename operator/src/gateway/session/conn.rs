@@ -1,10 +1,13 @@
 //! The sending half of a session: JSON frames, error frames counted by code, and the Close
 //! frame that ends a session with a reason.
 
+use std::time::Duration;
+
 use axum::extract::ws::{CloseFrame, Message, Utf8Bytes};
 use futures::{Sink, SinkExt};
 use lekiwi_protocol::{ErrorCode, ServerMessage, encode};
 use serde::Serialize;
+use tracing::warn;
 
 use crate::metrics::{KindLabels, Metrics};
 
@@ -26,6 +29,8 @@ pub(super) enum End {
     Abuse,
     /// The gateway is shutting down.
     Shutdown,
+    /// A frame could not be written within the send timeout: the agent stopped reading.
+    SendTimeout,
 }
 
 impl End {
@@ -36,6 +41,7 @@ impl End {
             End::HeartbeatTimeout => "heartbeat_timeout",
             End::Abuse => "rate_limit_abuse",
             End::Shutdown => "shutdown",
+            End::SendTimeout => "send_timeout",
         }
     }
 }
@@ -71,19 +77,45 @@ pub(super) fn wire_name<T: Serialize>(value: &T) -> String {
 pub(super) struct Conn<W> {
     sink: W,
     metrics: Metrics,
+    /// How long one frame (written and flushed) may take before the session ends.
+    send_timeout: Duration,
+    /// A send timed out: the socket is unusable, every later send fails at once.
+    stuck: bool,
 }
 
 impl<W: Sink<Message> + Unpin> Conn<W> {
-    pub(super) fn new(sink: W, metrics: Metrics) -> Self {
-        Self { sink, metrics }
+    pub(super) fn new(sink: W, metrics: Metrics, send_timeout: Duration) -> Self {
+        Self {
+            sink,
+            metrics,
+            send_timeout,
+            stuck: false,
+        }
     }
 
-    /// Sends one frame; `Err(Closed)` when the socket is gone.
+    /// Sends one frame; `Err(Closed)` when the socket is gone, `Err(SendTimeout)` when it could
+    /// not be written and flushed within the send timeout (the agent stopped reading).
     pub(super) async fn send(&mut self, msg: &ServerMessage) -> Flow {
-        self.sink
-            .send(Message::Text(Utf8Bytes::from(encode(msg))))
+        self.send_message(Message::Text(Utf8Bytes::from(encode(msg))))
             .await
-            .map_err(|_| End::Closed)
+    }
+
+    /// Writes and flushes one message within the send timeout.
+    async fn send_message(&mut self, message: Message) -> Flow {
+        if self.stuck {
+            return Err(End::SendTimeout);
+        }
+        match tokio::time::timeout(self.send_timeout, self.sink.send(message)).await {
+            Ok(sent) => sent.map_err(|_| End::Closed),
+            Err(_) => {
+                self.stuck = true;
+                warn!(
+                    timeout = ?self.send_timeout,
+                    "agent stopped reading: a frame could not be sent in time; closing"
+                );
+                Err(End::SendTimeout)
+            }
+        }
     }
 
     /// Sends an error frame without a sequence number, counted by its code.
@@ -141,16 +173,16 @@ impl<W: Sink<Message> + Unpin> Conn<W> {
         self.close(close.0, close.1).await;
     }
 
-    /// Sends a Close frame and closes the sink; errors mean the socket is gone already.
+    /// Sends a Close frame and closes the sink, each within the send timeout; errors mean the
+    /// socket is gone already.
     pub(super) async fn close(&mut self, code: u16, reason: &str) {
-        let _ = self
-            .sink
-            .send(Message::Close(Some(CloseFrame {
-                code,
-                reason: Utf8Bytes::from(reason),
-            })))
-            .await;
-        let _ = self.sink.close().await;
+        let frame = Message::Close(Some(CloseFrame {
+            code,
+            reason: Utf8Bytes::from(reason),
+        }));
+        if self.send_message(frame).await.is_ok() {
+            let _ = tokio::time::timeout(self.send_timeout, self.sink.close()).await;
+        }
     }
 
     fn count_error(&self, kind: &'static str) {

@@ -46,6 +46,9 @@ pub struct Limits {
     pub heartbeat_interval: Duration,
     /// Silent intervals after which the session is closed.
     pub missed_heartbeats: u32,
+    /// Time one frame may take to be written; a session whose agent stopped reading is closed
+    /// after it, and its connection slot freed.
+    pub send_timeout: Duration,
 }
 
 /// What every session shares.
@@ -125,7 +128,7 @@ async fn run_inner<W, R, E>(
     E: std::fmt::Display,
 {
     let key = grant.robot().clone();
-    let mut conn = Conn::new(sink, shared.metrics.clone());
+    let mut conn = Conn::new(sink, shared.metrics.clone(), shared.limits.send_timeout);
     // 1. The hello, within the handshake timeout.
     let Ok(hello) = handshake::hello(&shared, &mut conn, &mut stream).await else {
         return;
@@ -160,7 +163,8 @@ async fn run_inner<W, R, E>(
         Ok(()) => session.serve(&mut stream, &mut opened.control).await,
         Err(end) => end,
     };
-    if !matches!(end, End::Closed) {
+    // Closed: nothing left to read; SendTimeout: no Close frame went out to be answered.
+    if !matches!(end, End::Closed | End::SendTimeout) {
         drain_until_close(&mut stream).await;
     }
     // 4. Clean up: a replaced session leaves presence to its successor.
@@ -311,6 +315,7 @@ mod tests {
                 handshake_timeout: Duration::from_secs(1),
                 heartbeat_interval: Duration::from_secs(1),
                 missed_heartbeats: 3,
+                send_timeout: Duration::from_secs(10),
             },
             metrics,
             gateway: "gw".into(),
