@@ -19,6 +19,9 @@ fn main() -> anyhow::Result<()> {
         return Ok(());
     }
     init_logging(&config.log_format);
+    if let Some(warning) = config.plaintext_warning() {
+        tracing::warn!("{warning}");
+    }
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;

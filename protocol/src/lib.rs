@@ -8,6 +8,7 @@ use serde::Serialize;
 mod messages;
 mod phase;
 pub mod release;
+pub mod transport;
 mod types;
 
 pub use messages::{AgentMessage, Command, ErrorCode, ServerMessage};

@@ -117,6 +117,8 @@ impl Lab {
             .arg(bin("lekiwi-agent"))
             .args(["--config", "/nonexistent/lekiwi-agent.yaml"])
             .args(["--gateway", "ws://10.77.0.1:9/v1/agent"])
+            // Not loopback, and never reached: plain text must be allowed explicitly.
+            .arg("--insecure-allow-plaintext")
             .args(["--robot-name", robot])
             .args(["--enrollment-token", "lke_unused-gateway-unreachable"])
             .arg("--state-dir")

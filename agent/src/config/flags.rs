@@ -43,6 +43,16 @@ pub struct Flags {
     #[arg(long, env = "LEKIWI_CA_FILE")]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub ca_file: Option<PathBuf>,
+    /// Allow a plain ws:// gateway on another host (anyone on the path can read the token and
+    /// forge deployments); without it such a URL is refused at start.
+    #[arg(
+        long,
+        env = "LEKIWI_INSECURE_ALLOW_PLAINTEXT",
+        num_args = 0..=1,
+        default_missing_value = "true"
+    )]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub insecure_allow_plaintext: Option<bool>,
     /// Directory for the token, the outbox and releases.
     #[arg(long, env = "LEKIWI_STATE_DIR")]
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -8,6 +8,7 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
+use lekiwi_protocol::transport::plaintext_remote_host;
 use serde::{Deserialize, Serialize};
 
 mod flags;
@@ -32,6 +33,13 @@ pub enum Error {
     /// A flag or environment value does not fit its key.
     #[error("invalid setting: {0}")]
     Invalid(String),
+    /// The gateway URL is plain text to another host and plain text was not allowed.
+    #[error(
+        "gateway {gateway} is plain ws:// to {host}, not this machine: anyone on the path could read \
+         the robot's token and send it deployments. Use wss:// (with --ca-file for a private CA), or \
+         on a network you trust pass --insecure-allow-plaintext (LEKIWI_INSECURE_ALLOW_PLAINTEXT=true)"
+    )]
+    Plaintext { gateway: String, host: String },
     /// A required setting is missing everywhere.
     #[error("no gateway configured: set `gateway` in {path}, --gateway or LEKIWI_GATEWAY_URL")]
     MissingGateway { path: PathBuf },
@@ -46,6 +54,9 @@ pub struct Config {
     pub gateway: String,
     /// PEM CA that `wss://` trusts instead of the public web roots.
     pub ca_file: Option<PathBuf>,
+    /// Allows a `ws://` gateway on another host (token and deployments readable and forgeable
+    /// on the path); without it such a URL is refused at start.
+    pub insecure_allow_plaintext: bool,
     /// Holds the robot's token, the outbox and the releases; must survive reboots.
     pub state_dir: PathBuf,
     /// `namespace/name` or `name`; empty means the host name.
@@ -141,6 +152,7 @@ impl Default for Config {
         Self {
             gateway: String::new(),
             ca_file: None,
+            insecure_allow_plaintext: false,
             state_dir: PathBuf::from("/var/lib/lekiwi"),
             robot_name: String::new(),
             enrollment_token_file: None,
@@ -221,6 +233,14 @@ impl Config {
 
     fn validate(&self) -> Result<(), Error> {
         let bad = |msg: String| Err(Error::Invalid(msg));
+        if let Some(host) = plaintext_remote_host(&self.gateway)
+            && !self.insecure_allow_plaintext
+        {
+            return Err(Error::Plaintext {
+                gateway: self.gateway.clone(),
+                host: host.to_owned(),
+            });
+        }
         if self.robot_name.is_empty() {
             return bad("robotName is empty and the host has no name".into());
         }
@@ -304,6 +324,18 @@ impl Config {
             teleop_serial_weight: 0.0,
             ..self
         }
+    }
+
+    /// The warning to log at start when the gateway is plain text to another host (allowed by
+    /// `insecureAllowPlaintext`, or [`Config::load`] would have refused it).
+    pub fn plaintext_warning(&self) -> Option<String> {
+        plaintext_remote_host(&self.gateway).map(|host| {
+            format!(
+                "INSECURE: the gateway {} is plain ws:// to {host}; anyone on the path can read this \
+                 robot's token and send it deployments (code execution). Use wss://",
+                self.gateway
+            )
+        })
     }
 
     /// The status endpoint address, unless turned off.

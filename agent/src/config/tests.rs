@@ -44,11 +44,15 @@ fn bad_file_and_missing_gateway_are_clear_errors() {
     let err = Config::load(&flags, "h").unwrap_err().to_string();
     assert!(err.contains("unknown field `gatewy`"), "{err}");
 
-    std::fs::write(&path, "gateway: ws://x\ntelemetryCpuIntervalS: fast\n").unwrap();
+    std::fs::write(
+        &path,
+        "gateway: ws://127.0.0.1\ntelemetryCpuIntervalS: fast\n",
+    )
+    .unwrap();
     let err = Config::load(&flags, "h").unwrap_err().to_string();
     assert!(err.contains("invalid type"), "{err}");
 
-    std::fs::write(&path, "gateway: ws://x\nstatusListen: nowhere\n").unwrap();
+    std::fs::write(&path, "gateway: ws://127.0.0.1\nstatusListen: nowhere\n").unwrap();
     let err = Config::load(&flags, "h").unwrap_err().to_string();
     assert!(err.contains("statusListen"), "{err}");
 
@@ -156,4 +160,51 @@ fn the_readme_table_matches_the_flags() {
         assert_eq!(row[4], help.trim_end_matches('.'), "help of {key}");
     }
     assert_eq!(keys.len(), rows.len(), "README rows without a flag");
+}
+
+/// `ws://` to another host is refused at start unless plain text is allowed by flag, env or
+/// file; loopback and `wss://` need nothing.
+#[test]
+fn plaintext_to_another_host_needs_the_insecure_flag() {
+    let load = |args: &[&str]| {
+        let mut argv = vec!["lekiwi-agent", "--config", "/nonexistent/agent.yaml"];
+        argv.extend_from_slice(args);
+        Config::load(&Flags::parse_from(argv), "h")
+    };
+    let err = load(&["--gateway", "ws://192.0.2.1:9/v1/agent"])
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("plain ws:// to 192.0.2.1"), "{err}");
+    assert!(err.contains("--insecure-allow-plaintext"), "{err}");
+
+    for args in [
+        &["--insecure-allow-plaintext"][..],
+        &["--insecure-allow-plaintext=true"][..],
+    ] {
+        let mut argv = vec!["--gateway", "ws://192.0.2.1:9/v1/agent"];
+        argv.extend_from_slice(args);
+        let cfg = load(&argv).unwrap();
+        assert!(cfg.insecure_allow_plaintext);
+        let warning = cfg.plaintext_warning().unwrap();
+        assert!(warning.starts_with("INSECURE"), "{warning}");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("agent.yaml");
+    std::fs::write(
+        &path,
+        "gateway: ws://gw.example.com/v1/agent\ninsecureAllowPlaintext: true\n",
+    )
+    .unwrap();
+    let flags = Flags::parse_from(["lekiwi-agent", "--config", path.to_str().unwrap()]);
+    assert!(Config::load(&flags, "h").is_ok());
+
+    for gateway in [
+        "ws://127.0.0.1:8081/v1/agent",
+        "ws://localhost:8081/v1/agent",
+        "ws://[::1]:8081/v1/agent",
+        "wss://192.0.2.1/v1/agent",
+    ] {
+        let cfg = load(&["--gateway", gateway]).unwrap();
+        assert_eq!(cfg.plaintext_warning(), None, "{gateway}");
+    }
 }

@@ -75,8 +75,11 @@ pub(crate) async fn message(resp: reqwest::Response) -> String {
 }
 
 impl Gateway {
-    /// Reads the API token and builds the HTTP client (trusting `--certificate-authority`).
+    /// Reads the API token and builds the HTTP client (trusting `--certificate-authority`);
+    /// refuses plain `http://` to another host first (see [`ServerArgs::check_transport`]).
     pub(crate) async fn connect(client: kube::Client, server: &ServerArgs) -> anyhow::Result<Self> {
+        // Before anything is read or sent: the token must not cross the network in clear.
+        server.check_transport()?;
         let token = api_token(client, &server.operator_namespace, &server.token_secret).await?;
         let mut http = reqwest::Client::builder()
             .connect_timeout(Duration::from_secs(10))

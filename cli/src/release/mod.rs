@@ -52,6 +52,33 @@ pub struct ServerArgs {
     /// PEM file of a CA to trust for an https:// gateway, besides the public roots.
     #[arg(long, global = true)]
     pub certificate_authority: Option<PathBuf>,
+    /// Send the API token over plain http:// to a host other than this machine (anyone on the
+    /// path can read it and push releases to every robot); refused without this flag.
+    #[arg(long, global = true)]
+    pub insecure_allow_plaintext: bool,
+}
+
+impl ServerArgs {
+    /// Refuses a plain `http://` server on another host unless `--insecure-allow-plaintext`:
+    /// the API token would cross the network readable by anyone on the path.
+    pub fn check_transport(&self) -> anyhow::Result<()> {
+        match lekiwi_protocol::transport::plaintext_remote_host(&self.server) {
+            Some(host) if !self.insecure_allow_plaintext => anyhow::bail!(
+                "refusing to send the API token over plain http:// to {host} (--server {}): anyone \
+                 on the path could read it and push releases to every robot. Use https:// (with \
+                 --certificate-authority for the gateway's CA), or on a network you trust pass \
+                 --insecure-allow-plaintext",
+                self.server
+            ),
+            Some(host) => {
+                eprintln!(
+                    "WARNING: sending the API token over plain http:// to {host} (--insecure-allow-plaintext)"
+                );
+                Ok(())
+            }
+            None => Ok(()),
+        }
+    }
 }
 
 /// Release subcommands.

@@ -95,3 +95,34 @@ fn tables_show_modes_and_short_digests() {
     assert_eq!(json["files"][0]["mode"], 0o755);
     assert_eq!(json["missing"], serde_json::json!([]));
 }
+
+#[test]
+fn the_api_token_goes_in_plain_text_only_to_loopback_or_when_allowed() {
+    let args = |server: &str, insecure: bool| ServerArgs {
+        server: server.to_owned(),
+        operator_namespace: "lekiwi-system".into(),
+        token_secret: "lekiwi-api".into(),
+        certificate_authority: None,
+        insecure_allow_plaintext: insecure,
+    };
+    let err = args("http://192.0.2.1:9", false)
+        .check_transport()
+        .unwrap_err()
+        .to_string();
+    for needle in [
+        "192.0.2.1",
+        "https://",
+        "--certificate-authority",
+        "--insecure-allow-plaintext",
+    ] {
+        assert!(err.contains(needle), "{needle}: {err}");
+    }
+    args("http://192.0.2.1:9", true).check_transport().unwrap();
+    for server in [
+        "http://127.0.0.1:8081",
+        "http://localhost:8081",
+        "https://192.0.2.1",
+    ] {
+        args(server, false).check_transport().unwrap();
+    }
+}
