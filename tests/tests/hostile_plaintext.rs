@@ -1,8 +1,9 @@
 //! Plain text off this machine is refused unless asked for: the real `lekiwi-agent` refuses a
 //! `ws://` gateway on another host at start (and only warns, loudly, with
 //! `--insecure-allow-plaintext`), and `kubectl lekiwi` refuses to send the API token over
-//! `http://` to another host. 192.0.2.1 is TEST-NET-1: nothing answers there, and the refusals
-//! happen before any connection is tried.
+//! `http://` to another host. The "other host" is 0.0.0.0: not a loopback address by the rule, yet
+//! on Linux a connection to it stays on this machine, so even the agent that is allowed to try
+//! (or a regression that stops refusing) sends nothing off the machine.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
@@ -12,7 +13,7 @@ use std::time::Duration;
 use anyhow::{Context as _, Result, ensure};
 use lekiwi_tests::{ControlPlane, bin};
 
-const REMOTE_WS: &str = "ws://192.0.2.1:9/v1/agent";
+const REMOTE_WS: &str = "ws://0.0.0.0:9/v1/agent";
 const ZERO_DIGEST: &str = "sha256:0000000000000000000000000000000000000000000000000000000000000000";
 
 fn agent(state: &std::path::Path) -> Command {
@@ -65,7 +66,7 @@ fn the_agent_refuses_plain_ws_to_another_host_at_start() -> Result<()> {
     );
     ensure!(!out.status.success(), "the agent ran:\n{text}");
     for needle in [
-        "plain ws:// to 192.0.2.1",
+        "plain ws:// to 0.0.0.0",
         "wss://",
         "--insecure-allow-plaintext",
     ] {
@@ -124,7 +125,7 @@ fn with_the_flag_the_agent_runs_and_warns_loudly() -> Result<()> {
         child.wait()?;
         let line = warned.with_context(|| format!("{allow:?}: no warning in:\n{seen:?}"))?;
         ensure!(
-            line.contains("192.0.2.1") && line.contains("wss://"),
+            line.contains("0.0.0.0") && line.contains("wss://"),
             "{line}"
         );
         ensure!(running, "{allow:?}: the agent exited:\n{seen:?}");
@@ -147,14 +148,14 @@ fn the_cli_refuses_to_send_the_api_token_over_plain_http_to_another_host() -> Re
             .arg("--kubeconfig")
             .arg(cp.kubeconfig())
             .args(args)
-            .args(["--server", "http://192.0.2.1:9"])
+            .args(["--server", "http://0.0.0.0:9"])
             .env_remove("LEKIWI_SERVER")
             .output()
             .context("run kubectl-lekiwi")?;
         let err = String::from_utf8_lossy(&out.stderr);
         ensure!(!out.status.success(), "{args:?} succeeded: {err}");
         for needle in [
-            "refusing to send the API token over plain http:// to 192.0.2.1",
+            "refusing to send the API token over plain http:// to 0.0.0.0",
             "https://",
             "--certificate-authority",
             "--insecure-allow-plaintext",
