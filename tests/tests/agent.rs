@@ -171,7 +171,7 @@ async fn no_event_is_lost_across_a_gateway_outage_and_agent_crashes() -> anyhow:
         &state,
         &["--telemetry-batch-interval-s", "1"],
     )?;
-    let store = Store::connect(&format!("sqlite://{}", op.store_path.display())).await?;
+    let store = op.event_store().await?;
     let key = RobotKey::new(ns.clone(), "kiwi-z");
     let stored_ns = |store: Store, key: RobotKey| async move {
         let events = store.events(&key, None, 10_000).await?;

@@ -390,15 +390,8 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
     assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq: 4 }));
     drop(ws);
 
-    let store = lekiwi_operator::gateway::event_store::Store::connect(&format!(
-        "sqlite://{}",
-        op.store_path.display()
-    ))
-    .await?;
-    let key = lekiwi_operator::gateway::event_store::RobotKey {
-        namespace: ns.clone(),
-        name: "kiwi-1".into(),
-    };
+    let store = op.event_store().await?;
+    let key = lekiwi_operator::gateway::event_store::RobotKey::new(ns.clone(), "kiwi-1");
     let events = store.events(&key, None, 100).await?;
     assert_eq!(
         events.iter().map(|e| e.seq).collect::<Vec<_>>(),

@@ -134,15 +134,8 @@ async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::R
     let critical = event(5, Severity::Info).replace(r#""info""#, r#""critical""#);
     assert_eq!(ask(&mut ws, critical).await, ServerMessage::Ack { seq: 5 });
     drop(ws);
-    let store = lekiwi_operator::gateway::event_store::Store::connect(&format!(
-        "sqlite://{}",
-        op.store_path.display()
-    ))
-    .await?;
-    let key = lekiwi_operator::gateway::event_store::RobotKey {
-        namespace: ns.clone(),
-        name: "kiwi-1".into(),
-    };
+    let store = op.event_store().await?;
+    let key = lekiwi_operator::gateway::event_store::RobotKey::new(ns.clone(), "kiwi-1");
     let stored = store.events(&key, None, 10).await?;
     let seqs: Vec<(u64, &str)> = stored
         .iter()
@@ -221,15 +214,8 @@ async fn an_agent_keeps_working_after_a_forged_seq_and_refuses_oversized_events(
     let seq = agent.emit("after_forgery", "still here", &json!({}))?;
     agent.restart()?;
     agent.wait_connected(TIMEOUT).await?;
-    let store = lekiwi_operator::gateway::event_store::Store::connect(&format!(
-        "sqlite://{}",
-        op.store_path.display()
-    ))
-    .await?;
-    let key = lekiwi_operator::gateway::event_store::RobotKey {
-        namespace: ns.clone(),
-        name: "kiwi-1".into(),
-    };
+    let store = op.event_store().await?;
+    let key = lekiwi_operator::gateway::event_store::RobotKey::new(ns.clone(), "kiwi-1");
     wait_for("the event after the forgery stored", TIMEOUT, || async {
         let events = store.events(&key, None, 100).await.ok()?;
         events

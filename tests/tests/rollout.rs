@@ -14,7 +14,7 @@ use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
-use lekiwi_operator::gateway::event_store::{RobotKey, Store};
+use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_tests::{
     AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin,
     enrollment_token_file, gateway_url, http_get_with, namespace, rollout_finished, test_strategy,
@@ -391,7 +391,7 @@ async fn rollout_survives_operator_and_agent_crashes() -> anyhow::Result<()> {
 
     // Kill the whole fleet while some robots are in their restart command (switched, not yet
     // confirmed) and others download.
-    let store = Store::connect(&format!("sqlite://{}", site.op.store_path.display())).await?;
+    let store = site.op.event_store().await?;
     let restarting = wait_for("a robot restarting", Duration::from_secs(60), || async {
         for i in 0..CRASH_ROBOTS {
             let key = RobotKey::new(site.ns.clone(), robot_name(i));
