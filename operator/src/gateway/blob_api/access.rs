@@ -84,13 +84,17 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
     let Caller::Robot(robot) = caller else {
         return true;
     };
-    let releases = state
-        .shared
-        .desired
-        .as_ref()
-        .map(|d| d.digests_in(&robot.namespace))
-        .unwrap_or_default();
     let blobs = &state.blobs;
+    let Some(desired) = state.shared.desired.as_ref() else {
+        return refuse(state, robot, digest);
+    };
+    // The robot's own release first: one cache lookup, the case of every normal download. Only
+    // a miss scans the namespace's Robots.
+    let own: BTreeSet<String> = desired.get(robot).map(|r| r.digest).into_iter().collect();
+    if blobs.manifests.referenced(&blobs.store, &own, digest).await {
+        return true;
+    }
+    let releases = desired.digests_in(&robot.namespace);
     if blobs
         .manifests
         .referenced(&blobs.store, &releases, digest)
@@ -98,6 +102,11 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
     {
         return true;
     }
+    refuse(state, robot, digest)
+}
+
+/// Counts and logs a refused read; always `false`.
+fn refuse(state: &AppState, robot: &crate::gateway::event_store::RobotKey, digest: &str) -> bool {
     state
         .shared
         .metrics
