@@ -30,7 +30,7 @@ pub use fleet::{
 };
 pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
-pub use operator::OperatorProcess;
+pub use operator::{OperatorProcess, gateway_operator};
 pub use stand_in::{GATEWAY_FIELD_MANAGER, GatewayStandIn};
 
 /// The repository root.

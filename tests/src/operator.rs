@@ -236,3 +236,18 @@ fn operator_args(
     push(extra);
     args
 }
+
+/// A ready operator for gateway tests: robots stay Online through a minute of silence
+/// (`--heartbeat-grace-seconds 60`), so only what a test does changes their phase.
+pub async fn gateway_operator(
+    cp: &ControlPlane,
+    namespace: &str,
+    identity: &str,
+    extra: &[&str],
+) -> Result<OperatorProcess> {
+    let mut args = vec!["--heartbeat-grace-seconds", "60"];
+    args.extend_from_slice(extra);
+    let mut op = OperatorProcess::start(cp, namespace, identity, &args)?;
+    op.wait_ready().await?;
+    Ok(op)
+}

@@ -11,7 +11,7 @@ use lekiwi_agent::connection::{ConnectError, Credentials, Socket, connect};
 use lekiwi_crds::{Robot, RobotPhase};
 use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, Severity, Vitals, decode, encode};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, connect_agent, enrollment_token, gateway_url, get_robot, hello,
+    ControlPlane, connect_agent, enrollment_token, gateway_operator, gateway_url, get_robot, hello,
     http_get_with, namespace, wait_for, wait_phase,
 };
 use serde_json::json;
@@ -63,25 +63,12 @@ fn heartbeat() -> AgentMessage {
     }
 }
 
-async fn start(
-    cp: &ControlPlane,
-    ns: &str,
-    id: &str,
-    extra: &[&str],
-) -> anyhow::Result<OperatorProcess> {
-    let mut args = vec!["--heartbeat-grace-seconds", "60"];
-    args.extend_from_slice(extra);
-    let mut op = OperatorProcess::start(cp, ns, id, &args)?;
-    op.wait_ready().await?;
-    Ok(op)
-}
-
 #[tokio::test]
 async fn enrollment_presence_and_replacement() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "gw").await?;
-    let op = start(cp, &ns, "gw-a", &[]).await?;
+    let op = gateway_operator(cp, &ns, "gw-a", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     let url = gateway_url(&op);
 
@@ -206,7 +193,7 @@ async fn bad_credentials_are_refused_before_the_upgrade() -> anyhow::Result<()> 
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "gwauth").await?;
-    let op = start(cp, &ns, "gw-auth", &[]).await?;
+    let op = gateway_operator(cp, &ns, "gw-auth", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     let url = gateway_url(&op);
     let cases = [
@@ -271,7 +258,7 @@ async fn bad_frames_get_error_frames_and_the_session_survives() -> anyhow::Resul
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "gwframes").await?;
-    let op = start(
+    let op = gateway_operator(
         cp,
         &ns,
         "gw-frames",
@@ -359,7 +346,7 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "gwevents").await?;
-    let op = start(cp, &ns, "gw-ev", &[]).await?;
+    let op = gateway_operator(cp, &ns, "gw-ev", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     let (mut ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
     assert_eq!(welcome.stored_seq, None);
@@ -419,8 +406,8 @@ async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -
     let client = cp.client().await?;
     let ns = namespace(&client, "gwdeath").await?;
     // Controllers and gateway in separate processes, so the gateway can die alone.
-    let _ctl = start(cp, &ns, "ctl", &["--role", "controller"]).await?;
-    let mut gw = start(
+    let _ctl = gateway_operator(cp, &ns, "ctl", &["--role", "controller"]).await?;
+    let mut gw = gateway_operator(
         cp,
         &ns,
         "gw",
@@ -471,7 +458,7 @@ async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Res
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "gwpoll").await?;
-    let op = start(cp, &ns, "gw-poll", &[]).await?;
+    let op = gateway_operator(cp, &ns, "gw-poll", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     lekiwi_tests::create_robot(&client, &ns, "old-1", &[]).await?;
     let release = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
@@ -565,7 +552,7 @@ async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
     let d = dir.path().display().to_string();
     let cert = format!("{d}/tls.crt");
     let key = format!("{d}/tls.key");
-    let op = start(
+    let op = gateway_operator(
         cp,
         &ns,
         "gw-tls",

@@ -12,8 +12,8 @@ use lekiwi_crds::Robot;
 use lekiwi_crds::contract::REENROLL_ANNOTATION;
 use lekiwi_protocol::{AgentMessage, ServerMessage, Vitals, decode, encode};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, bin, create_robot, enrollment_token, gateway_url, get_robot,
-    hello, http_get_with, namespace, wait_for,
+    ControlPlane, OperatorProcess, bin, create_robot, enrollment_token, gateway_operator,
+    gateway_url, get_robot, hello, http_get_with, namespace, wait_for,
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
@@ -31,19 +31,13 @@ fn heartbeat() -> AgentMessage {
     }
 }
 
-async fn start(cp: &ControlPlane, ns: &str, id: &str) -> anyhow::Result<OperatorProcess> {
-    let mut op = OperatorProcess::start(cp, ns, id, &["--heartbeat-grace-seconds", "60"])?;
-    op.wait_ready().await?;
-    Ok(op)
-}
-
 /// A legacy poll with the enrollment token gets 401 and leaves the Robot's status as it was.
 #[tokio::test]
 async fn poll_with_the_enrollment_token_is_refused_and_fakes_nothing() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "hipoll").await?;
-    let op = start(cp, &ns, "hi-poll").await?;
+    let op = gateway_operator(cp, &ns, "hi-poll", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     create_robot(&client, &ns, "kiwi-1", &[]).await?;
     let release = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
@@ -142,7 +136,7 @@ async fn enrollment_never_takes_over_an_enrolled_robot() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "hienroll").await?;
-    let op = start(cp, &ns, "hi-enroll").await?;
+    let op = gateway_operator(cp, &ns, "hi-enroll", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     let url = gateway_url(&op);
     let full = format!("{ns}/kiwi-1");
@@ -234,7 +228,7 @@ async fn overlong_robot_names_are_refused_and_create_nothing() -> anyhow::Result
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "hiname").await?;
-    let op = start(cp, &ns, "hi-name").await?;
+    let op = gateway_operator(cp, &ns, "hi-name", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     let name = "k".repeat(70);
     match connect(

@@ -9,8 +9,8 @@ use futures::{SinkExt, StreamExt};
 use lekiwi_agent::connection::Socket;
 use lekiwi_protocol::{AgentMessage, ErrorCode, MAX_SEQ, ServerMessage, Severity, decode, encode};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, OperatorProcess, connect_agent, enrollment_token,
-    enrollment_token_file, gateway_url, namespace, wait_for,
+    AgentProcess, ControlPlane, connect_agent, enrollment_token, enrollment_token_file,
+    gateway_operator, gateway_url, namespace, wait_for,
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
@@ -64,18 +64,12 @@ fn assert_refused(answer: &ServerMessage, want: ErrorCode, want_seq: Option<u64>
     }
 }
 
-async fn start(cp: &ControlPlane, ns: &str, id: &str) -> anyhow::Result<OperatorProcess> {
-    let mut op = OperatorProcess::start(cp, ns, id, &["--heartbeat-grace-seconds", "60"])?;
-    op.wait_ready().await?;
-    Ok(op)
-}
-
 #[tokio::test]
 async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "hpseq").await?;
-    let op = start(cp, &ns, "hp-seq").await?;
+    let op = gateway_operator(cp, &ns, "hp-seq", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     let (mut ws, enrolled) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
     // Once enrolled, the robot speaks with its own token (enrollment never takes it over).
@@ -160,7 +154,7 @@ async fn a_future_hello_with_other_field_types_gets_unsupported_version() -> any
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "hpver").await?;
-    let op = start(cp, &ns, "hp-ver").await?;
+    let op = gateway_operator(cp, &ns, "hp-ver", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     let mut request = gateway_url(&op).into_client_request()?;
     let headers = request.headers_mut();
@@ -190,7 +184,7 @@ async fn an_agent_keeps_working_after_a_forged_seq_and_refuses_oversized_events(
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "hpagent").await?;
-    let op = start(cp, &ns, "hp-agent").await?;
+    let op = gateway_operator(cp, &ns, "hp-agent", &[]).await?;
     let dir = tempfile::tempdir()?;
     let token_file = dir.path().join("enrollment-token");
     enrollment_token_file(&client, &ns, &token_file).await?;
@@ -262,7 +256,7 @@ async fn a_switch_away_is_not_redeployed_within_the_session_but_on_reconnect() -
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "hpdeploy").await?;
-    let op = start(cp, &ns, "hp-deploy").await?;
+    let op = gateway_operator(cp, &ns, "hp-deploy", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
     lekiwi_tests::create_robot(&client, &ns, "kiwi-d", &[]).await?;
     let v2 = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
