@@ -176,6 +176,21 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_STATUS_BURST", default_value_t = 100)]
     pub status_burst: u32,
 
+    /// API-server reads per second, sustained, that the gateway may make for requests its
+    /// token cache cannot authenticate (a token minted a moment ago, or a guess); beyond it they
+    /// are refused with 503. Status writes and Lease renewals have budgets of their own.
+    #[arg(long, env = "LEKIWI_AUTH_LOOKUP_QPS", default_value_t = 5.0)]
+    pub auth_lookup_qps: f64,
+
+    /// Such reads at once.
+    #[arg(long, env = "LEKIWI_AUTH_LOOKUP_BURST", default_value_t = 20)]
+    pub auth_lookup_burst: u32,
+
+    /// Seconds a read that found no matching token is remembered (between this and twice
+    /// this): the same robot or namespace costs no further read meanwhile.
+    #[arg(long, env = "LEKIWI_AUTH_MISS_SECONDS", default_value_t = 5)]
+    pub auth_miss_seconds: u64,
+
     /// Validity of the gateway's own Lease (renewed every third of it).
     #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]
     pub gateway_lease_seconds: u64,

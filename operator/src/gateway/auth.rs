@@ -10,12 +10,13 @@ use kube::Api;
 use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
 use kube::runtime::reflector::{ObjectRef, Store};
 use lekiwi_crds::contract::{
-    HASH_KEY, KIND_ENROLLMENT, MAX_ROBOT_NAME_LEN, TOKEN_LABEL, hash_token, new_token,
-    robot_secret_name,
+    HASH_KEY, KIND_ENROLLMENT, KIND_ROBOT, MAX_ROBOT_NAME_LEN, ROBOT_LABEL, TOKEN_LABEL,
+    hash_token, new_token, robot_secret_name,
 };
 
 use crate::gateway::enroll;
 use crate::gateway::event_store::RobotKey;
+use crate::gateway::lookup::{Lookups, Skip, Subject};
 
 /// Why a connection was refused (logged and counted; never with the token).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -30,6 +31,9 @@ pub enum Refusal {
     WrongToken,
     /// An enrollment token where only the robot's own token may speak for it (legacy polls).
     EnrollmentToken,
+    /// The cache could not decide and the budget of API reads for unauthenticated requests
+    /// is spent (see [`Lookups`]): 503, retry later.
+    Throttled,
 }
 
 impl Refusal {
@@ -41,6 +45,7 @@ impl Refusal {
             Refusal::RobotNameTooLong => "robot_name_too_long",
             Refusal::WrongToken => "wrong_token",
             Refusal::EnrollmentToken => "enrollment_token",
+            Refusal::Throttled => "lookup_throttled",
         }
     }
 }
@@ -105,7 +110,8 @@ fn robot_of(header: Option<&str>) -> Result<(Option<String>, String), Refusal> {
 }
 
 /// Checks tokens against the Secrets the gateway watches, falling back to a direct read for a
-/// robot token minted a moment ago that the watch has not delivered yet.
+/// robot token minted a moment ago that the watch has not delivered yet; those reads go
+/// through [`Lookups`] (misses remembered, a budget of their own).
 #[derive(Clone)]
 pub struct Authenticator {
     client: kube::Client,
@@ -115,13 +121,25 @@ pub struct Authenticator {
     enrollments: std::sync::Arc<tokio::sync::Semaphore>,
     /// Direct lookups of enrollment tokens the cache has not seen yet, at most a few at once.
     lookups: std::sync::Arc<tokio::sync::Semaphore>,
+    /// The budget and memory of live reads for requests the cache cannot authenticate.
+    reads: std::sync::Arc<Lookups>,
 }
 
 /// Enrollments in flight at once; more wait for a permit.
 const MAX_CONCURRENT_ENROLLMENTS: usize = 16;
 
+/// The token hash in a robot token Secret made by us for robot `name` (see
+/// [`lekiwi_crds::contract::robot_token_secret`]); a Secret of that name without our labels
+/// grants nothing.
+fn robot_hash(secret: &Secret, name: &str) -> Option<Vec<u8>> {
+    let labels = secret.metadata.labels.as_ref()?;
+    let ours = labels.get(TOKEN_LABEL).map(String::as_str) == Some(KIND_ROBOT)
+        && labels.get(ROBOT_LABEL).map(String::as_str) == Some(name);
+    ours.then(|| secret_hash(secret)).flatten()
+}
+
 impl Authenticator {
-    /// An authenticator over a reflector of token Secrets.
+    /// An authenticator over a reflector of token Secrets, with the default [`Lookups`].
     pub fn new(client: kube::Client, secrets: Store<Secret>) -> Self {
         Self {
             client,
@@ -130,10 +148,21 @@ impl Authenticator {
                 MAX_CONCURRENT_ENROLLMENTS,
             )),
             lookups: std::sync::Arc::new(tokio::sync::Semaphore::new(4)),
+            reads: std::sync::Arc::default(),
         }
     }
 
-    /// Decides who presents `token` for `robot_header`.
+    /// The same, with `reads` guarding its live reads.
+    pub fn with_lookups(self, reads: Lookups) -> Self {
+        Self {
+            reads: std::sync::Arc::new(reads),
+            ..self
+        }
+    }
+
+    /// Decides who presents `token` for `robot_header`. The watched Secrets answer first; only
+    /// then, within the [`Lookups`] budget, the API server ([`Refusal::Throttled`] when the
+    /// budget is spent and nothing matched).
     pub async fn authenticate(
         &self,
         token: Option<&str>,
@@ -145,29 +174,51 @@ impl Authenticator {
         let (namespace, name) = robot_of(robot_header)?;
         let hash = hash_token(token);
         let hash = hash.as_bytes();
-
+        let robot = |ns: &str| RobotKey {
+            namespace: ns.to_owned(),
+            name: name.clone(),
+        };
         if let Some(ns) = &namespace {
             let secret_ref = ObjectRef::<Secret>::new(&robot_secret_name(&name)).within(ns);
-            let cached = self.secrets.get(&secret_ref).and_then(|s| secret_hash(&s));
-            let matches = match cached {
-                Some(h) if same_hash(&h, hash) => true,
-                _ => {
-                    // Not (yet) in the cache, or rotated a moment ago: ask the API server.
-                    let api: Api<Secret> = Api::namespaced(self.client.clone(), ns);
-                    match api.get_opt(&robot_secret_name(&name)).await {
-                        Ok(Some(s)) => secret_hash(&s).is_some_and(|h| same_hash(&h, hash)),
-                        _ => false,
-                    }
-                }
-            };
-            if matches {
-                return Ok(Grant::Robot(RobotKey {
-                    namespace: ns.clone(),
-                    name,
-                }));
+            let cached = self.secrets.get(&secret_ref);
+            if cached.is_some_and(|s| robot_hash(&s, &name).is_some_and(|h| same_hash(&h, hash))) {
+                return Ok(Grant::Robot(robot(ns)));
             }
         }
-        // An enrollment token registers the robot in the enrollment Secret's namespace.
+        let (enrollment_ns, namespace_has_enrollment) = self.cached_enrollment(&namespace, hash);
+        if let Some(ns) = enrollment_ns {
+            return Ok(Grant::Enroll(robot(&ns)));
+        }
+        let Some(ns) = &namespace else {
+            return Err(Refusal::WrongToken);
+        };
+        // Not (yet) in the cache, or rotated a moment ago: ask the API server.
+        let mut throttled = false;
+        match self.read_robot_secret(ns, &name, hash).await {
+            Ok(true) => return Ok(Grant::Robot(robot(ns))),
+            Ok(false) | Err(Skip::Remembered) => {}
+            Err(Skip::Throttled) => throttled = true,
+        }
+        // An enrollment token created a moment ago may not have reached the watch yet. Ask the
+        // API server, but only for a namespace the cache knows no enrollment token of (so wrong
+        // tokens against a configured namespace never cost a request).
+        if !namespace_has_enrollment {
+            match self.list_enrollment(ns, hash).await {
+                Ok(true) => return Ok(Grant::Enroll(robot(ns))),
+                Ok(false) | Err(Skip::Remembered) => {}
+                Err(Skip::Throttled) => throttled = true,
+            }
+        }
+        Err(if throttled {
+            Refusal::Throttled
+        } else {
+            Refusal::WrongToken
+        })
+    }
+
+    /// The namespace of the cached enrollment token `hash` matches (in `namespace` when given),
+    /// and whether the cache holds any enrollment token of `namespace`.
+    fn cached_enrollment(&self, namespace: &Option<String>, hash: &[u8]) -> (Option<String>, bool) {
         let mut namespace_has_enrollment = false;
         for secret in self.secrets.state() {
             let labels = secret.metadata.labels.as_ref();
@@ -183,38 +234,56 @@ impl Authenticator {
             }
             namespace_has_enrollment = true;
             if secret_hash(&secret).is_some_and(|h| same_hash(&h, hash)) {
-                return Ok(Grant::Enroll(RobotKey {
-                    namespace: secret_ns,
-                    name,
-                }));
+                return (Some(secret_ns), true);
             }
         }
-        // An enrollment token created a moment ago may not have reached the watch yet. Ask the
-        // API server, but only for a namespace the cache knows no enrollment token of (so wrong
-        // tokens against a configured namespace never cost a request), a few at a time.
-        if let (Some(ns), false) = (&namespace, namespace_has_enrollment)
-            && let Ok(_slot) = self.lookups.try_acquire()
-        {
-            let api: Api<Secret> = Api::namespaced(self.client.clone(), ns);
-            let params = kube::api::ListParams::default()
-                .labels(&format!("{TOKEN_LABEL}={KIND_ENROLLMENT}"));
-            if let Ok(list) = api.list(&params).await
-                && list
-                    .items
-                    .iter()
-                    .any(|s| secret_hash(s).is_some_and(|h| same_hash(&h, hash)))
-            {
-                return Ok(Grant::Enroll(RobotKey {
-                    namespace: ns.clone(),
-                    name,
-                }));
-            }
+        (None, namespace_has_enrollment)
+    }
+
+    /// Reads robot `ns/name`'s token Secret from the API server, within the budget, and says
+    /// whether it is ours and holds `hash`; a read that finds no match is remembered.
+    async fn read_robot_secret(&self, ns: &str, name: &str, hash: &[u8]) -> Result<bool, Skip> {
+        let subject = Subject::Robot(ns, name);
+        self.reads.admit(subject)?;
+        let api: Api<Secret> = Api::namespaced(self.client.clone(), ns);
+        let matches = match api.get_opt(&robot_secret_name(name)).await {
+            Ok(Some(s)) => robot_hash(&s, name).is_some_and(|h| same_hash(&h, hash)),
+            Ok(None) => false,
+            // Not remembered: the API server may answer the next try.
+            Err(_) => return Ok(false),
+        };
+        if !matches {
+            self.reads.missed(subject);
         }
-        Err(Refusal::WrongToken)
+        Ok(matches)
+    }
+
+    /// Lists namespace `ns`'s enrollment token Secrets, within the budget and a few at once,
+    /// and says whether one holds `hash`; a list that finds no match is remembered.
+    async fn list_enrollment(&self, ns: &str, hash: &[u8]) -> Result<bool, Skip> {
+        let subject = Subject::Enrollment(ns);
+        let _slot = self.lookups.try_acquire().map_err(|_| Skip::Throttled)?;
+        self.reads.admit(subject)?;
+        let api: Api<Secret> = Api::namespaced(self.client.clone(), ns);
+        let params =
+            kube::api::ListParams::default().labels(&format!("{TOKEN_LABEL}={KIND_ENROLLMENT}"));
+        let matches = match api.list(&params).await {
+            Ok(list) => list
+                .items
+                .iter()
+                .any(|s| secret_hash(s).is_some_and(|h| same_hash(&h, hash))),
+            Err(_) => return Ok(false),
+        };
+        if !matches {
+            self.reads.missed(subject);
+        }
+        Ok(matches)
     }
 
     /// Whether the enrolling `robot` may enroll (see [`enroll::check`]), before the upgrade.
+    /// Its live reads wait for an enrollment slot, so they are bounded too.
     pub async fn may_enroll(&self, robot: &RobotKey) -> Result<(), enroll::Error> {
+        let _slot = self.enrollments.acquire().await;
         enroll::check(&self.client, &self.secrets, robot).await
     }
 
@@ -222,7 +291,11 @@ impl Authenticator {
     /// time.
     pub async fn register(&self, robot: &RobotKey) -> Result<String, enroll::Error> {
         let _slot = self.enrollments.acquire().await;
-        enroll::register(&self.client, robot).await
+        let token = enroll::register(&self.client, robot).await?;
+        // Its next connection must not be refused by a miss remembered a moment ago.
+        self.reads
+            .forget(Subject::Robot(&robot.namespace, &robot.name));
+        Ok(token)
     }
 }
 

@@ -40,6 +40,9 @@ pub struct GatewayMetrics {
     pub sessions_ended: Family<KindLabels, Counter>,
     /// Upgrade requests refused, by reason.
     pub refused: Family<KindLabels, Counter>,
+    /// API reads for requests the Secret cache could not authenticate, by kind
+    /// (`robot_secret`, `enrollment_list`) and reads skipped (`remembered`, `throttled`).
+    pub auth_lookups: Family<KindLabels, Counter>,
     /// Frames received, by message type.
     pub frames: Family<KindLabels, Counter>,
     /// Error frames sent, by code.
@@ -74,6 +77,10 @@ impl GatewayMetrics {
             refused: r.add(
                 "lekiwi_gateway_refused",
                 "Agent upgrade requests refused, by reason",
+            ),
+            auth_lookups: r.add(
+                "lekiwi_gateway_auth_lookups",
+                "API reads for requests the token cache could not authenticate, made or skipped, by kind",
             ),
             frames: r.add(
                 "lekiwi_gateway_frames",

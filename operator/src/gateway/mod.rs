@@ -11,6 +11,7 @@ pub mod enroll;
 pub mod event_store;
 pub mod events_api;
 pub mod lease;
+pub mod lookup;
 pub mod metrics;
 pub mod poll;
 pub mod presence;
@@ -53,6 +54,9 @@ pub enum ApiError {
     NotFound(String),
     /// The gateway is at its connection limit.
     Unavailable(&'static str),
+    /// The gateway's budget of API reads for unauthenticated requests is spent: 503 with
+    /// `Retry-After`.
+    Throttled(&'static str),
     /// Something failed on our side.
     Internal(String),
 }
@@ -66,6 +70,18 @@ impl IntoResponse for ApiError {
             ApiError::NotFound(m) => (StatusCode::NOT_FOUND, "not_found", m),
             ApiError::Unavailable(m) => {
                 (StatusCode::SERVICE_UNAVAILABLE, "unavailable", m.to_owned())
+            }
+            ApiError::Throttled(m) => {
+                let body = serde_json::json!({ "error": "unavailable", "message": m });
+                return (
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    [
+                        (header::CONTENT_TYPE, "application/json"),
+                        (header::RETRY_AFTER, "1"),
+                    ],
+                    body.to_string(),
+                )
+                    .into_response();
             }
             ApiError::Internal(detail) => {
                 warn!(%detail, "internal error answering a request");
@@ -124,6 +140,11 @@ impl AppState {
             .inc();
         // Never log the token itself.
         warn!(reason = reason.as_str(), "refused an agent request");
+        if reason == Refusal::Throttled {
+            return ApiError::Throttled(
+                "too many requests the gateway cannot authenticate from its cache; retry later",
+            );
+        }
         ApiError::Unauthorized(match reason {
             Refusal::MissingToken => "missing bearer token",
             Refusal::BadRobotName => "missing or invalid x-lekiwi-robot header (namespace/name)",
@@ -134,6 +155,7 @@ impl AppState {
             Refusal::EnrollmentToken => {
                 "an enrollment token cannot speak for a robot; use the robot's own token"
             }
+            Refusal::Throttled => "retry later",
         })
     }
 }

@@ -20,6 +20,7 @@ use tracing::{info, warn};
 
 use super::auth::{self, Authenticator};
 use super::blob_store::BlobStore;
+use super::lookup::{LookupConfig, Lookups};
 use super::presence::{Presence, PresenceConfig};
 use super::registry::Registry;
 use super::session::{Limits, Shared};
@@ -107,7 +108,8 @@ pub async fn run(
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
-        auth: Authenticator::new(client.clone(), secret_store),
+        auth: Authenticator::new(client.clone(), secret_store)
+            .with_lookups(lookups(&config, &metrics)),
         registry,
         limits: limits(&config),
         metrics,
@@ -175,6 +177,16 @@ async fn watch_token_secrets(
             Err(_) => Err(Error::TaskStopped("token secret reflector")),
         }
     }
+}
+
+/// The budget of API reads for requests the token cache cannot authenticate.
+fn lookups(config: &Config, metrics: &Metrics) -> Lookups {
+    let settings = LookupConfig {
+        qps: config.auth_lookup_qps,
+        burst: config.auth_lookup_burst,
+        miss_ttl: Duration::from_secs(config.auth_miss_seconds.max(1)),
+    };
+    Lookups::new(settings, metrics.gateway.auth_lookups.clone())
 }
 
 /// The limits every session enforces, from the configuration.
