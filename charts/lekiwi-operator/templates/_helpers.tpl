@@ -71,3 +71,18 @@ The schema checks each value; these rules relate several.
 {{- fail "podDisruptionBudget: set minAvailable or maxUnavailable (or enabled=false)" -}}
 {{- end -}}
 {{- end -}}
+
+{{/* The TLS Secret the gateway serves with: the given one, the generated one, or nothing for
+plain text (gateway.tls.enabled=false). */}}
+{{- define "lekiwi.tlsSecret" -}}
+{{- if .Values.gateway.tls.secretName -}}
+{{- .Values.gateway.tls.secretName -}}
+{{- else if .Values.gateway.tls.enabled -}}
+{{- printf "%s-gateway-tls" (include "lekiwi.fullname" .) -}}
+{{- end -}}
+{{- end -}}
+
+{{/* Whether the chart makes the gateway's CA and certificate itself. */}}
+{{- define "lekiwi.tlsGenerated" -}}
+{{- if and .Values.gateway.tls.enabled (not .Values.gateway.tls.secretName) (ne .Values.operator.role "controller") -}}true{{- end -}}
+{{- end -}}
