@@ -222,3 +222,70 @@ async fn stalled_connections_are_bounded_and_closed() -> anyhow::Result<()> {
     op.terminate()?;
     Ok(())
 }
+
+/// A TLS gateway closes connections that never finish the TLS handshake (silent ones, and ones
+/// that stop after part of a ClientHello) after its handshake timeout, well before the header
+/// timeout, while an agent trusting the gateway's CA connects over wss://.
+#[tokio::test]
+async fn half_tls_handshakes_are_closed_after_the_handshake_timeout() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hslowtls").await?;
+    let dir = tempfile::tempdir()?;
+    lekiwi_tests::test_ca(dir.path())?;
+    let cert = dir.path().join("tls.crt");
+    let key = dir.path().join("tls.key");
+    let args = [
+        "--tls-cert",
+        cert.to_str().unwrap(),
+        "--tls-key",
+        key.to_str().unwrap(),
+        "--tls-handshake-timeout-seconds",
+        "2",
+        "--header-timeout-seconds",
+        "60",
+    ];
+    let mut op = OperatorProcess::start(cp, &ns, "hs-tls", &args)?;
+    op.wait_ready().await?;
+
+    let mut tasks = Vec::new();
+    for i in 0..100u8 {
+        let mut stream = connect_from([127, 0, 3, 1 + i % 2], op.gateway_port).await?;
+        if i % 2 == 1 {
+            // A TLS record header announcing a 512-byte ClientHello, and 3 bytes of it.
+            stream
+                .write_all(&[0x16, 0x03, 0x01, 0x02, 0x00, 0x01, 0x00, 0x01])
+                .await?;
+        }
+        tasks.push(tokio::spawn(stall(stream, Stall::Idle)));
+    }
+    let enroll = enrollment_token(&client, &ns).await?;
+    let creds = lekiwi_agent::connection::Credentials {
+        token: enroll,
+        robot: format!("{ns}/kiwi-tls"),
+    };
+    let url = format!("wss://127.0.0.1:{}/v1/agent", op.gateway_port);
+    let ca = dir.path().join("ca.crt");
+    let hello = lekiwi_tests::hello();
+    let (_ws, welcome) = lekiwi_agent::connection::connect_with_ca(
+        &url,
+        &creds,
+        &hello,
+        Duration::from_secs(10),
+        Some(&ca),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("wss:// agent during the half handshakes: {e:?}"))?;
+    assert_eq!(welcome.robot, format!("{ns}/kiwi-tls"));
+
+    let mut longest = Duration::ZERO;
+    for t in tasks {
+        longest = longest.max(t.await?);
+    }
+    println!("the last half handshake was closed after {longest:?}");
+    assert!(longest < Duration::from_secs(15), "{longest:?}");
+    let dropped = r#"lekiwi_gateway_connections_dropped_total{kind="tls_handshake"}"#;
+    assert!(op.metric(dropped).await.unwrap_or(0.0) >= 100.0);
+    op.terminate()?;
+    Ok(())
+}
