@@ -1,5 +1,6 @@
 //! The Helm chart: lints with every option, refuses bad values through its schema, renders to
-//! objects the API server accepts (SQLite on a volume, TLS, external PostgreSQL), installs, ships
+//! objects the API server accepts (SQLite on a volume, TLS, external PostgreSQL), serves TLS by
+//! default with a CA and certificate it makes (kept across upgrades), installs, ships
 //! the dashboards kept in sync with `manifests/dashboards/`, and its RBAC is exactly enough: the
 //! operator runs controllers and gateway with the chart's ServiceAccount token (enrollment, a
 //! release push and a rollout included) and never meets a Forbidden.
@@ -994,6 +995,7 @@ async fn chart_tls_is_on_by_default_with_a_generated_ca_kept_across_upgrades() -
     let (crt_after, ca_after) = generated_tls(&documents(&manifest), &full, &ns);
     assert_eq!(crt_after, crt, "the upgrade made a new certificate");
     assert_eq!(ca_after, ca, "the upgrade made a new CA");
+    serves_the_generated_certificate(cp, &ns, &documents(&manifest), &full).await?;
     ok(
         cp.tool("helm", &["uninstall", &ns, "-n", &ns]),
         "helm uninstall",
@@ -1020,5 +1022,58 @@ async fn chart_tls_is_on_by_default_with_a_generated_ca_kept_across_upgrades() -
         plain.contains("WARNING: gateway.tls.enabled=false"),
         "{plain}"
     );
+    Ok(())
+}
+
+/// The gateway serves the chart's generated certificate: an agent given the CA from the
+/// ConfigMap connects over wss://127.0.0.1, one without it refuses the certificate.
+async fn serves_the_generated_certificate(
+    cp: &ControlPlane,
+    ns: &str,
+    docs: &[Value],
+    full: &str,
+) -> anyhow::Result<()> {
+    let secret = find(docs, "Secret", &format!("{full}-gateway-tls"));
+    let dir = tempfile::tempdir()?;
+    let path = |name: &str| dir.path().join(name);
+    for key in ["tls.crt", "tls.key"] {
+        let pem = shell("base64 -d", secret["data"][key].as_str().unwrap());
+        std::fs::write(path(key), pem)?;
+    }
+    let cm = find(docs, "ConfigMap", &format!("{full}-gateway-ca"));
+    std::fs::write(path("ca.crt"), cm["data"]["ca.crt"].as_str().unwrap())?;
+    let (crt, key) = (path("tls.crt"), path("tls.key"));
+    let args = [
+        "--tls-cert",
+        crt.to_str().unwrap(),
+        "--tls-key",
+        key.to_str().unwrap(),
+    ];
+    let mut op = OperatorProcess::start(cp, ns, "chart-tls", &args)?;
+    op.wait_ready().await?;
+    let client = cp.client().await?;
+    let creds = lekiwi_agent::connection::Credentials {
+        token: lekiwi_tests::enrollment_token(&client, ns).await?,
+        robot: format!("{ns}/kiwi-tls"),
+    };
+    let url = format!("wss://127.0.0.1:{}/v1/agent", op.gateway_port);
+    let connect = |ca: Option<std::path::PathBuf>| {
+        let (url, creds) = (url.clone(), creds.clone());
+        async move {
+            let hello = lekiwi_tests::hello();
+            let timeout = Duration::from_secs(10);
+            lekiwi_agent::connection::connect_with_ca(&url, &creds, &hello, timeout, ca.as_deref())
+                .await
+        }
+    };
+    assert!(
+        connect(None).await.is_err(),
+        "an agent without the chart's CA accepted the certificate"
+    );
+    let (_ws, welcome) = connect(Some(path("ca.crt")))
+        .await
+        .map_err(|e| anyhow::anyhow!("an agent trusting the chart's CA: {e:?}"))?;
+    assert_eq!(welcome.robot, format!("{ns}/kiwi-tls"));
+    op.terminate()?;
     Ok(())
 }
