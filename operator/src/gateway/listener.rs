@@ -264,3 +264,45 @@ where
         debug!(%peer, error = %e, "gateway connection ended with an error");
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pre_auth(per_address: usize, all: usize) -> Arc<PreAuth> {
+        Arc::new(PreAuth {
+            per_address,
+            by_address: Mutex::default(),
+            all: Arc::new(Semaphore::new(all)),
+        })
+    }
+
+    #[test]
+    fn unauthenticated_connections_are_capped_per_address_until_authenticated() {
+        let limits = pre_auth(2, 10);
+        let (a, b): (IpAddr, IpAddr) = ("10.0.0.1".parse().unwrap(), "10.0.0.2".parse().unwrap());
+        let first = limits.hold(a).unwrap();
+        let second = limits.hold(a).unwrap();
+        assert_eq!(limits.hold(a).err(), Some("per_address_limit"));
+        assert!(limits.hold(b).is_ok(), "another address has its own count");
+        // An authenticated connection leaves the count (twice is harmless); a closed one too.
+        first.authenticated();
+        first.authenticated();
+        let third = limits.hold(a).unwrap();
+        drop(second);
+        let _fourth = limits.hold(a).unwrap();
+        assert_eq!(limits.hold(a).err(), Some("per_address_limit"));
+        drop((first, third));
+        assert_eq!(limits.by_address.lock().unwrap().get(&a), Some(&1));
+    }
+
+    #[test]
+    fn the_total_of_unauthenticated_connections_is_capped() {
+        let limits = pre_auth(0, 2);
+        let ip: IpAddr = "10.0.0.1".parse().unwrap();
+        let held = [limits.hold(ip).unwrap(), limits.hold(ip).unwrap()];
+        assert_eq!(limits.hold(ip).err(), Some("unauthenticated_limit"));
+        held[0].authenticated();
+        assert!(limits.hold(ip).is_ok());
+    }
+}
