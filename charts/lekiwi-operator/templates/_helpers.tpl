@@ -77,12 +77,13 @@ plain text (gateway.tls.enabled=false). */}}
 {{- define "lekiwi.tlsSecret" -}}
 {{- if .Values.gateway.tls.secretName -}}
 {{- .Values.gateway.tls.secretName -}}
-{{- else if .Values.gateway.tls.enabled -}}
+{{- else if include "lekiwi.tlsGenerated" . -}}
 {{- printf "%s-gateway-tls" (include "lekiwi.fullname" .) -}}
 {{- end -}}
 {{- end -}}
 
-{{/* Whether the chart makes the gateway's CA and certificate itself. */}}
+{{/* Whether the chart makes the gateway's CA and certificate itself (TLS on, no Secret given,
+and a gateway runs: not for role=controller). */}}
 {{- define "lekiwi.tlsGenerated" -}}
 {{- if and .Values.gateway.tls.enabled (not .Values.gateway.tls.secretName) (ne .Values.operator.role "controller") -}}true{{- end -}}
 {{- end -}}
