@@ -197,7 +197,10 @@ fi
 CTRL_HTTP="$(free_port)"
 GW_HTTP="$(free_port)"
 GW_PORT="$(free_port)"
+# Every simulated robot connects from 127.0.0.1: no per-address cap on unauthenticated
+# connections (the global one, --max-unauthenticated-connections, stays at its default).
 GATEWAY_FLAGS=(
+  --max-unauthenticated-per-address 0
   --status-qps "$STATUS_QPS" --status-burst "$STATUS_BURST"
   --status-refresh-seconds "$STATUS_REFRESH" --heartbeat-interval-seconds "$INTERVAL"
 )

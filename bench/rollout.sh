@@ -155,7 +155,8 @@ start operator env RUST_LOG=info,kube=warn "$BIN/lekiwi-operator" --role all \
   --kubeconfig "$KUBECONFIG" --namespace "$OPERATOR_NS" --watch-namespace "$NS" \
   --identity bench-operator --gateway-name bench-gateway \
   --gateway-addr "127.0.0.1:$GW_PORT" --http-addr "127.0.0.1:$HTTP_PORT" \
-  --store-url "sqlite://$WORK/events.db" --blob-dir "$WORK/blobs"
+  --store-url "sqlite://$WORK/events.db" --blob-dir "$WORK/blobs" \
+  --max-unauthenticated-per-address 0
 OP_PID=$LAST_PID
 operator_ready() {
   alive "$OP_PID" || die "operator exited: $(tail -5 "$WORK/operator.log")"
@@ -165,7 +166,7 @@ wait_for operator 60 operator_ready
 # The API token Secret the operator creates at start (release pushes and /v1/blobs-served).
 api_token() { kubectl -n "$OPERATOR_NS" get secret lekiwi-api >/dev/null 2>&1; }
 wait_for "Secret lekiwi-api" 30 api_token
-fact operator "lekiwi-operator --role all, defaults (heartbeat 30 s, status qps 50 / burst 100, concurrency 16), SQLite store and --blob-dir on the work directory's disk"
+fact operator "lekiwi-operator --role all, defaults except --max-unauthenticated-per-address 0 (every robot connects from 127.0.0.1) (heartbeat 30 s, status qps 50 / burst 100, concurrency 16), SQLite store and --blob-dir on the work directory's disk"
 export BENCH_NS="$NS" BENCH_OPERATOR_NS="$OPERATOR_NS" BENCH_GW_PORT="$GW_PORT" BENCH_ROBOTS="$ROBOTS"
 
 # ---- releases ---------------------------------------------------------------------------------

@@ -168,6 +168,46 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_SEND_TIMEOUT_SECONDS", default_value_t = 10)]
     pub send_timeout_seconds: u64,
 
+    /// Seconds a client has to send a request's complete headers, counted from connecting (after
+    /// TLS) or from the end of the previous response on a kept-alive connection: bounds slow
+    /// headers and idle keep-alive connections alike (WebSocket sessions, once upgraded, keep
+    /// their own handshake and heartbeat deadlines).
+    #[arg(long, env = "LEKIWI_HEADER_TIMEOUT_SECONDS", default_value_t = 10)]
+    pub header_timeout_seconds: u64,
+
+    /// Seconds a client has to complete the TLS handshake.
+    #[arg(
+        long,
+        env = "LEKIWI_TLS_HANDSHAKE_TIMEOUT_SECONDS",
+        default_value_t = 10
+    )]
+    pub tls_handshake_timeout_seconds: u64,
+
+    /// Largest request head (request line and headers) the gateway reads, in bytes (at least
+    /// 8192); a longer one is answered 431 and the connection closed.
+    #[arg(long, env = "LEKIWI_MAX_HEADER_BYTES", default_value_t = 16 * 1024)]
+    pub max_header_bytes: usize,
+
+    /// Connections one client address may hold before any of their requests is authenticated;
+    /// more are closed at once (counted in `lekiwi_gateway_connections_dropped_total`).
+    /// Authenticated connections do not count, so many robots behind one NAT address are
+    /// limited only by --max-connections. 0: no limit.
+    #[arg(
+        long,
+        env = "LEKIWI_MAX_UNAUTHENTICATED_PER_ADDRESS",
+        default_value_t = 64
+    )]
+    pub max_unauthenticated_per_address: usize,
+
+    /// Connections the gateway holds, in all, before any of their requests is authenticated;
+    /// more are closed at once.
+    #[arg(
+        long,
+        env = "LEKIWI_MAX_UNAUTHENTICATED_CONNECTIONS",
+        default_value_t = 1024
+    )]
+    pub max_unauthenticated_connections: usize,
+
     /// Robot status writes per second, sustained, from this gateway.
     #[arg(long, env = "LEKIWI_STATUS_QPS", default_value_t = 50.0)]
     pub status_qps: f64,

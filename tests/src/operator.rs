@@ -196,6 +196,11 @@ impl OperatorProcess {
         self.process.terminate()
     }
 
+    /// Its process id (for reading `/proc/<pid>/status`).
+    pub fn pid(&self) -> u32 {
+        self.process.pid()
+    }
+
     /// Whether the process is still running.
     pub fn running(&mut self) -> bool {
         self.process.running()

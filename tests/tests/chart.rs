@@ -1,5 +1,6 @@
 //! The Helm chart: lints with every option, refuses bad values through its schema, renders to
-//! objects the API server accepts (SQLite on a volume, TLS, external PostgreSQL), installs, ships
+//! objects the API server accepts (SQLite on a volume, TLS, external PostgreSQL), serves TLS by
+//! default with a CA and certificate it makes (kept across upgrades), installs, ships
 //! the dashboards kept in sync with `manifests/dashboards/`, and its RBAC is exactly enough: the
 //! operator runs controllers and gateway with the chart's ServiceAccount token (enrollment, a
 //! release push and a rollout included) and never meets a Forbidden.
@@ -415,7 +416,8 @@ fn chart_dashboards_match_manifests_and_render_as_configmaps() -> anyhow::Result
         all.extend_from_slice(args);
         documents(&ok(helm(&all), "helm template"))
             .into_iter()
-            .filter(|d| d["kind"] == "ConfigMap")
+            // The gateway's CA ConfigMap is not a dashboard.
+            .filter(|d| d["kind"] == "ConfigMap" && d["data"]["ca.crt"].is_null())
             .collect()
     };
     let rendered = maps(&[]);
@@ -451,8 +453,15 @@ fn chart_dashboards_match_manifests_and_render_as_configmaps() -> anyhow::Result
     for (name, _) in &copy {
         std::fs::remove_file(chart.join("dashboards").join(name))?;
     }
+    // (TLS off: the generated CA's ConfigMap is not a dashboard.)
     let out = ok(
-        helm(&["template", "r", chart.to_str().unwrap()]),
+        helm(&[
+            "template",
+            "r",
+            chart.to_str().unwrap(),
+            "--set",
+            "gateway.tls.enabled=false",
+        ]),
         "helm template without dashboards",
     );
     assert!(!out.contains("kind: ConfigMap"), "{out}");
@@ -860,5 +869,211 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
         cp.tool("helm", &["uninstall", &ns, "-n", &ns]),
         "helm uninstall",
     );
+    Ok(())
+}
+
+/// Runs `sh -c script` with `input` on stdin; its stdout.
+fn shell(script: &str, input: &str) -> String {
+    use std::io::Write;
+    let mut child = Command::new("sh")
+        .args(["-c", script])
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("run sh");
+    child
+        .stdin
+        .take()
+        .unwrap()
+        .write_all(input.as_bytes())
+        .expect("write stdin");
+    ok(child.wait_with_output().expect("wait sh"), script)
+}
+
+/// The certificate and CA (PEM) of the generated TLS Secret in `docs`, checked: the CA signed
+/// the certificate, whose names are the gateway Service's DNS names, localhost and 127.0.0.1.
+fn generated_tls(docs: &[Value], full: &str, ns: &str) -> (String, String) {
+    let secret = find(docs, "Secret", &format!("{full}-gateway-tls"));
+    assert_eq!(secret["type"], "kubernetes.io/tls");
+    let field = |k: &str| shell("base64 -d", secret["data"][k].as_str().unwrap());
+    let (crt, ca) = (field("tls.crt"), field("ca.crt"));
+    assert!(field("tls.key").contains("PRIVATE KEY"));
+    let cm = find(docs, "ConfigMap", &format!("{full}-gateway-ca"));
+    assert_eq!(cm["data"]["ca.crt"].as_str().unwrap().trim(), ca.trim());
+    let dir = tempfile::tempdir().unwrap();
+    let (crt_file, ca_file) = (dir.path().join("tls.crt"), dir.path().join("ca.crt"));
+    std::fs::write(&crt_file, &crt).unwrap();
+    std::fs::write(&ca_file, &ca).unwrap();
+    let verify = format!(
+        "openssl verify -CAfile {} {}",
+        ca_file.display(),
+        crt_file.display()
+    );
+    assert!(
+        shell(&verify, "").contains(": OK"),
+        "the CA signed the certificate"
+    );
+    let sans = shell("openssl x509 -noout -ext subjectAltName", &crt);
+    let svc = format!("{full}-gateway");
+    for name in [
+        format!("DNS:{svc}"),
+        format!("DNS:{svc}.{ns}"),
+        format!("DNS:{svc}.{ns}.svc"),
+        format!("DNS:{svc}.{ns}.svc.cluster.local"),
+        "DNS:localhost".to_owned(),
+        "IP Address:127.0.0.1".to_owned(),
+    ] {
+        assert!(
+            sans.split([',', '\n']).any(|s| s.trim() == name),
+            "SAN {name} missing: {sans}"
+        );
+    }
+    (crt, ca)
+}
+
+/// TLS is on by default: the chart makes a CA and a certificate for the gateway Service's
+/// names, the gateway serves them, NOTES say wss:// and how agents get the CA, and an upgrade
+/// keeps the same certificate. `gateway.tls.enabled=false` serves plain text, with a warning.
+#[tokio::test]
+async fn chart_tls_is_on_by_default_with_a_generated_ca_kept_across_upgrades() -> anyhow::Result<()>
+{
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "chart-tls").await?;
+    let watch = format!("operator.watchNamespace={ns}");
+    let full = format!("{ns}-lekiwi-operator");
+    let install = |verb: &str| {
+        ok(
+            cp.tool(
+                "helm",
+                &[verb, &ns, CHART, "-n", &ns, "--set", &watch, "--wait=false"],
+            ),
+            &format!("helm {verb}"),
+        )
+    };
+    install("install");
+    let manifest = ok(
+        cp.tool("helm", &["get", "manifest", &ns, "-n", &ns]),
+        "helm get manifest",
+    );
+    let docs = documents(&manifest);
+    let (crt, ca) = generated_tls(&docs, &full, &ns);
+    let deploy = find(&docs, "Deployment", &full);
+    let args = serde_yaml::to_string(&deploy["spec"]["template"]["spec"]["containers"][0]["args"])?;
+    for flag in [
+        "--tls-cert=/etc/lekiwi/tls/tls.crt",
+        "--tls-key=/etc/lekiwi/tls/tls.key",
+    ] {
+        assert!(args.contains(flag), "{flag} missing: {args}");
+    }
+    let volumes = serde_yaml::to_string(&deploy["spec"]["template"]["spec"]["volumes"])?;
+    assert!(
+        volumes.contains(&format!("secretName: {full}-gateway-tls")),
+        "{volumes}"
+    );
+    let notes = ok(
+        cp.tool("helm", &["get", "notes", &ns, "-n", &ns]),
+        "helm get notes",
+    );
+    for want in [
+        "gateway: wss://".to_owned(),
+        "caFile: /etc/lekiwi/ca.crt".to_owned(),
+        format!("get configmap {full}-gateway-ca -o jsonpath"),
+        "--certificate-authority ca.crt".to_owned(),
+    ] {
+        assert!(notes.contains(&want), "NOTES lack {want}:\n{notes}");
+    }
+    assert!(!notes.contains("ws://<"), "{notes}");
+
+    // An upgrade keeps the certificate and its CA (agents trust that CA).
+    install("upgrade");
+    let manifest = ok(
+        cp.tool("helm", &["get", "manifest", &ns, "-n", &ns]),
+        "helm get manifest",
+    );
+    let (crt_after, ca_after) = generated_tls(&documents(&manifest), &full, &ns);
+    assert_eq!(crt_after, crt, "the upgrade made a new certificate");
+    assert_eq!(ca_after, ca, "the upgrade made a new CA");
+    serves_the_generated_certificate(cp, &ns, &documents(&manifest), &full).await?;
+    ok(
+        cp.tool("helm", &["uninstall", &ns, "-n", &ns]),
+        "helm uninstall",
+    );
+
+    // Plain text only when asked for, with a warning.
+    let plain = ok(
+        helm(&[
+            "install",
+            "plain",
+            CHART,
+            "-n",
+            &ns,
+            "--dry-run=client",
+            "--set",
+            "gateway.tls.enabled=false",
+        ]),
+        "helm install --dry-run (plain)",
+    );
+    assert!(!plain.contains("--tls-cert"), "{plain}");
+    assert!(!plain.contains("kind: Secret\n"), "no TLS Secret: {plain}");
+    assert!(plain.contains("gateway: ws://<gateway address>"), "{plain}");
+    assert!(
+        plain.contains("WARNING: gateway.tls.enabled=false"),
+        "{plain}"
+    );
+    Ok(())
+}
+
+/// The gateway serves the chart's generated certificate: an agent given the CA from the
+/// ConfigMap connects over wss://127.0.0.1, one without it refuses the certificate.
+async fn serves_the_generated_certificate(
+    cp: &ControlPlane,
+    ns: &str,
+    docs: &[Value],
+    full: &str,
+) -> anyhow::Result<()> {
+    let secret = find(docs, "Secret", &format!("{full}-gateway-tls"));
+    let dir = tempfile::tempdir()?;
+    let path = |name: &str| dir.path().join(name);
+    for key in ["tls.crt", "tls.key"] {
+        let pem = shell("base64 -d", secret["data"][key].as_str().unwrap());
+        std::fs::write(path(key), pem)?;
+    }
+    let cm = find(docs, "ConfigMap", &format!("{full}-gateway-ca"));
+    std::fs::write(path("ca.crt"), cm["data"]["ca.crt"].as_str().unwrap())?;
+    let (crt, key) = (path("tls.crt"), path("tls.key"));
+    let args = [
+        "--tls-cert",
+        crt.to_str().unwrap(),
+        "--tls-key",
+        key.to_str().unwrap(),
+    ];
+    let mut op = OperatorProcess::start(cp, ns, "chart-tls", &args)?;
+    op.wait_ready().await?;
+    let client = cp.client().await?;
+    let creds = lekiwi_agent::connection::Credentials {
+        token: lekiwi_tests::enrollment_token(&client, ns).await?,
+        robot: format!("{ns}/kiwi-tls"),
+    };
+    let url = format!("wss://127.0.0.1:{}/v1/agent", op.gateway_port);
+    let connect = |ca: Option<std::path::PathBuf>| {
+        let (url, creds) = (url.clone(), creds.clone());
+        async move {
+            let hello = lekiwi_tests::hello();
+            let timeout = Duration::from_secs(10);
+            lekiwi_agent::connection::connect_with_ca(&url, &creds, &hello, timeout, ca.as_deref())
+                .await
+        }
+    };
+    assert!(
+        connect(None).await.is_err(),
+        "an agent without the chart's CA accepted the certificate"
+    );
+    let (_ws, welcome) = connect(Some(path("ca.crt")))
+        .await
+        .map_err(|e| anyhow::anyhow!("an agent trusting the chart's CA: {e:?}"))?;
+    assert_eq!(welcome.robot, format!("{ns}/kiwi-tls"));
+    op.terminate()?;
     Ok(())
 }

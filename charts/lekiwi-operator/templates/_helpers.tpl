@@ -71,3 +71,19 @@ The schema checks each value; these rules relate several.
 {{- fail "podDisruptionBudget: set minAvailable or maxUnavailable (or enabled=false)" -}}
 {{- end -}}
 {{- end -}}
+
+{{/* The TLS Secret the gateway serves with: the given one, the generated one, or nothing for
+plain text (gateway.tls.enabled=false). */}}
+{{- define "lekiwi.tlsSecret" -}}
+{{- if .Values.gateway.tls.secretName -}}
+{{- .Values.gateway.tls.secretName -}}
+{{- else if include "lekiwi.tlsGenerated" . -}}
+{{- printf "%s-gateway-tls" (include "lekiwi.fullname" .) -}}
+{{- end -}}
+{{- end -}}
+
+{{/* Whether the chart makes the gateway's CA and certificate itself (TLS on, no Secret given,
+and a gateway runs: not for role=controller). */}}
+{{- define "lekiwi.tlsGenerated" -}}
+{{- if and .Values.gateway.tls.enabled (not .Values.gateway.tls.secretName) (ne .Values.operator.role "controller") -}}true{{- end -}}
+{{- end -}}

@@ -63,6 +63,10 @@ pub struct GatewayMetrics {
     pub blob_bytes_received: Counter,
     /// Blob upload requests, by outcome (`created`, `partial`, `exists`, `conflict`, ...).
     pub blob_uploads: Family<KindLabels, Counter>,
+    /// Connections the gateway closed before any authenticated request, by why
+    /// (`per_address_limit`, `unauthenticated_limit`, `tls_handshake`, `header_timeout`,
+    /// `header_too_large`).
+    pub connections_dropped: Family<KindLabels, Counter>,
 }
 
 impl GatewayMetrics {
@@ -122,6 +126,10 @@ impl GatewayMetrics {
             blob_uploads: r.add(
                 "lekiwi_gateway_blob_uploads",
                 "Release blob upload requests, by outcome",
+            ),
+            connections_dropped: r.add(
+                "lekiwi_gateway_connections_dropped",
+                "Gateway connections closed before or without an authenticated request, by why",
             ),
         }
     }

@@ -11,6 +11,7 @@ pub mod enroll;
 pub mod event_store;
 pub mod events_api;
 pub mod lease;
+pub mod listener;
 pub mod lookup;
 pub mod metrics;
 pub mod poll;
@@ -185,12 +186,17 @@ impl AppState {
 
 /// The gateway's routes, separate from serving so tests can call them directly.
 pub fn router(state: AppState) -> Router {
+    // Every route but /healthz requires credentials: a success there takes the connection out
+    // of the unauthenticated limits.
     Router::new()
         .route(AGENT_PATH, get(agent_ws))
         .route("/v1/poll", get(poll::poll))
-        .route("/healthz", get(|| async { "ok\n" }))
         .merge(blob_api::routes())
         .merge(events_api::routes())
+        .route_layer(axum::middleware::from_fn(
+            listener::authenticated_on_success,
+        ))
+        .route("/healthz", get(|| async { "ok\n" }))
         .with_state(state)
 }
 

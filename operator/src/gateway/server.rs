@@ -2,7 +2,7 @@
 //! shared state, starts the background tasks, serves plain HTTP or TLS until cancelled, and
 //! drains the status writer before it returns.
 
-use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
@@ -13,6 +13,8 @@ use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use kube::runtime::{WatchStreamExt, reflector, watcher};
 use lekiwi_crds::contract::TOKEN_LABEL;
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
 use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
@@ -20,6 +22,7 @@ use tracing::{info, warn};
 
 use super::auth::{self, Authenticator};
 use super::blob_store::BlobStore;
+use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
 use super::presence::{Presence, PresenceConfig};
 use super::registry::Registry;
@@ -28,7 +31,7 @@ use super::{AppState, blob_api, dispatch, lease, router};
 use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::Store;
-use crate::metrics::Metrics;
+use crate::metrics::{KindLabels, Metrics};
 
 /// The blob routes' state: the store's directories and the API token Secret are made now when
 /// possible; if not, the gateway still serves agents and the blob routes retry (uploads answer
@@ -128,7 +131,8 @@ pub async fn run(
     let mut tasks = start_background(&config, &name, &client, &presence, &store, &cancel);
     tasks.aborted.extend([secret_task, dispatch_task]);
     let addr = config.gateway_addr;
-    let served = serve(&config, &name, router(state), listening, &cancel).await?;
+    let dropped = state.shared.metrics.gateway.connections_dropped.clone();
+    let served = serve(&config, &name, router(state), dropped, listening, &cancel).await?;
     cancel.cancel();
     drain(&presence, tasks).await;
     served.map_err(|source| Error::Serve { addr, source })
@@ -285,45 +289,42 @@ async fn serve(
     config: &Config,
     name: &str,
     app: Router,
+    dropped: Family<KindLabels, Counter>,
     listening: Arc<AtomicBool>,
     cancel: &CancellationToken,
 ) -> Result<std::io::Result<()>> {
-    let app = app.into_make_service_with_connect_info::<SocketAddr>();
     let addr = config.gateway_addr;
-    match (&config.tls_cert, &config.tls_key) {
-        (Some(cert), Some(key)) => {
-            let _ = rustls::crypto::ring::default_provider().install_default();
-            let tls = axum_server::tls_rustls::RustlsConfig::from_pem_file(cert, key)
+    let tls = match (&config.tls_cert, &config.tls_key) {
+        (Some(cert), Some(key)) => Some(
+            tls_acceptor(cert, key)
                 .await
-                .map_err(|source| Error::Serve { addr, source })?;
-            let handle = axum_server::Handle::new();
-            let h = handle.clone();
-            let c = cancel.clone();
-            tokio::spawn(async move {
-                c.cancelled().await;
-                h.graceful_shutdown(Some(Duration::from_secs(5)));
-            });
-            let server = axum_server::bind_rustls(addr, tls).handle(handle.clone());
-            tokio::spawn(async move {
-                if handle.listening().await.is_some() {
-                    listening.store(true, Ordering::Release);
-                }
-            });
-            info!(%addr, gateway = %name, tls = true, "gateway listening");
-            Ok(server.serve(app).await)
-        }
-        _ => {
-            let listener = tokio::net::TcpListener::bind(addr)
-                .await
-                .map_err(|source| Error::Serve { addr, source })?;
-            info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), gateway = %name, tls = false, "gateway listening");
-            listening.store(true, Ordering::Release);
-            let c = cancel.clone();
-            Ok(axum::serve(listener, app)
-                .with_graceful_shutdown(async move { c.cancelled().await })
-                .await)
-        }
-    }
+                .map_err(|source| Error::Serve { addr, source })?,
+        ),
+        _ => None,
+    };
+    let listener = tokio::net::TcpListener::bind(addr)
+        .await
+        .map_err(|source| Error::Serve { addr, source })?;
+    info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), gateway = %name, tls = tls.is_some(), "gateway listening");
+    listening.store(true, Ordering::Release);
+    let limits = ConnLimits {
+        header_timeout: Duration::from_secs(config.header_timeout_seconds.max(1)),
+        tls_handshake_timeout: Duration::from_secs(config.tls_handshake_timeout_seconds.max(1)),
+        max_header_bytes: config.max_header_bytes,
+        per_address: config.max_unauthenticated_per_address,
+        unauthenticated: config.max_unauthenticated_connections.max(1),
+    };
+    Ok(listener::serve(listener, app, tls, limits, dropped, cancel.clone()).await)
+}
+
+/// The TLS acceptor for the PEM certificate chain and key; HTTP/1.1 only (agents speak
+/// WebSocket over HTTP/1.1; the gateway serves no HTTP/2).
+async fn tls_acceptor(cert: &Path, key: &Path) -> std::io::Result<tokio_rustls::TlsAcceptor> {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+    let pem = axum_server::tls_rustls::RustlsConfig::from_pem_file(cert, key).await?;
+    let mut server = (*pem.get_inner()).clone();
+    server.alpn_protocols = vec![b"http/1.1".to_vec()];
+    Ok(tokio_rustls::TlsAcceptor::from(Arc::new(server)))
 }
 
 /// Lets the status writer flush the sessions' disconnects (bounded) before the process goes,
