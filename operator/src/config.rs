@@ -193,11 +193,6 @@ pub struct Config {
     /// Largest release blob the gateway accepts, in bytes.
     #[arg(long, env = "LEKIWI_MAX_BLOB_BYTES", default_value_t = 4 * 1024 * 1024 * 1024)]
     pub max_blob_bytes: u64,
-
-    /// Secret in --namespace holding the API token (`data.token`) that release uploads
-    /// present; created with a random token when missing.
-    #[arg(long, env = "LEKIWI_API_TOKEN_SECRET", default_value = "lekiwi-api")]
-    pub api_token_secret: String,
 }
 
 impl Config {

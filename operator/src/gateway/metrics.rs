@@ -31,6 +31,15 @@ pub struct WriteLabels {
     pub result: &'static str,
 }
 
+/// Labels of the API server reviews the gateway makes for its HTTP API.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ReviewLabels {
+    /// `token_review` or `access_review`.
+    pub kind: &'static str,
+    /// `accepted`, `refused` (tokens), `allowed`, `denied` (access) or `error`.
+    pub result: &'static str,
+}
+
 /// What the gateway exports.
 #[derive(Clone)]
 pub struct GatewayMetrics {
@@ -60,6 +69,10 @@ pub struct GatewayMetrics {
     pub blob_bytes_received: Counter,
     /// Blob upload requests, by outcome (`created`, `partial`, `exists`, `conflict`, ...).
     pub blob_uploads: Family<KindLabels, Counter>,
+    /// TokenReviews and SubjectAccessReviews made for the HTTP API, by kind and result.
+    pub kube_reviews: Family<ReviewLabels, Counter>,
+    /// Reviews answered from the gateway's cache instead, by kind.
+    pub kube_review_cache_hits: Family<KindLabels, Counter>,
 }
 
 impl GatewayMetrics {
@@ -115,6 +128,14 @@ impl GatewayMetrics {
             blob_uploads: r.add(
                 "lekiwi_gateway_blob_uploads",
                 "Release blob upload requests, by outcome",
+            ),
+            kube_reviews: r.add(
+                "lekiwi_gateway_kube_reviews",
+                "TokenReviews and SubjectAccessReviews made for the HTTP API, by kind and result",
+            ),
+            kube_review_cache_hits: r.add(
+                "lekiwi_gateway_kube_review_cache_hits",
+                "API server reviews answered from the gateway's cache, by kind",
             ),
         }
     }
