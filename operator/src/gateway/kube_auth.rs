@@ -67,7 +67,7 @@ impl Access {
         let name = self
             .name
             .as_ref()
-            .map(|n| format!(" {n:?}"))
+            .map(|n| format!(" {n}"))
             .unwrap_or_default();
         let place = if self.namespace.is_empty() {
             "in all namespaces".to_owned()
@@ -289,7 +289,7 @@ mod tests {
         };
         assert_eq!(
             events.describe(),
-            "get robots/events.fleet.lekiwi.io \"kiwi-1\" in namespace b"
+            "get robots/events.fleet.lekiwi.io kiwi-1 in namespace b"
         );
         assert_eq!(
             Access::new("list", "robots", "").describe(),
