@@ -259,3 +259,36 @@ pub(crate) fn tls_refused(e: &reqwest::Error) -> bool {
     }
     std::error::Error::source(e).is_some_and(rustls_inside)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::bearer_token;
+    use kube::config::AuthInfo;
+
+    fn user(yaml: &str) -> AuthInfo {
+        serde_yaml::from_str(yaml).unwrap()
+    }
+
+    #[test]
+    fn the_gateway_gets_the_kubeconfig_users_bearer_token_or_a_hint_to_pass_one() {
+        assert_eq!(bearer_token(&user("token: abc\n")).unwrap(), "abc");
+        let file = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(file.path(), "from-file\n").unwrap();
+        let with_file = format!("tokenFile: {}\n", file.path().display());
+        assert_eq!(bearer_token(&user(&with_file)).unwrap(), "from-file");
+        for (yaml, how) in [
+            (
+                "client-certificate-data: Zm9v\nclient-key-data: Zm9v\n",
+                "a client certificate",
+            ),
+            (
+                "exec: {apiVersion: client.authentication.k8s.io/v1, command: gcloud}\n",
+                "an exec",
+            ),
+        ] {
+            let err = bearer_token(&user(yaml)).unwrap_err();
+            assert!(err.contains(how) && err.contains("--token"), "{err}");
+            assert!(err.contains("kubectl create token"), "{err}");
+        }
+    }
+}
