@@ -163,9 +163,6 @@ operator_ready() {
   curl -fsS --max-time 2 "http://127.0.0.1:$HTTP_PORT/readyz" >/dev/null 2>&1
 }
 wait_for operator 60 operator_ready
-# The API token Secret the operator creates at start (release pushes and /v1/blobs-served).
-api_token() { kubectl -n "$OPERATOR_NS" get secret lekiwi-api >/dev/null 2>&1; }
-wait_for "Secret lekiwi-api" 30 api_token
 fact operator "lekiwi-operator --role all, defaults except --max-unauthenticated-per-address 0 (every robot connects from 127.0.0.1) (heartbeat 30 s, status qps 50 / burst 100, concurrency 16), SQLite store and --blob-dir on the work directory's disk"
 export BENCH_NS="$NS" BENCH_OPERATOR_NS="$OPERATOR_NS" BENCH_GW_PORT="$GW_PORT" BENCH_ROBOTS="$ROBOTS"
 
@@ -180,7 +177,7 @@ push() { # v1|v2|v3
   before="$(blob_bytes)"
   t0="$(now)"
   "$BIN/kubectl-lekiwi" --kubeconfig "$KUBECONFIG" release push "$WORK/releases/$v" \
-    --version "$v" --server "http://127.0.0.1:$GW_PORT" --operator-namespace "$OPERATOR_NS" \
+    --version "$v" --server "http://127.0.0.1:$GW_PORT" -n "$NS" \
     >"$WORK/push-$v.out" 2>"$WORK/push-$v.log" || die "push $v failed: $(tail -5 "$WORK/push-$v.log")"
   fact "push_${v}_seconds" "$(elapsed "$t0")"
   fact "push_${v}_blob_bytes" "$(($(blob_bytes) - before))"

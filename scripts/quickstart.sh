@@ -116,7 +116,7 @@ demo_release() {
 }
 log "pushing demo release 1.0.0 (kubectl lekiwi release push)"
 DIGEST=$(kubectl lekiwi release push "$(demo_release 1.0.0)" --version 1.0.0 \
-  --server "http://127.0.0.1:$GW_PORT" --operator-namespace "$SYSTEM_NS")
+  --server "http://127.0.0.1:$GW_PORT" -n "$NS")
 log "rolling 1.0.0 out to the fleet: a canary robot, then batches of 25%"
 kubectl apply -n "$NS" -f - <<YAML
 apiVersion: fleet.lekiwi.io/v1alpha1
@@ -145,7 +145,7 @@ The control plane and operator keep running. Try:
   kubectl lekiwi rollout status demo-fleet -n $NS --watch=false
   # A new release, then a rollback: 3 robots of the second batch fail their health check.
   d=\$(mkdir -p /tmp/demo-1.1.0 && cp -r $STATE/releases/1.0.0/. /tmp/demo-1.1.0 && echo tuned >>/tmp/demo-1.1.0/lekiwi/config.yaml && \\
-      kubectl lekiwi release push /tmp/demo-1.1.0 --version 1.1.0 --server http://127.0.0.1:$GW_PORT --operator-namespace $SYSTEM_NS)
+      kubectl lekiwi release push /tmp/demo-1.1.0 --version 1.1.0 --server http://127.0.0.1:$GW_PORT -n $NS)
   touch $STATE/fleet/kiwi-00{2,3,4}/fail-health
   kubectl patch rdeploy demo-fleet -n $NS --type merge -p "{\\"spec\\":{\\"release\\":{\\"version\\":\\"1.1.0\\",\\"digest\\":\\"\$d\\"},\\"strategy\\":{\\"batchSize\\":5}}}"
   kubectl lekiwi rollout status demo-fleet -n $NS   # canary, then batch 1 fails: RolledBack

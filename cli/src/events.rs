@@ -1,5 +1,6 @@
 //! `kubectl lekiwi events ROBOT`: a robot's stored events, read from the gateway's event store
-//! over `GET /v1/robots/{namespace}/{name}/events` with the API token.
+//! over `GET /v1/robots/{namespace}/{name}/events` with the user's Kubernetes token (RBAC must
+//! allow `get` on `robots/events` of group `fleet.lekiwi.io` in the robot's namespace).
 
 use std::time::Duration;
 
@@ -9,7 +10,7 @@ use jiff::Timestamp;
 use reqwest::{Method, StatusCode};
 
 use crate::Output;
-use crate::release::{Gateway, ServerArgs, message};
+use crate::release::{Gateway, ServerArgs, message, refused};
 
 /// Events one request asks for (the gateway's maximum).
 const PAGE: u32 = 1000;
@@ -30,7 +31,7 @@ pub struct EventsArgs {
     /// Only events of this kind (e.g. agent_started); repeatable.
     #[arg(long)]
     pub kind: Vec<String>,
-    /// Where the gateway is and how to get its API token.
+    /// Where the gateway is and which Kubernetes token to present to it.
     #[command(flatten)]
     pub server: ServerArgs,
 }
@@ -39,16 +40,15 @@ pub use lekiwi_protocol::StoredEvent;
 
 /// Runs `events`.
 pub async fn run(
-    client: kube::Client,
-    namespace: &str,
+    kube: &crate::KubeContext,
     output: Output,
     args: EventsArgs,
 ) -> anyhow::Result<()> {
     let (ns, name) = match args.robot.split_once('/') {
         Some((ns, name)) => (ns.to_owned(), name.to_owned()),
-        None => (namespace.to_owned(), args.robot.clone()),
+        None => (kube.namespace.clone(), args.robot.clone()),
     };
-    let gateway = Gateway::connect(client, &args.server).await?;
+    let gateway = Gateway::connect(kube, &args.server, None)?;
     let now = Timestamp::now();
     let since_ms = now.as_millisecond() - i64::try_from(args.since.as_millis()).unwrap_or(i64::MAX);
     let events = fetch(&gateway, &ns, &name).await?;
@@ -76,10 +76,9 @@ async fn fetch(gateway: &Gateway, ns: &str, name: &str) -> anyhow::Result<Vec<St
         };
         match resp.status() {
             StatusCode::OK => {}
-            StatusCode::UNAUTHORIZED => bail!(
-                "the gateway at {} refused the API token (401): is --server the gateway of the operator in --operator-namespace?",
-                gateway.base
-            ),
+            StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
+                bail!("reading events of {ns}/{name}: {}", refused(resp, "").await)
+            }
             StatusCode::NOT_FOUND => bail!(
                 "the gateway at {} has no events API (404): is it older than this plugin?",
                 gateway.base

@@ -97,7 +97,7 @@ pub enum Command {
     },
     /// Push a directory as a release to the gateway's blob store, or inspect a stored release.
     Release {
-        /// Where the gateway is and how to get its API token.
+        /// Where the gateway is and which Kubernetes token to present to it.
         #[command(flatten)]
         server: release::ServerArgs,
         /// What to do.
@@ -110,8 +110,8 @@ pub enum Command {
 pub async fn run(cli: Cli) -> anyhow::Result<()> {
     if let Command::Discover(_) = &cli.command {
         // Discovery works without a cluster: it only cannot say what is registered then.
-        let (client, default_ns) = match client(&cli).await {
-            Ok((c, ns)) => (Ok(c), ns),
+        let (client, default_ns) = match context(&cli).await {
+            Ok(k) => (Ok(k.client), k.namespace),
             Err(e) => (Err(e), "default".to_owned()),
         };
         let namespace = cli.namespace.clone().unwrap_or(default_ns);
@@ -121,8 +121,8 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         };
         return discover::run(client, &namespace, only, cli.output, args).await;
     }
-    let (client, default_ns) = client(&cli).await?;
-    let namespace = cli.namespace.clone().unwrap_or(default_ns);
+    let kube = context(&cli).await?;
+    let (client, namespace) = (kube.client.clone(), kube.namespace.clone());
     match cli.command {
         Command::Robots => {
             let ns = if cli.all_namespaces {
@@ -137,7 +137,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             rollout::run(client, &namespace, cli.output, command).await?;
         }
         Command::Release { server, command } => {
-            release::run(client, &server, cli.output, command).await?;
+            release::run(&kube, &server, cli.output, command).await?;
         }
         Command::Robot {
             command: tokens::RobotCommand::Add(args),
@@ -154,13 +154,23 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Discover(_) => unreachable!("handled before the client is required"),
         Command::Events(args) => {
-            events::run(client, &namespace, cli.output, args).await?;
+            events::run(&kube, cli.output, args).await?;
         }
     }
     Ok(())
 }
 
-async fn client(cli: &Cli) -> anyhow::Result<(kube::Client, String)> {
+/// What commands take from the kubeconfig.
+pub struct KubeContext {
+    /// A client with the user's credentials.
+    pub client: kube::Client,
+    /// `-n`, else the context's namespace.
+    pub namespace: String,
+    /// The user's bearer token for the gateway, or why the kubeconfig has none.
+    pub bearer: Result<String, String>,
+}
+
+async fn context(cli: &Cli) -> anyhow::Result<KubeContext> {
     let options = KubeConfigOptions {
         context: cli.context.clone(),
         ..KubeConfigOptions::default()
@@ -174,8 +184,42 @@ async fn client(cli: &Cli) -> anyhow::Result<(kube::Client, String)> {
         _ if cli.context.is_some() => kube::Config::from_kubeconfig(&options).await?,
         _ => kube::Config::infer().await?,
     };
-    let ns = config.default_namespace.clone();
-    Ok((kube::Client::try_from(config)?, ns))
+    let namespace = cli
+        .namespace
+        .clone()
+        .unwrap_or_else(|| config.default_namespace.clone());
+    let bearer = bearer_token(&config.auth_info);
+    Ok(KubeContext {
+        client: kube::Client::try_from(config)?,
+        namespace,
+        bearer,
+    })
+}
+
+/// The kubeconfig user's bearer token (`token` or `tokenFile`), or why there is none: the
+/// gateway takes only bearer tokens, not client certificates or exec plugins' credentials.
+fn bearer_token(user: &kube::config::AuthInfo) -> Result<String, String> {
+    use secrecy::ExposeSecret as _;
+    if let Some(token) = &user.token {
+        return Ok(token.expose_secret().trim().to_owned());
+    }
+    if let Some(file) = &user.token_file {
+        return std::fs::read_to_string(file)
+            .map(|t| t.trim().to_owned())
+            .map_err(|e| format!("cannot read the kubeconfig user's tokenFile {file}: {e}"));
+    }
+    let how = if user.exec.is_some() || user.auth_provider.is_some() {
+        "an exec or auth-provider plugin"
+    } else if user.client_certificate.is_some() || user.client_certificate_data.is_some() {
+        "a client certificate"
+    } else {
+        "no bearer token"
+    };
+    Err(format!(
+        "the kubeconfig user authenticates with {how}, which the gateway cannot check: pass \
+         --token (or LEKIWI_TOKEN) with a bearer token the API server accepts, e.g. \
+         `kubectl create token SERVICE_ACCOUNT`"
+    ))
 }
 
 /// A reqwest error with its cause chain (where a certificate or a connection failed) and without
@@ -214,4 +258,37 @@ pub(crate) fn tls_refused(e: &reqwest::Error) -> bool {
         e.source().is_some_and(rustls_inside)
     }
     std::error::Error::source(e).is_some_and(rustls_inside)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::bearer_token;
+    use kube::config::AuthInfo;
+
+    fn user(yaml: &str) -> AuthInfo {
+        serde_yaml::from_str(yaml).unwrap()
+    }
+
+    #[test]
+    fn the_gateway_gets_the_kubeconfig_users_bearer_token_or_a_hint_to_pass_one() {
+        assert_eq!(bearer_token(&user("token: abc\n")).unwrap(), "abc");
+        let file = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(file.path(), "from-file\n").unwrap();
+        let with_file = format!("tokenFile: {}\n", file.path().display());
+        assert_eq!(bearer_token(&user(&with_file)).unwrap(), "from-file");
+        for (yaml, how) in [
+            (
+                "client-certificate-data: Zm9v\nclient-key-data: Zm9v\n",
+                "a client certificate",
+            ),
+            (
+                "exec: {apiVersion: client.authentication.k8s.io/v1, command: gcloud}\n",
+                "an exec",
+            ),
+        ] {
+            let err = bearer_token(&user(yaml)).unwrap_err();
+            assert!(err.contains(how) && err.contains("--token"), "{err}");
+            assert!(err.contains("kubectl create token"), "{err}");
+        }
+    }
 }

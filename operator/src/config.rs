@@ -218,7 +218,8 @@ pub struct Config {
 
     /// API-server reads per second, sustained, that the gateway may make for requests its
     /// token cache cannot authenticate (a token minted a moment ago, or a guess); beyond it they
-    /// are refused with 503. Status writes and Lease renewals have budgets of their own.
+    /// are refused with 503. The HTTP API's TokenReviews of uncached tokens have a budget of the
+    /// same size. Status writes and Lease renewals have budgets of their own.
     #[arg(long, env = "LEKIWI_AUTH_LOOKUP_QPS", default_value_t = 5.0)]
     pub auth_lookup_qps: f64,
 
@@ -248,11 +249,6 @@ pub struct Config {
     /// Largest release blob the gateway accepts, in bytes.
     #[arg(long, env = "LEKIWI_MAX_BLOB_BYTES", default_value_t = 4 * 1024 * 1024 * 1024)]
     pub max_blob_bytes: u64,
-
-    /// Secret in --namespace holding the API token (`data.token`) that release uploads
-    /// present; created with a random token when missing.
-    #[arg(long, env = "LEKIWI_API_TOKEN_SECRET", default_value = "lekiwi-api")]
-    pub api_token_secret: String,
 }
 
 impl Config {

@@ -83,6 +83,14 @@ impl ControlPlane {
         self.dir.join("kubeconfig")
     }
 
+    /// The admin user's bearer token (group system:masters), as a Kubernetes user presents it
+    /// to the gateway's HTTP API.
+    pub fn admin_token(&self) -> Result<String> {
+        Ok(std::fs::read_to_string(self.dir.join("admin-token"))?
+            .trim()
+            .to_owned())
+    }
+
     /// A client with admin rights.
     pub async fn client(&self) -> Result<Client> {
         let kc = Kubeconfig::read_from(self.kubeconfig())?;

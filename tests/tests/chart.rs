@@ -90,7 +90,6 @@ operator:
   retentionDays: 7
   perRobotMetrics: true
   installCrds: true
-  apiTokenSecret: fleet-api
   leaderElection: {leaseName: kiwi-leader, leaseDurationSeconds: 20, leaseRetrySeconds: 3}
   extraArgs: [--max-frame-bytes=65536]
 httpPort: 9090
@@ -180,7 +179,6 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--http-addr=0.0.0.0:9090",
         "--watch-namespace=robots",
         "--install-crds",
-        "--api-token-secret=fleet-api",
         "--leader-lease=kiwi-leader",
         "--max-blob-bytes=1073741824",
         "--blob-dir=/var/lib/lekiwi/blobs",
@@ -188,6 +186,10 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
     ] {
         assert!(args.contains(&want), "{want} missing from {args:?}");
     }
+    assert!(
+        !args.iter().any(|a| a.contains("api-token")),
+        "no API token Secret any more: {args:?}"
+    );
     assert!(
         !args.iter().any(|a| a.starts_with("--store-url")),
         "PostgreSQL comes from the Secret, not a flag: {args:?}"
@@ -237,8 +239,8 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
     let gw = find(&docs, "Service", "r-kiwi-gateway");
     assert_eq!(gw["spec"]["type"], "LoadBalancer");
     assert_eq!(gw["spec"]["ports"][0]["nodePort"], 30443);
-    // watchNamespace: the fleet permissions only in that namespace; the leases and the API
-    // token Secret in the release's.
+    // watchNamespace: the fleet permissions only in that namespace; the leases in the
+    // release's; the reviews of people's tokens cluster-wide (they are cluster-scoped).
     let binding = find(&docs, "RoleBinding", "r-kiwi");
     assert_eq!(binding["metadata"]["namespace"], "robots");
     assert_eq!(binding["roleRef"]["kind"], "ClusterRole");
@@ -249,7 +251,42 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "no cluster-wide fleet binding with watchNamespace"
     );
     let local = serde_yaml::to_string(&find(&docs, "Role", "r-kiwi-local")["rules"])?;
-    assert!(local.contains("fleet-api"), "{local}");
+    assert!(
+        !local.contains("secrets"),
+        "no API token Secret to read: {local}"
+    );
+    let reviews = serde_yaml::to_string(&find(&docs, "ClusterRole", "r-kiwi-reviews")["rules"])?;
+    assert!(
+        reviews.contains("tokenreviews") && reviews.contains("subjectaccessreviews"),
+        "{reviews}"
+    );
+    assert_eq!(
+        find(&docs, "ClusterRoleBinding", "r-kiwi-reviews")["roleRef"]["name"],
+        "r-kiwi-reviews"
+    );
+    // People's permissions on the gateway's API, aggregated into the built-in roles.
+    let pusher = find(&docs, "ClusterRole", "lekiwi-release-pusher");
+    let labels = &pusher["metadata"]["labels"];
+    assert_eq!(
+        labels["rbac.authorization.k8s.io/aggregate-to-edit"],
+        "true"
+    );
+    assert_eq!(pusher["rules"][0]["resources"][0], "releases");
+    let verbs = serde_yaml::to_string(&pusher["rules"][0]["verbs"])?;
+    assert!(verbs.contains("create") && verbs.contains("get"), "{verbs}");
+    let viewer = find(&docs, "ClusterRole", "lekiwi-viewer");
+    assert_eq!(
+        viewer["metadata"]["labels"]["rbac.authorization.k8s.io/aggregate-to-view"],
+        "true"
+    );
+    let rules = serde_yaml::to_string(&viewer["rules"])?;
+    for want in ["robots", "robotdeployments", "robots/events", "list"] {
+        assert!(rules.contains(want), "{want}: {rules}");
+    }
+    assert!(
+        !docs.iter().any(|d| d["kind"] == "Secret"),
+        "no API token Secret in the chart"
+    );
     let crds = serde_yaml::to_string(&find(&docs, "ClusterRole", "r-kiwi-crds")["rules"])?;
     assert!(crds.contains("create") && crds.contains("patch"), "{crds}");
     Ok(())
@@ -614,6 +651,9 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
                 &ns,
                 "--set",
                 &watch,
+                // The user ClusterRoles have fixed names; hostile_authz.rs proves their rules.
+                "--set",
+                "rbac.userRoles=false",
                 "--wait=false",
             ],
         ),
@@ -680,7 +720,7 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
         "fleet.lekiwi.io/token=enrollment".to_owned(),
         "sha256sum".to_owned(),
         "enrollmentTokenFile".to_owned(),
-        "lekiwi-api".to_owned(),
+        "lekiwi-release-pusher".to_owned(),
         "kubectl lekiwi release push".to_owned(),
     ] {
         assert!(notes.contains(&want), "NOTES lack {want}:\n{notes}");
@@ -734,8 +774,8 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     )
     .await
     .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
-    // A release pushed to the gateway (which made the API token Secret under the chart's RBAC)
-    // and rolled out: the controller watches the RobotDeployment, patches the robot's
+    // A release pushed to the gateway (which checks the pusher's token and permission under the
+    // chart's RBAC: TokenReview, SubjectAccessReview) and rolled out: the controller watches the RobotDeployment, patches the robot's
     // spec.release and writes the deployment's status.
     let release = dir.path().join("release");
     std::fs::create_dir_all(release.join("lekiwi"))?;
@@ -750,7 +790,7 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
             "--version",
             "1.0.0",
         ])
-        .args(["--operator-namespace", &ns])
+        .args(["-n", &ns])
         .args(["--server", &format!("http://127.0.0.1:{}", op.gateway_port)])
         .env_remove("LEKIWI_SERVER")
         .output()?;

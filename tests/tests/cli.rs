@@ -265,16 +265,7 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
     // events: what the agent produced, from the event store.
     let server = format!("http://127.0.0.1:{}", op.gateway_port);
     let events_args = [
-        "-n",
-        &ns,
-        "-o",
-        "json",
-        "events",
-        "kiwi-r",
-        "--server",
-        &server,
-        "--operator-namespace",
-        &ns,
+        "-n", &ns, "-o", "json", "events", "kiwi-r", "--server", &server,
     ];
     let events: Vec<Value> = wait_for("agent_started in the event store", T, || async {
         let out = ok(cp, &events_args).ok()?;
@@ -303,8 +294,6 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
             "10m",
             "--server",
             &server,
-            "--operator-namespace",
-            &ns,
         ],
     )?;
     assert!(
@@ -322,8 +311,6 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
             "no_such_kind",
             "--server",
             &server,
-            "--operator-namespace",
-            &ns,
         ],
     )?;
     assert_eq!(none, "No events found.\n");

@@ -202,7 +202,7 @@ fn push(
             "--version",
             version,
         ])
-        .args(["--operator-namespace", ns])
+        .args(["-n", ns])
         .args(["--server", &format!("http://127.0.0.1:{}", op.gateway_port)])
         .env_remove("LEKIWI_SERVER")
         .output()?;

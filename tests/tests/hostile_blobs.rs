@@ -7,7 +7,6 @@
 use std::time::{Duration, Instant};
 
 use anyhow::Context as _;
-use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use kube::api::{Patch, PatchParams};
 use lekiwi_crds::Robot;
@@ -82,13 +81,13 @@ impl Release {
         }
     }
 
-    /// Uploads the file and the manifest with the API token.
-    async fn push(&self, port: u16, api: &str) -> anyhow::Result<()> {
+    /// Uploads the file and the manifest with a Kubernetes user's token, into namespace `ns`.
+    async fn push(&self, port: u16, api: &str, ns: &str) -> anyhow::Result<()> {
         for (d, bytes) in [
             (&self.file, &self.content),
             (&self.manifest, &self.manifest_bytes),
         ] {
-            let path = format!("/v1/blobs/{d}");
+            let path = format!("/v1/blobs/{d}?namespace={ns}");
             let headers = [("authorization", api)];
             let (code, _, _) = http_request(port, "PUT", &path, &headers, Some(bytes)).await?;
             assert_eq!(code, 201, "upload of {d}");
@@ -142,15 +141,7 @@ async fn a_robot_reads_only_the_blobs_of_its_own_namespaces_releases() -> anyhow
     )?;
     op.wait_ready().await?;
     let port = op.gateway_port;
-    let secret = Api::<Secret>::namespaced(client.clone(), &home)
-        .get("lekiwi-api")
-        .await?;
-    let token = secret
-        .data
-        .context("data")?
-        .remove("token")
-        .context("token")?;
-    let api = format!("Bearer {}", String::from_utf8(token.0)?);
+    let api = format!("Bearer {}", cp.admin_token()?);
 
     let a = AsRobot::enroll(&op, &client, &x, "kiwi-a").await;
     let b = AsRobot::enroll(&op, &client, &y, "kiwi-b").await;
@@ -158,8 +149,8 @@ async fn a_robot_reads_only_the_blobs_of_its_own_namespaces_releases() -> anyhow
         Release::new("1.0.0", b"X's policy"),
         Release::new("1.0.0", b"Y's policy"),
     );
-    rel_x.push(port, &api).await?;
-    rel_y.push(port, &api).await?;
+    rel_x.push(port, &api, &x).await?;
+    rel_y.push(port, &api, &y).await?;
     assign(&client, &a.robot, &rel_x.manifest).await?;
     assign(&client, &b.robot, &rel_y.manifest).await?;
 
@@ -229,10 +220,11 @@ async fn a_robot_reads_only_the_blobs_of_its_own_namespaces_releases() -> anyhow
         .unwrap_or_default();
     assert!(refused >= 10.0, "refusals counted: {refused}");
 
-    // The API token (release push and inspect) still reads everything.
+    // A Kubernetes user allowed `get releases` (release push and inspect) reads them all.
     for d in [&rel_x.file, &rel_y.file, &rel_y.manifest] {
-        let (code, _) = get(port, &format!("/v1/blobs/{d}"), &[("authorization", &api)]).await;
-        assert_eq!(code, 200, "the API token reads {d}");
+        let path = format!("/v1/blobs/{d}?namespace={x}");
+        let (code, _) = get(port, &path, &[("authorization", &api)]).await;
+        assert_eq!(code, 200, "the admin reads {d}");
     }
 
     // When Y's robot is switched to X's release, it may read that release and no longer its old one.
@@ -257,7 +249,7 @@ const HOSTILE: &str = "\x1b[2Jscreen cleared\x1b]0;pwned\x07 \x1b[31mred\u{9b}1m
 /// `kubectl-lekiwi -n ns ARGS...` (with `op`'s gateway for `events`): stdout, as bytes.
 fn plugin(cp: &ControlPlane, ns: &str, op: &OperatorProcess, args: &[&str]) -> Vec<u8> {
     let server = format!("http://127.0.0.1:{}", op.gateway_port);
-    let gateway = ["--server", &server, "--operator-namespace", ns];
+    let gateway = ["--server", &server];
     let events = args.contains(&"events");
     let out = std::process::Command::new(bin("kubectl-lekiwi"))
         .arg("--kubeconfig")

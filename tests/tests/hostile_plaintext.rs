@@ -1,6 +1,6 @@
 //! Plain text off this machine is refused unless asked for: the real `lekiwi-agent` refuses a
 //! `ws://` gateway on another host at start (and only warns, loudly, with
-//! `--insecure-allow-plaintext`), and `kubectl lekiwi` refuses to send the API token over
+//! `--insecure-allow-plaintext`), and `kubectl lekiwi` refuses to send a Kubernetes token over
 //! `http://` to another host. The "other host" is 0.0.0.0: not a loopback address by the rule, yet
 //! on Linux a connection to it stays on this machine, so even the agent that is allowed to try
 //! (or a regression that stops refusing) sends nothing off the machine.
@@ -134,7 +134,7 @@ fn with_the_flag_the_agent_runs_and_warns_loudly() -> Result<()> {
 }
 
 #[test]
-fn the_cli_refuses_to_send_the_api_token_over_plain_http_to_another_host() -> Result<()> {
+fn the_cli_refuses_to_send_the_token_over_plain_http_to_another_host() -> Result<()> {
     let cp = ControlPlane::shared();
     let dir = tempfile::tempdir()?;
     std::fs::write(dir.path().join("run.sh"), "#!/bin/sh\n")?;
@@ -155,7 +155,7 @@ fn the_cli_refuses_to_send_the_api_token_over_plain_http_to_another_host() -> Re
         let err = String::from_utf8_lossy(&out.stderr);
         ensure!(!out.status.success(), "{args:?} succeeded: {err}");
         for needle in [
-            "refusing to send the API token over plain http:// to 0.0.0.0",
+            "refusing to send your Kubernetes token over plain http:// to 0.0.0.0",
             "https://",
             "--certificate-authority",
             "--insecure-allow-plaintext",

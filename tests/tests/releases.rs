@@ -10,7 +10,6 @@ use std::process::Output;
 use std::time::Duration;
 
 use anyhow::Context as _;
-use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use lekiwi_protocol::release::ReleaseManifest;
 use lekiwi_tests::{
@@ -39,22 +38,10 @@ async fn start(
     Ok((op, blobs))
 }
 
-/// The API token from the Secret the operator made.
-async fn api_token(client: &kube::Client, ns: &str) -> anyhow::Result<String> {
-    let secret = Api::<Secret>::namespaced(client.clone(), ns)
-        .get("lekiwi-api")
-        .await?;
-    let labels = secret.metadata.labels.clone().unwrap_or_default();
-    assert_eq!(
-        labels.get("app.kubernetes.io/part-of").map(String::as_str),
-        Some("lekiwi")
-    );
-    let token = secret
-        .data
-        .context("no data")?
-        .remove("token")
-        .context("no token")?;
-    Ok(String::from_utf8(token.0)?)
+/// The bearer token the release API takes: a Kubernetes user's (here the admin's, whom RBAC
+/// allows everything; hostile_authz.rs proves the permissions).
+async fn api_token(_client: &kube::Client, _ns: &str) -> anyhow::Result<String> {
+    ControlPlane::shared().admin_token()
 }
 
 /// Runs `kubectl-lekiwi release ...` against the test control plane and operator.
@@ -74,7 +61,7 @@ fn cli_at(cp: &ControlPlane, ns: &str, server: &str, args: &[&str]) -> Output {
         .arg(cp.kubeconfig())
         .arg("release")
         .args(args)
-        .args(["--operator-namespace", ns])
+        .args(["-n", ns])
         .args(["--server", server])
         .env_remove("LEKIWI_SERVER")
         .output()
@@ -207,7 +194,7 @@ async fn push_is_content_addressed_idempotent_and_incremental() -> anyhow::Resul
     let (code, _, body) = http(
         op.gateway_port,
         "GET",
-        &format!("/v1/blobs/{first}"),
+        &format!("/v1/blobs/{first}?namespace={ns}"),
         &[("authorization", &auth)],
         b"",
     )
@@ -331,7 +318,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     let port = op.gateway_port;
     let content: Vec<u8> = (0..100_000u32).map(|i| (i % 253) as u8).collect();
     let d = digest(&content);
-    let path = format!("/v1/blobs/{d}");
+    let path = format!("/v1/blobs/{d}?namespace={ns}");
     let put = |range: String, body: Vec<u8>| {
         let auth = auth.clone();
         let path = path.clone();
@@ -351,7 +338,14 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     let (code, _, body) = put("bytes 0-49999/100000".into(), content[..50_000].to_vec()).await?;
     assert_eq!(code, 202, "{}", String::from_utf8_lossy(&body));
     assert_eq!(json(&body)["offset"], 50_000);
-    let (code, _, body) = http(port, "GET", &format!("/v1/uploads/{d}"), &as_api, b"").await?;
+    let (code, _, body) = http(
+        port,
+        "GET",
+        &format!("/v1/uploads/{d}?namespace={ns}"),
+        &as_api,
+        b"",
+    )
+    .await?;
     assert_eq!(code, 200);
     assert_eq!(json(&body)["offset"], 50_000);
     assert_eq!(json(&body)["complete"], false);
@@ -382,7 +376,14 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     );
     let (code, _, body) = http(port, "PUT", &path, &as_api, &content).await?;
     assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
-    let (code, _, body) = http(port, "GET", &format!("/v1/uploads/{d}"), &as_api, b"").await?;
+    let (code, _, body) = http(
+        port,
+        "GET",
+        &format!("/v1/uploads/{d}?namespace={ns}"),
+        &as_api,
+        b"",
+    )
+    .await?;
     assert_eq!(
         (code, json(&body)["complete"].clone()),
         (200, Value::Bool(true))
@@ -393,7 +394,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     let (code, _, body) = http(
         port,
         "PUT",
-        &format!("/v1/blobs/{claimed}"),
+        &format!("/v1/blobs/{claimed}?namespace={ns}"),
         &as_api,
         b"a tampered policy",
     )
@@ -408,11 +409,25 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
         "{message}"
     );
     assert!(!stored(blobs.path()).contains(&claimed));
-    let (code, _, _) = http(port, "HEAD", &format!("/v1/blobs/{claimed}"), &as_api, b"").await?;
+    let (code, _, _) = http(
+        port,
+        "HEAD",
+        &format!("/v1/blobs/{claimed}?namespace={ns}"),
+        &as_api,
+        b"",
+    )
+    .await?;
     assert_eq!(code, 404);
 
     // Bad digests, oversized blobs, and uploads without the API token.
-    let (code, _, body) = http(port, "PUT", "/v1/blobs/sha256:XYZ", &as_api, b"x").await?;
+    let (code, _, body) = http(
+        port,
+        "PUT",
+        &format!("/v1/blobs/sha256:XYZ?namespace={ns}"),
+        &as_api,
+        b"x",
+    )
+    .await?;
     assert_eq!(code, 400);
     assert!(
         json(&body)["message"]
@@ -424,7 +439,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     let (code, _, body) = http(
         port,
         "PUT",
-        &format!("/v1/blobs/{big}"),
+        &format!("/v1/blobs/{big}?namespace={ns}"),
         &[
             ("authorization", &auth),
             ("content-range", "bytes 0-9/2000000"),
@@ -436,7 +451,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     let (code, _, _) = http(
         port,
         "PUT",
-        &format!("/v1/blobs/{big}"),
+        &format!("/v1/blobs/{big}?namespace={ns}"),
         &[("authorization", "Bearer lka_wrong")],
         b"big",
     )
@@ -444,7 +459,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     assert_eq!(code, 401);
     assert!(!stored(blobs.path()).contains(&big));
 
-    // The API token Secret is kept across restarts.
+    // The same Kubernetes token still works after a restart.
     op.restart()?;
     op.wait_ready().await?;
     assert_eq!(api_token(&client, &ns).await?, token);
@@ -474,7 +489,7 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
 
     let content: Vec<u8> = (0..200_000u32).map(|i| (i % 241) as u8).collect();
     let d = digest(&content);
-    let path = format!("/v1/blobs/{d}");
+    let path = format!("/v1/blobs/{d}?namespace={ns}");
     let (code, _, _) = http(port, "PUT", &path, &as_api, &content).await?;
     assert_eq!(code, 201);
 
@@ -594,7 +609,7 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
     let (code, _, body) = http(
         port,
         "GET",
-        &format!("/v1/releases/{unknown}"),
+        &format!("/v1/releases/{unknown}?namespace={ns}"),
         &as_robot,
         b"",
     )
@@ -602,7 +617,14 @@ async fn robots_download_with_their_own_token_and_ranges() -> anyhow::Result<()>
     assert_eq!(code, 404);
     let want = format!("release {unknown} not found: push it with kubectl lekiwi release push");
     assert_eq!(json(&body)["message"], want.as_str());
-    let (code, _, body) = http(port, "GET", &format!("/v1/releases/{d}"), &as_robot, b"").await?;
+    let (code, _, body) = http(
+        port,
+        "GET",
+        &format!("/v1/releases/{d}?namespace={ns}"),
+        &as_robot,
+        b"",
+    )
+    .await?;
     assert_eq!(code, 422);
     assert!(
         json(&body)["message"]
@@ -654,7 +676,7 @@ async fn name_release(
     )
     .to_bytes();
     let md = digest(&manifest);
-    let path = format!("/v1/blobs/{md}");
+    let path = format!("/v1/blobs/{md}?namespace={ns}");
     let (code, _, _) = http(
         op.gateway_port,
         "PUT",

@@ -7,8 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
 
-use anyhow::{Context as _, bail};
-use k8s_openapi::api::core::v1::Secret;
+use anyhow::bail;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use kube::{Api, Client};
@@ -66,7 +65,7 @@ impl Site {
             dir.to_str().unwrap(),
             "--version",
             version,
-            "--operator-namespace",
+            "-n",
             &self.ns,
             "--server",
             &server,
@@ -184,22 +183,10 @@ impl Site {
         Ok(by)
     }
 
-    async fn api_token(&self) -> anyhow::Result<String> {
-        let s = Api::<Secret>::namespaced(self.client.clone(), &self.ns)
-            .get("lekiwi-api")
-            .await?;
-        Ok(String::from_utf8(
-            s.data
-                .context("no data")?
-                .remove("token")
-                .context("no token")?
-                .0,
-        )?)
-    }
-
     /// Bytes the gateway served to one robot, counted by the gateway.
     async fn bytes_served(&self, robot: &str) -> anyhow::Result<u64> {
-        let token = self.api_token().await?;
+        // A Kubernetes user's token (the admin's: RBAC allows it `get robots`).
+        let token = ControlPlane::shared().admin_token()?;
         let (code, _, body) = http_get_with(
             self.op.gateway_port,
             &format!("/v1/blobs-served?robot={}/{robot}", self.ns),

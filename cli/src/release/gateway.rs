@@ -1,23 +1,23 @@
-//! The gateway's release API as the CLI uses it: the API token from its Secret, requests that
+//! The gateway's release API as the CLI uses it: the user's Kubernetes token, requests that
 //! retry transient failures, and the answers about blobs, uploads and releases.
 
 use std::time::Duration;
 
 use anyhow::{Context as _, bail};
-use k8s_openapi::api::core::v1::Secret;
-use kube::Api;
 use lekiwi_protocol::release::{ReleaseManifest, blob_path};
 use reqwest::{Method, StatusCode};
 use serde::{Deserialize, Serialize};
 
 use super::ServerArgs;
 
-/// The gateway's HTTP API with the API token.
+/// The gateway's HTTP API with the user's Kubernetes token.
 pub(crate) struct Gateway {
     http: reqwest::Client,
     /// Base URL, without a trailing `/`.
     pub(crate) base: String,
     token: String,
+    /// The namespace requests act in (`?namespace=`), when the routes want it.
+    namespace: Option<String>,
 }
 
 /// An error answer of the gateway.
@@ -75,12 +75,21 @@ pub(crate) async fn message(resp: reqwest::Response) -> String {
 }
 
 impl Gateway {
-    /// Reads the API token and builds the HTTP client (trusting `--certificate-authority`);
-    /// refuses plain `http://` to another host first (see [`ServerArgs::check_transport`]).
-    pub(crate) async fn connect(client: kube::Client, server: &ServerArgs) -> anyhow::Result<Self> {
-        // Before anything is read or sent: the token must not cross the network in clear.
+    /// Builds the HTTP client (trusting `--certificate-authority`) with `--token` or the
+    /// kubeconfig user's token, its requests naming `namespace`; refuses plain `http://` to
+    /// another host first (see [`ServerArgs::check_transport`]).
+    pub(crate) fn connect(
+        kube: &crate::KubeContext,
+        server: &ServerArgs,
+        namespace: Option<&str>,
+    ) -> anyhow::Result<Self> {
+        // Before anything is sent: the token must not cross the network in clear.
         server.check_transport()?;
-        let token = api_token(client, &server.operator_namespace, &server.token_secret).await?;
+        let token = match (&server.token, &kube.bearer) {
+            (Some(token), _) => token.trim().to_owned(),
+            (None, Ok(token)) => token.clone(),
+            (None, Err(why)) => bail!("{why}"),
+        };
         let mut http = reqwest::Client::builder()
             .connect_timeout(Duration::from_secs(10))
             .read_timeout(Duration::from_secs(120));
@@ -95,14 +104,20 @@ impl Gateway {
             http: http.build()?,
             base: server.server.trim_end_matches('/').to_owned(),
             token,
+            namespace: namespace.map(str::to_owned),
         })
     }
 
-    /// A request to `path` on the gateway, with the API token.
+    /// A request to `path` on the gateway, with the token (and the namespace, if any).
     pub(crate) fn request(&self, method: Method, path: &str) -> reqwest::RequestBuilder {
-        self.http
+        let request = self
+            .http
             .request(method, format!("{}{path}", self.base))
-            .bearer_auth(&self.token)
+            .bearer_auth(&self.token);
+        match &self.namespace {
+            Some(ns) => request.query(&[("namespace", ns)]),
+            None => request,
+        }
     }
 
     /// Sends a request that is safe to repeat, retrying transient failures.
@@ -143,10 +158,14 @@ impl Gateway {
         match resp.status() {
             StatusCode::OK => Ok(true),
             StatusCode::NOT_FOUND => Ok(false),
-            StatusCode::UNAUTHORIZED => bail!(
-                "the gateway at {} refused the API token (401): is --server the gateway of the operator in --operator-namespace?",
-                self.base
-            ),
+            StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
+                // A HEAD answer has no body: name the permission here.
+                let ns = self.namespace.as_deref().unwrap_or_default();
+                let need = format!(
+                    "pushing needs create and get on releases.fleet.lekiwi.io in namespace {ns}"
+                );
+                bail!("{}", refused(resp, &need).await)
+            }
             s => bail!("checking blob {digest}: the gateway answered {s}"),
         }
     }
@@ -184,28 +203,23 @@ impl Gateway {
     }
 }
 
-/// Reads the API token from its Secret with the user's credentials.
-async fn api_token(client: kube::Client, namespace: &str, name: &str) -> anyhow::Result<String> {
-    let api: Api<Secret> = Api::namespaced(client, namespace);
-    let secret = match api.get_opt(name).await {
-        Ok(Some(s)) => s,
-        Ok(None) => bail!(
-            "Secret {namespace}/{name} with the API token not found: is the LeKiwi operator running in namespace {namespace}? (see --operator-namespace, --token-secret)"
-        ),
-        Err(kube::Error::Api(s)) if s.code == 403 => bail!(
-            "not allowed to read Secret {namespace}/{name}: pushing releases needs `get` on the API token Secret ({})",
-            s.message
-        ),
-        Err(e) => {
-            return Err(e).with_context(|| format!("cannot read Secret {namespace}/{name}"));
-        }
-    };
-    secret
-        .data
-        .as_ref()
-        .and_then(|d| d.get("token"))
-        .and_then(|t| String::from_utf8(t.0.clone()).ok())
-        .map(|t| t.trim().to_owned())
-        .filter(|t| !t.is_empty())
-        .with_context(|| format!("Secret {namespace}/{name} has no data.token"))
+/// What to tell the user when the gateway refused the token (401) or the permission (403);
+/// `need` says what the request needs when the answer has no message (a `HEAD`).
+pub(crate) async fn refused(resp: reqwest::Response, need: &str) -> String {
+    let status = resp.status();
+    let mut text = message(resp).await;
+    if text == status.to_string() {
+        text = need.to_owned();
+    }
+    if status == StatusCode::UNAUTHORIZED {
+        format!(
+            "the gateway refused the token (401: {text}): the API server does not accept it; \
+             pass --token with a valid token (e.g. `kubectl create token SERVICE_ACCOUNT`)"
+        )
+    } else {
+        format!(
+            "the gateway refused the request (403 Forbidden: {text}): ask for an RBAC binding \
+             (e.g. to the ClusterRole lekiwi-release-pusher or lekiwi-viewer)"
+        )
+    }
 }

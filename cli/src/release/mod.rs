@@ -6,7 +6,8 @@
 //! uploads the missing ones a few at a time in chunks (`PUT` with `Content-Range`), resuming
 //! from the gateway's offset (`GET /v1/uploads/{digest}`) after a failure, uploads the manifest
 //! last and confirms with `GET /v1/releases/{digest}` that nothing is missing. Requests carry the
-//! API token, read from a Secret in the operator's namespace with the user's kube credentials.
+//! user's Kubernetes bearer token (from the kubeconfig, or `--token`) and name the namespace
+//! (`?namespace=`) where RBAC must allow `create` and `get` on `releases.fleet.lekiwi.io`.
 
 mod files;
 mod gateway;
@@ -23,11 +24,11 @@ use crate::Output;
 
 pub use files::{HashedFile, LocalFile, hash_file, walk};
 pub use gateway::ReleaseInfo;
-pub(crate) use gateway::{Gateway, message};
+pub(crate) use gateway::{Gateway, message, refused};
 use push::PushOptions;
 pub use push::{Pushed, human};
 
-/// Where the gateway is and how to get its API token.
+/// Where the gateway is and which Kubernetes token to present to it.
 #[derive(Debug, Args)]
 pub struct ServerArgs {
     /// Base URL of the gateway (the agents' address, over HTTP).
@@ -38,41 +39,35 @@ pub struct ServerArgs {
         default_value = "http://127.0.0.1:8081"
     )]
     pub server: String,
-    /// Namespace of the operator, where the API token Secret lives.
-    #[arg(
-        long,
-        global = true,
-        env = "LEKIWI_OPERATOR_NAMESPACE",
-        default_value = "lekiwi-system"
-    )]
-    pub operator_namespace: String,
-    /// Name of the Secret holding the API token (`data.token`).
-    #[arg(long, global = true, default_value = "lekiwi-api")]
-    pub token_secret: String,
+    /// Kubernetes bearer token to present to the gateway (e.g. from `kubectl create token SA`);
+    /// default: the kubeconfig user's token. The gateway checks it with the API server and
+    /// asks RBAC whether its user may do what the command does.
+    #[arg(long, global = true, env = "LEKIWI_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
     /// PEM file of a CA to trust for an https:// gateway, besides the public roots.
     #[arg(long, global = true)]
     pub certificate_authority: Option<PathBuf>,
-    /// Send the API token over plain http:// to a host other than this machine (anyone on the
-    /// path can read it and push releases to every robot); refused without this flag.
+    /// Send the Kubernetes token over plain http:// to a host other than this machine (anyone
+    /// on the path can read it and act as you in the cluster); refused without this flag.
     #[arg(long, global = true)]
     pub insecure_allow_plaintext: bool,
 }
 
 impl ServerArgs {
     /// Refuses a plain `http://` server on another host unless `--insecure-allow-plaintext`:
-    /// the API token would cross the network readable by anyone on the path.
+    /// the token would cross the network readable by anyone on the path.
     pub fn check_transport(&self) -> anyhow::Result<()> {
         match lekiwi_protocol::transport::plaintext_remote_host(&self.server) {
             Some(host) if !self.insecure_allow_plaintext => anyhow::bail!(
-                "refusing to send the API token over plain http:// to {host} (--server {}): anyone \
-                 on the path could read it and push releases to every robot. Use https:// (with \
+                "refusing to send your Kubernetes token over plain http:// to {host} (--server {}): \
+                 anyone on the path could read it and act as you in the cluster. Use https:// (with \
                  --certificate-authority for the gateway's CA), or on a network you trust pass \
                  --insecure-allow-plaintext",
                 self.server
             ),
             Some(host) => {
                 eprintln!(
-                    "WARNING: sending the API token over plain http:// to {host} (--insecure-allow-plaintext)"
+                    "WARNING: sending your Kubernetes token over plain http:// to {host} (--insecure-allow-plaintext)"
                 );
                 Ok(())
             }
@@ -111,7 +106,7 @@ pub enum ReleaseCommand {
 
 /// Runs a release subcommand.
 pub async fn run(
-    client: kube::Client,
+    kube: &crate::KubeContext,
     server: &ServerArgs,
     output: Output,
     cmd: ReleaseCommand,
@@ -127,11 +122,11 @@ pub async fn run(
                 parallel: parallel.max(1),
                 chunk_bytes: chunk_bytes.max(1),
             };
-            push_dir(client, server, &dir, &version, options).await
+            push_dir(kube, server, &dir, &version, options).await
         }
         ReleaseCommand::Inspect { digest } => {
             digest_hex(&digest)?;
-            let gateway = Gateway::connect(client, server).await?;
+            let gateway = Gateway::connect(kube, server, Some(&kube.namespace))?;
             let info = gateway.release(&digest).await?;
             print!("{}", render(&info, output)?);
             Ok(())
@@ -142,13 +137,13 @@ pub async fn run(
 /// Pushes `dir` as release `version` and prints its digest (on stdout, for scripts) and how to
 /// use it (on stderr).
 async fn push_dir(
-    client: kube::Client,
+    kube: &crate::KubeContext,
     server: &ServerArgs,
     dir: &Path,
     version: &str,
     options: PushOptions,
 ) -> anyhow::Result<()> {
-    // Everything local is checked before the token is read or the gateway asked.
+    // Everything local is checked before the gateway is asked.
     let files = walk(dir)?;
     let hashed = files::hash_all(files).await?;
     let manifest = ReleaseManifest::new(
@@ -158,7 +153,7 @@ async fn push_dir(
     manifest
         .validate()
         .with_context(|| format!("cannot make a release of {}", dir.display()))?;
-    let gateway = Gateway::connect(client, server).await?;
+    let gateway = Gateway::connect(kube, server, Some(&kube.namespace))?;
     let pushed = push::push(&gateway, &manifest, &hashed, options).await?;
     eprintln!("{}", pushed.summary(version));
     eprintln!(

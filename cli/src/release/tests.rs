@@ -97,11 +97,10 @@ fn tables_show_modes_and_short_digests() {
 }
 
 #[test]
-fn the_api_token_goes_in_plain_text_only_to_loopback_or_when_allowed() {
+fn the_token_goes_in_plain_text_only_to_loopback_or_when_allowed() {
     let args = |server: &str, insecure: bool| ServerArgs {
         server: server.to_owned(),
-        operator_namespace: "lekiwi-system".into(),
-        token_secret: "lekiwi-api".into(),
+        token: None,
         certificate_authority: None,
         insecure_allow_plaintext: insecure,
     };

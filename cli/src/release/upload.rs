@@ -10,7 +10,7 @@ use lekiwi_protocol::release::blob_path;
 use reqwest::{Method, StatusCode};
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 
-use super::gateway::{ATTEMPTS, Gateway, UploadAnswer, backoff, message, transient};
+use super::gateway::{ATTEMPTS, Gateway, UploadAnswer, backoff, message, refused, transient};
 
 /// Where a blob's bytes come from.
 #[derive(Clone, Debug)]
@@ -190,6 +190,9 @@ impl Gateway {
                 ))
             }
             s if transient(s) => Answer::Failed(format!("{s}: {}", message(resp).await)),
+            StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
+                bail!("uploading {}: {}", blob.name, refused(resp, "").await)
+            }
             StatusCode::BAD_REQUEST => bail!(
                 "uploading {}: the gateway refused it: {} (did the file change while pushing?)",
                 blob.name,

@@ -1,17 +1,13 @@
 //! Agent authentication: per-robot tokens and fleet enrollment tokens, both kept in Secrets
-//! only as SHA-256 hashes; registration of unknown robots that present an enrollment token; the
-//! API token that release uploads present.
+//! only as SHA-256 hashes; registration of unknown robots that present an enrollment token.
+//! (People and tools authenticate to the HTTP API with Kubernetes tokens: see `kube_auth`.)
 
-use std::collections::BTreeMap;
-
-use k8s_openapi::ByteString;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
-use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
 use kube::runtime::reflector::{ObjectRef, Store};
 use lekiwi_crds::contract::{
     HASH_KEY, KIND_ENROLLMENT, KIND_ROBOT, MAX_ROBOT_NAME_LEN, ROBOT_LABEL, TOKEN_LABEL,
-    hash_token, new_token, robot_secret_name,
+    hash_token, robot_secret_name,
 };
 
 use crate::gateway::enroll;
@@ -299,160 +295,10 @@ impl Authenticator {
     }
 }
 
-/// Key of the API token in its Secret's data.
-pub const API_TOKEN_KEY: &str = "token";
-/// The standard part-of label, set to `lekiwi` on the API token Secret the gateway creates.
-pub const PART_OF_LABEL: &str = "app.kubernetes.io/part-of";
-/// How often a token that does not match may trigger a re-read of the API token Secret.
-const API_TOKEN_REFRESH: std::time::Duration = std::time::Duration::from_secs(5);
-
-/// The API token: a random token in a Secret of the operator's namespace (`data.token`), made
-/// at start when missing and kept when present. Whoever may read that Secret may push
-/// releases. The gateway keeps only its hash and compares in constant time; a token that does
-/// not match makes it re-read the Secret (at most every 5 s), so a rotated or recreated token
-/// works without a restart.
-#[derive(Clone)]
-pub struct ApiToken {
-    inner: std::sync::Arc<ApiTokenInner>,
-}
-
-struct ApiTokenInner {
-    secrets: Api<Secret>,
-    name: String,
-    hash: std::sync::RwLock<Option<Vec<u8>>>,
-    last_read: std::sync::Mutex<Option<std::time::Instant>>,
-}
-
-impl ApiToken {
-    /// The token of Secret `name` in `namespace`; nothing is read until [`Self::refresh`] or
-    /// the first check.
-    pub fn new(client: kube::Client, namespace: &str, name: &str) -> Self {
-        Self {
-            inner: std::sync::Arc::new(ApiTokenInner {
-                secrets: Api::namespaced(client, namespace),
-                name: name.to_owned(),
-                hash: std::sync::RwLock::new(None),
-                last_read: std::sync::Mutex::new(None),
-            }),
-        }
-    }
-
-    /// Ensures the Secret holds a token (creating the Secret or the token if missing) and
-    /// loads it.
-    pub async fn refresh(&self) -> Result<(), kube::Error> {
-        *self
-            .inner
-            .last_read
-            .lock()
-            .unwrap_or_else(|p| p.into_inner()) = Some(std::time::Instant::now());
-        let token = ensure_api_token(&self.inner.secrets, &self.inner.name).await?;
-        *self.inner.hash.write().unwrap_or_else(|p| p.into_inner()) =
-            Some(hash_token(&token).into_bytes());
-        Ok(())
-    }
-
-    fn matches(&self, token: &str) -> bool {
-        let hash = hash_token(token);
-        self.inner
-            .hash
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .as_deref()
-            .is_some_and(|h| same_hash(h, hash.as_bytes()))
-    }
-
-    /// Whether `token` is the API token.
-    pub async fn check(&self, token: &str) -> bool {
-        if token.is_empty() {
-            return false;
-        }
-        if self.matches(token) {
-            return true;
-        }
-        let stale = {
-            let mut last = self
-                .inner
-                .last_read
-                .lock()
-                .unwrap_or_else(|p| p.into_inner());
-            let stale = last.is_none_or(|t| t.elapsed() >= API_TOKEN_REFRESH);
-            if stale {
-                // Claim the refresh so concurrent refusals do not all read the Secret.
-                *last = Some(std::time::Instant::now());
-            }
-            stale
-        };
-        if stale {
-            if let Err(e) = self.refresh().await {
-                tracing::warn!(secret = %self.inner.name, error = %e, "cannot read the API token Secret");
-                return false;
-            }
-            return self.matches(token);
-        }
-        false
-    }
-}
-
-/// Returns the API token in Secret `name`, creating the Secret (or its token) if missing.
-pub async fn ensure_api_token(secrets: &Api<Secret>, name: &str) -> Result<String, kube::Error> {
-    let token_of = |s: &Secret| {
-        s.data
-            .as_ref()?
-            .get(API_TOKEN_KEY)
-            .and_then(|b| String::from_utf8(b.0.clone()).ok())
-            .map(|t| t.trim().to_owned())
-            .filter(|t| !t.is_empty())
-    };
-    if let Some(existing) = secrets.get_opt(name).await? {
-        if let Some(token) = token_of(&existing) {
-            return Ok(token);
-        }
-        let token = new_token("lka_");
-        let patch = serde_json::json!({
-            "metadata": { "labels": { PART_OF_LABEL: "lekiwi" } },
-            "data": { API_TOKEN_KEY: ByteString(token.clone().into_bytes()) },
-        });
-        let patched = secrets
-            .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
-            .await?;
-        return Ok(token_of(&patched).unwrap_or(token));
-    }
-    let token = new_token("lka_");
-    let secret = Secret {
-        metadata: ObjectMeta {
-            name: Some(name.to_owned()),
-            labels: Some(BTreeMap::from([(
-                PART_OF_LABEL.to_owned(),
-                "lekiwi".to_owned(),
-            )])),
-            ..ObjectMeta::default()
-        },
-        data: Some(BTreeMap::from([(
-            API_TOKEN_KEY.to_owned(),
-            ByteString(token.clone().into_bytes()),
-        )])),
-        type_: Some("Opaque".to_owned()),
-        ..Secret::default()
-    };
-    match secrets.create(&PostParams::default(), &secret).await {
-        Ok(_) => Ok(token),
-        // Another replica created it a moment ago: use theirs.
-        Err(kube::Error::Api(s)) if s.code == 409 => {
-            let existing = secrets.get(name).await?;
-            token_of(&existing).ok_or_else(|| {
-                kube::Error::Api(Box::new(kube::core::Status::failure(
-                    &format!("Secret {name} has no {API_TOKEN_KEY}"),
-                    "Invalid",
-                )))
-            })
-        }
-        Err(e) => Err(e),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use lekiwi_crds::contract::new_token;
 
     #[test]
     fn robot_header_forms() {

@@ -1,5 +1,6 @@
-//! Read-only HTTP access to a robot's stored events for `kubectl lekiwi events`, with the API
-//! token (the same check as the blob API's uploads).
+//! Read-only HTTP access to a robot's stored events for `kubectl lekiwi events`, for a
+//! Kubernetes user RBAC allows `get` on `robots/events` (group `fleet.lekiwi.io`) in the robot's
+//! namespace (see [`super::kube_auth`]).
 
 use axum::Json;
 use axum::Router;
@@ -8,8 +9,9 @@ use axum::http::HeaderMap;
 use axum::routing::get;
 use serde::Deserialize;
 
-use super::auth::{Refusal, valid_name};
-use super::{ApiError, AppState, bearer};
+use super::auth::valid_name;
+use super::kube_auth::Access;
+use super::{ApiError, AppState};
 use crate::gateway::event_store::{RobotKey, StoredEvent};
 
 /// Events answered per request unless the query says otherwise.
@@ -39,17 +41,17 @@ async fn events(
     Query(query): Query<EventsQuery>,
     headers: HeaderMap,
 ) -> Result<Json<Vec<StoredEvent>>, ApiError> {
-    let Some(token) = bearer(&headers).filter(|t| !t.is_empty()) else {
-        return Err(state.refused(Refusal::MissingToken));
-    };
-    if !state.blobs.api_token.check(token).await {
-        return Err(state.refused(Refusal::WrongToken));
-    }
     if !valid_name(&namespace) || !valid_name(&name) {
         return Err(ApiError::BadRequest(format!(
             "{namespace}/{name} is not a valid robot name"
         )));
     }
+    let access = Access {
+        subresource: Some("events"),
+        name: Some(name.clone()),
+        ..Access::new("get", "robots", &namespace)
+    };
+    state.check_user(&headers, Some(access)).await?;
     let limit = query.limit.unwrap_or(DEFAULT_LIMIT).clamp(1, MAX_LIMIT);
     let robot = RobotKey::new(namespace, name);
     let events = state

@@ -31,6 +31,15 @@ pub struct WriteLabels {
     pub result: &'static str,
 }
 
+/// Labels of the API server reviews the gateway makes for its HTTP API.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ReviewLabels {
+    /// `token_review` or `access_review`.
+    pub kind: &'static str,
+    /// `accepted`, `refused` (tokens), `allowed`, `denied` (access) or `error`.
+    pub result: &'static str,
+}
+
 /// What the gateway exports.
 #[derive(Clone)]
 pub struct GatewayMetrics {
@@ -67,6 +76,10 @@ pub struct GatewayMetrics {
     /// (`per_address_limit`, `unauthenticated_limit`, `tls_handshake`, `header_timeout`,
     /// `header_too_large`).
     pub connections_dropped: Family<KindLabels, Counter>,
+    /// TokenReviews and SubjectAccessReviews made for the HTTP API, by kind and result.
+    pub kube_reviews: Family<ReviewLabels, Counter>,
+    /// Reviews answered from the gateway's cache instead, by kind.
+    pub kube_review_cache_hits: Family<KindLabels, Counter>,
 }
 
 impl GatewayMetrics {
@@ -130,6 +143,14 @@ impl GatewayMetrics {
             connections_dropped: r.add(
                 "lekiwi_gateway_connections_dropped",
                 "Gateway connections closed before or without an authenticated request, by why",
+            ),
+            kube_reviews: r.add(
+                "lekiwi_gateway_kube_reviews",
+                "TokenReviews and SubjectAccessReviews made for the HTTP API, by kind and result",
+            ),
+            kube_review_cache_hits: r.add(
+                "lekiwi_gateway_kube_review_cache_hits",
+                "API server reviews answered from the gateway's cache, by kind",
             ),
         }
     }

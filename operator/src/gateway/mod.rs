@@ -10,6 +10,7 @@ pub mod dispatch;
 pub mod enroll;
 pub mod event_store;
 pub mod events_api;
+pub mod kube_auth;
 pub mod lease;
 pub mod listener;
 pub mod lookup;
@@ -124,7 +125,7 @@ pub struct AppState {
     pub poll_memo: Arc<poll::PollMemo>,
     /// One permit per open WebSocket connection; none left means 503.
     pub connections: Arc<Semaphore>,
-    /// Release blobs, uploads and the API token.
+    /// Release blobs, uploads and the Kubernetes checks of people's requests.
     pub blobs: Arc<blob_api::BlobApi>,
 }
 
@@ -162,6 +163,41 @@ impl AppState {
 }
 
 impl AppState {
+    /// Lets a person's or tool's request through when the API server accepts its bearer token
+    /// and RBAC allows `access` (see [`kube_auth`]): 401 for a token the API server refuses,
+    /// 403 naming the missing permission, 400 when the request names no namespace (`None`).
+    pub async fn check_user(
+        &self,
+        headers: &HeaderMap,
+        access: Option<kube_auth::Access>,
+    ) -> Result<(), ApiError> {
+        let Some(token) = bearer(headers).filter(|t| !t.is_empty()) else {
+            return Err(self.refused(Refusal::MissingToken));
+        };
+        let Some(access) = access else {
+            return Err(ApiError::BadRequest(
+                "name the namespace: ?namespace=NAME".into(),
+            ));
+        };
+        match self.blobs.kube_auth.check(token, &access).await {
+            Ok(()) => Ok(()),
+            Err(kube_auth::Denied::Unauthenticated) => Err(self.refused(Refusal::WrongToken)),
+            Err(kube_auth::Denied::Forbidden(permission)) => {
+                self.shared
+                    .metrics
+                    .gateway
+                    .refused
+                    .get_or_create(&KindLabels { kind: "forbidden" })
+                    .inc();
+                Err(ApiError::Forbidden(format!(
+                    "forbidden: this needs {permission}"
+                )))
+            }
+            Err(kube_auth::Denied::Unavailable(detail)) => Err(ApiError::Internal(detail)),
+            Err(kube_auth::Denied::Throttled) => Err(self.refused(Refusal::Throttled)),
+        }
+    }
+
     /// Refuses (403) an enrollment token for a robot that has its own token and no permission
     /// to enroll again, before the upgrade.
     async fn may_enroll(&self, robot: &RobotKey) -> Result<(), ApiError> {

@@ -20,8 +20,9 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use super::auth::{self, Authenticator};
+use super::auth::Authenticator;
 use super::blob_store::BlobStore;
+use super::kube_auth::KubeAuth;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
 use super::presence::{Presence, PresenceConfig};
@@ -33,12 +34,12 @@ use crate::error::{Error, Result};
 use crate::gateway::event_store::Store;
 use crate::metrics::{KindLabels, Metrics};
 
-/// The blob routes' state: the store's directories and the API token Secret are made now when
-/// possible; if not, the gateway still serves agents and the blob routes retry (uploads answer
-/// 500, a missing token Secret is made at the next API-token request).
+/// The blob routes' state: the store's directories are made now when possible; if not, the
+/// gateway still serves agents and uploads answer 500 until they can be made.
 async fn blob_api_state(
     config: &Config,
     client: &kube::Client,
+    metrics: &Metrics,
     cancel: CancellationToken,
 ) -> blob_api::BlobApi {
     let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes);
@@ -51,16 +52,13 @@ async fn blob_api_state(
         Duration::from_secs(config.stale_upload_hours.saturating_mul(3600)),
         cancel,
     ));
-    let token = auth::ApiToken::new(client.clone(), &config.namespace, &config.api_token_secret);
-    if let Err(e) = token.refresh().await {
-        warn!(
-            secret = %config.api_token_secret,
-            namespace = %config.namespace,
-            error = %e,
-            "cannot read or create the API token Secret; retrying on use"
-        );
-    }
-    blob_api::BlobApi::new(store, token)
+    let kube_auth = KubeAuth::new(
+        client.clone(),
+        metrics.gateway.clone(),
+        config.auth_lookup_qps,
+        config.auth_lookup_burst,
+    );
+    blob_api::BlobApi::new(store, kube_auth)
 }
 
 /// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
@@ -115,7 +113,7 @@ pub async fn run(
             .with_lookups(lookups(&config, &metrics)),
         registry,
         limits: limits(&config),
-        metrics,
+        metrics: metrics.clone(),
         gateway: name.clone(),
         cancel: cancel.clone(),
         desired: Some(desired),
@@ -125,7 +123,7 @@ pub async fn run(
         client: client.clone(),
         poll_memo: Arc::default(),
         connections: Arc::new(Semaphore::new(config.max_connections)),
-        blobs: Arc::new(blob_api_state(&config, &client, cancel.clone()).await),
+        blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
     };
     close_stale_connections(&store, &name).await;
     let mut tasks = start_background(&config, &name, &client, &presence, &store, &cancel);

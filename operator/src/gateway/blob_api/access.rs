@@ -1,6 +1,6 @@
 //! Which blobs a robot may read: the release manifests that Robots of its own namespace name in
 //! `spec.release` (as the gateway's Robot watch last saw them), and the files those manifests
-//! list. The API token reads every blob.
+//! list. A Kubernetes user RBAC allowed `get releases` reads every blob.
 //!
 //! A check costs no API request: the namespace's releases come from the Robot watch's cache and
 //! a manifest's file list is read from the blob store once, then kept (a manifest never changes:
@@ -76,8 +76,8 @@ impl ManifestFiles {
     }
 }
 
-/// Whether `caller` may read `digest`: the API token always, a robot when a release of its
-/// namespace references the blob. A refusal is counted as
+/// Whether `caller` may read `digest`: an allowed Kubernetes user always, a robot when a release
+/// of its namespace references the blob. A refusal is counted as
 /// `lekiwi_gateway_refused_total{kind="blob_not_referenced"}`; the caller answers it as an
 /// unknown digest (404), so a robot learns nothing of other namespaces' blobs.
 pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) -> bool {

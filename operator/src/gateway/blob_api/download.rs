@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::task::{Context, Poll};
 
 use axum::body::{Body, Bytes};
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use futures::Stream;
@@ -16,7 +16,8 @@ use tokio_util::io::ReaderStream;
 use tracing::{Instrument, debug, info_span};
 
 use super::{
-    BlobApi, Caller, Failure, access, authorize, check_digest, failure, not_found, store_failure,
+    BlobApi, Caller, Failure, InNamespace, access, authorize, check_digest, failure, not_found,
+    store_failure,
 };
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::{ApiError, AppState};
@@ -98,9 +99,10 @@ fn blob_headers(digest: &str, len: u64) -> HeaderMap {
 pub(super) async fn head_blob(
     State(state): State<AppState>,
     Path(digest): Path<String>,
+    Query(ns): Query<InNamespace>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
-    let caller = authorize(&state, &headers, true).await?;
+    let caller = authorize(&state, &headers, true, ns.releases("get")).await?;
     check_digest(&digest)?;
     if !access::may_read(&state, &caller, &digest).await {
         return Ok(StatusCode::NOT_FOUND.into_response());
@@ -116,9 +118,10 @@ pub(super) async fn head_blob(
 pub(super) async fn get_blob(
     State(state): State<AppState>,
     Path(digest): Path<String>,
+    Query(ns): Query<InNamespace>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
-    let caller = authorize(&state, &headers, true).await?;
+    let caller = authorize(&state, &headers, true, ns.releases("get")).await?;
     let span = info_span!("blob_download", robot = %caller.name(), %digest);
     async move {
         check_digest(&digest)?;
@@ -164,7 +167,7 @@ pub(super) async fn get_blob(
                 state.blobs.record(key, 0, 1);
                 Some(key.clone())
             }
-            Caller::Api => None,
+            Caller::User => None,
         };
         let stream = Counted {
             inner: ReaderStream::with_capacity(file.take(len), READ_CHUNK),

@@ -1,15 +1,15 @@
-//! Release blobs over HTTP on the gateway's listener: robots (with their own token) and the
-//! release CLI (with the API token) download blobs and manifests, resuming by byte range; the
-//! CLI uploads blobs in verified, resumable chunks with the API token.
+//! Release blobs over HTTP on the gateway's listener: robots (with their own token) download
+//! blobs and manifests, resuming by byte range; people and tools (the release CLI, with a
+//! Kubernetes bearer token) upload blobs in verified, resumable chunks and read them back.
 //!
-//! | Route | Who | Answers |
+//! | Route | Who (permission of a Kubernetes user) | Answers |
 //! |---|---|---|
-//! | `HEAD /v1/blobs/{digest}` | robot, API | 200 with `Content-Length`, 404 |
-//! | `GET /v1/blobs/{digest}` | robot, API | 200, 206 for `Range: bytes=N-[M]`, 404, 416 |
-//! | `PUT /v1/blobs/{digest}` | API | 201 stored, 202 `{"offset"}` chunk taken, 200 already stored, 409 `{"offset"}` wrong offset, 400 digest mismatch or bad request, 413 too large |
-//! | `GET /v1/uploads/{digest}` | API | `{"offset", "complete"}` |
-//! | `GET /v1/releases/{digest}` | robot, API | manifest + `"missing"`, 404, 422 not a manifest |
-//! | `GET /v1/blobs-served[?robot=ns/name]` | API | bytes and downloads served per robot |
+//! | `HEAD /v1/blobs/{digest}?namespace=NS` | robot; user: `get releases` | 200 with `Content-Length`, 404 |
+//! | `GET /v1/blobs/{digest}?namespace=NS` | robot; user: `get releases` | 200, 206 for `Range: bytes=N-[M]`, 404, 416 |
+//! | `PUT /v1/blobs/{digest}?namespace=NS` | user: `create releases` | 201 stored, 202 `{"offset"}` chunk taken, 200 already stored, 409 `{"offset"}` wrong offset, 400 digest mismatch or bad request, 413 too large |
+//! | `GET /v1/uploads/{digest}?namespace=NS` | user: `create releases` | `{"offset", "complete"}` |
+//! | `GET /v1/releases/{digest}?namespace=NS` | robot; user: `get releases` | manifest + `"missing"`, 404, 422 not a manifest |
+//! | `GET /v1/blobs-served[?robot=ns/name]` | user: `get robots` in the robot's namespace (`list robots` in all namespaces without `robot`) | bytes and downloads served per robot |
 //!
 //! A `PUT` without `Content-Range` is the whole blob (any partial upload is discarded); with
 //! `Content-Range: bytes START-END/TOTAL` it is one chunk, which must start at the upload's
@@ -18,8 +18,11 @@
 //! SHA-256 matched.
 //!
 //! A robot authenticates as on the WebSocket (`Authorization: Bearer <robot token>` and
-//! `x-lekiwi-robot: namespace/name`; an enrollment token is refused); a request without the robot
-//! header must carry the API token. A robot reads only the blobs its namespace's releases
+//! `x-lekiwi-robot: namespace/name`; an enrollment token is refused). A request without the robot
+//! header carries a bearer token the API server accepts and names the namespace it acts in
+//! (`?namespace=`, 400 without); RBAC must allow the permission above on the group
+//! `fleet.lekiwi.io` there (see [`super::kube_auth`]; 401 for a refused token, 403 naming the
+//! permission). A robot reads only the blobs its namespace's releases
 //! reference (see [`access`]); any other digest is answered as unknown (404). Bytes served are counted as they are sent: in
 //! `lekiwi_gateway_blob_bytes_served_total`, per robot in memory (`/v1/blobs-served`, since this
 //! process started) and in a debug log line `blob download finished` per request with `robot`
@@ -47,7 +50,8 @@ use tracing::{debug, warn};
 
 use self::download::{get_blob, head_blob};
 use self::upload::put_blob;
-use super::auth::{ApiToken, Grant, Refusal, parse_robot};
+use super::auth::{Grant, Refusal, parse_robot};
+use super::kube_auth::{Access, KubeAuth};
 use super::{ApiError, AppState, bearer};
 use crate::gateway::blob_store::{BlobStore, Error as StoreError};
 use crate::gateway::event_store::RobotKey;
@@ -57,8 +61,8 @@ use crate::metrics::KindLabels;
 pub struct BlobApi {
     /// Where blobs and partial uploads live on disk.
     pub store: BlobStore,
-    /// The API token uploads present.
-    pub api_token: ApiToken,
+    /// Checks people's and tools' bearer tokens and permissions with the API server.
+    pub kube_auth: KubeAuth,
     /// File lists of the release manifests robots' reads were checked against.
     manifests: access::ManifestFiles,
     served: Mutex<HashMap<RobotKey, Served>>,
@@ -75,10 +79,10 @@ pub struct Served {
 
 impl BlobApi {
     /// The routes' shared state.
-    pub fn new(store: BlobStore, api_token: ApiToken) -> Self {
+    pub fn new(store: BlobStore, kube_auth: KubeAuth) -> Self {
         Self {
             store,
-            api_token,
+            kube_auth,
             manifests: access::ManifestFiles::default(),
             served: Mutex::default(),
         }
@@ -187,8 +191,8 @@ fn store_failure(e: StoreError) -> Failure {
 /// Who is asking.
 #[derive(Clone, Debug, PartialEq, Eq)]
 enum Caller {
-    /// The API token (the release CLI).
-    Api,
+    /// A Kubernetes user RBAC allowed (the release CLI).
+    User,
     /// A robot with its own token.
     Robot(RobotKey),
 }
@@ -196,15 +200,34 @@ enum Caller {
 impl Caller {
     fn name(&self) -> String {
         match self {
-            Caller::Api => "api".to_owned(),
+            Caller::User => "user".to_owned(),
             Caller::Robot(k) => k.to_string(),
         }
     }
 }
 
-/// Authenticates a request: with the robot header as a robot (when `robots` allows), else by
-/// the API token.
-async fn authorize(state: &AppState, headers: &HeaderMap, robots: bool) -> Result<Caller, Failure> {
+/// The namespace a user's request acts in (`?namespace=`).
+#[derive(Debug, Default, Deserialize)]
+struct InNamespace {
+    namespace: Option<String>,
+}
+
+impl InNamespace {
+    /// `verb` on `releases` in the named namespace; `None` (a 400) when none is named.
+    fn releases(&self, verb: &'static str) -> Option<Access> {
+        let ns = self.namespace.as_deref().filter(|n| !n.is_empty())?;
+        Some(Access::new(verb, "releases", ns))
+    }
+}
+
+/// Authenticates a request: with the robot header as a robot (when `robots` allows), else as a
+/// Kubernetes user who must be allowed `access` (see [`AppState::check_user`]).
+async fn authorize(
+    state: &AppState,
+    headers: &HeaderMap,
+    robots: bool,
+    access: Option<Access>,
+) -> Result<Caller, Failure> {
     let Some(token) = bearer(headers).filter(|t| !t.is_empty()) else {
         return Err(state.refused(Refusal::MissingToken).into());
     };
@@ -236,11 +259,8 @@ async fn authorize(state: &AppState, headers: &HeaderMap, robots: bool) -> Resul
             Err(r) => Err(state.refused(r).into()),
         };
     }
-    if state.blobs.api_token.check(token).await {
-        Ok(Caller::Api)
-    } else {
-        Err(state.refused(Refusal::WrongToken).into())
-    }
+    state.check_user(headers, access).await?;
+    Ok(Caller::User)
 }
 
 fn check_digest(digest: &str) -> Result<(), Failure> {
@@ -262,9 +282,10 @@ fn not_found(digest: &str) -> Failure {
 async fn upload_status(
     State(state): State<AppState>,
     Path(digest): Path<String>,
+    Query(ns): Query<InNamespace>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
-    authorize(&state, &headers, false).await?;
+    authorize(&state, &headers, false, ns.releases("create")).await?;
     check_digest(&digest)?;
     let store = &state.blobs.store;
     let (offset, complete) = match store.stat(&digest).await.map_err(store_failure)? {
@@ -284,9 +305,10 @@ async fn upload_status(
 async fn get_release(
     State(state): State<AppState>,
     Path(digest): Path<String>,
+    Query(ns): Query<InNamespace>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
-    let caller = authorize(&state, &headers, true).await?;
+    let caller = authorize(&state, &headers, true, ns.releases("get")).await?;
     check_digest(&digest)?;
     // A release of another namespace is answered as an unknown one.
     let found = if access::may_read(&state, &caller, &digest).await {
@@ -325,19 +347,33 @@ async fn blobs_served(
     Query(q): Query<ServedQuery>,
     headers: HeaderMap,
 ) -> Result<Response, Failure> {
-    authorize(&state, &headers, false).await?;
-    if let Some(robot) = q.robot {
-        let Some((Some(namespace), name)) = parse_robot(&robot) else {
-            return Err(
-                ApiError::BadRequest("robot must be given as namespace/name".into()).into(),
-            );
-        };
-        let served = state.blobs.served(&RobotKey::new(namespace, name));
-        return Ok(json_response(
-            StatusCode::OK,
-            json!({ "robot": robot, "bytes": served.bytes, "downloads": served.downloads }),
-        ));
-    }
+    let Some(robot) = q.robot else {
+        authorize(
+            &state,
+            &headers,
+            false,
+            Some(Access::new("list", "robots", "")),
+        )
+        .await?;
+        return Ok(all_served(&state));
+    };
+    let Some((Some(namespace), name)) = parse_robot(&robot) else {
+        return Err(ApiError::BadRequest("robot must be given as namespace/name".into()).into());
+    };
+    let access = Access {
+        name: Some(name.clone()),
+        ..Access::new("get", "robots", &namespace)
+    };
+    authorize(&state, &headers, false, Some(access)).await?;
+    let served = state.blobs.served(&RobotKey::new(namespace, name));
+    Ok(json_response(
+        StatusCode::OK,
+        json!({ "robot": robot, "bytes": served.bytes, "downloads": served.downloads }),
+    ))
+}
+
+/// Every robot's bytes and downloads served.
+fn all_served(state: &AppState) -> Response {
     let all: BTreeMap<String, Served> = state
         .blobs
         .served
@@ -346,5 +382,5 @@ async fn blobs_served(
         .iter()
         .map(|(k, v)| (k.to_string(), *v))
         .collect();
-    Ok(json_response(StatusCode::OK, json!({ "robots": all })))
+    json_response(StatusCode::OK, json!({ "robots": all }))
 }

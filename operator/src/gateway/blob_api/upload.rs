@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use axum::body::Body;
-use axum::extract::{Path, State};
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::Response;
 use futures::StreamExt;
@@ -13,7 +13,7 @@ use lekiwi_protocol::release::digest_hex;
 use serde_json::json;
 use tracing::{Instrument, debug, info_span};
 
-use super::{Failure, authorize, json_response, store_failure};
+use super::{Failure, InNamespace, authorize, json_response, store_failure};
 use crate::gateway::AppState;
 use crate::gateway::blob_store::{Error as StoreError, UploadState};
 use crate::metrics::KindLabels;
@@ -39,10 +39,11 @@ pub(super) fn parse_content_range(value: &str) -> Option<(u64, Option<u64>, u64)
 pub(super) async fn put_blob(
     State(state): State<AppState>,
     Path(digest): Path<String>,
+    Query(ns): Query<InNamespace>,
     headers: HeaderMap,
     body: Body,
 ) -> Result<Response, Failure> {
-    authorize(&state, &headers, false).await?;
+    authorize(&state, &headers, false, ns.releases("create")).await?;
     let span = info_span!("blob_upload", %digest);
     async move {
         let metrics = &state.shared.metrics;
