@@ -31,6 +31,13 @@ pub struct WriteLabels {
     pub result: &'static str,
 }
 
+/// Labels of refused durable messages.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ReasonLabels {
+    /// Why it was not stored: `quota_rows` or `quota_bytes`.
+    pub reason: &'static str,
+}
+
 /// What the gateway exports.
 #[derive(Clone)]
 pub struct GatewayMetrics {
@@ -46,6 +53,8 @@ pub struct GatewayMetrics {
     pub errors: Family<KindLabels, Counter>,
     /// Durable messages acknowledged, `stored` or `replay`.
     pub durable: Family<KindLabels, Counter>,
+    /// Durable messages refused and never stored, by reason (`quota_rows`, `quota_bytes`).
+    pub events_refused: Family<ReasonLabels, Counter>,
     /// Heartbeat round-trip time the agents report.
     pub heartbeat_rtt: Histogram,
     /// Robots waiting for a status write, by priority.
@@ -86,6 +95,10 @@ impl GatewayMetrics {
             durable: r.add(
                 "lekiwi_gateway_durable_messages",
                 "Durable agent messages acknowledged, stored or replay",
+            ),
+            events_refused: r.add(
+                "lekiwi_gateway_events_refused",
+                "Durable agent messages refused and not stored, by reason (per-robot quota)",
             ),
             heartbeat_rtt: r.with(
                 "lekiwi_gateway_heartbeat_rtt_seconds",

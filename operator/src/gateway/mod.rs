@@ -14,6 +14,7 @@ pub mod lease;
 pub mod metrics;
 pub mod poll;
 pub mod presence;
+pub mod quota_warnings;
 pub mod rate;
 pub mod registry;
 pub mod server;

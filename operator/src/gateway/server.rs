@@ -21,6 +21,7 @@ use tracing::{info, warn};
 use super::auth::{self, Authenticator};
 use super::blob_store::BlobStore;
 use super::presence::{Presence, PresenceConfig};
+use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, Shared};
 use super::{AppState, blob_api, dispatch, lease, router};
@@ -28,6 +29,9 @@ use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::Store;
 use crate::metrics::Metrics;
+
+/// At most one quota Warning Event per robot this often.
+const QUOTA_WARNING_INTERVAL: Duration = Duration::from_secs(300);
 
 /// The blob routes' state: the store's directories and the API token Secret are made now when
 /// possible; if not, the gateway still serves agents and the blob routes retry (uploads answer
@@ -114,6 +118,7 @@ pub async fn run(
         gateway: name.clone(),
         cancel: cancel.clone(),
         desired: Some(desired),
+        quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
     let state = AppState {
         shared: Arc::new(shared),
