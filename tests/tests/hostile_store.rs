@@ -12,8 +12,8 @@ use lekiwi_agent::connection::Socket;
 use lekiwi_crds::RobotPhase;
 use lekiwi_protocol::{AgentMessage, ErrorCode, Sample, ServerMessage, Severity, decode, encode};
 use lekiwi_tests::{
-    ControlPlane, connect_agent, enrollment_token, gateway_operator, namespace, wait_for,
-    wait_phase,
+    AgentProcess, ControlPlane, connect_agent, enrollment_token, enrollment_token_file,
+    gateway_operator, gateway_url, namespace, wait_for, wait_phase,
 };
 use tokio_tungstenite::tungstenite::Message;
 
@@ -186,5 +186,71 @@ async fn retention_goes_by_receive_time_not_the_robots_clock() -> anyhow::Result
     let after = jiff::Timestamp::now().as_millisecond() + 1;
     assert_eq!(store.prune(after).await?.events, 2);
     assert!(store.events(&key, None, 10).await?.is_empty());
+    Ok(())
+}
+
+#[tokio::test]
+async fn a_real_agent_drops_what_is_over_quota_and_keeps_sending() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hsagent").await?;
+    // Room for its start event and not much more: telemetry and events soon go over.
+    let op = gateway_operator(cp, &ns, "hs-agent", &["--robot-quota-rows", "2"]).await?;
+    let dir = tempfile::tempdir()?;
+    let token_file = dir.path().join("enrollment-token");
+    enrollment_token_file(&client, &ns, &token_file).await?;
+    let state = dir.path().join("state");
+    let agent = AgentProcess::start(
+        &gateway_url(&op),
+        &format!("{ns}/kiwi-1"),
+        &token_file,
+        &state,
+        &[],
+    )?;
+    agent.wait_connected(TIMEOUT).await?;
+    let mut seqs = Vec::new();
+    for i in 0..3 {
+        seqs.push(agent.emit("flood", &format!("event {i}"), &serde_json::json!({}))?);
+    }
+    // Each refused one is dropped from the outbox with a warning, never resent in a loop.
+    let last = *seqs.last().expect("three seqs");
+    wait_for("the agent to drop its refused event", TIMEOUT, || async {
+        agent
+            .log_lines()
+            .iter()
+            .any(|l| {
+                l["fields"]["message"]
+                    .as_str()
+                    .is_some_and(|m| m.starts_with("durable message dropped"))
+                    && l["fields"]["seq"].as_u64() == Some(last)
+            })
+            .then_some(())
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
+    let refused = r#"lekiwi_gateway_events_refused_total{reason="quota_rows"}"#;
+    let counted = op.metric(refused).await.unwrap_or(0.0);
+    assert!(counted >= 2.0, "{counted} refused");
+    let status = agent.status().await?;
+    assert_eq!(status["connected"], true, "{status}");
+    wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, TIMEOUT).await?;
+    // Past a resend interval (a heartbeat), no refused event came back: each was dropped once
+    // (of three, at most the first fit in the quota beside the agent's start event).
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let lines = agent.log_lines();
+    let drops = |seq: u64| {
+        lines
+            .iter()
+            .filter(|l| {
+                l["fields"]["message"]
+                    .as_str()
+                    .is_some_and(|m| m.starts_with("durable message dropped"))
+                    && l["fields"]["seq"].as_u64() == Some(seq)
+            })
+            .count()
+    };
+    let per_seq: Vec<usize> = seqs.iter().map(|s| drops(*s)).collect();
+    assert!(per_seq.iter().all(|n| *n <= 1), "{per_seq:?}");
+    assert!(per_seq.iter().sum::<usize>() >= 2, "{per_seq:?}");
     Ok(())
 }

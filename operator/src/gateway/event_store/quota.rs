@@ -10,7 +10,7 @@ use super::{Error, Result, RobotKey, Store};
 
 /// How long a robot's usage counted in memory is trusted before it is read from the store
 /// again (other gateway replicas store for the same robot, retention deletes).
-const REFRESH: Duration = Duration::from_secs(60);
+const REFRESH: Duration = Duration::from_secs(300);
 
 /// Bytes a telemetry sample counts besides its metric name: its timestamp and value.
 pub(super) const SAMPLE_OVERHEAD_BYTES: u64 = 16;
