@@ -72,6 +72,7 @@ impl QuotaWarnings {
             "the agent sent past its event store quota ({limit} limit; {} rows, {} bytes per robot): {} message(s) refused and not stored since the last warning, the latest seq {}",
             quota.rows, quota.bytes, refused.0, refused.1
         );
+        warn!(%robot, refused = refused.0, last_seq = refused.1, "robot over its event store quota");
         let this = self.clone();
         let robot = robot.clone();
         tokio::spawn(async move { this.publish(&robot, note).await });

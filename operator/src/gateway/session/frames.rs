@@ -5,7 +5,7 @@ use axum::extract::ws::Message;
 use futures::Sink;
 use jiff::Timestamp;
 use lekiwi_protocol::{AgentMessage, ErrorCode, MAX_SEQ, ProgressPhase, Sample, ServerMessage};
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 use super::Session;
 use super::conn::{End, Flow, wire_name};
@@ -219,7 +219,8 @@ where
             .events_refused
             .get_or_create(&ReasonLabels { reason })
             .inc();
-        warn!(
+        // Logged once per interval with the Warning Event, not per message of a flood.
+        debug!(
             seq,
             limit = limit.as_str(),
             "robot over its event store quota; message refused"
