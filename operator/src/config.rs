@@ -122,13 +122,14 @@ pub struct Config {
 
     /// Most rows (events plus telemetry samples) one robot may keep in the event store within
     /// the retention window; past it, its durable messages are refused with `quota_exceeded`
-    /// and not stored. 0: no limit.
-    #[arg(long, env = "LEKIWI_ROBOT_QUOTA_ROWS", default_value_t = 100_000)]
+    /// and not stored. The default holds the reference agent's worst case at its default
+    /// telemetry intervals (about 0.85 samples/s) for the default 30 days. 0: no limit.
+    #[arg(long, env = "LEKIWI_ROBOT_QUOTA_ROWS", default_value_t = 2_500_000)]
     pub robot_quota_rows: u64,
 
     /// Most bytes (event kind, severity, message and data; 16 bytes plus the metric name per
     /// sample) one robot may keep in the event store within the retention window. 0: no limit.
-    #[arg(long, env = "LEKIWI_ROBOT_QUOTA_BYTES", default_value_t = 64 * 1024 * 1024)]
+    #[arg(long, env = "LEKIWI_ROBOT_QUOTA_BYTES", default_value_t = 256 * 1024 * 1024)]
     pub robot_quota_bytes: u64,
 
     /// Export per-robot gauges from heartbeats (`lekiwi_robot_cpu_percent`, `_memory_percent`,
