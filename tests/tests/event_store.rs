@@ -454,6 +454,87 @@ async fn data_survives_reconnects_and_restarts(mut db: Db) -> Result<()> {
     Ok(())
 }
 
+/// A store as the first schema left it, rows included, gets a receive time (the robot's claim
+/// clamped to now) and a size for each row when the gateway opens it.
+async fn migration_keeps_old_rows_with_a_clamped_receive_time(db: Db) -> Result<()> {
+    use sqlx::migrate::Migrator;
+    use std::borrow::Cow;
+
+    const INSERT: &str = "INSERT INTO events \
+        (namespace, robot, seq, ts_ms, kind, severity, message, data) \
+        VALUES ('fleet-a', 'kiwi-1', $1, $2, 'k', 'info', 'héllo', '{\"a\":1}')";
+    let rows = [(1_i64, 1_000_i64), (2, 4_000_000_000_000)];
+    match &db {
+        Db::Sqlite(_) => {
+            let url = db.url();
+            let options =
+                <sqlx::sqlite::SqliteConnectOptions as std::str::FromStr>::from_str(&url)?
+                    .create_if_missing(true);
+            let pool = sqlx::SqlitePool::connect_with(options).await?;
+            let all = sqlx::migrate!("../operator/src/gateway/event_store/migrations/sqlite");
+            let first = Migrator {
+                migrations: Cow::Owned(all.migrations[..1].to_vec()),
+                ..Migrator::DEFAULT
+            };
+            first.run(&pool).await?;
+            for (seq, ts) in rows {
+                sqlx::query(INSERT)
+                    .bind(seq)
+                    .bind(ts)
+                    .execute(&pool)
+                    .await?;
+            }
+            pool.close().await;
+        }
+        Db::Postgres(_) => {
+            let pool = sqlx::PgPool::connect(&db.url()).await?;
+            let all = sqlx::migrate!("../operator/src/gateway/event_store/migrations/postgres");
+            let first = Migrator {
+                migrations: Cow::Owned(all.migrations[..1].to_vec()),
+                ..Migrator::DEFAULT
+            };
+            first.run(&pool).await?;
+            for (seq, ts) in rows {
+                sqlx::query(INSERT)
+                    .bind(seq)
+                    .bind(ts)
+                    .execute(&pool)
+                    .await?;
+            }
+            pool.close().await;
+        }
+    }
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    // The robot's claims are untouched.
+    let claims: Vec<i64> = store
+        .events(&r, None, 10)
+        .await?
+        .iter()
+        .map(|e| e.ts_ms)
+        .collect();
+    assert_eq!(claims, [1_000, 4_000_000_000_000]);
+    // The past one was received at its own time, the future one now: a prune up to a minute
+    // from now deletes both, one up to an hour ago only the first.
+    let now = jiff::Timestamp::now().as_millisecond();
+    assert_eq!(store.prune(now - 3_600_000).await?.events, 1);
+    // Their sizes count: 18 bytes (k + info + héllo + {"a":1}; PostgreSQL's JSONB text adds a
+    // space) are there, so a quota that leaves 17 beside a new event is full.
+    let new = event(3, 0);
+    let size = (new.kind.len() + new.severity.len() + new.message.len()) as u64
+        + serde_json::to_string(&new.data)?.len() as u64;
+    let quota = |bytes| Quota { rows: 100, bytes };
+    let full = db.store().await?.with_quota(quota(size + 17));
+    ensure!(
+        full.insert_event(&r, &new).await.is_err(),
+        "old rows counted"
+    );
+    let room = db.store().await?.with_quota(quota(size + 19));
+    ensure!(room.insert_event(&r, &new).await?, "room left");
+    assert_eq!(store.prune(now + 60_000).await?.events, 2);
+    Ok(())
+}
+
 /// Runs each check once per backend, as `sqlite::name` and `postgres::name`.
 macro_rules! on_both_backends {
     ($($name:ident),* $(,)?) => {
@@ -482,6 +563,7 @@ on_both_backends!(
     queries_filter_order_and_limit,
     prune_deletes_old_records_only,
     quota_is_kept_per_robot,
+    migration_keeps_old_rows_with_a_clamped_receive_time,
     concurrent_inserts_store_one_row,
     data_survives_reconnects_and_restarts,
 );
