@@ -120,6 +120,18 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_RETENTION_DAYS", default_value_t = 30)]
     pub retention_days: u64,
 
+    /// Most rows (events plus telemetry samples) one robot may keep in the event store within
+    /// the retention window; past it, its durable messages are refused with `quota_exceeded`
+    /// and not stored. The default holds the reference agent's worst case at its default
+    /// telemetry intervals (about 0.85 samples/s) for the default 30 days. 0: no limit.
+    #[arg(long, env = "LEKIWI_ROBOT_QUOTA_ROWS", default_value_t = 2_500_000)]
+    pub robot_quota_rows: u64,
+
+    /// Most bytes (event kind, severity, message and data; 16 bytes plus the metric name per
+    /// sample) one robot may keep in the event store within the retention window. 0: no limit.
+    #[arg(long, env = "LEKIWI_ROBOT_QUOTA_BYTES", default_value_t = 256 * 1024 * 1024)]
+    pub robot_quota_bytes: u64,
+
     /// Export per-robot gauges from heartbeats (`lekiwi_robot_cpu_percent`, `_memory_percent`,
     /// `_temperature_celsius`, `_release_info`, labelled by namespace and robot): about five
     /// series per connected robot, dropped on disconnect. For fleets whose Prometheus can afford
@@ -252,6 +264,15 @@ pub struct Config {
 }
 
 impl Config {
+    /// The per-robot event store quota of `--robot-quota-rows` and `--robot-quota-bytes`.
+    pub fn robot_quota(&self) -> crate::gateway::event_store::Quota {
+        let limit = |n: u64| if n == 0 { u64::MAX } else { n };
+        crate::gateway::event_store::Quota {
+            rows: limit(self.robot_quota_rows),
+            bytes: limit(self.robot_quota_bytes),
+        }
+    }
+
     /// Leader lease validity.
     pub fn lease_duration(&self) -> Duration {
         Duration::from_secs(self.lease_duration_seconds.max(1))

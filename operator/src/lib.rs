@@ -173,7 +173,9 @@ async fn start_gateway(
     listening: Arc<AtomicBool>,
     tasks: &mut Tasks,
 ) -> Result<()> {
-    let store = gateway::event_store::Store::connect(&shared.config.store_url).await?;
+    let store = gateway::event_store::Store::connect(&shared.config.store_url)
+        .await?
+        .with_quota(shared.config.robot_quota());
     info!(backend = store.backend(), "event store ready");
     let (config, client, metrics, cancel) = (
         shared.config.clone(),

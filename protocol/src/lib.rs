@@ -169,7 +169,7 @@ mod tests {
 
     #[test]
     fn newer_enum_values_still_decode() {
-        let err = r#"{"type":"error","code":"quota_exceeded","message":"x","fatal":true,"seq":7}"#;
+        let err = r#"{"type":"error","code":"budget_spent","message":"x","fatal":true,"seq":7}"#;
         match decode::<ServerMessage>(err, MAX_FRAME_BYTES).unwrap() {
             ServerMessage::Error {
                 code, fatal, seq, ..
@@ -178,6 +178,16 @@ mod tests {
             }
             other => panic!("{other:?}"),
         }
+        let quota =
+            r#"{"type":"error","code":"quota_exceeded","message":"x","fatal":false,"seq":7}"#;
+        assert!(matches!(
+            decode::<ServerMessage>(quota, MAX_FRAME_BYTES).unwrap(),
+            ServerMessage::Error {
+                code: ErrorCode::QuotaExceeded,
+                seq: Some(7),
+                ..
+            }
+        ));
         let ev = r#"{"type":"event","seq":1,"ts_ms":1,"kind":"k","severity":"critical"}"#;
         assert!(matches!(
             decode::<AgentMessage>(ev, MAX_FRAME_BYTES).unwrap(),

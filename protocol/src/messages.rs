@@ -26,6 +26,9 @@ pub enum ErrorCode {
     Replaced,
     /// The gateway could not store a durable message; the agent must resend it later.
     StoreUnavailable,
+    /// The robot is over its event store quota: the durable message named by `seq` was not
+    /// stored and never will be; the agent drops it, like `malformed` with a `seq`.
+    QuotaExceeded,
     /// The gateway is shutting down; reconnect (to another replica). Fatal.
     ShuttingDown,
     /// Anything else on the gateway's side.

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use anyhow::{Result, ensure};
 use lekiwi_operator::gateway::event_store::{
-    ConnectionRecord, PruneCounts, RobotKey, Sample, Store, StoredEvent,
+    ConnectionRecord, Error, PruneCounts, Quota, QuotaLimit, RobotKey, Sample, Store, StoredEvent,
 };
 use lekiwi_tests::postgres::Postgres;
 use serde_json::json;
@@ -258,17 +258,24 @@ async fn queries_filter_order_and_limit(db: Db) -> Result<()> {
 async fn prune_deletes_old_records_only(db: Db) -> Result<()> {
     let store = db.store().await?;
     let r = robot("kiwi-1");
-    store.insert_event(&r, &event(1, 1_000)).await?;
-    store.insert_event(&r, &event(2, 5_000)).await?;
+    // Retention goes by when the gateway received a record, not by the robot's clock: far in
+    // the future but received early goes, 1970 but received late stays.
+    let future = 4_000_000_000_000;
+    store.insert_event_at(&r, &event(1, future), 1_000).await?;
+    store.insert_event_at(&r, &event(2, 0), 5_000).await?;
     store
-        .insert_telemetry(
+        .insert_telemetry_at(
             &r,
             3,
             &[
-                sample("cpu_percent", 1_000, 1.0),
-                sample("cpu_percent", 5_000, 2.0),
+                sample("cpu_percent", future, 1.0),
+                sample("cpu_percent", 0, 2.0),
             ],
+            1_000,
         )
+        .await?;
+    store
+        .insert_telemetry_at(&r, 4, &[sample("cpu_percent", 0, 3.0)], 5_000)
         .await?;
     let old = store.record_connect(&r, &connection(500)).await?;
     store.record_disconnect(old, 1_000, "closed").await?;
@@ -281,13 +288,16 @@ async fn prune_deletes_old_records_only(db: Db) -> Result<()> {
         counts,
         PruneCounts {
             events: 1,
-            samples: 1,
+            samples: 2,
             connections: 1
         }
     );
-    assert_eq!(store.events(&r, None, 100).await?, vec![event(2, 5_000)]);
+    assert_eq!(store.events(&r, None, 100).await?, vec![event(2, 0)]);
     let samples = store.samples(&r, None, 0, 100).await?;
-    assert_eq!(samples.iter().map(|s| s.ts_ms).collect::<Vec<_>>(), [5_000]);
+    assert_eq!(
+        samples.iter().map(|s| (s.seq, s.value)).collect::<Vec<_>>(),
+        [(4, 3.0)]
+    );
     let started: Vec<_> = store
         .connections(&r, 100)
         .await?
@@ -297,6 +307,56 @@ async fn prune_deletes_old_records_only(db: Db) -> Result<()> {
     // The old but still open connection stays.
     assert_eq!(started, [2_000, 100]);
     assert_eq!(store.prune(3_000).await?, PruneCounts::default());
+    Ok(())
+}
+
+async fn quota_is_kept_per_robot(db: Db) -> Result<()> {
+    let quota = Quota {
+        rows: 4,
+        bytes: 1_000,
+    };
+    let store = db.store().await?.with_quota(quota);
+    let r = robot("kiwi-1");
+    store.insert_event_at(&r, &event(1, 0), 1_000).await?;
+    let two = [sample("cpu_percent", 0, 1.0), sample("temp_c", 0, 40.0)];
+    store.insert_telemetry_at(&r, 2, &two, 1_000).await?;
+    store.insert_event_at(&r, &event(3, 0), 5_000).await?;
+    // Four rows stored: the next is refused, not stored, and says which limit.
+    let err = store.insert_event(&r, &event(4, 0)).await.unwrap_err();
+    ensure!(
+        matches!(
+            err,
+            Error::QuotaExceeded {
+                limit: QuotaLimit::Rows,
+                ..
+            }
+        ),
+        "{err:?}"
+    );
+    assert_eq!(store.events(&r, Some(3), 10).await?, vec![]);
+    // A replay is still acknowledged; another robot is not affected.
+    assert!(!store.insert_event(&r, &event(3, 0)).await?);
+    assert!(store.insert_event(&robot("kiwi-2"), &event(1, 0)).await?);
+    // A second handle (another replica) counts what the first stored.
+    let other = db.store().await?.with_quota(quota);
+    assert!(other.insert_event(&r, &event(4, 0)).await.is_err());
+    // Retention frees the room of what it deleted.
+    store.prune(2_000).await?;
+    assert!(store.insert_event(&r, &event(4, 0)).await?);
+    // Bytes: one event larger than the rest of the budget.
+    let mut big = event(5, 0);
+    big.message = "x".repeat(1_000);
+    let err = store.insert_event(&r, &big).await.unwrap_err();
+    ensure!(
+        matches!(
+            err,
+            Error::QuotaExceeded {
+                limit: QuotaLimit::Bytes,
+                ..
+            }
+        ),
+        "{err:?}"
+    );
     Ok(())
 }
 
@@ -394,6 +454,87 @@ async fn data_survives_reconnects_and_restarts(mut db: Db) -> Result<()> {
     Ok(())
 }
 
+/// A store as the first schema left it, rows included, gets a receive time (the robot's claim
+/// clamped to now) and a size for each row when the gateway opens it.
+async fn migration_keeps_old_rows_with_a_clamped_receive_time(db: Db) -> Result<()> {
+    use sqlx::migrate::Migrator;
+    use std::borrow::Cow;
+
+    const INSERT: &str = "INSERT INTO events \
+        (namespace, robot, seq, ts_ms, kind, severity, message, data) \
+        VALUES ('fleet-a', 'kiwi-1', $1, $2, 'k', 'info', 'héllo', '{\"a\":1}')";
+    let rows = [(1_i64, 1_000_i64), (2, 4_000_000_000_000)];
+    match &db {
+        Db::Sqlite(_) => {
+            let url = db.url();
+            let options =
+                <sqlx::sqlite::SqliteConnectOptions as std::str::FromStr>::from_str(&url)?
+                    .create_if_missing(true);
+            let pool = sqlx::SqlitePool::connect_with(options).await?;
+            let all = sqlx::migrate!("../operator/src/gateway/event_store/migrations/sqlite");
+            let first = Migrator {
+                migrations: Cow::Owned(all.migrations[..1].to_vec()),
+                ..Migrator::DEFAULT
+            };
+            first.run(&pool).await?;
+            for (seq, ts) in rows {
+                sqlx::query(INSERT)
+                    .bind(seq)
+                    .bind(ts)
+                    .execute(&pool)
+                    .await?;
+            }
+            pool.close().await;
+        }
+        Db::Postgres(_) => {
+            let pool = sqlx::PgPool::connect(&db.url()).await?;
+            let all = sqlx::migrate!("../operator/src/gateway/event_store/migrations/postgres");
+            let first = Migrator {
+                migrations: Cow::Owned(all.migrations[..1].to_vec()),
+                ..Migrator::DEFAULT
+            };
+            first.run(&pool).await?;
+            for (seq, ts) in rows {
+                sqlx::query(INSERT)
+                    .bind(seq)
+                    .bind(ts)
+                    .execute(&pool)
+                    .await?;
+            }
+            pool.close().await;
+        }
+    }
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    // The robot's claims are untouched.
+    let claims: Vec<i64> = store
+        .events(&r, None, 10)
+        .await?
+        .iter()
+        .map(|e| e.ts_ms)
+        .collect();
+    assert_eq!(claims, [1_000, 4_000_000_000_000]);
+    // The past one was received at its own time, the future one now: a prune up to a minute
+    // from now deletes both, one up to an hour ago only the first.
+    let now = jiff::Timestamp::now().as_millisecond();
+    assert_eq!(store.prune(now - 3_600_000).await?.events, 1);
+    // Their sizes count: 18 bytes (k + info + héllo + {"a":1}; PostgreSQL's JSONB text adds a
+    // space) are there, so a quota that leaves 17 beside a new event is full.
+    let new = event(3, 0);
+    let size = (new.kind.len() + new.severity.len() + new.message.len()) as u64
+        + serde_json::to_string(&new.data)?.len() as u64;
+    let quota = |bytes| Quota { rows: 100, bytes };
+    let full = db.store().await?.with_quota(quota(size + 17));
+    ensure!(
+        full.insert_event(&r, &new).await.is_err(),
+        "old rows counted"
+    );
+    let room = db.store().await?.with_quota(quota(size + 19));
+    ensure!(room.insert_event(&r, &new).await?, "room left");
+    assert_eq!(store.prune(now + 60_000).await?.events, 2);
+    Ok(())
+}
+
 /// Runs each check once per backend, as `sqlite::name` and `postgres::name`.
 macro_rules! on_both_backends {
     ($($name:ident),* $(,)?) => {
@@ -421,6 +562,8 @@ on_both_backends!(
     last_seq_spans_events_and_telemetry,
     queries_filter_order_and_limit,
     prune_deletes_old_records_only,
+    quota_is_kept_per_robot,
+    migration_keeps_old_rows_with_a_clamped_receive_time,
     concurrent_inserts_store_one_row,
     data_survives_reconnects_and_restarts,
 );

@@ -327,7 +327,9 @@ impl Agent {
             } => {
                 match seq {
                     // Never storable (PROTOCOL.md §6 rule 2): dropped, not resent.
-                    Some(seq) if code == ErrorCode::Malformed => {
+                    Some(seq)
+                        if matches!(code, ErrorCode::Malformed | ErrorCode::QuotaExceeded) =>
+                    {
                         session.in_flight.remove(&seq);
                         self.discard(seq, &message)?;
                     }

@@ -378,12 +378,21 @@ async fn a_fatal_error_ends_the_session_and_the_agent_comes_back() {
 
 #[tokio::test]
 async fn a_durable_message_refused_as_malformed_is_dropped_not_resent() {
+    refused_durable_message_is_dropped_not_resent(ErrorCode::Malformed).await;
+}
+
+#[tokio::test]
+async fn a_durable_message_over_the_robots_quota_is_dropped_not_resent() {
+    refused_durable_message_is_dropped_not_resent(ErrorCode::QuotaExceeded).await;
+}
+
+async fn refused_durable_message_is_dropped_not_resent(code: ErrorCode) {
     let dir = tempfile::tempdir().unwrap();
     let config = config(dir.path());
     let state_dir = config.state_dir.clone();
     with_agent(config, |mut conns| async move {
         let (mut gw, _) = session_up(&mut conns).await;
-        gw.send(&error_frame(ErrorCode::Malformed, false, Some(1)));
+        gw.send(&error_frame(code, false, Some(1)));
         // Past the resend interval (a heartbeat, 1 s): never sent again.
         assert_eq!(gw.durable_within(Duration::from_millis(2500)).await, None);
         let outbox = Outbox::open(&state_dir, 1 << 20).unwrap();

@@ -36,8 +36,15 @@ pub struct WriteLabels {
 pub struct ReviewLabels {
     /// `token_review` or `access_review`.
     pub kind: &'static str,
-    /// `accepted`, `refused` (tokens), `allowed`, `denied` (access) or `error`.
+    /// `accepted`, `refused`, `throttled` (tokens), `allowed`, `denied` (access) or `error`.
     pub result: &'static str,
+}
+
+/// Labels of refused durable messages.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct ReasonLabels {
+    /// Why it was not stored: `quota_rows` or `quota_bytes`.
+    pub reason: &'static str,
 }
 
 /// What the gateway exports.
@@ -58,6 +65,8 @@ pub struct GatewayMetrics {
     pub errors: Family<KindLabels, Counter>,
     /// Durable messages acknowledged, `stored` or `replay`.
     pub durable: Family<KindLabels, Counter>,
+    /// Durable messages refused and never stored, by reason (`quota_rows`, `quota_bytes`).
+    pub events_refused: Family<ReasonLabels, Counter>,
     /// Heartbeat round-trip time the agents report.
     pub heartbeat_rtt: Histogram,
     /// Robots waiting for a status write, by priority.
@@ -110,6 +119,10 @@ impl GatewayMetrics {
             durable: r.add(
                 "lekiwi_gateway_durable_messages",
                 "Durable agent messages acknowledged, stored or replay",
+            ),
+            events_refused: r.add(
+                "lekiwi_gateway_events_refused",
+                "Durable agent messages refused and not stored, by reason (per-robot quota)",
             ),
             heartbeat_rtt: r.with(
                 "lekiwi_gateway_heartbeat_rtt_seconds",

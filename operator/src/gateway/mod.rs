@@ -17,6 +17,7 @@ pub mod lookup;
 pub mod metrics;
 pub mod poll;
 pub mod presence;
+pub mod quota_warnings;
 pub mod rate;
 pub mod registry;
 pub mod server;

@@ -26,6 +26,7 @@ use super::kube_auth::KubeAuth;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
 use super::presence::{Presence, PresenceConfig};
+use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, Shared};
 use super::{AppState, blob_api, dispatch, lease, router};
@@ -33,6 +34,9 @@ use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::Store;
 use crate::metrics::{KindLabels, Metrics};
+
+/// At most one quota Warning Event per robot this often.
+const QUOTA_WARNING_INTERVAL: Duration = Duration::from_secs(300);
 
 /// The blob routes' state: the store's directories are made now when possible; if not, the
 /// gateway still serves agents and uploads answer 500 until they can be made.
@@ -117,6 +121,7 @@ pub async fn run(
         gateway: name.clone(),
         cancel: cancel.clone(),
         desired: Some(desired),
+        quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
     let state = AppState {
         shared: Arc::new(shared),

@@ -10,7 +10,8 @@ use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, S
 
 use super::{Backend, Error, Result, Store};
 
-static SQLITE_MIGRATIONS: Migrator = sqlx::migrate!("./src/gateway/event_store/migrations/sqlite");
+pub(super) static SQLITE_MIGRATIONS: Migrator =
+    sqlx::migrate!("./src/gateway/event_store/migrations/sqlite");
 static POSTGRES_MIGRATIONS: Migrator =
     sqlx::migrate!("./src/gateway/event_store/migrations/postgres");
 
@@ -102,9 +103,7 @@ impl Store {
                 backend: "sqlite",
                 source,
             })?;
-        Ok(Store {
-            backend: Backend::Sqlite(pool),
-        })
+        Ok(Store::new(Backend::Sqlite(pool)))
     }
 
     async fn connect_postgres(url: &str) -> Result<Store> {
@@ -137,8 +136,6 @@ impl Store {
             .max_connections(POSTGRES_MAX_CONNECTIONS)
             .acquire_timeout(ACQUIRE_TIMEOUT)
             .connect_lazy_with(options);
-        Ok(Store {
-            backend: Backend::Postgres(pool),
-        })
+        Ok(Store::new(Backend::Postgres(pool)))
     }
 }

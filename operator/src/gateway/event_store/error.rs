@@ -75,6 +75,21 @@ pub enum Error {
     /// Deleting old records failed.
     #[error("cannot prune the event store: {0}")]
     Prune(#[source] sqlx::Error),
+    /// Storing the message would take the robot over its quota; it was not stored.
+    #[error(
+        "robot {robot} is over its event store quota of {rows} rows and {bytes} bytes ({which} exceeded)",
+        rows = quota.rows,
+        bytes = quota.bytes,
+        which = limit.as_str()
+    )]
+    QuotaExceeded {
+        /// `namespace/name` of the robot.
+        robot: String,
+        /// Which limit the message would exceed.
+        limit: super::QuotaLimit,
+        /// The quota in force.
+        quota: super::Quota,
+    },
     /// A sequence number too large for the database's signed 64-bit integers.
     #[error("sequence number {0} is out of range: the event store holds at most {max}", max = i64::MAX)]
     SeqOutOfRange(u64),

@@ -6,6 +6,7 @@ mod error;
 mod tests;
 
 use std::fmt;
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 use sqlx::FromRow;
@@ -89,6 +90,8 @@ pub struct PruneCounts {
 #[derive(Clone)]
 pub struct Store {
     backend: Backend,
+    /// Each robot's usage against the quota, shared by clones.
+    ledger: Arc<quota::Ledger>,
 }
 
 #[derive(Clone)]
@@ -135,10 +138,21 @@ macro_rules! with_pool {
 // Declared after `with_pool!`, which they use: a `macro_rules!` macro is in scope only below
 // its definition.
 mod connect;
+mod quota;
 mod records;
 mod retention;
 
+pub use self::quota::{Quota, QuotaLimit};
+
 impl Store {
+    /// A store on `backend` without a quota.
+    fn new(backend: Backend) -> Store {
+        Store {
+            backend,
+            ledger: Arc::new(quota::Ledger::new(Quota::UNLIMITED)),
+        }
+    }
+
     /// `"sqlite"` or `"postgres"`.
     pub fn backend(&self) -> &'static str {
         match self.backend {

@@ -9,7 +9,7 @@ use super::{
     from_db_seq, to_db_seq,
 };
 
-/// Six parameters a row keeps one statement under SQLite's 32766 and PostgreSQL's 65535.
+/// Seven parameters a row keeps one statement under SQLite's 32766 and PostgreSQL's 65535.
 const SAMPLES_PER_STATEMENT: usize = 1000;
 
 #[derive(FromRow)]
@@ -54,10 +54,15 @@ impl From<SampleRow> for StoredSample {
     }
 }
 
-const INSERT_EVENT: &str = "INSERT INTO events (namespace, robot, seq, ts_ms, kind, severity, message, data) \
-     VALUES ($1, $2, $3, $4, $5, $6, $7, $8) ON CONFLICT (namespace, robot, seq) DO NOTHING";
-const INSERT_BATCH: &str = "INSERT INTO telemetry_batches (namespace, robot, seq, max_ts_ms) \
-     VALUES ($1, $2, $3, $4) ON CONFLICT (namespace, robot, seq) DO NOTHING";
+const INSERT_EVENT: &str = "INSERT INTO events \
+     (namespace, robot, seq, ts_ms, kind, severity, message, data, received_ms, bytes) \
+     VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) ON CONFLICT (namespace, robot, seq) DO NOTHING";
+const INSERT_BATCH: &str = "INSERT INTO telemetry_batches \
+     (namespace, robot, seq, max_ts_ms, received_ms, bytes) \
+     VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (namespace, robot, seq) DO NOTHING";
+const IS_STORED: &str = "SELECT \
+     (SELECT COUNT(*) FROM events WHERE namespace = $1 AND robot = $2 AND seq = $3) \
+     + (SELECT COUNT(*) FROM telemetry_batches WHERE namespace = $1 AND robot = $2 AND seq = $3)";
 const LAST_SEQ: &str = "SELECT MAX(seq) FROM (\
      SELECT MAX(seq) AS seq FROM events WHERE namespace = $1 AND robot = $2 \
      UNION ALL \
@@ -82,10 +87,25 @@ const SELECT_CONNECTIONS: &str = "SELECT gateway, protocol, address, connected_a
      ORDER BY connected_at_ms DESC, id DESC LIMIT $3";
 
 impl Store {
-    /// Stores an event; `Ok(true)` if newly stored, `Ok(false)` if `(robot, seq)` was already
-    /// stored (a replay, never a second row). Once this returns `Ok`, the event is durable.
+    /// Stores an event received now; `Ok(true)` if newly stored, `Ok(false)` if `(robot, seq)`
+    /// was already stored (a replay, never a second row). Once this returns `Ok`, the event is
+    /// durable. `Err(QuotaExceeded)`: not stored, the robot is over its quota.
     pub async fn insert_event(&self, robot: &RobotKey, ev: &StoredEvent) -> Result<bool> {
+        self.insert_event_at(robot, ev, jiff::Timestamp::now().as_millisecond())
+            .await
+    }
+
+    /// [`Store::insert_event`] received at `received_ms` (Unix milliseconds, the gateway's
+    /// clock), which retention goes by.
+    pub async fn insert_event_at(
+        &self,
+        robot: &RobotKey,
+        ev: &StoredEvent,
+        received_ms: i64,
+    ) -> Result<bool> {
         let seq = to_db_seq(ev.seq)?;
+        let bytes = event_bytes(ev);
+        self.check_quota_unless_stored(robot, seq, 1, bytes).await?;
         let inserted = with_pool!(self, pool => {
             sqlx::query(INSERT_EVENT)
                 .bind(&robot.namespace)
@@ -96,6 +116,8 @@ impl Store {
                 .bind(&ev.severity)
                 .bind(&ev.message)
                 .bind(Json(&ev.data))
+                .bind(received_ms)
+                .bind(i64::try_from(bytes).unwrap_or(i64::MAX))
                 .execute(pool)
                 .await
                 .map(|r| r.rows_affected())
@@ -105,19 +127,67 @@ impl Store {
             robot: robot.to_string(),
             source,
         })?;
+        if inserted == 1 {
+            self.count_stored(robot, 1, bytes);
+        }
         Ok(inserted == 1)
     }
 
-    /// Stores one telemetry batch under its `seq`, all samples or none; `Ok(false)` if that seq
-    /// was already stored (a replay: nothing is inserted twice).
+    /// Checks the quota for a new message; a replay of one already stored passes (it stores
+    /// nothing), so a robot at its quota still gets its lost acks.
+    async fn check_quota_unless_stored(
+        &self,
+        robot: &RobotKey,
+        seq: i64,
+        rows: u64,
+        bytes: u64,
+    ) -> Result<()> {
+        let Err(over) = self.check_quota(robot, rows, bytes).await else {
+            return Ok(());
+        };
+        let stored: i64 = with_pool!(self, pool => {
+            sqlx::query_scalar(IS_STORED)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(seq)
+                .fetch_one(pool)
+                .await
+        })
+        .map_err(|source| Error::Query {
+            what: "stored seq",
+            source,
+        })?;
+        if stored > 0 { Ok(()) } else { Err(over) }
+    }
+
+    /// Stores one telemetry batch received now under its `seq`, all samples or none;
+    /// `Ok(false)` if that seq was already stored (a replay: nothing is inserted twice).
+    /// `Err(QuotaExceeded)`: not stored, the robot is over its quota.
     pub async fn insert_telemetry(
         &self,
         robot: &RobotKey,
         seq: u64,
         samples: &[Sample],
     ) -> Result<bool> {
+        let now = jiff::Timestamp::now().as_millisecond();
+        self.insert_telemetry_at(robot, seq, samples, now).await
+    }
+
+    /// [`Store::insert_telemetry`] received at `received_ms` (Unix milliseconds, the gateway's
+    /// clock), which retention goes by.
+    pub async fn insert_telemetry_at(
+        &self,
+        robot: &RobotKey,
+        seq: u64,
+        samples: &[Sample],
+        received_ms: i64,
+    ) -> Result<bool> {
         let seq = to_db_seq(seq)?;
-        // An empty batch still claims its seq; retention drops it on its next round.
+        let rows = samples.len() as u64;
+        let bytes = samples.iter().map(sample_bytes).sum::<u64>();
+        self.check_quota_unless_stored(robot, seq, rows, bytes)
+            .await?;
+        // An empty batch still claims its seq; retention drops it like any other.
         let max_ts_ms = samples.iter().map(|s| s.ts_ms).max().unwrap_or(0);
         let inserted = with_pool!(self, pool, begin => async {
             let mut tx = pool.begin_with(begin).await?;
@@ -126,6 +196,8 @@ impl Store {
                 .bind(&robot.name)
                 .bind(seq)
                 .bind(max_ts_ms)
+                .bind(received_ms)
+                .bind(i64::try_from(bytes).unwrap_or(i64::MAX))
                 .execute(&mut *tx)
                 .await?
                 .rows_affected();
@@ -135,7 +207,7 @@ impl Store {
             }
             for chunk in samples.chunks(SAMPLES_PER_STATEMENT) {
                 let mut insert = QueryBuilder::new(
-                    "INSERT INTO samples (namespace, robot, seq, metric, ts_ms, value) ",
+                    "INSERT INTO samples (namespace, robot, seq, metric, ts_ms, value, received_ms) ",
                 );
                 insert.push_values(chunk, |mut row, s| {
                     row.push_bind(&robot.namespace)
@@ -143,7 +215,8 @@ impl Store {
                         .push_bind(seq)
                         .push_bind(&s.metric)
                         .push_bind(s.ts_ms)
-                        .push_bind(s.value);
+                        .push_bind(s.value)
+                        .push_bind(received_ms);
                 });
                 insert.build().execute(&mut *tx).await?;
             }
@@ -156,6 +229,9 @@ impl Store {
             robot: robot.to_string(),
             source,
         })?;
+        if inserted {
+            self.count_stored(robot, rows, bytes);
+        }
         Ok(inserted)
     }
 
@@ -313,4 +389,15 @@ impl Store {
             source,
         })
     }
+}
+
+/// What an event counts against the byte quota: its kind, severity, message and data as JSON.
+fn event_bytes(ev: &StoredEvent) -> u64 {
+    let data = serde_json::to_string(&ev.data).map_or(0, |d| d.len());
+    (ev.kind.len() + ev.severity.len() + ev.message.len() + data) as u64
+}
+
+/// What a sample counts against the byte quota: its metric name, timestamp and value.
+fn sample_bytes(s: &Sample) -> u64 {
+    s.metric.len() as u64 + super::quota::SAMPLE_OVERHEAD_BYTES
 }

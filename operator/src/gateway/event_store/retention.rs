@@ -9,16 +9,18 @@ use tracing::{debug, info, warn};
 
 use super::{Error, PruneCounts, Result, Store};
 
-const PRUNE_EVENTS: &str = "DELETE FROM events WHERE ts_ms < $1";
-const PRUNE_SAMPLES: &str = "DELETE FROM samples WHERE ts_ms < $1";
-const PRUNE_BATCHES: &str = "DELETE FROM telemetry_batches WHERE max_ts_ms < $1";
+// By the gateway's receive time: a robot's clock (`ts_ms`) in the future or stuck in 1970 must
+// neither keep its records forever nor lose fresh ones.
+const PRUNE_EVENTS: &str = "DELETE FROM events WHERE received_ms < $1";
+const PRUNE_SAMPLES: &str = "DELETE FROM samples WHERE received_ms < $1";
+const PRUNE_BATCHES: &str = "DELETE FROM telemetry_batches WHERE received_ms < $1";
 const PRUNE_CONNECTIONS: &str =
     "DELETE FROM connections WHERE disconnected_at_ms IS NOT NULL AND disconnected_at_ms < $1";
 
 impl Store {
-    /// Deletes events, samples and closed connection records older than `older_than_ms` (each
-    /// by its own timestamp: event time, sample time, disconnect time), in one transaction.
-    /// Open connections are kept however old.
+    /// Deletes events and telemetry received before `older_than_ms` (the gateway's clock, not
+    /// the robot's `ts_ms`) and connection records closed before it, in one transaction. Open
+    /// connections are kept however old. Quota counts are read from the store again afterwards.
     pub async fn prune(&self, older_than_ms: i64) -> Result<PruneCounts> {
         with_pool!(self, pool, begin => async {
             let mut tx = pool.begin_with(begin).await?;
@@ -43,6 +45,7 @@ impl Store {
         }
         .await)
         .map_err(Error::Prune)
+        .inspect(|_| self.ledger.forget())
     }
 
     /// Runs `prune(now - max_age)` now and then every `every` until `cancel` fires, logging

@@ -225,26 +225,35 @@ async fn queries_are_ordered_and_limited() {
 }
 
 #[tokio::test]
-async fn prune_deletes_by_age_and_keeps_open_connections() {
+async fn prune_deletes_by_receive_time_and_keeps_open_connections() {
     let dir = tempfile::tempdir().unwrap();
     let store = open(&dir).await;
     let r = robot("kiwi-1");
-    store.insert_event(&r, &event(1, 1_000)).await.unwrap();
-    store.insert_event(&r, &event(2, 5_000)).await.unwrap();
-    // A batch straddling the cutoff loses only its old sample.
+    // The robot's clock says nothing about when a record arrived: a 1970 clock received late
+    // is kept, a far-future clock received early goes.
+    let future = 4_000_000_000_000;
     store
-        .insert_telemetry(
+        .insert_event_at(&r, &event(1, future), 1_000)
+        .await
+        .unwrap();
+    store
+        .insert_event_at(&r, &event(2, 0), 5_000)
+        .await
+        .unwrap();
+    store
+        .insert_telemetry_at(
             &r,
             3,
             &[
-                sample("cpu_percent", 1_000, 1.0),
-                sample("cpu_percent", 5_000, 2.0),
+                sample("cpu_percent", future, 1.0),
+                sample("cpu_percent", future + 1, 2.0),
             ],
+            1_000,
         )
         .await
         .unwrap();
     store
-        .insert_telemetry(&r, 4, &[sample("cpu_percent", 1_500, 3.0)])
+        .insert_telemetry_at(&r, 4, &[sample("cpu_percent", 0, 3.0)], 5_000)
         .await
         .unwrap();
     let old_closed = store.record_connect(&r, &connection(500)).await.unwrap();
@@ -269,19 +278,105 @@ async fn prune_deletes_by_age_and_keeps_open_connections() {
             connections: 1
         }
     );
-    assert_eq!(
-        store.events(&r, None, 10).await.unwrap(),
-        vec![event(2, 5_000)]
-    );
+    // What is kept still shows the robot's own claim.
+    assert_eq!(store.events(&r, None, 10).await.unwrap(), vec![event(2, 0)]);
     let samples = store.samples(&r, None, 0, 10).await.unwrap();
     assert_eq!(samples.len(), 1);
-    assert_eq!((samples[0].seq, samples[0].ts_ms), (3, 5_000));
+    assert_eq!((samples[0].seq, samples[0].ts_ms), (4, 0));
     let conns = store.connections(&r, 10).await.unwrap();
     let started: Vec<i64> = conns.iter().map(|c| c.connected_at_ms).collect();
     assert_eq!(started, [2_000, 100]);
-    // Batch 4 lost all its samples, so its row went too; batch 3 keeps its seq.
     assert_eq!(count(&store, "telemetry_batches").await, 1);
     assert_eq!(store.prune(3_000).await.unwrap(), PruneCounts::default());
+}
+
+#[tokio::test]
+async fn quota_refuses_rows_and_bytes_beyond_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(&dir).await.with_quota(Quota {
+        rows: 3,
+        bytes: 10_000,
+    });
+    let r = robot("kiwi-1");
+    for seq in 1..=2 {
+        assert!(
+            store
+                .insert_event_at(&r, &event(seq, 0), 1_000)
+                .await
+                .unwrap()
+        );
+    }
+    // One event and one sample fit; a batch of two samples does not.
+    let two = [sample("cpu_percent", 0, 1.0), sample("cpu_percent", 1, 2.0)];
+    let err = store
+        .insert_telemetry_at(&r, 3, &two, 1_000)
+        .await
+        .unwrap_err();
+    assert!(
+        matches!(
+            err,
+            Error::QuotaExceeded {
+                limit: QuotaLimit::Rows,
+                ..
+            }
+        ),
+        "{err:?}"
+    );
+    assert!(err.to_string().contains("quota of 3 rows"), "{err}");
+    assert!(
+        store
+            .insert_event_at(&r, &event(4, 0), 1_000)
+            .await
+            .unwrap()
+    );
+    let err = store
+        .insert_event_at(&r, &event(5, 0), 1_000)
+        .await
+        .unwrap_err();
+    assert!(matches!(err, Error::QuotaExceeded { .. }), "{err:?}");
+    assert_eq!(count(&store, "events").await, 3);
+    // A replay of a stored event is still acknowledged, and another robot has its own quota.
+    assert!(
+        !store
+            .insert_event_at(&r, &event(4, 0), 1_000)
+            .await
+            .unwrap()
+    );
+    assert!(
+        store
+            .insert_event(&robot("kiwi-2"), &event(1, 0))
+            .await
+            .unwrap()
+    );
+    // Retention frees room: the counts are read again after a prune.
+    store.prune(2_000).await.unwrap();
+    assert!(
+        store
+            .insert_event_at(&r, &event(5, 0), 3_000)
+            .await
+            .unwrap()
+    );
+
+    // Bytes: a store opened later counts what is already there.
+    let small = open(&dir).await.with_quota(Quota {
+        rows: 100,
+        bytes: 200,
+    });
+    let mut big = event(6, 0);
+    big.message = "x".repeat(150);
+    let err = small.insert_event(&r, &big).await.unwrap_err();
+    assert!(
+        matches!(
+            err,
+            Error::QuotaExceeded {
+                limit: QuotaLimit::Bytes,
+                ..
+            }
+        ),
+        "{err:?}"
+    );
+    big.message = "x".repeat(50);
+    assert!(small.insert_event(&r, &big).await.unwrap());
 }
 
 #[tokio::test]
@@ -290,11 +385,13 @@ async fn retention_task_prunes_until_cancelled() {
     let store = open(&dir).await;
     let r = robot("kiwi-1");
     let now = jiff::Timestamp::now().as_millisecond();
+    // Received two hours ago although the robot's clock says now: pruned.
     store
-        .insert_event(&r, &event(1, now - 2 * 3_600_000))
+        .insert_event_at(&r, &event(1, now), now - 2 * 3_600_000)
         .await
         .unwrap();
-    store.insert_event(&r, &event(2, now)).await.unwrap();
+    // Received now although the robot's clock says 1970: kept.
+    store.insert_event(&r, &event(2, 0)).await.unwrap();
     let cancel = CancellationToken::new();
     let task = store.spawn_retention(
         Duration::from_secs(3_600),
@@ -449,5 +546,65 @@ async fn crate_error_wraps_store_errors() {
     assert!(
         err.to_string()
             .starts_with("event store: unsupported event store URL")
+    );
+}
+
+#[tokio::test]
+async fn migration_gives_old_rows_a_clamped_receive_time_and_their_size() {
+    use std::borrow::Cow;
+    use std::str::FromStr;
+
+    use sqlx::migrate::Migrator;
+    use sqlx::sqlite::{SqliteConnectOptions, SqlitePool};
+
+    let dir = tempfile::tempdir().unwrap();
+    let url = format!("sqlite://{}", dir.path().join("events.db").display());
+    // A store as the first schema left it: one event from the past, one from the future.
+    {
+        let options = SqliteConnectOptions::from_str(&url)
+            .unwrap()
+            .create_if_missing(true);
+        let pool = SqlitePool::connect_with(options).await.unwrap();
+        let first = Migrator {
+            migrations: Cow::Owned(connect::SQLITE_MIGRATIONS.migrations[..1].to_vec()),
+            ..Migrator::DEFAULT
+        };
+        first.run(&pool).await.unwrap();
+        for (seq, ts_ms) in [(1, 1_000), (2, 4_000_000_000_000_i64)] {
+            sqlx::query(
+                "INSERT INTO events (namespace, robot, seq, ts_ms, kind, severity, message, data) \
+                 VALUES ('fleet-a', 'kiwi-1', $1, $2, 'k', 'info', 'héllo', '{\"a\":1}')",
+            )
+            .bind(seq)
+            .bind(ts_ms)
+            .execute(&pool)
+            .await
+            .unwrap();
+        }
+        pool.close().await;
+    }
+    let before = jiff::Timestamp::now().as_millisecond() - 1_000;
+    let store = Store::connect(&url).await.unwrap();
+    let Backend::Sqlite(pool) = &store.backend else {
+        panic!("not sqlite")
+    };
+    let rows: Vec<(i64, i64, i64)> =
+        sqlx::query_as("SELECT seq, received_ms, bytes FROM events ORDER BY seq")
+            .fetch_all(pool)
+            .await
+            .unwrap();
+    assert_eq!(
+        rows[0],
+        (1, 1_000, 1 + 4 + 6 + 7),
+        "its own time, UTF-8 bytes"
+    );
+    let (seq, received, _) = rows[1];
+    // The future is clamped to the migration's now.
+    assert_eq!(seq, 2);
+    assert!(received >= before && received <= jiff::Timestamp::now().as_millisecond());
+    // The robot's claim is untouched.
+    assert_eq!(
+        store.events(&robot("kiwi-1"), None, 10).await.unwrap()[1].ts_ms,
+        4_000_000_000_000
     );
 }

@@ -61,6 +61,7 @@ const ERROR_LABELS: &[&str] = &[
     "handshake_timeout",
     "replaced",
     "store_unavailable",
+    "quota_exceeded",
     "shutting_down",
     "internal",
 ];

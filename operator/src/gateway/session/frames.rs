@@ -5,11 +5,12 @@ use axum::extract::ws::Message;
 use futures::Sink;
 use jiff::Timestamp;
 use lekiwi_protocol::{AgentMessage, ErrorCode, MAX_SEQ, ProgressPhase, Sample, ServerMessage};
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 use super::Session;
 use super::conn::{End, Flow, wire_name};
-use crate::gateway::event_store::{self, StoredEvent};
+use crate::gateway::event_store::{self, Quota, QuotaLimit, StoredEvent};
+use crate::gateway::metrics::ReasonLabels;
 use crate::gateway::presence::{HeartbeatInfo, UpdateOutcome};
 use crate::metrics::KindLabels;
 
@@ -185,6 +186,9 @@ where
             // A sequence number the store cannot hold will never be stored: say so, do not
             // ask for a resend.
             Err(event_store::Error::SeqOutOfRange(_)) => seq_out_of_range(seq),
+            Err(event_store::Error::QuotaExceeded { limit, quota, .. }) => {
+                self.over_quota(seq, limit, quota)
+            }
             Err(e) => {
                 warn!(seq, error = %e, "cannot store a durable message");
                 ServerMessage::Error {
@@ -194,6 +198,46 @@ where
                     seq: Some(seq),
                 }
             }
+        }
+    }
+}
+
+impl<W> Session<'_, W>
+where
+    W: Sink<Message> + Unpin + Send,
+{
+    /// A durable message refused because the robot is over its quota: counted, reported on the
+    /// Robot (rate-limited), and answered `quota_exceeded` naming it so the agent drops it.
+    fn over_quota(&self, seq: u64, limit: QuotaLimit, quota: Quota) -> ServerMessage {
+        let reason = match limit {
+            QuotaLimit::Rows => "quota_rows",
+            QuotaLimit::Bytes => "quota_bytes",
+        };
+        self.shared
+            .metrics
+            .gateway
+            .events_refused
+            .get_or_create(&ReasonLabels { reason })
+            .inc();
+        // Logged once per interval with the Warning Event, not per message of a flood.
+        debug!(
+            seq,
+            limit = limit.as_str(),
+            "robot over its event store quota; message refused"
+        );
+        self.shared
+            .quota_warnings
+            .refused(self.key, seq, quota, limit.as_str());
+        ServerMessage::Error {
+            code: ErrorCode::QuotaExceeded,
+            message: format!(
+                "message {seq} was not stored: this robot keeps at most {} rows and {} bytes in the event store ({} exceeded); drop it",
+                quota.rows,
+                quota.bytes,
+                limit.as_str()
+            ),
+            fatal: false,
+            seq: Some(seq),
         }
     }
 }

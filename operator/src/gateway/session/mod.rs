@@ -24,6 +24,7 @@ use self::conn::{Conn, End};
 use super::auth::{Authenticator, Grant};
 use super::desired::DesiredReleases;
 use super::presence::{ConnectInfo, Presence};
+use super::quota_warnings::QuotaWarnings;
 use super::registry::{Control, Registry};
 use crate::gateway::event_store::{ConnectionRecord, RobotKey, Store};
 use crate::metrics::{KindLabels, Metrics};
@@ -72,6 +73,8 @@ pub struct Shared {
     pub cancel: CancellationToken,
     /// The robots' desired releases (`spec.release`), when this gateway watches Robots.
     pub desired: Option<DesiredReleases>,
+    /// Warning Events on Robots whose agents send past their event store quota.
+    pub quota_warnings: QuotaWarnings,
 }
 
 /// A session past its handshake: what its loop and its frame handlers work with.
@@ -305,7 +308,7 @@ mod tests {
                 metrics.clone(),
             ),
             store: Store::connect("sqlite::memory:").await.unwrap(),
-            auth: Authenticator::new(client, secrets),
+            auth: Authenticator::new(client.clone(), secrets),
             registry: Arc::default(),
             limits: Limits {
                 max_frame_bytes: 1024,
@@ -321,6 +324,7 @@ mod tests {
             gateway: "gw".into(),
             cancel: CancellationToken::new(),
             desired: None,
+            quota_warnings: QuotaWarnings::new(client, "gw", Duration::from_secs(300)),
         });
         let (sink, _rx) = futures::channel::mpsc::channel::<Message>(1);
         let (_tx, stream) = futures::channel::mpsc::channel::<Result<Message, std::io::Error>>(1);
