@@ -35,6 +35,7 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         vitals: Vitals::default(),
         retries: 0,
         last_update: None,
+        presence_only: false,
     }
 }
 

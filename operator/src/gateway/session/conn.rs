@@ -63,6 +63,7 @@ const ERROR_LABELS: &[&str] = &[
     "store_unavailable",
     "shutting_down",
     "internal",
+    "invalid_field",
 ];
 
 /// How `value` is spelled on the wire (a unit enum's snake_case name), or empty.
