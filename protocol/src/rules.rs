@@ -4,7 +4,7 @@
 //!
 //! Each field is either *normalised* (an uppercase-hex digest is lowercased, free text is cut,
 //! a teleoperation score is clamped) or *refused*: the field is dropped from the report and the
-//! gateway answers with a non-fatal `invalid_field` error naming it (PROTOCOL.md §4.3).
+//! gateway answers with a non-fatal `invalid_field` error naming it (PROTOCOL.md §5.4).
 
 use crate::messages::AgentMessage;
 use crate::types::{Health, Release, SystemFacts, Teleoperation};
@@ -172,6 +172,22 @@ mod tests {
             current_release: Some(release),
             health: None,
             teleoperation: None,
+        }
+    }
+
+    #[test]
+    fn the_documents_own_examples_keep_the_rules() {
+        let doc = include_str!("../PROTOCOL.md");
+        let frames: Vec<&str> = doc
+            .lines()
+            .filter(|l| {
+                l.starts_with(r#"{"type":"hello""#) || l.starts_with(r#"{"type":"heartbeat""#)
+            })
+            .collect();
+        assert_eq!(frames.len(), 2, "{frames:?}");
+        for frame in frames {
+            let mut msg: AgentMessage = crate::decode(frame, usize::MAX).unwrap();
+            assert_eq!(sanitize(&mut msg), Vec::new(), "{frame}");
         }
     }
 
