@@ -10,6 +10,8 @@
 //! falls back to presence alone for the rest of the session and says why in a Warning Event.
 
 mod patch;
+#[cfg(test)]
+mod properties_tests;
 mod queue;
 #[cfg(test)]
 mod tests;
