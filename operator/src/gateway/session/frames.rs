@@ -23,8 +23,10 @@ where
         if let Some(seq) = msg.seq().filter(|s| *s > MAX_SEQ) {
             return Ok(seq_out_of_range(seq));
         }
-        let refused = rules::sanitize(&mut msg);
-        self.invalid_fields(refused).await?;
+        if matches!(msg, AgentMessage::Heartbeat { .. }) {
+            let refused = rules::sanitize(&mut msg);
+            self.invalid_fields(refused).await?;
+        }
         Ok(match msg {
             AgentMessage::Hello { .. } => ServerMessage::Error {
                 code: ErrorCode::UnexpectedMessage,
@@ -84,7 +86,9 @@ where
     /// of its message still takes effect).
     pub(super) async fn invalid_fields(&mut self, refused: Vec<FieldError>) -> Flow {
         for e in refused {
-            warn!(robot = %self.key.name, namespace = %self.key.namespace, field = e.field, reason = %e.reason, "refused a status field");
+            // Counted in `error_frames_total{kind="invalid_field"}`; a log line per heartbeat
+            // would flood the log.
+            tracing::debug!(robot = %self.key.name, namespace = %self.key.namespace, field = e.field, reason = %e.reason, "refused a status field");
             self.conn
                 .refuse(ErrorCode::InvalidField, e.to_string(), None)
                 .await?;
