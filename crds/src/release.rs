@@ -1,5 +1,6 @@
 //! The reference to a software release that robots run and deployments roll out.
 
+use lekiwi_protocol::rules;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -10,15 +11,15 @@ pub struct ReleaseRef {
     /// Human-readable version of the release, for example `1.4.2` or `2026-11-01-nightly`.
     /// Letters, digits, `.`, `_`, `+` and `-`; 1 to 128 characters.
     #[schemars(
-        length(min = 1, max = 128),
-        regex(pattern = r"^[A-Za-z0-9][A-Za-z0-9._+-]*$")
+        length(min = 1, max = rules::MAX_VERSION_CHARS),
+        regex(pattern = rules::VERSION_PATTERN)
     )]
     pub version: String,
 
     /// Digest of the release's file manifest, as printed by `kubectl lekiwi release push`:
     /// `sha256:` followed by 64 lowercase hex digits. The manifest lists every file of the
     /// release with its own digest, so two robots with the same digest run the same bytes.
-    #[schemars(regex(pattern = r"^sha256:[a-f0-9]{64}$"))]
+    #[schemars(regex(pattern = rules::DIGEST_PATTERN))]
     pub digest: String,
 }
 

@@ -2,6 +2,7 @@
 
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use kube::CustomResource;
+use lekiwi_protocol::rules;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -175,6 +176,7 @@ pub struct RobotStatus {
 
     /// Version of the agent software running on the robot.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = rules::MAX_TEXT_CHARS))]
     pub agent_version: Option<String>,
 
     /// The release the robot reports it runs now.
@@ -235,6 +237,7 @@ pub struct HealthReport {
     pub healthy: bool,
     /// Why not, when `healthy` is false.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = rules::MAX_MESSAGE_CHARS))]
     pub message: Option<String>,
 }
 
@@ -259,21 +262,26 @@ pub struct TeleoperationReport {
 pub struct SystemInfo {
     /// Host name.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = rules::MAX_TEXT_CHARS))]
     pub hostname: Option<String>,
     /// Operating system and version, for example `Debian GNU/Linux 12 (bookworm)`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = rules::MAX_TEXT_CHARS))]
     pub os: Option<String>,
     /// Kernel version.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = rules::MAX_TEXT_CHARS))]
     pub kernel: Option<String>,
     /// CPU architecture, for example `aarch64`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = rules::MAX_TEXT_CHARS))]
     pub arch: Option<String>,
     /// Number of logical CPUs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cpus: Option<u32>,
-    /// Total memory in bytes.
+    /// Total memory in bytes; at most 2^63 - 1 (`int64`, as Kubernetes stores integers).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("format" = "int64"))]
     pub memory_bytes: Option<u64>,
 }
 

@@ -8,6 +8,7 @@ use serde::Serialize;
 mod messages;
 mod phase;
 pub mod release;
+pub mod rules;
 pub mod transport;
 mod types;
 

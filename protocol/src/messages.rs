@@ -33,6 +33,9 @@ pub enum ErrorCode {
     ShuttingDown,
     /// Anything else on the gateway's side.
     Internal,
+    /// A `hello` or `heartbeat` field breaks the status rules (PROTOCOL.md §5.4); the message
+    /// names the field, which was ignored while the rest of the message took effect. Not fatal.
+    InvalidField,
     /// A code this version does not know (sent by a newer gateway); honour `fatal`.
     #[serde(other)]
     Unknown,

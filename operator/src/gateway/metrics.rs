@@ -27,7 +27,7 @@ pub struct PriorityLabels {
 pub struct WriteLabels {
     /// `high` or `low`.
     pub priority: &'static str,
-    /// `ok`, `error`, `gone` or `superseded`.
+    /// `ok`, `error` (retried), `gone`, `superseded` or `refused` (invalid even as presence alone; not retried).
     pub result: &'static str,
 }
 

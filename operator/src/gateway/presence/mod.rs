@@ -6,9 +6,12 @@
 //! refreshes (at most every `status_refresh`) to the low one. The writer takes high before low,
 //! writes the *latest* state of the robot when its turn comes (so bursts coalesce), respects a
 //! rate limit, and retries failures with backoff; nothing is dropped and memory is bounded by
-//! the number of robots.
+//! the number of robots. A status the API server refuses as invalid is not retried: the writer
+//! falls back to presence alone for the rest of the session and says why in a Warning Event.
 
 mod patch;
+#[cfg(test)]
+mod properties_tests;
 mod queue;
 #[cfg(test)]
 mod tests;
@@ -101,6 +104,8 @@ struct Entry {
     vitals: Vitals,
     retries: u32,
     last_update: Option<UpdateOutcome>,
+    /// The API server refused this session's full status: write presence facts only.
+    presence_only: bool,
 }
 
 /// Settings of the presence tracker and its writer.
@@ -181,6 +186,7 @@ impl Presence {
                     vitals: Vitals::default(),
                     retries: 0,
                     last_update,
+                    presence_only: false,
                 },
             );
             s.enqueue(key, Priority::High);

@@ -13,7 +13,7 @@ use lekiwi_crds::robot::{
     HealthReport, Robot, RobotStatus, SystemInfo, TelemetrySummary, TeleoperationReport,
     UpdateReport,
 };
-use lekiwi_protocol::{Release, SystemFacts, Vitals};
+use lekiwi_protocol::{Release, SystemFacts, Vitals, rules};
 use serde::Serialize;
 use serde_json::Value;
 
@@ -56,9 +56,20 @@ pub(super) fn status_patch(gateway: &str, e: &Entry, precondition: Option<Precon
 }
 
 /// The status fields the gateway owns. Every field is named, none defaulted, so that a field
-/// added to `RobotStatus` must be placed here or explicitly left to the controller.
-fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
+/// added to `RobotStatus` must be placed here or explicitly left to the controller. With
+/// `presence_only`, just the facts of the connection itself.
+pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
     let info = &e.info;
+    if e.presence_only {
+        return RobotStatus {
+            connected: Some(e.connected),
+            gateway: Some(gateway.to_owned()),
+            protocol: Some(info.protocol.to_owned()),
+            last_heartbeat_time: Some(Time(e.last_heartbeat)),
+            connected_since: Some(Time(e.connected_since)),
+            ..RobotStatus::default()
+        };
+    }
     RobotStatus {
         // Owned by the Robot controller.
         phase: None,
@@ -70,7 +81,8 @@ fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         protocol: Some(info.protocol.to_owned()),
         last_heartbeat_time: Some(Time(e.last_heartbeat)),
         connected_since: Some(Time(e.connected_since)),
-        agent_version: Some(info.agent_version.clone()).filter(|v| !v.is_empty()),
+        agent_version: Some(rules::cut_text(&info.agent_version, rules::MAX_TEXT_CHARS))
+            .filter(|v| !v.is_empty()),
         current_release: info.release.as_ref().map(release_ref),
         address: info.address.clone(),
         health: info.health.as_ref().map(|h| HealthReport {

@@ -35,6 +35,7 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         vitals: Vitals::default(),
         retries: 0,
         last_update: None,
+        presence_only: false,
     }
 }
 
@@ -342,6 +343,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 vitals: Vitals::default(),
                 retries: 0,
                 last_update: None,
+                presence_only: false,
             },
         );
         s.enqueue(&key("a"), Priority::Low);

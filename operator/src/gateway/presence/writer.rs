@@ -4,8 +4,10 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use kube::Api;
+use k8s_openapi::api::core::v1::ObjectReference;
 use kube::api::{Patch, PatchParams};
+use kube::runtime::events::{Event, EventType, Recorder, Reporter};
+use kube::{Api, Resource};
 use lekiwi_crds::Robot;
 use lekiwi_crds::contract::managers;
 use tokio::sync::Semaphore;
@@ -23,9 +25,15 @@ enum WriteError {
     Gone,
     /// Another gateway holds the robot now; our disconnect would undo its connect.
     Superseded,
+    /// The API server refused the status as invalid (400 or 422), with its explanation;
+    /// retrying the same status cannot help.
+    Refused(String),
     /// The API server refused or failed; retried.
     Api(kube::Error),
 }
+
+/// Longest note of the Warning Event on a refused status (the API server's reason), in bytes.
+const MAX_EVENT_NOTE_BYTES: usize = 1024;
 
 /// A failed write is retried after 400 ms, doubling per failure up to this.
 const MAX_RETRY_DELAY: Duration = Duration::from_secs(60);
@@ -35,6 +43,13 @@ impl Presence {
     pub async fn run_writer(self, client: kube::Client, cancel: CancellationToken) {
         let slots = Arc::new(Semaphore::new(self.config.concurrency.max(1)));
         let mut bucket = TokenBucket::new(self.config.qps, self.config.burst);
+        let recorder = Recorder::new(
+            client.clone(),
+            Reporter {
+                controller: "lekiwi-gateway".into(),
+                instance: Some(self.config.gateway.clone()),
+            },
+        );
         loop {
             let next = self.with_state(|s| s.pop());
             let Some((key, priority)) = next else {
@@ -57,8 +72,19 @@ impl Presence {
             };
             let me = self.clone();
             let client = client.clone();
+            let recorder = recorder.clone();
             tokio::spawn(async move {
-                let result = me.write(&client, &key, &entry).await;
+                let mut result = me.write(&client, &key, &entry).await;
+                if let Err(WriteError::Refused(why)) = &result
+                    && !entry.presence_only
+                {
+                    me.refused(&recorder, &key, &entry, why).await;
+                    let bare = Entry {
+                        presence_only: true,
+                        ..entry.clone()
+                    };
+                    result = me.write(&client, &key, &bare).await;
+                }
                 drop(permit);
                 let outcome = me.settle(key, priority, &entry, result);
                 me.metrics
@@ -93,6 +119,11 @@ impl Presence {
                 "gone"
             }
             Err(WriteError::Superseded) => "superseded",
+            Err(WriteError::Refused(why)) => {
+                // Even presence alone was refused: nothing this gateway sends can help.
+                warn!(robot = %key.name, namespace = %key.namespace, error = %why, "status write refused; not retrying");
+                "refused"
+            }
             Err(WriteError::Api(e)) => {
                 self.retry_later(key, priority, &e);
                 "error"
@@ -140,6 +171,34 @@ impl Presence {
         });
     }
 
+    /// The API server refused the status of `entry`: the rest of its session writes presence
+    /// only, and a Warning Event on the Robot quotes the server's reason (which names the field).
+    async fn refused(&self, recorder: &Recorder, key: &RobotKey, entry: &Entry, why: &str) {
+        warn!(robot = %key.name, namespace = %key.namespace, error = %why, "status refused; writing presence only");
+        self.with_state(|s| {
+            if let Some(e) = s.robots.get_mut(key).filter(|e| e.session == entry.session) {
+                e.presence_only = true;
+            }
+        });
+        let event = Event {
+            type_: EventType::Warning,
+            reason: "StatusFieldRefused".into(),
+            note: Some(lekiwi_protocol::truncate_utf8(why, MAX_EVENT_NOTE_BYTES).to_owned()),
+            action: "WriteStatus".into(),
+            secondary: None,
+        };
+        let robot = ObjectReference {
+            api_version: Some(Robot::api_version(&()).into_owned()),
+            kind: Some(Robot::kind(&()).into_owned()),
+            name: Some(key.name.clone()),
+            namespace: Some(key.namespace.clone()),
+            ..ObjectReference::default()
+        };
+        if let Err(e) = recorder.publish(&event, &robot).await {
+            warn!(robot = %key.name, error = %e, "cannot publish Event");
+        }
+    }
+
     /// Applies the status of `e`; a disconnect only while the robot is still ours.
     async fn write(
         &self,
@@ -164,6 +223,9 @@ impl Presence {
         {
             Ok(_) => Ok(()),
             Err(kube::Error::Api(s)) if s.code == 404 => Err(WriteError::Gone),
+            Err(kube::Error::Api(s)) if s.code == 400 || s.code == 422 => {
+                Err(WriteError::Refused(s.message))
+            }
             Err(err) => Err(WriteError::Api(err)),
         }
     }

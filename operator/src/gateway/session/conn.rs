@@ -64,6 +64,7 @@ const ERROR_LABELS: &[&str] = &[
     "quota_exceeded",
     "shutting_down",
     "internal",
+    "invalid_field",
 ];
 
 /// How `value` is spelled on the wire (a unit enum's snake_case name), or empty.

@@ -4,6 +4,7 @@
 use axum::extract::ws::Message;
 use futures::Sink;
 use jiff::Timestamp;
+use lekiwi_protocol::rules::{self, FieldError};
 use lekiwi_protocol::{AgentMessage, ErrorCode, MAX_SEQ, ProgressPhase, Sample, ServerMessage};
 use tracing::{debug, info, warn};
 
@@ -19,9 +20,13 @@ where
     W: Sink<Message> + Unpin + Send,
 {
     /// Applies one agent message; `Err` when the session ended meanwhile.
-    pub(super) async fn apply(&mut self, msg: AgentMessage) -> Result<ServerMessage, End> {
+    pub(super) async fn apply(&mut self, mut msg: AgentMessage) -> Result<ServerMessage, End> {
         if let Some(seq) = msg.seq().filter(|s| *s > MAX_SEQ) {
             return Ok(seq_out_of_range(seq));
+        }
+        if matches!(msg, AgentMessage::Heartbeat { .. }) {
+            let refused = rules::sanitize(&mut msg);
+            self.invalid_fields(refused).await?;
         }
         Ok(match msg {
             AgentMessage::Hello { .. } => ServerMessage::Error {
@@ -76,6 +81,20 @@ where
                     .await
             }
         })
+    }
+
+    /// Names each field the status rules refused in a non-fatal `invalid_field` error (the rest
+    /// of its message still takes effect).
+    pub(super) async fn invalid_fields(&mut self, refused: Vec<FieldError>) -> Flow {
+        for e in refused {
+            // Counted in `error_frames_total{kind="invalid_field"}`; a log line per heartbeat
+            // would flood the log.
+            tracing::debug!(robot = %self.key.name, namespace = %self.key.namespace, field = e.field, reason = %e.reason, "refused a status field");
+            self.conn
+                .refuse(ErrorCode::InvalidField, e.to_string(), None)
+                .await?;
+        }
+        Ok(())
     }
 
     /// Sends a handler's answer: an error frame is a refusal (counted by [`super::conn::Conn::refuse`]).

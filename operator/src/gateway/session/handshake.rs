@@ -3,6 +3,7 @@
 
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
+use lekiwi_protocol::rules::{self, FieldError};
 use lekiwi_protocol::{AgentMessage, ErrorCode, PROTOCOL_VERSION, decode, hello_version};
 use tracing::{info, warn};
 
@@ -16,20 +17,29 @@ use crate::metrics::KindLabels;
 /// The session was refused (and its socket closed, if the agent had not closed it already).
 pub(super) struct Refused;
 
-/// Waits for the agent's `hello`: what it says about the robot, for presence (without the
-/// peer address), or [`Refused`] when it came late, was something else or spoke another
-/// protocol version.
+/// A `hello` as presence records it, and the fields the status rules refused (to be named in
+/// `invalid_field` errors once the agent is welcomed).
+pub(super) struct Hello {
+    /// What it says about the robot, without the peer address.
+    pub(super) info: ConnectInfo,
+    /// Fields dropped from `info` by [`lekiwi_protocol::rules::sanitize`].
+    pub(super) refused: Vec<FieldError>,
+}
+
+/// Waits for the agent's `hello`: what it says about the robot, for presence, or [`Refused`]
+/// when it came late, was something else or spoke another protocol version.
 pub(super) async fn hello<W, R, E>(
     shared: &Shared,
     conn: &mut Conn<W>,
     stream: &mut R,
-) -> Result<ConnectInfo, Refused>
+) -> Result<Hello, Refused>
 where
     W: Sink<Message> + Unpin,
     R: Stream<Item = Result<Message, E>> + Unpin,
 {
     let text = first_text(shared, conn, stream).await?;
-    let decoded = decode::<AgentMessage>(&text, shared.limits.max_frame_bytes);
+    let mut decoded = decode::<AgentMessage>(&text, shared.limits.max_frame_bytes);
+    let refused = decoded.as_mut().map(rules::sanitize).unwrap_or_default();
     // Another version's hello may carry fields this version reads differently (§13).
     let other_version = match &decoded {
         Ok(AgentMessage::Hello {
@@ -59,14 +69,17 @@ where
             health,
             teleoperation,
             ..
-        }) => Ok(ConnectInfo {
-            protocol: "websocket",
-            agent_version,
-            release: current_release,
-            health,
-            teleoperation,
-            system,
-            address: None,
+        }) => Ok(Hello {
+            info: ConnectInfo {
+                protocol: "websocket",
+                agent_version,
+                release: current_release,
+                health,
+                teleoperation,
+                system,
+                address: None,
+            },
+            refused,
         }),
         Ok(_) => {
             conn.fail(

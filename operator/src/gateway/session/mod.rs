@@ -141,6 +141,10 @@ async fn run_inner<W, R, E>(
         return;
     };
     // 3. Take over from an older session, record the connection, tell presence.
+    let handshake::Hello {
+        info: hello,
+        refused,
+    } = hello;
     let current = hello.release.clone();
     let mut opened = open(&shared, &key, ConnectInfo { address, ..hello }).await;
     let mut session = Session {
@@ -162,6 +166,10 @@ async fn run_inner<W, R, E>(
             robot_token,
         ))
         .await;
+    let welcomed = match welcomed {
+        Ok(()) => session.invalid_fields(refused).await,
+        Err(end) => Err(end),
+    };
     let end = match welcomed {
         Ok(()) => session.serve(&mut stream, &mut opened.control).await,
         Err(end) => end,
