@@ -592,6 +592,10 @@ async fn chart_variants_are_accepted_by_the_api_server() -> anyhow::Result<()> {
             &ns,
             "--set",
             &watch,
+            // The user ClusterRoles have fixed, cluster-wide names that another test's release
+            // may hold at this moment (helm refuses to adopt them); hostile_authz proves them.
+            "--set",
+            "rbac.userRoles=false",
             // The server's capabilities: its PodDisruptionBudget version (1.20: policy/v1beta1).
             // (Helm refuses to combine this with --include-crds: the CRDs are applied from crds/.)
             "--dry-run=server",
@@ -987,7 +991,19 @@ async fn chart_tls_is_on_by_default_with_a_generated_ca_kept_across_upgrades() -
         ok(
             cp.tool(
                 "helm",
-                &[verb, &ns, CHART, "-n", &ns, "--set", &watch, "--wait=false"],
+                &[
+                    verb,
+                    &ns,
+                    CHART,
+                    "-n",
+                    &ns,
+                    "--set",
+                    &watch,
+                    // Cluster-wide names other tests' releases would collide with.
+                    "--set",
+                    "rbac.userRoles=false",
+                    "--wait=false",
+                ],
             ),
             &format!("helm {verb}"),
         )
