@@ -273,3 +273,102 @@ async fn overlong_robot_names_are_refused_and_create_nothing() -> anyhow::Result
     assert_eq!(welcome.robot, format!("{ns}/{name}"));
     Ok(())
 }
+
+/// Reads frames until the gateway closes the session; the close frame's code and reason.
+async fn closed(
+    ws: &mut lekiwi_agent::connection::Socket,
+    within: Duration,
+) -> anyhow::Result<(u16, String)> {
+    let deadline = tokio::time::Instant::now() + within;
+    loop {
+        let frame = tokio::time::timeout_at(deadline, ws.next())
+            .await
+            .map_err(|_| anyhow::anyhow!("the session is still open after {within:?}"))?;
+        match frame {
+            Some(Ok(Message::Close(Some(f)))) => return Ok((f.code.into(), f.reason.to_string())),
+            Some(Ok(Message::Close(None))) | None => return Ok((0, String::new())),
+            Some(Ok(_)) => continue,
+            Some(Err(e)) => anyhow::bail!("the session broke instead of closing: {e}"),
+        }
+    }
+}
+
+/// Sends a heartbeat and expects its ack: the session is alive.
+async fn alive(ws: &mut lekiwi_agent::connection::Socket) -> anyhow::Result<()> {
+    ws.send(Message::text(encode(&heartbeat()))).await?;
+    loop {
+        match tokio::time::timeout(TIMEOUT, ws.next()).await? {
+            Some(Ok(Message::Text(t))) => {
+                if matches!(
+                    decode::<ServerMessage>(t.as_str(), 1 << 20)?,
+                    ServerMessage::HeartbeatAck { .. }
+                ) {
+                    return Ok(());
+                }
+            }
+            other => anyhow::bail!("the robot's session ended: {other:?}"),
+        }
+    }
+}
+
+/// A stolen token stops working at once when a person rotates it or deletes its Secret: the
+/// session it opened is closed (1008 `token revoked`), not left running until it disconnects.
+/// The robot's own enrollment, which writes its Secret while the session is open, does not.
+#[tokio::test]
+async fn a_rotated_or_deleted_token_ends_the_session_it_opened() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hirevoke").await?;
+    let op = gateway_operator(cp, &ns, "hi-revoke", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let url = gateway_url(&op);
+    let full = format!("{ns}/kiwi-1");
+
+    // Enrollment writes the robot's token Secret during the session: that is no revocation.
+    let (mut ws, welcome) = connect(&url, &creds(&enroll, &full), &hello(), TIMEOUT).await?;
+    let own = welcome.robot_token.expect("enrollment issues a token");
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    alive(&mut ws).await?;
+    drop(ws);
+
+    // A session opened with the robot's token ends when a person rotates the token.
+    let (mut stolen, _) = connect(&url, &creds(&own, &full), &hello(), TIMEOUT).await?;
+    alive(&mut stolen).await?;
+    let out = std::process::Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args(["-n", &ns, "robot", "add", "kiwi-1", "--rotate-token"])
+        .args(["--gateway", "ws://127.0.0.1:9/v1/agent"])
+        .output()?;
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (code, reason) = closed(&mut stolen, TIMEOUT).await?;
+    assert_eq!((code, reason.as_str()), (1008, "token revoked"));
+    assert!(!token_works(&op, &ns, "kiwi-1", &own).await?);
+
+    // The new token works, until its Secret is deleted.
+    let printed = String::from_utf8_lossy(&out.stdout).to_string();
+    let new = printed
+        .split(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+        .find(|w| w.starts_with("lkr_"))
+        .unwrap_or_else(|| panic!("no new token in the output:\n{printed}"))
+        .to_owned();
+    let (mut ws, _) = connect(&url, &creds(&new, &full), &hello(), TIMEOUT).await?;
+    alive(&mut ws).await?;
+    let deleted = cp.kubectl(&["-n", &ns, "delete", "secret", "kiwi-1-agent-token"]);
+    assert!(deleted.status.success(), "{deleted:?}");
+    let (code, reason) = closed(&mut ws, TIMEOUT).await?;
+    assert_eq!((code, reason.as_str()), (1008, "token revoked"));
+    // Counted as the session is cleaned up, just after its close frame went out.
+    wait_for("both ends counted", TIMEOUT, || async {
+        let ended = op
+            .metric(r#"lekiwi_gateway_sessions_ended_total{kind="token_revoked"}"#)
+            .await;
+        (ended == Some(2.0)).then_some(())
+    })
+    .await?;
+    Ok(())
+}

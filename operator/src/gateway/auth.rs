@@ -135,6 +135,17 @@ fn robot_hash(secret: &Secret, name: &str) -> Option<Vec<u8>> {
 }
 
 impl Authenticator {
+    /// Whether the token hash `hash` (hex, [`hash_token`]) still counts for `robot` by the
+    /// watched Secrets alone: false when its Secret is gone, not ours, or holds another hash
+    /// (the token was rotated or revoked).
+    pub fn still_counts(&self, robot: &RobotKey, hash: &str) -> bool {
+        let secret_ref =
+            ObjectRef::<Secret>::new(&robot_secret_name(&robot.name)).within(&robot.namespace);
+        self.secrets.get(&secret_ref).is_some_and(|s| {
+            robot_hash(&s, &robot.name).is_some_and(|h| same_hash(&h, hash.as_bytes()))
+        })
+    }
+
     /// An authenticator over a reflector of token Secrets, with the default [`Lookups`].
     pub fn new(client: kube::Client, secrets: Store<Secret>) -> Self {
         Self {

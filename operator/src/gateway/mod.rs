@@ -260,6 +260,7 @@ async fn agent_ws(
     // that the WebSocket layer closes the connection (1009) without buffering them.
     let hard_cap = state.shared.limits.max_frame_bytes * 4;
     let shared = state.shared.clone();
+    let token_hash = lekiwi_crds::contract::hash_token(bearer(&headers).unwrap_or_default());
     Ok(ws
         .max_message_size(hard_cap)
         .max_frame_size(hard_cap)
@@ -268,7 +269,8 @@ async fn agent_ws(
         .write_buffer_size(0)
         .on_upgrade(move |socket| async move {
             let (sink, stream) = socket.split();
-            session::run(shared, grant, Some(peer.ip().to_string()), sink, stream).await;
+            let address = Some(peer.ip().to_string());
+            session::run(shared, grant, token_hash, address, sink, stream).await;
             drop(permit);
         }))
 }

@@ -20,6 +20,12 @@ pub enum Control {
     Send(Box<ServerMessage>),
     /// The robot's `spec.release` changed to this; the session sends a deploy command if due.
     Desired(Option<Box<Release>>),
+    /// The robot's token Secret changed (`deleted`: it is gone); the session checks that the
+    /// token it was opened with still counts and closes if not.
+    Credentials {
+        /// The Secret was deleted (or lost our labels).
+        deleted: bool,
+    },
 }
 
 /// The sessions of this gateway, one per robot, each with the channel that reaches it.
@@ -54,6 +60,12 @@ impl Registry {
     /// session here or its channel is full.
     pub fn notify_desired_release(&self, key: &RobotKey, release: Option<Release>) -> bool {
         self.try_send(key, Control::Desired(release.map(Box::new)))
+    }
+
+    /// Tells a robot's session that its token Secret changed; false when the robot has no
+    /// session here or its channel is full.
+    pub fn notify_credentials(&self, key: &RobotKey, deleted: bool) -> bool {
+        self.try_send(key, Control::Credentials { deleted })
     }
 
     /// Sends a message to a robot's session; false when the robot has no session here or its

@@ -12,7 +12,7 @@ use futures::StreamExt;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use kube::runtime::{WatchStreamExt, reflector, watcher};
-use lekiwi_crds::contract::TOKEN_LABEL;
+use lekiwi_crds::contract::{KIND_ROBOT, ROBOT_LABEL, TOKEN_LABEL};
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use tokio::sync::Semaphore;
@@ -32,7 +32,7 @@ use super::session::{Limits, Shared};
 use super::{AppState, blob_api, dispatch, lease, router};
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::gateway::event_store::Store;
+use crate::gateway::event_store::{RobotKey, Store};
 use crate::metrics::{KindLabels, Metrics};
 
 /// At most one quota Warning Event per robot this often.
@@ -92,7 +92,9 @@ pub async fn run(
     cancel: CancellationToken,
 ) -> Result<()> {
     let name = config.gateway_name();
-    let Some((secret_store, secret_task)) = watch_token_secrets(&config, &client, &cancel).await?
+    let registry = Arc::new(Registry::default());
+    let Some((secret_store, secret_task)) =
+        watch_token_secrets(&config, &client, registry.clone(), &cancel).await?
     else {
         return Ok(());
     };
@@ -107,7 +109,6 @@ pub async fn run(
         },
         metrics.clone(),
     );
-    let registry = Arc::new(Registry::default());
     let (desired, dispatch_task) =
         dispatch::start(watched(&config, &client), registry.clone(), cancel.clone()).await?;
     let shared = Shared {
@@ -154,10 +155,12 @@ where
 }
 
 /// Starts the watch of the robots' token Secrets and waits until it has listed them all;
-/// `None` when `cancel` fired first.
+/// `None` when `cancel` fired first. A robot token Secret that changes or goes tells that
+/// robot's session in `registry`, which closes if its token no longer counts.
 async fn watch_token_secrets(
     config: &Config,
     client: &kube::Client,
+    registry: Arc<Registry>,
     cancel: &CancellationToken,
 ) -> Result<Option<(reflector::Store<Secret>, JoinHandle<()>)>> {
     let (secret_store, writer) = reflector::store();
@@ -173,9 +176,14 @@ async fn watch_token_secrets(
         secret.metadata.annotations = None;
         secret.metadata.owner_references = None;
     });
-    let secret_watch = reflector(writer, token_secrets)
-        .touched_objects()
-        .for_each(|_| futures::future::ready(()));
+    let secret_watch = reflector(writer, token_secrets).for_each(move |event| {
+        match event {
+            Ok(watcher::Event::Apply(s)) => credentials_changed(&registry, &s, false),
+            Ok(watcher::Event::Delete(s)) => credentials_changed(&registry, &s, true),
+            _ => {}
+        }
+        futures::future::ready(())
+    });
     let secret_task = tokio::spawn(secret_watch);
     tokio::select! {
         () = cancel.cancelled() => { secret_task.abort(); Ok(None) }
@@ -183,6 +191,21 @@ async fn watch_token_secrets(
             Ok(()) => Ok(Some((secret_store, secret_task))),
             Err(_) => Err(Error::TaskStopped("token secret reflector")),
         }
+    }
+}
+
+/// Tells the session of the robot whose token Secret `secret` is that it changed.
+fn credentials_changed(registry: &Registry, secret: &Secret, deleted: bool) {
+    let labels = secret.metadata.labels.as_ref();
+    let robot = labels
+        .filter(|l| l.get(TOKEN_LABEL).map(String::as_str) == Some(KIND_ROBOT))
+        .and_then(|l| l.get(ROBOT_LABEL));
+    if let (Some(name), Some(namespace)) = (robot, &secret.metadata.namespace) {
+        let key = RobotKey {
+            namespace: namespace.clone(),
+            name: name.clone(),
+        };
+        registry.notify_credentials(&key, deleted);
     }
 }
 

@@ -31,6 +31,8 @@ pub(super) enum End {
     Shutdown,
     /// A frame could not be written within the send timeout: the agent stopped reading.
     SendTimeout,
+    /// The token the session was opened with was rotated or its Secret deleted.
+    Revoked,
 }
 
 impl End {
@@ -42,6 +44,7 @@ impl End {
             End::Abuse => "rate_limit_abuse",
             End::Shutdown => "shutdown",
             End::SendTimeout => "send_timeout",
+            End::Revoked => "token_revoked",
         }
     }
 }

@@ -86,6 +86,9 @@ struct Session<'a, W> {
     conn: Conn<W>,
     /// Boxed: the session future lives as long as the connection, so keep it small.
     commands: Box<CommandLedger>,
+    /// SHA-256 (hex) of the token this session speaks with: the robot's token it presented,
+    /// or the one it was issued at enrollment. Rotating or deleting it ends the session.
+    token_hash: String,
 }
 
 /// What opening a session left to close at its end.
@@ -100,10 +103,12 @@ struct Opened {
     stored_seq: Option<u64>,
 }
 
-/// Runs one session to its end, in a `session` span naming the robot.
+/// Runs one session to its end, in a `session` span naming the robot. `token_hash` is the hash
+/// of the token the agent presented ([`lekiwi_crds::contract::hash_token`]).
 pub async fn run<W, R, E>(
     shared: Arc<Shared>,
     grant: Grant,
+    token_hash: String,
     address: Option<String>,
     sink: W,
     stream: R,
@@ -114,7 +119,7 @@ pub async fn run<W, R, E>(
 {
     let key = grant.robot().clone();
     let span = info_span!("session", robot = %key.name, namespace = %key.namespace);
-    run_inner(shared, grant, address, sink, stream)
+    run_inner(shared, grant, token_hash, address, sink, stream)
         .instrument(span)
         .await;
 }
@@ -122,6 +127,7 @@ pub async fn run<W, R, E>(
 async fn run_inner<W, R, E>(
     shared: Arc<Shared>,
     grant: Grant,
+    token_hash: String,
     address: Option<String>,
     sink: W,
     mut stream: R,
@@ -140,6 +146,10 @@ async fn run_inner<W, R, E>(
     let Ok(robot_token) = handshake::enroll(&shared, &grant, &mut conn).await else {
         return;
     };
+    let token_hash = robot_token
+        .as_deref()
+        .map(lekiwi_crds::contract::hash_token)
+        .unwrap_or(token_hash);
     // 3. Take over from an older session, record the connection, tell presence.
     let handshake::Hello {
         info: hello,
@@ -156,6 +166,7 @@ async fn run_inner<W, R, E>(
             current,
             shared.desired.as_ref().and_then(|d| d.get(&key)),
         )),
+        token_hash,
     };
     let welcomed = session
         .conn

@@ -133,6 +133,7 @@ where
                 self.commands.set_desired(release.map(|r| *r));
                 self.send_deploy().await
             }
+            Some(Control::Credentials { deleted }) => self.check_credentials(deleted).await,
             Some(Control::Replaced) | None => {
                 self.conn
                     .fail(
@@ -144,6 +145,17 @@ where
                 Err(End::Replaced)
             }
         }
+    }
+
+    /// The robot's token Secret changed: the session ends (close 1008 `token revoked`, no
+    /// `error` frame) unless the token it speaks with still counts.
+    async fn check_credentials(&mut self, deleted: bool) -> Flow {
+        if !deleted && self.shared.auth.still_counts(self.key, &self.token_hash) {
+            return Ok(());
+        }
+        warn!("the robot's token was rotated or revoked; closing its session");
+        self.conn.close(CLOSE_POLICY, "token revoked").await;
+        Err(End::Revoked)
     }
 
     async fn silent(&mut self, silence: Duration) -> Flow {
