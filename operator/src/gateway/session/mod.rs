@@ -351,7 +351,7 @@ mod tests {
             namespace: "lab".into(),
             name: "kiwi".into(),
         });
-        let session = run(shared, grant, None, sink, stream);
+        let session = run(shared, grant, String::new(), None, sink, stream);
         let size = std::mem::size_of_val(&session);
         println!("session future: {size} bytes");
         // Every connection holds one of these for its whole life: keep it well under 8 KiB.
