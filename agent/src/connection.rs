@@ -42,6 +42,13 @@ pub enum ConnectError {
     /// The gateway is full or unavailable (HTTP 503).
     #[error("the gateway is unavailable: {0}")]
     Unavailable(String),
+    /// This robot opened sessions faster than the gateway allows (HTTP 429); wait at least
+    /// `retry_after` before the next attempt.
+    #[error("the gateway limits how often this robot connects: retry in {retry_after:?}")]
+    TooManySessions {
+        /// The gateway's `Retry-After`.
+        retry_after: std::time::Duration,
+    },
     /// The URL or a header value is invalid.
     #[error("invalid gateway request: {0}")]
     Request(String),
@@ -196,6 +203,16 @@ fn refusal(resp: &tokio_tungstenite::tungstenite::http::Response<Option<Vec<u8>>
     match resp.status().as_u16() {
         401 => ConnectError::Unauthorized(body),
         403 => ConnectError::Forbidden(body),
+        429 => ConnectError::TooManySessions {
+            retry_after: std::time::Duration::from_secs(
+                resp.headers()
+                    .get("retry-after")
+                    .and_then(|v| v.to_str().ok())
+                    .and_then(|v| v.trim().parse::<u64>().ok())
+                    .unwrap_or(10)
+                    .min(3600),
+            ),
+        },
         _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
     }
 }

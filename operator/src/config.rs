@@ -171,6 +171,16 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_AGENT_BURST", default_value_t = 40)]
     pub agent_burst: u32,
 
+    /// Sessions one robot may open per minute, sustained (0: no limit). A robot's token that
+    /// reconnects faster (a stolen token in a loop) gets 429 with `Retry-After` before the
+    /// upgrade, so it cannot turn connects into status writes, controller work and Events.
+    #[arg(long, env = "LEKIWI_SESSION_OPENS_PER_MINUTE", default_value_t = 6.0)]
+    pub session_opens_per_minute: f64,
+
+    /// Sessions one robot may open at once before that rate applies.
+    #[arg(long, env = "LEKIWI_SESSION_OPEN_BURST", default_value_t = 10)]
+    pub session_open_burst: u32,
+
     /// Seconds an agent has to send `hello` after connecting.
     #[arg(long, env = "LEKIWI_HANDSHAKE_TIMEOUT_SECONDS", default_value_t = 10)]
     pub handshake_timeout_seconds: u64,

@@ -372,3 +372,48 @@ async fn a_rotated_or_deleted_token_ends_the_session_it_opened() -> anyhow::Resu
     .await?;
     Ok(())
 }
+
+/// A robot's token in a reconnect loop (stolen, or a broken agent) is slowed before the upgrade:
+/// past the burst (10) it gets 429 with `Retry-After`, so its connects cost the API server no
+/// status writes, controller work or Events; other robots connect as usual.
+#[tokio::test]
+async fn a_token_in_a_reconnect_loop_is_slowed_before_the_upgrade() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hiloop").await?;
+    let op = gateway_operator(cp, &ns, "hi-loop", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let url = gateway_url(&op);
+    let full = format!("{ns}/kiwi-1");
+
+    let (ws, welcome) = connect(&url, &creds(&enroll, &full), &hello(), TIMEOUT).await?;
+    let own = welcome.robot_token.expect("enrollment issues a token");
+    drop(ws);
+    for _ in 1..10 {
+        let (ws, _) = connect(&url, &creds(&own, &full), &hello(), TIMEOUT).await?;
+        drop(ws);
+    }
+    match connect(&url, &creds(&own, &full), &hello(), TIMEOUT).await {
+        Err(ConnectError::TooManySessions { retry_after }) => {
+            assert!(
+                retry_after >= Duration::from_secs(1) && retry_after <= Duration::from_secs(10),
+                "{retry_after:?}"
+            );
+        }
+        other => panic!("expected 429, got {:?}", other.map(|(_, w)| w)),
+    }
+    let refused = op
+        .metric(r#"lekiwi_gateway_refused_total{kind="too_many_sessions"}"#)
+        .await;
+    assert_eq!(refused, Some(1.0));
+    // Another robot is not slowed by it.
+    let (mut other, _) = connect(
+        &url,
+        &creds(&enroll, &format!("{ns}/kiwi-2")),
+        &hello(),
+        TIMEOUT,
+    )
+    .await?;
+    alive(&mut other).await?;
+    Ok(())
+}

@@ -120,7 +120,10 @@ impl Agent {
             error!(error = %e, "cannot connect; retrying at the slowest rate");
             backoff.saturate();
         }
-        let delay = backoff.next_delay();
+        let mut delay = backoff.next_delay();
+        if let ConnectError::TooManySessions { retry_after } = e {
+            delay = delay.max(*retry_after);
+        }
         warn!(error = %e, retry_in_ms = delay.as_millis() as u64, attempt = backoff.attempts(), "connection failed");
         // A refused token waits at least the cap (set above).
         lp.reconnect_at = lp.reconnect_at.max(Instant::now() + delay);

@@ -60,6 +60,8 @@ pub enum ApiError {
     /// The gateway's budget of API reads for unauthenticated requests is spent: 503 with
     /// `Retry-After`.
     Throttled(&'static str),
+    /// A robot opens sessions faster than its budget: 429 with `Retry-After` (seconds).
+    TooManySessions(u64),
     /// Something failed on our side.
     Internal(String),
 }
@@ -81,6 +83,21 @@ impl IntoResponse for ApiError {
                     [
                         (header::CONTENT_TYPE, "application/json"),
                         (header::RETRY_AFTER, "1"),
+                    ],
+                    body.to_string(),
+                )
+                    .into_response();
+            }
+            ApiError::TooManySessions(seconds) => {
+                let body = serde_json::json!({
+                    "error": "too_many_sessions",
+                    "message": "this robot opens sessions too often; retry after Retry-After seconds",
+                });
+                return (
+                    StatusCode::TOO_MANY_REQUESTS,
+                    [
+                        (header::CONTENT_TYPE, "application/json".to_owned()),
+                        (header::RETRY_AFTER, seconds.to_string()),
                     ],
                     body.to_string(),
                 )
@@ -255,6 +272,18 @@ async fn agent_ws(
         .map_err(|r| state.refused(r))?;
     if let Grant::Enroll(robot) = &grant {
         state.may_enroll(robot).await?;
+    }
+    if let Err(seconds) = state.shared.registry.may_open(grant.robot()) {
+        state
+            .shared
+            .metrics
+            .gateway
+            .refused
+            .get_or_create(&KindLabels {
+                kind: "too_many_sessions",
+            })
+            .inc();
+        return Err(ApiError::TooManySessions(seconds));
     }
     // Frames up to 4x the protocol limit are read and answered with an error frame; beyond
     // that the WebSocket layer closes the connection (1009) without buffering them.

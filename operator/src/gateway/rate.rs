@@ -44,6 +44,22 @@ impl TokenBucket {
         }
     }
 
+    /// Whether the bucket is full again (nothing taken lately).
+    pub fn is_full(&mut self) -> bool {
+        self.refill();
+        self.tokens >= self.burst
+    }
+
+    /// Seconds until the next token, rounded up (0 when one is there).
+    pub fn wait_seconds(&mut self) -> u64 {
+        self.refill();
+        if self.tokens >= 1.0 {
+            0
+        } else {
+            ((1.0 - self.tokens) / self.rate).ceil() as u64
+        }
+    }
+
     /// Takes a token, sleeping until one is there.
     pub async fn take(&mut self) {
         while !self.try_take() {

@@ -9,6 +9,10 @@ use lekiwi_protocol::{Release, ServerMessage};
 use tokio::sync::mpsc;
 
 use crate::gateway::event_store::RobotKey;
+use crate::gateway::rate::TokenBucket;
+
+/// Robots whose session-opening budget is tracked at most; past it the full (idle) ones go.
+const MAX_OPEN_BUDGETS: usize = 50_000;
 
 /// What the rest of the gateway tells a running session.
 #[derive(Debug)]
@@ -28,14 +32,47 @@ pub enum Control {
     },
 }
 
-/// The sessions of this gateway, one per robot, each with the channel that reaches it.
+/// The sessions of this gateway, one per robot, each with the channel that reaches it, and how
+/// fast each robot may open new ones.
 #[derive(Default)]
 pub struct Registry {
     next: AtomicU64,
     sessions: Mutex<HashMap<RobotKey, (u64, mpsc::Sender<Control>)>>,
+    /// Sessions per minute and burst one robot may open; `None`: no limit.
+    open_rate: Option<(f64, u32)>,
+    opens: Mutex<HashMap<RobotKey, TokenBucket>>,
 }
 
 impl Registry {
+    /// A registry that lets each robot open `per_minute` sessions a minute (`burst` at once);
+    /// a `per_minute` of 0 sets no limit.
+    pub fn with_open_rate(per_minute: f64, burst: u32) -> Self {
+        Self {
+            open_rate: (per_minute > 0.0).then_some((per_minute / 60.0, burst)),
+            ..Self::default()
+        }
+    }
+
+    /// Takes one session opening from `key`'s budget; `Err(seconds)` until the next one when it
+    /// is spent. Only authenticated robots reach this, so the map holds at most the fleet.
+    pub fn may_open(&self, key: &RobotKey) -> Result<(), u64> {
+        let Some((rate, burst)) = self.open_rate else {
+            return Ok(());
+        };
+        let mut opens = self.opens.lock().unwrap_or_else(|p| p.into_inner());
+        if opens.len() >= MAX_OPEN_BUDGETS && !opens.contains_key(key) {
+            opens.retain(|_, bucket| !bucket.is_full());
+        }
+        let bucket = opens
+            .entry(key.clone())
+            .or_insert_with(|| TokenBucket::new(rate, burst));
+        if bucket.try_take() {
+            Ok(())
+        } else {
+            Err(bucket.wait_seconds().max(1))
+        }
+    }
+
     /// Registers a new session for `key`, telling an older one that it was replaced; returns the
     /// session's id and the channel it reads its [`Control`] messages from.
     pub(super) fn register(&self, key: &RobotKey) -> (u64, mpsc::Receiver<Control>) {

@@ -92,7 +92,10 @@ pub async fn run(
     cancel: CancellationToken,
 ) -> Result<()> {
     let name = config.gateway_name();
-    let registry = Arc::new(Registry::default());
+    let registry = Arc::new(Registry::with_open_rate(
+        config.session_opens_per_minute,
+        config.session_open_burst,
+    ));
     let Some((secret_store, secret_task)) =
         watch_token_secrets(&config, &client, registry.clone(), &cancel).await?
     else {
