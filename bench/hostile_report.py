@@ -78,6 +78,10 @@ def main():
          "PASS" if a["reconnects"] == 0 else "FAIL"),
         ("/healthz at window end", q["healthz"], a["healthz"], ""),
     ]
+    for proc in ("gateway", "apiserver", "controller", "sim", "attacker"):
+        qc, ac = facts.get(f"quiet_cpu_{proc}"), facts.get(f"attack_cpu_{proc}")
+        if qc is not None or ac is not None:
+            rows.append((f"CPU of {proc} (cores)", qc or "-", ac or "-", ""))
     width = max(len(r[0]) for r in rows)
     lines = [
         f"LeKiwi gateway under attack — {facts.get('date', '?')}",

@@ -242,11 +242,11 @@ pub struct Config {
     /// token cache cannot authenticate (a token minted a moment ago, or a guess); beyond it they
     /// are refused with 503. The HTTP API's TokenReviews of uncached tokens have a budget of the
     /// same size. Status writes and Lease renewals have budgets of their own.
-    #[arg(long, env = "LEKIWI_AUTH_LOOKUP_QPS", default_value_t = 5.0)]
+    #[arg(long, env = "LEKIWI_AUTH_LOOKUP_QPS", default_value_t = 1.0)]
     pub auth_lookup_qps: f64,
 
     /// Such reads at once.
-    #[arg(long, env = "LEKIWI_AUTH_LOOKUP_BURST", default_value_t = 20)]
+    #[arg(long, env = "LEKIWI_AUTH_LOOKUP_BURST", default_value_t = 10)]
     pub auth_lookup_burst: u32,
 
     /// Seconds a read that found no matching token is remembered (between this and twice

@@ -58,8 +58,8 @@ pub struct LookupConfig {
 impl Default for LookupConfig {
     fn default() -> Self {
         Self {
-            qps: 5.0,
-            burst: 20,
+            qps: 1.0,
+            burst: 10,
             miss_ttl: Duration::from_secs(5),
         }
     }
