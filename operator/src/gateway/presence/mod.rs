@@ -106,7 +106,14 @@ struct Entry {
     last_update: Option<UpdateOutcome>,
     /// The API server refused this session's full status: write presence facts only.
     presence_only: bool,
+    /// A session of a robot last written as disconnected, not written yet: its first write
+    /// waits until it has lasted [`SETTLE`] (or something else must be written).
+    settling: bool,
 }
+
+/// How long a new session of a robot shown as disconnected must last before it is written as
+/// connected (see `State::known_offline`).
+pub const SETTLE: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// Settings of the presence tracker and its writer.
 #[derive(Clone, Debug)]
@@ -187,9 +194,12 @@ impl Presence {
                     retries: 0,
                     last_update,
                     presence_only: false,
+                    settling: s.known_offline.contains(key),
                 },
             );
-            s.enqueue(key, Priority::High);
+            if !s.known_offline.contains(key) {
+                s.enqueue(key, Priority::High);
+            }
         });
         self.wake();
     }
@@ -292,7 +302,13 @@ impl Presence {
                 return false;
             };
             e.connected = false;
+            let unwritten = e.settling && !s.queued.contains_key(key);
             self.metrics.per_robot.forget(&key.namespace, &key.name);
+            if unwritten {
+                // Never written as connected, and the status still says disconnected.
+                s.robots.remove(key);
+                return false;
+            }
             s.enqueue(key, Priority::High);
             true
         });
@@ -317,10 +333,16 @@ impl Presence {
         let refresh =
             jiff::SignedDuration::try_from(self.config.status_refresh).unwrap_or_default();
         let poll_grace = jiff::SignedDuration::try_from(self.config.poll_grace).unwrap_or_default();
+        let settle = jiff::SignedDuration::try_from(SETTLE).unwrap_or_default();
         let queued = self.with_state(|s| {
             let mut due = Vec::new();
             for (key, e) in s.robots.iter_mut() {
                 if !e.connected {
+                    continue;
+                }
+                if e.settling && now.duration_since(e.connected_since) >= settle {
+                    e.settling = false;
+                    due.push((key.clone(), Priority::High));
                     continue;
                 }
                 if e.info.protocol == "poll" && now.duration_since(e.last_heartbeat) > poll_grace {

@@ -234,6 +234,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         retries: 0,
         last_update: None,
         presence_only: false,
+        settling: false,
     }
 }
 

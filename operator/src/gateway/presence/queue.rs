@@ -1,7 +1,7 @@
 //! The presence state behind one lock: what each robot last said, and the two write queues
 //! that hold each robot at most once.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 
 use super::{Entry, Priority};
 use crate::gateway::event_store::RobotKey;
@@ -9,6 +9,10 @@ use crate::gateway::event_store::RobotKey;
 #[derive(Default)]
 pub(super) struct State {
     pub(super) robots: HashMap<RobotKey, Entry>,
+    /// Robots this gateway last wrote as disconnected (and then forgot): a new session of one
+    /// of them is written only once it has lasted [`super::SETTLE`], so a session that opens
+    /// and fails at once (a stolen token in a loop) costs the API server nothing.
+    pub(super) known_offline: HashSet<RobotKey>,
     pub(super) queued: HashMap<RobotKey, Priority>,
     pub(super) high: VecDeque<RobotKey>,
     pub(super) low: VecDeque<RobotKey>,

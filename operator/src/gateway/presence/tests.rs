@@ -36,6 +36,7 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         retries: 0,
         last_update: None,
         presence_only: false,
+        settling: false,
     }
 }
 
@@ -326,6 +327,44 @@ fn presence() -> Presence {
     )
 }
 
+/// A robot this gateway last wrote as disconnected: a session that fails within [`SETTLE`]
+/// writes nothing at all; one that lasts is written by the next tick after it; a robot not
+/// known to be shown disconnected is written at once.
+#[test]
+fn sessions_that_fail_at_once_write_nothing_for_a_robot_shown_offline() {
+    let p = presence();
+    p.with_state(|s| {
+        s.known_offline.insert(key("flap"));
+    });
+    p.connect(&key("flap"), 1, ConnectInfo::default());
+    assert_eq!(p.queued(), 0, "not written while settling");
+    p.disconnect(&key("flap"), 1);
+    assert_eq!(
+        p.queued(),
+        0,
+        "nothing to write: the status says disconnected"
+    );
+    p.with_state(|s| {
+        assert!(!s.robots.contains_key(&key("flap")));
+        assert!(s.known_offline.contains(&key("flap")));
+    });
+
+    p.connect(&key("flap"), 2, ConnectInfo::default());
+    p.with_state(|s| {
+        let e = s.robots.get_mut(&key("flap")).unwrap();
+        e.connected_since = Timestamp::now() - jiff::SignedDuration::from_secs(2);
+    });
+    p.tick();
+    p.with_state(|s| assert_eq!(s.pop(), Some((key("flap"), Priority::High))));
+    // Taken for writing (the writer clears `settling`): its disconnect is written too.
+    p.with_state(|s| s.robots.get_mut(&key("flap")).unwrap().settling = false);
+    p.disconnect(&key("flap"), 2);
+    assert_eq!(p.queued(), 1);
+
+    p.connect(&key("new"), 3, ConnectInfo::default());
+    p.with_state(|s| assert!(s.queued.contains_key(&key("new")), "written at once"));
+}
+
 #[test]
 fn transitions_jump_the_queue_and_bursts_coalesce() {
     let p = presence();
@@ -344,6 +383,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 retries: 0,
                 last_update: None,
                 presence_only: false,
+                settling: false,
             },
         );
         s.enqueue(&key("a"), Priority::Low);

@@ -67,7 +67,14 @@ impl Presence {
             let Ok(permit) = slots.clone().acquire_owned().await else {
                 return;
             };
-            let Some(entry) = self.with_state(|s| s.robots.get(&key).cloned()) else {
+            // Taken for writing: from now on a disconnect must be written too.
+            let taken = self.with_state(|s| {
+                s.robots.get_mut(&key).map(|e| {
+                    e.settling = false;
+                    e.clone()
+                })
+            });
+            let Some(entry) = taken else {
                 continue;
             };
             let me = self.clone();
@@ -139,11 +146,19 @@ impl Presence {
                 e.retries = 0;
                 if e.session == entry.session {
                     e.written_heartbeat = Some(entry.last_heartbeat);
+                    if entry.connected {
+                        e.settling = false;
+                    }
                 }
-                // A disconnected robot written as such needs no memory any more.
+                // A disconnected robot written as such needs no memory any more, except that
+                // the status says so.
                 if !e.connected && !entry.connected && e.session == entry.session {
                     s.robots.remove(key);
+                    s.known_offline.insert(key.clone());
                 }
+            }
+            if entry.connected {
+                s.known_offline.remove(key);
             }
         });
     }
