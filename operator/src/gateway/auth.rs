@@ -124,20 +124,30 @@ pub struct Authenticator {
 /// Enrollments in flight at once; more wait for a permit.
 const MAX_CONCURRENT_ENROLLMENTS: usize = 16;
 
-/// The token hash in a robot token Secret made by us for robot `name` (see
-/// [`lekiwi_crds::contract::robot_token_secret`]); a Secret of that name without our labels
-/// grants nothing.
-fn robot_hash(secret: &Secret, name: &str) -> Option<Vec<u8>> {
+/// The robot whose token `secret` holds, when it carries our labels of a robot token Secret
+/// (see [`lekiwi_crds::contract::robot_token_secret`]); `None` for any other Secret.
+pub fn robot_of_secret(secret: &Secret) -> Option<RobotKey> {
     let labels = secret.metadata.labels.as_ref()?;
-    let ours = labels.get(TOKEN_LABEL).map(String::as_str) == Some(KIND_ROBOT)
-        && labels.get(ROBOT_LABEL).map(String::as_str) == Some(name);
+    if labels.get(TOKEN_LABEL).map(String::as_str) != Some(KIND_ROBOT) {
+        return None;
+    }
+    Some(RobotKey {
+        namespace: secret.metadata.namespace.clone()?,
+        name: labels.get(ROBOT_LABEL)?.clone(),
+    })
+}
+
+/// The token hash in a robot token Secret made by us for robot `name`; a Secret of that name
+/// without our labels grants nothing.
+fn robot_hash(secret: &Secret, name: &str) -> Option<Vec<u8>> {
+    let ours = robot_of_secret(secret).is_some_and(|robot| robot.name == name);
     ours.then(|| secret_hash(secret)).flatten()
 }
 
 impl Authenticator {
-    /// Whether the token hash `hash` (hex, [`hash_token`]) still counts for `robot` by the
-    /// watched Secrets alone: false when its Secret is gone, not ours, or holds another hash
-    /// (the token was rotated or revoked).
+    /// Whether the token hash `hash` (hex, [`hash_token`]) counts for `robot` by the watched
+    /// Secrets alone: false when its Secret is gone (or not seen yet), not ours, or holds
+    /// another hash (the token was rotated or revoked).
     pub fn still_counts(&self, robot: &RobotKey, hash: &str) -> bool {
         let secret_ref =
             ObjectRef::<Secret>::new(&robot_secret_name(&robot.name)).within(&robot.namespace);
@@ -179,18 +189,16 @@ impl Authenticator {
             .filter(|t| !t.is_empty())
             .ok_or(Refusal::MissingToken)?;
         let (namespace, name) = robot_of(robot_header)?;
-        let hash = hash_token(token);
-        let hash = hash.as_bytes();
+        let hex = hash_token(token);
+        let hash = hex.as_bytes();
         let robot = |ns: &str| RobotKey {
             namespace: ns.to_owned(),
             name: name.clone(),
         };
-        if let Some(ns) = &namespace {
-            let secret_ref = ObjectRef::<Secret>::new(&robot_secret_name(&name)).within(ns);
-            let cached = self.secrets.get(&secret_ref);
-            if cached.is_some_and(|s| robot_hash(&s, &name).is_some_and(|h| same_hash(&h, hash))) {
-                return Ok(Grant::Robot(robot(ns)));
-            }
+        if let Some(ns) = &namespace
+            && self.still_counts(&robot(ns), &hex)
+        {
+            return Ok(Grant::Robot(robot(ns)));
         }
         let (enrollment_ns, namespace_has_enrollment) = self.cached_enrollment(&namespace, hash);
         if let Some(ns) = enrollment_ns {

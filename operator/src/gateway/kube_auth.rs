@@ -25,7 +25,7 @@ use sha2::{Digest, Sha256};
 use tracing::{debug, warn};
 
 use crate::gateway::metrics::{GatewayMetrics, ReviewLabels};
-use crate::gateway::rate::TokenBucket;
+use crate::gateway::rate::SharedBucket;
 use crate::metrics::KindLabels;
 
 /// API group of the fleet's resources, the group every check names.
@@ -150,7 +150,7 @@ pub struct KubeAuth {
     /// Whether a token's user is allowed an [`Access`].
     decisions: Cache<(TokenHash, Access), bool>,
     /// Token reviews of tokens not in the cache, per second and at once.
-    budget: Mutex<TokenBucket>,
+    budget: SharedBucket,
 }
 
 impl KubeAuth {
@@ -163,7 +163,7 @@ impl KubeAuth {
             metrics,
             users: Cache::new(),
             decisions: Cache::new(),
-            budget: Mutex::new(TokenBucket::new(qps, burst)),
+            budget: SharedBucket::new(qps, burst),
         }
     }
 
@@ -198,12 +198,7 @@ impl KubeAuth {
             self.hit("token_review");
             return Ok(user);
         }
-        let admitted = self
-            .budget
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .try_take();
-        if !admitted {
+        if !self.budget.try_take() {
             self.reviewed("token_review", "throttled");
             return Err(Denied::Throttled);
         }

@@ -11,7 +11,7 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use tokio::time::Instant;
 
-use crate::gateway::rate::TokenBucket;
+use crate::gateway::rate::SharedBucket;
 use crate::metrics::KindLabels;
 
 /// Most misses remembered at once (each a short string); beyond it the older half is forgotten.
@@ -89,7 +89,7 @@ impl Misses {
 
 /// Guards the gateway's live reads on behalf of unauthenticated requests.
 pub struct Lookups {
-    budget: Mutex<TokenBucket>,
+    budget: SharedBucket,
     misses: Mutex<Misses>,
     ttl: Duration,
     /// Live reads made and skipped, by kind (`robot_secret`, `enrollment_list`, `remembered`,
@@ -101,7 +101,7 @@ impl Lookups {
     /// Lookups with `config`, counted in `counted`.
     pub fn new(config: LookupConfig, counted: Family<KindLabels, Counter>) -> Self {
         Self {
-            budget: Mutex::new(TokenBucket::new(config.qps, config.burst)),
+            budget: SharedBucket::new(config.qps, config.burst),
             misses: Mutex::new(Misses {
                 current: HashSet::new(),
                 previous: HashSet::new(),
@@ -128,12 +128,7 @@ impl Lookups {
             self.count("remembered");
             return Err(Skip::Remembered);
         }
-        let admitted = self
-            .budget
-            .lock()
-            .unwrap_or_else(|p| p.into_inner())
-            .try_take();
-        if !admitted {
+        if !self.budget.try_take() {
             self.count("throttled");
             return Err(Skip::Throttled);
         }

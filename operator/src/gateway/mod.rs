@@ -149,15 +149,18 @@ pub struct AppState {
 
 impl AppState {
     /// Counts and logs a refused agent request and answers it with 401.
-    fn refused(&self, reason: Refusal) -> ApiError {
+    /// Counts a refused request in `lekiwi_gateway_refused_total{kind}`.
+    pub(crate) fn count_refusal(&self, kind: &'static str) {
         self.shared
             .metrics
             .gateway
             .refused
-            .get_or_create(&KindLabels {
-                kind: reason.as_str(),
-            })
+            .get_or_create(&KindLabels { kind })
             .inc();
+    }
+
+    fn refused(&self, reason: Refusal) -> ApiError {
+        self.count_refusal(reason.as_str());
         // Never log the token itself.
         warn!(reason = reason.as_str(), "refused an agent request");
         if reason == Refusal::Throttled {
@@ -201,12 +204,7 @@ impl AppState {
             Ok(()) => Ok(()),
             Err(kube_auth::Denied::Unauthenticated) => Err(self.refused(Refusal::WrongToken)),
             Err(kube_auth::Denied::Forbidden(permission)) => {
-                self.shared
-                    .metrics
-                    .gateway
-                    .refused
-                    .get_or_create(&KindLabels { kind: "forbidden" })
-                    .inc();
+                self.count_refusal("forbidden");
                 Err(ApiError::Forbidden(format!(
                     "forbidden: this needs {permission}"
                 )))
@@ -222,12 +220,7 @@ impl AppState {
         match self.shared.auth.may_enroll(robot).await {
             Ok(()) => Ok(()),
             Err(enroll::Error::Refused(r)) => {
-                self.shared
-                    .metrics
-                    .gateway
-                    .refused
-                    .get_or_create(&KindLabels { kind: r.as_str() })
-                    .inc();
+                self.count_refusal(r.as_str());
                 warn!(robot = %robot.name, namespace = %robot.namespace, reason = r.as_str(), "refused an enrollment");
                 Err(ApiError::Forbidden(r.message(robot)))
             }
@@ -274,15 +267,7 @@ async fn agent_ws(
         state.may_enroll(robot).await?;
     }
     if let Err(seconds) = state.shared.registry.may_open(grant.robot()) {
-        state
-            .shared
-            .metrics
-            .gateway
-            .refused
-            .get_or_create(&KindLabels {
-                kind: "too_many_sessions",
-            })
-            .inc();
+        state.count_refusal("too_many_sessions");
         return Err(ApiError::TooManySessions(seconds));
     }
     // Frames up to 4x the protocol limit are read and answered with an error frame; beyond

@@ -68,6 +68,22 @@ impl TokenBucket {
     }
 }
 
+/// A [`TokenBucket`] many tasks take from without waiting (budgets of API reads).
+#[derive(Debug)]
+pub struct SharedBucket(std::sync::Mutex<TokenBucket>);
+
+impl SharedBucket {
+    /// A full bucket, as [`TokenBucket::new`].
+    pub fn new(rate: f64, burst: u32) -> Self {
+        Self(std::sync::Mutex::new(TokenBucket::new(rate, burst)))
+    }
+
+    /// Takes a token if there is one; never waits.
+    pub fn try_take(&self) -> bool {
+        self.0.lock().unwrap_or_else(|p| p.into_inner()).try_take()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

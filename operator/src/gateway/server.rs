@@ -12,7 +12,7 @@ use futures::StreamExt;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use kube::runtime::{WatchStreamExt, reflector, watcher};
-use lekiwi_crds::contract::{KIND_ROBOT, ROBOT_LABEL, TOKEN_LABEL};
+use lekiwi_crds::contract::TOKEN_LABEL;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use tokio::sync::Semaphore;
@@ -32,7 +32,7 @@ use super::session::{Limits, Shared};
 use super::{AppState, blob_api, dispatch, lease, router};
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::gateway::event_store::{RobotKey, Store};
+use crate::gateway::event_store::Store;
 use crate::metrics::{KindLabels, Metrics};
 
 /// At most one quota Warning Event per robot this often.
@@ -199,16 +199,8 @@ async fn watch_token_secrets(
 
 /// Tells the session of the robot whose token Secret `secret` is that it changed.
 fn credentials_changed(registry: &Registry, secret: &Secret, deleted: bool) {
-    let labels = secret.metadata.labels.as_ref();
-    let robot = labels
-        .filter(|l| l.get(TOKEN_LABEL).map(String::as_str) == Some(KIND_ROBOT))
-        .and_then(|l| l.get(ROBOT_LABEL));
-    if let (Some(name), Some(namespace)) = (robot, &secret.metadata.namespace) {
-        let key = RobotKey {
-            namespace: namespace.clone(),
-            name: name.clone(),
-        };
-        registry.notify_credentials(&key, deleted);
+    if let Some(robot) = super::auth::robot_of_secret(secret) {
+        registry.notify_credentials(&robot, deleted);
     }
 }
 

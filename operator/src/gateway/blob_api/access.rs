@@ -16,7 +16,6 @@ use tracing::debug;
 use super::Caller;
 use crate::gateway::AppState;
 use crate::gateway::blob_store::BlobStore;
-use crate::metrics::KindLabels;
 
 /// Manifests whose file lists are kept; past this many the cache starts over.
 const MAX_CACHED_MANIFESTS: usize = 1024;
@@ -107,15 +106,7 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
 
 /// Counts and logs a refused read; always `false`.
 fn refuse(state: &AppState, robot: &crate::gateway::event_store::RobotKey, digest: &str) -> bool {
-    state
-        .shared
-        .metrics
-        .gateway
-        .refused
-        .get_or_create(&KindLabels {
-            kind: "blob_not_referenced",
-        })
-        .inc();
+    state.count_refusal("blob_not_referenced");
     debug!(%robot, %digest, "refused a blob no release of the robot's namespace references");
     false
 }

@@ -55,7 +55,6 @@ use super::kube_auth::{Access, KubeAuth};
 use super::{ApiError, AppState, bearer};
 use crate::gateway::blob_store::{BlobStore, Error as StoreError};
 use crate::gateway::event_store::RobotKey;
-use crate::metrics::KindLabels;
 
 /// What the blob routes share.
 pub struct BlobApi {
@@ -241,15 +240,7 @@ async fn authorize(
         {
             Ok(Grant::Robot(key)) => Ok(Caller::Robot(key)),
             Ok(Grant::Enroll(_)) => {
-                state
-                    .shared
-                    .metrics
-                    .gateway
-                    .refused
-                    .get_or_create(&KindLabels {
-                        kind: "enrollment_token",
-                    })
-                    .inc();
+                state.count_refusal(Refusal::EnrollmentToken.as_str());
                 warn!("refused a blob request with an enrollment token");
                 Err(ApiError::Unauthorized(
                     "an enrollment token cannot fetch releases: use the robot's own token",

@@ -146,9 +146,6 @@ impl Presence {
                 e.retries = 0;
                 if e.session == entry.session {
                     e.written_heartbeat = Some(entry.last_heartbeat);
-                    if entry.connected {
-                        e.settling = false;
-                    }
                 }
                 // A disconnected robot written as such needs no memory any more, except that
                 // the status says so.
