@@ -206,3 +206,39 @@ pub fn hello() -> lekiwi_protocol::AgentMessage {
         }),
     }
 }
+
+/// How long [`recv`] waits for the gateway's next frame.
+pub const FRAME_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// A bare `heartbeat`: no readings, nothing changed.
+pub fn heartbeat() -> lekiwi_protocol::AgentMessage {
+    lekiwi_protocol::AgentMessage::Heartbeat {
+        sent_at_ms: 42,
+        rtt_ms: None,
+        vitals: lekiwi_protocol::Vitals::default(),
+        current_release: None,
+        health: None,
+        teleoperation: None,
+    }
+}
+
+/// The gateway's next protocol message on `ws` (skipping pings), within [`FRAME_TIMEOUT`];
+/// `None` once the session is closed or nothing came.
+pub async fn recv(ws: &mut Socket) -> Option<lekiwi_protocol::ServerMessage> {
+    use futures::StreamExt;
+    use tokio_tungstenite::tungstenite::Message;
+    loop {
+        match tokio::time::timeout(FRAME_TIMEOUT, ws.next())
+            .await
+            .ok()??
+        {
+            Ok(Message::Text(t)) => {
+                return Some(
+                    lekiwi_protocol::decode(t.as_str(), usize::MAX).expect("server frame decodes"),
+                );
+            }
+            Ok(Message::Close(_)) | Err(_) => return None,
+            Ok(_) => continue,
+        }
+    }
+}

@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Result, bail};
 use jiff::Timestamp;
 
-pub use agent::{AgentProcess, connect_agent, hello};
+pub use agent::{AgentProcess, connect_agent, heartbeat, hello, recv};
 pub use control_plane::{ControlPlane, namespace};
 pub use fleet::{
     create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot, robot_token,

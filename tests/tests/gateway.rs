@@ -4,15 +4,15 @@
 
 use std::time::{Duration, Instant};
 
-use futures::{SinkExt, StreamExt};
+use futures::SinkExt;
 use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams};
 use lekiwi_agent::connection::{ConnectError, Credentials, Socket, connect};
 use lekiwi_crds::{Robot, RobotPhase};
-use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, Severity, Vitals, decode, encode};
+use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, Severity, encode};
 use lekiwi_tests::{
-    ControlPlane, connect_agent, enrollment_token, gateway_operator, gateway_url, get_robot, hello,
-    http_get_with, namespace, wait_for, wait_phase,
+    ControlPlane, connect_agent, enrollment_token, gateway_operator, gateway_url, get_robot,
+    heartbeat, hello, http_get_with, namespace, recv, wait_for, wait_phase,
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
@@ -37,30 +37,6 @@ async fn phase_within(
 
 async fn send(ws: &mut Socket, msg: &AgentMessage) {
     ws.send(Message::text(encode(msg))).await.expect("send");
-}
-
-/// The next protocol message from the gateway (skipping pings).
-async fn recv(ws: &mut Socket) -> Option<ServerMessage> {
-    loop {
-        match tokio::time::timeout(TIMEOUT, ws.next()).await.ok()?? {
-            Ok(Message::Text(t)) => {
-                return Some(decode(t.as_str(), usize::MAX).expect("server frame decodes"));
-            }
-            Ok(Message::Close(_)) | Err(_) => return None,
-            Ok(_) => continue,
-        }
-    }
-}
-
-fn heartbeat() -> AgentMessage {
-    AgentMessage::Heartbeat {
-        sent_at_ms: 42,
-        rtt_ms: None,
-        vitals: Vitals::default(),
-        current_release: None,
-        health: None,
-        teleoperation: None,
-    }
 }
 
 #[tokio::test]

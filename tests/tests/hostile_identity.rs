@@ -7,29 +7,18 @@ use std::time::Duration;
 use futures::{SinkExt, StreamExt};
 use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams};
-use lekiwi_agent::connection::{ConnectError, Credentials, connect};
+use lekiwi_agent::connection::{ConnectError, Credentials, Socket, connect};
 use lekiwi_crds::Robot;
 use lekiwi_crds::contract::REENROLL_ANNOTATION;
-use lekiwi_protocol::{AgentMessage, ServerMessage, Vitals, decode, encode};
+use lekiwi_protocol::{ServerMessage, encode};
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, bin, create_robot, enrollment_token, gateway_operator,
-    gateway_url, get_robot, hello, http_get_with, namespace, wait_for,
+    gateway_url, get_robot, heartbeat, hello, http_get_with, namespace, recv, wait_for,
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
 
 const TIMEOUT: Duration = Duration::from_secs(10);
-
-fn heartbeat() -> AgentMessage {
-    AgentMessage::Heartbeat {
-        sent_at_ms: 42,
-        rtt_ms: None,
-        vitals: Vitals::default(),
-        current_release: None,
-        health: None,
-        teleoperation: None,
-    }
-}
 
 /// A legacy poll with the enrollment token gets 401 and leaves the Robot's status as it was.
 #[tokio::test]
@@ -149,17 +138,7 @@ async fn enrollment_never_takes_over_an_enrolled_robot() -> anyhow::Result<()> {
         forbidden(&url, &creds(&enroll, robot), "already enrolled").await;
     }
     // The real robot's session was not kicked and its token still works.
-    ws.send(Message::text(encode(&heartbeat()))).await?;
-    match tokio::time::timeout(TIMEOUT, ws.next()).await? {
-        Some(Ok(Message::Text(t))) => assert!(
-            matches!(
-                decode::<ServerMessage>(t.as_str(), 1 << 20)?,
-                ServerMessage::HeartbeatAck { .. }
-            ),
-            "{t}"
-        ),
-        other => panic!("the robot's session ended: {other:?}"),
-    }
+    alive(&mut ws).await?;
     assert!(token_works(&op, &ns, "kiwi-1", &own).await?);
 
     // An expired permission allows nothing.
@@ -275,10 +254,7 @@ async fn overlong_robot_names_are_refused_and_create_nothing() -> anyhow::Result
 }
 
 /// Reads frames until the gateway closes the session; the close frame's code and reason.
-async fn closed(
-    ws: &mut lekiwi_agent::connection::Socket,
-    within: Duration,
-) -> anyhow::Result<(u16, String)> {
+async fn closed(ws: &mut Socket, within: Duration) -> anyhow::Result<(u16, String)> {
     let deadline = tokio::time::Instant::now() + within;
     loop {
         let frame = tokio::time::timeout_at(deadline, ws.next())
@@ -294,19 +270,13 @@ async fn closed(
 }
 
 /// Sends a heartbeat and expects its ack: the session is alive.
-async fn alive(ws: &mut lekiwi_agent::connection::Socket) -> anyhow::Result<()> {
+async fn alive(ws: &mut Socket) -> anyhow::Result<()> {
     ws.send(Message::text(encode(&heartbeat()))).await?;
     loop {
-        match tokio::time::timeout(TIMEOUT, ws.next()).await? {
-            Some(Ok(Message::Text(t))) => {
-                if matches!(
-                    decode::<ServerMessage>(t.as_str(), 1 << 20)?,
-                    ServerMessage::HeartbeatAck { .. }
-                ) {
-                    return Ok(());
-                }
-            }
-            other => anyhow::bail!("the robot's session ended: {other:?}"),
+        match recv(ws).await {
+            Some(ServerMessage::HeartbeatAck { .. }) => return Ok(()),
+            Some(_) => continue,
+            None => anyhow::bail!("the robot's session ended"),
         }
     }
 }

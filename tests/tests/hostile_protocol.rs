@@ -10,26 +10,13 @@ use lekiwi_agent::connection::Socket;
 use lekiwi_protocol::{AgentMessage, ErrorCode, MAX_SEQ, ServerMessage, Severity, decode, encode};
 use lekiwi_tests::{
     AgentProcess, ControlPlane, connect_agent, enrollment_token, enrollment_token_file,
-    gateway_operator, gateway_url, namespace, wait_for,
+    gateway_operator, gateway_url, namespace, recv, wait_for,
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
 const TIMEOUT: Duration = Duration::from_secs(10);
-
-/// The next protocol message from the gateway (skipping pings); `None` once closed.
-async fn recv(ws: &mut Socket) -> Option<ServerMessage> {
-    loop {
-        match tokio::time::timeout(TIMEOUT, ws.next()).await.ok()?? {
-            Ok(Message::Text(t)) => {
-                return Some(decode(t.as_str(), usize::MAX).expect("server frame decodes"));
-            }
-            Ok(Message::Close(_)) | Err(_) => return None,
-            Ok(_) => continue,
-        }
-    }
-}
 
 /// Sends `text` as one frame and returns the answer.
 async fn ask(ws: &mut Socket, text: String) -> ServerMessage {

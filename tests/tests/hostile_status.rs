@@ -6,7 +6,7 @@
 
 use std::time::Duration;
 
-use futures::{SinkExt, StreamExt};
+use futures::SinkExt;
 use k8s_openapi::api::core::v1::Event;
 use kube::Api;
 use kube::api::ListParams;
@@ -14,10 +14,10 @@ use lekiwi_agent::connection::{Credentials, Socket, connect};
 use lekiwi_crds::RobotPhase;
 use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_operator::gateway::presence::{ConnectInfo, Presence, PresenceConfig};
-use lekiwi_protocol::{AgentMessage, ErrorCode, Release, ServerMessage, decode, encode};
+use lekiwi_protocol::{AgentMessage, ErrorCode, Release, ServerMessage, encode};
 use lekiwi_tests::{
     ControlPlane, create_robot, enrollment_token, gateway_operator, gateway_url, get_robot, hello,
-    namespace, wait_for, wait_phase,
+    namespace, recv, wait_for, wait_phase,
 };
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
@@ -27,17 +27,6 @@ const TIMEOUT: Duration = Duration::from_secs(10);
 /// A digest of 64 hex digits, `hex` repeated.
 fn digest(hex: &str) -> String {
     format!("sha256:{}", hex.repeat(64 / hex.len()))
-}
-
-/// The next protocol message from the gateway (skipping pings); `None` once closed.
-async fn recv(ws: &mut Socket) -> Option<ServerMessage> {
-    loop {
-        match tokio::time::timeout(TIMEOUT, ws.next()).await.ok()?? {
-            Ok(Message::Text(t)) => return Some(decode(t.as_str(), usize::MAX).expect("decodes")),
-            Ok(Message::Close(_)) | Err(_) => return None,
-            Ok(_) => continue,
-        }
-    }
 }
 
 /// The frames the gateway sends up to and including the next heartbeat ack.
