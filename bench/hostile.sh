@@ -65,33 +65,6 @@ CP_UP=0
 PIDS=()
 trap_cleanup
 
-scrape() { curl -fsS --max-time 10 "$1" -o "$2" 2>/dev/null; }
-scrape_apiserver() {
-  curl -fsS --max-time 30 --cacert "$CP_DIR/pki/ca.crt" \
-    -H "Authorization: Bearer $(cat "$CP_DIR/admin-token")" \
-    "https://127.0.0.1:$APISERVER_PORT/metrics" -o "$1"
-}
-current() {
-  local v
-  v="$(curl -fsS --max-time 5 "$1" 2>/dev/null | awk -v s="$2" 'index($0, s " ") == 1 { print $2; exit }')"
-  v="${v%%.*}"
-  echo "${v:--1}"
-}
-rss_kib() { awk '/^VmRSS:/ { print $2 }' "/proc/$1/status"; }
-# CPU seconds (user + system) process $1 has used so far (0 once it is gone).
-cpu_seconds() {
-  awk -v hz="$(getconf CLK_TCK)" '{ printf "%.2f", ($14 + $15) / hz }' "/proc/$1/stat" 2>/dev/null || echo 0
-}
-# The share of a core each process used in a window: cpu_mark PHASE NAME:PID... at its start,
-# cpu_facts PHASE SECONDS at its end.
-declare -A CPU0=()
-cpu_mark() { local item; CPU0=(); for item in "$@"; do CPU0["$item"]="$(cpu_seconds "${item#*:}")"; done; }
-cpu_facts() {
-  local item
-  for item in "${!CPU0[@]}"; do
-    fact "${1}_cpu_${item%%:*}" "$(awk -v a="${CPU0[$item]}" -v b="$(cpu_seconds "${item#*:}")" -v s="$2" 'BEGIN { printf "%.2f", (b - a) / s }')"
-  done
-}
 # Simulated robots (sim-*) whose Robot is not Online right now.
 not_online() {
   kubectl -n bench get robots -o jsonpath='{range .items[*]}{.metadata.name} {.status.phase}{"\n"}{end}' \
@@ -203,7 +176,7 @@ measure() {
   scrape_apiserver "$WORK/apiserver-$phase-a.txt"
   local reconnects0
   reconnects0="$(sim_reconnects)"
-  cpu_mark "gateway:$GW_PID" "sim:$SIM_PID" "controller:$CTRL_PID" "apiserver:$APISERVER_PID" \
+  cpu_snapshot "gateway:$GW_PID" "sim:$SIM_PID" "controller:$CTRL_PID" "apiserver:$APISERVER_PID" \
     ${ATTACK_PID:+"attacker:$ATTACK_PID"}
   t0="$(now)"
   end=$((SECONDS + WINDOW))
@@ -216,7 +189,7 @@ measure() {
   scrape "$GW_METRICS" "$WORK/gateway-$phase-b.txt"
   scrape_apiserver "$WORK/apiserver-$phase-b.txt"
   fact "${phase}_seconds" "$(elapsed "$t0")"
-  cpu_facts "$phase" "$(elapsed "$t0")"
+  cpu_report "$phase" "$(elapsed "$t0")"
   fact "${phase}_rss_max_kib" "$max_rss"
   fact "${phase}_not_online_max" "$max_down"
   fact "${phase}_sim_reconnects" "$(( $(sim_reconnects) - reconnects0 ))"

@@ -78,8 +78,9 @@ def main():
          "PASS" if a["reconnects"] == 0 else "FAIL"),
         ("/healthz at window end", q["healthz"], a["healthz"], ""),
     ]
-    for proc in ("gateway", "apiserver", "controller", "sim", "attacker"):
-        qc, ac = facts.get(f"quiet_cpu_{proc}"), facts.get(f"attack_cpu_{proc}")
+    for proc in ("gateway", "apiserver", "controller", "sim", "attacker", "machine"):
+        qc = facts.get(f"cpu_quiet_window_{proc}")
+        ac = facts.get(f"cpu_attack_window_{proc}")
         if qc is not None or ac is not None:
             rows.append((f"CPU of {proc} (cores)", qc or "-", ac or "-", ""))
     width = max(len(r[0]) for r in rows)

@@ -1,4 +1,4 @@
-# Shared by bench/agent.sh, bench/gateway.sh and bench/rollout.sh (sourced, never run): messages,
+# Shared by bench/agent.sh, bench/gateway.sh, bench/hostile.sh and bench/rollout.sh (sourced, never run): messages,
 # option checks, the processes a benchmark starts and their cleanup, ports, waiting, the lock that
 # keeps two benchmarks from running at once.
 #
@@ -107,6 +107,56 @@ wait_for() { # what timeout_s command...
 # The commit measured, and how many files differ from it.
 fact_source() {
   fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+}
+
+# ---- metrics, memory and CPU of the processes a benchmark starts -----------------------------
+# (scrape_apiserver needs CP_DIR and APISERVER_PORT, set by start_control_plane.)
+scrape() { curl -fsS --max-time 10 "$1" -o "$2" 2>/dev/null; }
+
+scrape_apiserver() {
+  curl -fsS --max-time 30 --cacert "$CP_DIR/pki/ca.crt" \
+    -H "Authorization: Bearer $(cat "$CP_DIR/admin-token")" \
+    "https://127.0.0.1:$APISERVER_PORT/metrics" -o "$1"
+}
+
+# Current value of series $2 at URL $1 (integer part), or -1.
+current() {
+  local v
+  v="$(curl -fsS --max-time 5 "$1" 2>/dev/null | awk -v s="$2" 'index($0, s " ") == 1 { print $2; exit }')"
+  v="${v%%.*}"
+  echo "${v:--1}"
+}
+
+rss_kib() { awk '/^VmRSS:/ { print $2 }' "/proc/$1/status"; }
+
+# CPU seconds (user + system) a process has used so far.
+cpu_seconds() {
+  local ticks
+  ticks="$(awk '{ print $14 + $15 }' "/proc/$1/stat" 2>/dev/null || echo 0)"
+  awk -v t="$ticks" -v hz="$(getconf CLK_TCK)" 'BEGIN { printf "%.2f", t / hz }'
+}
+
+# Busy CPU seconds of the whole machine so far (all cores).
+machine_busy() {
+  awk -v hz="$(getconf CLK_TCK)" '/^cpu / { printf "%.2f", ($2 + $3 + $4 + $7 + $8) / hz }' /proc/stat
+}
+
+# Records CPU use of the named processes over a window: cpu_snapshot NAME:PID... ; later
+# cpu_report PHASE SECONDS.
+declare -A CPU0=()
+cpu_snapshot() {
+  CPU0=()
+  local item
+  for item in "$@"; do CPU0["$item"]="$(cpu_seconds "${item#*:}")"; done
+  CPU0["machine:0"]="$(machine_busy)"
+}
+cpu_report() {
+  local phase="$1" seconds="$2" item now_s
+  for item in "${!CPU0[@]}"; do
+    if [ "$item" = machine:0 ]; then now_s="$(machine_busy)"; else now_s="$(cpu_seconds "${item#*:}")"; fi
+    fact "cpu_${phase}_window_${item%%:*}" \
+      "$(awk -v a="${CPU0[$item]}" -v b="$now_s" -v s="$seconds" 'BEGIN { printf "%.2f", (b - a) / s }')"
+  done
 }
 
 # ---- the cluster ----------------------------------------------------------------------------
