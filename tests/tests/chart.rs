@@ -21,6 +21,32 @@ use serde_yaml::Value;
 
 const CHART: &str = "charts/lekiwi-operator";
 
+/// `helm VERB RELEASE CHART` in namespace `ns` with `watch` (`operator.watchNamespace=...`),
+/// then `extra`. The user ClusterRoles are left out: they have fixed, cluster-wide names that
+/// another test's release may hold at the same moment (helm refuses to adopt them);
+/// hostile_authz.rs proves their rules.
+fn helm_args<'a>(
+    verb: &'a str,
+    release: &'a str,
+    ns: &'a str,
+    watch: &'a str,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
+    let mut args = vec![
+        verb,
+        release,
+        CHART,
+        "-n",
+        ns,
+        "--set",
+        watch,
+        "--set",
+        "rbac.userRoles=false",
+    ];
+    args.extend_from_slice(extra);
+    args
+}
+
 fn ok(out: Output, what: &str) -> String {
     let text = format!(
         "{}{}",
@@ -584,22 +610,9 @@ async fn chart_variants_are_accepted_by_the_api_server() -> anyhow::Result<()> {
     let dir = tempfile::tempdir()?;
     for (name, args) in variants {
         let release = format!("{ns}-{name}");
-        let mut all = vec![
-            "template",
-            &release,
-            CHART,
-            "-n",
-            &ns,
-            "--set",
-            &watch,
-            // The user ClusterRoles have fixed, cluster-wide names that another test's release
-            // may hold at this moment (helm refuses to adopt them); hostile_authz proves them.
-            "--set",
-            "rbac.userRoles=false",
-            // The server's capabilities: its PodDisruptionBudget version (1.20: policy/v1beta1).
-            // (Helm refuses to combine this with --include-crds: the CRDs are applied from crds/.)
-            "--dry-run=server",
-        ];
+        // The server's capabilities: its PodDisruptionBudget version (1.20: policy/v1beta1).
+        // (Helm refuses to combine this with --include-crds: the CRDs are applied from crds/.)
+        let mut all = helm_args("template", &release, &ns, &watch, &["--dry-run=server"]);
         all.extend_from_slice(args);
         let rendered = ok(cp.tool("helm", &all), &format!("helm template ({name})"));
         let file = dir.path().join(format!("{name}.yaml"));
@@ -647,19 +660,7 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     ok(
         cp.tool(
             "helm",
-            &[
-                "install",
-                &ns,
-                "charts/lekiwi-operator",
-                "-n",
-                &ns,
-                "--set",
-                &watch,
-                // The user ClusterRoles have fixed names; hostile_authz.rs proves their rules.
-                "--set",
-                "rbac.userRoles=false",
-                "--wait=false",
-            ],
+            &helm_args("install", &ns, &ns, &watch, &["--wait=false"]),
         ),
         "helm install",
     );
@@ -991,19 +992,7 @@ async fn chart_tls_is_on_by_default_with_a_generated_ca_kept_across_upgrades() -
         ok(
             cp.tool(
                 "helm",
-                &[
-                    verb,
-                    &ns,
-                    CHART,
-                    "-n",
-                    &ns,
-                    "--set",
-                    &watch,
-                    // Cluster-wide names other tests' releases would collide with.
-                    "--set",
-                    "rbac.userRoles=false",
-                    "--wait=false",
-                ],
+                &helm_args(verb, &ns, &ns, &watch, &["--wait=false"]),
             ),
             &format!("helm {verb}"),
         )

@@ -334,18 +334,12 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
         }
     };
 
+    let uploads = format!("/v1/uploads/{d}?namespace={ns}");
     // The first half: accepted, not complete, resumable from its offset.
     let (code, _, body) = put("bytes 0-49999/100000".into(), content[..50_000].to_vec()).await?;
     assert_eq!(code, 202, "{}", String::from_utf8_lossy(&body));
     assert_eq!(json(&body)["offset"], 50_000);
-    let (code, _, body) = http(
-        port,
-        "GET",
-        &format!("/v1/uploads/{d}?namespace={ns}"),
-        &as_api,
-        b"",
-    )
-    .await?;
+    let (code, _, body) = http(port, "GET", &uploads, &as_api, b"").await?;
     assert_eq!(code, 200);
     assert_eq!(json(&body)["offset"], 50_000);
     assert_eq!(json(&body)["complete"], false);
@@ -376,14 +370,7 @@ async fn uploads_resume_and_are_verified() -> anyhow::Result<()> {
     );
     let (code, _, body) = http(port, "PUT", &path, &as_api, &content).await?;
     assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
-    let (code, _, body) = http(
-        port,
-        "GET",
-        &format!("/v1/uploads/{d}?namespace={ns}"),
-        &as_api,
-        b"",
-    )
-    .await?;
+    let (code, _, body) = http(port, "GET", &uploads, &as_api, b"").await?;
     assert_eq!(
         (code, json(&body)["complete"].clone()),
         (200, Value::Bool(true))
