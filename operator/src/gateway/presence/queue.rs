@@ -27,6 +27,15 @@ impl State {
             .filter(|e| e.session == session && e.connected)
     }
 
+    /// The entry of `key` as the writer takes it to write: from now on a disconnect of its
+    /// session must be written too, so it no longer settles.
+    pub(super) fn take_for_write(&mut self, key: &RobotKey) -> Option<Entry> {
+        self.robots.get_mut(key).map(|e| {
+            e.settling = false;
+            e.clone()
+        })
+    }
+
     pub(super) fn enqueue(&mut self, key: &RobotKey, priority: Priority) {
         match self.queued.get(key) {
             Some(Priority::High) => {}

@@ -355,9 +355,11 @@ fn sessions_that_fail_at_once_write_nothing_for_a_robot_shown_offline() {
         e.connected_since = Timestamp::now() - jiff::SignedDuration::from_secs(2);
     });
     p.tick();
-    p.with_state(|s| assert_eq!(s.pop(), Some((key("flap"), Priority::High))));
-    // Taken for writing (the writer clears `settling`): its disconnect is written too.
-    p.with_state(|s| s.robots.get_mut(&key("flap")).unwrap().settling = false);
+    p.with_state(|s| {
+        assert_eq!(s.pop(), Some((key("flap"), Priority::High)));
+        // Taken for writing, as the writer does: its disconnect is written too.
+        assert!(s.take_for_write(&key("flap")).unwrap().connected);
+    });
     p.disconnect(&key("flap"), 2);
     assert_eq!(p.queued(), 1);
 

@@ -67,14 +67,7 @@ impl Presence {
             let Ok(permit) = slots.clone().acquire_owned().await else {
                 return;
             };
-            // Taken for writing: from now on a disconnect must be written too.
-            let taken = self.with_state(|s| {
-                s.robots.get_mut(&key).map(|e| {
-                    e.settling = false;
-                    e.clone()
-                })
-            });
-            let Some(entry) = taken else {
+            let Some(entry) = self.with_state(|s| s.take_for_write(&key)) else {
                 continue;
             };
             let me = self.clone();
