@@ -102,14 +102,15 @@ impl Context {
 
 /// Writes `status` to the object `name` by server-side apply under `manager`, forcing
 /// ownership: each controller owns its status fields outright, so a conflict means a stale
-/// writer (e.g. a former leader) that must lose. `object` names it in the error.
+/// writer (e.g. a former leader) that must lose. `object` names it in the error. Returns the
+/// object as written.
 pub async fn apply_status<K>(
     api: &Api<K>,
     name: &str,
     object: &str,
     status: serde_json::Value,
     manager: &str,
-) -> Result<()>
+) -> Result<K>
 where
     K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug,
 {
@@ -127,8 +128,7 @@ where
     .map_err(|source| Error::PatchStatus {
         object: object.to_owned(),
         source,
-    })?;
-    Ok(())
+    })
 }
 
 /// A controller of `api` with this process's reconcile concurrency.

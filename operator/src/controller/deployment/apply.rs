@@ -20,13 +20,21 @@ use crate::error::{Error, Result};
 /// Robot writes in flight at once.
 const WRITE_CONCURRENCY: usize = 16;
 
+/// One robot as this reconcile wrote it: its name, the mark annotation's text and the
+/// resourceVersion the API server gave the write.
+pub(super) struct Written {
+    pub robot: String,
+    pub mark: String,
+    pub resource_version: Option<String>,
+}
+
 /// Writes every planned robot, a few at a time; fails with the first error after trying all.
 pub(super) async fn write_robots(
     client: &kube::Client,
     namespace: &str,
     facts: &Facts,
     plan: &Plan,
-) -> Result<()> {
+) -> Result<Vec<Written>> {
     let robots: Api<Robot> = Api::namespaced(client.clone(), namespace);
     let desired: BTreeMap<&str, Option<&ReleaseRef>> = facts
         .robots
@@ -46,7 +54,7 @@ pub(super) async fn write_robots(
             (w.robot.clone(), w.mark.clone(), release)
         })
         .collect();
-    let results: Vec<Result<()>> = futures::stream::iter(jobs)
+    let results: Vec<Result<Written>> = futures::stream::iter(jobs)
         .map(|(robot, mark, release)| {
             let robots = robots.clone();
             async move { write_robot(&robots, &robot, &mark, release.as_ref()).await }
@@ -66,39 +74,44 @@ async fn write_robot(
     name: &str,
     mark: &Mark,
     release: Option<&ReleaseRef>,
-) -> Result<()> {
+) -> Result<Written> {
+    let text = serde_json::to_string(mark).unwrap_or_default();
     let mut patch = json!({
         "apiVersion": "fleet.lekiwi.io/v1alpha1",
         "kind": "Robot",
-        "metadata": {
-            "annotations": { MARK_ANNOTATION: serde_json::to_string(mark).unwrap_or_default() }
-        },
+        "metadata": { "annotations": { MARK_ANNOTATION: &text } },
     });
     if let Some(release) = release {
         patch["spec"] = json!({ "release": release });
     }
-    api.patch(
-        name,
-        &PatchParams::apply(managers::ROLLOUT).force(),
-        &Patch::Apply(&patch),
-    )
-    .await
-    .map_err(|source| Error::PatchRobot {
-        object: name.to_owned(),
-        source,
-    })?;
+    let robot = api
+        .patch(
+            name,
+            &PatchParams::apply(managers::ROLLOUT).force(),
+            &Patch::Apply(&patch),
+        )
+        .await
+        .map_err(|source| Error::PatchRobot {
+            object: name.to_owned(),
+            source,
+        })?;
     debug!(robot = %name, state = ?mark.state, batch = mark.batch, release = ?release.map(|r| r.version.as_str()), "robot written");
-    Ok(())
+    Ok(Written {
+        robot: name.to_owned(),
+        mark: text,
+        resource_version: robot.metadata.resource_version,
+    })
 }
 
-/// Applies the planned status when it differs from the one read.
+/// Applies the planned status when it differs from the one read; returns the written
+/// object's resourceVersion (none when nothing was written).
 pub(super) async fn update_status(
     client: &kube::Client,
     deployment: &RobotDeployment,
     plan: &Plan,
-) -> Result<()> {
+) -> Result<Option<String>> {
     if deployment.status.as_ref() == Some(&plan.status) {
-        return Ok(());
+        return Ok(None);
     }
     let (name, namespace) = (
         deployment.metadata.name.clone().unwrap_or_default(),
@@ -113,6 +126,7 @@ pub(super) async fn update_status(
         managers::DEPLOYMENT_STATUS,
     )
     .await
+    .map(|d| d.metadata.resource_version)
 }
 
 /// Logs and publishes the planned Events on the deployment.

@@ -9,6 +9,7 @@ pub mod metrics;
 pub mod plan;
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use futures::StreamExt;
 use jiff::Timestamp;
@@ -121,6 +122,7 @@ async fn reconcile(
     };
     let name = deployment.name_any();
     let namespace = deployment.namespace().unwrap_or_default();
+    let key = ObjectRef::from_obj(guard.as_ref());
     let span = info_span!("reconcile", controller = "deployment", deployment = %name, %namespace);
     async move {
         let ctx = &state.ctx;
@@ -135,9 +137,16 @@ async fn reconcile(
         };
         let plan = plan::plan(deployment, &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
-        apply::write_robots(&ctx.client, &namespace, &facts, &plan).await?;
-        apply::update_status(&ctx.client, deployment, &plan).await?;
+        let written = apply::write_robots(&ctx.client, &namespace, &facts, &plan).await?;
+        let status_version = apply::update_status(&ctx.client, deployment, &plan).await?;
         apply::publish_events(&ctx.recorder, deployment, &plan.events).await;
+        let own = OwnWrites {
+            deployment: key,
+            status: &plan.status,
+            status_version,
+            robots: written,
+        };
+        own.await_in_stores(&state).await;
         ctx.metrics.rollouts.record(deployment, &plan, now);
         ctx.reset_backoff(&name, &namespace);
         Ok(match plan.requeue_after {
@@ -147,6 +156,58 @@ async fn reconcile(
     }
     .instrument(span)
     .await
+}
+
+/// How long a reconcile waits for the shared stores to show its own writes.
+const CATCH_UP: Duration = Duration::from_secs(5);
+
+/// What one reconcile wrote. The next reconcile plans from the shared stores, which the watches
+/// fill a little after each write: planning from a store older than the last plan's own writes
+/// would judge a batch from robots' new marks under the old status (a rollback taken for a
+/// success) or start robots again.
+struct OwnWrites<'a> {
+    deployment: ObjectRef<DeserializeGuard<RobotDeployment>>,
+    status: &'a lekiwi_crds::RobotDeploymentStatus,
+    status_version: Option<String>,
+    robots: Vec<apply::Written>,
+}
+
+impl OwnWrites<'_> {
+    /// Whether the stores show every write: the object at the written resourceVersion, or with
+    /// the same content (another writer may have changed it since). A deleted object counts.
+    fn in_stores(&self, state: &State, namespace: &str) -> bool {
+        let status_seen = self.status_version.is_none()
+            || state.deployments.get(&self.deployment).is_none_or(|g| {
+                g.resource_version() == self.status_version
+                    || g.0
+                        .as_ref()
+                        .is_ok_and(|d| d.status.as_ref() == Some(self.status))
+            });
+        status_seen
+            && self.robots.iter().all(|w| {
+                let key = ObjectRef::new(&w.robot).within(namespace);
+                state.robots.get(&key).is_none_or(|r| {
+                    r.resource_version() == w.resource_version
+                        || r.annotations().get(plan::MARK_ANNOTATION) == Some(&w.mark)
+                })
+            })
+    }
+
+    /// Waits, for [`CATCH_UP`] at most, until the stores show every write.
+    async fn await_in_stores(&self, state: &State) {
+        let namespace = self.deployment.namespace.clone().unwrap_or_default();
+        let started = tokio::time::Instant::now();
+        while !self.in_stores(state, &namespace) {
+            if started.elapsed() > CATCH_UP {
+                warn!(
+                    robots = self.robots.len(),
+                    "the stores do not show this reconcile's writes yet; planning on"
+                );
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
 }
 
 fn error_policy(

@@ -16,5 +16,7 @@ pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan) -> Result<()> {
     if let Some(generation) = plan.observed_generation {
         status["observedGeneration"] = json!(generation);
     }
-    apply_status(api, name, name, status, managers::ROBOT_CONTROLLER).await
+    apply_status(api, name, name, status, managers::ROBOT_CONTROLLER)
+        .await
+        .map(drop)
 }

@@ -60,13 +60,20 @@ pub(super) fn advance(
         draft.message = "rollback requested by a user (kubectl lekiwi rollout undo)".to_owned();
         draft.warning("RollbackStarted", draft.message.clone());
         start_rollback(rollout, fleet, draft);
+    } else {
+        resume_recorded_rollback(rollout, fleet, draft);
     }
     let phase = draft.phase;
     match phase {
         RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
             if !(phase == RolloutPhase::Failed && gates.release_ok) => {}
+        RolloutPhase::RollingBack if undo_now => {
+            draft.wake_at(rollout.now + SignedDuration::from_secs(2));
+        }
+        // A rollback goes on even if the release became invalid meanwhile.
+        RolloutPhase::RollingBack => await_rollback(rollout, fleet, draft),
         _ if !gates.release_ok => fail_on_invalid_release(rollout, draft),
-        _ if phase != RolloutPhase::RollingBack => match gates.older_overlap {
+        _ => match gates.older_overlap {
             // Wait for the older deployment; robots already started keep going.
             Some(older) => {
                 draft.message = format!(
@@ -78,18 +85,32 @@ pub(super) fn advance(
             // Pending, Progressing, Paused, or Failed with a now-valid release.
             None => progress::roll_forward(rollout, fleet, draft),
         },
-        RolloutPhase::RollingBack if undo_now => {
-            draft.wake_at(rollout.now + SignedDuration::from_secs(2));
-        }
-        _ => await_rollback(rollout, fleet, draft),
     }
 }
 
-/// An active rollout of an invalid release fails (a rollback in progress goes on).
-fn fail_on_invalid_release(rollout: &Rollout<'_>, draft: &mut Draft) {
-    if draft.phase == RolloutPhase::RollingBack {
-        return;
+/// Robots are written before the status: a robot told to switch back while the status still
+/// says the rollout goes forward (the controller stopped between the two writes, or planned
+/// from a status older than its last write) means a rollback was decided. It goes on, and any
+/// started robot not yet told is told now; judging the batch again would count robots that
+/// are switching back as successes and start the next batch.
+fn resume_recorded_rollback(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
+    let recorded = fleet
+        .robots
+        .iter()
+        .any(|(_, s)| matches!(s, RobotState::RollingBack(..)));
+    let settled = matches!(
+        draft.phase,
+        RolloutPhase::RollingBack | RolloutPhase::RolledBack
+    );
+    if recorded && !settled {
+        draft.phase = RolloutPhase::RollingBack;
+        draft.message = "rolling back, as the robots' marks record".to_owned();
+        start_rollback(rollout, fleet, draft);
     }
+}
+
+/// An active rollout of an invalid release fails.
+fn fail_on_invalid_release(rollout: &Rollout<'_>, draft: &mut Draft) {
     draft.phase = RolloutPhase::Failed;
     draft.message = match rollout.release {
         ReleaseCheck::Invalid(why) => format!("cannot roll out {}: {why}", rollout.target),

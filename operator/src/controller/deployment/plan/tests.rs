@@ -486,3 +486,38 @@ fn a_robot_that_vanishes_mid_update_leaves_a_consistent_rollout() {
     assert_eq!(marks[..2], [("kiwi-00".into(), 0), ("kiwi-02".into(), 0)]);
     assert!(marks[2..5].iter().all(|(_, b)| *b == 1), "{marks:?}");
 }
+
+#[test]
+fn a_rollback_the_marks_record_goes_on_under_an_older_status() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(10), 0), 30);
+    sim.failing = vec!["kiwi-10".into(), "kiwi-13".into(), "kiwi-17".into()];
+    // Run until the plan that decides the rollback; keep the status from before it, as a
+    // controller that stopped between its robot writes and its status write would leave it.
+    let before = loop {
+        let before = sim.d.status.clone();
+        sim.step();
+        if sim.phase() == RolloutPhase::RollingBack {
+            break before;
+        }
+        sim.agents();
+        sim.advance(1);
+    };
+    sim.d.status = before;
+    assert_ne!(sim.phase(), RolloutPhase::RollingBack);
+    let plan = sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::RollingBack, "{:?}", plan.status);
+    assert!(
+        plan.writes.iter().all(|w| w.release != Some(rel("2"))),
+        "no robot is started: {:?}",
+        plan.writes
+    );
+    sim.run_until_done(50);
+    assert_eq!(sim.phase(), RolloutPhase::RolledBack);
+    assert!(
+        sim.robots
+            .iter()
+            .all(|r| r.desired.as_ref().is_none_or(|d| *d == rel("1"))),
+        "every robot's spec is back on 1"
+    );
+    assert!(sim.robots.iter().all(|r| r.current == Some(rel("1"))));
+}
