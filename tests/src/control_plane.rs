@@ -35,6 +35,7 @@ impl ControlPlane {
                     PathBuf::from(home).join(".cache/lekiwi/test-control-plane")
                 });
             let cp = ControlPlane { dir, private: None };
+            cp.prune_kubectl_caches();
             cp.up().expect("start the shared control plane");
             cp.install_crds().expect("install CRDs");
             cp
@@ -144,6 +145,23 @@ impl ControlPlane {
         }
         std::fs::write(path, serde_yaml::to_string(&kc)?)?;
         Ok(())
+    }
+
+    /// Removes the kubectl discovery caches of test processes that have ended (one per
+    /// process, a few MiB each: without this they pile up run after run).
+    fn prune_kubectl_caches(&self) {
+        let Ok(entries) = std::fs::read_dir(&self.dir) else {
+            return;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name();
+            let Some(pid) = name.to_str().and_then(|n| n.strip_prefix("kubectl-cache-")) else {
+                continue;
+            };
+            if !Path::new("/proc").join(pid).exists() {
+                let _ = std::fs::remove_dir_all(entry.path());
+            }
+        }
     }
 
     /// A command for a tool from the cache, pointed at this control plane.
