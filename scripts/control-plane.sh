@@ -9,7 +9,8 @@
 #!                 data, certificates and tokens)
 #!   down          stop both processes (SIGTERM, then SIGKILL), keep the data
 #!   down --purge  stop and delete the state directory (alias: clean)
-#!   kill          SIGKILL both processes at once (simulates a crash), keep the data
+#!   kill [NAME]   SIGKILL both processes at once (simulates a crash), keep the data; with NAME
+#!                 (etcd or kube-apiserver) only that one
 #!   status        print state, ports and pids; exit 0 if healthy, 1 otherwise
 #!   env           print `export KUBECONFIG=...` and `export PATH=...` lines, for
 #!                 eval "$(scripts/control-plane.sh env)"
@@ -326,13 +327,19 @@ cmd_down() {
 }
 
 cmd_kill() {
+  local names=(etcd kube-apiserver)
+  case "${1:-}" in
+    "") ;;
+    etcd|kube-apiserver) names=("$1") ;;
+    *) die "unknown process for kill: $1 (etcd or kube-apiserver)" ;;
+  esac
   [ -d "$STATE" ] || return 0
   take_lock
   local name
-  for name in etcd kube-apiserver; do
+  for name in "${names[@]}"; do
     stop_proc "$name" KILL 5 || die "could not kill $name"
   done
-  log "killed etcd and kube-apiserver (data kept in $STATE)"
+  log "killed ${names[*]} (data kept in $STATE)"
 }
 
 cmd_status() {
@@ -361,7 +368,7 @@ case "${1:-help}" in
   up) cmd_up ;;
   down) shift; cmd_down "$@" ;;
   clean) cmd_down --purge ;;
-  kill) cmd_kill ;;
+  kill) shift; cmd_kill "$@" ;;
   status) cmd_status ;;
   env) cmd_env ;;
   help|-h|--help) usage ;;

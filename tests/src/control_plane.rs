@@ -78,6 +78,38 @@ impl ControlPlane {
         self.script(&["kill"]).map(|_| ())
     }
 
+    /// SIGKILLs kube-apiserver alone; etcd keeps running (and can be changed behind the API
+    /// server's back with [`ControlPlane::etcd_delete`]).
+    pub fn kill_apiserver(&self) -> Result<()> {
+        self.script(&["kill", "kube-apiserver"]).map(|_| ())
+    }
+
+    /// Deletes `key` (e.g. `/registry/secrets/NS/NAME`) in etcd directly, through etcd's JSON
+    /// gateway: what a watcher that was disconnected meanwhile can only learn from a relist.
+    pub async fn etcd_delete(&self, key: &str) -> Result<u64> {
+        use base64::Engine as _;
+        let ports = std::fs::read_to_string(self.dir.join("ports.env"))?;
+        let port = ports
+            .lines()
+            .find_map(|l| l.strip_prefix("ETCD_PORT="))
+            .ok_or_else(|| anyhow::anyhow!("no ETCD_PORT in ports.env"))?;
+        let body = serde_json::json!({
+            "key": base64::engine::general_purpose::STANDARD.encode(key),
+        });
+        let answer: serde_json::Value = reqwest::Client::new()
+            .post(format!("http://127.0.0.1:{port}/v3/kv/deleterange"))
+            .json(&body)
+            .send()
+            .await?
+            .error_for_status()?
+            .json()
+            .await?;
+        Ok(answer["deleted"]
+            .as_str()
+            .and_then(|n| n.parse().ok())
+            .unwrap_or(0))
+    }
+
     /// Path of the admin kubeconfig.
     pub fn kubeconfig(&self) -> PathBuf {
         self.dir.join("kubeconfig")

@@ -124,6 +124,9 @@ gateway:
   heartbeatIntervalSeconds: 15
   maxConnections: 5000
   maxBlobBytes: 1073741824
+  robotQuota: {rows: 100000, bytes: 67108864}
+  sessionOpens: {perMinute: 0.5, burst: 3}
+  authLookup: {qps: 2.5, burst: 20}
   service:
     type: LoadBalancer
     port: 443
@@ -209,6 +212,12 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--max-blob-bytes=1073741824",
         "--blob-dir=/var/lib/lekiwi/blobs",
         "--max-frame-bytes=65536",
+        "--robot-quota-rows=100000",
+        "--robot-quota-bytes=67108864",
+        "--session-opens-per-minute=0.5",
+        "--session-open-burst=3",
+        "--auth-lookup-qps=2.5",
+        "--auth-lookup-burst=20",
     ] {
         assert!(args.contains(&want), "{want} missing from {args:?}");
     }

@@ -387,3 +387,37 @@ async fn a_token_in_a_reconnect_loop_is_slowed_before_the_upgrade() -> anyhow::R
     alive(&mut other).await?;
     Ok(())
 }
+
+/// A token Secret deleted while the gateway's watch is down (its API server restarting) never
+/// reaches the gateway as a deletion, only as a Secret missing from the relist that follows:
+/// that relist still ends the session the token opened.
+#[tokio::test]
+async fn a_token_deleted_while_the_watch_is_down_ends_its_session_after_the_relist()
+-> anyhow::Result<()> {
+    let cp = ControlPlane::private()?;
+    cp.install_crds()?;
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hirelist").await?;
+    let op = gateway_operator(&cp, &ns, "hi-relist", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let url = gateway_url(&op);
+    let full = format!("{ns}/kiwi-1");
+    let (ws, welcome) = connect(&url, &creds(&enroll, &full), &hello(), TIMEOUT).await?;
+    let own = welcome.robot_token.expect("enrollment issues a token");
+    drop(ws);
+    let (mut ws, _) = connect(&url, &creds(&own, &full), &hello(), TIMEOUT).await?;
+    alive(&mut ws).await?;
+
+    // The API server goes; behind its back, the Secret is deleted in etcd.
+    cp.kill_apiserver()?;
+    let key = format!("/registry/secrets/{ns}/kiwi-1-agent-token");
+    assert_eq!(cp.etcd_delete(&key).await?, 1, "{key} deleted in etcd");
+    alive(&mut ws).await?;
+    cp.up()?;
+    let (code, reason) = closed(&mut ws, Duration::from_secs(60))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\noperator log:\n{}", op.log_text()))?;
+    assert_eq!((code, reason.as_str()), (1008, "token revoked"));
+    assert!(!token_works(&op, &ns, "kiwi-1", &own).await?);
+    Ok(())
+}

@@ -105,6 +105,16 @@ impl Registry {
         self.try_send(key, Control::Credentials { deleted })
     }
 
+    /// Tells every session to check its token again; returns how many were told (a session
+    /// whose channel is full is not). After the token Secrets were listed anew, a Secret deleted
+    /// while the watch was down shows only as missing from the list, never as a deletion.
+    pub fn recheck_all_credentials(&self) -> usize {
+        self.lock()
+            .values()
+            .filter(|(_, tx)| tx.try_send(Control::Credentials { deleted: false }).is_ok())
+            .count()
+    }
+
     /// Sends a message to a robot's session; false when the robot has no session here or its
     /// channel is full.
     pub fn send(&self, key: &RobotKey, msg: ServerMessage) -> bool {

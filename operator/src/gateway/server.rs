@@ -183,6 +183,16 @@ async fn watch_token_secrets(
         match event {
             Ok(watcher::Event::Apply(s)) => credentials_changed(&registry, &s, false),
             Ok(watcher::Event::Delete(s)) => credentials_changed(&registry, &s, true),
+            // A (re)list is complete and the store holds exactly the listed Secrets.
+            Ok(watcher::Event::InitDone) => {
+                let told = registry.recheck_all_credentials();
+                if told > 0 {
+                    info!(
+                        sessions = told,
+                        "token Secrets listed anew; every session checks its token"
+                    );
+                }
+            }
             _ => {}
         }
         futures::future::ready(())
