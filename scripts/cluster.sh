@@ -237,6 +237,7 @@ setup_network() {
   ip addr show dev "$BRIDGE" | grep -qF " $NODE_IP/24 " || ip addr add "$NODE_IP/24" dev "$BRIDGE"
   ip link set "$BRIDGE" up
   sysctl -qw net.ipv4.ip_forward=1
+  bind_pod_logs
   sysctl -qw net.bridge.bridge-nf-call-iptables=1 2>/dev/null \
     || log "no br_netfilter: Pod-to-Service traffic between Pods on the bridge will not be NATed"
   cat >"$STATE/cni/net.d/10-lekiwi.conflist" <<EOF
@@ -257,6 +258,40 @@ setup_network() {
   ]
 }
 EOF
+}
+
+# The kubelet v1.20 writes container logs to /var/log/pods and links them from /var/log/containers
+# (fixed paths). Both are bind mounts of directories under $STATE while the node runs, so `down`
+# leaves no log behind; a directory `up` had to create is removed again by `down`.
+bind_pod_logs() {
+  local d
+  for d in pods containers; do
+    mkdir -p "$STATE/var-log/$d"
+    mountpoint -q "/var/log/$d" && continue
+    if [ ! -e "/var/log/$d" ]; then
+      mkdir -p "/var/log/$d"
+      touch "$STATE/var-log/$d.created"
+    fi
+    if [ -n "$(ls -A "/var/log/$d")" ]; then
+      log "/var/log/$d is not empty (another kubelet?): our Pods' logs go there too"
+      continue
+    fi
+    mount --bind "$STATE/var-log/$d" "/var/log/$d"
+  done
+}
+
+unbind_pod_logs() {
+  local d
+  for d in pods containers; do
+    if mountpoint -q "/var/log/$d" \
+        && [ "$(findmnt -no FSROOT "/var/log/$d")" = "$STATE/var-log/$d" ]; then
+      umount "/var/log/$d" || umount -l "/var/log/$d"
+    fi
+    if [ -e "$STATE/var-log/$d.created" ]; then
+      rmdir "/var/log/$d" 2>/dev/null || log "/var/log/$d is not empty; left in place"
+    fi
+  done
+  rm -rf "$STATE/var-log"
 }
 
 # Deletes every iptables/ip6tables rule that jumps to a KUBE-* or CNI-* chain, then those chains.
@@ -467,15 +502,17 @@ EOF
 }
 
 # A Released PV (its claim was deleted) is wiped and made Available again, so the four PVs last.
+# Phase and claim come from one read of the PV, and the patch only applies while the claimRef is
+# still that deleted claim's: a concurrent `up` or a claim bound meanwhile is never disturbed.
 recycle_pvs() {
-  local pv i
-  for pv in $(kc get pv -l lekiwi.dev/test-cluster=true \
-      -o jsonpath='{range .items[?(@.status.phase=="Released")]}{.metadata.name}{" "}{end}'); do
+  local pv uid i
+  while IFS=: read -r pv uid; do
     i="${pv#lekiwi-pv-}"
-    [[ "$i" =~ ^[0-9]+$ ]] || continue
+    [[ "$i" =~ ^[0-9]+$ ]] && [ -n "$uid" ] || continue
     find "$STATE/pv/pv-$i" -mindepth 1 -delete
-    kc patch pv "$pv" --type=json -p '[{"op":"remove","path":"/spec/claimRef"}]' >/dev/null
-  done
+    kc patch pv "$pv" --type=json -p "[{\"op\":\"test\",\"path\":\"/spec/claimRef/uid\",\"value\":\"$uid\"},
+      {\"op\":\"remove\",\"path\":\"/spec/claimRef\"}]" >/dev/null 2>&1 || true
+  done < <(kc get pv -l lekiwi.dev/test-cluster=true -o jsonpath='{range .items[?(@.status.phase=="Released")]}{.metadata.name}{":"}{.spec.claimRef.uid}{"\n"}{end}')
 }
 
 # ---- health ---------------------------------------------------------------------------------
@@ -573,10 +610,11 @@ drain_pods() {
   live_pid kubelet >/dev/null && apiserver_ready || return 0
   stop_all_named kube-controller-manager kube-scheduler
   kc delete pods --all --all-namespaces --force --grace-period=0 --wait=false >/dev/null 2>&1 || true
-  local deadline=$((SECONDS + 40))
+  local deadline=$((SECONDS + 40)) t0=$SECONDS
   while [ $SECONDS -lt $deadline ]; do
     [ -z "$(ls -A "$STATE/kubelet/pods" 2>/dev/null)" ] \
-      && [ -z "$(ctr --address "$SOCK" -n k8s.io tasks ls -q 2>/dev/null)" ] && return 0
+      && [ -z "$(ctr --address "$SOCK" -n k8s.io tasks ls -q 2>/dev/null)" ] \
+      && { log "the kubelet tore every Pod down in $((SECONDS - t0))s"; return 0; }
     sleep 0.5
   done
   log "the kubelet did not tear every Pod down in 40s; cleaning up by force"
@@ -593,6 +631,12 @@ kill_leftovers() {
   for f in /proc/[0-9]*/cmdline; do
     pid="${f#/proc/}"; pid="${pid%/cmdline}"
     { tr '\0' '\n' <"$f"; } 2>/dev/null | grep -qxF -- "$SOCK" && kill -9 "$pid" 2>/dev/null || true
+  done
+  # A killed shim leaves its socket: /run/containerd/s/sha256("<containerd address>/<ns>/<id>").
+  for f in "$STATE"/containerd/state/io.containerd.runtime.v2.task/*/*; do
+    [ -d "$f" ] || continue
+    rm -f "/run/containerd/s/$(printf '%s' "$SOCK/${f#"$STATE"/containerd/state/io.containerd.runtime.v2.task/}" \
+      | sha256sum | cut -d' ' -f1)"
   done
   sleep 0.3
   for f in /sys/fs/cgroup/*/kubepods /sys/fs/cgroup/kubepods; do
@@ -616,20 +660,6 @@ unmount_all() {
     || die "mounts left under $STATE: $(awk -v d="$STATE/" 'index($5, d) == 1 { print $5 }' /proc/self/mountinfo)"
 }
 
-# Pod log directories of Pods the kubelet did not remove (it writes to /var/log/pods itself).
-remove_pod_logs() {
-  local d uid l
-  for d in "$STATE"/kubelet/pods/*/; do
-    [ -d "$d" ] || continue
-    uid="$(basename "$d")"
-    rm -rf /var/log/pods/*_"$uid"
-  done
-  for l in /var/log/containers/*; do
-    [ -L "$l" ] && [ ! -e "$l" ] && rm -f "$l"
-  done
-  return 0
-}
-
 cmd_down() {
   local purge=0
   case "${1:-}" in
@@ -644,12 +674,14 @@ cmd_down() {
   drain_pods
   stop_all_named kube-proxy kubelet kube-scheduler kube-controller-manager
   local t
-  for t in $(ctr --address "$SOCK" -n k8s.io tasks ls -q 2>/dev/null); do
-    ctr --address "$SOCK" -n k8s.io tasks kill -s SIGKILL "$t" >/dev/null 2>&1 || true
-  done
+  if live_pid containerd >/dev/null; then
+    for t in $(ctr --address "$SOCK" -n k8s.io tasks ls -q 2>/dev/null); do
+      ctr --address "$SOCK" -n k8s.io tasks kill -s SIGKILL "$t" >/dev/null 2>&1 || true
+    done
+  fi
   stop_all_named containerd
   kill_leftovers
-  remove_pod_logs
+  unbind_pod_logs
   unmount_all
   rm -rf "$STATE/kubelet/pods" "$STATE/containerd/state" "$STATE/cni/ipam"
   ip link del "$BRIDGE" 2>/dev/null || true

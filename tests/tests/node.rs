@@ -11,7 +11,7 @@ use k8s_openapi::api::core::v1::{
     PersistentVolume, PersistentVolumeClaim, Pod, Service, ServiceAccount,
 };
 use kube::Api;
-use kube::api::{DeleteParams, PostParams};
+use kube::api::PostParams;
 use lekiwi_tests::cluster::{Cluster, busybox_image, http_get_at};
 use lekiwi_tests::{namespace, wait_for};
 use serde_json::json;
@@ -73,6 +73,18 @@ fn import_busybox(cluster: &Cluster) {
     cluster.import_image(&archive).expect("import the image");
 }
 
+/// Deletes the test's namespace however the test ends, so its claim releases the PV (the next
+/// `cluster.sh up` makes it Available again).
+struct DeleteNamespace<'a>(&'a Cluster, String);
+
+impl Drop for DeleteNamespace<'_> {
+    fn drop(&mut self) {
+        let _ = self
+            .0
+            .kubectl(&["delete", "namespace", &self.1, "--wait=false"]);
+    }
+}
+
 async fn wait_running(pods: &Api<Pod>, cluster: &Cluster, ns: &str, name: &str) -> String {
     let found = wait_for(
         "the Pod Running with a Pod IP",
@@ -96,6 +108,7 @@ async fn pods_run_serve_store_and_log_on_a_real_node() {
     let client = cluster.client().await.expect("client");
     import_busybox(cluster);
     let ns = namespace(&client, "node").await.expect("namespace");
+    let _cleanup = DeleteNamespace(cluster, ns.clone());
     // The ServiceAccount admission plugin refuses Pods until the controller-manager made the
     // namespace's default ServiceAccount.
     let accounts: Api<ServiceAccount> = Api::namespaced(client.clone(), &ns);
@@ -217,9 +230,4 @@ async fn pods_run_serve_store_and_log_on_a_real_node() {
     )
     .await;
     assert!(reason.is_ok(), "{reason:?}");
-
-    Api::<k8s_openapi::api::core::v1::Namespace>::all(client)
-        .delete(&ns, &DeleteParams::default())
-        .await
-        .expect("delete namespace");
 }
