@@ -596,10 +596,14 @@ cmd_up() {
   log "ready in $((SECONDS - t0))s: https://$NODE_IP:$APISERVER_PORT, KUBECONFIG=$STATE/kubeconfig"
 }
 
+# SIGTERM, then SIGKILL after 5 s (1 s for kube-apiserver, whose graceful shutdown waits ~10 s for
+# watches that nobody needs at this point; its state is in etcd).
 stop_all_named() {
-  local name
+  local name wait_s
   for name in "$@"; do
-    stop_proc "$name" TERM 10 || stop_proc "$name" KILL 5 || die "could not stop $name"
+    wait_s=5
+    [ "$name" = kube-apiserver ] && wait_s=1
+    stop_proc "$name" TERM "$wait_s" || stop_proc "$name" KILL 5 || die "could not stop $name"
   done
 }
 
