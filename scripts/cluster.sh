@@ -562,7 +562,7 @@ resolve_binaries() {
   [ -x "$BIN_DIR/kubectl" ] && [ -d /usr/lib/cni ] || missing=1
   if [ $missing = 1 ]; then
     log "binaries missing; running scripts/setup.sh"
-    "$SCRIPT_DIR/setup.sh" >&2
+    LEKIWI_BUILD_NODE=1 "$SCRIPT_DIR/setup.sh" >&2
   fi
   for b in etcd kube-apiserver kubelet kube-controller-manager kube-scheduler kube-proxy; do
     [ -x "$K8S_DIR/$b" ] || die "setup.sh did not produce $K8S_DIR/$b"

