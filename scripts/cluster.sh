@@ -26,7 +26,8 @@
 #! API server, the kubelet and NodePorts listen there and nowhere else), Pods get addresses from
 #! 10.244.213.0/24, Services from 10.97.213.0/24. etcd and the components' other ports are free
 #! 127.0.0.1 ports. StorageClass `standard` (default) has four pre-made 1Gi hostPath PVs under
-#! the directory.
+#! the directory. One such cluster per machine: the bridge, the addresses and the KUBE-*/CNI-*
+#! iptables chains `down` removes are machine-wide.
 set -euo pipefail
 
 SCRIPT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
