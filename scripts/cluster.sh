@@ -232,6 +232,10 @@ restore_sysctls() {
 # The bridge exists before anything starts: its address is the node IP the API server binds.
 # br_netfilter's bridge-nf-call-iptables makes bridged Pod-to-Service traffic see kube-proxy's rules.
 setup_network() {
+  # Kernels with loadable modules (CI runners) may not have loaded these yet; this one has them
+  # built in and no /lib/modules, hence the `|| true`.
+  [ -e /proc/sys/net/bridge ] || modprobe br_netfilter 2>/dev/null || true
+  grep -qw overlay /proc/filesystems || modprobe overlay 2>/dev/null || true
   if ! ip link show "$BRIDGE" >/dev/null 2>&1; then
     ip link add "$BRIDGE" type bridge
   fi
