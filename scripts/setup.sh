@@ -60,7 +60,7 @@ fi
 if [ ${#missing[@]} = 0 ]; then
   log "Kubernetes $K8S_VERSION binaries cached in $K8S_DIR"
 else
-  log "building ${missing[*]} $K8S_VERSION from Debian's source package (7-10 minutes, once)"
+  log "building ${missing[*]} $K8S_VERSION from Debian's source package (6-15 minutes on 2 cores, once)"
   if ! grep -rqs '^Types:.*deb-src' /etc/apt/sources.list.d/ && ! grep -qs '^deb-src' /etc/apt/sources.list; then
     $SUDO tee /etc/apt/sources.list.d/lekiwi-deb-src.sources >/dev/null <<'SRC'
 Types: deb-src
