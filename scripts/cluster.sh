@@ -1,0 +1,744 @@
+#!/usr/bin/env bash
+#! Runs a local single-node Kubernetes v1.20.2 cluster whose Pods really run: etcd, kube-apiserver,
+#! kube-controller-manager, kube-scheduler, containerd (+ runc, CNI bridge), kubelet and kube-proxy
+#! as background processes owned by this script, for tests of the LeKiwi fleet control plane.
+#! Needs root (bridge, iptables, mounts, cgroups). Nothing can be pulled: images are imported with
+#! `ctr -n k8s.io images import` (the pause image from scripts/image.sh is imported by `up`).
+#!
+#! Usage: scripts/cluster.sh <command>
+#!   up            start everything, wait until the node is Ready and the basics work (idempotent: a
+#!                 healthy cluster is left alone, Released PVs are made Available again)
+#!   down          delete every Pod, stop every process, unmount every mount under the directory,
+#!                 delete the bridge, remove the KUBE-*/CNI-* iptables chains and rules, restore the
+#!                 sysctls `up` changed; keeps certificates, etcd data and imported images
+#!   down --purge  the same, then delete the directory (alias: clean)
+#!   status        print state, addresses and pids; exit 0 if healthy, 1 otherwise
+#!   env           print export lines for eval "$(scripts/cluster.sh env)": KUBECONFIG, PATH,
+#!                 LEKIWI_NODE_IP (NodePorts listen there), CONTAINERD_ADDRESS (for
+#!                 `ctr -n k8s.io images import`), LEKIWI_CLUSTER_DIR
+#!   help          this text
+#!
+#! Environment:
+#!   LEKIWI_CLUSTER_DIR      state directory (default ~/.cache/lekiwi/test-cluster)
+#!   LEKIWI_CLUSTER_TIMEOUT  seconds `up` waits for each readiness step (default 120)
+#!
+#! Network (private, inside this machine): bridge `lekiwi0` = 10.244.213.1/24 is the node IP (the
+#! API server, the kubelet and NodePorts listen there and nowhere else), Pods get addresses from
+#! 10.244.213.0/24, Services from 10.97.213.0/24. etcd and the components' other ports are free
+#! 127.0.0.1 ports. StorageClass `standard` (default) has four pre-made 1Gi hostPath PVs under
+#! the directory. One such cluster per machine: the bridge, the addresses and the KUBE-*/CNI-*
+#! iptables chains `down` removes are machine-wide.
+set -euo pipefail
+
+SCRIPT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
+STATE="$(realpath -m "${LEKIWI_CLUSTER_DIR:-$CACHE/test-cluster}")"
+TIMEOUT="${LEKIWI_CLUSTER_TIMEOUT:-120}"
+K8S_DIR="$CACHE/k8s/v1.20.2"
+BIN_DIR="$CACHE/bin"
+PAUSE_TAR="$CACHE/images/pause.oci.tar"
+PAUSE_REF="lekiwi.local/pause:3.2"
+BRIDGE=lekiwi0
+NODE_IP=10.244.213.1
+POD_CIDR=10.244.213.0/24
+SERVICE_CIDR=10.97.213.0/24
+NODE_NAME=lekiwi-node
+SOCK="$STATE/containerd/containerd.sock"
+# Kernel settings `up` may change (kubelet and kube-proxy write several themselves); `down` puts
+# back the values saved before the first `up`.
+SYSCTLS=(net.ipv4.ip_forward net.ipv4.conf.all.route_localnet net.bridge.bridge-nf-call-iptables
+  net.bridge.bridge-nf-call-ip6tables vm.overcommit_memory vm.panic_on_oom kernel.panic
+  kernel.panic_on_oops kernel.keys.root_maxkeys kernel.keys.root_maxbytes)
+PROCS=(etcd kube-apiserver containerd kubelet kube-controller-manager kube-scheduler kube-proxy)
+
+log() { printf '[cluster] %s\n' "$*" >&2; }
+die() { printf '[cluster] error: %s\n' "$*" >&2; exit 1; }
+usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
+kc() { "$BIN_DIR/kubectl" --kubeconfig "$STATE/kubeconfig" "$@"; }
+
+# ---- processes (the same pid-file + marker scheme as scripts/control-plane.sh) ---------------
+# Each process is identified by its pid file AND by a marker argument naming this directory, so a
+# recycled pid never makes us signal or trust an unrelated process.
+marker() {
+  case "$1" in
+    etcd) printf -- '--data-dir=%s/etcd' "$STATE" ;;
+    kube-apiserver) printf -- '--cert-dir=%s/pki/generated' "$STATE" ;;
+    containerd) printf -- '--config=%s/containerd/config.toml' "$STATE" ;;
+    kubelet) printf -- '--root-dir=%s/kubelet' "$STATE" ;;
+    kube-controller-manager) printf -- '--kubeconfig=%s/kubeconfigs/controller-manager' "$STATE" ;;
+    kube-scheduler) printf -- '--kubeconfig=%s/kubeconfigs/scheduler' "$STATE" ;;
+    kube-proxy) printf -- '--config=%s/kube-proxy.yaml' "$STATE" ;;
+  esac
+}
+
+live_pid() {
+  local pid
+  pid="$(cat "$STATE/$1.pid" 2>/dev/null)" || return 1
+  [[ "$pid" =~ ^[0-9]+$ ]] || return 1
+  { tr '\0' '\n' <"/proc/$pid/cmdline"; } 2>/dev/null | grep -qxF -- "$(marker "$1")" || return 1
+  echo "$pid"
+}
+
+# Starts "$@" detached (new session, stdin closed, output to $STATE/$name.log, without the lock fd).
+spawn() {
+  local name="$1" i
+  shift
+  printf '\n==== %s starting %s\n' "$(date -Is)" "$name" >>"$STATE/$name.log"
+  rm -f "$STATE/$name.pid"
+  setsid bash -c 'echo $$ >"$0"; exec "$@"' "$STATE/$name.pid" "$@" \
+    </dev/null >>"$STATE/$name.log" 2>&1 9>&- &
+  for i in $(seq 50); do
+    [ -s "$STATE/$name.pid" ] && return 0
+    sleep 0.05
+  done
+  die "$name did not start (see $STATE/$name.log)"
+}
+
+stop_proc() { # name signal seconds; returns 1 if still alive
+  local name="$1" sig="$2" wait_s="$3" pid i
+  pid="$(live_pid "$name")" || return 0
+  kill "-$sig" "$pid" 2>/dev/null || true
+  for i in $(seq $((wait_s * 10))); do
+    live_pid "$name" >/dev/null || return 0
+    sleep 0.1
+  done
+  return 1
+}
+
+tail_log() { log "last lines of $STATE/$1.log:"; tail -n "${2:-25}" "$STATE/$1.log" >&2 || true; }
+
+# Waits until "$@" succeeds; dies naming $what (and the log of $proc) after $TIMEOUT seconds.
+wait_for() {
+  local what="$1" proc="$2" deadline=$((SECONDS + TIMEOUT))
+  shift 2
+  until "$@" >/dev/null 2>&1; do
+    [ -z "$proc" ] || live_pid "$proc" >/dev/null || { tail_log "$proc" 40; die "$proc exited"; }
+    [ $SECONDS -lt $deadline ] || { [ -z "$proc" ] || tail_log "$proc" 40; die "$what: not after ${TIMEOUT}s"; }
+    sleep 0.3
+  done
+}
+
+# ---- state: ports, certificates, tokens, kubeconfigs (created once) -------------------------
+load_ports() {
+  # shellcheck disable=SC1091
+  [ -f "$STATE/ports.env" ] && . "$STATE/ports.env"
+}
+
+gen_cert() { # name subject extensions
+  local pki="$STATE/pki"
+  openssl req -newkey rsa:2048 -nodes -subj "$2" -keyout "$pki/$1.key" -out "$pki/$1.csr" 2>/dev/null
+  printf 'basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature,keyEncipherment\n%s\n' \
+    "$3" >"$pki/$1.ext"
+  openssl x509 -req -days 3650 -in "$pki/$1.csr" -CA "$pki/ca.crt" -CAkey "$pki/ca.key" \
+    -CAcreateserial -extfile "$pki/$1.ext" -out "$pki/$1.crt" 2>/dev/null
+  chmod 600 "$pki/$1.key"
+}
+
+init_pki() {
+  local pki="$STATE/pki"
+  [ -s "$pki/kubelet.crt" ] && return 0
+  log "generating the CA and certificates"
+  mkdir -p "$pki/generated"
+  openssl req -x509 -newkey rsa:2048 -nodes -days 3650 -subj "/CN=lekiwi-cluster-ca" \
+    -keyout "$pki/ca.key" -out "$pki/ca.crt" -addext "basicConstraints=critical,CA:TRUE" \
+    -addext "keyUsage=critical,keyCertSign,cRLSign" 2>/dev/null
+  gen_cert apiserver /CN=kube-apiserver "extendedKeyUsage=serverAuth
+subjectAltName=IP:$NODE_IP,IP:127.0.0.1,IP:${SERVICE_CIDR%.0/24}.1,DNS:localhost,DNS:kubernetes,DNS:kubernetes.default,DNS:kubernetes.default.svc,DNS:kubernetes.default.svc.cluster.local"
+  gen_cert apiserver-kubelet-client "/O=system:masters/CN=kube-apiserver-kubelet-client" \
+    "extendedKeyUsage=clientAuth"
+  gen_cert kubelet "/CN=$NODE_NAME" "extendedKeyUsage=serverAuth
+subjectAltName=IP:$NODE_IP,DNS:$NODE_NAME"
+  openssl genrsa -out "$STATE/sa.key" 2048 2>/dev/null
+  openssl rsa -in "$STATE/sa.key" -pubout -out "$STATE/sa.pub" 2>/dev/null
+  chmod 600 "$STATE/sa.key" "$pki/ca.key"
+}
+
+write_kubeconfig() { # name token
+  mkdir -p "$STATE/kubeconfigs"
+  local file="$STATE/kubeconfigs/$1"
+  [ "$1" = admin ] && file="$STATE/kubeconfig"
+  cat >"$file.tmp" <<EOF
+apiVersion: v1
+kind: Config
+clusters:
+- name: lekiwi
+  cluster:
+    server: https://$NODE_IP:$APISERVER_PORT
+    certificate-authority-data: $(base64 -w0 "$STATE/pki/ca.crt")
+users:
+- name: $1
+  user:
+    token: $2
+contexts:
+- name: $1
+  context: {cluster: lekiwi, user: $1, namespace: default}
+current-context: $1
+EOF
+  chmod 600 "$file.tmp"
+  mv -f "$file.tmp" "$file"
+}
+
+# One bearer token per identity; the kubelet is a real node identity (Node authorizer), the
+# others are the users the RBAC bootstrap policy binds.
+init_tokens() {
+  [ -s "$STATE/tokens.csv" ] && return 0
+  local line name user groups tok
+  : >"$STATE/tokens.csv.tmp"
+  for line in "admin admin system:masters" "kubelet system:node:$NODE_NAME system:nodes" \
+      "controller-manager system:kube-controller-manager -" "scheduler system:kube-scheduler -" \
+      "kube-proxy system:kube-proxy -"; do
+    read -r name user groups <<<"$line"
+    tok="$(openssl rand -hex 24)"
+    if [ "$groups" = - ]; then
+      printf '%s,%s,%s\n' "$tok" "$user" "$user" >>"$STATE/tokens.csv.tmp"
+    else
+      printf '%s,%s,%s,"%s"\n' "$tok" "$user" "$user" "$groups" >>"$STATE/tokens.csv.tmp"
+    fi
+    write_kubeconfig "$name" "$tok"
+  done
+  chmod 600 "$STATE/tokens.csv.tmp"
+  mv -f "$STATE/tokens.csv.tmp" "$STATE/tokens.csv"
+}
+
+init_state() {
+  mkdir -p "$STATE" "$STATE/kubelet" "$STATE/cni/net.d" "$STATE/containerd"
+  mkdir -p -m 700 "$STATE/etcd"
+  if [ ! -s "$STATE/ports.env" ]; then
+    mapfile -t p < <(python3 "$SCRIPT_DIR/free-ports.py" 9)
+    printf 'ETCD_PORT=%d\nETCD_PEER_PORT=%d\nAPISERVER_PORT=%d\nKUBELET_PORT=%d\nKUBELET_HEALTHZ_PORT=%d\nPROXY_HEALTHZ_PORT=%d\nPROXY_METRICS_PORT=%d\nCM_PORT=%d\nSCHED_PORT=%d\n' \
+      "${p[@]}" >"$STATE/ports.env.tmp"
+    mv -f "$STATE/ports.env.tmp" "$STATE/ports.env"
+  fi
+  load_ports
+  init_pki
+  init_tokens
+  if [ ! -s "$STATE/sysctl.orig" ]; then
+    local k
+    for k in "${SYSCTLS[@]}"; do
+      printf '%s=%s\n' "$k" "$(sysctl -n "$k" 2>/dev/null || echo -)"
+    done >"$STATE/sysctl.orig"
+  fi
+}
+
+restore_sysctls() {
+  [ -s "$STATE/sysctl.orig" ] || return 0
+  local k v
+  while IFS='=' read -r k v; do
+    [ "$v" = - ] || sysctl -qw "$k=$v" 2>/dev/null || log "could not restore $k=$v"
+  done <"$STATE/sysctl.orig"
+}
+
+# ---- network --------------------------------------------------------------------------------
+# The bridge exists before anything starts: its address is the node IP the API server binds.
+# br_netfilter's bridge-nf-call-iptables makes bridged Pod-to-Service traffic see kube-proxy's rules.
+setup_network() {
+  # Kernels with loadable modules (CI runners) may not have loaded these yet; this one has them
+  # built in and no /lib/modules, hence the `|| true`.
+  [ -e /proc/sys/net/bridge ] || modprobe br_netfilter 2>/dev/null || true
+  grep -qw overlay /proc/filesystems || modprobe overlay 2>/dev/null || true
+  if ! ip link show "$BRIDGE" >/dev/null 2>&1; then
+    ip link add "$BRIDGE" type bridge
+  fi
+  ip addr show dev "$BRIDGE" | grep -qF " $NODE_IP/24 " || ip addr add "$NODE_IP/24" dev "$BRIDGE"
+  ip link set "$BRIDGE" up
+  sysctl -qw net.ipv4.ip_forward=1
+  bind_pod_logs
+  sysctl -qw net.bridge.bridge-nf-call-iptables=1 2>/dev/null \
+    || log "no br_netfilter: Pod-to-Service traffic between Pods on the bridge will not be NATed"
+  cat >"$STATE/cni/net.d/10-lekiwi.conflist" <<EOF
+{
+  "cniVersion": "0.4.0",
+  "name": "lekiwi",
+  "plugins": [
+    {
+      "type": "bridge", "bridge": "$BRIDGE", "isGateway": true, "ipMasq": false,
+      "hairpinMode": true,
+      "ipam": {
+        "type": "host-local", "dataDir": "$STATE/cni/ipam",
+        "ranges": [[{"subnet": "$POD_CIDR", "gateway": "$NODE_IP"}]],
+        "routes": [{"dst": "0.0.0.0/0"}]
+      }
+    },
+    {"type": "portmap", "capabilities": {"portMappings": true}}
+  ]
+}
+EOF
+}
+
+# The kubelet v1.20 writes container logs to /var/log/pods and links them from /var/log/containers
+# (fixed paths). Both are bind mounts of directories under $STATE while the node runs, so `down`
+# leaves no log behind; a directory `up` had to create is removed again by `down`.
+bind_pod_logs() {
+  local d
+  for d in pods containers; do
+    mkdir -p "$STATE/var-log/$d"
+    mountpoint -q "/var/log/$d" && continue
+    if [ ! -e "/var/log/$d" ]; then
+      mkdir -p "/var/log/$d"
+      touch "$STATE/var-log/$d.created"
+    fi
+    if [ -n "$(ls -A "/var/log/$d")" ]; then
+      log "/var/log/$d is not empty (another kubelet?): our Pods' logs go there too"
+      continue
+    fi
+    mount --bind "$STATE/var-log/$d" "/var/log/$d"
+  done
+}
+
+unbind_pod_logs() {
+  local d
+  for d in pods containers; do
+    if mountpoint -q "/var/log/$d" \
+        && [ "$(findmnt -no FSROOT "/var/log/$d")" = "$STATE/var-log/$d" ]; then
+      umount "/var/log/$d" || umount -l "/var/log/$d"
+    fi
+    if [ -e "$STATE/var-log/$d.created" ]; then
+      rmdir "/var/log/$d" 2>/dev/null || log "/var/log/$d is not empty; left in place"
+    fi
+  done
+  rm -rf "$STATE/var-log"
+}
+
+# Deletes every iptables/ip6tables rule that jumps to a KUBE-* or CNI-* chain, then those chains.
+clean_iptables() {
+  local cmd
+  for cmd in iptables ip6tables; do
+    command -v "$cmd-save" >/dev/null || continue
+    "$cmd-save" 2>/dev/null | python3 -c '
+import re, shlex, subprocess, sys
+cmd = sys.argv[1]
+ours = re.compile(r"^(KUBE|CNI)-")
+table, chains = None, []
+for line in sys.stdin:
+    line = line.rstrip("\n")
+    if line.startswith("*"):
+        table = line[1:]
+    elif line.startswith(":"):
+        name = line[1:].split()[0]
+        if ours.match(name):
+            chains.append((table, name))
+    elif line.startswith("-A "):
+        args = shlex.split(line)
+        target = args[args.index("-j") + 1] if "-j" in args else ""
+        if not ours.match(args[1]) and ours.match(target):
+            subprocess.run([cmd, "-w", "-t", table, "-D"] + args[1:], check=False)
+for table, name in chains:
+    subprocess.run([cmd, "-w", "-t", table, "-F", name], check=False)
+for table, name in chains:
+    subprocess.run([cmd, "-w", "-t", table, "-X", name], check=False)
+' "$cmd"
+  done
+}
+
+# ---- configuration files --------------------------------------------------------------------
+# This VM's kernel refuses writes to /proc/self/oom_score_adj; then runc needs scripts/runc-wrapper.
+runc_binary() {
+  if (echo -999 >/proc/self/oom_score_adj) 2>/dev/null; then
+    command -v runc
+  else
+    echo "$SCRIPT_DIR/runc-wrapper"
+  fi
+}
+
+write_containerd_config() {
+  mkdir -p "$STATE/containerd/opt"
+  cat >"$STATE/containerd/config.toml" <<EOF
+version = 2
+root = "$STATE/containerd/root"
+state = "$STATE/containerd/state"
+disabled_plugins = ["io.containerd.snapshotter.v1.aufs", "io.containerd.snapshotter.v1.btrfs",
+  "io.containerd.snapshotter.v1.devmapper", "io.containerd.snapshotter.v1.zfs"]
+[grpc]
+  address = "$SOCK"
+[ttrpc]
+  address = "$SOCK.ttrpc"
+[debug]
+  address = ""
+[metrics]
+  address = ""
+[plugins."io.containerd.internal.v1.opt"]
+  path = "$STATE/containerd/opt"
+[plugins."io.containerd.grpc.v1.cri"]
+  sandbox_image = "$PAUSE_REF"
+  stream_server_address = "127.0.0.1"
+  stream_server_port = "0"
+  netns_mounts_under_state_dir = true
+  [plugins."io.containerd.grpc.v1.cri".cni]
+    bin_dir = "/usr/lib/cni"
+    conf_dir = "$STATE/cni/net.d"
+    max_conf_num = 1
+  [plugins."io.containerd.grpc.v1.cri".containerd]
+    snapshotter = "overlayfs"
+    default_runtime_name = "runc"
+    [plugins."io.containerd.grpc.v1.cri".containerd.runtimes.runc]
+      runtime_type = "io.containerd.runc.v2"
+      [plugins."io.containerd.grpc.v1.cri".containerd.runtimes.runc.options]
+        BinaryName = "$(runc_binary)"
+        SystemdCgroup = false
+EOF
+}
+
+# Eviction thresholds are near zero: the test machine's disk is often fuller than the defaults
+# allow, and no image evicted by GC could be pulled again.
+write_kubelet_config() {
+  cat >"$STATE/kubelet.yaml" <<EOF
+apiVersion: kubelet.config.k8s.io/v1beta1
+kind: KubeletConfiguration
+address: $NODE_IP
+port: $KUBELET_PORT
+readOnlyPort: 0
+healthzBindAddress: 127.0.0.1
+healthzPort: $KUBELET_HEALTHZ_PORT
+tlsCertFile: $STATE/pki/kubelet.crt
+tlsPrivateKeyFile: $STATE/pki/kubelet.key
+authentication:
+  anonymous: {enabled: false}
+  webhook: {enabled: true}
+  x509: {clientCAFile: $STATE/pki/ca.crt}
+authorization: {mode: Webhook}
+cgroupDriver: cgroupfs
+failSwapOn: false
+clusterDomain: cluster.local
+evictionHard: {memory.available: 50Mi, nodefs.available: 1%, imagefs.available: 1%, nodefs.inodesFree: 1%}
+imageGCHighThresholdPercent: 100
+imageGCLowThresholdPercent: 99
+serializeImagePulls: false
+EOF
+  cat >"$STATE/kube-proxy.yaml" <<EOF
+apiVersion: kubeproxy.config.k8s.io/v1alpha1
+kind: KubeProxyConfiguration
+clientConnection: {kubeconfig: $STATE/kubeconfigs/kube-proxy}
+mode: iptables
+hostnameOverride: $NODE_NAME
+bindAddress: $NODE_IP
+clusterCIDR: $POD_CIDR
+nodePortAddresses: ["$NODE_IP/32"]
+healthzBindAddress: 127.0.0.1:$PROXY_HEALTHZ_PORT
+metricsBindAddress: 127.0.0.1:$PROXY_METRICS_PORT
+conntrack: {maxPerCore: 0, min: 0, tcpEstablishedTimeout: 0s, tcpCloseWaitTimeout: 0s}
+EOF
+}
+
+# ---- starting -------------------------------------------------------------------------------
+start_etcd() {
+  spawn etcd "$K8S_DIR/etcd" --name=default "$(marker etcd)" \
+    --listen-client-urls="http://127.0.0.1:$ETCD_PORT" \
+    --advertise-client-urls="http://127.0.0.1:$ETCD_PORT" \
+    --listen-peer-urls="http://127.0.0.1:$ETCD_PEER_PORT" \
+    --initial-advertise-peer-urls="http://127.0.0.1:$ETCD_PEER_PORT" \
+    --initial-cluster="default=http://127.0.0.1:$ETCD_PEER_PORT" \
+    --heartbeat-interval=50 --election-timeout=500 --unsafe-no-fsync \
+    --logger=zap --log-outputs=stderr
+}
+
+start_apiserver() {
+  spawn kube-apiserver "$K8S_DIR/kube-apiserver" "$(marker kube-apiserver)" \
+    --etcd-servers="http://127.0.0.1:$ETCD_PORT" \
+    --secure-port="$APISERVER_PORT" --bind-address="$NODE_IP" --advertise-address="$NODE_IP" \
+    --tls-cert-file="$STATE/pki/apiserver.crt" --tls-private-key-file="$STATE/pki/apiserver.key" \
+    --client-ca-file="$STATE/pki/ca.crt" \
+    --service-account-issuer=https://kubernetes.default.svc \
+    --service-account-key-file="$STATE/sa.pub" \
+    --service-account-signing-key-file="$STATE/sa.key" \
+    --authorization-mode=Node,RBAC --enable-admission-plugins=NodeRestriction \
+    --service-cluster-ip-range="$SERVICE_CIDR" --allow-privileged=true \
+    --token-auth-file="$STATE/tokens.csv" \
+    --kubelet-preferred-address-types=InternalIP \
+    --kubelet-certificate-authority="$STATE/pki/ca.crt" \
+    --kubelet-client-certificate="$STATE/pki/apiserver-kubelet-client.crt" \
+    --kubelet-client-key="$STATE/pki/apiserver-kubelet-client.key"
+}
+
+start_controllers() {
+  spawn kube-controller-manager "$K8S_DIR/kube-controller-manager" \
+    "$(marker kube-controller-manager)" --controllers='*' --leader-elect=false \
+    --use-service-account-credentials=true \
+    --service-account-private-key-file="$STATE/sa.key" --root-ca-file="$STATE/pki/ca.crt" \
+    --cluster-signing-cert-file="$STATE/pki/ca.crt" --cluster-signing-key-file="$STATE/pki/ca.key" \
+    --port=0 --bind-address=127.0.0.1 --secure-port="$CM_PORT"
+  spawn kube-scheduler "$K8S_DIR/kube-scheduler" "$(marker kube-scheduler)" \
+    --leader-elect=false --port=0 --bind-address=127.0.0.1 --secure-port="$SCHED_PORT"
+}
+
+start_node() {
+  write_containerd_config
+  spawn containerd /usr/bin/containerd "$(marker containerd)"
+  wait_for "containerd at $SOCK" containerd ctr --address "$SOCK" version
+  [ -s "$PAUSE_TAR" ] || "$SCRIPT_DIR/image.sh" pause >&2 || die "no pause image at $PAUSE_TAR"
+  ctr --address "$SOCK" -n k8s.io images import "$PAUSE_TAR" >/dev/null \
+    || die "could not import $PAUSE_TAR into containerd"
+  write_kubelet_config
+  spawn kubelet "$K8S_DIR/kubelet" "$(marker kubelet)" --config="$STATE/kubelet.yaml" \
+    --kubeconfig="$STATE/kubeconfigs/kubelet" --container-runtime=remote \
+    --container-runtime-endpoint="unix://$SOCK" --hostname-override="$NODE_NAME" \
+    --node-ip="$NODE_IP"
+  spawn kube-proxy "$K8S_DIR/kube-proxy" "$(marker kube-proxy)"
+}
+
+# ---- storage: StorageClass `standard` (default) with pre-made hostPath PVs ------------------
+apply_storage() {
+  local i docs=""
+  for i in 0 1 2 3; do
+    mkdir -p "$STATE/pv/pv-$i"
+    chmod 0777 "$STATE/pv/pv-$i" # Pods run as non-root users
+    docs+="---
+apiVersion: v1
+kind: PersistentVolume
+metadata: {name: lekiwi-pv-$i, labels: {lekiwi.dev/test-cluster: \"true\"}}
+spec:
+  capacity: {storage: 1Gi}
+  accessModes: [ReadWriteOnce]
+  persistentVolumeReclaimPolicy: Retain
+  storageClassName: standard
+  hostPath: {path: $STATE/pv/pv-$i, type: Directory}
+"
+  done
+  kc apply -f - >/dev/null <<EOF
+apiVersion: storage.k8s.io/v1
+kind: StorageClass
+metadata:
+  name: standard
+  annotations: {storageclass.kubernetes.io/is-default-class: "true"}
+provisioner: kubernetes.io/no-provisioner
+volumeBindingMode: Immediate
+reclaimPolicy: Retain
+$docs
+EOF
+}
+
+# A Released PV (its claim was deleted) is wiped and made Available again, so the four PVs last.
+# Phase and claim come from one read of the PV, and the patch only applies while the claimRef is
+# still that deleted claim's: a concurrent `up` or a claim bound meanwhile is never disturbed.
+recycle_pvs() {
+  local pv uid i
+  while IFS=: read -r pv uid; do
+    i="${pv#lekiwi-pv-}"
+    [[ "$i" =~ ^[0-9]+$ ]] && [ -n "$uid" ] || continue
+    find "$STATE/pv/pv-$i" -mindepth 1 -delete
+    kc patch pv "$pv" --type=json -p "[{\"op\":\"test\",\"path\":\"/spec/claimRef/uid\",\"value\":\"$uid\"},
+      {\"op\":\"remove\",\"path\":\"/spec/claimRef\"}]" >/dev/null 2>&1 || true
+  done < <(kc get pv -l lekiwi.dev/test-cluster=true -o jsonpath='{range .items[?(@.status.phase=="Released")]}{.metadata.name}{":"}{.spec.claimRef.uid}{"\n"}{end}')
+}
+
+# ---- health ---------------------------------------------------------------------------------
+apiserver_ready() {
+  [ -n "${APISERVER_PORT:-}" ] || return 1
+  [ "$(kc get --raw /readyz 2>/dev/null)" = ok ]
+}
+
+node_ready() {
+  [ "$(kc get node "$NODE_NAME" \
+    -o jsonpath='{.status.conditions[?(@.type=="Ready")].status}' 2>/dev/null)" = True ]
+}
+
+# The basics that need no DNS: the controller-manager made the default ServiceAccount's token,
+# kube-proxy synced its rules, the StorageClass exists.
+basics_ready() {
+  [ -n "$(kc -n default get serviceaccount default -o jsonpath='{.secrets[0].name}' 2>/dev/null)" ] \
+    && curl -fsS --max-time 2 "http://127.0.0.1:$PROXY_HEALTHZ_PORT/healthz" >/dev/null \
+    && kc get storageclass standard >/dev/null 2>&1
+}
+
+all_live() {
+  local name
+  for name in "${PROCS[@]}"; do live_pid "$name" >/dev/null || return 1; done
+}
+
+healthy() {
+  load_ports 2>/dev/null || return 1
+  all_live && apiserver_ready && node_ready
+}
+
+# ---- up -------------------------------------------------------------------------------------
+take_lock() {
+  mkdir -p "$STATE"
+  exec 9>"$STATE/.lock"
+  flock -w 600 9 || die "timed out waiting for the lock $STATE/.lock"
+}
+
+resolve_binaries() {
+  local b missing=0
+  for b in etcd kube-apiserver kubelet kube-controller-manager kube-scheduler kube-proxy; do
+    [ -x "$K8S_DIR/$b" ] || missing=1
+  done
+  for b in containerd ctr runc iptables conntrack ip; do
+    command -v "$b" >/dev/null || missing=1
+  done
+  [ -x "$BIN_DIR/kubectl" ] && [ -d /usr/lib/cni ] || missing=1
+  if [ $missing = 1 ]; then
+    log "binaries missing; running scripts/setup.sh"
+    LEKIWI_BUILD_NODE=1 "$SCRIPT_DIR/setup.sh" >&2
+  fi
+  for b in etcd kube-apiserver kubelet kube-controller-manager kube-scheduler kube-proxy; do
+    [ -x "$K8S_DIR/$b" ] || die "setup.sh did not produce $K8S_DIR/$b"
+  done
+}
+
+cmd_up() {
+  [ "$(id -u)" = 0 ] || die "the node needs root (bridge, iptables, mounts, cgroups)"
+  if healthy; then recycle_pvs; return 0; fi
+  take_lock
+  if healthy; then recycle_pvs; return 0; fi
+  local t0=$SECONDS
+  resolve_binaries
+  init_state
+  setup_network
+  live_pid etcd >/dev/null || { log "starting etcd on 127.0.0.1:$ETCD_PORT"; start_etcd; }
+  wait_for "etcd healthy" etcd curl -fsS --max-time 2 "http://127.0.0.1:$ETCD_PORT/health"
+  live_pid kube-apiserver >/dev/null || { log "starting kube-apiserver on https://$NODE_IP:$APISERVER_PORT"; start_apiserver; }
+  wait_for "kube-apiserver ready" kube-apiserver apiserver_ready
+  live_pid kube-controller-manager >/dev/null && live_pid kube-scheduler >/dev/null \
+    || { stop_all_named kube-controller-manager kube-scheduler; log "starting controller-manager and scheduler"; start_controllers; }
+  if ! live_pid containerd >/dev/null || ! live_pid kubelet >/dev/null || ! live_pid kube-proxy >/dev/null; then
+    stop_all_named kube-proxy kubelet containerd
+    log "starting containerd, kubelet and kube-proxy (node $NODE_NAME, $NODE_IP)"
+    start_node
+  fi
+  apply_storage
+  wait_for "node $NODE_NAME Ready" kubelet node_ready
+  wait_for "ServiceAccount token, kube-proxy sync, StorageClass" kube-proxy basics_ready
+  recycle_pvs
+  log "ready in $((SECONDS - t0))s: https://$NODE_IP:$APISERVER_PORT, KUBECONFIG=$STATE/kubeconfig"
+}
+
+# SIGTERM, then SIGKILL after 5 s (1 s for kube-apiserver, whose graceful shutdown waits ~10 s for
+# watches that nobody needs at this point; its state is in etcd).
+stop_all_named() {
+  local name wait_s
+  for name in "$@"; do
+    wait_s=5
+    [ "$name" = kube-apiserver ] && wait_s=1
+    stop_proc "$name" TERM "$wait_s" || stop_proc "$name" KILL 5 || die "could not stop $name"
+  done
+}
+
+# ---- down -----------------------------------------------------------------------------------
+# With the controllers stopped (nothing recreates Pods), force-deleting every Pod lets the kubelet
+# tear each down properly: CNI DEL (veth, IPAM, portmap rules), volume unmounts, log directories.
+drain_pods() {
+  live_pid kubelet >/dev/null && apiserver_ready || return 0
+  stop_all_named kube-controller-manager kube-scheduler
+  kc delete pods --all --all-namespaces --force --grace-period=0 --wait=false >/dev/null 2>&1 || true
+  local deadline=$((SECONDS + 40)) t0=$SECONDS
+  while [ $SECONDS -lt $deadline ]; do
+    [ -z "$(ls -A "$STATE/kubelet/pods" 2>/dev/null)" ] \
+      && [ -z "$(ctr --address "$SOCK" -n k8s.io tasks ls -q 2>/dev/null)" ] \
+      && { log "the kubelet tore every Pod down in $((SECONDS - t0))s"; return 0; }
+    sleep 0.5
+  done
+  log "the kubelet did not tear every Pod down in 40s; cleaning up by force"
+}
+
+# Whatever the kubelet left: container processes (every pid in a kubepods cgroup), the shims
+# of this containerd, then the cgroups themselves.
+kill_leftovers() {
+  local f pid
+  for f in /sys/fs/cgroup/*/kubepods /sys/fs/cgroup/kubepods; do
+    [ -d "$f" ] || continue
+    find "$f" -name cgroup.procs -exec cat {} + 2>/dev/null | xargs -r kill -9 2>/dev/null || true
+  done
+  for f in /proc/[0-9]*/cmdline; do
+    pid="${f#/proc/}"; pid="${pid%/cmdline}"
+    { tr '\0' '\n' <"$f"; } 2>/dev/null | grep -qxF -- "$SOCK" && kill -9 "$pid" 2>/dev/null || true
+  done
+  # A killed shim leaves its socket: /run/containerd/s/sha256("<containerd address>/<ns>/<id>").
+  for f in "$STATE"/containerd/state/io.containerd.runtime.v2.task/*/*; do
+    [ -d "$f" ] || continue
+    rm -f "/run/containerd/s/$(printf '%s' "$SOCK/${f#"$STATE"/containerd/state/io.containerd.runtime.v2.task/}" \
+      | sha256sum | cut -d' ' -f1)"
+  done
+  sleep 0.3
+  for f in /sys/fs/cgroup/*/kubepods /sys/fs/cgroup/kubepods; do
+    [ -d "$f" ] && find "$f" -depth -type d -exec rmdir {} + 2>/dev/null || true
+  done
+}
+
+# Unmounts everything mounted under the state directory, deepest first.
+unmount_all() {
+  local m i
+  for i in 1 2 3; do
+    mapfile -t mounts < <(awk -v d="$STATE/" 'index($5, d) == 1 { print $5 }' /proc/self/mountinfo \
+      | sort -r)
+    [ ${#mounts[@]} = 0 ] && return 0
+    for m in "${mounts[@]}"; do
+      m="$(printf '%b' "$m")" # mountinfo escapes spaces as \040
+      umount "$m" 2>/dev/null || umount -l "$m" 2>/dev/null || true
+    done
+  done
+  [ -z "$(awk -v d="$STATE/" 'index($5, d) == 1' /proc/self/mountinfo)" ] \
+    || die "mounts left under $STATE: $(awk -v d="$STATE/" 'index($5, d) == 1 { print $5 }' /proc/self/mountinfo)"
+}
+
+cmd_down() {
+  local purge=0
+  case "${1:-}" in
+    --purge) purge=1 ;;
+    "") ;;
+    *) die "unknown option for down: $1" ;;
+  esac
+  [ -d "$STATE" ] || return 0
+  take_lock
+  load_ports || true
+  local t0=$SECONDS
+  drain_pods
+  stop_all_named kube-proxy kubelet kube-scheduler kube-controller-manager
+  local t
+  if live_pid containerd >/dev/null; then
+    for t in $(ctr --address "$SOCK" -n k8s.io tasks ls -q 2>/dev/null); do
+      ctr --address "$SOCK" -n k8s.io tasks kill -s SIGKILL "$t" >/dev/null 2>&1 || true
+    done
+  fi
+  stop_all_named containerd
+  kill_leftovers
+  unbind_pod_logs
+  unmount_all
+  rm -rf "$STATE/kubelet/pods" "$STATE/containerd/state" "$STATE/cni/ipam"
+  ip link del "$BRIDGE" 2>/dev/null || true
+  clean_iptables
+  restore_sysctls
+  stop_all_named kube-apiserver etcd
+  for t in "${PROCS[@]}"; do rm -f "$STATE/$t.pid"; done
+  if [ $purge = 1 ]; then
+    rm -rf "$STATE"
+    log "stopped and removed $STATE in $((SECONDS - t0))s"
+  else
+    log "stopped in $((SECONDS - t0))s (certificates, etcd data and images kept in $STATE)"
+  fi
+}
+
+# ---- status, env ----------------------------------------------------------------------------
+cmd_status() {
+  if ! load_ports 2>/dev/null; then
+    echo "down (no state in $STATE)"
+    return 1
+  fi
+  local state=down name
+  healthy && state=up
+  echo "$state"
+  echo "state dir:  $STATE"
+  echo "apiserver:  https://$NODE_IP:$APISERVER_PORT"
+  echo "node:       $NODE_NAME, $NODE_IP (bridge $BRIDGE), Pods $POD_CIDR, Services $SERVICE_CIDR"
+  echo "containerd: $SOCK"
+  for name in "${PROCS[@]}"; do
+    printf '%-24s pid %s\n' "$name:" "$(live_pid "$name" || echo -)"
+  done
+  [ $state = up ]
+}
+
+cmd_env() {
+  printf 'export KUBECONFIG=%q\n' "$STATE/kubeconfig"
+  printf 'export PATH=%q:"$PATH"\n' "$BIN_DIR"
+  printf 'export LEKIWI_NODE_IP=%q\n' "$NODE_IP"
+  printf 'export CONTAINERD_ADDRESS=%q\n' "$SOCK"
+  printf 'export LEKIWI_CLUSTER_DIR=%q\n' "$STATE"
+}
+
+case "${1:-help}" in
+  up) cmd_up ;;
+  down) shift; cmd_down "$@" ;;
+  clean) cmd_down --purge ;;
+  status) cmd_status ;;
+  env) cmd_env ;;
+  help | -h | --help) usage ;;
+  *) usage >&2; exit 2 ;;
+esac
