@@ -144,6 +144,7 @@ build_base() {
   kpkg="$(kernel_pkg)"
   [ -n "$kpkg" ] || die "no linux-image-cloud-arm64:arm64 in apt's lists (run scripts/setup.sh)"
   kdir="$(mktemp -d)" bbdir="$(mktemp -d)"
+  find "$PI/debs" -name 'linux-image-*.deb' ! -name "${kpkg}_*" -delete 2>/dev/null || true # older kernels
   unpack_pkg "$kpkg" "$kdir"
   unpack_pkg busybox-static "$bbdir"
   cp "$(ls "$kdir"/boot/vmlinuz-* | head -1)" "$PI/vmlinuz"
@@ -166,8 +167,11 @@ build_base() {
   ln -sf busybox "$root/bin/sh" # the other applets: `busybox --install` in /init
   pack "$root" "$PI/base.cpio.gz"
   rm -rf "$root" "$kdir" "$bbdir"
-  sha256sum "${BASH_SOURCE[0]}" | cut -d' ' -f1 >"$PI/base.stamp"
+  base_stamp >"$PI/base.stamp"
 }
+
+# What the base is made from: this script (its /init, modules, libraries) and the kernel package.
+base_stamp() { echo "$(sha256sum "${BASH_SOURCE[0]}" | cut -d' ' -f1) $(kernel_pkg)"; }
 
 # The agent's test executables (lib and bins) from cargo's JSON messages.
 test_executables() {
@@ -196,7 +200,7 @@ cmd_build() {
   tests="$(cd "$REPO" && test_executables)"
   [ -n "$tests" ] || die "cargo reported no test executable for lekiwi-agent"
   # The base (kernel, busybox, glibc, /init) follows this script's version.
-  [ "$(cat "$PI/base.stamp" 2>/dev/null)" = "$(sha256sum "${BASH_SOURCE[0]}" | cut -d' ' -f1)" ] || build_base
+  [ "$(cat "$PI/base.stamp" 2>/dev/null)" = "$(base_stamp)" ] || build_base
   local agent="$TARGET_DIR/$TRIPLE/release/lekiwi-agent"
   stamp="$(stat -c %Y "$agent" "$REPO/README.md" | tr '\n' ' ')$(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
   if [ "$(cat "$PI/payload.stamp" 2>/dev/null)" != "$stamp" ]; then
