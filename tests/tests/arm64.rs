@@ -86,9 +86,8 @@ fn release(root: &Path, tag: &str, failing: bool) -> anyhow::Result<std::path::P
     std::fs::write(dir.join("lekiwi/config.yaml"), format!("release: {tag}\n"))?;
     std::fs::write(dir.join("policy.bin"), tag.repeat(200_000))?;
     if failing {
-        // Not empty: an empty file in a release fails the agent's download (release store:
-        // "blobs/sha256/e3b0c442...: No such file or directory"), a bug of its own.
-        std::fs::write(dir.join("fail-health"), "fail\n")?;
+        // Empty, as a flag file would be: the agent stores it without a download.
+        std::fs::write(dir.join("fail-health"), "")?;
     }
     Ok(dir)
 }

@@ -431,6 +431,26 @@ async fn first_deploy_downloads_everything_and_the_next_only_what_changed() {
 }
 
 #[tokio::test]
+async fn a_release_with_an_empty_file_deploys_it_without_a_download() {
+    let fx = Fixture::new().await;
+    let mut content = healthy(files(3, &[], "e"));
+    content.push(("config/empty.flag".into(), Vec::new(), 0o600));
+    let v1 = fx.server.publish("1.0.0", &content);
+    let mut r = fx.open();
+    let (out, _) = deploy(&mut r, "c1", &v1).await;
+    assert_eq!(out.phase, Phase::Done, "{}", out.message);
+    assert_eq!(fx.current_file("config/empty.flag"), "");
+    let empty = sha256_digest(b"");
+    assert!(
+        fx.server
+            .seen()
+            .iter()
+            .all(|s| !s.path.contains(&empty[7..])),
+        "the empty blob is not downloaded"
+    );
+}
+
+#[tokio::test]
 async fn a_corrupted_blob_fails_the_deploy_and_leaves_current_alone() {
     let fx = Fixture::new().await;
     let v1 = fx.server.publish("1", &healthy(files(5, &[], "v1")));

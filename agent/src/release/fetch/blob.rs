@@ -121,6 +121,12 @@ impl Client {
         counter: &AtomicU64,
     ) -> Result<Fetched> {
         let mut partial = Partial::load(layout, w).await?;
+        if w.size == 0 {
+            // An empty file: nothing to download, the (new) empty partial file is the blob.
+            let p = partial.path.clone();
+            blocking(move || std::fs::File::create(&p).map(drop).map_err(io(&p))).await?;
+            return self.promote(layout, w, partial).await;
+        }
         if partial.have == w.size {
             // Complete already (killed before the move): verify and promote.
             return self.promote(layout, w, partial).await;
