@@ -85,7 +85,9 @@ build_operator() {
   target="${LEKIWI_IMAGE_TARGET:-$CACHE/image-target}"
   log "cargo build --release --locked -p lekiwi-operator (target dir $target)"
   # The binary must not depend on where the checkout, the cargo home or the target dir are.
-  ( cd "$REPO" && CARGO_TARGET_DIR="$target" \
+  # SOURCE_DATE_EPOCH is fixed for cargo: ring's build script reruns when it changes (at every
+  # commit, with the commit time), rebuilding the whole TLS stack; nothing embeds a build date.
+  ( cd "$REPO" && CARGO_TARGET_DIR="$target" SOURCE_DATE_EPOCH=0 \
       RUSTFLAGS="${RUSTFLAGS:-} --remap-path-prefix=$REPO=/src --remap-path-prefix=${CARGO_HOME:-$HOME/.cargo}=/cargo --remap-path-prefix=$target=/target" \
       cargo build --release --locked -p lekiwi-operator --bin lekiwi-operator )
   bin="$target/release/lekiwi-operator"
