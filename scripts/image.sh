@@ -83,12 +83,18 @@ build_operator() {
   REF="ghcr.io/lekiwi-fleet/lekiwi-operator:$tag"
   OUT="${OUT:-$REPO/target/image/lekiwi-operator-$tag-$ARCH.oci.tar}"
   target="${LEKIWI_IMAGE_TARGET:-$CACHE/image-target}"
+  # The build runs in a copy of the checkout at a fixed path ($CACHE/image-src, files copied only
+  # when their content changed, so unchanged crates stay fresh): the checkout's own path would be
+  # in RUSTFLAGS (--remap-path-prefix) and a clone elsewhere (every CI run) would rebuild it all.
+  local src="$CACHE/image-src"
+  mkdir -p "$src"
+  rsync -rlc --delete --exclude=/.git --exclude=/target --filter=':- .gitignore' "$REPO/" "$src/"
   log "cargo build --release --locked -p lekiwi-operator (target dir $target)"
-  # The binary must not depend on where the checkout, the cargo home or the target dir are.
+  # The binary must not depend on where the sources, the cargo home or the target dir are.
   # SOURCE_DATE_EPOCH is fixed for cargo: ring's build script reruns when it changes (at every
   # commit, with the commit time), rebuilding the whole TLS stack; nothing embeds a build date.
-  ( cd "$REPO" && CARGO_TARGET_DIR="$target" SOURCE_DATE_EPOCH=0 \
-      RUSTFLAGS="${RUSTFLAGS:-} --remap-path-prefix=$REPO=/src --remap-path-prefix=${CARGO_HOME:-$HOME/.cargo}=/cargo --remap-path-prefix=$target=/target" \
+  ( cd "$src" && CARGO_TARGET_DIR="$target" SOURCE_DATE_EPOCH=0 \
+      RUSTFLAGS="${RUSTFLAGS:-} --remap-path-prefix=$src=/src --remap-path-prefix=${CARGO_HOME:-$HOME/.cargo}=/cargo --remap-path-prefix=$target=/target" \
       cargo build --release --locked -p lekiwi-operator --bin lekiwi-operator )
   bin="$target/release/lekiwi-operator"
   local args=() lib stage

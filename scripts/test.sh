@@ -16,6 +16,10 @@ log "code shape: no fn over 80 lines, no module over 400 without a written reaso
 python3 scripts/shape.py --check
 log "building binaries"
 cargo build --quiet --workspace --bins
+# The operator image (release build, cached in ~/.cache/lekiwi/image-target) before the tests, so
+# no test waits minutes for it while others run on its timers.
+log "building the operator image"
+bash scripts/image.sh >/dev/null
 # The tests' own control plane, apart from the quickstart's (whose operator watches everything).
 export LEKIWI_CP_DIR="${LEKIWI_CP_DIR:-$HOME/.cache/lekiwi/test-control-plane}"
 log "starting the shared control plane ($LEKIWI_CP_DIR)"
