@@ -27,8 +27,19 @@ bash scripts/control-plane.sh up
 eval "$(bash scripts/control-plane.sh env)"
 
 log "running tests"
+# Tests that keep the CPU busy for long (emulated Pis, a whole cluster with Pods, image builds)
+# run after the others, one at a time, so they never starve the timing of the rest.
+HEAVY='binary_id(/^lekiwi-tests::(arm64|cluster|node|image)$/)'
 if cargo nextest --version >/dev/null 2>&1; then
-  cargo nextest run --workspace --no-fail-fast "$@"
+  if [ $# -gt 0 ]; then
+    cargo nextest run --workspace --no-fail-fast "$@"
+  else
+    rc=0
+    cargo nextest run --workspace --no-fail-fast -E "not ($HEAVY)" || rc=$?
+    log "heavy tests, one at a time"
+    cargo nextest run --workspace --no-fail-fast --test-threads 1 -E "$HEAVY" || rc=$?
+    [ $rc = 0 ] || { log "tests failed"; exit $rc; }
+  fi
 else
   log "cargo-nextest not found; falling back to cargo test"
   cargo test --workspace --no-fail-fast "$@"
