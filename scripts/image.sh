@@ -85,20 +85,26 @@ build_operator() {
   target="${LEKIWI_IMAGE_TARGET:-$CACHE/image-target}"
   log "cargo build --release --locked -p lekiwi-operator (target dir $target)"
   # The binary must not depend on where the checkout, the cargo home or the target dir are.
-  ( cd "$REPO" && CARGO_TARGET_DIR="$target" \
+  # SOURCE_DATE_EPOCH is fixed for cargo: ring's build script reruns when it changes (at every
+  # commit, with the commit time), rebuilding the whole TLS stack; nothing embeds a build date.
+  ( cd "$REPO" && CARGO_TARGET_DIR="$target" SOURCE_DATE_EPOCH=0 \
       RUSTFLAGS="${RUSTFLAGS:-} --remap-path-prefix=$REPO=/src --remap-path-prefix=${CARGO_HOME:-$HOME/.cargo}=/cargo --remap-path-prefix=$target=/target" \
       cargo build --release --locked -p lekiwi-operator --bin lekiwi-operator )
   bin="$target/release/lekiwi-operator"
-  local stage args=() lib
+  local args=() lib stage
   stage="$(mktemp -d)"
-  trap 'rm -rf "$stage"' EXIT
+  STAGE="$stage"
+  trap 'rm -rf "$STAGE"' EXIT
   printf 'root:x:0:0:root:/root:/sbin/nologin\nnonroot:x:65532:65532:nonroot:/home/nonroot:/sbin/nologin\n' >"$stage/passwd"
   printf 'root:x:0:\nnonroot:x:65532:\n' >"$stage/group"
+  # /etc/hosts (which Kubernetes writes) before DNS, as glibc does not without this file.
+  printf 'hosts: files dns\n' >"$stage/nsswitch.conf"
   for lib in $(libraries "$bin"); do args+=(--file "$lib:$lib"); done
   pack --out "$OUT" --ref "$REF" \
     --file "$bin:/usr/bin/lekiwi-operator:0755" "${args[@]}" \
     --file /etc/ssl/certs/ca-certificates.crt:/etc/ssl/certs/ca-certificates.crt:0644 \
     --file "$stage/passwd:/etc/passwd:0644" --file "$stage/group:/etc/group:0644" \
+    --file "$stage/nsswitch.conf:/etc/nsswitch.conf:0644" \
     --dir /tmp:1777 --dir /var/lib/lekiwi:0755 --dir /home/nonroot:0755 \
     --entrypoint '["/usr/bin/lekiwi-operator"]' --user 65532:65532 --workdir /home/nonroot \
     --env SSL_CERT_FILE=/etc/ssl/certs/ca-certificates.crt \
