@@ -621,7 +621,7 @@ async fn rwx_claim(client: &Client, ns: &str, dir: &Path) -> anyhow::Result<()> 
     Ok(())
 }
 
-/// The leader Lease's holder (`<pod name>-<pid>`).
+/// The leader Lease's holder.
 async fn leader(site: &Install) -> Option<String> {
     let api = Api::<Lease>::namespaced(site.client.clone(), &site.ns);
     api.get("lekiwi-operator").await.ok()?.spec?.holder_identity
@@ -661,23 +661,30 @@ async fn two_replicas_hand_leadership_over_mid_rollout() -> anyhow::Result<()> {
     let site = Install::install(cluster, client, ns, &sets).await?;
     site.ready_pods(2, Duration::from_secs(120)).await?;
     enrollment_token_file(&site.client, &site.ns, &site.dir.path().join("enroll")).await?;
-    let _fleet = site.fleet(ROBOTS, &["--restart-command", "sleep 2"])?;
+    let _fleet = site.fleet(ROBOTS, &["--restart-command", "sleep 5"])?;
     site.wait_online(ROBOTS).await?;
     let v1 = site.push(&release_dir(site.dir.path(), "1")?, "1.0.0")?;
     site.start_roll("ha", &v1).await?;
     let api = Api::<RobotDeployment>::namespaced(site.client.clone(), &site.ns);
     wait_for("batch 1 started", Duration::from_secs(60), || async {
-        (api.get("ha").await.ok()?.status?.current_batch? >= 1).then_some(())
+        let st = api.get("ha").await.ok()?.status?;
+        let progressing = st.phase == Some(RolloutPhase::Progressing);
+        (progressing && st.current_batch? >= 1).then_some(())
     })
     .await?;
     let old = leader(&site).await.context("a leader")?;
-    let pod = old.rsplit_once('-').context("identity")?.0.to_owned();
+    // The chart's replicas hold the Lease as their Pod's name.
+    let pod = old.clone();
     let t = Instant::now();
-    site.kubectl(&["delete", "pod", &pod, "--wait=false"]);
+    eprintln!("{}", site.kubectl(&["delete", "pod", &pod, "--wait=false"]));
     let new = wait_for("a new leader", Duration::from_secs(30), || async {
         leader(&site).await.filter(|h| !h.starts_with(&pod))
     })
-    .await?;
+    .await
+    .map_err(|e| {
+        let lease = site.kubectl(&["get", "lease", "-o", "yaml"]);
+        anyhow::anyhow!("{e} (was {old})\n{lease}\n{}", site.diagnose())
+    })?;
     let handover = t.elapsed();
     eprintln!("leader {old} deleted; {new} leads after {handover:?}");
     assert!(
