@@ -69,6 +69,75 @@ impl Cluster {
         checked(out, &format!("kubectl {args:?}"))
     }
 
+    /// Runs helm from the cache against this cluster, in the repository root (so
+    /// `charts/lekiwi-operator` names the chart); fails with its output unless it succeeds.
+    pub fn helm(&self, args: &[&str]) -> Result<String> {
+        let out = Command::new(tool("helm"))
+            .args(args)
+            .env("KUBECONFIG", &self.kubeconfig)
+            .current_dir(repo_root())
+            .stdin(Stdio::null())
+            .output()?;
+        checked(out, &format!("helm {args:?}"))
+    }
+
+    /// The operator image built by `scripts/image.sh` (release build, cached) and imported into
+    /// the node's containerd, once per test process, also tagged as `<reference>-next` for
+    /// upgrades. Returns the reference, `ghcr.io/lekiwi-fleet/lekiwi-operator:<appVersion>`.
+    pub fn operator_image(&self) -> &'static str {
+        static IMAGE: OnceLock<String> = OnceLock::new();
+        IMAGE.get_or_init(|| {
+            let started = std::time::Instant::now();
+            let out = Command::new("bash")
+                .arg(repo_root().join("scripts/image.sh"))
+                .args(["operator", "--load", "ctr", "--address"])
+                .arg(&self.containerd)
+                .stdin(Stdio::null())
+                .output()
+                .expect("run scripts/image.sh");
+            checked(out, "scripts/image.sh operator --load ctr").expect("build the operator image");
+            eprintln!(
+                "operator image built and imported in {:?}",
+                started.elapsed()
+            );
+            let version =
+                std::fs::read_to_string(repo_root().join("charts/lekiwi-operator/Chart.yaml"))
+                    .expect("Chart.yaml")
+                    .lines()
+                    .find_map(|l| l.strip_prefix("appVersion:"))
+                    .map(|v| v.trim().trim_matches('"').to_owned())
+                    .expect("appVersion in Chart.yaml");
+            let reference = format!("ghcr.io/lekiwi-fleet/lekiwi-operator:{version}");
+            let out = Command::new("ctr")
+                .arg("--address")
+                .arg(&self.containerd)
+                .args(["-n", "k8s.io", "images", "tag", "--force", &reference])
+                .arg(format!("{reference}-next"))
+                .output()
+                .expect("run ctr images tag");
+            checked(out, "ctr images tag").expect("tag the operator image");
+            reference
+        })
+    }
+
+    /// The PID, on the host, of the main process of the container with this `containerd://ID`
+    /// (from a Pod's status), as containerd's task list shows it.
+    pub fn container_pid(&self, container_id: &str) -> Result<u32> {
+        let id = container_id.trim_start_matches("containerd://");
+        let out = Command::new("ctr")
+            .arg("--address")
+            .arg(&self.containerd)
+            .args(["-n", "k8s.io", "tasks", "ls"])
+            .output()?;
+        let list = checked(out, "ctr tasks ls")?;
+        list.lines()
+            .find_map(|l| {
+                let mut f = l.split_whitespace();
+                (f.next() == Some(id)).then(|| f.next()?.parse().ok())?
+            })
+            .with_context(|| format!("no task {id} in:\n{list}"))
+    }
+
     /// Imports an OCI archive into the node's containerd (namespace `k8s.io`, where the kubelet
     /// looks), so Pods can use it with `imagePullPolicy: Never`.
     pub fn import_image(&self, archive: &Path) -> Result<()> {
@@ -139,4 +208,22 @@ pub async fn http_get_at(addr: SocketAddr, path: &str) -> Result<(u16, String)> 
         .and_then(|c| c.parse().ok())
         .unwrap_or(0);
     Ok((code, body.to_owned()))
+}
+
+/// Forwards TCP connections to a new port on `listen_ip` (e.g. the node IP, which Pods reach)
+/// to `to` (e.g. a server on the host's loopback), for as long as the caller's Tokio runtime
+/// runs. Returns the listening address.
+pub async fn forward(listen_ip: &str, to: SocketAddr) -> Result<SocketAddr> {
+    let listener = tokio::net::TcpListener::bind((listen_ip, 0)).await?;
+    let addr = listener.local_addr()?;
+    tokio::spawn(async move {
+        while let Ok((mut inbound, _)) = listener.accept().await {
+            tokio::spawn(async move {
+                if let Ok(mut outbound) = tokio::net::TcpStream::connect(to).await {
+                    let _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound).await;
+                }
+            });
+        }
+    });
+    Ok(addr)
 }
