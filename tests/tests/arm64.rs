@@ -8,7 +8,7 @@ use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::api::{Patch, PatchParams, PostParams};
 use kube::{Api, Client};
@@ -413,9 +413,9 @@ fi
 fig() {
   local pid t
   pid="$(systemctl show -p MainPID --value "$1")"
-  [ "${pid:-0}" != 0 ] || { echo "- -"; return; }
+  [ "${pid:-0}" != 0 ] || { echo "- - -"; return; }
   t="$(cut -d' ' -f14,15 "/proc/$pid/stat" | tr ' ' +)"
-  echo "$((t)) $(awk '/^VmRSS/ {print $2}' "/proc/$pid/status")"
+  echo "$((t)) $(awk '/^VmRSS/ {print $2}' "/proc/$pid/status") $(cut -d' ' -f22 "/proc/$pid/stat")"
 }
 port="$(cat "$P/reboot-port")"
 while sleep 5; do
@@ -428,17 +428,30 @@ while sleep 5; do
 done
 "#;
 
-/// `LEKIWI-FIG` lines of the console: (uptime s, agent ticks, agent kB, exporter ticks,
-/// exporter kB), where both services run.
-fn figures(console: &str) -> Vec<(f64, u64, u64, u64, u64)> {
-    console
-        .lines()
-        .filter_map(|l| {
-            let v: Vec<&str> = l.strip_prefix("LEKIWI-FIG ")?.split(' ').collect();
-            let n = |i: usize| v.get(i)?.parse::<u64>().ok();
-            Some((v.first()?.parse().ok()?, n(1)?, n(2)?, n(3)?, n(4)?))
-        })
-        .collect()
+/// One service's figures on a `LEKIWI-FIG` line: CPU seconds per hour over its life so far
+/// (utime + stime over the time since it started) and VmRSS in kB.
+#[derive(Debug, Clone, Copy)]
+struct Usage {
+    cpu_s_per_hour: f64,
+    rss_kb: u64,
+}
+
+/// The last `LEKIWI-FIG` line where both the agent and prometheus-node-exporter run (the line:
+/// uptime, then ticks, kB and start tick of each; 100 ticks a second).
+fn figures(console: &str) -> Option<(Usage, Usage)> {
+    console.lines().rev().find_map(|l| {
+        let v: Vec<&str> = l.strip_prefix("LEKIWI-FIG ")?.split(' ').collect();
+        let up: f64 = v.first()?.parse().ok()?;
+        let n = |i: usize| v.get(i)?.parse::<u64>().ok();
+        let usage = |i: usize| {
+            let life = up - n(i + 2)? as f64 / 100.0;
+            Some(Usage {
+                cpu_s_per_hour: n(i)? as f64 / 100.0 / life * 3600.0,
+                rss_kb: n(i + 1)?,
+            })
+        };
+        Some((usage(1)?, usage(4)?))
+    })
 }
 
 /// The guest's configuration of the agent (JSON is YAML).
@@ -574,18 +587,21 @@ async fn the_arm64_deb_installs_on_a_systemd_pi5_rolls_out_and_survives_a_reboot
 
     // Figures: the agent next to prometheus-node-exporter in the same guest.
     tokio::time::sleep(Duration::from_secs(10)).await;
-    let figs = figures(&guest.console());
-    if let (Some(a), Some(b)) = (figs.first(), figs.last()) {
-        let span = b.0 - a.0;
-        let per_hour = |t0: u64, t1: u64| (t1 - t0) as f64 / 100.0 / span * 3600.0;
-        eprintln!(
-            "over {span:.0} s: agent {:.0} CPU-s/h, VmRSS {} kB; prometheus-node-exporter {:.0} CPU-s/h, VmRSS {} kB",
-            per_hour(a.1, b.1),
-            b.2,
-            per_hour(a.3, b.3),
-            b.4
-        );
-    }
+    let (agent, exporter) = figures(&guest.console()).context("no LEKIWI-FIG line")?;
+    eprintln!(
+        "agent {:.0} CPU-s/h, VmRSS {} kB; prometheus-node-exporter {:.0} CPU-s/h, VmRSS {} kB \
+         (ratio CPU {:.2}, RSS {:.2})",
+        agent.cpu_s_per_hour,
+        agent.rss_kb,
+        exporter.cpu_s_per_hour,
+        exporter.rss_kb,
+        agent.cpu_s_per_hour / exporter.cpu_s_per_hour.max(f64::MIN_POSITIVE),
+        agent.rss_kb as f64 / exporter.rss_kb.max(1) as f64
+    );
+    assert!(
+        agent.rss_kb > 0 && agent.rss_kb < 32 * 1024,
+        "{agent:?} (MemoryMax=32M)"
+    );
 
     // Reboot: the enrollment token is gone (so the robot must use its own token), systemd starts
     // the agent again and the same Robot is Online again.
