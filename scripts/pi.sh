@@ -23,6 +23,16 @@
 #!     --memory MB         guest memory (default 512)
 #!     --foreground        one guest, not daemonised: this process becomes QEMU and ends when
 #!                         the guest powers off (for tests)
+#!     --rootfs            boot the Debian root filesystem (see `rootfs`) with systemd as PID 1,
+#!                         on a copy-on-write overlay of the cached image; --payload DIR is then a
+#!                         second disk mounted at /payload whose run.sh lekiwi-payload.service
+#!                         runs at every boot (output on the console); no AGENT-ARGS. The guest's
+#!                         `systemctl reboot` reboots it in the same QEMU process
+#!   rootfs                build, once, a Debian bookworm arm64 root filesystem with systemd, dpkg,
+#!                         iproute2, ca-certificates and prometheus-node-exporter into
+#!                         $LEKIWI_CACHE/pi/rootfs.qcow2: `debootstrap --foreign` here, the second
+#!                         stage inside the emulated Pi; rebuilt only when its recipe (this
+#!                         script's rootfs functions) changes. Needs `build` first
 #!   stop [NAME...]        kill the named guests (default: all) and delete their directories
 #!   status                list running guests
 #!   help                  this text
@@ -242,8 +252,31 @@ prepare_guest() {
     -append "console=ttyAMA0 rdinit=/init panic=-1 quiet lekiwi.run=$run lekiwi.name=$name lekiwi.time=$(date +%s)"
 }
 
+# Like prepare_guest, for the Debian root filesystem (`boot --rootfs`): a copy-on-write overlay of
+# the cached image, and DIR of --payload as a second disk (/dev/vdb, mounted at /payload).
+prepare_rootfs_guest() {
+  local name="$1" payload="$2" port="$3" mem="$4" dir="$RUN/$1"
+  [ -e "$ROOTFS" ] && [ -e "$PI/rootinit.cpio.gz" ] || die "no root filesystem yet: run scripts/pi.sh rootfs"
+  rm -rf "$dir" && mkdir -p "$dir"
+  qemu-img create -q -f qcow2 -F qcow2 -b "$ROOTFS" "$dir/disk.qcow2"
+  cat "$PI/base.cpio.gz" "$PI/rootinit.cpio.gz" >"$dir/initrd"
+  local extra=()
+  if [ -n "$payload" ]; then
+    mkfs.ext4 -q -F -L payload -d "$payload" "$dir/payload.img" "$(( $(du -sm "$payload" | cut -f1) + 16 ))M" >/dev/null
+    extra=(-drive "file=$dir/payload.img,format=raw,if=none,id=d1,readonly=on" -device virtio-blk-device,drive=d1)
+  fi
+  local fwd=""
+  [ -z "$port" ] || fwd=",hostfwd=tcp:127.0.0.1:$port-:9477"
+  # No -no-reboot: the guest's `systemctl reboot` restarts it in the same QEMU process.
+  printf '%s\n' -M virt -cpu cortex-a76 -smp 2 -m "$mem" -display none -monitor none \
+    -serial "file:$dir/console.log" -netdev "user,id=n0$fwd" -device virtio-net-device,netdev=n0 \
+    "${extra[@]}" -drive "file=$dir/disk.qcow2,format=qcow2,if=none,id=d0" -device virtio-blk-device,drive=d0 \
+    -kernel "$PI/vmlinuz" -initrd "$dir/initrd" \
+    -append "console=ttyAMA0 rdinit=/rootinit panic=-1 quiet lekiwi.name=$name lekiwi.time=$(date +%s)"
+}
+
 cmd_boot() {
-  local name=pi count=1 run=agent payload="" port="" mem=512 fg=0
+  local name=pi count=1 run=agent payload="" port="" mem=512 fg=0 rootfs=0
   while [ $# -gt 0 ]; do
     case "$1" in
       --name) name="$2"; shift 2 ;;
@@ -253,11 +286,24 @@ cmd_boot() {
       --status-port) port="$2"; shift 2 ;;
       --memory) mem="$2"; shift 2 ;;
       --foreground) fg=1; shift ;;
+      --rootfs) rootfs=1; shift ;;
       --) shift; break ;;
       *) die "boot: unknown option $1 (see --help)" ;;
     esac
   done
   mkdir -p "$RUN"
+  if [ "$rootfs" = 1 ]; then
+    [ "$count" = 1 ] && [ $# = 0 ] || die "--rootfs boots one guest and takes no agent arguments"
+    mapfile -t qargs < <(prepare_rootfs_guest "$name" "$payload" "$port" "$mem")
+    [ "${#qargs[@]}" -gt 0 ] || die "preparing $name failed"
+    if [ "$fg" = 1 ]; then
+      echo $$ >"$RUN/$name/qemu.pid"
+      exec qemu-system-aarch64 "${qargs[@]}"
+    fi
+    qemu-system-aarch64 "${qargs[@]}" -daemonize -pidfile "$RUN/$name/qemu.pid"
+    log "booted $name (Debian, systemd): console $RUN/$name/console.log"
+    return
+  fi
   if [ "$fg" = 1 ]; then
     [ "$count" = 1 ] || die "--foreground boots one guest"
     mapfile -t qargs < <(prepare_guest "$name" "$run" "$payload" "$port" "$mem" "$@")
@@ -272,6 +318,145 @@ cmd_boot() {
     qemu-system-aarch64 "${qargs[@]}" -daemonize -pidfile "$RUN/$n/qemu.pid"
     log "booted $n: console $RUN/$n/console.log${p:+, status http://127.0.0.1:$p/status}"
   done
+}
+
+# ---- A Debian bookworm arm64 root filesystem with systemd (for the .deb; see scripts/deb.sh) ----
+ROOTFS="$PI/rootfs.qcow2"
+ROOTFS_PKGS=systemd,systemd-sysv,dpkg,iproute2,ca-certificates,prometheus-node-exporter
+
+# The Debian mirror of the machine's apt sources (as scripts/setup.sh finds it).
+debian_mirror() {
+  local m
+  m="$(cat /etc/apt/sources.list.d/*.sources /etc/apt/sources.list 2>/dev/null \
+    | sed -nE 's,^(URIs:|deb)[[:space:]]+(\[[^]]*\][[:space:]]+)?(https?://[^ ]+/debian)/?([[:space:]].*)?$,\3,p' | head -1 || true)"
+  echo "${m:-http://deb.debian.org/debian}"
+}
+
+# The initramfs's second /init for the disk: loads the modules (from the base initramfs), sets the
+# clock, then either finishes debootstrap (lekiwi.root=stage2) or hands over to systemd.
+write_rootinit() {
+  cat >"$1" <<'INIT'
+#!/bin/busybox sh
+/bin/busybox --install -s /bin
+export PATH=/bin:/sbin
+mount -t proc proc /proc
+mount -t sysfs sys /sys
+mount -t devtmpfs dev /dev
+for m in $(cat /lib/modules/order); do insmod "/lib/modules/$m.ko"; done
+arg() { for w in $(cat /proc/cmdline); do case "$w" in "lekiwi.$1="*) echo "${w#*=}" ;; esac; done; }
+t="$(arg time)"
+[ -n "$t" ] && date -s "@$((t + $(cut -d. -f1 /proc/uptime)))" >/dev/null
+mkdir -p /newroot
+mount -t ext4 /dev/vda /newroot || { echo "LEKIWI-EXIT run=root status=99"; poweroff -f; }
+if [ "$(arg root)" = stage2 ]; then
+  mount --bind /proc /newroot/proc
+  mount --bind /sys /newroot/sys
+  mount --bind /dev /newroot/dev
+  rc=0
+  chroot /newroot /debootstrap/debootstrap --second-stage || rc=$?
+  [ $rc = 0 ] || tail -n 30 /newroot/debootstrap/debootstrap.log
+  chroot /newroot apt-get clean 2>/dev/null || true
+  umount /newroot/dev /newroot/sys /newroot/proc
+  sync
+  umount /newroot
+  echo "LEKIWI-EXIT run=stage2 status=$rc"
+  poweroff -f
+fi
+umount /proc /sys /dev
+exec switch_root /newroot /sbin/init
+INIT
+  chmod 0755 "$1"
+}
+
+# Files the guest's root gets on top of Debian's: the network (QEMU's user network, static), the
+# host name, and lekiwi-payload.service: at each boot it mounts the second disk (/dev/vdb, if
+# any) and runs its run.sh with the output on the console: how tests install and drive the guest.
+rootfs_overlay() {
+  local r="$1"
+  echo pi >"$r/etc/hostname"
+  printf '127.0.0.1 localhost\n127.0.1.1 pi\n' >"$r/etc/hosts"
+  : >"$r/etc/fstab"
+  cat >"$r/etc/systemd/system/lekiwi-net.service" <<'UNIT'
+[Unit]
+Description=QEMU user network (10.0.2.15/24 via 10.0.2.2)
+DefaultDependencies=no
+Before=network-online.target network.target
+Wants=network.target
+[Service]
+Type=oneshot
+RemainAfterExit=yes
+ExecStart=/sbin/ip link set lo up
+ExecStart=/sbin/ip link set eth0 up
+ExecStart=/sbin/ip addr add 10.0.2.15/24 dev eth0
+ExecStart=/sbin/ip route add default via 10.0.2.2
+[Install]
+WantedBy=network-online.target
+UNIT
+  cat >"$r/etc/systemd/system/lekiwi-payload.service" <<'UNIT'
+[Unit]
+Description=Run run.sh from the payload disk (/dev/vdb)
+After=lekiwi-net.service local-fs.target
+Wants=lekiwi-net.service
+ConditionPathExists=/dev/vdb
+[Service]
+Type=simple
+ExecStart=/bin/sh -c 'mkdir -p /payload && mount -o ro /dev/vdb /payload && exec /bin/sh /payload/run.sh'
+StandardOutput=tty
+StandardError=tty
+TTYPath=/dev/ttyAMA0
+[Install]
+WantedBy=multi-user.target
+UNIT
+  mkdir -p "$r/etc/systemd/system/multi-user.target.wants" "$r/etc/systemd/system/network-online.target.wants"
+  ln -sf ../lekiwi-payload.service "$r/etc/systemd/system/multi-user.target.wants/"
+  ln -sf ../lekiwi-net.service "$r/etc/systemd/system/network-online.target.wants/"
+  ln -sf ../lekiwi-net.service "$r/etc/systemd/system/multi-user.target.wants/"
+}
+
+# What the root filesystem is made from: the functions above and the package list.
+rootfs_stamp() { { declare -f write_rootinit rootfs_overlay build_rootfs; echo "$ROOTFS_PKGS"; } | sha256sum | cut -d' ' -f1; }
+
+build_rootfs() {
+  local stage img t0 rc
+  t0=$(date +%s)
+  stage="$PI/rootfs.stage" img="$PI/rootfs.raw"
+  rm -rf "$stage" "$img" && mkdir -p "$stage"
+  log "debootstrap --foreign bookworm arm64 ($ROOTFS_PKGS) from $(debian_mirror)"
+  debootstrap --foreign --arch arm64 --variant=minbase --include="$ROOTFS_PKGS" \
+    bookworm "$stage" "$(debian_mirror)" >"$PI/debootstrap.log" 2>&1 \
+    || { tail -20 "$PI/debootstrap.log" >&2; die "debootstrap --foreign failed (log: $PI/debootstrap.log)"; }
+  rootfs_overlay "$stage"
+  log "first stage in $(( $(date +%s) - t0 ))s; making the disk"
+  mkfs.ext4 -q -F -L root -d "$stage" "$img" 2G
+  rm -rf "$stage"
+  local ri
+  ri="$(mktemp -d)"
+  write_rootinit "$ri/rootinit"
+  pack "$ri" "$PI/rootinit.cpio.gz"
+  rm -rf "$ri"
+  log "second stage inside the emulated Pi (console: $PI/stage2.log)"
+  cat "$PI/base.cpio.gz" "$PI/rootinit.cpio.gz" >"$PI/rootfs.initrd"
+  timeout 1800 qemu-system-aarch64 -M virt -cpu cortex-a76 -smp 2 -m 1024 -display none -monitor none \
+    -no-reboot -nic none -serial "file:$PI/stage2.log" -drive "file=$img,format=raw,if=none,id=d0" \
+    -device virtio-blk-device,drive=d0 -kernel "$PI/vmlinuz" -initrd "$PI/rootfs.initrd" \
+    -append "console=ttyAMA0 rdinit=/rootinit panic=-1 quiet lekiwi.root=stage2 lekiwi.time=$(date +%s)" || true
+  rc="$(sed -nE 's/.*LEKIWI-EXIT run=stage2 status=([0-9]+).*/\1/p' "$PI/stage2.log")"
+  [ "$rc" = 0 ] || { tail -30 "$PI/stage2.log" >&2; rm -f "$img"; die "debootstrap --second-stage failed (status ${rc:-none})"; }
+  qemu-img convert -c -O qcow2 "$img" "$ROOTFS"
+  rm -f "$img"
+  rootfs_stamp >"$PI/rootfs.stamp"
+  log "root filesystem $ROOTFS ($(du -h "$ROOTFS" | cut -f1)) in $(( $(date +%s) - t0 ))s"
+}
+
+cmd_rootfs() {
+  mkdir -p "$PI"
+  exec 8>"$PI/.rootfs.lock"
+  flock 8
+  [ -e "$PI/base.cpio.gz" ] || die "run scripts/pi.sh build first"
+  command -v debootstrap >/dev/null || die "debootstrap is missing: run scripts/setup.sh"
+  [ -e "$ROOTFS" ] && [ "$(cat "$PI/rootfs.stamp" 2>/dev/null)" = "$(rootfs_stamp)" ] && return 0
+  build_rootfs
+  rm -f "$PI/rootfs.initrd" # the second stage's; guests get their own
 }
 
 cmd_stop() {
@@ -306,6 +491,7 @@ case "${1:-help}" in
   build) shift; cmd_build "$@" ;;
   boot) shift; cmd_boot "$@" ;;
   stop) shift; cmd_stop "$@" ;;
+  rootfs) shift; cmd_rootfs "$@" ;;
   status) cmd_status ;;
   help | -h | --help) usage ;;
   *) usage >&2; exit 2 ;;

@@ -33,21 +33,57 @@ fn pi_sh(args: &[&str]) -> Command {
 /// Runs `scripts/pi.sh build` once per test process: the arm64 agent, its unit-test binary, the
 /// kernel and the initramfs (cached; `scripts/setup.sh` ran it cold already).
 pub fn build() -> Result<()> {
-    static BUILT: OnceLock<Result<(), String>> = OnceLock::new();
-    BUILT
-        .get_or_init(|| {
-            let out = pi_sh(&["build"]).output().map_err(|e| e.to_string())?;
-            if out.status.success() {
-                Ok(())
-            } else {
-                Err(format!(
-                    "scripts/pi.sh build failed:\n{}",
-                    String::from_utf8_lossy(&out.stderr)
-                ))
-            }
-        })
-        .clone()
-        .map_err(anyhow::Error::msg)
+    static BUILT: OnceLock<Result<String, String>> = OnceLock::new();
+    once(&BUILT, "pi.sh", &["build"]).map(drop)
+}
+
+/// Runs `scripts/pi.sh` (or another script of `scripts/`) once per test process and returns its
+/// stdout; the error carries its stderr.
+fn once(
+    cell: &'static OnceLock<Result<String, String>>,
+    script: &str,
+    args: &[&str],
+) -> Result<String> {
+    cell.get_or_init(|| {
+        let mut cmd = pi_sh(args);
+        if script != "pi.sh" {
+            cmd = Command::new("bash");
+            cmd.arg(repo_root().join("scripts").join(script)).args(args);
+        }
+        let out = cmd.output().map_err(|e| e.to_string())?;
+        if out.status.success() {
+            Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
+        } else {
+            Err(format!(
+                "scripts/{script} {} failed:\n{}",
+                args.join(" "),
+                String::from_utf8_lossy(&out.stderr)
+            ))
+        }
+    })
+    .clone()
+    .map_err(anyhow::Error::msg)
+}
+
+/// The arm64 `.deb` (`scripts/deb.sh --arch arm64`), built once per test process under
+/// `target/test-logs/deb/`.
+pub fn deb() -> Result<PathBuf> {
+    static DEB: OnceLock<Result<String, String>> = OnceLock::new();
+    let out = log_dir().join("deb");
+    let path = once(
+        &DEB,
+        "deb.sh",
+        &["--arch", "arm64", "--out", out.to_str().context("log dir")?],
+    )?;
+    Ok(PathBuf::from(path.lines().last().unwrap_or_default()))
+}
+
+/// The Debian bookworm arm64 root filesystem (`scripts/pi.sh rootfs`: cached; the first build
+/// runs debootstrap's second stage in the emulated Pi).
+pub fn rootfs() -> Result<()> {
+    static ROOTFS: OnceLock<Result<String, String>> = OnceLock::new();
+    build()?;
+    once(&ROOTFS, "pi.sh", &["rootfs"]).map(drop)
 }
 
 /// What the guest's `/init` runs (`lekiwi.run=` on the kernel command line).
@@ -89,6 +125,36 @@ impl PiGuest {
         args.push("--");
         args.extend(agent_args);
         let child = pi_sh(&args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .spawn()?;
+        Ok(Self {
+            child,
+            dir: log_dir().join("pi").join(name),
+            status_port,
+            booted: Instant::now(),
+        })
+    }
+
+    /// Boots guest `name` from the Debian root filesystem with systemd as PID 1 (`pi.sh boot
+    /// --rootfs`): `payload` is its second disk, whose `run.sh` runs at every boot. The guest's
+    /// `systemctl reboot` reboots it in the same QEMU process.
+    pub fn boot_rootfs(name: &str, payload: &Path) -> Result<Self> {
+        rootfs()?;
+        let status_port = crate::free_port();
+        let port = status_port.to_string();
+        let payload = payload.to_str().context("payload path")?;
+        let args = [
+            "boot",
+            "--rootfs",
+            "--foreground",
+            "--name",
+            name,
+            "--memory",
+            "768",
+        ];
+        let child = pi_sh(&args)
+            .args(["--status-port", &port, "--payload", payload])
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .spawn()?;
@@ -163,6 +229,8 @@ impl Drop for PiGuest {
         // The initrd and the disk are tens of MB; the console log stays for debugging.
         let _ = std::fs::remove_file(self.dir.join("initrd"));
         let _ = std::fs::remove_file(self.dir.join("disk.img"));
+        let _ = std::fs::remove_file(self.dir.join("disk.qcow2"));
+        let _ = std::fs::remove_file(self.dir.join("payload.img"));
     }
 }
 

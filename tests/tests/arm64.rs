@@ -8,7 +8,7 @@ use std::path::Path;
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::api::{Patch, PatchParams, PostParams};
 use kube::{Api, Client};
@@ -292,6 +292,346 @@ async fn arm64_agent_on_an_emulated_pi5_rolls_out_and_back() -> anyhow::Result<(
     eprintln!(
         "agent VmRSS in the guest (kB, every 10 s): {:?}",
         guest.rss_kb()
+    );
+    let _ = op.terminate();
+    Ok(())
+}
+
+/// Runs `dpkg-deb ARGS deb` and returns its stdout.
+fn dpkg_deb(args: &[&str], deb: &Path) -> anyhow::Result<String> {
+    let out = Command::new("dpkg-deb").args(args).arg(deb).output()?;
+    if !out.status.success() {
+        bail!(
+            "dpkg-deb {args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+#[test]
+fn the_arm64_deb_holds_the_agent_the_hardened_unit_and_its_config() -> anyhow::Result<()> {
+    let deb = pi::deb()?;
+    assert!(
+        deb.ends_with(format!(
+            "lekiwi-agent_{}_arm64.deb",
+            env!("CARGO_PKG_VERSION")
+        )),
+        "{deb:?}"
+    );
+    let info = dpkg_deb(&["--info"], &deb)?;
+    for field in [
+        "Package: lekiwi-agent",
+        "Architecture: arm64",
+        "Depends: libc6",
+    ] {
+        assert!(info.contains(field), "no {field:?} in\n{info}");
+    }
+    for script in ["conffiles", "postinst", "prerm", "postrm"] {
+        assert!(info.contains(script), "no {script} in\n{info}");
+    }
+    let contents = dpkg_deb(&["--contents"], &deb)?;
+    let entry = |path: &str| {
+        contents
+            .lines()
+            .find(|l| l.ends_with(path))
+            .unwrap_or_default()
+            .to_owned()
+    };
+    assert!(
+        entry("./").starts_with("drwxr-xr-x root/root"),
+        "{contents}"
+    );
+    assert!(
+        entry("./usr/bin/lekiwi-agent").starts_with("-rwxr-xr-x root/root"),
+        "{contents}"
+    );
+    for path in [
+        "./lib/systemd/system/lekiwi-agent.service",
+        "./etc/lekiwi/agent.yaml",
+        "./usr/share/doc/lekiwi-agent/copyright",
+    ] {
+        assert!(
+            entry(path).starts_with("-rw-r--r-- root/root"),
+            "{path}: {contents}"
+        );
+    }
+    // The files themselves: an aarch64 ELF, the repository's unit, the conffile.
+    let root = tempfile::tempdir()?;
+    let out = Command::new("dpkg-deb")
+        .arg("-x")
+        .arg(&deb)
+        .arg(root.path())
+        .output()?;
+    assert!(out.status.success(), "{out:?}");
+    let elf = std::fs::read(root.path().join("usr/bin/lekiwi-agent"))?;
+    assert_eq!(&elf[..4], b"\x7fELF");
+    assert_eq!(
+        u16::from_le_bytes([elf[18], elf[19]]),
+        183,
+        "e_machine is not EM_AARCH64"
+    );
+    let unit =
+        std::fs::read_to_string(root.path().join("lib/systemd/system/lekiwi-agent.service"))?;
+    let repo_unit = std::fs::read_to_string(
+        lekiwi_tests::repo_root().join("manifests/systemd/lekiwi-agent.service"),
+    )?;
+    assert_eq!(unit, repo_unit);
+    assert!(unit.contains("--config /etc/lekiwi/agent.yaml"), "{unit}");
+    let control = tempfile::tempdir()?;
+    let out = Command::new("dpkg-deb")
+        .arg("-e")
+        .arg(&deb)
+        .arg(control.path())
+        .output()?;
+    assert!(out.status.success(), "{out:?}");
+    assert_eq!(
+        std::fs::read_to_string(control.path().join("conffiles"))?,
+        "/etc/lekiwi/agent.yaml\n"
+    );
+    Ok(())
+}
+
+/// The payload disk's `run.sh` (bash, run by the guest's `lekiwi-payload.service` at each boot):
+/// on the first boot `dpkg -i` the .deb, put the configuration, CA and enrollment token where the
+/// unit reads them and `systemctl enable --now lekiwi-agent`; at every boot print `LEKIWI-FIG`
+/// lines (uptime, CPU ticks and VmRSS kB of the agent and of prometheus-node-exporter) every 5 s,
+/// and reboot when the host accepts a connection on port `reboot-port` (the test's command).
+const RUN_SH: &str = r#"[ -n "${BASH_VERSION:-}" ] || exec /bin/bash "$0" "$@"
+P=/payload
+if [ ! -e /var/lib/lekiwi-test/installed ]; then
+  echo "LEKIWI-ARCH $(dpkg --print-architecture)"
+  dpkg -i "$P/lekiwi-agent.deb" && echo "LEKIWI-DPKG ok"
+  install -m 0644 "$P/agent.yaml" /etc/lekiwi/agent.yaml
+  install -m 0644 "$P/ca.crt" /etc/lekiwi/ca.crt
+  install -m 0600 "$P/enroll" /etc/lekiwi/enroll
+  systemctl enable --now lekiwi-agent && echo "LEKIWI-ENABLED $(systemctl is-enabled lekiwi-agent)"
+  mkdir -p /var/lib/lekiwi-test && touch /var/lib/lekiwi-test/installed
+else
+  echo "LEKIWI-REBOOTED agent $(systemctl is-enabled lekiwi-agent)"
+fi
+fig() {
+  local pid t
+  pid="$(systemctl show -p MainPID --value "$1")"
+  [ "${pid:-0}" != 0 ] || { echo "- - -"; return; }
+  t="$(cut -d' ' -f14,15 "/proc/$pid/stat" | tr ' ' +)"
+  echo "$((t)) $(awk '/^VmRSS/ {print $2}' "/proc/$pid/status") $(cut -d' ' -f22 "/proc/$pid/stat")"
+}
+port="$(cat "$P/reboot-port")"
+while sleep 5; do
+  echo "LEKIWI-FIG $(cut -d' ' -f1 /proc/uptime) $(fig lekiwi-agent) $(fig prometheus-node-exporter)"
+  if (exec 3<>"/dev/tcp/10.0.2.2/$port") 2>/dev/null; then
+    echo "LEKIWI-REBOOT"
+    systemctl reboot
+    exit 0
+  fi
+done
+"#;
+
+/// One service's figures on a `LEKIWI-FIG` line: CPU seconds per hour over its life so far
+/// (utime + stime over the time since it started) and VmRSS in kB.
+#[derive(Debug, Clone, Copy)]
+struct Usage {
+    cpu_s_per_hour: f64,
+    rss_kb: u64,
+}
+
+/// The last `LEKIWI-FIG` line where both the agent and prometheus-node-exporter run (the line:
+/// uptime, then ticks, kB and start tick of each; 100 ticks a second).
+fn figures(console: &str) -> Option<(Usage, Usage)> {
+    console.lines().rev().find_map(|l| {
+        let v: Vec<&str> = l.strip_prefix("LEKIWI-FIG ")?.split(' ').collect();
+        let up: f64 = v.first()?.parse().ok()?;
+        let n = |i: usize| v.get(i)?.parse::<u64>().ok();
+        let usage = |i: usize| {
+            let life = up - n(i + 2)? as f64 / 100.0;
+            Some(Usage {
+                cpu_s_per_hour: n(i)? as f64 / 100.0 / life * 3600.0,
+                rss_kb: n(i + 1)?,
+            })
+        };
+        Some((usage(1)?, usage(4)?))
+    })
+}
+
+/// The guest's configuration of the agent (JSON is YAML).
+fn agent_yaml(ns: &str, gateway_port: u16) -> String {
+    json!({
+        "gateway": format!("wss://{HOST_FROM_GUEST}:{gateway_port}/v1/agent"),
+        "caFile": "/etc/lekiwi/ca.crt",
+        "enrollmentTokenFile": "/etc/lekiwi/enroll",
+        "robotName": format!("{ns}/kiwi-pi"),
+        "statusListen": format!("0.0.0.0:{GUEST_STATUS_PORT}"),
+        "mdns": false,
+        "backoffInitialMs": 200,
+        "backoffMaxMs": 2000,
+        "teleopIntervalS": 0.5,
+        "telemetryBatchIntervalS": 1,
+        "releaseHealthCommand": r#"test ! -e "$LEKIWI_RELEASE_DIR/fail-health""#,
+        "releaseHealthTimeoutS": 5,
+        "logFormat": "text",
+    })
+    .to_string()
+}
+
+/// Waits for kiwi-pi Online with a `connectedSince` other than `before`, returns the Robot.
+async fn online(
+    client: &Client,
+    ns: &str,
+    guest: &PiGuest,
+    before: Option<String>,
+    within: Duration,
+) -> anyhow::Result<lekiwi_crds::Robot> {
+    wait_for("kiwi-pi Online", within, || async {
+        let r = get_robot(client, ns, "kiwi-pi").await.ok()?;
+        let s = r.status.as_ref()?;
+        let since = s.connected_since.as_ref().map(|t| format!("{t:?}"));
+        (s.phase == Some(RobotPhase::Online) && since != before).then_some(r)
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\nconsole tail:\n{}", guest.console_tail(60)))
+}
+
+#[tokio::test]
+async fn the_arm64_deb_installs_on_a_systemd_pi5_rolls_out_and_survives_a_reboot()
+-> anyhow::Result<()> {
+    let deb = pi::deb()?;
+    pi::rootfs()?;
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "arm64-deb").await?;
+    let dir = tempfile::tempdir()?;
+    pi::gateway_ca(dir.path())?;
+    let (ca, cert, key) = (
+        dir.path().join("ca.crt"),
+        dir.path().join("tls.crt"),
+        dir.path().join("tls.key"),
+    );
+    let blobs = dir.path().join("blobs");
+    std::fs::create_dir_all(&blobs)?;
+    let mut op = OperatorProcess::start(
+        cp,
+        &ns,
+        "arm64-deb",
+        &[
+            "--blob-dir",
+            blobs.to_str().unwrap(),
+            "--heartbeat-interval-seconds",
+            "2",
+            "--status-refresh-seconds",
+            "2",
+            "--tls-cert",
+            cert.to_str().unwrap(),
+            "--tls-key",
+            key.to_str().unwrap(),
+        ],
+    )?;
+    op.wait_ready().await?;
+    let payload = dir.path().join("payload");
+    std::fs::create_dir_all(&payload)?;
+    std::fs::copy(&deb, payload.join("lekiwi-agent.deb"))?;
+    std::fs::copy(&ca, payload.join("ca.crt"))?;
+    enrollment_token_file(&client, &ns, &payload.join("enroll")).await?;
+    std::fs::write(payload.join("agent.yaml"), agent_yaml(&ns, op.gateway_port))?;
+    std::fs::write(payload.join("run.sh"), RUN_SH)?;
+    let reboot = std::net::TcpListener::bind("127.0.0.1:0")?;
+    let reboot_port = reboot.local_addr()?.port();
+    drop(reboot); // bound again when the test asks for the reboot
+    std::fs::write(payload.join("reboot-port"), reboot_port.to_string())?;
+
+    // Installed with dpkg, started by systemd: enrolled and Online.
+    let guest = PiGuest::boot_rootfs(&format!("deb-{}", std::process::id()), &payload)?;
+    let first = online(&client, &ns, &guest, None, Duration::from_secs(300)).await?;
+    let to_online = guest.booted.elapsed();
+    let console = guest.console();
+    eprintln!("boot (systemd) + dpkg -i + enable to Online: {to_online:?}");
+    assert!(console.contains("LEKIWI-ARCH arm64"), "{console}");
+    assert!(console.contains("LEKIWI-DPKG ok"), "{console}");
+    assert!(console.contains("LEKIWI-ENABLED enabled"), "{console}");
+    let system = first.status.as_ref().and_then(|s| s.system.clone());
+    assert_eq!(system.and_then(|s| s.arch).as_deref(), Some("aarch64"));
+
+    // A release applies, and a failing one rolls back.
+    let v1 = push(
+        cp,
+        &ns,
+        op.gateway_port,
+        &ca,
+        &release(dir.path(), "1", false)?,
+        "1.0.0",
+    )?;
+    deploy(&client, &ns, &v1).await?;
+    let (phase, msg) = finished(&client, &ns, &guest).await?;
+    assert_eq!(phase, RolloutPhase::Completed, "{msg}");
+    let v2 = push(
+        cp,
+        &ns,
+        op.gateway_port,
+        &ca,
+        &release(dir.path(), "2", true)?,
+        "2.0.0",
+    )?;
+    Api::<RobotDeployment>::namespaced(client.clone(), &ns)
+        .patch(
+            "pi",
+            &PatchParams::default(),
+            &Patch::Merge(&json!({"spec": {"release": v2}})),
+        )
+        .await?;
+    let (phase, msg) = finished(&client, &ns, &guest).await?;
+    assert_eq!(phase, RolloutPhase::RolledBack, "{msg}");
+    wait_for("kiwi-pi back on 1.0.0", Duration::from_secs(60), || async {
+        (reported_release(&client, &ns).await? == "1.0.0").then_some(())
+    })
+    .await?;
+
+    // Figures: the agent next to prometheus-node-exporter in the same guest.
+    tokio::time::sleep(Duration::from_secs(10)).await;
+    let (agent, exporter) = figures(&guest.console()).context("no LEKIWI-FIG line")?;
+    eprintln!(
+        "agent {:.0} CPU-s/h, VmRSS {} kB; prometheus-node-exporter {:.0} CPU-s/h, VmRSS {} kB \
+         (ratio CPU {:.2}, RSS {:.2})",
+        agent.cpu_s_per_hour,
+        agent.rss_kb,
+        exporter.cpu_s_per_hour,
+        exporter.rss_kb,
+        agent.cpu_s_per_hour / exporter.cpu_s_per_hour.max(f64::MIN_POSITIVE),
+        agent.rss_kb as f64 / exporter.rss_kb.max(1) as f64
+    );
+    assert!(
+        agent.rss_kb > 0 && agent.rss_kb < 32 * 1024,
+        "{agent:?} (MemoryMax=32M)"
+    );
+
+    // Reboot: the enrollment token is gone (so the robot must use its own token), systemd starts
+    // the agent again and the same Robot is Online again.
+    let uid = first.metadata.uid.clone();
+    let since = first
+        .status
+        .as_ref()
+        .and_then(|s| s.connected_since.as_ref())
+        .map(|t| format!("{t:?}"));
+    Api::<k8s_openapi::api::core::v1::Secret>::namespaced(client.clone(), &ns)
+        .delete(
+            lekiwi_crds::contract::ENROLLMENT_SECRET,
+            &Default::default(),
+        )
+        .await?;
+    let listener = tokio::net::TcpListener::bind(("127.0.0.1", reboot_port)).await?;
+    let rebooted_at = Instant::now();
+    tokio::time::timeout(Duration::from_secs(30), listener.accept()).await??;
+    drop(listener);
+    let again = online(&client, &ns, &guest, since, Duration::from_secs(300)).await?;
+    eprintln!("reboot to Online again: {:?}", rebooted_at.elapsed());
+    assert_eq!(again.metadata.uid, uid, "not the same Robot");
+    let console = guest.console();
+    assert!(
+        console.contains("LEKIWI-REBOOTED agent enabled"),
+        "{console}"
+    );
+    assert_eq!(
+        reported_release(&client, &ns).await.as_deref(),
+        Some("1.0.0")
     );
     let _ = op.terminate();
     Ok(())
