@@ -107,12 +107,16 @@ stop_proc() { # name signal seconds; returns 1 if still alive
 
 tail_log() { log "last lines of $STATE/$1.log:"; tail -n "${2:-25}" "$STATE/$1.log" >&2 || true; }
 
+# Whether process $1 still runs: right after `spawn`, during its exec, the command line can read
+# empty for a moment, so a missing marker is believed only when still missing a moment later.
+still_running() { live_pid "$1" >/dev/null || { sleep 0.3; live_pid "$1" >/dev/null; }; }
+
 # Waits until "$@" succeeds; dies naming $what (and the log of $proc) after $TIMEOUT seconds.
 wait_for() {
   local what="$1" proc="$2" deadline=$((SECONDS + TIMEOUT))
   shift 2
   until "$@" >/dev/null 2>&1; do
-    [ -z "$proc" ] || live_pid "$proc" >/dev/null || { tail_log "$proc" 40; die "$proc exited"; }
+    [ -z "$proc" ] || still_running "$proc" || { tail_log "$proc" 40; die "$proc exited"; }
     [ $SECONDS -lt $deadline ] || { [ -z "$proc" ] || tail_log "$proc" 40; die "$what: not after ${TIMEOUT}s"; }
     sleep 0.3
   done

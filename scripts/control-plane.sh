@@ -78,6 +78,15 @@ live_pid() {
   echo "$pid"
 }
 
+# Whether process $1, started by `spawn`, still runs: during the exec right after its pid file is
+# written its command line can read empty for a moment, so a missing marker is believed only
+# when it is still missing a moment later (a process that really exited stays gone).
+still_running() {
+  live_pid "$1" >/dev/null && return 0
+  sleep 0.3
+  live_pid "$1" >/dev/null
+}
+
 # Starts "$@" detached from the caller: new session, stdin closed, output to $STATE/$name.log, and
 # without the lock file descriptor (fd 9), so it outlives the calling shell and its pipes.
 spawn() {
@@ -248,7 +257,7 @@ start_etcd() {
     --logger=zap --log-outputs=stderr "${extra[@]}"
   local deadline=$((SECONDS + 30))
   until etcd_healthy; do
-    live_pid etcd >/dev/null || { tail_log etcd; die "etcd exited during startup"; }
+    still_running etcd || { tail_log etcd; die "etcd exited during startup"; }
     [ $SECONDS -lt $deadline ] || { tail_log etcd; die "etcd not healthy after 30s"; }
     sleep 0.1
   done
@@ -292,8 +301,8 @@ cmd_up() {
   fi
   local deadline=$((SECONDS + TIMEOUT))
   until apiserver_ready; do
-    live_pid etcd >/dev/null || { tail_log etcd; die "etcd exited"; }
-    live_pid kube-apiserver >/dev/null \
+    still_running etcd || { tail_log etcd; die "etcd exited"; }
+    still_running kube-apiserver \
       || { tail_log kube-apiserver 40; die "kube-apiserver exited during startup"; }
     if [ $SECONDS -ge $deadline ]; then
       tail_log kube-apiserver 40
