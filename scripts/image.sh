@@ -33,6 +33,8 @@ log() { printf '\033[1;34m[image]\033[0m %s\n' "$*" >&2; }
 die() { printf '\033[1;31m[image]\033[0m %s\n' "$*" >&2; exit 1; }
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/src-copy.sh
+source "$REPO/scripts/src-copy.sh"
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 KIND=operator OUT="" ARCH=amd64 LOAD="" ADDRESS=/run/containerd/containerd.sock
 while [ $# -gt 0 ]; do
@@ -83,12 +85,9 @@ build_operator() {
   REF="ghcr.io/lekiwi-fleet/lekiwi-operator:$tag"
   OUT="${OUT:-$REPO/target/image/lekiwi-operator-$tag-$ARCH.oci.tar}"
   target="${LEKIWI_IMAGE_TARGET:-$CACHE/image-target}"
-  # The build runs in a copy of the checkout at a fixed path ($CACHE/image-src, files copied only
-  # when their content changed, so unchanged crates stay fresh): the checkout's own path would be
-  # in RUSTFLAGS (--remap-path-prefix) and a clone elsewhere (every CI run) would rebuild it all.
+  # The build runs in a copy of the sources at a fixed path (scripts/src-copy.sh says why).
   local src="$CACHE/image-src"
-  mkdir -p "$src"
-  rsync -rlc --delete --exclude=/.git --exclude=/target --filter=':- .gitignore' "$REPO/" "$src/"
+  src_copy "$src"
   log "cargo build --release --locked -p lekiwi-operator (target dir $target)"
   # The binary must not depend on where the sources, the cargo home or the target dir are.
   # SOURCE_DATE_EPOCH is fixed for cargo: ring's build script reruns when it changes (at every

@@ -47,6 +47,8 @@
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+# shellcheck source=scripts/src-copy.sh
+source "$REPO/scripts/src-copy.sh"
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 PI="$CACHE/pi"
 RUN="${LEKIWI_PI_RUN:-$PI/run}"
@@ -204,15 +206,18 @@ cmd_build() {
   [ -x /usr/bin/rustc ] && command -v aarch64-linux-gnu-gcc >/dev/null && command -v qemu-system-aarch64 >/dev/null \
     || die "the arm64 toolchain or qemu-system-arm is missing: run scripts/setup.sh"
   log "cross-building lekiwi-agent for $TRIPLE (release) into $TARGET_DIR"
-  ( cd "$REPO" && cross_cargo build --quiet --release -p lekiwi-agent --target "$TRIPLE" )
+  # From a copy of the sources at a fixed path (scripts/src-copy.sh says why).
+  local src="$PI/src"
+  src_copy "$src"
+  ( cd "$src" && cross_cargo build --quiet --release -p lekiwi-agent --target "$TRIPLE" )
   log "cross-building the agent's unit tests"
   local tests
-  tests="$(cd "$REPO" && test_executables)"
+  tests="$(cd "$src" && test_executables)"
   [ -n "$tests" ] || die "cargo reported no test executable for lekiwi-agent"
   # The base (kernel, busybox, glibc, /init) follows this script's version.
   [ "$(cat "$PI/base.stamp" 2>/dev/null)" = "$(base_stamp)" ] || build_base
   local agent="$TARGET_DIR/$TRIPLE/release/lekiwi-agent"
-  stamp="$(stat -c %Y "$agent" "$REPO/README.md" | tr '\n' ' ')$(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
+  stamp="$(stat -c %Y "$agent" "$src/README.md" | tr '\n' ' ')$(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
   if [ "$(cat "$PI/payload.stamp" 2>/dev/null)" != "$stamp" ]; then
     local root
     root="$(mktemp -d)"
@@ -220,7 +225,7 @@ cmd_build() {
     aarch64-linux-gnu-strip -o "$root/bin/lekiwi-agent" "$agent"
     echo "$tests" | while read -r name exe; do aarch64-linux-gnu-strip --strip-debug -o "$root/tests/$name" "$exe"; done
     # A unit test checks the README's flag table: the file, where the test binary looks for it.
-    mkdir -p "$root$REPO/agent" && cp "$REPO/README.md" "$root$REPO/README.md"
+    mkdir -p "$root$src/agent" && cp "$src/README.md" "$root$src/README.md"
     pack "$root" "$PI/agent.cpio.gz"
     rm -rf "$root"
     echo "$stamp" >"$PI/payload.stamp"
