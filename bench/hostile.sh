@@ -9,6 +9,14 @@
 #! v1.20.2), the operator as two processes (--role controller, --role gateway, default flags), the
 #! fleet simulator `lekiwi-sim` for the robots (from 127.0.0.1) and the attacker (from 127.0.1.x).
 #!
+#! The attacker stands for other machines: with 2 or more CPUs it runs pinned to the last CPU and
+#! everything else (control plane, operator, simulated robots) to the others, in both windows; the
+#! kernel's receive processing of loopback traffic is steered (RPS on `lo`) to the others too, as a
+#! network card would deliver the attacker's packets to the gateway host's CPUs. This changes
+#! /sys/class/net/lo/queues/rx-0/rps_cpus for the run (root) and restores it on exit. `--no-pin`
+#! runs everything on all CPUs (the attacker then also takes CPU from the robots it is compared
+#! with: a worst case, not the goal's setting).
+#!
 #! Usage: bash bench/hostile.sh [options]
 #!   --robots N        simulated robots (default 1000)
 #!   --interval S      their heartbeat interval, seconds (default 5)
@@ -17,6 +25,7 @@
 #!   --flood-rate R    token-guessing requests per second (default 200)
 #!   --stuck M         sessions with a stolen token that never read (default 50)
 #!   --oversized K     sessions with a stolen token that send oversized frames (default 10)
+#!   --no-pin          do not pin the attacker to its own CPU (see above)
 #!   --no-build        use the binaries already in target/release
 #!   --keep            keep the work directory (logs, scrapes)
 #!   -h, --help        this text
@@ -38,6 +47,7 @@ STUCK=50
 OVERSIZED=10
 BUILD=1
 KEEP=0
+PIN=1
 COMMAND="bash bench/hostile.sh $*"
 
 # shellcheck source=bench/lib.sh
@@ -52,6 +62,7 @@ while [ $# -gt 0 ]; do
     --flood-rate) [[ "${2:-}" =~ ^[0-9]+$ ]] || die "$1 needs a rate"; FLOOD_RATE="$2"; shift 2 ;;
     --stuck) [[ "${2:-}" =~ ^[0-9]+$ ]] || die "$1 needs a count"; STUCK="$2"; shift 2 ;;
     --oversized) [[ "${2:-}" =~ ^[0-9]+$ ]] || die "$1 needs a count"; OVERSIZED="$2"; shift 2 ;;
+    --no-pin) PIN=0; shift ;;
     --no-build) BUILD=0; shift ;;
     --keep) KEEP=1; shift ;;
     -h|--help) usage; exit 0 ;;
@@ -64,6 +75,27 @@ CP_DIR="$WORK/control-plane"
 CP_UP=0
 PIDS=()
 trap_cleanup
+
+# Pins this script (so everything it starts) to all CPUs but the last, which the attacker gets,
+# and steers loopback receive processing to the same CPUs; sets ATTACK_CPU.
+ATTACK_CPU=
+RPS=/sys/class/net/lo/queues/rx-0/rps_cpus
+pin_cpus() {
+  local n
+  n="$(nproc)"
+  if [ "$n" -lt 2 ]; then
+    log "one CPU: the attacker shares it (as with --no-pin)"
+    return
+  fi
+  ATTACK_CPU=$((n - 1))
+  taskset -p -c "0-$((n - 2))" $$ >/dev/null || die "taskset failed"
+  local old
+  old="$(cat "$RPS")"
+  printf '%x' $(((1 << (n - 1)) - 1)) >"$RPS" 2>/dev/null \
+    || die "cannot write $RPS (run as root, or use --no-pin)"
+  ON_EXIT="printf %s '$old' >$RPS"
+  fact pinning "attacker on CPU $ATTACK_CPU; everything else and loopback RPS on CPUs 0-$((n - 2))"
+}
 
 # Simulated robots (sim-*) whose Robot is not Online right now.
 not_online() {
@@ -97,6 +129,7 @@ fact command "$COMMAND"
 fact robots "$ROBOTS"
 fact interval "$INTERVAL"
 fact attack "slowloris $SLOWLORIS, flood $FLOOD_RATE/s, stuck $STUCK, oversized $OVERSIZED"
+if [ $PIN = 1 ]; then pin_cpus; else fact pinning "none (--no-pin): the attacker shares every CPU"; fi
 
 # ---- control plane, robots, operator -------------------------------------------------------------
 start_control_plane
@@ -200,7 +233,7 @@ log "quiet window: $WINDOW s"
 measure quiet
 
 log "attack window: $WINDOW s (the attacker starts 10 s before it)"
-ATTACK=(python3 "$ROOT/bench/hostile_attack.py" --port "$GW_PORT" --duration $((WINDOW + 15))
+ATTACK=(${ATTACK_CPU:+taskset -c "$ATTACK_CPU"} python3 "$ROOT/bench/hostile_attack.py" --port "$GW_PORT" --duration $((WINDOW + 15))
   --namespace bench --robots-file "$WORK/robots.txt" --token-file "$WORK/stolen-token"
   --slowloris "$SLOWLORIS" --flood-rate "$FLOOD_RATE" --stuck "$STUCK" --oversized "$OVERSIZED"
   --json "$WORK/attack.json")

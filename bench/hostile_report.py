@@ -90,6 +90,7 @@ def main():
         f"source: {facts.get('source', '?')}; command: {facts.get('command', '?')}",
         f"robots: {facts.get('robots', '?')}, heartbeat every {facts.get('interval', '?')} s; "
         f"windows of {q['seconds']:.0f} s; attack: {facts.get('attack', '?')}",
+        f"CPU pinning: {facts.get('pinning', '?')}",
         "",
         f"{'':<{width}} | {'quiet':>14} | {'under attack':>14} | attack/quiet (goal <= 2x)",
         f"{'-' * width}-+-{'-' * 14}-+-{'-' * 14}-+-{'-' * 26}",

@@ -70,6 +70,8 @@ cleanup() {
   trap - EXIT INT TERM
   set +e
   end_processes "${CLEANUP_GRACE:-0}" "${PIDS[@]}"
+  # A script's own last step (e.g. restoring a system setting it changed), if it set one.
+  [ -n "${ON_EXIT:-}" ] && eval "$ON_EXIT"
   if [ "$CP_UP" = 1 ]; then
     LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
   fi
