@@ -84,6 +84,40 @@ pub fn bin(name: &str) -> PathBuf {
     target.join("debug").join(name)
 }
 
+/// Pushes `dir` as release `version` with the real `kubectl lekiwi release push` to `server`
+/// (`http://` or `https://`, trusting `ca` when given), as `kubeconfig`'s user; the release it
+/// printed.
+pub fn push_release(
+    kubeconfig: &Path,
+    namespace: &str,
+    server: &str,
+    ca: Option<&Path>,
+    dir: &Path,
+    version: &str,
+) -> Result<lekiwi_crds::ReleaseRef> {
+    let mut cmd = Command::new(bin("kubectl-lekiwi"));
+    cmd.arg("--kubeconfig")
+        .arg(kubeconfig)
+        .args(["-n", namespace, "release", "push"])
+        .arg(dir)
+        .args(["--version", version, "--server", server])
+        .env_remove("LEKIWI_SERVER");
+    if let Some(ca) = ca {
+        cmd.arg("--certificate-authority").arg(ca);
+    }
+    let out = cmd.output()?;
+    if !out.status.success() {
+        bail!(
+            "release push of {version} failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(lekiwi_crds::ReleaseRef {
+        version: version.into(),
+        digest: String::from_utf8_lossy(&out.stdout).trim().to_owned(),
+    })
+}
+
 /// A directory for logs of processes a test starts, kept after the run for debugging.
 pub fn log_dir() -> PathBuf {
     let dir = repo_root().join("target/test-logs");

@@ -124,16 +124,7 @@ impl PiGuest {
         }
         args.push("--");
         args.extend(agent_args);
-        let child = pi_sh(&args)
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .spawn()?;
-        Ok(Self {
-            child,
-            dir: log_dir().join("pi").join(name),
-            status_port,
-            booted: Instant::now(),
-        })
+        Self::spawn(name, status_port, &args)
     }
 
     /// Boots guest `name` from the Debian root filesystem with systemd as PID 1 (`pi.sh boot
@@ -152,9 +143,17 @@ impl PiGuest {
             name,
             "--memory",
             "768",
+            "--status-port",
+            &port,
+            "--payload",
+            payload,
         ];
-        let child = pi_sh(&args)
-            .args(["--status-port", &port, "--payload", payload])
+        Self::spawn(name, status_port, &args)
+    }
+
+    /// Runs `pi.sh ARGS` for guest `name` in the foreground of a child process.
+    fn spawn(name: &str, status_port: u16, args: &[&str]) -> Result<Self> {
+        let child = pi_sh(args)
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .spawn()?;

@@ -4,7 +4,7 @@
 //! telemetry and teleoperation, applies a release from a RobotDeployment and rolls back when the
 //! next one fails its health check.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
@@ -16,7 +16,7 @@ use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_tests::pi::{self, GUEST_STATUS_PORT, HOST_FROM_GUEST, PiGuest, Run};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, bin, enrollment_token_file, get_robot, namespace,
+    ControlPlane, OperatorProcess, enrollment_token_file, get_robot, namespace, push_release,
     rollout_finished, test_strategy, wait_for,
 };
 use serde_json::json;
@@ -45,38 +45,116 @@ async fn agent_unit_tests_pass_on_an_emulated_pi5() -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Pushes `dir` as `version` with the real CLI over https:// (trusting `ca`).
-fn push(
-    cp: &ControlPlane,
-    ns: &str,
-    port: u16,
-    ca: &Path,
-    dir: &Path,
-    version: &str,
-) -> anyhow::Result<ReleaseRef> {
-    let out = Command::new(bin("kubectl-lekiwi"))
-        .arg("--kubeconfig")
-        .arg(cp.kubeconfig())
-        .args(["-n", ns, "release", "push", dir.to_str().unwrap()])
-        .args([
-            "--version",
-            version,
-            "--server",
-            &format!("https://127.0.0.1:{port}"),
-        ])
-        .args(["--certificate-authority", ca.to_str().unwrap()])
-        .env_remove("LEKIWI_SERVER")
-        .output()?;
-    if !out.status.success() {
-        bail!(
-            "release push failed: {}",
-            String::from_utf8_lossy(&out.stderr)
+/// An x86_64 operator serving wss:// with a test CA the guest trusts, and the payload directory
+/// the guest sees as `/lekiwi` (the CA and an enrollment token file in it).
+struct Site {
+    op: OperatorProcess,
+    dir: tempfile::TempDir,
+    ca: PathBuf,
+    payload: PathBuf,
+}
+
+impl Site {
+    async fn start(
+        cp: &ControlPlane,
+        client: &Client,
+        ns: &str,
+        identity: &str,
+    ) -> anyhow::Result<Self> {
+        let dir = tempfile::tempdir()?;
+        pi::gateway_ca(dir.path())?;
+        let (ca, cert, key) = (
+            dir.path().join("ca.crt"),
+            dir.path().join("tls.crt"),
+            dir.path().join("tls.key"),
         );
+        let blobs = dir.path().join("blobs");
+        std::fs::create_dir_all(&blobs)?;
+        let mut op = OperatorProcess::start(
+            cp,
+            ns,
+            identity,
+            &[
+                "--blob-dir",
+                blobs.to_str().unwrap(),
+                "--heartbeat-interval-seconds",
+                "2",
+                "--status-refresh-seconds",
+                "2",
+                "--tls-cert",
+                cert.to_str().unwrap(),
+                "--tls-key",
+                key.to_str().unwrap(),
+            ],
+        )?;
+        op.wait_ready().await?;
+        let payload = dir.path().join("payload");
+        std::fs::create_dir_all(&payload)?;
+        std::fs::copy(&ca, payload.join("ca.crt"))?;
+        enrollment_token_file(client, ns, &payload.join("enroll")).await?;
+        Ok(Self {
+            op,
+            dir,
+            ca,
+            payload,
+        })
     }
-    Ok(ReleaseRef {
-        version: version.into(),
-        digest: String::from_utf8_lossy(&out.stdout).trim().to_owned(),
-    })
+
+    /// Pushes release `tag` (see [`release`]) as `<tag>.0.0` with the real CLI over https://.
+    fn push(
+        &self,
+        cp: &ControlPlane,
+        ns: &str,
+        tag: &str,
+        failing: bool,
+    ) -> anyhow::Result<ReleaseRef> {
+        let server = format!("https://127.0.0.1:{}", self.op.gateway_port);
+        let dir = release(self.dir.path(), tag, failing)?;
+        push_release(
+            &cp.kubeconfig(),
+            ns,
+            &server,
+            Some(&self.ca),
+            &dir,
+            &format!("{tag}.0.0"),
+        )
+    }
+
+    /// A release applies to the guest's robot (real download over https:// from the gateway,
+    /// real switch), and the next one, whose health check fails on the robot, rolls back to it.
+    async fn roll_out_and_back(
+        &self,
+        cp: &ControlPlane,
+        client: &Client,
+        ns: &str,
+        guest: &PiGuest,
+    ) -> anyhow::Result<()> {
+        let v1 = self.push(cp, ns, "1", false)?;
+        deploy(client, ns, &v1).await?;
+        let (phase, msg) = finished(client, ns, guest).await?;
+        assert_eq!(phase, RolloutPhase::Completed, "{msg}");
+        wait_for("kiwi-pi on 1.0.0", Duration::from_secs(30), || async {
+            (reported_release(client, ns).await? == "1.0.0").then_some(())
+        })
+        .await?;
+        let v2 = self.push(cp, ns, "2", true)?;
+        let started = Instant::now();
+        Api::<RobotDeployment>::namespaced(client.clone(), ns)
+            .patch(
+                "pi",
+                &PatchParams::default(),
+                &Patch::Merge(&json!({"spec": {"release": v2}})),
+            )
+            .await?;
+        let (phase, msg) = finished(client, ns, guest).await?;
+        eprintln!("2.0.0: {phase:?} after {:?}: {msg}", started.elapsed());
+        assert_eq!(phase, RolloutPhase::RolledBack, "{msg}");
+        assert!(msg.contains("health check of 2.0.0 failed"), "{msg}");
+        wait_for("kiwi-pi back on 1.0.0", Duration::from_secs(60), || async {
+            (reported_release(client, ns).await? == "1.0.0").then_some(())
+        })
+        .await
+    }
 }
 
 /// A small release; `failing` adds the file the agent's health check refuses.
@@ -132,46 +210,16 @@ async fn arm64_agent_on_an_emulated_pi5_rolls_out_and_back() -> anyhow::Result<(
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "arm64").await?;
-    let dir = tempfile::tempdir()?;
-    pi::gateway_ca(dir.path())?;
-    let (ca, cert, key) = (
-        dir.path().join("ca.crt"),
-        dir.path().join("tls.crt"),
-        dir.path().join("tls.key"),
-    );
-    let blobs = dir.path().join("blobs");
-    std::fs::create_dir_all(&blobs)?;
-    let mut op = OperatorProcess::start(
-        cp,
-        &ns,
-        "arm64",
-        &[
-            "--blob-dir",
-            blobs.to_str().unwrap(),
-            "--heartbeat-interval-seconds",
-            "2",
-            "--status-refresh-seconds",
-            "2",
-            "--tls-cert",
-            cert.to_str().unwrap(),
-            "--tls-key",
-            key.to_str().unwrap(),
-        ],
-    )?;
-    op.wait_ready().await?;
-    let payload = dir.path().join("payload");
-    std::fs::create_dir_all(&payload)?;
-    std::fs::copy(&ca, payload.join("ca.crt"))?;
-    enrollment_token_file(&client, &ns, &payload.join("enroll")).await?;
+    let mut site = Site::start(cp, &client, &ns, "arm64").await?;
 
-    let gateway = format!("wss://{HOST_FROM_GUEST}:{}/v1/agent", op.gateway_port);
+    let gateway = format!("wss://{HOST_FROM_GUEST}:{}/v1/agent", site.op.gateway_port);
     let robot = format!("{ns}/kiwi-pi");
     let status_listen = format!("0.0.0.0:{GUEST_STATUS_PORT}");
     let health = r#"test ! -e "$LEKIWI_RELEASE_DIR/fail-health""#;
     let guest = PiGuest::boot(
         &format!("e2e-{}", std::process::id()),
         Run::Agent,
-        Some(&payload),
+        Some(&site.payload),
         &[
             "--config",
             "/nonexistent.yaml",
@@ -207,12 +255,7 @@ async fn arm64_agent_on_an_emulated_pi5_rolls_out_and_back() -> anyhow::Result<(
     )?;
 
     // Enrolled and Online, from the Pi 5's core.
-    let robot_obj = wait_for("kiwi-pi Online", Duration::from_secs(90), || async {
-        let r = get_robot(&client, &ns, "kiwi-pi").await.ok()?;
-        (r.status.as_ref()?.phase == Some(RobotPhase::Online)).then_some(r)
-    })
-    .await
-    .map_err(|e| anyhow::anyhow!("{e}\nconsole tail:\n{}", guest.console_tail(40)))?;
+    let robot_obj = online(&client, &ns, &guest, None, Duration::from_secs(90)).await?;
     let to_online = guest.booted.elapsed();
     let cpu = guest.marker("LEKIWI-CPU").unwrap_or_default();
     eprintln!("boot to Online: {to_online:?}; {cpu}");
@@ -245,55 +288,14 @@ async fn arm64_agent_on_an_emulated_pi5_rolls_out_and_back() -> anyhow::Result<(
     );
     assert_eq!(reported.teleoperation.map(|t| t.active), Some(false));
 
-    // A release applies (real download over https:// from the gateway, real switch) ...
-    let v1 = push(
-        cp,
-        &ns,
-        op.gateway_port,
-        &ca,
-        &release(dir.path(), "1", false)?,
-        "1.0.0",
-    )?;
-    deploy(&client, &ns, &v1).await?;
-    let (phase, msg) = finished(&client, &ns, &guest).await?;
-    assert_eq!(phase, RolloutPhase::Completed, "{msg}");
-    wait_for("kiwi-pi on 1.0.0", Duration::from_secs(30), || async {
-        (reported_release(&client, &ns).await? == "1.0.0").then_some(())
-    })
-    .await?;
-
-    // ... and the next one, whose health check fails on the robot, rolls back.
-    let v2 = push(
-        cp,
-        &ns,
-        op.gateway_port,
-        &ca,
-        &release(dir.path(), "2", true)?,
-        "2.0.0",
-    )?;
-    let started = Instant::now();
-    Api::<RobotDeployment>::namespaced(client.clone(), &ns)
-        .patch(
-            "pi",
-            &PatchParams::default(),
-            &Patch::Merge(&json!({"spec": {"release": v2}})),
-        )
-        .await?;
-    let (phase, msg) = finished(&client, &ns, &guest).await?;
-    eprintln!("2.0.0: {phase:?} after {:?}: {msg}", started.elapsed());
-    assert_eq!(phase, RolloutPhase::RolledBack, "{msg}");
-    assert!(msg.contains("health check of 2.0.0 failed"), "{msg}");
-    wait_for("kiwi-pi back on 1.0.0", Duration::from_secs(60), || async {
-        (reported_release(&client, &ns).await? == "1.0.0").then_some(())
-    })
-    .await?;
+    site.roll_out_and_back(cp, &client, &ns, &guest).await?;
     let status = guest.status().await?;
     eprintln!("agent status in the guest: {status}");
     eprintln!(
         "agent VmRSS in the guest (kB, every 10 s): {:?}",
         guest.rss_kb()
     );
-    let _ = op.terminate();
+    let _ = site.op.terminate();
     Ok(())
 }
 
@@ -500,39 +502,13 @@ async fn the_arm64_deb_installs_on_a_systemd_pi5_rolls_out_and_survives_a_reboot
     let cp = ControlPlane::shared();
     let client = cp.client().await?;
     let ns = namespace(&client, "arm64-deb").await?;
-    let dir = tempfile::tempdir()?;
-    pi::gateway_ca(dir.path())?;
-    let (ca, cert, key) = (
-        dir.path().join("ca.crt"),
-        dir.path().join("tls.crt"),
-        dir.path().join("tls.key"),
-    );
-    let blobs = dir.path().join("blobs");
-    std::fs::create_dir_all(&blobs)?;
-    let mut op = OperatorProcess::start(
-        cp,
-        &ns,
-        "arm64-deb",
-        &[
-            "--blob-dir",
-            blobs.to_str().unwrap(),
-            "--heartbeat-interval-seconds",
-            "2",
-            "--status-refresh-seconds",
-            "2",
-            "--tls-cert",
-            cert.to_str().unwrap(),
-            "--tls-key",
-            key.to_str().unwrap(),
-        ],
-    )?;
-    op.wait_ready().await?;
-    let payload = dir.path().join("payload");
-    std::fs::create_dir_all(&payload)?;
+    let mut site = Site::start(cp, &client, &ns, "arm64-deb").await?;
+    let payload = &site.payload;
     std::fs::copy(&deb, payload.join("lekiwi-agent.deb"))?;
-    std::fs::copy(&ca, payload.join("ca.crt"))?;
-    enrollment_token_file(&client, &ns, &payload.join("enroll")).await?;
-    std::fs::write(payload.join("agent.yaml"), agent_yaml(&ns, op.gateway_port))?;
+    std::fs::write(
+        payload.join("agent.yaml"),
+        agent_yaml(&ns, site.op.gateway_port),
+    )?;
     std::fs::write(payload.join("run.sh"), RUN_SH)?;
     let reboot = std::net::TcpListener::bind("127.0.0.1:0")?;
     let reboot_port = reboot.local_addr()?.port();
@@ -540,7 +516,7 @@ async fn the_arm64_deb_installs_on_a_systemd_pi5_rolls_out_and_survives_a_reboot
     std::fs::write(payload.join("reboot-port"), reboot_port.to_string())?;
 
     // Installed with dpkg, started by systemd: enrolled and Online.
-    let guest = PiGuest::boot_rootfs(&format!("deb-{}", std::process::id()), &payload)?;
+    let guest = PiGuest::boot_rootfs(&format!("deb-{}", std::process::id()), payload)?;
     let first = online(&client, &ns, &guest, None, Duration::from_secs(300)).await?;
     let to_online = guest.booted.elapsed();
     let console = guest.console();
@@ -552,38 +528,7 @@ async fn the_arm64_deb_installs_on_a_systemd_pi5_rolls_out_and_survives_a_reboot
     assert_eq!(system.and_then(|s| s.arch).as_deref(), Some("aarch64"));
 
     // A release applies, and a failing one rolls back.
-    let v1 = push(
-        cp,
-        &ns,
-        op.gateway_port,
-        &ca,
-        &release(dir.path(), "1", false)?,
-        "1.0.0",
-    )?;
-    deploy(&client, &ns, &v1).await?;
-    let (phase, msg) = finished(&client, &ns, &guest).await?;
-    assert_eq!(phase, RolloutPhase::Completed, "{msg}");
-    let v2 = push(
-        cp,
-        &ns,
-        op.gateway_port,
-        &ca,
-        &release(dir.path(), "2", true)?,
-        "2.0.0",
-    )?;
-    Api::<RobotDeployment>::namespaced(client.clone(), &ns)
-        .patch(
-            "pi",
-            &PatchParams::default(),
-            &Patch::Merge(&json!({"spec": {"release": v2}})),
-        )
-        .await?;
-    let (phase, msg) = finished(&client, &ns, &guest).await?;
-    assert_eq!(phase, RolloutPhase::RolledBack, "{msg}");
-    wait_for("kiwi-pi back on 1.0.0", Duration::from_secs(60), || async {
-        (reported_release(&client, &ns).await? == "1.0.0").then_some(())
-    })
-    .await?;
+    site.roll_out_and_back(cp, &client, &ns, &guest).await?;
 
     // Figures: the agent next to prometheus-node-exporter in the same guest.
     tokio::time::sleep(Duration::from_secs(10)).await;
@@ -633,6 +578,6 @@ async fn the_arm64_deb_installs_on_a_systemd_pi5_rolls_out_and_survives_a_reboot
         reported_release(&client, &ns).await.as_deref(),
         Some("1.0.0")
     );
-    let _ = op.terminate();
+    let _ = site.op.terminate();
     Ok(())
 }

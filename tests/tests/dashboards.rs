@@ -16,8 +16,8 @@ use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
 use lekiwi_tests::{
     ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin, enrollment_token, free_port,
-    gateway_url, http_get, log_dir, namespace, repo_root, rollout_finished, test_strategy,
-    wait_for,
+    gateway_url, http_get, log_dir, namespace, push_release, repo_root, rollout_finished,
+    test_strategy, wait_for,
 };
 use serde_json::{Value, json};
 
@@ -192,30 +192,8 @@ fn push(
     dir: &Path,
     version: &str,
 ) -> anyhow::Result<ReleaseRef> {
-    let out = Command::new(bin("kubectl-lekiwi"))
-        .arg("--kubeconfig")
-        .arg(cp.kubeconfig())
-        .args([
-            "release",
-            "push",
-            dir.to_str().unwrap(),
-            "--version",
-            version,
-        ])
-        .args(["-n", ns])
-        .args(["--server", &format!("http://127.0.0.1:{}", op.gateway_port)])
-        .env_remove("LEKIWI_SERVER")
-        .output()?;
-    if !out.status.success() {
-        bail!(
-            "release push failed: {}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    Ok(ReleaseRef {
-        version: version.into(),
-        digest: String::from_utf8_lossy(&out.stdout).trim().to_owned(),
-    })
+    let server = format!("http://127.0.0.1:{}", op.gateway_port);
+    push_release(&cp.kubeconfig(), ns, &server, None, dir, version)
 }
 
 async fn finished(

@@ -16,8 +16,8 @@ use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, Robot
 use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_tests::{
     AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin,
-    enrollment_token_file, gateway_url, http_get_with, namespace, rollout_finished, test_strategy,
-    wait_for,
+    enrollment_token_file, gateway_url, http_get_with, namespace, push_release, rollout_finished,
+    test_strategy, wait_for,
 };
 use serde_json::{Value, json};
 
@@ -59,31 +59,9 @@ impl Site {
     /// Pushes `dir` as `version` with the real CLI; returns the release.
     fn push(&self, dir: &Path, version: &str) -> anyhow::Result<ReleaseRef> {
         let server = format!("http://127.0.0.1:{}", self.op.gateway_port);
-        let out = self.cli(&[
-            "release",
-            "push",
-            dir.to_str().unwrap(),
-            "--version",
-            version,
-            "-n",
-            &self.ns,
-            "--server",
-            &server,
-        ])?;
-        if !out.status.success() {
-            bail!(
-                "release push failed: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        let digest = String::from_utf8_lossy(&out.stdout).trim().to_owned();
-        Ok(ReleaseRef {
-            version: version.into(),
-            digest,
-        })
+        push_release(&self.cp.kubeconfig(), &self.ns, &server, None, dir, version)
     }
 
-    /// Runs `kubectl-lekiwi -n NS ARGS...` against the test control plane.
     fn cli(&self, args: &[&str]) -> anyhow::Result<std::process::Output> {
         Ok(Command::new(bin("kubectl-lekiwi"))
             .arg("--kubeconfig")
