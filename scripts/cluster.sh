@@ -71,45 +71,8 @@ marker() {
   esac
 }
 
-live_pid() {
-  local pid
-  pid="$(cat "$STATE/$1.pid" 2>/dev/null)" || return 1
-  [[ "$pid" =~ ^[0-9]+$ ]] || return 1
-  { tr '\0' '\n' <"/proc/$pid/cmdline"; } 2>/dev/null | grep -qxF -- "$(marker "$1")" || return 1
-  echo "$pid"
-}
-
-# Starts "$@" detached (new session, stdin closed, output to $STATE/$name.log, without the lock fd).
-spawn() {
-  local name="$1" i
-  shift
-  printf '\n==== %s starting %s\n' "$(date -Is)" "$name" >>"$STATE/$name.log"
-  rm -f "$STATE/$name.pid"
-  setsid bash -c 'echo $$ >"$0"; exec "$@"' "$STATE/$name.pid" "$@" \
-    </dev/null >>"$STATE/$name.log" 2>&1 9>&- &
-  for i in $(seq 50); do
-    [ -s "$STATE/$name.pid" ] && return 0
-    sleep 0.05
-  done
-  die "$name did not start (see $STATE/$name.log)"
-}
-
-stop_proc() { # name signal seconds; returns 1 if still alive
-  local name="$1" sig="$2" wait_s="$3" pid i
-  pid="$(live_pid "$name")" || return 0
-  kill "-$sig" "$pid" 2>/dev/null || true
-  for i in $(seq $((wait_s * 10))); do
-    live_pid "$name" >/dev/null || return 0
-    sleep 0.1
-  done
-  return 1
-}
-
-tail_log() { log "last lines of $STATE/$1.log:"; tail -n "${2:-25}" "$STATE/$1.log" >&2 || true; }
-
-# Whether process $1 still runs: right after `spawn`, during its exec, the command line can read
-# empty for a moment, so a missing marker is believed only when still missing a moment later.
-still_running() { live_pid "$1" >/dev/null || { sleep 0.3; live_pid "$1" >/dev/null; }; }
+# shellcheck source=scripts/procs.sh
+source "$(dirname "${BASH_SOURCE[0]}")/procs.sh"
 
 # Waits until "$@" succeeds; dies naming $what (and the log of $proc) after $TIMEOUT seconds.
 wait_for() {
