@@ -253,6 +253,12 @@ async fn overlong_robot_names_are_refused_and_create_nothing() -> anyhow::Result
     Ok(())
 }
 
+/// Enrolls robot `robot` (`ns/name`) with the enrollment token; the robot's own token.
+async fn enrolled(url: &str, enroll: &str, robot: &str) -> anyhow::Result<String> {
+    let (_ws, welcome) = connect(url, &creds(enroll, robot), &hello(), TIMEOUT).await?;
+    Ok(welcome.robot_token.expect("enrollment issues a token"))
+}
+
 /// Reads frames until the gateway closes the session; the close frame's code and reason.
 async fn closed(ws: &mut Socket, within: Duration) -> anyhow::Result<(u16, String)> {
     let deadline = tokio::time::Instant::now() + within;
@@ -356,9 +362,7 @@ async fn a_token_in_a_reconnect_loop_is_slowed_before_the_upgrade() -> anyhow::R
     let url = gateway_url(&op);
     let full = format!("{ns}/kiwi-1");
 
-    let (ws, welcome) = connect(&url, &creds(&enroll, &full), &hello(), TIMEOUT).await?;
-    let own = welcome.robot_token.expect("enrollment issues a token");
-    drop(ws);
+    let own = enrolled(&url, &enroll, &full).await?;
     for _ in 1..10 {
         let (ws, _) = connect(&url, &creds(&own, &full), &hello(), TIMEOUT).await?;
         drop(ws);
@@ -402,9 +406,7 @@ async fn a_token_deleted_while_the_watch_is_down_ends_its_session_after_the_reli
     let enroll = enrollment_token(&client, &ns).await?;
     let url = gateway_url(&op);
     let full = format!("{ns}/kiwi-1");
-    let (ws, welcome) = connect(&url, &creds(&enroll, &full), &hello(), TIMEOUT).await?;
-    let own = welcome.robot_token.expect("enrollment issues a token");
-    drop(ws);
+    let own = enrolled(&url, &enroll, &full).await?;
     let (mut ws, _) = connect(&url, &creds(&own, &full), &hello(), TIMEOUT).await?;
     alive(&mut ws).await?;
 
