@@ -33,8 +33,8 @@ log() { printf '\033[1;34m[image]\033[0m %s\n' "$*" >&2; }
 die() { printf '\033[1;31m[image]\033[0m %s\n' "$*" >&2; exit 1; }
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-# shellcheck source=scripts/src-copy.sh
-source "$REPO/scripts/src-copy.sh"
+# shellcheck source=scripts/cache-build.sh
+source "$REPO/scripts/cache-build.sh"
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 KIND=operator OUT="" ARCH=amd64 LOAD="" ADDRESS=/run/containerd/containerd.sock
 while [ $# -gt 0 ]; do
@@ -85,15 +85,16 @@ build_operator() {
   REF="ghcr.io/lekiwi-fleet/lekiwi-operator:$tag"
   OUT="${OUT:-$REPO/target/image/lekiwi-operator-$tag-$ARCH.oci.tar}"
   target="${LEKIWI_IMAGE_TARGET:-$CACHE/image-target}"
-  # The build runs in a copy of the sources at a fixed path (scripts/src-copy.sh says why).
+  # The build runs in a copy of the sources at a fixed path (scripts/cache-build.sh says why).
   local src="$CACHE/image-src"
   src_copy "$src"
   log "cargo build --release --locked -p lekiwi-operator (target dir $target)"
   # The binary must not depend on where the sources, the cargo home or the target dir are.
   # SOURCE_DATE_EPOCH is fixed for cargo: ring's build script reruns when it changes (at every
   # commit, with the commit time), rebuilding the whole TLS stack; nothing embeds a build date.
-  ( cd "$src" && CARGO_TARGET_DIR="$target" SOURCE_DATE_EPOCH=0 \
-      RUSTFLAGS="${RUSTFLAGS:-} --remap-path-prefix=$src=/src --remap-path-prefix=${CARGO_HOME:-$HOME/.cargo}=/cargo --remap-path-prefix=$target=/target" \
+  clean_env
+  ( cd "$src" && env "${CLEAN_ENV[@]}" CARGO_TARGET_DIR="$target" SOURCE_DATE_EPOCH=0 \
+      RUSTFLAGS="--remap-path-prefix=$src=/src --remap-path-prefix=${CARGO_HOME:-$HOME/.cargo}=/cargo --remap-path-prefix=$target=/target" \
       cargo build --release --locked -p lekiwi-operator --bin lekiwi-operator )
   bin="$target/release/lekiwi-operator"
   local args=() lib stage

@@ -47,8 +47,8 @@
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-# shellcheck source=scripts/src-copy.sh
-source "$REPO/scripts/src-copy.sh"
+# shellcheck source=scripts/cache-build.sh
+source "$REPO/scripts/cache-build.sh"
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 PI="$CACHE/pi"
 RUN="${LEKIWI_PI_RUN:-$PI/run}"
@@ -64,14 +64,8 @@ usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
 # Debian's cargo and rustc for the aarch64 build, without what a calling `cargo test` exported
 # (its CARGO_PKG_* variables would make build scripts, and so ring, rebuild).
 cross_cargo() {
-  local unset_args=() v
-  for v in $(compgen -e); do
-    case "$v" in
-      CARGO_HOME) ;;
-      CARGO_* | RUSTUP_* | RUSTC* | RUSTDOC* | RUSTFLAGS | OUT_DIR | RUST_RECURSION_COUNT) unset_args+=(-u "$v") ;;
-    esac
-  done
-  env "${unset_args[@]}" CARGO_TARGET_DIR="$TARGET_DIR" RUSTC=/usr/bin/rustc \
+  clean_env
+  env "${CLEAN_ENV[@]}" CARGO_TARGET_DIR="$TARGET_DIR" RUSTC=/usr/bin/rustc \
     CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc \
     CC_aarch64_unknown_linux_gnu=aarch64-linux-gnu-gcc \
     /usr/bin/cargo "$@"
@@ -206,7 +200,7 @@ cmd_build() {
   [ -x /usr/bin/rustc ] && command -v aarch64-linux-gnu-gcc >/dev/null && command -v qemu-system-aarch64 >/dev/null \
     || die "the arm64 toolchain or qemu-system-arm is missing: run scripts/setup.sh"
   log "cross-building lekiwi-agent for $TRIPLE (release) into $TARGET_DIR"
-  # From a copy of the sources at a fixed path (scripts/src-copy.sh says why).
+  # From a copy of the sources at a fixed path (scripts/cache-build.sh says why).
   local src="$PI/src"
   src_copy "$src"
   ( cd "$src" && cross_cargo build --quiet --release -p lekiwi-agent --target "$TRIPLE" )
