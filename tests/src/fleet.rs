@@ -37,6 +37,25 @@ pub async fn wait_phase(
     .await
 }
 
+/// Waits until at least `n` robots of `namespace` are `Online`; fails after `within`.
+pub async fn wait_online(
+    client: &Client,
+    namespace: &str,
+    n: usize,
+    within: Duration,
+) -> Result<()> {
+    let api = Api::<Robot>::namespaced(client.clone(), namespace);
+    wait_for(&format!("{n} robots Online"), within, || async {
+        let robots = api.list(&Default::default()).await.ok()?.items;
+        let online = robots
+            .iter()
+            .filter(|r| r.status.as_ref().and_then(|s| s.phase) == Some(RobotPhase::Online))
+            .count();
+        (online >= n).then_some(())
+    })
+    .await
+}
+
 /// Waits until rollout `name` has ended (`Completed`, `RolledBack` or `Failed`, in a status of
 /// its current generation) and returns the RobotDeployment; fails after `within`.
 pub async fn rollout_finished(

@@ -29,7 +29,7 @@ pub use agent::{AgentProcess, connect_agent, heartbeat, hello, recv};
 pub use control_plane::{ControlPlane, namespace};
 pub use fleet::{
     create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot, robot_token,
-    rollout_finished, test_strategy, wait_phase,
+    rollout_finished, test_strategy, wait_online, wait_phase,
 };
 pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};

@@ -20,12 +20,12 @@ use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::deployment::RolloutPhase;
-use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
+use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::cluster::{Cluster, forward, http_get_at};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
     FleetProcess, FleetSpec, bin, enrollment_token_file, namespace, rollout_finished,
-    test_strategy, wait_for,
+    test_strategy, wait_for, wait_online,
 };
 use serde_json::{Value, json};
 
@@ -201,16 +201,7 @@ impl Install {
     }
 
     async fn wait_online(&self, n: usize) -> anyhow::Result<()> {
-        let what = format!("{n} robots Online");
-        wait_for(&what, Duration::from_secs(90), || async {
-            let robots = self.robots().await.ok()?;
-            let online = robots
-                .iter()
-                .filter(|r| r.status.as_ref().and_then(|s| s.phase) == Some(RobotPhase::Online))
-                .count();
-            (online >= n).then_some(())
-        })
-        .await
+        wait_online(&self.client, &self.ns, n, Duration::from_secs(90)).await
     }
 
     /// Creates or retargets RobotDeployment `name` to `release`; waits for its end; its phase.

@@ -11,13 +11,13 @@ use std::time::{Duration, Instant};
 use anyhow::{Context as _, bail};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, LabelSelectorRequirement};
 use kube::Api;
-use kube::api::{ListParams, Patch, PatchParams, PostParams};
+use kube::api::{Patch, PatchParams, PostParams};
 use lekiwi_crds::deployment::RolloutPhase;
-use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
+use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::{
     ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin, enrollment_token, free_port,
     gateway_url, http_get, log_dir, namespace, push_release, repo_root, rollout_finished,
-    test_strategy, wait_for,
+    test_strategy, wait_for, wait_online,
 };
 use serde_json::{Value, json};
 
@@ -310,20 +310,7 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
         &log_dir().join(format!("sim-{ns}.log")),
     )?;
     let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
-    wait_for(
-        &format!("{} robots Online", FLEET + SIMULATED),
-        Duration::from_secs(120),
-        || async {
-            let list = robots.list(&ListParams::default()).await.ok()?;
-            let online = list
-                .items
-                .iter()
-                .filter(|r| r.status.as_ref().and_then(|s| s.phase) == Some(RobotPhase::Online))
-                .count();
-            (online >= FLEET + SIMULATED).then_some(())
-        },
-    )
-    .await?;
+    wait_online(&client, &ns, FLEET + SIMULATED, Duration::from_secs(120)).await?;
     for i in 1..=SIMULATED {
         let patch = json!({"metadata": {"labels": {SIM_LABEL: "true"}}});
         robots

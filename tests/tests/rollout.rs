@@ -12,12 +12,12 @@ use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
-use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec, RobotPhase};
+use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_tests::{
     AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin,
     enrollment_token_file, gateway_url, http_get_with, namespace, push_release, rollout_finished,
-    test_strategy, wait_for,
+    test_strategy, wait_for, wait_online,
 };
 use serde_json::{Value, json};
 
@@ -133,19 +133,7 @@ impl Site {
     }
 
     async fn wait_online(&self, n: usize) -> anyhow::Result<()> {
-        wait_for(
-            &format!("{n} robots Online"),
-            Duration::from_secs(120),
-            || async {
-                let robots = self.robots().await.ok()?;
-                let online = robots
-                    .iter()
-                    .filter(|r| r.status.as_ref().and_then(|s| s.phase) == Some(RobotPhase::Online))
-                    .count();
-                (online >= n).then_some(())
-            },
-        )
-        .await
+        wait_online(&self.client, &self.ns, n, Duration::from_secs(120)).await
     }
 
     /// Robots by the release they report.
