@@ -1,5 +1,6 @@
 //! The robots' desired releases (`spec.release`) as the gateway's Robot watch last saw them: what
-//! sessions send deploy commands for and what the legacy poll answers.
+//! sessions send deploy commands for and what the legacy poll answers; and who holds each robot
+//! (what the status writer's fence reads first).
 
 use std::collections::BTreeSet;
 
@@ -9,6 +10,7 @@ use lekiwi_crds::Robot;
 use lekiwi_protocol::Release;
 
 use crate::gateway::event_store::RobotKey;
+use crate::gateway::holder::Holder;
 
 /// Looks up a robot's `spec.release` in the gateway's Robot cache (a reflector store filled by
 /// [`super::dispatch::start`]).
@@ -28,6 +30,13 @@ impl DesiredReleases {
         self.0
             .get(&obj)
             .map(|r| r.spec.release.as_ref().map(Release::from))
+    }
+
+    /// Who holds `key` according to its status as the watch last saw it; `None` when the Robot
+    /// is not in the cache.
+    pub fn holder(&self, key: &RobotKey) -> Option<Holder> {
+        let obj = ObjectRef::new(&key.name).within(&key.namespace);
+        self.0.get(&obj).map(|r| Holder::of(&r))
     }
 
     /// The manifest digests the Robots of `namespace` name in `spec.release`: the releases a

@@ -1,5 +1,7 @@
-//! Deploy dispatch: the gateway watches Robots and tells a connected robot's session when its
-//! `spec.release` changes; the session then sends the agent a `deploy` command (PROTOCOL.md §12).
+//! Deploy dispatch and takeover: the gateway watches Robots and tells a connected robot's
+//! session when its `spec.release` changes (the session then sends the agent a `deploy` command,
+//! PROTOCOL.md §12) or when another gateway's later session took the robot over (the session
+//! closes, see [`super::holder`]).
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -10,18 +12,21 @@ use kube::{Api, ResourceExt};
 use lekiwi_crds::Robot;
 use lekiwi_protocol::Release;
 use tokio_util::sync::CancellationToken;
-use tracing::debug;
+use tracing::{debug, info};
 
 use super::desired::DesiredReleases;
+use super::holder::{Holder, trim_status};
 use super::registry::Registry;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::RobotKey;
 
-/// Starts the Robot watch; returns the cache sessions read their desired release from once it
-/// is ready, and the task that forwards changes to sessions.
+/// Starts the Robot watch; returns the cache sessions read their desired release (and the
+/// robot's holder) from once it is ready, and the task that forwards changes to sessions of
+/// this gateway (`gateway`).
 pub async fn start(
     robots: Api<Robot>,
     registry: Arc<Registry>,
+    gateway: String,
     cancel: CancellationToken,
 ) -> Result<(DesiredReleases, tokio::task::JoinHandle<()>)> {
     let (store, writer) = reflector::store();
@@ -30,10 +35,10 @@ pub async fn start(
         watcher(robots, watcher::Config::default().any_semantic())
             .default_backoff()
             .modify(|r: &mut Robot| {
-                // Sessions read spec.release only.
+                // Sessions read spec.release and who holds the robot only.
                 r.metadata.managed_fields = None;
                 r.metadata.annotations = None;
-                r.status = None;
+                r.status = trim_status(r.status.take());
             }),
     )
     .applied_objects();
@@ -46,6 +51,13 @@ pub async fn start(
                 r = stream.next() => match r { Some(Ok(r)) => r, Some(Err(_)) => continue, None => return },
             };
             let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
+            let holder = Holder::of(&robot);
+            if let (Some(epoch), Some(other)) = (holder.epoch, holder.gateway.as_deref())
+                && other != gateway
+                && registry.moved(&key, epoch)
+            {
+                info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
+            }
             let desired = robot.spec.release.as_ref().map(Release::from);
             if seen.get(&key) != Some(&desired) {
                 let told = registry.notify_desired_release(&key, desired.clone());

@@ -10,6 +10,7 @@ pub mod dispatch;
 pub mod enroll;
 pub mod event_store;
 pub mod events_api;
+pub mod holder;
 pub mod kube_auth;
 pub mod lease;
 pub mod listener;

@@ -19,6 +19,9 @@ const MAX_OPEN_BUDGETS: usize = 50_000;
 pub enum Control {
     /// A newer connection of the same robot took over; this one closes.
     Replaced,
+    /// A later session of the robot on another gateway replica took over (its status shows a
+    /// higher session epoch); this one closes and leaves the status to that gateway.
+    Moved,
     /// Send this to the agent.
     /// Boxed: the channel's slots are allocated per connection, so keep them pointer-sized.
     Send(Box<ServerMessage>),
@@ -32,12 +35,20 @@ pub enum Control {
     },
 }
 
+/// One registered session: its id, its session epoch (see [`super::holder`]) and the channel
+/// that reaches it.
+struct Slot {
+    id: u64,
+    epoch: i64,
+    tx: mpsc::Sender<Control>,
+}
+
 /// The sessions of this gateway, one per robot, each with the channel that reaches it, and how
 /// fast each robot may open new ones.
 #[derive(Default)]
 pub struct Registry {
     next: AtomicU64,
-    sessions: Mutex<HashMap<RobotKey, (u64, mpsc::Sender<Control>)>>,
+    sessions: Mutex<HashMap<RobotKey, Slot>>,
     /// Sessions per minute and burst one robot may open; `None`: no limit.
     open_rate: Option<(f64, u32)>,
     opens: Mutex<HashMap<RobotKey, TokenBucket>>,
@@ -73,14 +84,15 @@ impl Registry {
         }
     }
 
-    /// Registers a new session for `key`, telling an older one that it was replaced; returns the
-    /// session's id and the channel it reads its [`Control`] messages from.
-    pub(super) fn register(&self, key: &RobotKey) -> (u64, mpsc::Receiver<Control>) {
+    /// Registers a new session for `key` with session epoch `epoch`, telling an older one that
+    /// it was replaced; returns the session's id and the channel it reads its [`Control`]
+    /// messages from.
+    pub(super) fn register(&self, key: &RobotKey, epoch: i64) -> (u64, mpsc::Receiver<Control>) {
         let id = self.next.fetch_add(1, Ordering::Relaxed) + 1;
         let (tx, rx) = mpsc::channel(16);
-        let old = self.lock().insert(key.clone(), (id, tx));
-        if let Some((_, old)) = old {
-            let _ = old.try_send(Control::Replaced);
+        let old = self.lock().insert(key.clone(), Slot { id, epoch, tx });
+        if let Some(old) = old {
+            let _ = old.tx.try_send(Control::Replaced);
         }
         (id, rx)
     }
@@ -88,9 +100,18 @@ impl Registry {
     /// Removes the session unless a newer one replaced it already.
     pub(super) fn unregister(&self, key: &RobotKey, id: u64) {
         let mut sessions = self.lock();
-        if sessions.get(key).is_some_and(|(current, _)| *current == id) {
+        if sessions.get(key).is_some_and(|slot| slot.id == id) {
             sessions.remove(key);
         }
+    }
+
+    /// Another gateway's session with `epoch` holds the robot now: this gateway's session of
+    /// it, if older, is told to close ([`Control::Moved`]). True when one was told.
+    pub fn moved(&self, key: &RobotKey, epoch: i64) -> bool {
+        self.lock()
+            .get(key)
+            .filter(|slot| slot.epoch < epoch)
+            .is_some_and(|slot| slot.tx.try_send(Control::Moved).is_ok())
     }
 
     /// Tells a robot's session that its desired release changed; false when the robot has no
@@ -111,7 +132,11 @@ impl Registry {
     pub fn recheck_all_credentials(&self) -> usize {
         self.lock()
             .values()
-            .filter(|(_, tx)| tx.try_send(Control::Credentials { deleted: false }).is_ok())
+            .filter(|slot| {
+                slot.tx
+                    .try_send(Control::Credentials { deleted: false })
+                    .is_ok()
+            })
             .count()
     }
 
@@ -134,11 +159,11 @@ impl Registry {
     fn try_send(&self, key: &RobotKey, control: Control) -> bool {
         self.lock()
             .get(key)
-            .is_some_and(|(_, tx)| tx.try_send(control).is_ok())
+            .is_some_and(|slot| slot.tx.try_send(control).is_ok())
     }
 
     /// The sessions map; a panic elsewhere while holding it leaves the map itself consistent.
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<RobotKey, (u64, mpsc::Sender<Control>)>> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<RobotKey, Slot>> {
         self.sessions.lock().unwrap_or_else(|p| p.into_inner())
     }
 }

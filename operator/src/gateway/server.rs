@@ -22,6 +22,7 @@ use tracing::{info, warn};
 
 use super::auth::Authenticator;
 use super::blob_store::BlobStore;
+use super::desired::DesiredReleases;
 use super::kube_auth::KubeAuth;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
@@ -112,8 +113,13 @@ pub async fn run(
         },
         metrics.clone(),
     );
-    let (desired, dispatch_task) =
-        dispatch::start(watched(&config, &client), registry.clone(), cancel.clone()).await?;
+    let (desired, dispatch_task) = dispatch::start(
+        watched(&config, &client),
+        registry.clone(),
+        name.clone(),
+        cancel.clone(),
+    )
+    .await?;
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
@@ -124,7 +130,7 @@ pub async fn run(
         metrics: metrics.clone(),
         gateway: name.clone(),
         cancel: cancel.clone(),
-        desired: Some(desired),
+        desired: Some(desired.clone()),
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
     let state = AppState {
@@ -135,7 +141,14 @@ pub async fn run(
         blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
     };
     close_stale_connections(&store, &name).await;
-    let mut tasks = start_background(&config, &name, &client, &presence, &store, &cancel);
+    let mut tasks = start_background(
+        &config,
+        &name,
+        &client,
+        (&presence, desired),
+        &store,
+        &cancel,
+    );
     tasks.aborted.extend([secret_task, dispatch_task]);
     let addr = config.gateway_addr;
     let dropped = state.shared.metrics.gateway.connections_dropped.clone();
@@ -248,22 +261,22 @@ struct Background {
     aborted: Vec<JoinHandle<()>>,
 }
 
-/// Starts the status writer, the presence ticker, the Lease of gateway `name` and the event
-/// store's retention.
+/// Starts the status writer (which reads who holds each robot from the Robot watch's cache),
+/// the presence ticker, the Lease of gateway `name` and the event store's retention.
 fn start_background(
     config: &Config,
     name: &str,
     client: &kube::Client,
-    presence: &Presence,
+    (presence, holders): (&Presence, DesiredReleases),
     store: &Store,
     cancel: &CancellationToken,
 ) -> Background {
     let writer_cancel = CancellationToken::new();
-    let writer_task = tokio::spawn(
-        presence
-            .clone()
-            .run_writer(client.clone(), writer_cancel.clone()),
-    );
+    let writer_task = tokio::spawn(presence.clone().run_writer(
+        client.clone(),
+        Some(holders),
+        writer_cancel.clone(),
+    ));
     let ticker = tokio::spawn(tick_presence(presence.clone(), cancel.clone()));
     let lease_task = tokio::spawn(lease::renew(
         client.clone(),

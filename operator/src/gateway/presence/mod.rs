@@ -26,6 +26,7 @@ use tokio::sync::Notify;
 
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
+use crate::gateway::holder::next_epoch;
 use crate::metrics::Metrics;
 
 /// Which queue a robot waits in for its status write: transitions overtake routine refreshes.
@@ -95,6 +96,8 @@ pub struct UpdateOutcome {
 #[derive(Clone, Debug)]
 struct Entry {
     session: u64,
+    /// The session's epoch (see [`super::holder`]), written to `status.sessionEpoch`.
+    epoch: i64,
     connected: bool,
     info: ConnectInfo,
     connected_since: Timestamp,
@@ -172,8 +175,8 @@ impl Presence {
         self.notify.notify_one();
     }
 
-    /// A session of `key` started.
-    pub fn connect(&self, key: &RobotKey, session: u64, info: ConnectInfo) {
+    /// A session of `key` with session epoch `epoch` started.
+    pub fn connect(&self, key: &RobotKey, session: u64, epoch: i64, info: ConnectInfo) {
         let now = Timestamp::now();
         self.with_state(|s| {
             let teleoperation_since = info.teleoperation.as_ref().map(|_| now);
@@ -184,6 +187,7 @@ impl Presence {
                 key.clone(),
                 Entry {
                     session,
+                    epoch,
                     connected: true,
                     info,
                     connected_since: now,
@@ -289,7 +293,8 @@ impl Presence {
             _ => Act::Connect,
         });
         match act {
-            Act::Connect => self.connect(key, 0, info),
+            // A poll is no session the Robot watch can end: its epoch is just its time.
+            Act::Connect => self.connect(key, 0, next_epoch(Timestamp::now(), None), info),
             Act::Wake => self.wake(),
             Act::Nothing => {}
         }
@@ -315,6 +320,18 @@ impl Presence {
         if done {
             self.wake();
         }
+    }
+
+    /// The session `session` ended because another gateway's later session holds the robot
+    /// now: its entry goes without a write, the status is that gateway's.
+    pub fn forget(&self, key: &RobotKey, session: u64) {
+        self.with_state(|s| {
+            if s.robots.get(key).is_some_and(|e| e.session == session) {
+                s.robots.remove(key);
+                s.queued.remove(key);
+                self.metrics.per_robot.forget(&key.namespace, &key.name);
+            }
+        });
     }
 
     /// Robots waiting for a write.

@@ -67,6 +67,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
             protocol: Some(info.protocol.to_owned()),
             last_heartbeat_time: Some(Time(e.last_heartbeat)),
             connected_since: Some(Time(e.connected_since)),
+            session_epoch: Some(e.epoch),
             ..RobotStatus::default()
         };
     }
@@ -81,6 +82,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         protocol: Some(info.protocol.to_owned()),
         last_heartbeat_time: Some(Time(e.last_heartbeat)),
         connected_since: Some(Time(e.connected_since)),
+        session_epoch: Some(e.epoch),
         agent_version: Some(rules::cut_text(&info.agent_version, rules::MAX_TEXT_CHARS))
             .filter(|v| !v.is_empty()),
         current_release: info.release.as_ref().map(release_ref),

@@ -216,6 +216,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
     let now = Timestamp::now();
     Entry {
         session: 1,
+        epoch: 1_000,
         connected: true,
         info: ConnectInfo {
             protocol: "websocket",

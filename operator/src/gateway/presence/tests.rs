@@ -26,6 +26,7 @@ fn release_json(version: &str) -> Value {
 fn entry(connected: bool, info: ConnectInfo) -> Entry {
     Entry {
         session: 7,
+        epoch: 1_000,
         connected,
         info,
         connected_since: at("2026-11-20T08:00:00Z"),
@@ -165,6 +166,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "agentVersion": "0.9.1",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
+                "sessionEpoch": 1_000,
                 "currentRelease": release_json("1.4.2"),
                 "gateway": "gw-0",
                 "health": {
@@ -199,6 +201,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "agentVersion": "1.0.0-rc.1",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
+                "sessionEpoch": 1_000,
                 "currentRelease": release_json("2.0.0"),
                 "gateway": "gw-0",
                 "health": {
@@ -223,6 +226,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "agentVersion": "0.9.1",
                 "connected": false,
                 "connectedSince": "2026-11-20T08:00:00Z",
+                "sessionEpoch": 1_000,
                 "gateway": "gw-0",
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
                 "protocol": "websocket"
@@ -236,6 +240,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "address": "192.168.1.20",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
+                "sessionEpoch": 1_000,
                 "currentRelease": release_json("1.0.0"),
                 "gateway": "gw-0",
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
@@ -249,6 +254,7 @@ fn hand_written_patches() -> Vec<Value> {
             "status": {
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",
+                "sessionEpoch": 1_000,
                 "currentRelease": release_json("1.4.2"),
                 "gateway": "gw-0",
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
@@ -268,6 +274,7 @@ fn hand_written_patches() -> Vec<Value> {
             "status": {
                 "connected": false,
                 "connectedSince": "2026-11-20T08:00:00Z",
+                "sessionEpoch": 1_000,
                 "currentRelease": release_json("1.5.0"),
                 "gateway": "gw-0",
                 "lastHeartbeatTime": "2026-11-20T08:05:30Z",
@@ -336,7 +343,7 @@ fn sessions_that_fail_at_once_write_nothing_for_a_robot_shown_offline() {
     p.with_state(|s| {
         s.known_offline.insert(key("flap"));
     });
-    p.connect(&key("flap"), 1, ConnectInfo::default());
+    p.connect(&key("flap"), 1, 1_000, ConnectInfo::default());
     assert_eq!(p.queued(), 0, "not written while settling");
     p.disconnect(&key("flap"), 1);
     assert_eq!(
@@ -349,7 +356,7 @@ fn sessions_that_fail_at_once_write_nothing_for_a_robot_shown_offline() {
         assert!(s.known_offline.contains(&key("flap")));
     });
 
-    p.connect(&key("flap"), 2, ConnectInfo::default());
+    p.connect(&key("flap"), 2, 1_000, ConnectInfo::default());
     p.with_state(|s| {
         let e = s.robots.get_mut(&key("flap")).unwrap();
         e.connected_since = Timestamp::now() - jiff::SignedDuration::from_secs(2);
@@ -363,7 +370,7 @@ fn sessions_that_fail_at_once_write_nothing_for_a_robot_shown_offline() {
     p.disconnect(&key("flap"), 2);
     assert_eq!(p.queued(), 1);
 
-    p.connect(&key("new"), 3, ConnectInfo::default());
+    p.connect(&key("new"), 3, 1_000, ConnectInfo::default());
     p.with_state(|s| assert!(s.queued.contains_key(&key("new")), "written at once"));
 }
 
@@ -375,6 +382,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
             key("a"),
             Entry {
                 session: 1,
+                epoch: 1_000,
                 connected: true,
                 info: ConnectInfo::default(),
                 connected_since: Timestamp::now(),
@@ -390,8 +398,8 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
         );
         s.enqueue(&key("a"), Priority::Low);
     });
-    p.connect(&key("b"), 2, ConnectInfo::default());
-    p.connect(&key("b"), 3, ConnectInfo::default());
+    p.connect(&key("b"), 2, 1_000, ConnectInfo::default());
+    p.connect(&key("b"), 3, 1_000, ConnectInfo::default());
     p.disconnect(&key("b"), 2); // stale session: ignored
     p.with_state(|s| {
         assert_eq!(
@@ -411,6 +419,7 @@ fn routine_heartbeats_write_nothing_until_refresh_but_changes_do() {
     p.connect(
         &key("a"),
         1,
+        1_000,
         ConnectInfo {
             teleoperation: Some(Teleoperation {
                 active: false,

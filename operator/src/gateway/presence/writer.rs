@@ -16,15 +16,19 @@ use tracing::{debug, warn};
 
 use super::patch::{Precondition, status_patch};
 use super::{Entry, Presence, Priority};
+use crate::gateway::desired::DesiredReleases;
 use crate::gateway::event_store::RobotKey;
+use crate::gateway::holder::Holder;
 use crate::gateway::rate::TokenBucket;
 
 /// Why a status write did not happen.
 enum WriteError {
     /// The Robot was deleted.
     Gone,
-    /// Another gateway holds the robot now; our disconnect would undo its connect.
+    /// A later session (of another gateway) holds the robot: our write would undo its.
     Superseded,
+    /// The Robot changed since the version the write was fenced with; read again.
+    Conflict,
     /// The API server refused the status as invalid (400 or 422), with its explanation;
     /// retrying the same status cannot help.
     Refused(String),
@@ -39,8 +43,14 @@ const MAX_EVENT_NOTE_BYTES: usize = 1024;
 const MAX_RETRY_DELAY: Duration = Duration::from_secs(60);
 
 impl Presence {
-    /// Writes queued robots until cancelled.
-    pub async fn run_writer(self, client: kube::Client, cancel: CancellationToken) {
+    /// Writes queued robots until cancelled; `holders` is the Robot watch's cache, which
+    /// saves a read per write (see [`Presence::write`]).
+    pub async fn run_writer(
+        self,
+        client: kube::Client,
+        holders: Option<DesiredReleases>,
+        cancel: CancellationToken,
+    ) {
         let slots = Arc::new(Semaphore::new(self.config.concurrency.max(1)));
         let mut bucket = TokenBucket::new(self.config.qps, self.config.burst);
         let recorder = Recorder::new(
@@ -73,8 +83,10 @@ impl Presence {
             let me = self.clone();
             let client = client.clone();
             let recorder = recorder.clone();
+            let holders = holders.clone();
             tokio::spawn(async move {
-                let mut result = me.write(&client, &key, &entry).await;
+                let holders = holders.as_ref();
+                let mut result = me.write(&client, holders, &key, &entry).await;
                 if let Err(WriteError::Refused(why)) = &result
                     && !entry.presence_only
                 {
@@ -83,7 +95,7 @@ impl Presence {
                         presence_only: true,
                         ..entry.clone()
                     };
-                    result = me.write(&client, &key, &bare).await;
+                    result = me.write(&client, holders, &key, &bare).await;
                 }
                 drop(permit);
                 let outcome = me.settle(key, priority, &entry, result);
@@ -118,7 +130,19 @@ impl Presence {
                 self.with_state(|s| s.robots.remove(&key));
                 "gone"
             }
-            Err(WriteError::Superseded) => "superseded",
+            Err(WriteError::Superseded) => {
+                // Not ours any more: the Robot watch closes the session, if it still runs.
+                self.with_state(|s| {
+                    if s.robots
+                        .get(&key)
+                        .is_some_and(|e| e.session == entry.session)
+                    {
+                        s.robots.remove(&key);
+                        s.queued.remove(&key);
+                    }
+                });
+                "superseded"
+            }
             Err(WriteError::Refused(why)) => {
                 // Even presence alone was refused: nothing this gateway sends can help.
                 warn!(robot = %key.name, namespace = %key.namespace, error = %why, "status write refused; not retrying");
@@ -127,6 +151,10 @@ impl Presence {
             Err(WriteError::Api(e)) => {
                 self.retry_later(key, priority, &e);
                 "error"
+            }
+            Err(WriteError::Conflict) => {
+                self.retry_later(key, priority, &"the Robot changed twice while writing");
+                "conflict"
             }
         }
     }
@@ -154,7 +182,7 @@ impl Presence {
     }
 
     /// Queues the robot again after a backoff that doubles with each failure in a row.
-    fn retry_later(&self, key: RobotKey, priority: Priority, error: &kube::Error) {
+    fn retry_later(&self, key: RobotKey, priority: Priority, error: &dyn std::fmt::Display) {
         let retries = self.with_state(|s| {
             s.robots.get_mut(&key).map(|e| {
                 e.retries += 1;
@@ -204,20 +232,49 @@ impl Presence {
         }
     }
 
-    /// Applies the status of `e`; a disconnect only while the robot is still ours.
+    /// Applies the status of `e`, fenced: only while no later session holds the robot (see
+    /// [`crate::gateway::holder`]), with the `resourceVersion` that showed it as a precondition.
+    /// The Robot watch's cache (`holders`) answers first; a conflict or a robot missing there is
+    /// read from the API server once.
     async fn write(
         &self,
         client: &kube::Client,
+        holders: Option<&DesiredReleases>,
         key: &RobotKey,
         e: &Entry,
     ) -> Result<(), WriteError> {
         let api: Api<Robot> = Api::namespaced(client.clone(), &key.namespace);
-        let precondition = if e.connected {
-            None
-        } else {
-            Some(self.disconnect_precondition(&api, key, e).await?)
+        if let Some(cached) = holders.and_then(|h| h.holder(key)) {
+            match self.apply(&api, key, e, &cached).await {
+                Err(WriteError::Conflict) => {}
+                done => return done,
+            }
+        }
+        let fresh = match api.get_opt(&key.name).await {
+            Ok(Some(r)) => Holder::of(&r),
+            Ok(None) => return Err(WriteError::Gone),
+            Err(err) => return Err(WriteError::Api(err)),
         };
-        let patch = status_patch(&self.config.gateway, e, precondition);
+        self.apply(&api, key, e, &fresh).await
+    }
+
+    /// Applies the status of `e` against the Robot as `holder` shows it: `Superseded` without a
+    /// request when a later session holds it, `Conflict` when it changed since.
+    async fn apply(
+        &self,
+        api: &Api<Robot>,
+        key: &RobotKey,
+        e: &Entry,
+        holder: &Holder,
+    ) -> Result<(), WriteError> {
+        if holder.supersedes(&self.config.gateway, e.epoch, e.connected) {
+            debug!(robot = %key.name, holder = ?holder.gateway, "a later session holds the robot; not writing");
+            return Err(WriteError::Superseded);
+        }
+        let precondition = Precondition {
+            resource_version: holder.resource_version.clone(),
+        };
+        let patch = status_patch(&self.config.gateway, e, Some(precondition));
         match api
             .patch_status(
                 &key.name,
@@ -228,37 +285,11 @@ impl Presence {
         {
             Ok(_) => Ok(()),
             Err(kube::Error::Api(s)) if s.code == 404 => Err(WriteError::Gone),
+            Err(kube::Error::Api(s)) if s.code == 409 => Err(WriteError::Conflict),
             Err(kube::Error::Api(s)) if s.code == 400 || s.code == 422 => {
                 Err(WriteError::Refused(s.message))
             }
             Err(err) => Err(WriteError::Api(err)),
         }
-    }
-
-    /// A disconnect must not undo a newer connection through another gateway: it is written
-    /// only if the robot is still ours, with the version we read as a precondition.
-    async fn disconnect_precondition(
-        &self,
-        api: &Api<Robot>,
-        key: &RobotKey,
-        e: &Entry,
-    ) -> Result<Precondition, WriteError> {
-        let robot = match api.get_opt(&key.name).await {
-            Ok(Some(r)) => r,
-            Ok(None) => return Err(WriteError::Gone),
-            Err(err) => return Err(WriteError::Api(err)),
-        };
-        let status = robot.status.unwrap_or_default();
-        let ours = status.gateway.as_deref() == Some(self.config.gateway.as_str());
-        let newer = status
-            .connected_since
-            .is_some_and(|t| t.0 > e.connected_since);
-        if status.gateway.is_some() && (!ours || newer) {
-            debug!(robot = %key.name, "robot moved to another gateway; not writing the disconnect");
-            return Err(WriteError::Superseded);
-        }
-        Ok(Precondition {
-            resource_version: robot.metadata.resource_version,
-        })
     }
 }

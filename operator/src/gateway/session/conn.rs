@@ -23,6 +23,8 @@ pub(super) enum End {
     Closed,
     /// A newer connection of the same robot took over.
     Replaced,
+    /// A later session of the robot on another gateway replica took over.
+    Moved,
     /// The agent stayed silent past the missed-heartbeat limit.
     HeartbeatTimeout,
     /// The agent kept sending above its rate limit.
@@ -40,6 +42,7 @@ impl End {
         match self {
             End::Closed => "closed",
             End::Replaced => "replaced",
+            End::Moved => "moved",
             End::HeartbeatTimeout => "heartbeat_timeout",
             End::Abuse => "rate_limit_abuse",
             End::Shutdown => "shutdown",

@@ -23,6 +23,7 @@ use self::commands::CommandLedger;
 use self::conn::{Conn, End};
 use super::auth::{Authenticator, Grant};
 use super::desired::DesiredReleases;
+use super::holder::next_epoch;
 use super::presence::{ConnectInfo, Presence};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::{Control, Registry};
@@ -193,9 +194,16 @@ async fn run_inner<W, R, E>(
     close(&shared, &key, &opened, &end).await;
 }
 
-/// Registers the session (replacing an older one), records the connection and tells presence.
+/// Registers the session (replacing an older one) with an epoch above the one the robot's
+/// status shows, records the connection and tells presence.
 async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
-    let (id, control) = shared.registry.register(key);
+    let seen = shared
+        .desired
+        .as_ref()
+        .and_then(|d| d.holder(key))
+        .and_then(|h| h.epoch);
+    let epoch = next_epoch(Timestamp::now(), seen);
+    let (id, control) = shared.registry.register(key, epoch);
     let record = ConnectionRecord {
         gateway: shared.gateway.clone(),
         protocol: "websocket".into(),
@@ -219,9 +227,9 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
         })
         // Stored before seqs were bounded: not a number to tell an agent; say nothing.
         .filter(|s| *s <= MAX_SEQ);
-    shared.presence.connect(key, id, hello);
+    shared.presence.connect(key, id, epoch, hello);
     shared.metrics.gateway.connections.inc();
-    info!(session = id, ?stored_seq, "agent connected");
+    info!(session = id, epoch, ?stored_seq, "agent connected");
     Opened {
         id,
         control,
@@ -265,12 +273,15 @@ where
     .await;
 }
 
-/// Unregisters the session, tells presence (unless a newer session took over), counts the end
-/// and closes the connection record.
+/// Unregisters the session, tells presence (unless a newer session took over: here, it has the
+/// presence entry; on another gateway, the status), counts the end and closes the connection
+/// record.
 async fn close(shared: &Shared, key: &RobotKey, opened: &Opened, end: &End) {
     shared.registry.unregister(key, opened.id);
-    if !matches!(end, End::Replaced) {
-        shared.presence.disconnect(key, opened.id);
+    match end {
+        End::Replaced => {}
+        End::Moved => shared.presence.forget(key, opened.id),
+        _ => shared.presence.disconnect(key, opened.id),
     }
     shared.metrics.gateway.connections.dec();
     shared

@@ -135,16 +135,26 @@ where
             }
             Some(Control::Credentials { deleted }) => self.check_credentials(deleted).await,
             Some(Control::Replaced) | None => {
-                self.conn
-                    .fail(
-                        ErrorCode::Replaced,
-                        "a newer connection of this robot replaced this one",
-                        (CLOSE_POLICY, "replaced by a newer connection"),
-                    )
-                    .await;
+                self.replaced().await;
                 Err(End::Replaced)
             }
+            Some(Control::Moved) => {
+                info!("a later session of this robot on another gateway took over; closing");
+                self.replaced().await;
+                Err(End::Moved)
+            }
         }
+    }
+
+    /// Tells the agent that a newer connection of its robot replaced this one, and closes.
+    async fn replaced(&mut self) {
+        self.conn
+            .fail(
+                ErrorCode::Replaced,
+                "a newer connection of this robot replaced this one",
+                (CLOSE_POLICY, "replaced by a newer connection"),
+            )
+            .await;
     }
 
     /// The robot's token Secret changed: the session ends (close 1008 `token revoked`, no
