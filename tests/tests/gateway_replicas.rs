@@ -15,7 +15,9 @@ use kube::Api;
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
 use lekiwi_crds::{Robot, RobotPhase};
-use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, Severity, encode};
+use lekiwi_operator::gateway::event_store::RobotKey;
+use lekiwi_operator::gateway::presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};
+use lekiwi_protocol::{AgentMessage, ErrorCode, Health, ServerMessage, Severity, encode};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, connect_agent, create_robot, gateway_operator, get_robot,
@@ -23,6 +25,7 @@ use lekiwi_tests::{
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
+use tokio_util::sync::CancellationToken;
 
 /// The gateways' Lease validity: short, so a killed gateway's robots would turn Unknown soon.
 const GATEWAY_LEASE_SECS: u64 = 3;
@@ -117,7 +120,10 @@ impl Replicas {
 /// Every phase the Robot showed and the gateway its status named then, in order, as its watch
 /// delivered them.
 #[derive(Clone, Default)]
-struct PhaseHistory(Arc<Mutex<Vec<(Option<RobotPhase>, Option<String>)>>>);
+struct PhaseHistory(Arc<Mutex<Vec<Seen>>>);
+
+/// A phase and the gateway the status named with it.
+type Seen = (Option<RobotPhase>, Option<String>);
 
 impl PhaseHistory {
     /// Records each change of the robot's phase or of the gateway its status names.
@@ -127,7 +133,8 @@ impl PhaseHistory {
         let config = watcher::Config::default().fields(&format!("metadata.name={name}"));
         let out = history.clone();
         tokio::spawn(async move {
-            let mut robots = std::pin::pin!(watcher(api, config).default_backoff().applied_objects());
+            let mut robots =
+                std::pin::pin!(watcher(api, config).default_backoff().applied_objects());
             while let Some(r) = robots.next().await {
                 let Ok(robot) = r else { continue };
                 let status = robot.status.unwrap_or_default();
@@ -201,7 +208,8 @@ async fn a_robot_moves_between_replicas() -> anyhow::Result<()> {
     let mut r = Replicas::start("replicas").await?;
     // Kept connected through B while the second robot's replica dies.
     let _on_b = a_newer_session_on_another_replica_ends_the_old_one(&r).await?;
-    a_robot_moves_when_its_replica_is_killed(&mut r).await
+    a_robot_moves_when_its_replica_is_killed(&mut r).await?;
+    an_older_sessions_writes_are_fenced(&r).await
 }
 
 /// The same identity connects through B while its session on A lives: A's session ends within
@@ -232,7 +240,10 @@ async fn a_newer_session_on_another_replica_ends_the_old_one(
     assert!(recv(&mut on_a).await.is_none(), "A closed the old session");
     let ended = moved.elapsed();
     println!("A's session ended {ended:?} after B's welcome");
-    assert!(ended < Duration::from_secs(5), "A's session lived {ended:?}");
+    assert!(
+        ended < Duration::from_secs(5),
+        "A's session lived {ended:?}"
+    );
 
     // Only B serves the robot now; a replay of what A stored is stored once.
     send_events(&mut on_b, 4..=8).await;
@@ -291,5 +302,94 @@ async fn a_robot_moves_when_its_replica_is_killed(r: &mut Replicas) -> anyhow::R
     assert_eq!(status.phase, Some(RobotPhase::Online));
     history.assert_online_since_first();
     assert_eq!(r.stored_events("kiwi-k")?, once_each(1, 9));
+    Ok(())
+}
+
+/// A gateway's status writer for `gateway`, writing until the token is cancelled.
+fn status_writer(client: &kube::Client, gateway: &str) -> (Presence, CancellationToken) {
+    let presence = Presence::new(
+        PresenceConfig {
+            gateway: gateway.into(),
+            status_refresh: Duration::from_secs(60),
+            poll_grace: Duration::from_secs(60),
+            qps: 50.0,
+            burst: 50,
+            concurrency: 4,
+        },
+        lekiwi_operator::metrics::Metrics::new(false),
+    );
+    let cancel = CancellationToken::new();
+    tokio::spawn(
+        presence
+            .clone()
+            .run_writer(client.clone(), None, cancel.clone()),
+    );
+    (presence, cancel)
+}
+
+/// The writes of a session that lost the robot to a later one, made before its gateway knows
+/// (a status change, then its disconnect), never overwrite the later session's status. Two
+/// status writers stand for the two replicas, without the Robot watch that would end the older
+/// session first: only the fence decides.
+async fn an_older_sessions_writes_are_fenced(r: &Replicas) -> anyhow::Result<()> {
+    create_robot(&r.client, &r.ns, "kiwi-f", &[]).await?;
+    let key = RobotKey::new(&r.ns, "kiwi-f");
+    let (old, old_cancel) = status_writer(&r.client, "gw-old");
+    let (new, new_cancel) = status_writer(&r.client, "gw-new");
+    let healthy = |healthy: bool| {
+        Some(Health {
+            healthy,
+            message: None,
+        })
+    };
+    let holder = |gateway: &'static str| {
+        let (client, ns) = (r.client.clone(), r.ns.clone());
+        async move {
+            let s = get_robot(&client, &ns, "kiwi-f").await.ok()?.status?;
+            (s.gateway.as_deref() == Some(gateway) && s.connected == Some(true)).then_some(s)
+        }
+    };
+    let info = ConnectInfo {
+        protocol: "websocket",
+        health: healthy(true),
+        ..ConnectInfo::default()
+    };
+    old.connect(&key, 1, 1_000, info.clone());
+    wait_for("the old session written", Duration::from_secs(10), || {
+        holder("gw-old")
+    })
+    .await?;
+    new.connect(&key, 1, 2_000, info);
+    wait_for("the new session written", Duration::from_secs(10), || {
+        holder("gw-new")
+    })
+    .await?;
+
+    // The old session reports a change, then ends; its gateway has not heard of the new one.
+    old.heartbeat(
+        &key,
+        1,
+        HeartbeatInfo {
+            health: healthy(false),
+            ..HeartbeatInfo::default()
+        },
+    );
+    wait_for("the old write tried", Duration::from_secs(10), || async {
+        (old.queued() == 0).then_some(())
+    })
+    .await?;
+    old.disconnect(&key, 1);
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert_eq!(old.queued(), 0, "the fenced writes are not retried");
+    let status = get_robot(&r.client, &r.ns, "kiwi-f").await?.status.unwrap();
+    assert_eq!(status.gateway.as_deref(), Some("gw-new"), "{status:?}");
+    assert_eq!(status.connected, Some(true));
+    assert_eq!(status.session_epoch, Some(2_000));
+    assert!(
+        status.health.is_some_and(|h| h.healthy),
+        "the old write landed"
+    );
+    old_cancel.cancel();
+    new_cancel.cancel();
     Ok(())
 }

@@ -228,7 +228,11 @@ async fn a_refused_status_falls_back_to_presence_and_a_warning_event() -> anyhow
         lekiwi_operator::metrics::Metrics::new(false),
     );
     let cancel = tokio_util::sync::CancellationToken::new();
-    let writer = tokio::spawn(presence.clone().run_writer(client.clone(), cancel.clone()));
+    let writer = tokio::spawn(
+        presence
+            .clone()
+            .run_writer(client.clone(), None, cancel.clone()),
+    );
     // Injected past the boundary validation: a digest the CRD refuses.
     let key = RobotKey::new(&ns, "kiwi-1");
     let bad = Release {
@@ -237,6 +241,7 @@ async fn a_refused_status_falls_back_to_presence_and_a_warning_event() -> anyhow
     };
     presence.connect(
         &key,
+        1,
         1,
         ConnectInfo {
             protocol: "websocket",
