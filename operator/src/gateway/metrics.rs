@@ -27,7 +27,9 @@ pub struct PriorityLabels {
 pub struct WriteLabels {
     /// `high` or `low`.
     pub priority: &'static str,
-    /// `ok`, `error` (retried), `gone`, `superseded` or `refused` (invalid even as presence alone; not retried).
+    /// `ok`, `error` (retried), `conflict` (the Robot changed twice while writing; retried),
+    /// `gone`, `superseded` (a later session of another gateway holds the robot; not retried)
+    /// or `refused` (invalid even as presence alone; not retried).
     pub result: &'static str,
 }
 
@@ -52,7 +54,7 @@ pub struct ReasonLabels {
 pub struct GatewayMetrics {
     /// Agent connections open now.
     pub connections: Gauge,
-    /// Sessions ended, by how (`closed`, `replaced`, `heartbeat_timeout`, `error`, ...).
+    /// Sessions ended, by how (`closed`, `replaced`, `moved`, `heartbeat_timeout`, `error`, ...).
     pub sessions_ended: Family<KindLabels, Counter>,
     /// Upgrade requests refused, by reason.
     pub refused: Family<KindLabels, Counter>,
@@ -98,7 +100,7 @@ impl GatewayMetrics {
             connections: r.add("lekiwi_gateway_connections", "Agent connections open now"),
             sessions_ended: r.add(
                 "lekiwi_gateway_sessions_ended",
-                "Agent sessions ended, by how",
+                "Agent sessions ended, by how (moved: another gateway's later session took over)",
             ),
             refused: r.add(
                 "lekiwi_gateway_refused",
