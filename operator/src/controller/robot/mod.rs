@@ -20,7 +20,7 @@ use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, info, info_span, warn};
 
-use self::gateways::{gateway_state, watch_gateways};
+use self::gateways::{gateway_state, unknown_fence, watch_gateways};
 use self::plan::{Facts, GatewayState};
 use super::Context;
 use super::trigger::trigger;
@@ -112,7 +112,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
         let plan = plan::plan(robot, &facts);
         if plan.differs_from(robot) {
             let api: Api<Robot> = Api::namespaced(ctx.client.clone(), &namespace);
-            status::apply(&api, &name, &plan).await?;
+            status::apply(&api, &name, &plan, unknown_fence(robot, &plan)).await?;
             let old_phase = robot.status.as_ref().and_then(|s| s.phase);
             if let Some(reason) = plan::transition_reason(old_phase, plan.phase) {
                 info!(from = ?old_phase, to = %plan.phase, "robot phase changed");
