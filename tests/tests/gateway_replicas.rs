@@ -12,16 +12,18 @@ use std::time::{Duration, Instant};
 
 use futures::{SinkExt, StreamExt};
 use kube::Api;
-use kube::runtime::{WatchStreamExt, watcher};
+use kube::runtime::{WatchStreamExt, reflector, watcher};
 use lekiwi_agent::connection::Socket;
 use lekiwi_crds::{Robot, RobotPhase};
+use lekiwi_operator::gateway::desired::DesiredReleases;
 use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_operator::gateway::presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};
+use lekiwi_operator::metrics::Metrics;
 use lekiwi_protocol::{AgentMessage, ErrorCode, Health, ServerMessage, Severity, encode};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, connect_agent, create_robot, gateway_operator, get_robot,
-    heartbeat, namespace, recv, robot_token, wait_for,
+    heartbeat, namespace, recv, robot_token, sample, wait_for,
 };
 use serde_json::json;
 use tokio_tungstenite::tungstenite::Message;
@@ -305,8 +307,14 @@ async fn a_robot_moves_when_its_replica_is_killed(r: &mut Replicas) -> anyhow::R
     Ok(())
 }
 
-/// A gateway's status writer for `gateway`, writing until the token is cancelled.
-fn status_writer(client: &kube::Client, gateway: &str) -> (Presence, CancellationToken) {
+/// A gateway's status writer for `gateway` that reads who holds a robot from `cache` first,
+/// writing until the token is cancelled.
+fn status_writer(
+    client: &kube::Client,
+    gateway: &str,
+    cache: &DesiredReleases,
+) -> (Presence, Metrics, CancellationToken) {
+    let metrics = Metrics::new(false);
     let presence = Presence::new(
         PresenceConfig {
             gateway: gateway.into(),
@@ -316,26 +324,37 @@ fn status_writer(client: &kube::Client, gateway: &str) -> (Presence, Cancellatio
             burst: 50,
             concurrency: 4,
         },
-        lekiwi_operator::metrics::Metrics::new(false),
+        metrics.clone(),
     );
     let cancel = CancellationToken::new();
     tokio::spawn(
         presence
             .clone()
-            .run_writer(client.clone(), None, cancel.clone()),
+            .run_writer(client.clone(), Some(cache.clone()), cancel.clone()),
     );
-    (presence, cancel)
+    (presence, metrics, cancel)
+}
+
+/// How many high-priority status writes of `metrics` ended with `result`.
+fn writes(metrics: &Metrics, result: &str) -> f64 {
+    let series =
+        format!("lekiwi_gateway_status_writes_total{{priority=\"high\",result=\"{result}\"}}");
+    sample(&metrics.encode(), &series).unwrap_or(0.0)
 }
 
 /// The writes of a session that lost the robot to a later one, made before its gateway knows
 /// (a status change, then its disconnect), never overwrite the later session's status. Two
 /// status writers stand for the two replicas, without the Robot watch that would end the older
-/// session first: only the fence decides.
+/// session first: only the fence decides. Their Robot cache is stuck at the robot's creation, so
+/// every write meets a conflict first and decides on the Robot read again.
 async fn an_older_sessions_writes_are_fenced(r: &Replicas) -> anyhow::Result<()> {
-    create_robot(&r.client, &r.ns, "kiwi-f", &[]).await?;
+    let created = create_robot(&r.client, &r.ns, "kiwi-f", &[]).await?;
+    let (cache, mut fill) = reflector::store::<Robot>();
+    fill.apply_watcher_event(&watcher::Event::Apply(created));
+    let cache = DesiredReleases(cache);
     let key = RobotKey::new(&r.ns, "kiwi-f");
-    let (old, old_cancel) = status_writer(&r.client, "gw-old");
-    let (new, new_cancel) = status_writer(&r.client, "gw-new");
+    let (old, old_metrics, old_cancel) = status_writer(&r.client, "gw-old", &cache);
+    let (new, new_metrics, new_cancel) = status_writer(&r.client, "gw-new", &cache);
     let healthy = |healthy: bool| {
         Some(Health {
             healthy,
@@ -389,6 +408,10 @@ async fn an_older_sessions_writes_are_fenced(r: &Replicas) -> anyhow::Result<()>
         status.health.is_some_and(|h| h.healthy),
         "the old write landed"
     );
+    // Every write went through the fresh read: the new session's landed, the old one's did not.
+    assert_eq!(writes(&new_metrics, "ok"), 1.0);
+    assert!(writes(&old_metrics, "superseded") >= 1.0);
+    assert_eq!(writes(&old_metrics, "ok"), 1.0, "only its connect landed");
     old_cancel.cancel();
     new_cancel.cancel();
     Ok(())
