@@ -167,3 +167,22 @@ impl Registry {
         self.sessions.lock().unwrap_or_else(|p| p.into_inner())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Another gateway's later session closes ours; an earlier one (or an equal epoch) does not.
+    #[test]
+    fn only_a_later_session_elsewhere_moves_ours() {
+        let registry = Registry::default();
+        let key = RobotKey::new("lab", "kiwi");
+        let (_, mut rx) = registry.register(&key, 100);
+        assert!(!registry.moved(&key, 50));
+        assert!(!registry.moved(&key, 100));
+        assert!(rx.try_recv().is_err());
+        assert!(registry.moved(&key, 200));
+        assert!(matches!(rx.try_recv(), Ok(Control::Moved)));
+        assert!(!registry.moved(&RobotKey::new("lab", "other"), 200));
+    }
+}

@@ -468,3 +468,18 @@ fn routine_heartbeats_write_nothing_until_refresh_but_changes_do() {
     assert_eq!(patch["status"]["teleoperation"]["active"], json!(true));
     assert_eq!(patch["status"]["gateway"], json!("gw"));
 }
+
+/// A session another gateway took over is forgotten without a write; a stale session id
+/// forgets nothing.
+#[test]
+fn a_moved_session_is_forgotten_without_a_write() {
+    let p = presence();
+    p.connect(&key("m"), 1, 1_000, ConnectInfo::default());
+    assert_eq!(p.queued(), 1);
+    p.forget(&key("m"), 2);
+    assert_eq!(p.connected(), 1);
+    p.forget(&key("m"), 1);
+    assert_eq!((p.connected(), p.queued()), (0, 0));
+    p.disconnect(&key("m"), 1);
+    assert_eq!(p.queued(), 0, "its end writes nothing either");
+}
