@@ -27,7 +27,7 @@ pub struct PriorityLabels {
 pub struct WriteLabels {
     /// `high` or `low`.
     pub priority: &'static str,
-    /// `ok`, `error` (retried), `conflict` (the Robot changed twice while writing; retried),
+    /// `ok`, `error` (retried), `conflict` (the Robot kept changing while writing; retried),
     /// `gone`, `superseded` (a later session of another gateway holds the robot; not retried)
     /// or `refused` (invalid even as presence alone; not retried).
     pub result: &'static str,

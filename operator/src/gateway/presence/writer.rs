@@ -39,6 +39,10 @@ enum WriteError {
 /// Longest note of the Warning Event on a refused status (the API server's reason), in bytes.
 const MAX_EVENT_NOTE_BYTES: usize = 1024;
 
+/// Reads of the Robot (and writes against it) one status write tries while other writers keep
+/// changing it, before it queues the robot again.
+const FRESH_ATTEMPTS: usize = 3;
+
 /// A failed write is retried after 400 ms, doubling per failure up to this.
 const MAX_RETRY_DELAY: Duration = Duration::from_secs(60);
 
@@ -149,11 +153,12 @@ impl Presence {
                 "refused"
             }
             Err(WriteError::Api(e)) => {
-                self.retry_later(key, priority, &e);
+                self.retry_later(key, priority, Some(&e));
                 "error"
             }
             Err(WriteError::Conflict) => {
-                self.retry_later(key, priority, &"the Robot changed twice while writing");
+                // Other writers were busy with this Robot; nothing failed.
+                self.retry_later(key, priority, None);
                 "conflict"
             }
         }
@@ -181,8 +186,14 @@ impl Presence {
         });
     }
 
-    /// Queues the robot again after a backoff that doubles with each failure in a row.
-    fn retry_later(&self, key: RobotKey, priority: Priority, error: &dyn std::fmt::Display) {
+    /// Queues the robot again after a backoff that doubles with each failure in a row; an
+    /// `error` is logged as a warning, a retry without one (conflicts) at debug level.
+    fn retry_later(
+        &self,
+        key: RobotKey,
+        priority: Priority,
+        error: Option<&dyn std::fmt::Display>,
+    ) {
         let retries = self.with_state(|s| {
             s.robots.get_mut(&key).map(|e| {
                 e.retries += 1;
@@ -191,7 +202,14 @@ impl Presence {
         });
         let delay =
             Duration::from_millis(200 * (1u64 << retries.unwrap_or(1).min(8))).min(MAX_RETRY_DELAY);
-        warn!(robot = %key.name, namespace = %key.namespace, error = %error, retry_in = ?delay, "status write failed");
+        match error {
+            Some(error) => {
+                warn!(robot = %key.name, namespace = %key.namespace, error = %error, retry_in = ?delay, "status write failed")
+            }
+            None => {
+                debug!(robot = %key.name, namespace = %key.namespace, retry_in = ?delay, "the Robot kept changing while writing its status; retrying")
+            }
+        }
         let again = self.clone();
         tokio::spawn(async move {
             tokio::time::sleep(delay).await;
@@ -234,8 +252,8 @@ impl Presence {
 
     /// Applies the status of `e`, fenced: only while no later session holds the robot (see
     /// [`crate::gateway::holder`]), with the `resourceVersion` that showed it as a precondition.
-    /// The Robot watch's cache (`holders`) answers first; a conflict or a robot missing there is
-    /// read from the API server once.
+    /// The Robot watch's cache (`holders`) answers first; after a conflict, or for a robot
+    /// missing there, the Robot is read from the API server, up to [`FRESH_ATTEMPTS`] times.
     async fn write(
         &self,
         client: &kube::Client,
@@ -250,12 +268,18 @@ impl Presence {
                 done => return done,
             }
         }
-        let fresh = match api.get_opt(&key.name).await {
-            Ok(Some(r)) => Holder::of(&r),
-            Ok(None) => return Err(WriteError::Gone),
-            Err(err) => return Err(WriteError::Api(err)),
-        };
-        self.apply(&api, key, e, &fresh).await
+        for _ in 0..FRESH_ATTEMPTS {
+            let fresh = match api.get_opt(&key.name).await {
+                Ok(Some(r)) => Holder::of(&r),
+                Ok(None) => return Err(WriteError::Gone),
+                Err(err) => return Err(WriteError::Api(err)),
+            };
+            match self.apply(&api, key, e, &fresh).await {
+                Err(WriteError::Conflict) => {}
+                done => return done,
+            }
+        }
+        Err(WriteError::Conflict)
     }
 
     /// Applies the status of `e` against the Robot as `holder` shows it: `Superseded` without a
