@@ -14,7 +14,14 @@
 #! then restarts the killed gateway and measures the writes and sessions after it (does the fleet
 #! rebalance?), and finally drains the simulator and compares events sent with events stored.
 #!
+#! A second scenario, --scenario first-boot, is a fleet's first boot: M incumbent robots are
+#! Online, then N new robots enroll at once (no connect-rate limit); it measures the time until all
+#! are enrolled and Online, the gateways' refusals (Retry-After), API 429/5xx, the gateways'
+#! open files, and whether any incumbent robot left Online meanwhile.
+#!
 #! Usage: bash bench/recovery.sh [options]
+#!   --scenario kill|first-boot  see above (default kill)
+#!   --incumbents M         first-boot: robots Online before the new fleet comes (default 1000)
 #!   --robots N             simulated robots (default 10000)
 #!   --events-per-minute E  durable events per robot per minute (default 6)
 #!   --interval S           heartbeat interval, seconds (default 5)
@@ -27,7 +34,8 @@
 #!   --keep                 keep the work directory (logs, watch log, scrapes)
 #!   -h, --help             this text
 #!
-#! Writes the table to bench/results/recovery-<date>.txt and bench/results/recovery-latest.txt.
+#! Writes the table to bench/results/recovery-<scenario>-<date>.txt and
+#! bench/results/recovery-<scenario>-latest.txt.
 #! Bounded in time (about 10 minutes for 10,000 robots once built; at most ~25), cleans up on exit
 #! and Ctrl-C. Needs root or a `postgres` user (PostgreSQL refuses to run as root).
 set -euo pipefail
@@ -38,6 +46,8 @@ RESULTS="$ROOT/bench/results"
 PG_BIN=/usr/lib/postgresql/15/bin
 
 ROBOTS=10000
+SCENARIO=kill
+INCUMBENTS=1000
 EPM=6
 INTERVAL=5
 SETTLE=30
@@ -53,6 +63,10 @@ source "$ROOT/bench/lib.sh"
 while [ $# -gt 0 ]; do
   case "$1" in
     --robots) positive_int "$1" "${2:-}"; ROBOTS="$2"; shift 2 ;;
+    --scenario)
+      case "${2:-}" in kill|first-boot) SCENARIO="$2" ;; *) die "--scenario is kill or first-boot" ;; esac
+      shift 2 ;;
+    --incumbents) positive_int "$1" "${2:-}"; INCUMBENTS="$2"; shift 2 ;;
     --events-per-minute) positive_int "$1" "${2:-}"; EPM="$2"; shift 2 ;;
     --interval) positive_int "$1" "${2:-}"; INTERVAL="$2"; shift 2 ;;
     --settle) positive_int "$1" "${2:-}"; SETTLE="$2"; shift 2 ;;
@@ -76,7 +90,7 @@ trap_cleanup
 take_bench_lock
 
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
-[ "$(ulimit -n)" -gt $((ROBOTS * 3 + 1000)) ] \
+[ "$(ulimit -n)" -gt $(((ROBOTS + INCUMBENTS) * 3 + 1000)) ] \
   || die "open-file limit $(ulimit -n) is too low for $ROBOTS robots through a proxy (raise the hard limit)"
 
 log "work directory: $WORK"
@@ -96,6 +110,7 @@ fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/
 fact_source
 fact command "$COMMAND"
 fact robots "$ROBOTS"
+fact scenario "$SCENARIO"
 fact events_per_minute "$EPM"
 fact interval "$INTERVAL"
 
@@ -158,7 +173,7 @@ wait_for "controller leadership" 60 leader
 # (a readiness probe of /readyz every second; two failures take a replica out).
 cat >"$WORK/haproxy.cfg" <<EOF
 global
-  maxconn $((ROBOTS * 2 + 1000))
+  maxconn $(((ROBOTS + INCUMBENTS) * 2 + 1000))
 defaults
   mode tcp
   timeout connect 5s
@@ -185,106 +200,163 @@ sleep 1
 alive "$HAPROXY_PID" || die "haproxy exited: $(tail -5 "$WORK/haproxy.log")"
 
 # ---- the fleet -------------------------------------------------------------------------------
-# Provisioned robots whose token Secrets hold the hash of $TOKEN: the simulator presents it as
-# every robot's own token (a fleet enrolled long ago; bench/gateway.sh --mode provision does the same).
-log "provisioning $ROBOTS Robots and token Secrets"
-provision_robots bench "$ROBOTS" "$TOKEN_HASH"
-pending() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Pending"}')" -ge "$ROBOTS" ]; }
-wait_for "all robots Pending" 300 pending
-sleep 5
-
-# Every change of every Robot, time-stamped on arrival: name phase gateway connected.
-log "watching every Robot"
-start watch python3 -u "$ROOT/bench/recovery_watch.py" "https://127.0.0.1:$APISERVER_PORT" \
-  "$CP_DIR/pki/ca.crt" "$CP_DIR/admin-token" bench "$WORK/robots.log"
-WATCH_PID=$LAST_PID
-listed() {
-  alive "$WATCH_PID" || die "the Robot watch exited: $(tail -5 "$WORK/watch.log")"
-  [ -f "$WORK/robots.log" ] && [ "$(grep -c '|ADDED|' "$WORK/robots.log" || true)" -ge "$ROBOTS" ]
+# Every change of every Robot, time-stamped on arrival: name phase gateway connected. Started
+# once the first COUNT Robots exist, and waited for until it listed them.
+start_watch() { # count
+  log "watching every Robot"
+  start watch python3 -u "$ROOT/bench/recovery_watch.py" "https://127.0.0.1:$APISERVER_PORT" \
+    "$CP_DIR/pki/ca.crt" "$CP_DIR/admin-token" bench "$WORK/robots.log"
+  WATCH_PID=$LAST_PID
+  listed() {
+    alive "$WATCH_PID" || die "the Robot watch exited: $(tail -5 "$WORK/watch.log")"
+    [ -f "$WORK/robots.log" ] && [ "$(grep -c '|ADDED|' "$WORK/robots.log" || true)" -ge "$1" ]
+  }
+  wait_for "the Robot watch" 120 listed "$1"
 }
-wait_for "the Robot watch" 120 listed
 
-log "starting $ROBOTS simulated robots through haproxy :$LB_PORT ($EPM events/min each)"
-start sim "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$LB_PORT/v1/agent" \
-  --enrollment-token "$TOKEN" --namespace bench \
-  --robots "$ROBOTS" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
-  --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json"
-SIM_PID=$LAST_PID
-
-# ---- steady state ----------------------------------------------------------------------------
-online() {
-  alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
-  [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$ROBOTS" ]
+# Provisions COUNT robots (sim-00001...) whose token Secrets hold the hash of $TOKEN: the
+# simulator presents it as every robot's own token (a fleet enrolled long ago, as
+# bench/gateway.sh --mode provision does), and starts them; sets SIM_PID.
+provisioned_fleet() { # count
+  log "provisioning $1 Robots and token Secrets"
+  provision_robots bench "$1" "$TOKEN_HASH"
+  pending() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Pending"}')" -ge "$1" ]; }
+  wait_for "all robots Pending" 300 pending "$1"
+  sleep 5
+  start_watch "$1"
+  log "starting $1 simulated robots through haproxy :$LB_PORT ($EPM events/min each)"
+  start sim "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$LB_PORT/v1/agent" \
+    --enrollment-token "$TOKEN" --namespace bench \
+    --robots "$1" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
+    --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json"
+  SIM_PID=$LAST_PID
+  online() {
+    alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
+    [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$1" ]
+  }
+  local t0
+  t0="$(now)"
+  wait_for "all $1 robots Online" $(($1 / 50 + 180)) online "$1"
+  fact all_online_seconds "$(elapsed "$t0")"
+  log "all $1 robots Online after $(elapsed "$t0") s"
 }
-T0="$(now)"
-wait_for "all $ROBOTS robots Online" $((ROBOTS / 50 + 180)) online
-fact all_online_seconds "$(elapsed "$T0")"
-log "all $ROBOTS robots Online after $(elapsed "$T0") s; steady state for $SETTLE s"
-sleep "$SETTLE"
-for g in gw-a gw-b; do
-  fact "sessions_before_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
-done
 
-# ---- the kill --------------------------------------------------------------------------------
-scrape_apiserver "$WORK/apiserver-before-kill.txt"
-T_KILL="$(now)"
-fact kill_time "$T_KILL"
-log "SIGKILL gw-a (pid ${GW_PID[gw-a]})"
-kill -KILL "${GW_PID[gw-a]}"
-wait "${GW_PID[gw-a]}" 2>/dev/null || true
-forget "${GW_PID[gw-a]}"
-# Recovered: the survivor holds every session and the controller counts every robot Online.
-recovered() {
-  alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
-  [ "$(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections)" -ge "$ROBOTS" ] \
-    && [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$ROBOTS" ]
+# ---- scenario kill ---------------------------------------------------------------------------
+scenario_kill() {
+  provisioned_fleet "$ROBOTS"
+  log "steady state for $SETTLE s"
+  sleep "$SETTLE"
+  for g in gw-a gw-b; do
+    fact "sessions_before_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
+  done
+
+  # ---- the kill --------------------------------------------------------------------------------
+  scrape_apiserver "$WORK/apiserver-before-kill.txt"
+  T_KILL="$(now)"
+  fact kill_time "$T_KILL"
+  log "SIGKILL gw-a (pid ${GW_PID[gw-a]})"
+  kill -KILL "${GW_PID[gw-a]}"
+  wait "${GW_PID[gw-a]}" 2>/dev/null || true
+  forget "${GW_PID[gw-a]}"
+  # Recovered: the survivor holds every session and the controller counts every robot Online.
+  recovered() {
+    alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
+    [ "$(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections)" -ge "$ROBOTS" ] \
+      && [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$ROBOTS" ]
+  }
+  deadline=$((SECONDS + RECOVERY_TIMEOUT))
+  last=$SECONDS
+  until recovered; do
+    if [ $SECONDS -ge $deadline ]; then log "not recovered after $RECOVERY_TIMEOUT s"; break; fi
+    if [ $((SECONDS - last)) -ge 5 ]; then
+      last=$SECONDS
+      log "  $(elapsed "$T_KILL") s: gw-b sessions $(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections), Online $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}'), Unknown $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Unknown"}'), Offline $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Offline"}')"
+    fi
+    sleep 0.5
+  done
+  fact recovered_seconds_by_metrics "$(elapsed "$T_KILL")"
+  # The writes that follow the recovery (the controller's Unknown checks, the dead gateway's
+  # Lease) belong to it too: count them over a fixed window that covers the Lease's expiry.
+  sleep 30
+  scrape_apiserver "$WORK/apiserver-after-recovery.txt"
+  fact recovery_window_seconds "$(elapsed "$T_KILL")"
+
+  # ---- the restart -----------------------------------------------------------------------------
+  log "restarting gw-a; observing for $AFTER_RESTART s"
+  start_gateway gw-a
+  wait_for gw-a 60 ready "${GW_PID[gw-a]}" gw-a "http://127.0.0.1:${GW_HTTP[gw-a]}/readyz"
+  T_RESTART="$(now)"
+  fact restart_time "$T_RESTART"
+  sleep "$AFTER_RESTART"
+  scrape_apiserver "$WORK/apiserver-after-restart.txt"
+  fact after_restart_seconds "$(elapsed "$T_RESTART")"
+  for g in gw-a gw-b; do
+    fact "sessions_after_restart_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
+  done
+
+  # ---- drain and count -------------------------------------------------------------------------
+  log "stopping the simulator (it drains its unacknowledged events first, at most 120 s)"
+  kill -TERM "$SIM_PID"
+  for _ in $(seq 1 300); do alive "$SIM_PID" || break; sleep 0.5; done
+  wait "$SIM_PID" 2>/dev/null || true
+  forget "$SIM_PID"
+  [ -s "$WORK/sim.json" ] || die "the simulator wrote no summary: $(tail -5 "$WORK/sim.log")"
+  psql_do "SELECT count(*), count(DISTINCT (robot, seq)), count(DISTINCT robot),
+    coalesce(sum(CASE WHEN seq > 0 THEN 1 ELSE 0 END), 0) FROM events WHERE namespace = 'bench'" lekiwi \
+    >"$WORK/stored.txt"
+  psql_do "SELECT count(*) FROM (SELECT robot FROM events WHERE namespace = 'bench'
+    GROUP BY robot HAVING max(seq) <> count(*)) gaps" lekiwi >"$WORK/gaps.txt"
+  stop "$WATCH_PID"
 }
-deadline=$((SECONDS + RECOVERY_TIMEOUT))
-last=$SECONDS
-until recovered; do
-  if [ $SECONDS -ge $deadline ]; then log "not recovered after $RECOVERY_TIMEOUT s"; break; fi
-  if [ $((SECONDS - last)) -ge 5 ]; then
-    last=$SECONDS
-    log "  $(elapsed "$T_KILL") s: gw-b sessions $(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections), Online $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}'), Unknown $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Unknown"}'), Offline $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Offline"}')"
-  fi
-  sleep 0.5
-done
-fact recovered_seconds_by_metrics "$(elapsed "$T_KILL")"
-# The writes that follow the recovery (the controller's Unknown checks, the dead gateway's
-# Lease) belong to it too: count them over a fixed window that covers the Lease's expiry.
-sleep 30
-scrape_apiserver "$WORK/apiserver-after-recovery.txt"
-fact recovery_window_seconds "$(elapsed "$T_KILL")"
 
-# ---- the restart -----------------------------------------------------------------------------
-log "restarting gw-a; observing for $AFTER_RESTART s"
-start_gateway gw-a
-wait_for gw-a 60 ready "${GW_PID[gw-a]}" gw-a "http://127.0.0.1:${GW_HTTP[gw-a]}/readyz"
-T_RESTART="$(now)"
-fact restart_time "$T_RESTART"
-sleep "$AFTER_RESTART"
-scrape_apiserver "$WORK/apiserver-after-restart.txt"
-fact after_restart_seconds "$(elapsed "$T_RESTART")"
-for g in gw-a gw-b; do
-  fact "sessions_after_restart_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
-done
+# ---- scenario first-boot ---------------------------------------------------------------------
+# The gateways' open files, sampled while the new fleet enrolls (the record in bench/README.md:
+# enrollment beyond what the API server sustains once exhausted them).
+fds() { find "/proc/$1/fd" -mindepth 1 -maxdepth 1 2>/dev/null | wc -l; }
+scenario_first_boot() {
+  TOKEN_ENROLL="lke_$(openssl rand -hex 32)"
+  kubectl -n bench create secret generic fleet-enrollment \
+    --from-literal=sha256="$(printf %s "$TOKEN_ENROLL" | sha256sum | cut -d' ' -f1)" >/dev/null
+  kubectl -n bench label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+  provisioned_fleet "$INCUMBENTS"
+  sleep 5
+  scrape_apiserver "$WORK/apiserver-before-boot.txt"
+  local t0 total=$((INCUMBENTS + ROBOTS)) last=$SECONDS max_a=0 max_b=0 f
+  t0="$(now)"
+  fact boot_time "$t0"
+  log "first boot: $ROBOTS new robots enroll at once"
+  start sim-new "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$LB_PORT/v1/agent" \
+    --enrollment-token "$TOKEN_ENROLL" --namespace bench --prefix new --robots "$ROBOTS" \
+    --heartbeat-interval "$INTERVAL" --connect-rate 1000000 --connect-timeout 300 \
+    --token-file "$WORK/new-tokens.json" --report-every 10 --json "$WORK/sim-new.json"
+  local new_pid=$LAST_PID
+  local deadline=$((SECONDS + RECOVERY_TIMEOUT + ROBOTS / 20))
+  until [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$total" ]; do
+    alive "$new_pid" || die "the new fleet's simulator exited: $(tail -5 "$WORK/sim-new.log")"
+    f="$(fds "${GW_PID[gw-a]}")"; [ "$f" -gt "$max_a" ] && max_a=$f
+    f="$(fds "${GW_PID[gw-b]}")"; [ "$f" -gt "$max_b" ] && max_b=$f
+    if [ $SECONDS -ge $deadline ]; then log "not all Online after $(elapsed "$t0") s"; break; fi
+    if [ $((SECONDS % 10)) = 0 ]; then
+      log "  $(elapsed "$t0") s: Online $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')/$total, gateway fds $max_a/$max_b"
+    fi
+    sleep 1
+  done
+  fact all_enrolled_online_seconds "$(elapsed "$t0")"
+  fact gateway_fds_max "$max_a / $max_b"
+  for g in gw-a gw-b; do
+    scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-after-boot.txt"
+  done
+  scrape_apiserver "$WORK/apiserver-after-boot.txt"
+  stop "$new_pid"
+  stop "$SIM_PID"
+  stop "$WATCH_PID"
+  fact incumbents "$INCUMBENTS"
+}
 
-# ---- drain and count -------------------------------------------------------------------------
-log "stopping the simulator (it drains its unacknowledged events first, at most 120 s)"
-kill -TERM "$SIM_PID"
-for _ in $(seq 1 300); do alive "$SIM_PID" || break; sleep 0.5; done
-wait "$SIM_PID" 2>/dev/null || true
-forget "$SIM_PID"
-[ -s "$WORK/sim.json" ] || die "the simulator wrote no summary: $(tail -5 "$WORK/sim.log")"
-psql_do "SELECT count(*), count(DISTINCT (robot, seq)), count(DISTINCT robot),
-  coalesce(sum(CASE WHEN seq > 0 THEN 1 ELSE 0 END), 0) FROM events WHERE namespace = 'bench'" lekiwi \
-  >"$WORK/stored.txt"
-psql_do "SELECT count(*) FROM (SELECT robot FROM events WHERE namespace = 'bench'
-  GROUP BY robot HAVING max(seq) <> count(*)) gaps" lekiwi >"$WORK/gaps.txt"
-stop "$WATCH_PID"
+if [ "$SCENARIO" = kill ]; then scenario_kill; else scenario_first_boot; fi
 
 mkdir -p "$RESULTS"
-OUT="$RESULTS/recovery-$(date +%Y%m%d-%H%M%S).txt"
+OUT="$RESULTS/recovery-$SCENARIO-$(date +%Y%m%d-%H%M%S).txt"
 python3 "$ROOT/bench/recovery_report.py" "$WORK" | tee "$OUT"
-cp "$OUT" "$RESULTS/recovery-latest.txt"
+cp "$OUT" "$RESULTS/recovery-$SCENARIO-latest.txt"
 log "table written to $OUT"

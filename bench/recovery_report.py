@@ -97,9 +97,69 @@ def moves(rows, t_kill, t_end):
     return state, on_killed, recovered, wrong, dipped
 
 
+def row(what, value, goal=""):
+    print(f"| {what} | {value} | {goal} |")
+
+
+def header(f, what):
+    print(f"# Recovery benchmark ({what}), {f.get('date', '?')}")
+    print()
+    print(f"- source: {f.get('source', '?')}; command: `{f.get('command', '?')}`")
+    print(f"- host: {f.get('host', '?')}")
+
+
+def report_first_boot(work, f):
+    """The first-boot scenario: incumbents Online, then the new fleet enrolls at once."""
+    robots, incumbents, t0 = int(f["robots"]), int(f["incumbents"]), float(f["boot_time"])
+    rows = watch(work)
+    online_at, wrong, state = {}, set(), {}
+    for t, name, phase, gateway, connected in rows:
+        if name.startswith("sim-"):
+            if t >= t0 and state.get(name) == "Online" and phase != "Online":
+                wrong.add(name)
+            state[name] = phase
+        elif phase == "Online" and name not in online_at:
+            online_at[name] = t - t0
+    times = list(online_at.values())
+    refused = Counter()
+    for g in ("gw-a", "gw-b"):
+        for (name, labels), value in parse_metrics(work / f"{g}-after-boot.txt").items():
+            if name.startswith("lekiwi_gateway_refused"):
+                refused[dict(labels).get("reason", "?")] += value
+    codes = all_requests_by_code(parse_metrics(work / "apiserver-before-boot.txt"),
+                                 parse_metrics(work / "apiserver-after-boot.txt"))
+    sim = json.loads((work / "sim-new.json").read_text()) if (work / "sim-new.json").exists() else {}
+    header(f, "first boot")
+    print(f"- {incumbents} incumbent robots Online, then {robots} new robots enroll at once through "
+          "HAProxy over two gateways (no connect-rate limit in the simulator)")
+    print()
+    print("| measure | value | goal |")
+    print("|---|---|---|")
+    row("new robots Online (watch)", f"{len(times)} / {robots}", f"{robots}")
+    row("time until all enrolled and Online", f"{f.get('all_enrolled_online_seconds')} s")
+    row("per-robot enrolment to Online p50 / p99 / max",
+        f"{percentile(times, 0.5):.1f} s / {percentile(times, 0.99):.1f} s / {percentile(times, 1.0):.1f} s")
+    row("incumbent robots that left Online meanwhile", len(wrong), "0")
+    row("gateway refusals before upgrade, by reason",
+        ", ".join(f"{r} {int(v)}" for r, v in refused.most_common()) or "0")
+    row("gateway open files, max (gw-a / gw-b)", f.get("gateway_fds_max", "?"))
+    row("API answers 429 / 5xx", f"{int(codes.get('429', 0))} / "
+        f"{int(sum(v for c, v in codes.items() if c.startswith('5')))}", "0 / 0")
+    if sim:
+        row("simulator connect errors / reconnects", f"{sim['connect_errors']} / {sim['reconnects']}")
+
+
 def main():
     work = Path(sys.argv[1])
     f = facts(work)
+    if f.get("scenario") == "first-boot":
+        report_first_boot(work, f)
+    else:
+        report_kill(work, f)
+
+
+def report_kill(work, f):
+    """The kill scenario: one gateway SIGKILLed under a steady fleet."""
     robots = int(f["robots"])
     t_kill, t_restart = float(f["kill_time"]), float(f["restart_time"])
     rows = watch(work)
@@ -124,13 +184,7 @@ def main():
     gaps = int((work / "gaps.txt").read_text().strip() or 0)
     lost = sim["events_acked"] - min(stored, sim["events_acked"])
 
-    def row(what, value, goal=""):
-        print(f"| {what} | {value} | {goal} |")
-
-    print(f"# Recovery benchmark, {f.get('date', '?')}")
-    print()
-    print(f"- source: {f.get('source', '?')}; command: `{f.get('command', '?')}`")
-    print(f"- host: {f.get('host', '?')}")
+    header(f, "a gateway killed")
     print(f"- {robots} robots, heartbeat every {f.get('interval')} s, {f.get('events_per_minute')} "
           "events/min each; two gateways behind HAProxy (TCP, round robin, /readyz checks every 1 s); "
           "event store PostgreSQL 15 shared by both")
