@@ -195,19 +195,20 @@ enrollment_token() { # namespace file
   kubectl -n "$1" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
 }
 
-# Creates COUNT Robots sim-00001... in NAMESPACE and their token Secrets, labels and hash exactly
+# Creates COUNT Robots PREFIX-00001... (PREFIX: sim unless given) in NAMESPACE and their token Secrets, labels and hash exactly
 # as the gateway's enrollment writes them (all robots share the simulator's one token, of which
 # HASH is the sha256 hex), by four parallel kubectl processes: a fleet that is already enrolled.
-provision_robots() { # namespace count hash
+provision_robots() { # namespace count hash [prefix]
   local ns="$1" count="$2" hash="$3" part pid pids=()
-  python3 - "$count" "$hash" "$WORK/provision" 4 <<'PY'
+  python3 - "$count" "$hash" "$WORK/provision" 4 "${4:-sim}" <<'PY'
 import base64, json, sys
 robots, digest, prefix, parts = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
+robot_prefix = sys.argv[5]
 data = base64.b64encode(digest.encode()).decode()
 for part in range(parts):
     items = []
     for i in range(part, robots, parts):
-        name = f"sim-{i + 1:05d}"
+        name = f"{robot_prefix}-{i + 1:05d}"
         items.append({"apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot",
                       "metadata": {"name": name}, "spec": {}})
         items.append({"apiVersion": "v1", "kind": "Secret", "type": "Opaque",

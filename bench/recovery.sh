@@ -19,8 +19,17 @@
 #! are enrolled and Online, the gateways' refusals (Retry-After), API 429/5xx, the gateways'
 #! open files, and whether any incumbent robot left Online meanwhile.
 #!
+#! A third, --scenario steady, is the steady state as the fleet grows: for each size of
+#! --steady-sizes (default 10000,50000) it brings that many robots Online, spread directly over the
+#! two gateways (the simulator's comma-separated --gateway list: one address pair has only ~28,000
+#! ephemeral ports), and over a window of --window seconds measures heartbeat round trip p99 (the
+#! robots' own, as they report it), gateway RSS per connection, API-server writes per second
+#! against N/300 (one status refresh per robot per 5 minutes) and the gateways' CPU.
+#!
 #! Usage: bash bench/recovery.sh [options]
-#!   --scenario kill|first-boot  see above (default kill)
+#!   --scenario kill|first-boot|steady  see above (default kill)
+#!   --steady-sizes A,B,... steady: fleet sizes to measure, ascending (default 10000,50000)
+#!   --window S             steady: measurement window per size, seconds (default 60)
 #!   --incumbents M         first-boot: robots Online before the new fleet comes (default 1000)
 #!   --robots N             simulated robots (default 10000)
 #!   --events-per-minute E  durable events per robot per minute (default 6)
@@ -48,6 +57,8 @@ PG_BIN=/usr/lib/postgresql/15/bin
 ROBOTS=10000
 SCENARIO=kill
 INCUMBENTS=1000
+STEADY_SIZES=10000,50000
+WINDOW=60
 EPM=6
 INTERVAL=5
 SETTLE=30
@@ -64,9 +75,13 @@ while [ $# -gt 0 ]; do
   case "$1" in
     --robots) positive_int "$1" "${2:-}"; ROBOTS="$2"; shift 2 ;;
     --scenario)
-      case "${2:-}" in kill|first-boot) SCENARIO="$2" ;; *) die "--scenario is kill or first-boot" ;; esac
+      case "${2:-}" in kill|first-boot|steady) SCENARIO="$2" ;; *) die "--scenario is kill, first-boot or steady" ;; esac
       shift 2 ;;
     --incumbents) positive_int "$1" "${2:-}"; INCUMBENTS="$2"; shift 2 ;;
+    --steady-sizes)
+      [[ "${2:-}" =~ ^[1-9][0-9]*(,[1-9][0-9]*)*$ ]] || die "--steady-sizes is a comma-separated list of counts"
+      STEADY_SIZES="$2"; shift 2 ;;
+    --window) positive_int "$1" "${2:-}"; WINDOW="$2"; shift 2 ;;
     --events-per-minute) positive_int "$1" "${2:-}"; EPM="$2"; shift 2 ;;
     --interval) positive_int "$1" "${2:-}"; INTERVAL="$2"; shift 2 ;;
     --settle) positive_int "$1" "${2:-}"; SETTLE="$2"; shift 2 ;;
@@ -89,6 +104,7 @@ CLEANUP_GRACE=3
 trap_cleanup
 take_bench_lock
 
+[ "$SCENARIO" != steady ] || ROBOTS="${STEADY_SIZES##*,}"
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 [ "$(ulimit -n)" -gt $(((ROBOTS + INCUMBENTS) * 3 + 1000)) ] \
   || die "open-file limit $(ulimit -n) is too low for $ROBOTS robots through a proxy (raise the hard limit)"
@@ -353,7 +369,49 @@ scenario_first_boot() {
   fact incumbents "$INCUMBENTS"
 }
 
-if [ "$SCENARIO" = kill ]; then scenario_kill; else scenario_first_boot; fi
+# ---- scenario steady -------------------------------------------------------------------------
+scenario_steady() {
+  local size have=0 part=0 t0 gw_urls g
+  gw_urls="ws://127.0.0.1:${GW_PORT[gw-a]}/v1/agent,ws://127.0.0.1:${GW_PORT[gw-b]}/v1/agent"
+  sleep 2
+  for g in gw-a gw-b; do fact "rss_base_$g" "$(rss_kib "${GW_PID[$g]}")"; done
+  fact steady_sizes "$STEADY_SIZES"
+  for size in ${STEADY_SIZES//,/ }; do
+    [ "$size" -gt "$have" ] || die "--steady-sizes must ascend"
+    part=$((part + 1))
+    log "steady state at $size robots: provisioning $((size - have)) more"
+    provision_robots bench "$((size - have))" "$TOKEN_HASH" "s$part"
+    start "sim-$part" "$BIN/lekiwi-sim" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
+      --namespace bench --prefix "s$part" --robots "$((size - have))" \
+      --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
+    have=$size
+    t0="$(now)"
+    online_n() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$1" ]; }
+    wait_for "$size robots Online" $((size / 20 + 300)) online_n "$size"
+    fact "steady_${size}_online_seconds" "$(elapsed "$t0")"
+    log "  $size Online after $(elapsed "$t0") s; settling 30 s, then a $WINDOW s window"
+    sleep 30
+    scrape_apiserver "$WORK/apiserver-$size-a.txt"
+    for g in gw-a gw-b; do scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-a.txt"; done
+    cpu_snapshot "gw-a:${GW_PID[gw-a]}" "gw-b:${GW_PID[gw-b]}" "apiserver:$(cat "$CP_DIR/kube-apiserver.pid")"
+    t0="$(now)"
+    sleep "$WINDOW"
+    scrape_apiserver "$WORK/apiserver-$size-b.txt"
+    for g in gw-a gw-b; do
+      scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-b.txt"
+      fact "rss_${size}_$g" "$(rss_kib "${GW_PID[$g]}")"
+      fact "connections_${size}_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
+    done
+    fact "window_${size}_seconds" "$(elapsed "$t0")"
+    cpu_report "$size" "$(elapsed "$t0")"
+  done
+}
+
+case "$SCENARIO" in
+  kill) scenario_kill ;;
+  first-boot) scenario_first_boot ;;
+  steady) scenario_steady ;;
+esac
 
 mkdir -p "$RESULTS"
 OUT="$RESULTS/recovery-$SCENARIO-$(date +%Y%m%d-%H%M%S).txt"

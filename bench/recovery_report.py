@@ -13,7 +13,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from report import WRITE_VERBS, parse_metrics  # noqa: E402
+from report import WRITE_VERBS, histogram, parse_metrics, quantile  # noqa: E402
 
 KILLED, SURVIVOR = "gw-a", "gw-b"
 
@@ -149,11 +149,44 @@ def report_first_boot(work, f):
         row("simulator connect errors / reconnects", f"{sim['connect_errors']} / {sim['reconnects']}")
 
 
+def report_steady(work, f):
+    """The steady scenario: one row per fleet size."""
+    header(f, "steady state as the fleet grows")
+    print(f"- two gateways, robots spread over both by the simulator's URL list; heartbeat every "
+          f"{f.get('interval')} s; status refresh every 300 s (the default)")
+    print()
+    print("| robots | Online after | heartbeat RTT p50 / p99 (goal p99 < 10 ms) | gateway RSS per "
+          "connection gw-a / gw-b (goal ≤ 16 KiB) | API writes/s (N/300) | CPU gw-a / gw-b / apiserver (cores) |")
+    print("|---|---|---|---|---|---|")
+    for size in f["steady_sizes"].split(","):
+        buckets = {}
+        for g in ("gw-a", "gw-b"):
+            a, b = (parse_metrics(work / f"{g}-{size}-{x}.txt") for x in "ab")
+            for bound, n in histogram(a, b, "lekiwi_gateway_heartbeat_rtt_seconds"):
+                buckets[bound] = buckets.get(bound, 0.0) + n
+        rtt = sorted(buckets.items())
+        per_conn = []
+        for g in ("gw-a", "gw-b"):
+            grown = int(f[f"rss_{size}_{g}"]) - int(f[f"rss_base_{g}"])
+            per_conn.append(f"{grown / max(int(f[f'connections_{size}_{g}']), 1):.1f} KiB")
+        api_a, api_b = (parse_metrics(work / f"apiserver-{size}-{x}.txt") for x in "ab")
+        window = float(f[f"window_{size}_seconds"])
+        api_writes = sum(writes(api_a, api_b)[0].values()) / window
+        cpu = " / ".join(f.get(f"cpu_{size}_window_{n}", "?") for n in ("gw-a", "gw-b", "apiserver"))
+        p50, p99 = (quantile(rtt, q) for q in (0.5, 0.99))
+        rtt_cell = "no heartbeats" if p50 is None else f"{p50 * 1000:.2f} / {p99 * 1000:.2f} ms"
+        print(f"| {size} | {f.get(f'steady_{size}_online_seconds')} s | {rtt_cell} | "
+              f"{' / '.join(per_conn)} | {api_writes:.1f} ({int(size) / 300:.1f}) | {cpu} |")
+
+
 def main():
     work = Path(sys.argv[1])
     f = facts(work)
-    if f.get("scenario") == "first-boot":
+    scenario = f.get("scenario")
+    if scenario == "first-boot":
         report_first_boot(work, f)
+    elif scenario == "steady":
+        report_steady(work, f)
     else:
         report_kill(work, f)
 

@@ -19,13 +19,15 @@ use lekiwi_protocol::Release;
     about = "Simulates a fleet of LeKiwi agents against a gateway: N robot connections from one process"
 )]
 pub struct Args {
-    /// Gateway WebSocket URL.
+    /// Gateway WebSocket URL; several, comma-separated, spread the robots over them (robot i
+    /// uses URL i mod count), e.g. to go past one address pair's ~28,000 ephemeral ports.
     #[arg(
         long,
         env = "LEKIWI_GATEWAY_URL",
-        default_value = "ws://127.0.0.1:8081/v1/agent"
+        default_value = "ws://127.0.0.1:8081/v1/agent",
+        value_delimiter = ','
     )]
-    pub gateway: String,
+    pub gateway: Vec<String>,
     /// Fleet enrollment token (robots enroll on first connect and keep their own token).
     #[arg(long, env = "LEKIWI_ENROLLMENT_TOKEN")]
     pub enrollment_token: String,
@@ -154,6 +156,7 @@ fn percentile(sorted: &[u32], p: f64) -> f64 {
 
 /// Runs the simulation and returns its summary.
 pub async fn run(args: Args) -> anyhow::Result<Summary> {
+    anyhow::ensure!(!args.gateway.is_empty(), "--gateway needs at least one URL");
     let _ = rlimit::increase_nofile_limit(u64::MAX);
     let fleet = Fleet {
         stats: Arc::new(Stats::default()),
@@ -206,7 +209,8 @@ impl Fleet {
         let gap = Duration::from_secs_f64(1.0 / self.args.connect_rate.max(1.0));
         for i in 0..self.args.robots {
             let name = format!("{}-{:05}", self.args.prefix, i + 1);
-            tasks.push(tokio::spawn(session::robot(self.clone(), name)));
+            let url = self.args.gateway[i % self.args.gateway.len().max(1)].clone();
+            tasks.push(tokio::spawn(session::robot(self.clone(), name, url)));
             tokio::time::sleep(gap).await;
         }
         tasks

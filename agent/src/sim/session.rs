@@ -102,7 +102,7 @@ fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMes
 }
 
 /// One simulated robot, forever: connect, run the session, back off, again.
-pub(super) async fn robot(fleet: Fleet, name: String) {
+pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
     let args = &fleet.args;
     let own = lock(&fleet.tokens).get(&name).cloned();
     let mut creds = Credentials {
@@ -117,7 +117,7 @@ pub(super) async fn robot(fleet: Fleet, name: String) {
     loop {
         let hello = hello(&name, &fleet.release, outbox.last_acked());
         let mut floor = Duration::ZERO;
-        match connect(&args.gateway, &creds, &hello, timeout).await {
+        match connect(&url, &creds, &hello, timeout).await {
             Ok((ws, welcome)) => {
                 backoff.reset();
                 if let Some(token) = welcome.robot_token.clone() {
