@@ -104,8 +104,7 @@ fi
 [ -x "$AGENT_BIN" ] || die "$AGENT_BIN is missing (run without --no-build)"
 
 # setup.sh installs the apt packages (prometheus-node-exporter among them) and the control plane.
-log "scripts/setup.sh"
-bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup.log" >&2; die "setup failed"; }
+run_setup
 [ -x "$NODE_EXPORTER" ] \
   || die "$NODE_EXPORTER is missing: run scripts/setup.sh (it installs the Debian package prometheus-node-exporter)"
 

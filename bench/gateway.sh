@@ -120,8 +120,7 @@ for b in lekiwi-operator lekiwi-sim lekiwi-bench-echo; do
   [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
 done
 
-log "scripts/setup.sh"
-bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup.log" >&2; die "setup failed"; }
+run_setup
 
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
@@ -191,34 +190,7 @@ log "gateway RSS before any robot: $((GW_RSS_BEFORE / 1024)) MiB"
 if [ "$MODE" = provision ]; then
   log "provisioning $ROBOTS Robots and token Secrets"
   T_PROV="$(now)"
-  python3 - "$ROBOTS" "$TOKEN_HASH" "$WORK/provision" 4 <<'PY'
-import base64, json, sys
-robots, digest, prefix, parts = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
-data = base64.b64encode(digest.encode()).decode()
-for part in range(parts):
-    items = []
-    for i in range(part, robots, parts):
-        name = f"sim-{i + 1:05d}"
-        items.append({"apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot",
-                      "metadata": {"name": name}, "spec": {}})
-        items.append({"apiVersion": "v1", "kind": "Secret", "type": "Opaque",
-                      "metadata": {"name": f"{name}-agent-token",
-                                   "labels": {"fleet.lekiwi.io/token": "robot",
-                                              "fleet.lekiwi.io/robot": name}},
-                      "data": {"sha256": data}})
-    with open(f"{prefix}-{part}.json", "w") as out:
-        json.dump({"apiVersion": "v1", "kind": "List", "items": items}, out)
-PY
-  KUBECTL_PIDS=()
-  for part in 0 1 2 3; do
-    kubectl -n bench create -f "$WORK/provision-$part.json" >"$WORK/provision-$part.log" 2>&1 &
-    KUBECTL_PIDS+=($!)
-    PIDS+=($!)
-  done
-  for pid in "${KUBECTL_PIDS[@]}"; do
-    wait "$pid" || die "provisioning failed: $(tail -3 "$WORK"/provision-*.log)"
-    forget "$pid"
-  done
+  provision_robots bench "$ROBOTS" "$TOKEN_HASH"
   log "provisioned in $(elapsed "$T_PROV") s; waiting for the controller to see $ROBOTS Pending robots"
   pending() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Pending"}')" -ge "$ROBOTS" ]; }
   wait_for "all robots Pending" 300 pending

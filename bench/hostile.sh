@@ -119,8 +119,7 @@ fi
 for b in lekiwi-operator lekiwi-sim; do
   [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
 done
-log "scripts/setup.sh"
-bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup.log" >&2; die "setup failed"; }
+run_setup
 
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs, $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, load average at start $(cut -d' ' -f1-3 /proc/loadavg)"

@@ -1,4 +1,4 @@
-# Shared by bench/agent.sh, bench/gateway.sh, bench/hostile.sh and bench/rollout.sh (sourced, never run): messages,
+# Shared by bench/agent.sh, bench/gateway.sh, bench/hostile.sh, bench/recovery.sh and bench/rollout.sh (sourced, never run): messages,
 # option checks, the processes a benchmark starts and their cleanup, ports, waiting, the lock that
 # keeps two benchmarks from running at once.
 #
@@ -84,6 +84,14 @@ trap_cleanup() {
   trap cleanup EXIT
   trap 'log "interrupted"; exit 130' INT
   trap 'log "terminated"; exit 143' TERM
+}
+
+# scripts/setup.sh without its arm64 part (the cross-built agent and the emulated Pi's root
+# filesystem): no x86_64 benchmark needs it, and building it cold would take most of an hour.
+run_setup() {
+  log "scripts/setup.sh (LEKIWI_SKIP_ARM64=1)"
+  LEKIWI_SKIP_ARM64=1 bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 \
+    || { tail -30 "$WORK/setup.log" >&2; die "setup failed"; }
 }
 
 # ---- measuring and waiting ------------------------------------------------------------------
@@ -185,6 +193,41 @@ enrollment_token() { # namespace file
   kubectl -n "$1" create secret generic fleet-enrollment \
     --from-literal=sha256="$(tr -d '\n' <"$2" | sha256sum | cut -d' ' -f1)" >/dev/null
   kubectl -n "$1" label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+}
+
+# Creates COUNT Robots PREFIX-00001... (PREFIX: sim unless given) in NAMESPACE and their token Secrets, labels and hash exactly
+# as the gateway's enrollment writes them (all robots share the simulator's one token, of which
+# HASH is the sha256 hex), by four parallel kubectl processes: a fleet that is already enrolled.
+provision_robots() { # namespace count hash [prefix]
+  local ns="$1" count="$2" hash="$3" part pid pids=()
+  python3 - "$count" "$hash" "$WORK/provision" 4 "${4:-sim}" <<'PY'
+import base64, json, sys
+robots, digest, prefix, parts = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
+robot_prefix = sys.argv[5]
+data = base64.b64encode(digest.encode()).decode()
+for part in range(parts):
+    items = []
+    for i in range(part, robots, parts):
+        name = f"{robot_prefix}-{i + 1:05d}"
+        items.append({"apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot",
+                      "metadata": {"name": name}, "spec": {}})
+        items.append({"apiVersion": "v1", "kind": "Secret", "type": "Opaque",
+                      "metadata": {"name": f"{name}-agent-token",
+                                   "labels": {"fleet.lekiwi.io/token": "robot",
+                                              "fleet.lekiwi.io/robot": name}},
+                      "data": {"sha256": data}})
+    with open(f"{prefix}-{part}.json", "w") as out:
+        json.dump({"apiVersion": "v1", "kind": "List", "items": items}, out)
+PY
+  for part in 0 1 2 3; do
+    kubectl -n "$ns" create -f "$WORK/provision-$part.json" >"$WORK/provision-$part.log" 2>&1 &
+    pids+=($!)
+    PIDS+=($!)
+  done
+  for pid in "${pids[@]}"; do
+    wait "$pid" || die "provisioning failed: $(tail -3 "$WORK"/provision-*.log)"
+    forget "$pid"
+  done
 }
 
 # ---- one benchmark at a time ----------------------------------------------------------------

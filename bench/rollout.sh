@@ -120,8 +120,7 @@ for b in lekiwi-operator lekiwi-fleet kubectl-lekiwi; do
   [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
 done
 
-log "scripts/setup.sh"
-bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup.log" >&2; die "setup failed"; }
+run_setup
 
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 [ "$(ulimit -n)" -gt $((ROBOTS * 8 + 100)) ] \

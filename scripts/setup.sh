@@ -26,7 +26,7 @@ SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 export DEBIAN_FRONTEND=noninteractive
 
-APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static rsync
+APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static rsync haproxy
   containerd runc containernetworking-plugins iptables conntrack ethtool socat iproute2 util-linux)
 BUILD_PKGS=(dpkg-dev golang-go rsync make golang-github-modern-go-reflect2-dev golang-github-json-iterator-go-dev)
 
@@ -40,7 +40,7 @@ if [ ${#need_apt[@]} -gt 0 ]; then
   $SUDO apt-get -o DPkg::Lock::Timeout=900 install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
 fi
 # Debian starts packaged services; our tests run their own instances on free ports.
-for svc in etcd postgresql prometheus prometheus-node-exporter; do
+for svc in etcd postgresql prometheus prometheus-node-exporter haproxy; do
   $SUDO systemctl disable --now "$svc" >/dev/null 2>&1 || true
 done
 

@@ -1,32 +1,33 @@
 //! The fleet simulator: N real agent connections from one process, each with a heartbeat loop,
-//! reporting connect time, heartbeat round-trip percentiles, errors and reconnects.
+//! reporting connect time, heartbeat round-trip percentiles, errors and reconnects; optionally
+//! each robot also sends durable events, counted so a benchmark can compare sent with stored.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+mod session;
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use futures::{SinkExt, StreamExt};
-use lekiwi_protocol::{
-    AgentMessage, ErrorCode, Health, PROTOCOL_VERSION, Release, ServerMessage, SystemFacts,
-    Teleoperation, Vitals, decode, encode,
-};
-use rand::Rng;
-use tokio_tungstenite::tungstenite::Message;
-
-use crate::connection::{ConnectError, Credentials, connect};
+use lekiwi_protocol::Release;
 
 /// Simulates a fleet of LeKiwi agents against a gateway.
 #[derive(Clone, Debug, Parser)]
-#[command(name = "lekiwi-sim", version, about)]
+#[command(
+    name = "lekiwi-sim",
+    version,
+    about = "Simulates a fleet of LeKiwi agents against a gateway: N robot connections from one process"
+)]
 pub struct Args {
-    /// Gateway WebSocket URL.
+    /// Gateway WebSocket URL; several, comma-separated, spread the robots over them (robot i
+    /// uses URL i mod count), e.g. to go past one address pair's ~28,000 ephemeral ports.
     #[arg(
         long,
         env = "LEKIWI_GATEWAY_URL",
-        default_value = "ws://127.0.0.1:8081/v1/agent"
+        default_value = "ws://127.0.0.1:8081/v1/agent",
+        value_delimiter = ','
     )]
-    pub gateway: String,
+    pub gateway: Vec<String>,
     /// Fleet enrollment token (robots enroll on first connect and keep their own token).
     #[arg(long, env = "LEKIWI_ENROLLMENT_TOKEN")]
     pub enrollment_token: String,
@@ -45,7 +46,8 @@ pub struct Args {
     /// New connections per second while ramping up.
     #[arg(long, default_value_t = 500.0)]
     pub connect_rate: f64,
-    /// Stop after this many seconds (default: run until killed).
+    /// Stop after this many seconds (default: run until killed). SIGTERM stops the run the
+    /// same way: drain (see `--drain-seconds`), write the summary, exit.
     #[arg(long)]
     pub duration: Option<f64>,
     /// Seconds between progress lines.
@@ -68,6 +70,14 @@ pub struct Args {
     /// Seconds to wait for `welcome` (enrollment of a large fleet queues on the gateway).
     #[arg(long, default_value_t = 120.0)]
     pub connect_timeout: f64,
+    /// Durable events each robot sends per minute (default: none), kept until acknowledged and
+    /// resent after a reconnect; the summary counts generated and acknowledged ones.
+    #[arg(long)]
+    pub events_per_minute: Option<f64>,
+    /// When `--duration` ends, stop making events and wait up to this many seconds for the
+    /// unacknowledged ones to be acknowledged before exiting.
+    #[arg(long, default_value_t = 0.0)]
+    pub drain_seconds: f64,
 }
 
 type Tokens = Arc<Mutex<std::collections::BTreeMap<String, String>>>;
@@ -90,6 +100,19 @@ struct Stats {
     heartbeats: AtomicU64,
     rtts_us: Mutex<Vec<u32>>,
     all_connected_after: Mutex<Option<Duration>>,
+    events_generated: AtomicU64,
+    events_acked: AtomicU64,
+    events_resent: AtomicU64,
+    draining: AtomicBool,
+}
+
+impl Stats {
+    /// Counts an acknowledged heartbeat; its round trip in milliseconds.
+    fn record_rtt(&self, rtt: Duration) -> f64 {
+        self.heartbeats.fetch_add(1, Ordering::Relaxed);
+        lock(&self.rtts_us).push(rtt.as_micros().min(u128::from(u32::MAX)) as u32);
+        rtt.as_secs_f64() * 1000.0
+    }
 }
 
 /// Summary of a run.
@@ -115,6 +138,12 @@ pub struct Summary {
     pub reconnects: u64,
     /// Error frames the gateway sent (rate limits, refusals, replacements).
     pub error_frames: u64,
+    /// Durable events the robots made.
+    pub events_generated: u64,
+    /// Of those, acknowledged by the gateway (an `ack`, or covered by `welcome.stored_seq`).
+    pub events_acked: u64,
+    /// Event frames sent again after a reconnect because they were not acknowledged.
+    pub events_resent: u64,
 }
 
 fn percentile(sorted: &[u32], p: f64) -> f64 {
@@ -127,6 +156,7 @@ fn percentile(sorted: &[u32], p: f64) -> f64 {
 
 /// Runs the simulation and returns its summary.
 pub async fn run(args: Args) -> anyhow::Result<Summary> {
+    anyhow::ensure!(!args.gateway.is_empty(), "--gateway needs at least one URL");
     let _ = rlimit::increase_nofile_limit(u64::MAX);
     let fleet = Fleet {
         stats: Arc::new(Stats::default()),
@@ -179,7 +209,8 @@ impl Fleet {
         let gap = Duration::from_secs_f64(1.0 / self.args.connect_rate.max(1.0));
         for i in 0..self.args.robots {
             let name = format!("{}-{:05}", self.args.prefix, i + 1);
-            tasks.push(tokio::spawn(robot(self.clone(), name)));
+            let url = self.args.gateway[i % self.args.gateway.len().max(1)].clone();
+            tasks.push(tokio::spawn(session::robot(self.clone(), name, url)));
             tokio::time::sleep(gap).await;
         }
         tasks
@@ -193,20 +224,57 @@ impl Fleet {
             .duration
             .map(|d| self.start + Duration::from_secs_f64(d));
         let mut last_report = Instant::now();
+        // SIGTERM ends the run like `--duration` does (drain included), so a script can end it
+        // when it has measured what it wanted; without the handler the default kills at once.
+        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+            .map_err(|e| eprintln!("lekiwi-sim: no SIGTERM handler: {e}"))
+            .ok();
         loop {
-            tokio::time::sleep(Duration::from_millis(200)).await;
+            let terminated = match term.as_mut() {
+                Some(t) => tokio::select! {
+                    _ = t.recv() => true,
+                    _ = tokio::time::sleep(Duration::from_millis(200)) => false,
+                },
+                None => {
+                    tokio::time::sleep(Duration::from_millis(200)).await;
+                    false
+                }
+            };
             if last_report.elapsed().as_secs_f64() >= self.args.report_every {
                 last_report = Instant::now();
                 self.report();
             }
-            if deadline.is_some_and(|d| Instant::now() >= d)
-                || (self.args.exit_when_connected
-                    && self.stats.ever_connected.load(Ordering::Relaxed) as usize
-                        >= self.args.robots)
+            if terminated || deadline.is_some_and(|d| Instant::now() >= d) {
+                self.drain().await;
+                break;
+            }
+            if self.args.exit_when_connected
+                && self.stats.ever_connected.load(Ordering::Relaxed) as usize >= self.args.robots
             {
                 break;
             }
         }
+    }
+
+    /// Whether robots still make new events (not once the run drains).
+    fn generating(&self) -> bool {
+        !self.stats.draining.load(Ordering::Relaxed)
+    }
+
+    /// Stops new events and waits up to `--drain-seconds` for the rest to be acknowledged.
+    async fn drain(&self) {
+        self.stats.draining.store(true, Ordering::Relaxed);
+        let end = Instant::now() + Duration::from_secs_f64(self.args.drain_seconds);
+        while Instant::now() < end && self.unacked() > 0 {
+            tokio::time::sleep(Duration::from_millis(200)).await;
+        }
+        self.report();
+    }
+
+    /// Events made and not acknowledged yet.
+    fn unacked(&self) -> u64 {
+        let s = &self.stats;
+        s.events_generated.load(Ordering::Relaxed) - s.events_acked.load(Ordering::Relaxed)
     }
 
     /// One progress line on stdout.
@@ -214,7 +282,7 @@ impl Fleet {
         let stats = &self.stats;
         let rtts = take_sorted_rtts(stats);
         println!(
-            "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}",
+            "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}  events {} unacked {}",
             self.start.elapsed().as_secs_f64(),
             stats.connected.load(Ordering::Relaxed),
             self.args.robots,
@@ -225,6 +293,8 @@ impl Fleet {
             stats.connect_errors.load(Ordering::Relaxed),
             stats.reconnects.load(Ordering::Relaxed),
             stats.error_frames.load(Ordering::Relaxed),
+            stats.events_generated.load(Ordering::Relaxed),
+            self.unacked(),
         );
         // Keep them for the final summary too.
         lock(&stats.rtts_us).extend(rtts);
@@ -244,6 +314,9 @@ impl Fleet {
             connect_errors: stats.connect_errors.load(Ordering::Relaxed),
             reconnects: stats.reconnects.load(Ordering::Relaxed),
             error_frames: stats.error_frames.load(Ordering::Relaxed),
+            events_generated: stats.events_generated.load(Ordering::Relaxed),
+            events_acked: stats.events_acked.load(Ordering::Relaxed),
+            events_resent: stats.events_resent.load(Ordering::Relaxed),
         }
     }
 
@@ -273,134 +346,4 @@ fn take_sorted_rtts(stats: &Stats) -> Vec<u32> {
     let mut rtts = std::mem::take(&mut *lock(&stats.rtts_us));
     rtts.sort_unstable();
     rtts
-}
-
-/// The `hello` of a simulated robot: a Raspberry Pi running the fleet's release.
-fn hello(name: &str, release: &Release) -> AgentMessage {
-    AgentMessage::Hello {
-        protocol_version: PROTOCOL_VERSION,
-        agent_version: concat!("sim-", env!("CARGO_PKG_VERSION")).to_owned(),
-        system: SystemFacts {
-            hostname: Some(name.to_owned()),
-            os: Some("Debian GNU/Linux 12 (bookworm)".into()),
-            arch: Some("aarch64".into()),
-            cpus: Some(4),
-            memory_bytes: Some(8 << 30),
-            kernel: None,
-        },
-        current_release: Some(release.clone()),
-        last_acked_seq: None,
-        health: Some(Health {
-            healthy: true,
-            message: None,
-        }),
-        teleoperation: Some(Teleoperation {
-            active: false,
-            score: Some(0.0),
-        }),
-    }
-}
-
-/// One simulated robot: connects (enrolling the first time), heartbeats until the session
-/// ends, and reconnects with backoff, forever.
-async fn robot(fleet: Fleet, name: String) {
-    let args = &fleet.args;
-    let own = lock(&fleet.tokens).get(&name).cloned();
-    let mut creds = Credentials {
-        token: own.unwrap_or_else(|| args.enrollment_token.clone()),
-        robot: format!("{}/{}", args.namespace, name),
-    };
-    let mut first = true;
-    let mut backoff =
-        crate::backoff::Backoff::new(Duration::from_millis(500), Duration::from_secs(30));
-    let timeout = Duration::from_secs_f64(args.connect_timeout);
-    loop {
-        match connect(
-            &args.gateway,
-            &creds,
-            &hello(&name, &fleet.release),
-            timeout,
-        )
-        .await
-        {
-            Ok((ws, welcome)) => {
-                backoff.reset();
-                if let Some(token) = welcome.robot_token.clone() {
-                    lock(&fleet.tokens).insert(name.clone(), token.clone());
-                    creds.token = token;
-                }
-                creds.robot = welcome.robot.clone();
-                fleet.count_session(std::mem::take(&mut first));
-                let interval = args
-                    .heartbeat_interval
-                    .map(Duration::from_secs_f64)
-                    .unwrap_or(welcome.heartbeat_interval);
-                heartbeats(ws, interval, &fleet.stats).await;
-                fleet.stats.connected.fetch_sub(1, Ordering::Relaxed);
-            }
-            Err(e) => {
-                fleet.stats.connect_errors.fetch_add(1, Ordering::Relaxed);
-                if matches!(e, ConnectError::Unauthorized(_)) {
-                    eprintln!("{name}: {e}");
-                    // A stale token (rotated elsewhere): enroll again.
-                    creds.token = args.enrollment_token.clone();
-                }
-            }
-        }
-        // Full jitter, so a fleet does not come back in lockstep.
-        tokio::time::sleep(backoff.next_delay()).await;
-    }
-}
-
-async fn heartbeats(ws: crate::connection::Socket, interval: Duration, stats: &Stats) {
-    let (mut tx, mut rx) = ws.split();
-    // Spread the first heartbeat over one interval.
-    let offset = rand::rng().random_range(Duration::ZERO..=interval);
-    let mut tick = tokio::time::interval_at(tokio::time::Instant::now() + offset, interval);
-    let mut pending: Option<(i64, Instant)> = None;
-    let mut last_rtt: Option<f64> = None;
-    loop {
-        tokio::select! {
-            _ = tick.tick() => {
-                let sent_at_ms = lekiwi_protocol::now_ms();
-                let hb = AgentMessage::Heartbeat {
-                    sent_at_ms,
-                    rtt_ms: last_rtt,
-                    vitals: Vitals { cpu_percent: Some(12.0), memory_percent: Some(30.0), temperature_c: Some(50.0), ..Vitals::default() },
-                    current_release: None,
-                    health: None,
-                    teleoperation: None,
-                };
-                pending = Some((sent_at_ms, Instant::now()));
-                if tx.send(Message::text(encode(&hb))).await.is_err() {
-                    return;
-                }
-            }
-            frame = rx.next() => {
-                let Some(Ok(frame)) = frame else { return };
-                let Message::Text(text) = frame else {
-                    if matches!(frame, Message::Close(_)) { return; }
-                    continue;
-                };
-                match decode::<ServerMessage>(text.as_str(), usize::MAX) {
-                    Ok(ServerMessage::HeartbeatAck { sent_at_ms, .. }) => {
-                        if let Some((sent, at)) = pending.take_if(|(s, _)| *s == sent_at_ms) {
-                            let _ = sent;
-                            let rtt = at.elapsed();
-                            last_rtt = Some(rtt.as_secs_f64() * 1000.0);
-                            stats.heartbeats.fetch_add(1, Ordering::Relaxed);
-                            lock(&stats.rtts_us).push(rtt.as_micros().min(u128::from(u32::MAX)) as u32);
-                        }
-                    }
-                    Ok(ServerMessage::Error { code, fatal, .. }) => {
-                        stats.error_frames.fetch_add(1, Ordering::Relaxed);
-                        if fatal || code == ErrorCode::Replaced {
-                            return;
-                        }
-                    }
-                    _ => {}
-                }
-            }
-        }
-    }
 }

@@ -1,0 +1,420 @@
+#!/usr/bin/env bash
+#! Recovery benchmark (issue 14): a fleet on two gateway replicas loses one to SIGKILL.
+#!
+#! Runs, on loopback only: a private control plane (etcd + kube-apiserver), PostgreSQL 15 as the
+#! shared event store, the operator as three processes (one --role controller, two --role gateway
+#! with their own identities), HAProxy (Debian's) in TCP mode spreading new connections over the two
+#! gateways as a Kubernetes Service would, and `lekiwi-sim` with N provisioned robots that heartbeat
+#! and send durable events at a steady rate. Once every robot is Online it SIGKILLs one gateway and
+#! measures, from a watch of every Robot:
+#!   - time from the kill until each robot that was on the killed gateway is Online through the
+#!     survivor (p50, p99, max, all), and whether any robot showed Unknown/Offline after that;
+#!   - API-server write requests during the recovery, by resource, per robot moved;
+#!   - API-server 429s and 5xx;
+#! then restarts the killed gateway and measures the writes and sessions after it (does the fleet
+#! rebalance?), and finally drains the simulator and compares events sent with events stored.
+#!
+#! A second scenario, --scenario first-boot, is a fleet's first boot: M incumbent robots are
+#! Online, then N new robots enroll at once (no connect-rate limit); it measures the time until all
+#! are enrolled and Online, the gateways' refusals (Retry-After), API 429/5xx, the gateways'
+#! open files, and whether any incumbent robot left Online meanwhile.
+#!
+#! A third, --scenario steady, is the steady state as the fleet grows: for each size of
+#! --steady-sizes (default 10000,50000) it brings that many robots Online, spread directly over the
+#! two gateways (the simulator's comma-separated --gateway list: one address pair has only ~28,000
+#! ephemeral ports), and over a window of --window seconds measures heartbeat round trip p99 (the
+#! robots' own, as they report it), gateway RSS per connection, API-server writes per second
+#! against N/300 (one status refresh per robot per 5 minutes) and the gateways' CPU.
+#!
+#! Usage: bash bench/recovery.sh [options]
+#!   --scenario kill|first-boot|steady  see above (default kill)
+#!   --steady-sizes A,B,... steady: fleet sizes to measure, ascending (default 10000,50000)
+#!   --window S             steady: measurement window per size, seconds (default 60)
+#!   --incumbents M         first-boot: robots Online before the new fleet comes (default 1000)
+#!   --robots N             simulated robots (default 10000)
+#!   --events-per-minute E  durable events per robot per minute (default 6)
+#!   --interval S           heartbeat interval, seconds (default 5)
+#!   --settle S             steady state before the kill, seconds (default 30)
+#!   --recovery-timeout S   give up waiting for recovery after S seconds (default 180)
+#!   --after-restart S      observation window after the killed gateway restarts (default 60)
+#!   --no-build             use the binaries already in target/release
+#!   --bin DIR              use the binaries in DIR instead (implies --no-build; e.g. a quick
+#!                          check of the script itself with debug builds and --robots 200)
+#!   --keep                 keep the work directory (logs, watch log, scrapes)
+#!   -h, --help             this text
+#!
+#! Writes the table to bench/results/recovery-<scenario>-<date>.txt and
+#! bench/results/recovery-<scenario>-latest.txt.
+#! Bounded in time (about 10 minutes for 10,000 robots once built; at most ~25), cleans up on exit
+#! and Ctrl-C. Needs root or a `postgres` user (PostgreSQL refuses to run as root).
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+BIN="$ROOT/target/release"
+RESULTS="$ROOT/bench/results"
+PG_BIN=/usr/lib/postgresql/15/bin
+
+ROBOTS=10000
+SCENARIO=kill
+INCUMBENTS=1000
+STEADY_SIZES=10000,50000
+WINDOW=60
+EPM=6
+INTERVAL=5
+SETTLE=30
+RECOVERY_TIMEOUT=180
+AFTER_RESTART=60
+BUILD=1
+KEEP=0
+COMMAND="bash bench/recovery.sh $*"
+
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
+
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --robots) positive_int "$1" "${2:-}"; ROBOTS="$2"; shift 2 ;;
+    --scenario)
+      case "${2:-}" in kill|first-boot|steady) SCENARIO="$2" ;; *) die "--scenario is kill, first-boot or steady" ;; esac
+      shift 2 ;;
+    --incumbents) positive_int "$1" "${2:-}"; INCUMBENTS="$2"; shift 2 ;;
+    --steady-sizes)
+      [[ "${2:-}" =~ ^[1-9][0-9]*(,[1-9][0-9]*)*$ ]] || die "--steady-sizes is a comma-separated list of counts"
+      STEADY_SIZES="$2"; shift 2 ;;
+    --window) positive_int "$1" "${2:-}"; WINDOW="$2"; shift 2 ;;
+    --events-per-minute) positive_int "$1" "${2:-}"; EPM="$2"; shift 2 ;;
+    --interval) positive_int "$1" "${2:-}"; INTERVAL="$2"; shift 2 ;;
+    --settle) positive_int "$1" "${2:-}"; SETTLE="$2"; shift 2 ;;
+    --recovery-timeout) positive_int "$1" "${2:-}"; RECOVERY_TIMEOUT="$2"; shift 2 ;;
+    --after-restart) positive_int "$1" "${2:-}"; AFTER_RESTART="$2"; shift 2 ;;
+    --no-build) BUILD=0; shift ;;
+    --bin) [ -d "${2:-}" ] || die "--bin needs a directory"; BIN="$(cd "$2" && pwd)"; BUILD=0; shift 2 ;;
+    --keep) KEEP=1; shift ;;
+    -h|--help) usage; exit 0 ;;
+    *) usage >&2; die "unknown option: $1" ;;
+  esac
+done
+
+WORK="$(mktemp -d "${TMPDIR:-/tmp}/lekiwi-recovery.XXXXXX")"
+chmod 755 "$WORK"
+CP_DIR="$WORK/control-plane"
+CP_UP=0
+PIDS=()
+CLEANUP_GRACE=3
+trap_cleanup
+take_bench_lock
+
+[ "$SCENARIO" != steady ] || ROBOTS="${STEADY_SIZES##*,}"
+ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
+[ "$(ulimit -n)" -gt $(((ROBOTS + INCUMBENTS) * 3 + 1000)) ] \
+  || die "open-file limit $(ulimit -n) is too low for $ROBOTS robots through a proxy (raise the hard limit)"
+
+log "work directory: $WORK"
+if [ $BUILD = 1 ]; then
+  log "building release binaries"
+  (cd "$ROOT" && cargo build --release --bins -p lekiwi-operator -p lekiwi-agent) \
+    >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
+fi
+for b in lekiwi-operator lekiwi-sim; do
+  [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
+done
+run_setup
+command -v haproxy >/dev/null || die "haproxy is missing (scripts/setup.sh installs it)"
+
+fact date "$(date -Is)"
+fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
+fact_source
+fact command "$COMMAND"
+fact robots "$ROBOTS"
+fact scenario "$SCENARIO"
+fact events_per_minute "$EPM"
+fact interval "$INTERVAL"
+
+# ---- PostgreSQL: the replicas' shared event store -------------------------------------------
+as_postgres() { if [ "$(id -u)" = 0 ]; then runuser -u postgres -- "$@"; else "$@"; fi; }
+PG_PORT="$(free_port)"
+PG_DIR="$WORK/pg"
+mkdir -p "$PG_DIR"
+[ "$(id -u)" != 0 ] || chown postgres: "$PG_DIR"
+log "starting PostgreSQL on 127.0.0.1:$PG_PORT"
+as_postgres "$PG_BIN/initdb" -D "$PG_DIR/data" -U postgres -A trust -E UTF8 --locale=C --no-sync \
+  >"$WORK/initdb.log" 2>&1 || die "initdb failed: $(tail -5 "$WORK/initdb.log")"
+start postgres as_postgres "$PG_BIN/postgres" -D "$PG_DIR/data" -h 127.0.0.1 -p "$PG_PORT" \
+  -k "$PG_DIR" -c max_connections=200 -c fsync=on -c synchronous_commit=on
+PG_PID=$LAST_PID
+pg_ready() { alive "$PG_PID" || die "postgres exited: $(tail -5 "$WORK/postgres.log")"; "$PG_BIN/pg_isready" -q -h 127.0.0.1 -p "$PG_PORT"; }
+wait_for postgres 60 pg_ready
+psql_do() { "$PG_BIN/psql" -X -q -At -h 127.0.0.1 -p "$PG_PORT" -U postgres -d "${2:-postgres}" -c "$1"; }
+psql_do 'CREATE DATABASE lekiwi' >/dev/null
+STORE_URL="postgres://postgres@127.0.0.1:$PG_PORT/lekiwi"
+
+# ---- control plane and operator --------------------------------------------------------------
+start_control_plane
+kubectl create namespace lekiwi-system >/dev/null
+kubectl create namespace bench >/dev/null
+TOKEN="lke_$(openssl rand -hex 32)"
+TOKEN_HASH="$(printf %s "$TOKEN" | sha256sum | cut -d' ' -f1)"
+
+CTRL_HTTP="$(free_port)"
+LB_PORT="$(free_port)"
+LB_STATS="$(free_port)"
+declare -A GW_PORT GW_HTTP GW_PID
+for g in gw-a gw-b; do GW_PORT[$g]="$(free_port)"; GW_HTTP[$g]="$(free_port)"; done
+COMMON=(--kubeconfig "$KUBECONFIG" --namespace lekiwi-system --watch-namespace bench)
+start controller env RUST_LOG=warn "$BIN/lekiwi-operator" --role controller "${COMMON[@]}" \
+  --identity bench-controller --http-addr "127.0.0.1:$CTRL_HTTP"
+CTRL_PID=$LAST_PID
+CTRL_METRICS="http://127.0.0.1:$CTRL_HTTP/metrics"
+
+# start_gateway NAME: one replica, its log appended across restarts.
+start_gateway() {
+  local g="$1"
+  env RUST_LOG=warn "$BIN/lekiwi-operator" --role gateway "${COMMON[@]}" \
+    --identity "$g" --gateway-name "$g" \
+    --gateway-addr "127.0.0.1:${GW_PORT[$g]}" --http-addr "127.0.0.1:${GW_HTTP[$g]}" \
+    --store-url "$STORE_URL" --max-unauthenticated-per-address 0 \
+    --heartbeat-interval-seconds "$INTERVAL" >>"$WORK/$g.log" 2>&1 8>&- </dev/null &
+  GW_PID[$g]=$!
+  PIDS+=("${GW_PID[$g]}")
+}
+ready() { alive "$1" || die "$2 exited: $(tail -5 "$WORK/$2.log")"; curl -fsS --max-time 2 "$3" >/dev/null 2>&1; }
+for g in gw-a gw-b; do
+  start_gateway "$g"
+  wait_for "$g" 60 ready "${GW_PID[$g]}" "$g" "http://127.0.0.1:${GW_HTTP[$g]}/readyz"
+done
+leader() { alive "$CTRL_PID" || die "controller exited: $(tail -5 "$WORK/controller.log")"; [ "$(current "$CTRL_METRICS" lekiwi_leader_election_is_leader)" = 1 ]; }
+wait_for "controller leadership" 60 leader
+
+# HAProxy: layer-4 round robin over the replicas, health-checked like a Service's endpoints
+# (a readiness probe of /readyz every second; two failures take a replica out).
+cat >"$WORK/haproxy.cfg" <<EOF
+global
+  maxconn $(((ROBOTS + INCUMBENTS) * 2 + 1000))
+defaults
+  mode tcp
+  timeout connect 5s
+  timeout client 1h
+  timeout server 1h
+  timeout tunnel 1h
+frontend agents
+  bind 127.0.0.1:$LB_PORT
+  default_backend gateways
+backend gateways
+  balance roundrobin
+  option httpchk GET /readyz
+  server gw-a 127.0.0.1:${GW_PORT[gw-a]} check port ${GW_HTTP[gw-a]} inter 1s fall 2 rise 2
+  server gw-b 127.0.0.1:${GW_PORT[gw-b]} check port ${GW_HTTP[gw-b]} inter 1s fall 2 rise 2
+listen stats
+  mode http
+  bind 127.0.0.1:$LB_STATS
+  stats enable
+  stats uri /stats
+EOF
+start haproxy haproxy -db -f "$WORK/haproxy.cfg"
+HAPROXY_PID=$LAST_PID
+sleep 1
+alive "$HAPROXY_PID" || die "haproxy exited: $(tail -5 "$WORK/haproxy.log")"
+
+# ---- the fleet -------------------------------------------------------------------------------
+# Every change of every Robot, time-stamped on arrival: name phase gateway connected. Started
+# once the first COUNT Robots exist, and waited for until it listed them.
+start_watch() { # count
+  log "watching every Robot"
+  start watch python3 -u "$ROOT/bench/recovery_watch.py" "https://127.0.0.1:$APISERVER_PORT" \
+    "$CP_DIR/pki/ca.crt" "$CP_DIR/admin-token" bench "$WORK/robots.log"
+  WATCH_PID=$LAST_PID
+  listed() {
+    alive "$WATCH_PID" || die "the Robot watch exited: $(tail -5 "$WORK/watch.log")"
+    [ -f "$WORK/robots.log" ] && [ "$(grep -c '|ADDED|' "$WORK/robots.log" || true)" -ge "$1" ]
+  }
+  wait_for "the Robot watch" 120 listed "$1"
+}
+
+# Provisions COUNT robots (sim-00001...) whose token Secrets hold the hash of $TOKEN: the
+# simulator presents it as every robot's own token (a fleet enrolled long ago, as
+# bench/gateway.sh --mode provision does), and starts them; sets SIM_PID.
+provisioned_fleet() { # count
+  log "provisioning $1 Robots and token Secrets"
+  provision_robots bench "$1" "$TOKEN_HASH"
+  pending() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Pending"}')" -ge "$1" ]; }
+  wait_for "all robots Pending" 300 pending "$1"
+  sleep 5
+  start_watch "$1"
+  log "starting $1 simulated robots through haproxy :$LB_PORT ($EPM events/min each)"
+  start sim "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$LB_PORT/v1/agent" \
+    --enrollment-token "$TOKEN" --namespace bench \
+    --robots "$1" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
+    --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json"
+  SIM_PID=$LAST_PID
+  online() {
+    alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
+    [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$1" ]
+  }
+  local t0
+  t0="$(now)"
+  wait_for "all $1 robots Online" $(($1 / 50 + 180)) online "$1"
+  fact all_online_seconds "$(elapsed "$t0")"
+  log "all $1 robots Online after $(elapsed "$t0") s"
+}
+
+# ---- scenario kill ---------------------------------------------------------------------------
+scenario_kill() {
+  provisioned_fleet "$ROBOTS"
+  log "steady state for $SETTLE s"
+  sleep "$SETTLE"
+  for g in gw-a gw-b; do
+    fact "sessions_before_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
+  done
+
+  # ---- the kill --------------------------------------------------------------------------------
+  scrape_apiserver "$WORK/apiserver-before-kill.txt"
+  T_KILL="$(now)"
+  fact kill_time "$T_KILL"
+  log "SIGKILL gw-a (pid ${GW_PID[gw-a]})"
+  kill -KILL "${GW_PID[gw-a]}"
+  wait "${GW_PID[gw-a]}" 2>/dev/null || true
+  forget "${GW_PID[gw-a]}"
+  # Recovered: the survivor holds every session and the controller counts every robot Online.
+  recovered() {
+    alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
+    [ "$(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections)" -ge "$ROBOTS" ] \
+      && [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$ROBOTS" ]
+  }
+  deadline=$((SECONDS + RECOVERY_TIMEOUT))
+  last=$SECONDS
+  until recovered; do
+    if [ $SECONDS -ge $deadline ]; then log "not recovered after $RECOVERY_TIMEOUT s"; break; fi
+    if [ $((SECONDS - last)) -ge 5 ]; then
+      last=$SECONDS
+      log "  $(elapsed "$T_KILL") s: gw-b sessions $(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections), Online $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}'), Unknown $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Unknown"}'), Offline $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Offline"}')"
+    fi
+    sleep 0.5
+  done
+  fact recovered_seconds_by_metrics "$(elapsed "$T_KILL")"
+  # The writes that follow the recovery (the controller's Unknown checks, the dead gateway's
+  # Lease) belong to it too: count them over a fixed window that covers the Lease's expiry.
+  sleep 30
+  scrape_apiserver "$WORK/apiserver-after-recovery.txt"
+  fact recovery_window_seconds "$(elapsed "$T_KILL")"
+
+  # ---- the restart -----------------------------------------------------------------------------
+  log "restarting gw-a; observing for $AFTER_RESTART s"
+  start_gateway gw-a
+  wait_for gw-a 60 ready "${GW_PID[gw-a]}" gw-a "http://127.0.0.1:${GW_HTTP[gw-a]}/readyz"
+  T_RESTART="$(now)"
+  fact restart_time "$T_RESTART"
+  sleep "$AFTER_RESTART"
+  scrape_apiserver "$WORK/apiserver-after-restart.txt"
+  fact after_restart_seconds "$(elapsed "$T_RESTART")"
+  for g in gw-a gw-b; do
+    fact "sessions_after_restart_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
+  done
+
+  # ---- drain and count -------------------------------------------------------------------------
+  log "stopping the simulator (it drains its unacknowledged events first, at most 120 s)"
+  kill -TERM "$SIM_PID"
+  for _ in $(seq 1 300); do alive "$SIM_PID" || break; sleep 0.5; done
+  wait "$SIM_PID" 2>/dev/null || true
+  forget "$SIM_PID"
+  [ -s "$WORK/sim.json" ] || die "the simulator wrote no summary: $(tail -5 "$WORK/sim.log")"
+  psql_do "SELECT count(*), count(DISTINCT (robot, seq)), count(DISTINCT robot),
+    coalesce(sum(CASE WHEN seq > 0 THEN 1 ELSE 0 END), 0) FROM events WHERE namespace = 'bench'" lekiwi \
+    >"$WORK/stored.txt"
+  psql_do "SELECT count(*) FROM (SELECT robot FROM events WHERE namespace = 'bench'
+    GROUP BY robot HAVING max(seq) <> count(*)) gaps" lekiwi >"$WORK/gaps.txt"
+  stop "$WATCH_PID"
+}
+
+# ---- scenario first-boot ---------------------------------------------------------------------
+# The gateways' open files, sampled while the new fleet enrolls (the record in bench/README.md:
+# enrollment beyond what the API server sustains once exhausted them).
+fds() { find "/proc/$1/fd" -mindepth 1 -maxdepth 1 2>/dev/null | wc -l; }
+scenario_first_boot() {
+  TOKEN_ENROLL="lke_$(openssl rand -hex 32)"
+  kubectl -n bench create secret generic fleet-enrollment \
+    --from-literal=sha256="$(printf %s "$TOKEN_ENROLL" | sha256sum | cut -d' ' -f1)" >/dev/null
+  kubectl -n bench label secret fleet-enrollment fleet.lekiwi.io/token=enrollment >/dev/null
+  provisioned_fleet "$INCUMBENTS"
+  sleep 5
+  scrape_apiserver "$WORK/apiserver-before-boot.txt"
+  local t0 total=$((INCUMBENTS + ROBOTS)) last=$SECONDS max_a=0 max_b=0 f
+  t0="$(now)"
+  fact boot_time "$t0"
+  log "first boot: $ROBOTS new robots enroll at once"
+  start sim-new "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$LB_PORT/v1/agent" \
+    --enrollment-token "$TOKEN_ENROLL" --namespace bench --prefix new --robots "$ROBOTS" \
+    --heartbeat-interval "$INTERVAL" --connect-rate 1000000 --connect-timeout 300 \
+    --token-file "$WORK/new-tokens.json" --report-every 10 --json "$WORK/sim-new.json"
+  local new_pid=$LAST_PID
+  local deadline=$((SECONDS + RECOVERY_TIMEOUT + ROBOTS / 20))
+  until [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$total" ]; do
+    alive "$new_pid" || die "the new fleet's simulator exited: $(tail -5 "$WORK/sim-new.log")"
+    f="$(fds "${GW_PID[gw-a]}")"; [ "$f" -gt "$max_a" ] && max_a=$f
+    f="$(fds "${GW_PID[gw-b]}")"; [ "$f" -gt "$max_b" ] && max_b=$f
+    if [ $SECONDS -ge $deadline ]; then log "not all Online after $(elapsed "$t0") s"; break; fi
+    if [ $((SECONDS % 10)) = 0 ]; then
+      log "  $(elapsed "$t0") s: Online $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')/$total, gateway fds $max_a/$max_b"
+    fi
+    sleep 1
+  done
+  fact all_enrolled_online_seconds "$(elapsed "$t0")"
+  fact gateway_fds_max "$max_a / $max_b"
+  for g in gw-a gw-b; do
+    scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-after-boot.txt"
+  done
+  scrape_apiserver "$WORK/apiserver-after-boot.txt"
+  stop "$new_pid"
+  stop "$SIM_PID"
+  stop "$WATCH_PID"
+  fact incumbents "$INCUMBENTS"
+}
+
+# ---- scenario steady -------------------------------------------------------------------------
+scenario_steady() {
+  local size have=0 part=0 t0 gw_urls g
+  gw_urls="ws://127.0.0.1:${GW_PORT[gw-a]}/v1/agent,ws://127.0.0.1:${GW_PORT[gw-b]}/v1/agent"
+  sleep 2
+  for g in gw-a gw-b; do fact "rss_base_$g" "$(rss_kib "${GW_PID[$g]}")"; done
+  fact steady_sizes "$STEADY_SIZES"
+  for size in ${STEADY_SIZES//,/ }; do
+    [ "$size" -gt "$have" ] || die "--steady-sizes must ascend"
+    part=$((part + 1))
+    log "steady state at $size robots: provisioning $((size - have)) more"
+    provision_robots bench "$((size - have))" "$TOKEN_HASH" "s$part"
+    start "sim-$part" "$BIN/lekiwi-sim" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
+      --namespace bench --prefix "s$part" --robots "$((size - have))" \
+      --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
+    have=$size
+    t0="$(now)"
+    online_n() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$1" ]; }
+    wait_for "$size robots Online" $((size / 20 + 300)) online_n "$size"
+    fact "steady_${size}_online_seconds" "$(elapsed "$t0")"
+    log "  $size Online after $(elapsed "$t0") s; settling 30 s, then a $WINDOW s window"
+    sleep 30
+    scrape_apiserver "$WORK/apiserver-$size-a.txt"
+    for g in gw-a gw-b; do scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-a.txt"; done
+    cpu_snapshot "gw-a:${GW_PID[gw-a]}" "gw-b:${GW_PID[gw-b]}" "apiserver:$(cat "$CP_DIR/kube-apiserver.pid")"
+    t0="$(now)"
+    sleep "$WINDOW"
+    scrape_apiserver "$WORK/apiserver-$size-b.txt"
+    for g in gw-a gw-b; do
+      scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-b.txt"
+      fact "rss_${size}_$g" "$(rss_kib "${GW_PID[$g]}")"
+      fact "connections_${size}_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
+    done
+    fact "window_${size}_seconds" "$(elapsed "$t0")"
+    cpu_report "$size" "$(elapsed "$t0")"
+  done
+}
+
+case "$SCENARIO" in
+  kill) scenario_kill ;;
+  first-boot) scenario_first_boot ;;
+  steady) scenario_steady ;;
+esac
+
+mkdir -p "$RESULTS"
+OUT="$RESULTS/recovery-$SCENARIO-$(date +%Y%m%d-%H%M%S).txt"
+python3 "$ROOT/bench/recovery_report.py" "$WORK" | tee "$OUT"
+cp "$OUT" "$RESULTS/recovery-$SCENARIO-latest.txt"
+log "table written to $OUT"

@@ -1,0 +1,58 @@
+#!/usr/bin/env python3
+"""Watches every Robot of a namespace and writes each change, stamped with the time it arrived, to
+a file: `<unix time>|<event type>|<name>|<phase>|<gateway>|<connected>`.
+
+It reads the API server's watch stream (newline-delimited JSON) through `curl --no-buffer`:
+`kubectl get --watch` buffers its output to a pipe in 8 KiB blocks, and Python's own HTTP client
+holds back the last chunk of a chunked response until the next one comes, so both would stamp
+changes late. Standard library and curl only.
+
+Usage: recovery_watch.py API_URL CA_FILE TOKEN_FILE NAMESPACE OUT_FILE (runs until killed;
+bench/recovery.sh starts it)."""
+import json
+import os
+import subprocess
+import sys
+import time
+
+
+def token_header(token_file):
+    """A file holding the Authorization header, so the token is not on curl's command line."""
+    path = token_file + ".header"
+    with open(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as out:
+        out.write("Authorization: Bearer %s\n" % open(token_file).read().strip())
+    return path
+
+
+def main():
+    api, ca, token_file, namespace, out_path = sys.argv[1:6]
+    base = f"{api}/apis/fleet.lekiwi.io/v1alpha1/namespaces/{namespace}/robots?watch=1&timeoutSeconds=3600"
+    header = token_header(token_file)
+    version = None
+    with open(out_path, "w", buffering=1) as out:
+        while True:
+            # Resume where the last stream ended; a version too old (410) starts over with a
+            # fresh list of ADDED events, which the report reads as states, not changes.
+            url = base + (f"&resourceVersion={version}" if version else "")
+            curl = ["curl", "-sS", "--no-buffer", "--cacert", ca, "-H", "@" + header, url]
+            with subprocess.Popen(curl, stdout=subprocess.PIPE) as proc:
+                for line in proc.stdout:
+                    event = json.loads(line)
+                    obj = event.get("object", {})
+                    if event.get("type") == "ERROR":
+                        print("watch error: %s" % obj.get("message"), file=sys.stderr)
+                        version = None
+                        continue
+                    version = obj.get("metadata", {}).get("resourceVersion", version)
+                    status = obj.get("status") or {}
+                    out.write("%.3f|%s|%s|%s|%s|%s\n" % (
+                        time.time(), event.get("type", ""), obj.get("metadata", {}).get("name", ""),
+                        status.get("phase", ""), status.get("gateway", ""),
+                        "true" if status.get("connected") else "false"))
+            print("%.3f watch stream ended (curl exit %s); resuming" % (time.time(), proc.returncode),
+                  file=sys.stderr)
+            time.sleep(0.5)
+
+
+if __name__ == "__main__":
+    main()
