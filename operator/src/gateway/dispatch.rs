@@ -30,10 +30,16 @@ pub async fn start(
         watcher(robots, watcher::Config::default().any_semantic())
             .default_backoff()
             .modify(|r: &mut Robot| {
-                // Sessions read spec.release only.
+                // Sessions read spec.release; status writes plan the phase from the spec, the
+                // generation and the stored phase and conditions (`presence::PhasePlanner`).
                 r.metadata.managed_fields = None;
                 r.metadata.annotations = None;
-                r.status = None;
+                r.status = r.status.take().map(|s| lekiwi_crds::RobotStatus {
+                    phase: s.phase,
+                    conditions: s.conditions,
+                    observed_generation: s.observed_generation,
+                    ..lekiwi_crds::RobotStatus::default()
+                });
             }),
     )
     .applied_objects();

@@ -25,7 +25,7 @@ use super::blob_store::BlobStore;
 use super::kube_auth::KubeAuth;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
-use super::presence::{Presence, PresenceConfig};
+use super::presence::{PhasePlanner, Presence, PresenceConfig};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, Shared};
@@ -114,6 +114,10 @@ pub async fn run(
     );
     let (desired, dispatch_task) =
         dispatch::start(watched(&config, &client), registry.clone(), cancel.clone()).await?;
+    presence.plan_phases(PhasePlanner::new(
+        desired.0.clone(),
+        Duration::from_secs(config.heartbeat_grace_seconds),
+    ));
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),

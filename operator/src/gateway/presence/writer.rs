@@ -14,7 +14,7 @@ use tokio::sync::Semaphore;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
-use super::patch::{Precondition, status_patch};
+use super::patch::Precondition;
 use super::{Entry, Presence, Priority};
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::rate::TokenBucket;
@@ -217,7 +217,7 @@ impl Presence {
         } else {
             Some(self.disconnect_precondition(&api, key, e).await?)
         };
-        let patch = status_patch(&self.config.gateway, e, precondition);
+        let patch = self.patch(key, e, precondition);
         match api
             .patch_status(
                 &key.name,
