@@ -315,6 +315,7 @@ async fn robot(fleet: Fleet, name: String) {
         crate::backoff::Backoff::new(Duration::from_millis(500), Duration::from_secs(30));
     let timeout = Duration::from_secs_f64(args.connect_timeout);
     loop {
+        let mut retry_after = Duration::ZERO;
         match connect(
             &args.gateway,
             &creds,
@@ -340,6 +341,7 @@ async fn robot(fleet: Fleet, name: String) {
             }
             Err(e) => {
                 fleet.stats.connect_errors.fetch_add(1, Ordering::Relaxed);
+                retry_after = e.retry_after().unwrap_or_default();
                 if matches!(e, ConnectError::Unauthorized(_)) {
                     eprintln!("{name}: {e}");
                     // A stale token (rotated elsewhere): enroll again.
@@ -347,8 +349,9 @@ async fn robot(fleet: Fleet, name: String) {
                 }
             }
         }
-        // Full jitter, so a fleet does not come back in lockstep.
-        tokio::time::sleep(backoff.next_delay()).await;
+        // Full jitter, so a fleet does not come back in lockstep; a gateway's `Retry-After`
+        // (a 429, or enrollment admission's 503) comes first, as the agent does it.
+        tokio::time::sleep(retry_after + backoff.next_delay()).await;
     }
 }
 

@@ -7,10 +7,11 @@ use std::time::Duration;
 use k8s_openapi::api::events::v1::Event;
 use kube::Api;
 use kube::api::ListParams;
+use lekiwi_agent::connection::{ConnectError, Credentials, connect};
 use lekiwi_crds::{Robot, RobotPhase};
 use lekiwi_tests::{
-    ControlPlane, FleetProcess, FleetSpec, enrollment_token_file, gateway_operator, gateway_url,
-    namespace, wait_for, wait_online,
+    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, enrollment_token_file,
+    gateway_operator, gateway_url, get_robot, hello, namespace, wait_for, wait_online, wait_phase,
 };
 
 /// Robots in the fleet that comes Online.
@@ -130,5 +131,107 @@ async fn fleet_coming_online_costs_one_write_per_robot() -> anyhow::Result<()> {
             .map(|e| (&e.reason, &e.note))
             .collect::<Vec<_>>()
     );
+    Ok(())
+}
+
+/// The gateway's count of enrollments refused by admission.
+const THROTTLED: &str = "lekiwi_gateway_refused_total{kind=\"enrollment_throttled\"}";
+
+/// Robots enrolling in the admission test, beyond the one already connected.
+const ENROLLING: usize = 8;
+
+/// Enrollment beyond the gateway's admission rate is answered 503 with a `Retry-After` before the
+/// upgrade; the agents honour it and all enroll later, while an already connected robot stays
+/// Online throughout.
+#[tokio::test]
+async fn enrollment_beyond_admission_is_told_when_to_retry() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "admission").await?;
+    let mut op = OperatorProcess::start_with_env(
+        cp,
+        &ns,
+        "op-adm",
+        &["--heartbeat-grace-seconds", "60"],
+        &[("LEKIWI_ENROLL_RATE", "0.5"), ("LEKIWI_ENROLL_BURST", "2")],
+    )?;
+    op.wait_ready().await?;
+    let dir = tempfile::tempdir()?;
+    let token_file = dir.path().join("enroll-token");
+    enrollment_token_file(&client, &ns, &token_file).await?;
+    let url = gateway_url(&op);
+
+    // A robot enrolls and is connected before the crowd arrives.
+    let _veteran = AgentProcess::start(
+        &url,
+        &format!("{ns}/veteran"),
+        &token_file,
+        &dir.path().join("veteran"),
+        &[],
+    )?;
+    let r = wait_phase(
+        &client,
+        &ns,
+        "veteran",
+        RobotPhase::Online,
+        Duration::from_secs(20),
+    )
+    .await?;
+    let since = r.status.and_then(|s| s.connected_since);
+
+    // The crowd: more enrollments at once than the burst admits.
+    let _fleet = FleetProcess::start(FleetSpec {
+        gateway: &url,
+        token_file: &token_file,
+        namespace: &ns,
+        robots: ENROLLING,
+        state_root: &dir.path().join("robots"),
+        health_command: "true",
+        report_every: "5",
+        rust_log: "warn",
+        extra: &[],
+    })?;
+    wait_for("a refused enrollment", Duration::from_secs(30), || async {
+        let refused = op.metric(THROTTLED).await.unwrap_or(0.0);
+        (refused >= 1.0).then_some(())
+    })
+    .await?;
+    // One more, by hand, right behind them: refused before the upgrade, told when to retry.
+    let probe = Credentials {
+        token: std::fs::read_to_string(&token_file)?,
+        robot: format!("{ns}/probe"),
+    };
+    match connect(&url, &probe, &hello(), Duration::from_secs(5)).await {
+        Err(ConnectError::Unavailable {
+            message,
+            retry_after: Some(after),
+        }) => {
+            assert!(message.contains("503"), "{message}");
+            assert!(after >= Duration::from_secs(1), "Retry-After {after:?}");
+        }
+        other => panic!(
+            "expected 503 with Retry-After, got {:?}",
+            other.map(|(_, w)| w)
+        ),
+    }
+
+    // Every robot of the crowd enrolls in the end; the veteran never left Online meanwhile.
+    let veteran_steady = || async {
+        let r = get_robot(&client, &ns, "veteran").await.ok()?;
+        let s = r.status?;
+        (s.phase == Some(RobotPhase::Online) && s.connected_since == since).then_some(())
+    };
+    let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
+    wait_for("the crowd Online", Duration::from_secs(90), || async {
+        assert!(
+            veteran_steady().await.is_some(),
+            "the connected robot left Online while others enrolled"
+        );
+        (count_phase(&robots, RobotPhase::Online).await == ENROLLING + 1).then_some(())
+    })
+    .await?;
+    let refused = op.metric(THROTTLED).await.unwrap_or(0.0);
+    assert!(refused >= 2.0, "enrollments refused: {refused}");
+    assert!(op.running());
     Ok(())
 }

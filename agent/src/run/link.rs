@@ -120,10 +120,9 @@ impl Agent {
             error!(error = %e, "cannot connect; retrying at the slowest rate");
             backoff.saturate();
         }
-        let mut delay = backoff.next_delay();
-        if let ConnectError::TooManySessions { retry_after } = e {
-            delay = delay.max(*retry_after);
-        }
+        // A gateway's `Retry-After` is the least wait; the jittered backoff comes on top, so
+        // robots told the same second do not all come back in it together.
+        let delay = backoff.next_delay() + e.retry_after().unwrap_or_default();
         warn!(error = %e, retry_in_ms = delay.as_millis() as u64, attempt = backoff.attempts(), "connection failed");
         // A refused token waits at least the cap (set above).
         lp.reconnect_at = lp.reconnect_at.max(Instant::now() + delay);

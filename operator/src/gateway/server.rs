@@ -20,6 +20,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
+use super::admission::EnrollAdmission;
 use super::auth::Authenticator;
 use super::blob_store::BlobStore;
 use super::kube_auth::KubeAuth;
@@ -136,6 +137,10 @@ pub async fn run(
         client: client.clone(),
         poll_memo: Arc::default(),
         connections: Arc::new(Semaphore::new(config.max_connections)),
+        enrollments: Arc::new(EnrollAdmission::new(
+            config.enroll_rate,
+            config.enroll_burst,
+        )),
         blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
     };
     close_stale_connections(&store, &name).await;
