@@ -107,3 +107,90 @@ impl Presence {
         })
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use kube::runtime::{reflector, watcher};
+    use serde_json::json;
+
+    use super::*;
+    use crate::gateway::presence::{ConnectInfo, PresenceConfig};
+    use crate::metrics::Metrics;
+
+    const CACHED: &str = r#"
+apiVersion: fleet.lekiwi.io/v1alpha1
+kind: Robot
+metadata: { name: kiwi-1, namespace: lab, generation: 2 }
+spec: {}
+status:
+  phase: Offline
+  observedGeneration: 2
+  conditions:
+  - { type: Connected, status: "False", reason: Disconnected, message: "the agent disconnected from gateway gw", lastTransitionTime: "2026-01-01T00:00:00Z", observedGeneration: 2 }
+  - { type: UpToDate, status: "True", reason: NoReleaseRequested, message: "spec.release is not set", lastTransitionTime: "2026-01-01T00:00:00Z", observedGeneration: 2 }
+"#;
+
+    fn presence() -> Presence {
+        Presence::new(
+            PresenceConfig {
+                gateway: "gw".into(),
+                status_refresh: Duration::from_secs(300),
+                poll_grace: Duration::from_secs(180),
+                qps: 10.0,
+                burst: 10,
+                concurrency: 2,
+            },
+            Metrics::default(),
+        )
+    }
+
+    /// A connect of a cached robot is written with the phase and conditions the controller
+    /// would write (transition times of unchanged conditions kept); without the cache, or for
+    /// a robot not in it, the write holds the gateway's facts alone, as before.
+    #[test]
+    fn a_connect_write_carries_the_phase_the_controller_would_write() {
+        let (store, mut writer) = reflector::store::<Robot>();
+        writer.apply_watcher_event(&watcher::Event::Apply(
+            serde_yaml::from_str(CACHED).unwrap(),
+        ));
+        let p = presence();
+        let (cached, stranger) = (
+            RobotKey::new("lab", "kiwi-1"),
+            RobotKey::new("lab", "kiwi-2"),
+        );
+        let info = ConnectInfo {
+            protocol: "websocket",
+            ..ConnectInfo::default()
+        };
+        p.connect(&cached, 1, info.clone());
+        p.connect(&stranger, 1, info);
+        let entry = |k: &RobotKey| p.with_state(|s| s.robots[k].clone());
+        let status = |k: &RobotKey| p.patch(k, &entry(k), None)["status"].clone();
+        assert_eq!(status(&cached).get("phase"), None, "no cache yet");
+
+        p.plan_phases(PhasePlanner::new(store, Duration::from_secs(60)));
+        let s = status(&cached);
+        assert_eq!(s["phase"], json!("Online"));
+        assert_eq!(s["observedGeneration"], json!(2));
+        assert_eq!(s["connected"], json!(true));
+        let condition = |t: &str| {
+            s["conditions"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|c| c["type"] == t)
+                .cloned()
+                .unwrap()
+        };
+        assert_eq!(condition("Connected")["status"], json!("True"));
+        assert_ne!(
+            condition("Connected")["lastTransitionTime"],
+            json!("2026-01-01T00:00:00Z")
+        );
+        assert_eq!(
+            condition("UpToDate")["lastTransitionTime"],
+            json!("2026-01-01T00:00:00Z")
+        );
+        assert_eq!(status(&stranger).get("phase"), None, "not in the cache");
+    }
+}
