@@ -27,8 +27,9 @@
 #!   --status-burst B      gateway --status-burst (default 1000)
 #!   --status-refresh S    gateway --status-refresh-seconds (default 300, the operator's default)
 #!   --online-timeout S    give up waiting for all robots Online after S seconds (default
-#!                         robots / connect rate + robots / 40 + 120, at most 600: the API server
-#!                         writes about 3 objects per robot coming Online, ~200 writes/s on 2 cores)
+#!                         robots / connect rate + robots / 40 + 120, at most 600: a robot coming
+#!                         Online costs one status write, an enrolling one about 4 writes, and the
+#!                         API server takes ~200 writes/s on 2 cores)
 #!   --no-build            use the binaries already in target/release
 #!   --keep                keep the work directory (logs, metric scrapes) instead of deleting it
 #!   -h, --help            this text

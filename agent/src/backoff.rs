@@ -38,6 +38,11 @@ impl Backoff {
         Duration::from_millis(rand::rng().random_range(0..=ms))
     }
 
+    /// The largest delay.
+    pub fn cap(&self) -> Duration {
+        self.max
+    }
+
     /// Failures since the last reset.
     pub fn attempts(&self) -> u32 {
         self.attempt

@@ -39,9 +39,15 @@ pub enum ConnectError {
     /// allowed it to enroll again.
     #[error("the gateway refused enrollment: {0}")]
     Forbidden(String),
-    /// The gateway is full or unavailable (HTTP 503).
-    #[error("the gateway is unavailable: {0}")]
-    Unavailable(String),
+    /// The gateway is full or unavailable (HTTP 503), or admits no more enrollments for now;
+    /// with a `Retry-After`, not before that.
+    #[error("the gateway is unavailable: {message}")]
+    Unavailable {
+        /// The status and the gateway's explanation.
+        message: String,
+        /// The gateway's `Retry-After`, if it sent one.
+        retry_after: Option<std::time::Duration>,
+    },
     /// This robot opened sessions faster than the gateway allows (HTTP 429); wait at least
     /// `retry_after` before the next attempt.
     #[error("the gateway limits how often this robot connects: retry in {retry_after:?}")]
@@ -69,6 +75,15 @@ pub enum ConnectError {
 }
 
 impl ConnectError {
+    /// The least time the gateway asked the agent to wait (`Retry-After` of a 429 or 503).
+    pub fn retry_after(&self) -> Option<std::time::Duration> {
+        match self {
+            ConnectError::TooManySessions { retry_after } => Some(*retry_after),
+            ConnectError::Unavailable { retry_after, .. } => *retry_after,
+            _ => None,
+        }
+    }
+
     /// Whether retrying with the same credentials can help.
     pub fn retryable(&self) -> bool {
         !matches!(
@@ -204,17 +219,24 @@ fn refusal(resp: &tokio_tungstenite::tungstenite::http::Response<Option<Vec<u8>>
         401 => ConnectError::Unauthorized(body),
         403 => ConnectError::Forbidden(body),
         429 => ConnectError::TooManySessions {
-            retry_after: std::time::Duration::from_secs(
-                resp.headers()
-                    .get("retry-after")
-                    .and_then(|v| v.to_str().ok())
-                    .and_then(|v| v.trim().parse::<u64>().ok())
-                    .unwrap_or(10)
-                    .min(3600),
-            ),
+            retry_after: retry_after(resp).unwrap_or(std::time::Duration::from_secs(10)),
         },
-        _ => ConnectError::Unavailable(format!("HTTP {}: {body}", resp.status())),
+        _ => ConnectError::Unavailable {
+            message: format!("HTTP {}: {body}", resp.status()),
+            retry_after: retry_after(resp),
+        },
     }
+}
+
+/// The `Retry-After` of an answer, in seconds (at most an hour).
+fn retry_after(
+    resp: &tokio_tungstenite::tungstenite::http::Response<Option<Vec<u8>>>,
+) -> Option<std::time::Duration> {
+    resp.headers()
+        .get("retry-after")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .map(|s| std::time::Duration::from_secs(s.min(3600)))
 }
 
 /// Sends `hello` over an open connection and waits up to `timeout` for `welcome`, skipping

@@ -132,13 +132,16 @@ impl std::fmt::Display for RobotPhase {
 
 /// Observed state of a robot. Two writers share it through server-side apply: the gateway that
 /// holds the robot's connection writes the presence facts (`connected`, `gateway`,
-/// `lastHeartbeatTime`, system facts, telemetry, ...), the Robot controller writes `phase`,
-/// `conditions` and `observedGeneration`.
+/// `lastHeartbeatTime`, system facts, telemetry, ...) together with the `phase`, `conditions`
+/// and `observedGeneration` they imply (one write per change); the Robot controller computes
+/// the same three by the same rules and writes them where they differ (heartbeat expiry, a dead
+/// gateway, a spec change).
 #[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
 #[serde(rename_all = "camelCase")]
 pub struct RobotStatus {
     /// Lifecycle phase: `Pending` (never connected), `Online`, `Offline`, `Unknown` (its
-    /// gateway is gone) or `Maintenance`. Written by the Robot controller.
+    /// gateway is gone) or `Maintenance`. Derived by the Robot controller's rules; the gateway
+    /// writes it with the facts it follows from, the controller when time or a Lease changes it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub phase: Option<RobotPhase>,
 

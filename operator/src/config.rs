@@ -181,6 +181,16 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_SESSION_OPEN_BURST", default_value_t = 10)]
     pub session_open_burst: u32,
 
+    /// Enrollments (first connects with an enrollment token, a handful of API writes each) this
+    /// gateway admits per second, sustained; beyond, an enrolling agent gets 503 with a
+    /// `Retry-After` that spreads the refused ones over time at this rate (0: no limit).
+    #[arg(long, env = "LEKIWI_ENROLL_RATE", default_value_t = 20.0)]
+    pub enroll_rate: f64,
+
+    /// Enrollments admitted at once before that rate applies.
+    #[arg(long, env = "LEKIWI_ENROLL_BURST", default_value_t = 40)]
+    pub enroll_burst: u32,
+
     /// Seconds an agent has to send `hello` after connecting.
     #[arg(long, env = "LEKIWI_HANDSHAKE_TIMEOUT_SECONDS", default_value_t = 10)]
     pub handshake_timeout_seconds: u64,

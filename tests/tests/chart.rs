@@ -126,6 +126,7 @@ gateway:
   maxBlobBytes: 1073741824
   robotQuota: {rows: 100000, bytes: 67108864}
   sessionOpens: {perMinute: 0.5, burst: 3}
+  enroll: {rate: 5, burst: 10}
   authLookup: {qps: 2.5, burst: 20}
   service:
     type: LoadBalancer
@@ -216,6 +217,8 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--robot-quota-bytes=67108864",
         "--session-opens-per-minute=0.5",
         "--session-open-burst=3",
+        "--enroll-rate=5",
+        "--enroll-burst=10",
         "--auth-lookup-qps=2.5",
         "--auth-lookup-burst=20",
     ] {

@@ -572,7 +572,9 @@ async fn handshake_timeout_connection_cap_and_tls() -> anyhow::Result<()> {
     match lekiwi_agent::connection::connect_with_ca(&url, &other, &hello(), TIMEOUT, Some(&ca))
         .await
     {
-        Err(ConnectError::Unavailable(msg)) => assert!(msg.contains("503"), "{msg}"),
+        Err(ConnectError::Unavailable { message, .. }) => {
+            assert!(message.contains("503"), "{message}")
+        }
         other => panic!("expected 503, got {:?}", other.map(|(_, w)| w)),
     }
     // Plain ws:// to a TLS gateway and a wss:// client that does not trust our CA both fail.

@@ -120,10 +120,9 @@ impl Agent {
             error!(error = %e, "cannot connect; retrying at the slowest rate");
             backoff.saturate();
         }
-        let mut delay = backoff.next_delay();
-        if let ConnectError::TooManySessions { retry_after } = e {
-            delay = delay.max(*retry_after);
-        }
+        // A gateway's `Retry-After` is the least wait; the jittered backoff comes on top, so
+        // robots told the same second do not all come back in it together.
+        let delay = backoff.next_delay() + e.retry_after().unwrap_or_default();
         warn!(error = %e, retry_in_ms = delay.as_millis() as u64, attempt = backoff.attempts(), "connection failed");
         // A refused token waits at least the cap (set above).
         lp.reconnect_at = lp.reconnect_at.max(Instant::now() + delay);
@@ -157,16 +156,70 @@ impl Agent {
     }
 }
 
+/// The window over which a robot whose held session was lost without a word (its gateway
+/// crashed, a network path broke) comes back: the gateway's whole fleet lost it at the same
+/// moment, and the first retries of 10,000 robots spread over 10 s reach the surviving gateway
+/// at about 1,000 a second instead of all within the backoff's first 0.5 s.
+const LOST_SESSION_SPREAD: Duration = Duration::from_secs(10);
+
 /// How long to wait before reconnecting after a session the gateway ended with `code`.
 fn retry_delay(backoff: &mut Backoff, code: Option<ErrorCode>) -> Duration {
     match code {
         // Another replica takes over: come back soon, spread over 5 s.
         Some(ErrorCode::ShuttingDown) => Duration::from_millis(rand::random_range(0..=5000)),
+        // A held session lost abruptly: uniform over the spread (never beyond the backoff's
+        // cap); a failure after it continues the backoff.
+        None if backoff.attempts() == 0 => {
+            backoff.next_delay();
+            let spread = LOST_SESSION_SPREAD.min(backoff.cap());
+            let ms = u64::try_from(spread.as_millis()).unwrap_or(u64::MAX);
+            Duration::from_millis(rand::random_range(0..=ms))
+        }
         // Retrying soon cannot help.
         Some(ErrorCode::Replaced | ErrorCode::UnsupportedVersion) => {
             backoff.saturate();
             backoff.ceiling() + backoff.next_delay()
         }
         _ => backoff.next_delay(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// 10,000 robots lose their gateway at the same moment, each after a session that held:
+    /// their first reconnects, counted per second, never exceed twice the mean rate over the
+    /// spread (before the spread, all 10,000 came within the first 0.5 s).
+    #[test]
+    fn a_fleet_that_lost_its_gateway_comes_back_spread_out() {
+        const ROBOTS: usize = 10_000;
+        // The agent's defaults: backoff from 500 ms up to 60 s.
+        let mut per_second = [0usize; 11];
+        for _ in 0..ROBOTS {
+            let mut backoff = Backoff::new(Duration::from_millis(500), Duration::from_secs(60));
+            let delay = retry_delay(&mut backoff, None);
+            assert!(delay <= LOST_SESSION_SPREAD, "{delay:?}");
+            per_second[delay.as_secs() as usize] += 1;
+            assert_eq!(
+                backoff.attempts(),
+                1,
+                "a failure next continues the backoff"
+            );
+        }
+        let mean = ROBOTS / LOST_SESSION_SPREAD.as_secs() as usize;
+        let peak = per_second.iter().copied().max().unwrap_or_default();
+        assert!(peak <= 2 * mean, "{per_second:?}");
+    }
+
+    /// The spread never exceeds the configured cap (tests and impatient robots set it low),
+    /// and a robot already backing off keeps its backoff.
+    #[test]
+    fn the_spread_respects_the_cap_and_an_ongoing_backoff() {
+        let mut quick = Backoff::new(Duration::from_millis(200), Duration::from_secs(2));
+        assert!(retry_delay(&mut quick, None) <= Duration::from_secs(2));
+        let mut failing = Backoff::new(Duration::from_millis(100), Duration::from_secs(60));
+        failing.next_delay();
+        assert!(retry_delay(&mut failing, None) <= Duration::from_millis(200));
     }
 }

@@ -143,20 +143,17 @@ pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
             }
             Err(e) => {
                 fleet.stats.connect_errors.fetch_add(1, Ordering::Relaxed);
-                match e {
-                    ConnectError::Unauthorized(_) => {
-                        eprintln!("{name}: {e}");
-                        // A stale token (rotated elsewhere): enroll again.
-                        creds.token = args.enrollment_token.clone();
-                    }
-                    ConnectError::TooManySessions { retry_after } => floor = retry_after,
-                    _ => {}
+                floor = e.retry_after().unwrap_or_default();
+                if matches!(e, ConnectError::Unauthorized(_)) {
+                    eprintln!("{name}: {e}");
+                    // A stale token (rotated elsewhere): enroll again.
+                    creds.token = args.enrollment_token.clone();
                 }
             }
         }
-        // Full jitter, so a fleet does not come back in lockstep; a server's Retry-After is a
-        // minimum.
-        tokio::time::sleep(backoff.next_delay().max(floor)).await;
+        // A server's Retry-After first, then full jitter, so a fleet does not come back in
+        // lockstep (PROTOCOL.md §11).
+        tokio::time::sleep(floor + backoff.next_delay()).await;
     }
 }
 

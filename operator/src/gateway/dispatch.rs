@@ -35,7 +35,9 @@ pub async fn start(
         watcher(robots, watcher::Config::default().any_semantic())
             .default_backoff()
             .modify(|r: &mut Robot| {
-                // Sessions read spec.release and who holds the robot only.
+                // Sessions read spec.release and who holds the robot; status writes plan the
+                // phase from the spec, the generation and the stored phase and conditions
+                // (`presence::PhasePlanner`).
                 r.metadata.managed_fields = None;
                 r.metadata.annotations = None;
                 r.status = trim_status(r.status.take());

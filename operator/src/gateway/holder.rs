@@ -57,13 +57,17 @@ pub fn next_epoch(now: Timestamp, seen: Option<i64>) -> i64 {
     seen.map_or(now, |seen| now.max(seen.saturating_add(1)))
 }
 
-/// The part of a Robot's status the gateway's Robot watch keeps: who holds it. The rest is
-/// dropped to keep the cache small.
+/// The part of a Robot's status the gateway's Robot watch keeps: who holds it (for the fence),
+/// and the phase, conditions and generation the gateway's own phase planning starts from
+/// (`presence::PhasePlanner`). The rest is dropped to keep the cache small.
 pub fn trim_status(status: Option<RobotStatus>) -> Option<RobotStatus> {
     let status = status?;
     Some(RobotStatus {
         gateway: status.gateway,
         session_epoch: status.session_epoch,
+        phase: status.phase,
+        conditions: status.conditions,
+        observed_generation: status.observed_generation,
         ..RobotStatus::default()
     })
 }

@@ -2,6 +2,7 @@
 //! authenticates agents, keeps their presence in memory, writes `Robot` status sparingly and
 //! stores every durable agent message before acknowledging it.
 
+pub mod admission;
 pub mod auth;
 pub mod blob_api;
 pub mod blob_store;
@@ -63,6 +64,8 @@ pub enum ApiError {
     Throttled(&'static str),
     /// A robot opens sessions faster than its budget: 429 with `Retry-After` (seconds).
     TooManySessions(u64),
+    /// More robots enroll than the gateway admits: 503 with `Retry-After` (seconds).
+    EnrollmentsThrottled(u64),
     /// Something failed on our side.
     Internal(String),
 }
@@ -96,6 +99,21 @@ impl IntoResponse for ApiError {
                 });
                 return (
                     StatusCode::TOO_MANY_REQUESTS,
+                    [
+                        (header::CONTENT_TYPE, "application/json".to_owned()),
+                        (header::RETRY_AFTER, seconds.to_string()),
+                    ],
+                    body.to_string(),
+                )
+                    .into_response();
+            }
+            ApiError::EnrollmentsThrottled(seconds) => {
+                let body = serde_json::json!({
+                    "error": "unavailable",
+                    "message": "the gateway admits enrollments at a limited rate; retry after Retry-After seconds",
+                });
+                return (
+                    StatusCode::SERVICE_UNAVAILABLE,
                     [
                         (header::CONTENT_TYPE, "application/json".to_owned()),
                         (header::RETRY_AFTER, seconds.to_string()),
@@ -144,6 +162,8 @@ pub struct AppState {
     pub poll_memo: Arc<poll::PollMemo>,
     /// One permit per open WebSocket connection; none left means 503.
     pub connections: Arc<Semaphore>,
+    /// Enrollments admitted per second; beyond, 503 with `Retry-After`.
+    pub enrollments: Arc<admission::EnrollAdmission>,
     /// Release blobs, uploads and the Kubernetes checks of people's requests.
     pub blobs: Arc<blob_api::BlobApi>,
 }
@@ -265,6 +285,10 @@ async fn agent_ws(
         .await
         .map_err(|r| state.refused(r))?;
     if let Grant::Enroll(robot) = &grant {
+        if let Err(seconds) = state.enrollments.admit() {
+            state.count_refusal("enrollment_throttled");
+            return Err(ApiError::EnrollmentsThrottled(seconds));
+        }
         state.may_enroll(robot).await?;
     }
     if let Err(seconds) = state.shared.registry.may_open(grant.robot()) {

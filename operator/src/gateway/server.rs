@@ -20,13 +20,14 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
+use super::admission::EnrollAdmission;
 use super::auth::Authenticator;
 use super::blob_store::BlobStore;
 use super::desired::DesiredReleases;
 use super::kube_auth::KubeAuth;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
-use super::presence::{Presence, PresenceConfig};
+use super::presence::{PhasePlanner, Presence, PresenceConfig};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, Shared};
@@ -102,17 +103,7 @@ pub async fn run(
     else {
         return Ok(());
     };
-    let presence = Presence::new(
-        PresenceConfig {
-            gateway: name.clone(),
-            status_refresh: Duration::from_secs(config.status_refresh_seconds),
-            poll_grace: Duration::from_secs(config.poll_grace_seconds),
-            qps: config.status_qps,
-            burst: config.status_burst,
-            concurrency: 8,
-        },
-        metrics.clone(),
-    );
+    let presence = presence(&config, &name, &metrics);
     let (desired, dispatch_task) = dispatch::start(
         watched(&config, &client),
         registry.clone(),
@@ -120,6 +111,10 @@ pub async fn run(
         cancel.clone(),
     )
     .await?;
+    presence.plan_phases(PhasePlanner::new(
+        desired.0.clone(),
+        Duration::from_secs(config.heartbeat_grace_seconds),
+    ));
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
@@ -138,6 +133,10 @@ pub async fn run(
         client: client.clone(),
         poll_memo: Arc::default(),
         connections: Arc::new(Semaphore::new(config.max_connections)),
+        enrollments: Arc::new(EnrollAdmission::new(
+            config.enroll_rate,
+            config.enroll_burst,
+        )),
         blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
     };
     close_stale_connections(&store, &name).await;
@@ -156,6 +155,21 @@ pub async fn run(
     cancel.cancel();
     drain(&presence, tasks).await;
     served.map_err(|source| Error::Serve { addr, source })
+}
+
+/// The gateway's presence: the robots' states and the status writer's limits.
+fn presence(config: &Config, name: &str, metrics: &Metrics) -> Presence {
+    Presence::new(
+        PresenceConfig {
+            gateway: name.to_owned(),
+            status_refresh: Duration::from_secs(config.status_refresh_seconds),
+            poll_grace: Duration::from_secs(config.poll_grace_seconds),
+            qps: config.status_qps,
+            burst: config.status_burst,
+            concurrency: 8,
+        },
+        metrics.clone(),
+    )
 }
 
 /// The resources of kind `K` this gateway watches: those of `--watch-namespace`, or all.

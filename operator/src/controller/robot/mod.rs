@@ -1,6 +1,10 @@
 //! The Robot controller: turns the presence facts gateways record into phase, conditions and
 //! Events, marks robots Offline when heartbeats age out and Unknown when their gateway dies.
+//! Gateways write the phase and conditions they imply along with their facts (the same [`plan`]),
+//! so for a robot coming Online the controller usually finds nothing to write; it still
+//! notices the change and publishes its Event, within the budget of [`events`].
 
+pub mod events;
 mod gateways;
 pub mod plan;
 pub mod status;
@@ -53,6 +57,11 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     let controller = super::controller_for(robots, &ctx);
     let robot_store = controller.store();
     let (wake, wake_requests) = trigger();
+    let summaries = tokio::spawn(events::publish_summaries(
+        ctx.clone(),
+        robot_store.clone(),
+        cancel.clone(),
+    ));
     let liveness = tokio::spawn(watch_gateways(
         ctx.clone(),
         robot_store,
@@ -73,6 +82,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     )
     .await;
     liveness.abort();
+    summaries.abort();
     lease_task.abort();
     info!("robot controller stopped");
     Ok(())
@@ -113,18 +123,22 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
         if plan.differs_from(robot) {
             let api: Api<Robot> = Api::namespaced(ctx.client.clone(), &namespace);
             status::apply(&api, &name, &plan, unknown_fence(robot, &plan)).await?;
-            let old_phase = robot.status.as_ref().and_then(|s| s.phase);
-            if let Some(reason) = plan::transition_reason(old_phase, plan.phase) {
-                info!(from = ?old_phase, to = %plan.phase, "robot phase changed");
-                ctx.metrics
-                    .controllers
-                    .robot_transitions
-                    .get_or_create(&PhaseLabels {
-                        phase: plan.phase.as_str(),
-                    })
-                    .inc();
-                publish_transition(&ctx, robot, reason, &plan).await;
-            }
+        }
+        // A gateway may have written the new phase itself: compare with the last look too.
+        let stored = robot.status.as_ref().and_then(|s| s.phase);
+        let old_phase = ctx
+            .robot_events
+            .observe((&namespace, &name), stored, plan.phase);
+        if let Some(reason) = plan::transition_reason(old_phase, plan.phase) {
+            info!(from = ?old_phase, to = %plan.phase, "robot phase changed");
+            ctx.metrics
+                .controllers
+                .robot_transitions
+                .get_or_create(&PhaseLabels {
+                    phase: plan.phase.as_str(),
+                })
+                .inc();
+            publish_transition(&ctx, robot, reason, &plan).await;
         }
         ctx.reset_backoff(&name, &namespace);
         Ok(match plan.requeue_after {
@@ -136,7 +150,14 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     .await
 }
 
+/// Publishes the Event of a phase change, or counts it into a summary when the budget of
+/// per-robot Events is spent.
 async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &plan::Plan) {
+    let namespace = robot.namespace().unwrap_or_default();
+    let gateway = robot.status.as_ref().and_then(|s| s.gateway.as_deref());
+    if ctx.robot_events.admit(&namespace, gateway, plan.phase) == events::Publish::Summarised {
+        return;
+    }
     let note = plan
         .conditions
         .iter()

@@ -10,6 +10,7 @@
 //! falls back to presence alone for the rest of the session and says why in a Warning Event.
 
 mod patch;
+mod phase;
 #[cfg(test)]
 mod properties_tests;
 mod queue;
@@ -24,6 +25,7 @@ use jiff::Timestamp;
 use lekiwi_protocol::{Health, Release, SystemFacts, Teleoperation, Vitals};
 use tokio::sync::Notify;
 
+pub use self::phase::PhasePlanner;
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::next_epoch;
@@ -142,6 +144,8 @@ pub struct Presence {
     notify: Arc<Notify>,
     config: Arc<PresenceConfig>,
     metrics: Metrics,
+    /// Set once the gateway's Robot cache is ready: status writes then carry the phase too.
+    planner: Arc<std::sync::OnceLock<Arc<PhasePlanner>>>,
 }
 
 impl Presence {
@@ -152,6 +156,7 @@ impl Presence {
             notify: Arc::default(),
             config: Arc::new(config),
             metrics,
+            planner: Arc::default(),
         }
     }
 

@@ -2,7 +2,8 @@
 //! that a renamed or retyped status field fails to compile here instead of silently writing a
 //! key the CRD schema does not know.
 //!
-//! The patch holds exactly the fields the gateway owns: server-side apply drops a field its
+//! The patch holds exactly the fields the gateway owns, plus the phase and conditions they
+//! imply when the gateway can plan them ([`super::phase`]): server-side apply drops a field its
 //! manager stops sending, so an unset fact is left out (every `RobotStatus` field is skipped
 //! when `None`), never sent as `null`.
 
@@ -44,12 +45,26 @@ pub(super) struct Precondition {
 
 /// The apply patch of the robot's status as `gateway` sees it in `e`; with a `precondition`,
 /// the write only succeeds against that version of the robot.
+#[cfg(test)]
 pub(super) fn status_patch(gateway: &str, e: &Entry, precondition: Option<Precondition>) -> Value {
+    planned_status_patch(gateway, e, precondition, |_| {})
+}
+
+/// The apply patch as `status_patch` builds it, with `plan` adding the phase and conditions the facts imply (see
+/// [`super::phase`]).
+pub(super) fn planned_status_patch(
+    gateway: &str,
+    e: &Entry,
+    precondition: Option<Precondition>,
+    plan: impl FnOnce(&mut RobotStatus),
+) -> Value {
+    let mut status = gateway_status(gateway, e);
+    plan(&mut status);
     let patch = StatusPatch {
         api_version: Robot::api_version(&()).into_owned(),
         kind: Robot::kind(&()).into_owned(),
         metadata: precondition,
-        status: gateway_status(gateway, e),
+        status,
     };
     // A `Value` keeps the keys sorted, as the hand-written patch had them on the wire.
     serde_json::to_value(patch).unwrap_or(Value::Null)
@@ -72,7 +87,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         };
     }
     RobotStatus {
-        // Owned by the Robot controller.
+        // Planned by `super::phase` (shared with the Robot controller), not a gateway fact.
         phase: None,
         conditions: Vec::new(),
         observed_generation: None,

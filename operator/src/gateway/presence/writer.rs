@@ -14,7 +14,7 @@ use tokio::sync::Semaphore;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
-use super::patch::{Precondition, status_patch};
+use super::patch::Precondition;
 use super::{Entry, Presence, Priority};
 use crate::gateway::desired::DesiredReleases;
 use crate::gateway::event_store::RobotKey;
@@ -298,7 +298,7 @@ impl Presence {
         let precondition = Precondition {
             resource_version: holder.resource_version.clone(),
         };
-        let patch = status_patch(&self.config.gateway, e, Some(precondition));
+        let patch = self.patch(key, e, Some(precondition));
         match api
             .patch_status(
                 &key.name,

@@ -1,0 +1,196 @@
+//! The phase and conditions the Robot controller would compute for the status the gateway is
+//! about to write, added to that same write: a robot coming Online (or going Offline, or
+//! changing health) costs the API server one status write, and the controller, finding the
+//! status it would write already there, writes nothing.
+//!
+//! The controller stays the authority: it computes the same plan from what is stored, and writes
+//! only where it differs (heartbeat expiry, a dead gateway's Lease, a spec the gateway's cache
+//! had not seen yet).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use jiff::Timestamp;
+use kube::api::ObjectMeta;
+use kube::runtime::reflector::{ObjectRef, Store};
+use lekiwi_crds::{Robot, RobotStatus};
+use serde_json::Value;
+
+use super::patch::{Precondition, planned_status_patch};
+use super::{Entry, Presence};
+use crate::controller::robot::plan::{Facts, GatewayState, plan};
+use crate::gateway::event_store::RobotKey;
+
+/// What the gateway needs to plan a robot's phase: its Robot cache (spec, generation, phase and
+/// conditions) and the controller's heartbeat grace.
+#[derive(Clone)]
+pub struct PhasePlanner {
+    robots: Store<Robot>,
+    heartbeat_grace: Duration,
+}
+
+impl PhasePlanner {
+    /// A planner over the gateway's Robot cache, which must keep `status.phase` and
+    /// `status.conditions`.
+    pub fn new(robots: Store<Robot>, heartbeat_grace: Duration) -> Self {
+        Self {
+            robots,
+            heartbeat_grace,
+        }
+    }
+
+    /// Adds to `status` (what the gateway writes) the phase, conditions and
+    /// `observedGeneration` the controller would derive from it; leaves it alone when the robot
+    /// is not in the cache (the controller then writes them, as before).
+    fn plan_into(&self, key: &RobotKey, status: &mut RobotStatus, now: Timestamp) {
+        let Some(cached) = self
+            .robots
+            .get(&ObjectRef::new(&key.name).within(&key.namespace))
+        else {
+            return;
+        };
+        let stored = cached.status.as_ref();
+        let robot = robot_as_written(&cached, status, stored);
+        let facts = Facts {
+            now,
+            heartbeat_grace: self.heartbeat_grace,
+            // This gateway is writing, so it is alive; if its Lease says otherwise the
+            // controller corrects the phase.
+            gateway: Some(GatewayState::Alive),
+        };
+        let planned = plan(&robot, &facts);
+        status.phase = Some(planned.phase);
+        status.conditions = planned.conditions;
+        status.observed_generation = planned.observed_generation;
+    }
+}
+
+/// The Robot as it will be once `status` is written: the cached spec and generation, the
+/// written gateway facts, and the stored phase and conditions (whose transition times a
+/// condition of unchanged status keeps).
+fn robot_as_written(cached: &Robot, status: &RobotStatus, stored: Option<&RobotStatus>) -> Robot {
+    Robot {
+        metadata: ObjectMeta {
+            name: cached.metadata.name.clone(),
+            namespace: cached.metadata.namespace.clone(),
+            generation: cached.metadata.generation,
+            ..ObjectMeta::default()
+        },
+        spec: cached.spec.clone(),
+        status: Some(RobotStatus {
+            phase: stored.and_then(|s| s.phase),
+            conditions: stored.map(|s| s.conditions.clone()).unwrap_or_default(),
+            observed_generation: stored.and_then(|s| s.observed_generation),
+            ..status.clone()
+        }),
+    }
+}
+
+impl Presence {
+    /// Plans phases from now on (see the module docs).
+    pub fn plan_phases(&self, planner: PhasePlanner) {
+        let _ = self.planner.set(Arc::new(planner));
+    }
+
+    /// The apply patch of `e`: the gateway's facts plus, when the Robot is in the cache, the
+    /// phase and conditions they imply.
+    pub(super) fn patch(
+        &self,
+        key: &RobotKey,
+        e: &Entry,
+        precondition: Option<Precondition>,
+    ) -> Value {
+        planned_status_patch(&self.config.gateway, e, precondition, |status| {
+            if let Some(planner) = self.planner.get() {
+                planner.plan_into(key, status, Timestamp::now());
+            }
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use kube::runtime::{reflector, watcher};
+    use serde_json::json;
+
+    use super::*;
+    use crate::gateway::presence::{ConnectInfo, PresenceConfig};
+    use crate::metrics::Metrics;
+
+    const CACHED: &str = r#"
+apiVersion: fleet.lekiwi.io/v1alpha1
+kind: Robot
+metadata: { name: kiwi-1, namespace: lab, generation: 2 }
+spec: {}
+status:
+  phase: Offline
+  observedGeneration: 2
+  conditions:
+  - { type: Connected, status: "False", reason: Disconnected, message: "the agent disconnected from gateway gw", lastTransitionTime: "2026-01-01T00:00:00Z", observedGeneration: 2 }
+  - { type: UpToDate, status: "True", reason: NoReleaseRequested, message: "spec.release is not set", lastTransitionTime: "2026-01-01T00:00:00Z", observedGeneration: 2 }
+"#;
+
+    fn presence() -> Presence {
+        Presence::new(
+            PresenceConfig {
+                gateway: "gw".into(),
+                status_refresh: Duration::from_secs(300),
+                poll_grace: Duration::from_secs(180),
+                qps: 10.0,
+                burst: 10,
+                concurrency: 2,
+            },
+            Metrics::default(),
+        )
+    }
+
+    /// A connect of a cached robot is written with the phase and conditions the controller
+    /// would write (transition times of unchanged conditions kept); without the cache, or for
+    /// a robot not in it, the write holds the gateway's facts alone, as before.
+    #[test]
+    fn a_connect_write_carries_the_phase_the_controller_would_write() {
+        let (store, mut writer) = reflector::store::<Robot>();
+        writer.apply_watcher_event(&watcher::Event::Apply(
+            serde_yaml::from_str(CACHED).unwrap(),
+        ));
+        let p = presence();
+        let (cached, stranger) = (
+            RobotKey::new("lab", "kiwi-1"),
+            RobotKey::new("lab", "kiwi-2"),
+        );
+        let info = ConnectInfo {
+            protocol: "websocket",
+            ..ConnectInfo::default()
+        };
+        p.connect(&cached, 1, 1_000, info.clone());
+        p.connect(&stranger, 1, 1_000, info);
+        let entry = |k: &RobotKey| p.with_state(|s| s.robots[k].clone());
+        let status = |k: &RobotKey| p.patch(k, &entry(k), None)["status"].clone();
+        assert_eq!(status(&cached).get("phase"), None, "no cache yet");
+
+        p.plan_phases(PhasePlanner::new(store, Duration::from_secs(60)));
+        let s = status(&cached);
+        assert_eq!(s["phase"], json!("Online"));
+        assert_eq!(s["observedGeneration"], json!(2));
+        assert_eq!(s["connected"], json!(true));
+        let condition = |t: &str| {
+            s["conditions"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|c| c["type"] == t)
+                .cloned()
+                .unwrap()
+        };
+        assert_eq!(condition("Connected")["status"], json!("True"));
+        assert_ne!(
+            condition("Connected")["lastTransitionTime"],
+            json!("2026-01-01T00:00:00Z")
+        );
+        assert_eq!(
+            condition("UpToDate")["lastTransitionTime"],
+            json!("2026-01-01T00:00:00Z")
+        );
+        assert_eq!(status(&stranger).get("phase"), None, "not in the cache");
+    }
+}
