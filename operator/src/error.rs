@@ -41,6 +41,18 @@ pub enum Error {
 }
 
 impl Error {
+    /// Whether the API server refused a write because the object changed since it was read
+    /// (409 Conflict: a `resourceVersion` precondition failed).
+    pub fn is_conflict(&self) -> bool {
+        matches!(
+            self,
+            Error::PatchStatus {
+                source: kube::Error::Api(status),
+                ..
+            } if status.code == 409
+        )
+    }
+
     /// A bounded label for the `reason` of the error metric.
     pub fn metric_reason(&self) -> &'static str {
         match self {

@@ -15,7 +15,7 @@ use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use super::plan::{GatewayState, Plan};
+use super::plan::GatewayState;
 use crate::controller::Context;
 use crate::controller::trigger::Trigger;
 use crate::metrics::PhaseLabels;
@@ -51,19 +51,6 @@ pub(super) fn gateway_state(
         Some(lease) if lease_alive(&lease, now) => GatewayState::Alive,
         _ => GatewayState::Gone,
     }
-}
-
-/// The `resourceVersion` a write of `plan` to `robot` is fenced with: a robot marked `Unknown`
-/// because its gateway died may have reconnected through another gateway already, in a status
-/// this controller's cache does not show yet; the fenced write is then refused (409) instead of
-/// undoing that connection, and the reconcile the newer status brings writes nothing (the
-/// robot is Online through its new gateway). Other phases need no fence: they follow facts the
-/// next reconcile sees anyway.
-pub(super) fn unknown_fence<'a>(robot: &'a Robot, plan: &Plan) -> Option<&'a str> {
-    if plan.phase != RobotPhase::Unknown {
-        return None;
-    }
-    robot.metadata.resource_version.as_deref()
 }
 
 /// A gateway Lease expired this long and held by no robot is deleted.
@@ -260,33 +247,6 @@ mod tests {
                 ..LeaseSpec::default()
             }),
         })
-    }
-
-    /// Only an Unknown write is fenced, with the version of the Robot it was planned from.
-    #[test]
-    fn only_unknown_writes_are_fenced() {
-        let mut robot: Robot = serde_json::from_value(serde_json::json!({
-            "apiVersion": "fleet.lekiwi.io/v1alpha1",
-            "kind": "Robot",
-            "metadata": { "name": "kiwi", "resourceVersion": "41" },
-            "spec": {},
-        }))
-        .unwrap();
-        let plan = |phase| Plan {
-            phase,
-            conditions: Vec::new(),
-            observed_generation: None,
-            requeue_after: None,
-        };
-        assert_eq!(
-            unknown_fence(&robot, &plan(RobotPhase::Unknown)),
-            Some("41")
-        );
-        for phase in [RobotPhase::Online, RobotPhase::Offline, RobotPhase::Pending] {
-            assert_eq!(unknown_fence(&robot, &plan(phase)), None);
-        }
-        robot.metadata.resource_version = None;
-        assert_eq!(unknown_fence(&robot, &plan(RobotPhase::Unknown)), None);
     }
 
     /// Only gateway Leases expired for longer than the limit and named by no robot go.

@@ -22,9 +22,9 @@ use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, Resource, ResourceExt};
 use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
-use tracing::{Instrument, info, info_span, warn};
+use tracing::{Instrument, debug, info, info_span, warn};
 
-use self::gateways::{gateway_state, unknown_fence, watch_gateways};
+use self::gateways::{gateway_state, watch_gateways};
 use self::plan::{Facts, GatewayState};
 use super::Context;
 use super::trigger::trigger;
@@ -122,7 +122,16 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
         let plan = plan::plan(robot, &facts);
         if plan.differs_from(robot) {
             let api: Api<Robot> = Api::namespaced(ctx.client.clone(), &namespace);
-            status::apply(&api, &name, &plan, unknown_fence(robot, &plan)).await?;
+            let seen = robot.metadata.resource_version.as_deref();
+            if let Err(e) = status::apply(&api, &name, &plan, seen).await {
+                if !e.is_conflict() {
+                    return Err(e);
+                }
+                // The Robot changed since this plan was made (a gateway wrote a newer status):
+                // the newer version's reconcile decides; nothing was written.
+                debug!("the robot changed under the plan; planning again");
+                return Ok(Action::requeue(Duration::from_secs(1)));
+            }
         }
         // A gateway may have written the new phase itself: compare with the last look too.
         let stored = robot.status.as_ref().and_then(|s| s.phase);

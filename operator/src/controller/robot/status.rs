@@ -13,6 +13,12 @@ use crate::error::{Error, Result};
 /// Applies `phase`, `conditions` and `observedGeneration`, and nothing else. With `fence` (the
 /// Robot's `resourceVersion` as the plan saw it), the API server refuses the write (409) if the
 /// Robot changed since.
+///
+/// Every write of the controller is fenced: gateways write phase and conditions too (with the
+/// facts they follow from), so a plan made from an older version of the Robot would undo a
+/// newer one — e.g. a robot just created plans `Pending` while its gateway already wrote it
+/// `Online`; unfenced, it would flap `Online → Pending → Online`. And a robot marked `Unknown`
+/// because its gateway died may have reconnected through another gateway already.
 pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan, fence: Option<&str>) -> Result<()> {
     let mut status = json!({ "phase": plan.phase, "conditions": plan.conditions });
     // The schema has no `nullable`: omit unset fields rather than sending null.
