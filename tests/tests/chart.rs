@@ -127,6 +127,7 @@ gateway:
   robotQuota: {rows: 100000, bytes: 67108864}
   sessionOpens: {perMinute: 0.5, burst: 3}
   authLookup: {qps: 2.5, burst: 20}
+  apiRateLimit: {perSecond: 5.5, burst: 7}
   service:
     type: LoadBalancer
     port: 443
@@ -218,6 +219,8 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--session-open-burst=3",
         "--auth-lookup-qps=2.5",
         "--auth-lookup-burst=20",
+        "--api-rate=5.5",
+        "--api-burst=7",
     ] {
         assert!(args.contains(&want), "{want} missing from {args:?}");
     }
@@ -315,9 +318,46 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "true"
     );
     let rules = serde_yaml::to_string(&viewer["rules"])?;
-    for want in ["robots", "robotdeployments", "robots/events", "list"] {
+    for want in [
+        "robots",
+        "robotdeployments",
+        "robots/events",
+        "robots/telemetry",
+        "list",
+        "watch",
+    ] {
         assert!(rules.contains(want), "{want}: {rules}");
     }
+    assert!(!rules.contains("patch"), "viewers steer nothing: {rules}");
+    // The Fleet API's rollout actions: users with `patch robotdeployments`, and the operator
+    // that writes the patch once the SubjectAccessReview allowed it.
+    let user = find(&docs, "ClusterRole", "lekiwi-operator-user");
+    assert_eq!(
+        user["metadata"]["labels"]["rbac.authorization.k8s.io/aggregate-to-edit"],
+        "true"
+    );
+    assert!(
+        user["metadata"]["labels"]["rbac.authorization.k8s.io/aggregate-to-view"].is_null(),
+        "viewers must not aggregate patch"
+    );
+    let steer = user["rules"].as_sequence().unwrap().iter().any(|r| {
+        r["resources"][0] == "robotdeployments"
+            && r["verbs"].as_sequence().unwrap().len() == 1
+            && r["verbs"][0] == "patch"
+    });
+    assert!(steer, "lekiwi-operator-user patches robotdeployments");
+    let own = find(&docs, "ClusterRole", "r-kiwi")["rules"]
+        .as_sequence()
+        .unwrap();
+    assert!(
+        own.iter().any(|r| r["resources"][0] == "robotdeployments"
+            && r["verbs"]
+                .as_sequence()
+                .unwrap()
+                .iter()
+                .any(|v| v == "patch")),
+        "the operator patches robotdeployments for the Fleet API: {own:?}"
+    );
     assert!(
         !docs.iter().any(|d| d["kind"] == "Secret"),
         "no API token Secret in the chart"

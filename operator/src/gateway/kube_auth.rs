@@ -192,6 +192,13 @@ impl KubeAuth {
         }
     }
 
+    /// The user the API server says `token` belongs to (from the cache or a `TokenReview`):
+    /// who the Fleet API counts a request against before it checks the permission.
+    pub async fn user_of(&self, token: &str) -> Result<UserInfo, Denied> {
+        let hash: TokenHash = Sha256::digest(token.as_bytes()).into();
+        self.user(hash, token).await?.ok_or(Denied::Unauthenticated)
+    }
+
     /// The user of `token`, from the cache or a `TokenReview`.
     async fn user(&self, hash: TokenHash, token: &str) -> Result<Option<UserInfo>, Denied> {
         if let Some(user) = self.users.get(&hash) {

@@ -2,6 +2,7 @@
 //! authenticates agents, keeps their presence in memory, writes `Robot` status sparingly and
 //! stores every durable agent message before acknowledging it.
 
+pub mod api;
 pub mod auth;
 pub mod blob_api;
 pub mod blob_store;
@@ -62,6 +63,9 @@ pub enum ApiError {
     Throttled(&'static str),
     /// A robot opens sessions faster than its budget: 429 with `Retry-After` (seconds).
     TooManySessions(u64),
+    /// A person's or tool's requests to the Fleet API exceed their user's budget: 429 with
+    /// `Retry-After` (seconds).
+    RateLimited(u64),
     /// Something failed on our side.
     Internal(String),
 }
@@ -92,6 +96,21 @@ impl IntoResponse for ApiError {
                 let body = serde_json::json!({
                     "error": "too_many_sessions",
                     "message": "this robot opens sessions too often; retry after Retry-After seconds",
+                });
+                return (
+                    StatusCode::TOO_MANY_REQUESTS,
+                    [
+                        (header::CONTENT_TYPE, "application/json".to_owned()),
+                        (header::RETRY_AFTER, seconds.to_string()),
+                    ],
+                    body.to_string(),
+                )
+                    .into_response();
+            }
+            ApiError::RateLimited(seconds) => {
+                let body = serde_json::json!({
+                    "error": "rate_limited",
+                    "message": "too many requests from this user; retry after Retry-After seconds",
                 });
                 return (
                     StatusCode::TOO_MANY_REQUESTS,
@@ -145,6 +164,8 @@ pub struct AppState {
     pub connections: Arc<Semaphore>,
     /// Release blobs, uploads and the Kubernetes checks of people's requests.
     pub blobs: Arc<blob_api::BlobApi>,
+    /// The Fleet API's caches and per-user budgets.
+    pub fleet: Arc<api::FleetApi>,
 }
 
 impl AppState {
@@ -200,17 +221,24 @@ impl AppState {
                 "name the namespace: ?namespace=NAME".into(),
             ));
         };
-        match self.blobs.kube_auth.check(token, &access).await {
-            Ok(()) => Ok(()),
-            Err(kube_auth::Denied::Unauthenticated) => Err(self.refused(Refusal::WrongToken)),
-            Err(kube_auth::Denied::Forbidden(permission)) => {
+        self.blobs
+            .kube_auth
+            .check(token, &access)
+            .await
+            .map_err(|d| self.denied(d))
+    }
+
+    /// The answer to a request [`kube_auth`] did not let through: 401 for a token the API
+    /// server refuses, 403 naming the missing permission, 503 when reviews are throttled.
+    fn denied(&self, denied: kube_auth::Denied) -> ApiError {
+        match denied {
+            kube_auth::Denied::Unauthenticated => self.refused(Refusal::WrongToken),
+            kube_auth::Denied::Forbidden(permission) => {
                 self.count_refusal("forbidden");
-                Err(ApiError::Forbidden(format!(
-                    "forbidden: this needs {permission}"
-                )))
+                ApiError::Forbidden(format!("forbidden: this needs {permission}"))
             }
-            Err(kube_auth::Denied::Unavailable(detail)) => Err(ApiError::Internal(detail)),
-            Err(kube_auth::Denied::Throttled) => Err(self.refused(Refusal::Throttled)),
+            kube_auth::Denied::Unavailable(detail) => ApiError::Internal(detail),
+            kube_auth::Denied::Throttled => self.refused(Refusal::Throttled),
         }
     }
 
@@ -240,6 +268,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/poll", get(poll::poll))
         .merge(blob_api::routes())
         .merge(events_api::routes())
+        .merge(api::routes())
         .route_layer(axum::middleware::from_fn(
             listener::authenticated_on_success,
         ))

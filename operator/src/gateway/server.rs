@@ -20,6 +20,7 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
+use super::api::FleetApi;
 use super::auth::Authenticator;
 use super::blob_store::BlobStore;
 use super::kube_auth::KubeAuth;
@@ -114,6 +115,13 @@ pub async fn run(
     );
     let (desired, dispatch_task) =
         dispatch::start(watched(&config, &client), registry.clone(), cancel.clone()).await?;
+    let (fleet, fleet_tasks) = FleetApi::start(
+        watched(&config, &client),
+        watched(&config, &client),
+        client.clone(),
+        (config.api_rate, config.api_burst),
+        &cancel,
+    );
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
@@ -133,10 +141,12 @@ pub async fn run(
         poll_memo: Arc::default(),
         connections: Arc::new(Semaphore::new(config.max_connections)),
         blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
+        fleet: Arc::new(fleet),
     };
     close_stale_connections(&store, &name).await;
     let mut tasks = start_background(&config, &name, &client, &presence, &store, &cancel);
     tasks.aborted.extend([secret_task, dispatch_task]);
+    tasks.aborted.extend(fleet_tasks);
     let addr = config.gateway_addr;
     let dropped = state.shared.metrics.gateway.connections_dropped.clone();
     let served = serve(&config, &name, router(state), dropped, listening, &cancel).await?;
