@@ -226,7 +226,10 @@ fn operator_args(
     push(&["--http-addr", &format!("127.0.0.1:{http_port}")]);
     push(&["--gateway-addr", &format!("127.0.0.1:{gateway_port}")]);
     push(&["--gateway-name", &format!("gw-{identity}")]);
-    push(&["--store-url", &format!("sqlite://{}", store_path.display())]);
+    if !extra.iter().any(|a| a.starts_with("--store-url")) {
+        // SQLite beside the log unless the test names a store (PostgreSQL).
+        push(&["--store-url", &format!("sqlite://{}", store_path.display())]);
+    }
     push(&[
         "--lease-duration-seconds",
         "4",
