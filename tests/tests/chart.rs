@@ -879,6 +879,33 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     )
     .await
     .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
+    // The Fleet API under the same credentials: its watches, the reviews, and a rollout action
+    // the operator patches in once the caller (here the admin) may.
+    let admin = format!("Bearer {}", cp.admin_token()?);
+    let action = format!("/api/v1/namespaces/{ns}/rollouts/chart-rollout/pause");
+    let (code, _, body) = lekiwi_tests::http_request(
+        op.gateway_port,
+        "POST",
+        &action,
+        &[("authorization", &admin)],
+        Some(b""),
+    )
+    .await?;
+    assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
+    assert!(deployments.get("chart-rollout").await?.spec.paused);
+    let robots = format!("/api/v1/namespaces/{ns}/robots");
+    wait_for(
+        "the Fleet API's Robot cache",
+        Duration::from_secs(10),
+        || async {
+            let (code, _, body) =
+                lekiwi_tests::http_get_with(op.gateway_port, &robots, &[("authorization", &admin)])
+                    .await
+                    .ok()?;
+            (code == 200 && body.contains("kiwi-1")).then_some(())
+        },
+    )
+    .await?;
     wait_for(
         "the stale gateway Lease deleted",
         Duration::from_secs(20),
