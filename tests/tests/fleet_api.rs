@@ -622,3 +622,37 @@ async fn history_reads_come_from_postgresql_too() -> Result<()> {
     }
     Ok(())
 }
+
+/// A busy client (many requests at once with one token) is never refused when the cached
+/// review of its token expires: the review budget (here one) is for unknown tokens.
+#[tokio::test]
+async fn a_busy_client_outlives_its_cached_review() -> Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "fleetapittl").await?;
+    let token = account(cp, &client, &ns, "busy", None).await?;
+    let args = [
+        "--role",
+        "gateway",
+        "--auth-lookup-qps",
+        "0.01",
+        "--auth-lookup-burst",
+        "1",
+    ];
+    let op = lekiwi_tests::gateway_operator(cp, &ns, "fleetapittl", &args).await?;
+    ok(&op, "/api/v1/openapi.json", &token).await?;
+    // Past the 10 s the review is cached for, 20 requests at once.
+    tokio::time::sleep(std::time::Duration::from_millis(10_500)).await;
+    let calls = (0..20).map(|_| call(&op, "GET", "/api/v1/openapi.json", Some(&token)));
+    let codes: Vec<u16> = futures::future::try_join_all(calls)
+        .await?
+        .into_iter()
+        .map(|(code, _, _)| code)
+        .collect();
+    ensure!(codes.iter().all(|c| *c == 200), "{codes:?}");
+    // An unknown token still meets the spent budget.
+    let (code, retry, body) =
+        call(&op, "GET", "/api/v1/openapi.json", Some("unknown-token")).await?;
+    ensure!(code == 503 && retry.is_some(), "{code} {body}");
+    Ok(())
+}

@@ -58,8 +58,9 @@ impl FleetApi {
         (rate, burst): (f64, u32),
         cancel: &CancellationToken,
     ) -> (Self, Vec<JoinHandle<()>>) {
-        let (robots, robot_task) = cache::watch(robots, trim_robot, cancel.clone());
-        let (rollouts, rollout_task) = cache::watch(rollouts, trim_meta, cancel.clone());
+        let (robots, robot_task) = cache::watch(robots, trim_meta::<Robot>, cancel.clone());
+        let (rollouts, rollout_task) =
+            cache::watch(rollouts, trim_meta::<RobotDeployment>, cancel.clone());
         let api = Self {
             robots,
             rollouts,
@@ -73,10 +74,6 @@ impl FleetApi {
 /// What the API never answers with and memory need not hold.
 fn trim_meta<K: kube::Resource>(o: &mut K) {
     o.meta_mut().managed_fields = None;
-}
-
-fn trim_robot(r: &mut Robot) {
-    trim_meta(r);
 }
 
 /// The Fleet API's routes, merged into the gateway's [`super::router`].
