@@ -505,6 +505,13 @@ async fn refusals(
     }
     let (code, _, _) = call(op, "GET", "/healthz", None).await?;
     ensure!(code == 200, "health needs no token");
+    let (code, _, body) = call(op, "GET", "/api/v1/nothing/here", Some(viewer)).await?;
+    ensure!(code == 404 && body["error"] == "not_found", "{code} {body}");
+    let (code, _, body) = call(op, "DELETE", &format!("{robots}/kiwi-1"), Some(viewer)).await?;
+    ensure!(
+        code == 405 && body["error"] == "method_not_allowed",
+        "{code} {body}"
+    );
     Ok(())
 }
 

@@ -16,10 +16,11 @@ pub mod selector;
 
 use std::sync::Arc;
 
-use axum::Router;
 use axum::extract::rejection::QueryRejection;
-use axum::http::HeaderMap;
-use axum::routing::{get, post};
+use axum::http::{HeaderMap, Method, StatusCode, Uri};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{MethodRouter, any, get, post};
+use axum::{Json, Router};
 use kube::Api;
 use lekiwi_crds::{Robot, RobotDeployment};
 use tokio::task::JoinHandle;
@@ -77,22 +78,43 @@ fn trim_meta<K: kube::Resource>(o: &mut K) {
 }
 
 /// The Fleet API's routes, merged into the gateway's [`super::router`].
+/// Unknown paths under `/api/v1/` and wrong methods answer JSON errors too.
 pub fn routes() -> Router<AppState> {
     use openapi::paths as p;
+    let wrong = |m: MethodRouter<AppState>| m.fallback(wrong_method);
     Router::new()
-        .route(p::OPENAPI, get(openapi::document))
-        .route(p::ROBOTS, get(robots::list_all))
-        .route(p::NAMESPACED_ROBOTS, get(robots::list_namespaced))
-        .route(p::ROBOT, get(robots::one))
-        .route(p::ROBOT_EVENTS, get(history::events))
-        .route(p::ROBOT_TELEMETRY, get(history::telemetry))
-        .route(p::ROLLOUTS, get(rollouts::list_all))
-        .route(p::NAMESPACED_ROLLOUTS, get(rollouts::list_namespaced))
-        .route(p::ROLLOUT, get(rollouts::one))
-        .route(p::ROLLOUT_PAUSE, post(rollouts::pause))
-        .route(p::ROLLOUT_RESUME, post(rollouts::resume))
-        .route(p::ROLLOUT_UNDO, post(rollouts::undo))
-        .route(p::ROLLOUT_RESTART, post(rollouts::restart))
+        .route(p::OPENAPI, wrong(get(openapi::document)))
+        .route(p::ROBOTS, wrong(get(robots::list_all)))
+        .route(p::NAMESPACED_ROBOTS, wrong(get(robots::list_namespaced)))
+        .route(p::ROBOT, wrong(get(robots::one)))
+        .route(p::ROBOT_EVENTS, wrong(get(history::events)))
+        .route(p::ROBOT_TELEMETRY, wrong(get(history::telemetry)))
+        .route(p::ROLLOUTS, wrong(get(rollouts::list_all)))
+        .route(
+            p::NAMESPACED_ROLLOUTS,
+            wrong(get(rollouts::list_namespaced)),
+        )
+        .route(p::ROLLOUT, wrong(get(rollouts::one)))
+        .route(p::ROLLOUT_PAUSE, wrong(post(rollouts::pause)))
+        .route(p::ROLLOUT_RESUME, wrong(post(rollouts::resume)))
+        .route(p::ROLLOUT_UNDO, wrong(post(rollouts::undo)))
+        .route(p::ROLLOUT_RESTART, wrong(post(rollouts::restart)))
+        .route("/api/v1/{*rest}", any(unknown_path))
+}
+
+async fn unknown_path(uri: Uri) -> ApiError {
+    ApiError::NotFound(format!(
+        "no such Fleet API route: {}; see /api/v1/openapi.json",
+        uri.path()
+    ))
+}
+
+async fn wrong_method(method: Method, uri: Uri) -> Response {
+    let body = serde_json::json!({
+        "error": "method_not_allowed",
+        "message": format!("{method} is not allowed on {}; see /api/v1/openapi.json", uri.path()),
+    });
+    (StatusCode::METHOD_NOT_ALLOWED, Json(body)).into_response()
 }
 
 /// Lets a request through when its bearer token is accepted, its user is within budget and

@@ -241,7 +241,7 @@ fn components() -> Value {
             "description": "Any token the Kubernetes API server accepts (kubectl create token, a kubeconfig's token, OIDC)."}},
         "schemas": {
             "Error": {"type": "object", "required": ["error", "message"], "properties": {
-                "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, rate_limited, unavailable, internal."},
+                "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, method_not_allowed, rate_limited, unavailable, internal."},
                 "message": {"type": "string"}}},
             "Robot": {"type": "object", "description": "The Robot resource (fleet.lekiwi.io/v1alpha1) as `kubectl get -o json` shows it, without managedFields."},
             "RobotDeployment": {"type": "object", "description": "The RobotDeployment resource (fleet.lekiwi.io/v1alpha1) without managedFields."},
