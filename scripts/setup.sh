@@ -26,7 +26,7 @@ SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 export DEBIAN_FRONTEND=noninteractive
 
-APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static rsync haproxy
+APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static rsync haproxy wrk
   containerd runc containernetworking-plugins iptables conntrack ethtool socat iproute2 util-linux)
 BUILD_PKGS=(dpkg-dev golang-go rsync make golang-github-modern-go-reflect2-dev golang-github-json-iterator-go-dev)
 

@@ -264,6 +264,15 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_AUTH_MISS_SECONDS", default_value_t = 5)]
     pub auth_miss_seconds: u64,
 
+    /// Fleet API requests per second one user (the username a TokenReview names) may make,
+    /// sustained; faster gets 429 with `Retry-After`.
+    #[arg(long, env = "LEKIWI_API_RATE", default_value_t = 20.0)]
+    pub api_rate: f64,
+
+    /// Fleet API requests one user may make at once before that rate applies.
+    #[arg(long, env = "LEKIWI_API_BURST", default_value_t = 100)]
+    pub api_burst: u32,
+
     /// Validity of the gateway's own Lease (renewed every third of it).
     #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]
     pub gateway_lease_seconds: u64,

@@ -226,8 +226,9 @@ fn operator_args(
     push(&["--http-addr", &format!("127.0.0.1:{http_port}")]);
     push(&["--gateway-addr", &format!("127.0.0.1:{gateway_port}")]);
     push(&["--gateway-name", &format!("gw-{identity}")]);
-    if !extra.contains(&"--store-url") {
-        // Its own SQLite store, unless the test shares one (PostgreSQL) between replicas.
+    if !extra.iter().any(|a| a.starts_with("--store-url")) {
+        // Its own SQLite store beside the log, unless the test names one (e.g. PostgreSQL
+        // shared between replicas).
         push(&["--store-url", &format!("sqlite://{}", store_path.display())]);
     }
     push(&[

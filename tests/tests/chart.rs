@@ -128,6 +128,7 @@ gateway:
   sessionOpens: {perMinute: 0.5, burst: 3}
   enroll: {rate: 5, burst: 10}
   authLookup: {qps: 2.5, burst: 20}
+  apiRateLimit: {perSecond: 5.5, burst: 7}
   service:
     type: LoadBalancer
     port: 443
@@ -221,6 +222,8 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--enroll-burst=10",
         "--auth-lookup-qps=2.5",
         "--auth-lookup-burst=20",
+        "--api-rate=5.5",
+        "--api-burst=7",
     ] {
         assert!(args.contains(&want), "{want} missing from {args:?}");
     }
@@ -318,9 +321,46 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "true"
     );
     let rules = serde_yaml::to_string(&viewer["rules"])?;
-    for want in ["robots", "robotdeployments", "robots/events", "list"] {
+    for want in [
+        "robots",
+        "robotdeployments",
+        "robots/events",
+        "robots/telemetry",
+        "list",
+        "watch",
+    ] {
         assert!(rules.contains(want), "{want}: {rules}");
     }
+    assert!(!rules.contains("patch"), "viewers steer nothing: {rules}");
+    // The Fleet API's rollout actions: users with `patch robotdeployments`, and the operator
+    // that writes the patch once the SubjectAccessReview allowed it.
+    let user = find(&docs, "ClusterRole", "lekiwi-operator-user");
+    assert_eq!(
+        user["metadata"]["labels"]["rbac.authorization.k8s.io/aggregate-to-edit"],
+        "true"
+    );
+    assert!(
+        user["metadata"]["labels"]["rbac.authorization.k8s.io/aggregate-to-view"].is_null(),
+        "viewers must not aggregate patch"
+    );
+    let steer = user["rules"].as_sequence().unwrap().iter().any(|r| {
+        r["resources"][0] == "robotdeployments"
+            && r["verbs"].as_sequence().unwrap().len() == 1
+            && r["verbs"][0] == "patch"
+    });
+    assert!(steer, "lekiwi-operator-user patches robotdeployments");
+    let own = find(&docs, "ClusterRole", "r-kiwi")["rules"]
+        .as_sequence()
+        .unwrap();
+    assert!(
+        own.iter().any(|r| r["resources"][0] == "robotdeployments"
+            && r["verbs"]
+                .as_sequence()
+                .unwrap()
+                .iter()
+                .any(|v| v == "patch")),
+        "the operator patches robotdeployments for the Fleet API: {own:?}"
+    );
     assert!(
         !docs.iter().any(|d| d["kind"] == "Secret"),
         "no API token Secret in the chart"
@@ -842,6 +882,33 @@ async fn chart_installs_and_its_rbac_suffices() -> anyhow::Result<()> {
     )
     .await
     .map_err(|e| anyhow::anyhow!("{e}\n{}", op.log_text()))?;
+    // The Fleet API under the same credentials: its watches, the reviews, and a rollout action
+    // the operator patches in once the caller (here the admin) may.
+    let admin = format!("Bearer {}", cp.admin_token()?);
+    let action = format!("/api/v1/namespaces/{ns}/rollouts/chart-rollout/pause");
+    let (code, _, body) = lekiwi_tests::http_request(
+        op.gateway_port,
+        "POST",
+        &action,
+        &[("authorization", &admin)],
+        Some(b""),
+    )
+    .await?;
+    assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
+    assert!(deployments.get("chart-rollout").await?.spec.paused);
+    let robots = format!("/api/v1/namespaces/{ns}/robots");
+    wait_for(
+        "the Fleet API's Robot cache",
+        Duration::from_secs(10),
+        || async {
+            let (code, _, body) =
+                lekiwi_tests::http_get_with(op.gateway_port, &robots, &[("authorization", &admin)])
+                    .await
+                    .ok()?;
+            (code == 200 && body.contains("kiwi-1")).then_some(())
+        },
+    )
+    .await?;
     wait_for(
         "the stale gateway Lease deleted",
         Duration::from_secs(20),

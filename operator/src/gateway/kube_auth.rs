@@ -7,6 +7,8 @@
 //! `TokenReview`s of tokens not in the cache share a budget of their own (`--auth-lookup-qps`,
 //! `--auth-lookup-burst`, like the robot-token lookups): a flood of guessed tokens costs the API
 //! server a bounded number of reviews, and beyond it the gateway answers 503 with `Retry-After`.
+//! A token whose expired answer said "accepted" is reviewed again outside that budget, so a
+//! busy client is never refused when its answer expires under many concurrent requests.
 //! Reviews made are counted in `lekiwi_gateway_kube_reviews_total{kind, result}`, answers from
 //! the cache in `lekiwi_gateway_kube_review_cache_hits_total{kind}`.
 
@@ -127,6 +129,14 @@ impl<K: Hash + Eq, V: Clone> Cache<K, V> {
             .map(|(_, v)| v.clone())
     }
 
+    /// The value even when expired (`false`), while it is still held.
+    fn get_stale(&self, key: &K) -> Option<(bool, V)> {
+        let entries = self.entries.lock().unwrap_or_else(|p| p.into_inner());
+        entries
+            .get(key)
+            .map(|(at, v)| (at.elapsed() < TTL, v.clone()))
+    }
+
     fn put(&self, key: K, value: V) {
         let mut entries = self.entries.lock().unwrap_or_else(|p| p.into_inner());
         if entries.len() >= MAX_ENTRIES {
@@ -192,13 +202,27 @@ impl KubeAuth {
         }
     }
 
+    /// The user the API server says `token` belongs to (from the cache or a `TokenReview`):
+    /// who the Fleet API counts a request against before it checks the permission.
+    pub async fn user_of(&self, token: &str) -> Result<UserInfo, Denied> {
+        let hash: TokenHash = Sha256::digest(token.as_bytes()).into();
+        self.user(hash, token).await?.ok_or(Denied::Unauthenticated)
+    }
+
     /// The user of `token`, from the cache or a `TokenReview`.
     async fn user(&self, hash: TokenHash, token: &str) -> Result<Option<UserInfo>, Denied> {
-        if let Some(user) = self.users.get(&hash) {
-            self.hit("token_review");
-            return Ok(user);
-        }
-        if !self.budget.try_take() {
+        // A token the API server accepted a moment ago is reviewed again when its answer
+        // expires, outside the budget: that budget is for unknown (new or guessed) tokens, and
+        // a busy client's requests all miss the cache at the same instant.
+        let known = match self.users.get_stale(&hash) {
+            Some((true, user)) => {
+                self.hit("token_review");
+                return Ok(user);
+            }
+            Some((false, user)) => user.is_some(),
+            None => false,
+        };
+        if !known && !self.budget.try_take() {
             self.reviewed("token_review", "throttled");
             return Err(Denied::Throttled);
         }
@@ -325,5 +349,11 @@ mod tests {
             .unwrap()
             .insert(1, (Instant::now() - TTL, true));
         assert_eq!(cache.get(&1), None);
+        // Still known as expired until evicted: whose token to review again outside the budget.
+        assert_eq!(cache.get_stale(&1), Some((false, true)));
+        assert_eq!(
+            cache.get_stale(&(MAX_ENTRIES as u32 + 9)),
+            Some((true, true))
+        );
     }
 }

@@ -3,6 +3,7 @@
 //! stores every durable agent message before acknowledging it.
 
 pub mod admission;
+pub mod api;
 pub mod auth;
 pub mod blob_api;
 pub mod blob_store;
@@ -66,8 +67,25 @@ pub enum ApiError {
     TooManySessions(u64),
     /// More robots enroll than the gateway admits: 503 with `Retry-After` (seconds).
     EnrollmentsThrottled(u64),
+    /// A person's or tool's requests to the Fleet API exceed their user's budget: 429 with
+    /// `Retry-After` (seconds).
+    RateLimited(u64),
     /// Something failed on our side.
     Internal(String),
+}
+
+/// A JSON error that tells the client when to come back (`Retry-After`, in seconds).
+fn retry_later(status: StatusCode, code: &str, message: &str, seconds: u64) -> Response {
+    let body = serde_json::json!({ "error": code, "message": message });
+    (
+        status,
+        [
+            (header::CONTENT_TYPE, "application/json".to_owned()),
+            (header::RETRY_AFTER, seconds.to_string()),
+        ],
+        body.to_string(),
+    )
+        .into_response()
 }
 
 impl IntoResponse for ApiError {
@@ -81,46 +99,31 @@ impl IntoResponse for ApiError {
                 (StatusCode::SERVICE_UNAVAILABLE, "unavailable", m.to_owned())
             }
             ApiError::Throttled(m) => {
-                let body = serde_json::json!({ "error": "unavailable", "message": m });
-                return (
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    [
-                        (header::CONTENT_TYPE, "application/json"),
-                        (header::RETRY_AFTER, "1"),
-                    ],
-                    body.to_string(),
-                )
-                    .into_response();
+                return retry_later(StatusCode::SERVICE_UNAVAILABLE, "unavailable", m, 1);
             }
             ApiError::TooManySessions(seconds) => {
-                let body = serde_json::json!({
-                    "error": "too_many_sessions",
-                    "message": "this robot opens sessions too often; retry after Retry-After seconds",
-                });
-                return (
+                return retry_later(
                     StatusCode::TOO_MANY_REQUESTS,
-                    [
-                        (header::CONTENT_TYPE, "application/json".to_owned()),
-                        (header::RETRY_AFTER, seconds.to_string()),
-                    ],
-                    body.to_string(),
-                )
-                    .into_response();
+                    "too_many_sessions",
+                    "this robot opens sessions too often; retry after Retry-After seconds",
+                    seconds,
+                );
             }
             ApiError::EnrollmentsThrottled(seconds) => {
-                let body = serde_json::json!({
-                    "error": "unavailable",
-                    "message": "the gateway admits enrollments at a limited rate; retry after Retry-After seconds",
-                });
-                return (
+                return retry_later(
                     StatusCode::SERVICE_UNAVAILABLE,
-                    [
-                        (header::CONTENT_TYPE, "application/json".to_owned()),
-                        (header::RETRY_AFTER, seconds.to_string()),
-                    ],
-                    body.to_string(),
-                )
-                    .into_response();
+                    "unavailable",
+                    "the gateway admits enrollments at a limited rate; retry after Retry-After seconds",
+                    seconds,
+                );
+            }
+            ApiError::RateLimited(seconds) => {
+                return retry_later(
+                    StatusCode::TOO_MANY_REQUESTS,
+                    "rate_limited",
+                    "too many requests from this user; retry after Retry-After seconds",
+                    seconds,
+                );
             }
             ApiError::Internal(detail) => {
                 warn!(%detail, "internal error answering a request");
@@ -166,6 +169,8 @@ pub struct AppState {
     pub enrollments: Arc<admission::EnrollAdmission>,
     /// Release blobs, uploads and the Kubernetes checks of people's requests.
     pub blobs: Arc<blob_api::BlobApi>,
+    /// The Fleet API's caches and per-user budgets.
+    pub fleet: Arc<api::FleetApi>,
 }
 
 impl AppState {
@@ -221,17 +226,24 @@ impl AppState {
                 "name the namespace: ?namespace=NAME".into(),
             ));
         };
-        match self.blobs.kube_auth.check(token, &access).await {
-            Ok(()) => Ok(()),
-            Err(kube_auth::Denied::Unauthenticated) => Err(self.refused(Refusal::WrongToken)),
-            Err(kube_auth::Denied::Forbidden(permission)) => {
+        self.blobs
+            .kube_auth
+            .check(token, &access)
+            .await
+            .map_err(|d| self.denied(d))
+    }
+
+    /// The answer to a request [`kube_auth`] did not let through: 401 for a token the API
+    /// server refuses, 403 naming the missing permission, 503 when reviews are throttled.
+    fn denied(&self, denied: kube_auth::Denied) -> ApiError {
+        match denied {
+            kube_auth::Denied::Unauthenticated => self.refused(Refusal::WrongToken),
+            kube_auth::Denied::Forbidden(permission) => {
                 self.count_refusal("forbidden");
-                Err(ApiError::Forbidden(format!(
-                    "forbidden: this needs {permission}"
-                )))
+                ApiError::Forbidden(format!("forbidden: this needs {permission}"))
             }
-            Err(kube_auth::Denied::Unavailable(detail)) => Err(ApiError::Internal(detail)),
-            Err(kube_auth::Denied::Throttled) => Err(self.refused(Refusal::Throttled)),
+            kube_auth::Denied::Unavailable(detail) => ApiError::Internal(detail),
+            kube_auth::Denied::Throttled => self.refused(Refusal::Throttled),
         }
     }
 
@@ -261,6 +273,7 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/poll", get(poll::poll))
         .merge(blob_api::routes())
         .merge(events_api::routes())
+        .merge(api::routes())
         .route_layer(axum::middleware::from_fn(
             listener::authenticated_on_success,
         ))

@@ -21,6 +21,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::admission::EnrollAdmission;
+use super::api::FleetApi;
 use super::auth::Authenticator;
 use super::blob_store::BlobStore;
 use super::desired::DesiredReleases;
@@ -115,6 +116,13 @@ pub async fn run(
         desired.0.clone(),
         Duration::from_secs(config.heartbeat_grace_seconds),
     ));
+    let (fleet, fleet_tasks) = FleetApi::start(
+        watched(&config, &client),
+        watched(&config, &client),
+        client.clone(),
+        (config.api_rate, config.api_burst),
+        &cancel,
+    );
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
@@ -138,6 +146,7 @@ pub async fn run(
             config.enroll_burst,
         )),
         blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
+        fleet: Arc::new(fleet),
     };
     close_stale_connections(&store, &name).await;
     let mut tasks = start_background(
@@ -149,6 +158,7 @@ pub async fn run(
         &cancel,
     );
     tasks.aborted.extend([secret_task, dispatch_task]);
+    tasks.aborted.extend(fleet_tasks);
     let addr = config.gateway_addr;
     let dropped = state.shared.metrics.gateway.connections_dropped.clone();
     let served = serve(&config, &name, router(state), dropped, listening, &cancel).await?;

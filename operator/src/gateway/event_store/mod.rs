@@ -138,10 +138,12 @@ macro_rules! with_pool {
 // Declared after `with_pool!`, which they use: a `macro_rules!` macro is in scope only below
 // its definition.
 mod connect;
+mod history;
 mod quota;
 mod records;
 mod retention;
 
+pub use self::history::{PagedSample, SampleCursor, TimeRange};
 pub use self::quota::{Quota, QuotaLimit};
 
 impl Store {

@@ -1,0 +1,160 @@
+//! `GET /api/v1/namespaces/{namespace}/robots/{name}/events` and `.../telemetry`: a robot's
+//! stored events and telemetry samples within a time range, a page at a time, from the event
+//! store (SQLite or PostgreSQL). Allowed by `get` on the `robots/events` and
+//! `robots/telemetry` subresources.
+
+use axum::Json;
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Path, Query, State};
+use axum::http::HeaderMap;
+use jiff::{SignedDuration, Timestamp};
+use serde::Deserialize;
+
+use super::robots::Page;
+use super::{authorize, bad_query, check_names, page_size};
+use crate::gateway::event_store::{RobotKey, SampleCursor, StoredEvent, StoredSample, TimeRange};
+use crate::gateway::kube_auth::Access;
+use crate::gateway::{ApiError, AppState};
+
+/// How far back a range reaches when the query gives no `since`.
+const DEFAULT_SPAN: SignedDuration = SignedDuration::from_hours(1);
+
+/// Query of the history routes.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HistoryQuery {
+    /// Start of the range (RFC 3339, included); default one hour before `until` or now.
+    since: Option<String>,
+    /// End of the range (RFC 3339, excluded); default: no end.
+    until: Option<String>,
+    /// Only samples of this metric (telemetry only).
+    metric: Option<String>,
+    /// Page size.
+    limit: Option<u32>,
+    /// Token of the page to resume after.
+    r#continue: Option<String>,
+}
+
+impl HistoryQuery {
+    fn range(&self) -> Result<TimeRange, ApiError> {
+        let until = self
+            .until
+            .as_deref()
+            .map(|t| timestamp("until", t))
+            .transpose()?;
+        let since = match self.since.as_deref() {
+            Some(t) => timestamp("since", t)?,
+            None => until.unwrap_or_else(Timestamp::now) - DEFAULT_SPAN,
+        };
+        let range = TimeRange {
+            since_ms: since.as_millisecond(),
+            until_ms: until.map_or(i64::MAX, |u| u.as_millisecond()),
+        };
+        if range.since_ms >= range.until_ms {
+            return Err(ApiError::BadRequest("since must be before until".into()));
+        }
+        Ok(range)
+    }
+}
+
+fn timestamp(param: &str, text: &str) -> Result<Timestamp, ApiError> {
+    text.parse().map_err(|e| {
+        ApiError::BadRequest(format!(
+            "{param} must be an RFC 3339 time such as 2026-01-31T08:00:00Z: {e}"
+        ))
+    })
+}
+
+/// The robot named by the path, once the caller may `get` its `subresource`.
+async fn allowed_robot(
+    state: &AppState,
+    headers: &HeaderMap,
+    (namespace, name): (String, String),
+    subresource: &'static str,
+) -> Result<RobotKey, ApiError> {
+    check_names(&namespace, Some(&name))?;
+    let access = Access {
+        subresource: Some(subresource),
+        name: Some(name.clone()),
+        ..Access::new("get", "robots", &namespace)
+    };
+    authorize(state, headers, Some(access)).await?;
+    Ok(RobotKey::new(namespace, name))
+}
+
+/// `GET .../robots/{name}/events?since=&until=&limit=&continue=`: events in ascending sequence
+/// order.
+pub async fn events(
+    State(state): State<AppState>,
+    Path(path): Path<(String, String)>,
+    query: Result<Query<HistoryQuery>, QueryRejection>,
+    headers: HeaderMap,
+) -> Result<Json<Page<StoredEvent>>, ApiError> {
+    let Query(query) = query.map_err(bad_query)?;
+    let robot = allowed_robot(&state, &headers, path, "events").await?;
+    if query.metric.is_some() {
+        return Err(ApiError::BadRequest(
+            "metric applies to telemetry only".into(),
+        ));
+    }
+    let (range, limit) = (query.range()?, page_size(query.limit)?);
+    let after = match query.r#continue.as_deref() {
+        None => None,
+        Some(t) => Some(t.parse::<u64>().map_err(|_| invalid_continue())?),
+    };
+    let mut items = state
+        .shared
+        .store
+        .events_in_range(&robot, after, range, limit + 1)
+        .await
+        .map_err(|e| ApiError::Internal(format!("reading events of {robot}: {e}")))?;
+    let next = (items.len() > limit as usize).then(|| {
+        items.truncate(limit as usize);
+        items.last().map(|e| e.seq.to_string())
+    });
+    Ok(Json(Page {
+        items,
+        next: next.flatten(),
+    }))
+}
+
+/// `GET .../robots/{name}/telemetry?metric=&since=&until=&limit=&continue=`: samples, oldest
+/// first.
+pub async fn telemetry(
+    State(state): State<AppState>,
+    Path(path): Path<(String, String)>,
+    query: Result<Query<HistoryQuery>, QueryRejection>,
+    headers: HeaderMap,
+) -> Result<Json<Page<StoredSample>>, ApiError> {
+    let Query(query) = query.map_err(bad_query)?;
+    let robot = allowed_robot(&state, &headers, path, "telemetry").await?;
+    let (range, limit) = (query.range()?, page_size(query.limit)?);
+    let after = query.r#continue.as_deref().map(sample_cursor).transpose()?;
+    let mut rows = state
+        .shared
+        .store
+        .samples_in_range(&robot, query.metric.as_deref(), range, after, limit + 1)
+        .await
+        .map_err(|e| ApiError::Internal(format!("reading telemetry of {robot}: {e}")))?;
+    let next = (rows.len() > limit as usize).then(|| {
+        rows.truncate(limit as usize);
+        rows.last()
+            .map(|r| format!("{}.{}", r.cursor.ts_ms, r.cursor.id))
+    });
+    Ok(Json(Page {
+        items: rows.into_iter().map(|r| r.sample).collect(),
+        next: next.flatten(),
+    }))
+}
+
+fn sample_cursor(token: &str) -> Result<SampleCursor, ApiError> {
+    let (ts, id) = token.split_once('.').ok_or_else(invalid_continue)?;
+    Ok(SampleCursor {
+        ts_ms: ts.parse().map_err(|_| invalid_continue())?,
+        id: id.parse().map_err(|_| invalid_continue())?,
+    })
+}
+
+fn invalid_continue() -> ApiError {
+    ApiError::BadRequest("invalid continue token".into())
+}

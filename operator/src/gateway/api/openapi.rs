@@ -1,0 +1,285 @@
+//! The Fleet API's OpenAPI 3 document, served at [`paths::OPENAPI`]. The router is built from
+//! the same [`paths`] constants, and a test checks that every route is documented (and the
+//! integration test that every documented route answers).
+
+use std::sync::LazyLock;
+
+use axum::Json;
+use axum::extract::State;
+use axum::http::HeaderMap;
+use serde_json::{Value, json};
+
+use super::{DEFAULT_LIMIT, MAX_LIMIT, authorize};
+use crate::gateway::{ApiError, AppState};
+
+/// Every route of the Fleet API, as axum spells it (`{param}`, as OpenAPI does too).
+pub mod paths {
+    /// This document.
+    pub const OPENAPI: &str = "/api/v1/openapi.json";
+    /// Robots of every namespace.
+    pub const ROBOTS: &str = "/api/v1/robots";
+    /// Robots of one namespace.
+    pub const NAMESPACED_ROBOTS: &str = "/api/v1/namespaces/{namespace}/robots";
+    /// One robot.
+    pub const ROBOT: &str = "/api/v1/namespaces/{namespace}/robots/{name}";
+    /// A robot's stored events.
+    pub const ROBOT_EVENTS: &str = "/api/v1/namespaces/{namespace}/robots/{name}/events";
+    /// A robot's stored telemetry.
+    pub const ROBOT_TELEMETRY: &str = "/api/v1/namespaces/{namespace}/robots/{name}/telemetry";
+    /// RobotDeployments of every namespace.
+    pub const ROLLOUTS: &str = "/api/v1/rollouts";
+    /// RobotDeployments of one namespace.
+    pub const NAMESPACED_ROLLOUTS: &str = "/api/v1/namespaces/{namespace}/rollouts";
+    /// One RobotDeployment.
+    pub const ROLLOUT: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}";
+    /// Pause a rollout.
+    pub const ROLLOUT_PAUSE: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/pause";
+    /// Resume a rollout.
+    pub const ROLLOUT_RESUME: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/resume";
+    /// Undo a rollout.
+    pub const ROLLOUT_UNDO: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/undo";
+    /// Restart a rollout.
+    pub const ROLLOUT_RESTART: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/restart";
+}
+
+/// Every route with its method, the list the router and the document are checked against.
+pub const ROUTES: [(&str, &str); 13] = [
+    ("get", paths::OPENAPI),
+    ("get", paths::ROBOTS),
+    ("get", paths::NAMESPACED_ROBOTS),
+    ("get", paths::ROBOT),
+    ("get", paths::ROBOT_EVENTS),
+    ("get", paths::ROBOT_TELEMETRY),
+    ("get", paths::ROLLOUTS),
+    ("get", paths::NAMESPACED_ROLLOUTS),
+    ("get", paths::ROLLOUT),
+    ("post", paths::ROLLOUT_PAUSE),
+    ("post", paths::ROLLOUT_RESUME),
+    ("post", paths::ROLLOUT_UNDO),
+    ("post", paths::ROLLOUT_RESTART),
+];
+
+/// `GET /api/v1/openapi.json`: the document, to any authenticated user.
+pub async fn document(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+) -> Result<Json<Value>, ApiError> {
+    authorize(&state, &headers, None).await?;
+    Ok(Json(DOCUMENT.clone()))
+}
+
+/// The document, built once.
+pub static DOCUMENT: LazyLock<Value> = LazyLock::new(build);
+
+fn param(name: &str, place: &str, description: &str, schema: Value) -> Value {
+    json!({"name": name, "in": place, "required": place == "path",
+           "description": description, "schema": schema})
+}
+
+fn path_params(named: bool) -> Vec<Value> {
+    let mut params = vec![param(
+        "namespace",
+        "path",
+        "Namespace.",
+        json!({"type": "string"}),
+    )];
+    if named {
+        params.push(param(
+            "name",
+            "path",
+            "Object name.",
+            json!({"type": "string"}),
+        ));
+    }
+    params
+}
+
+fn page_params() -> Vec<Value> {
+    vec![
+        param(
+            "limit",
+            "query",
+            &format!("Items per page, 1 to {MAX_LIMIT} (default {DEFAULT_LIMIT})."),
+            json!({"type": "integer", "minimum": 1, "maximum": MAX_LIMIT}),
+        ),
+        param(
+            "continue",
+            "query",
+            "The `continue` token of the previous page (same filters).",
+            json!({"type": "string"}),
+        ),
+    ]
+}
+
+fn robot_filters() -> Vec<Value> {
+    vec![
+        param(
+            "labelSelector",
+            "query",
+            "Label selector as `kubectl get -l` takes it.",
+            json!({"type": "string"}),
+        ),
+        param(
+            "phase",
+            "query",
+            "Only robots in this phase.",
+            json!({"enum": ["Pending", "Online", "Offline", "Unknown", "Maintenance"]}),
+        ),
+        param(
+            "release",
+            "query",
+            "Only robots reporting they run this release version (`status.currentRelease.version`).",
+            json!({"type": "string"}),
+        ),
+    ]
+}
+
+fn history_params(metric: bool) -> Vec<Value> {
+    let mut params = vec![
+        param(
+            "since",
+            "query",
+            "Start of the range, RFC 3339, included (default: one hour before `until`, or before now).",
+            json!({"type": "string", "format": "date-time"}),
+        ),
+        param(
+            "until",
+            "query",
+            "End of the range, RFC 3339, excluded (default: no end).",
+            json!({"type": "string", "format": "date-time"}),
+        ),
+    ];
+    if metric {
+        params.push(param(
+            "metric",
+            "query",
+            "Only samples of this metric, e.g. `cpu_percent`.",
+            json!({"type": "string"}),
+        ));
+    }
+    params
+}
+
+/// One operation: summary, the RBAC permission it needs, parameters, the 200 schema.
+fn op(summary: &str, rbac: &str, params: Vec<Value>, ok: Value) -> Value {
+    let error = |d: &str| json!({"description": d, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}});
+    json!({
+        "summary": summary,
+        "description": format!("Needs {rbac}."),
+        "x-kubernetes-rbac": rbac,
+        "parameters": params,
+        "responses": {
+            "200": {"description": "OK", "content": {"application/json": {"schema": ok}}},
+            "400": error("A malformed parameter; the message says which."),
+            "401": error("No bearer token, or one the API server does not accept."),
+            "403": error("RBAC does not allow the user this; the message names the permission."),
+            "404": error("No such object."),
+            "429": error("The user's request budget is spent; retry after `Retry-After` seconds."),
+            "503": error("The gateway is starting, or cannot review tokens now; retry after `Retry-After`."),
+        }
+    })
+}
+
+fn page_of(schema: &str) -> Value {
+    json!({"type": "object", "required": ["items"], "properties": {
+        "items": {"type": "array", "items": {"$ref": format!("#/components/schemas/{schema}")}},
+        "continue": {"type": "string", "description": "Present when more items follow: pass it as `continue`."}}})
+}
+
+fn schema(name: &str) -> Value {
+    json!({"$ref": format!("#/components/schemas/{name}")})
+}
+
+fn build() -> Value {
+    let named = |mut extra: Vec<Value>| {
+        let mut p = path_params(true);
+        p.append(&mut extra);
+        p
+    };
+    let listed = |ns: bool, mut extra: Vec<Value>| {
+        let mut p = if ns { path_params(false) } else { Vec::new() };
+        p.append(&mut extra);
+        p.extend(page_params());
+        p
+    };
+    let action = |what: &str| json!({"post": op(what, "patch robotdeployments", named(vec![]), schema("RobotDeployment"))});
+    let doc = json!({
+        "openapi": "3.0.3",
+        "info": {"title": "LeKiwi Fleet API", "version": "v1",
+                 "description": "Robots, their history and rollouts, authorized by Kubernetes RBAC (group fleet.lekiwi.io)."},
+        "security": [{"bearer": []}],
+        "paths": {
+            paths::OPENAPI: {"get": op("This document.", "an authenticated user", vec![], json!({"type": "object"}))},
+            paths::ROBOTS: {"get": op("Robots of every namespace.", "list robots in all namespaces",
+                listed(false, robot_filters()), page_of("Robot"))},
+            paths::NAMESPACED_ROBOTS: {"get": op("Robots of a namespace.", "list robots",
+                listed(true, robot_filters()), page_of("Robot"))},
+            paths::ROBOT: {"get": op("One robot and its latest vitals.", "get robots", named(vec![]), schema("RobotView"))},
+            paths::ROBOT_EVENTS: {"get": op("A robot's stored events, ascending seq.", "get robots/events",
+                named([history_params(false), page_params()].concat()), page_of("StoredEvent"))},
+            paths::ROBOT_TELEMETRY: {"get": op("A robot's stored telemetry samples, oldest first.", "get robots/telemetry",
+                named([history_params(true), page_params()].concat()), page_of("StoredSample"))},
+            paths::ROLLOUTS: {"get": op("RobotDeployments of every namespace.", "list robotdeployments in all namespaces",
+                listed(false, vec![]), page_of("RobotDeployment"))},
+            paths::NAMESPACED_ROLLOUTS: {"get": op("RobotDeployments of a namespace.", "list robotdeployments",
+                listed(true, vec![]), page_of("RobotDeployment"))},
+            paths::ROLLOUT: {"get": op("One RobotDeployment; status.robots is its per-robot progress.", "get robotdeployments",
+                named(vec![]), schema("RobotDeployment"))},
+            paths::ROLLOUT_PAUSE: action("Pause: sets spec.paused to true."),
+            paths::ROLLOUT_RESUME: action("Resume: sets spec.paused to false."),
+            paths::ROLLOUT_UNDO: action("Undo: sets annotation fleet.lekiwi.io/undoRequestedAt to now."),
+            paths::ROLLOUT_RESTART: action("Restart: sets annotation fleet.lekiwi.io/restartedAt to now."),
+        },
+        "components": components(),
+    });
+    doc
+}
+
+fn components() -> Value {
+    json!({
+        "securitySchemes": {"bearer": {"type": "http", "scheme": "bearer",
+            "description": "Any token the Kubernetes API server accepts (kubectl create token, a kubeconfig's token, OIDC)."}},
+        "schemas": {
+            "Error": {"type": "object", "required": ["error", "message"], "properties": {
+                "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, method_not_allowed, rate_limited, unavailable, internal."},
+                "message": {"type": "string"}}},
+            "Robot": {"type": "object", "description": "The Robot resource (fleet.lekiwi.io/v1alpha1) as `kubectl get -o json` shows it, without managedFields."},
+            "RobotDeployment": {"type": "object", "description": "The RobotDeployment resource (fleet.lekiwi.io/v1alpha1) without managedFields."},
+            "RobotView": {"type": "object", "required": ["robot"], "properties": {
+                "robot": schema("Robot"),
+                "vitals": {"type": "object", "nullable": true, "description": "status.telemetry: cpuPercent, memoryPercent, temperatureCelsius, batteryPercent."},
+                "vitalsTime": {"type": "string", "format": "date-time", "nullable": true, "description": "status.lastHeartbeatTime."}}},
+            "StoredEvent": {"type": "object", "required": ["seq", "ts_ms", "kind", "severity", "message", "data"], "properties": {
+                "seq": {"type": "integer"}, "ts_ms": {"type": "integer", "description": "Unix milliseconds."},
+                "kind": {"type": "string"}, "severity": {"type": "string"}, "message": {"type": "string"}, "data": {}}},
+            "StoredSample": {"type": "object", "required": ["seq", "metric", "ts_ms", "value"], "properties": {
+                "seq": {"type": "integer"}, "metric": {"type": "string"},
+                "ts_ms": {"type": "integer", "description": "Unix milliseconds."}, "value": {"type": "number"}}},
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_route_is_documented_and_nothing_else() {
+        let documented = DOCUMENT["paths"].as_object().unwrap();
+        for (method, path) in ROUTES {
+            assert!(
+                documented[path].get(method).is_some(),
+                "{method} {path} undocumented"
+            );
+        }
+        let count: usize = documented
+            .values()
+            .map(|p| p.as_object().unwrap().len())
+            .sum();
+        assert_eq!(
+            count,
+            ROUTES.len(),
+            "documented operations that are not routes"
+        );
+    }
+}

@@ -1,0 +1,160 @@
+//! `GET /api/v1/robots`, `/api/v1/namespaces/{namespace}/robots[/{name}]`: the fleet's Robots
+//! from the gateway's cache, filtered by label selector, phase and release, a page at a time.
+
+use std::sync::Arc;
+
+use axum::Json;
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Path, Query, State};
+use axum::http::HeaderMap;
+use lekiwi_crds::Robot;
+use lekiwi_crds::robot::{RobotPhase, TelemetrySummary};
+use serde::{Deserialize, Serialize};
+
+use super::selector::Selector;
+use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
+use crate::gateway::kube_auth::Access;
+use crate::gateway::{ApiError, AppState};
+
+static NO_LABELS: std::collections::BTreeMap<String, String> = std::collections::BTreeMap::new();
+
+/// Query of the robot lists.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields, rename_all = "camelCase")]
+pub struct ListQuery {
+    /// Label selector, as `kubectl get -l` takes it.
+    label_selector: Option<String>,
+    /// Only robots in this phase.
+    phase: Option<String>,
+    /// Only robots reporting that they run this release version.
+    release: Option<String>,
+    /// Page size.
+    limit: Option<u32>,
+    /// Token of the page to resume after.
+    r#continue: Option<String>,
+}
+
+/// A page of a list.
+#[derive(Debug, Serialize)]
+pub struct Page<T> {
+    /// The objects, ordered by namespace and name.
+    pub items: Vec<T>,
+    /// Resumes after the last item; absent on the last page.
+    #[serde(rename = "continue", skip_serializing_if = "Option::is_none")]
+    pub next: Option<String>,
+}
+
+/// One robot and its latest vitals.
+#[derive(Debug, Serialize)]
+pub struct RobotView {
+    /// The Robot as stored, without managed fields.
+    robot: Arc<Robot>,
+    /// Its latest telemetry summary (CPU, memory, temperature, battery).
+    vitals: Option<TelemetrySummary>,
+    /// When the gateway last recorded a heartbeat (the vitals are as of then).
+    #[serde(rename = "vitalsTime")]
+    vitals_time: Option<String>,
+}
+
+/// `GET /api/v1/robots`: robots of every namespace the gateway watches (`list robots` in all
+/// namespaces).
+pub async fn list_all(
+    State(state): State<AppState>,
+    query: Result<Query<ListQuery>, QueryRejection>,
+    headers: HeaderMap,
+) -> Result<Json<Page<Arc<Robot>>>, ApiError> {
+    list(state, None, query, headers).await
+}
+
+/// `GET /api/v1/namespaces/{namespace}/robots` (`list robots` in that namespace).
+pub async fn list_namespaced(
+    State(state): State<AppState>,
+    Path(namespace): Path<String>,
+    query: Result<Query<ListQuery>, QueryRejection>,
+    headers: HeaderMap,
+) -> Result<Json<Page<Arc<Robot>>>, ApiError> {
+    check_names(&namespace, None)?;
+    list(state, Some(namespace), query, headers).await
+}
+
+async fn list(
+    state: AppState,
+    namespace: Option<String>,
+    query: Result<Query<ListQuery>, QueryRejection>,
+    headers: HeaderMap,
+) -> Result<Json<Page<Arc<Robot>>>, ApiError> {
+    let Query(query) = query.map_err(bad_query)?;
+    let access = Access::new("list", "robots", namespace.as_deref().unwrap_or_default());
+    authorize(&state, &headers, Some(access)).await?;
+    let limit = page_size(query.limit)?;
+    let selector = Selector::parse(query.label_selector.as_deref().unwrap_or_default())
+        .map_err(ApiError::BadRequest)?;
+    let phase = query.phase.as_deref().map(parse_phase).transpose()?;
+    let after = resume_key(query.r#continue.as_deref())?;
+    ready(&state.fleet.robots)?;
+    let keep = |r: &Robot| {
+        selector.matches(r.metadata.labels.as_ref().unwrap_or(&NO_LABELS))
+            && phase.is_none_or(|p| r.status.as_ref().and_then(|s| s.phase) == Some(p))
+            && query
+                .release
+                .as_deref()
+                .is_none_or(|v| running(r) == Some(v))
+    };
+    let (items, more) =
+        state
+            .fleet
+            .robots
+            .page(namespace.as_deref(), after.as_ref(), limit as usize, keep);
+    let next = more
+        .then(|| {
+            items
+                .last()
+                .map(|r| continue_after(&super::cache::key(r.as_ref())))
+        })
+        .flatten();
+    Ok(Json(Page { items, next }))
+}
+
+/// `GET /api/v1/namespaces/{namespace}/robots/{name}` (`get robots`): the Robot and its vitals.
+pub async fn one(
+    State(state): State<AppState>,
+    Path((namespace, name)): Path<(String, String)>,
+    headers: HeaderMap,
+) -> Result<Json<RobotView>, ApiError> {
+    check_names(&namespace, Some(&name))?;
+    let access = Access {
+        name: Some(name.clone()),
+        ..Access::new("get", "robots", &namespace)
+    };
+    authorize(&state, &headers, Some(access)).await?;
+    ready(&state.fleet.robots)?;
+    let robot = state
+        .fleet
+        .robots
+        .get(&namespace, &name)
+        .ok_or_else(|| ApiError::NotFound(format!("robot {namespace}/{name} not found")))?;
+    let status = robot.status.as_ref();
+    Ok(Json(RobotView {
+        vitals: status.and_then(|s| s.telemetry.clone()),
+        vitals_time: status
+            .and_then(|s| s.last_heartbeat_time.as_ref())
+            .map(|t| t.0.to_string()),
+        robot,
+    }))
+}
+
+/// The release version the robot reports it runs.
+fn running(r: &Robot) -> Option<&str> {
+    let status = r.status.as_ref()?;
+    status.current_release.as_ref().map(|c| c.version.as_str())
+}
+
+fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
+    RobotPhase::ALL
+        .into_iter()
+        .find(|p| p.as_str() == text)
+        .ok_or_else(|| {
+            let all: Vec<_> = RobotPhase::ALL.iter().map(|p| p.as_str()).collect();
+            ApiError::BadRequest(format!("unknown phase {text:?}; one of {}", all.join(", ")))
+        })
+}

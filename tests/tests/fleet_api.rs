@@ -1,0 +1,665 @@
+//! The Fleet API (`/api/v1`, issue 15) against the real API server, with users of different
+//! RBAC: ServiceAccounts bound to the chart's `lekiwi-viewer` and `lekiwi-operator-user` in one
+//! namespace (tokens from `kubectl create token`). A viewer lists, filters and pages robots,
+//! reads one robot with its vitals, its events and telemetry within a time range (SQLite here,
+//! PostgreSQL in the second test), and rollouts with their per-robot progress; it cannot pause a
+//! rollout (403), an operator user can (the RobotDeployment carries what `kubectl lekiwi rollout`
+//! writes); another namespace is refused; no token or a bad one gets 401; malformed parameters
+//! 400; a burst beyond the user's budget 429 with `Retry-After` while another user is served;
+//! and every route of the OpenAPI document answers.
+
+use std::collections::BTreeSet;
+
+use anyhow::{Context as _, Result, ensure};
+use k8s_openapi::api::core::v1::ServiceAccount;
+use k8s_openapi::api::rbac::v1::{ClusterRole, RoleBinding};
+use kube::Api;
+use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
+use lekiwi_crds::{Robot, RobotDeployment};
+use lekiwi_operator::gateway::event_store::{Sample, Store, StoredEvent};
+use lekiwi_tests::postgres::Postgres;
+use lekiwi_tests::{ControlPlane, OperatorProcess, create_robot, http_request, namespace};
+use serde_json::{Value, json};
+
+const DIGEST_A: &str = "sha256:aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa";
+
+/// The chart's user ClusterRoles, created under names of this test (cluster-scoped) and
+/// without the aggregation labels, so the shared cluster's built-in roles stay as they are.
+/// Returns the names of the viewer and the operator user.
+async fn chart_roles(
+    cp: &ControlPlane,
+    client: &kube::Client,
+    prefix: &str,
+) -> Result<[String; 2]> {
+    let out = cp.tool(
+        "helm",
+        &[
+            "template",
+            "r",
+            "charts/lekiwi-operator",
+            "--show-only",
+            "templates/user-roles.yaml",
+        ],
+    );
+    ensure!(
+        out.status.success(),
+        "helm template: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let api = Api::<ClusterRole>::all(client.clone());
+    let mut names = Vec::new();
+    for doc in String::from_utf8(out.stdout)?.split("\n---") {
+        let Ok(value) = serde_yaml::from_str::<Value>(doc) else {
+            continue;
+        };
+        let Some(name) = value["metadata"]["name"].as_str() else {
+            continue;
+        };
+        let renamed = format!("{prefix}-{name}");
+        let role = json!({"metadata": {"name": renamed}, "rules": value["rules"]});
+        let _ = api.delete(&renamed, &DeleteParams::default()).await;
+        api.create(&PostParams::default(), &serde_json::from_value(role)?)
+            .await?;
+        names.push((name.to_owned(), renamed));
+    }
+    let find = |want: &str| {
+        names
+            .iter()
+            .find(|(n, _)| n == want)
+            .map(|(_, r)| r.clone())
+            .with_context(|| format!("the chart has no ClusterRole {want}: {names:?}"))
+    };
+    Ok([find("lekiwi-viewer")?, find("lekiwi-operator-user")?])
+}
+
+/// A ServiceAccount `name` in `ns`, bound to ClusterRole `role` there when one is given; its
+/// token as `kubectl create token` makes it.
+async fn account(
+    cp: &ControlPlane,
+    client: &kube::Client,
+    ns: &str,
+    name: &str,
+    role: Option<&str>,
+) -> Result<String> {
+    Api::<ServiceAccount>::namespaced(client.clone(), ns)
+        .create(
+            &PostParams::default(),
+            &serde_json::from_value(json!({"metadata": {"name": name}}))?,
+        )
+        .await?;
+    if let Some(role) = role {
+        let binding = json!({
+            "metadata": {"name": name},
+            "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": role},
+            "subjects": [{"kind": "ServiceAccount", "name": name, "namespace": ns}],
+        });
+        Api::<RoleBinding>::namespaced(client.clone(), ns)
+            .create(&PostParams::default(), &serde_json::from_value(binding)?)
+            .await?;
+    }
+    let out = cp.kubectl(&["create", "token", name, "-n", ns, "--duration=1h"]);
+    ensure!(
+        out.status.success(),
+        "kubectl create token: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Ok(String::from_utf8(out.stdout)?.trim().to_owned())
+}
+
+/// One request to the operator's gateway port: status, `Retry-After` if any, JSON body.
+async fn call(
+    op: &OperatorProcess,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+) -> Result<(u16, Option<String>, Value)> {
+    let auth = token.map(|t| format!("Bearer {t}"));
+    let headers: Vec<(&str, &str)> = auth.iter().map(|a| ("authorization", a.as_str())).collect();
+    let body = (method == "POST").then_some(&b""[..]);
+    let (code, hdrs, body) = http_request(op.gateway_port, method, path, &headers, body).await?;
+    let retry = hdrs
+        .into_iter()
+        .find(|(k, _)| k == "retry-after")
+        .map(|(_, v)| v);
+    let json = serde_json::from_slice(&body).unwrap_or(Value::Null);
+    Ok((code, retry, json))
+}
+
+/// `GET path` that must answer 200: its body.
+async fn ok(op: &OperatorProcess, path: &str, token: &str) -> Result<Value> {
+    let (code, _, body) = call(op, "GET", path, Some(token)).await?;
+    ensure!(code == 200, "GET {path}: {code} {body}");
+    Ok(body)
+}
+
+fn names(page: &Value) -> Vec<String> {
+    page["items"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .map(|r| {
+            r["metadata"]["name"]
+                .as_str()
+                .unwrap_or_default()
+                .to_owned()
+        })
+        .collect()
+}
+
+/// Five Robots in `ns`: labels `room`, phases and running releases set in status directly (the
+/// operator runs only its gateway, so no controller rewrites them).
+async fn robots(client: &kube::Client, ns: &str) -> Result<()> {
+    let api = Api::<Robot>::namespaced(client.clone(), ns);
+    let fleet = [
+        ("kiwi-1", "b1", "Online", "1.0.0"),
+        ("kiwi-2", "b1", "Offline", "1.0.0"),
+        ("kiwi-3", "b2", "Online", "2.0.0"),
+        ("kiwi-4", "b2", "Online", "1.0.0"),
+        ("kiwi-5", "b3", "Pending", "2.0.0"),
+    ];
+    for (name, room, phase, version) in fleet {
+        create_robot(client, ns, name, &[("room", room)]).await?;
+        let status = json!({"status": {
+            "phase": phase,
+            "currentRelease": {"version": version, "digest": DIGEST_A},
+            "lastHeartbeatTime": "2026-01-31T08:00:00Z",
+            "telemetry": {"cpuPercent": 12.5, "batteryPercent": 80.0},
+        }});
+        api.patch_status(name, &PatchParams::default(), &Patch::Merge(&status))
+            .await?;
+    }
+    Ok(())
+}
+
+/// A RobotDeployment `v2` in `ns` with per-robot progress in its status.
+async fn rollout(client: &kube::Client, ns: &str) -> Result<()> {
+    let api = Api::<RobotDeployment>::namespaced(client.clone(), ns);
+    let rd = json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "RobotDeployment",
+        "metadata": {"name": "v2"},
+        "spec": {"selector": {"matchLabels": {"room": "b2"}}, "release": {"version": "2.0.0", "digest": DIGEST_A}},
+    });
+    api.create(&PostParams::default(), &serde_json::from_value(rd)?)
+        .await?;
+    let status = json!({"status": {"phase": "Progressing", "targeted": 2, "updated": 1, "pending": 1,
+        "robots": [{"robot": "kiwi-3", "batch": 0, "state": "Updated"}, {"robot": "kiwi-4", "batch": 1, "state": "Updating"}]}});
+    api.patch_status("v2", &PatchParams::default(), &Patch::Merge(&status))
+        .await?;
+    Ok(())
+}
+
+/// Waits until the gateway's caches hold what the test made.
+async fn wait_cached(op: &OperatorProcess, ns: &str, token: &str) -> Result<()> {
+    lekiwi_tests::wait_for(
+        "the Fleet API's caches",
+        std::time::Duration::from_secs(20),
+        || async {
+            let robots = ok(op, &format!("/api/v1/namespaces/{ns}/robots"), token)
+                .await
+                .ok()?;
+            let rollout = ok(op, &format!("/api/v1/namespaces/{ns}/rollouts/v2"), token)
+                .await
+                .ok()?;
+            (names(&robots).len() == 5 && rollout["status"]["robots"].is_array()).then_some(())
+        },
+    )
+    .await
+}
+
+/// Lists with every filter, and pages that together hold every robot once, in order.
+async fn lists_filter_and_page(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
+    let base = format!("/api/v1/namespaces/{ns}/robots");
+    let q = |query: &str| format!("{base}?{query}");
+    ensure!(names(&ok(op, &q("labelSelector=room%3Db2"), viewer).await?) == ["kiwi-3", "kiwi-4"]);
+    ensure!(
+        names(
+            &ok(
+                op,
+                &q("labelSelector=room%20in%20(b1%2Cb3)%2Croom!%3Db1"),
+                viewer
+            )
+            .await?
+        ) == ["kiwi-5"]
+    );
+    ensure!(names(&ok(op, &q("phase=Online"), viewer).await?) == ["kiwi-1", "kiwi-3", "kiwi-4"]);
+    ensure!(
+        names(&ok(op, &q("phase=Online&release=1.0.0"), viewer).await?) == ["kiwi-1", "kiwi-4"]
+    );
+    let mut seen = Vec::new();
+    let mut next: Option<String> = None;
+    for page in 0.. {
+        ensure!(page < 5, "paging does not end: {seen:?}");
+        let path = match &next {
+            None => q("limit=2"),
+            Some(c) => q(&format!("limit=2&continue={c}")),
+        };
+        let body = ok(op, &path, viewer).await?;
+        ensure!(names(&body).len() <= 2, "{body}");
+        seen.extend(names(&body));
+        next = body["continue"].as_str().map(str::to_owned);
+        if next.is_none() {
+            break;
+        }
+    }
+    ensure!(
+        seen == ["kiwi-1", "kiwi-2", "kiwi-3", "kiwi-4", "kiwi-5"],
+        "{seen:?}"
+    );
+    let one = ok(op, &format!("{base}/kiwi-3"), viewer).await?;
+    ensure!(one["robot"]["status"]["phase"] == "Online", "{one}");
+    ensure!(
+        one["vitals"]["cpuPercent"] == 12.5 && one["vitals"]["batteryPercent"] == 80.0,
+        "{one}"
+    );
+    ensure!(
+        one["vitalsTime"]
+            .as_str()
+            .is_some_and(|t| t.starts_with("2026-01-31T08:00:00")),
+        "{one}"
+    );
+    ensure!(one["robot"]["metadata"]["managedFields"].is_null(), "{one}");
+    let (code, _, body) = call(op, "GET", &format!("{base}/kiwi-9"), Some(viewer)).await?;
+    ensure!(code == 404 && body["error"] == "not_found", "{code} {body}");
+    Ok(())
+}
+
+/// Malformed parameters: 400 with a JSON body that says what is wrong.
+async fn bad_parameters(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
+    let robots = format!("/api/v1/namespaces/{ns}/robots");
+    let events = format!("{robots}/kiwi-1/events");
+    for (path, says) in [
+        (format!("{robots}?limit=0"), "limit"),
+        (format!("{robots}?limit=abc"), "limit"),
+        (format!("{robots}?phase=Sleeping"), "Sleeping"),
+        (
+            format!("{robots}?labelSelector=room%20in%20b1"),
+            "parentheses",
+        ),
+        (format!("{robots}?colour=red"), "colour"),
+        (format!("{robots}?continue=zz"), "continue"),
+        (format!("{events}?since=yesterday"), "since"),
+        (
+            format!("{events}?since=2026-01-02T00:00:00Z&until=2026-01-01T00:00:00Z"),
+            "before",
+        ),
+    ] {
+        let (code, _, body) = call(op, "GET", &path, Some(viewer)).await?;
+        ensure!(
+            code == 400 && body["error"] == "bad_request",
+            "{path}: {code} {body}"
+        );
+        let message = body["message"].as_str().unwrap_or_default();
+        ensure!(
+            message.contains(says),
+            "{path}: {message:?} should mention {says}"
+        );
+    }
+    Ok(())
+}
+
+/// Events and telemetry of `kiwi-1`, stored in `store`, read back by time range and in pages.
+async fn history(op: &OperatorProcess, store: &Store, ns: &str, viewer: &str) -> Result<()> {
+    let robot = lekiwi_operator::gateway::event_store::RobotKey::new(ns, "kiwi-1");
+    let now = jiff::Timestamp::now().as_millisecond();
+    let minutes = |m: i64| now - m * 60_000;
+    for (seq, ts) in [
+        (1, minutes(120)),
+        (2, minutes(50)),
+        (3, minutes(40)),
+        (4, minutes(30)),
+        (5, minutes(20)),
+    ] {
+        let ev = StoredEvent {
+            seq,
+            ts_ms: ts,
+            kind: "note".into(),
+            severity: "info".into(),
+            message: format!("event {seq}"),
+            data: json!({"n": seq}),
+        };
+        store.insert_event(&robot, &ev).await?;
+    }
+    let sample = |metric: &str, ts_ms, value| Sample {
+        metric: metric.into(),
+        ts_ms,
+        value,
+    };
+    let batch = [
+        sample("cpu_percent", minutes(90), 9.0),
+        sample("cpu_percent", minutes(30), 30.0),
+        sample("temperature_celsius", minutes(30), 55.0),
+        sample("cpu_percent", minutes(10), 10.0),
+    ];
+    store.insert_telemetry(&robot, 6, &batch).await?;
+    let base = format!("/api/v1/namespaces/{ns}/robots/kiwi-1");
+    let seqs = |b: &Value| {
+        b["items"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .map(|e| e["seq"].as_u64().unwrap_or(0))
+            .collect::<Vec<_>>()
+    };
+    // The last hour by default: not the event of two hours ago.
+    let page = ok(op, &format!("{base}/events?limit=3"), viewer).await?;
+    ensure!(seqs(&page) == [2, 3, 4], "{page}");
+    let token = page["continue"].as_str().context("a continue token")?;
+    let rest = ok(
+        op,
+        &format!("{base}/events?limit=3&continue={token}"),
+        viewer,
+    )
+    .await?;
+    ensure!(seqs(&rest) == [5] && rest["continue"].is_null(), "{rest}");
+    let since = jiff::Timestamp::from_millisecond(minutes(180))?;
+    let until = jiff::Timestamp::from_millisecond(minutes(35))?;
+    let ranged = ok(
+        op,
+        &format!("{base}/events?since={since}&until={until}"),
+        viewer,
+    )
+    .await?;
+    ensure!(seqs(&ranged) == [1, 2, 3], "{ranged}");
+    ensure!(
+        ranged["items"][0]["message"] == "event 1" && ranged["items"][0]["data"]["n"] == 1,
+        "{ranged}"
+    );
+    let cpu = ok(
+        op,
+        &format!("{base}/telemetry?metric=cpu_percent&since={since}&limit=2"),
+        viewer,
+    )
+    .await?;
+    let values: Vec<f64> = cpu["items"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|s| s["value"].as_f64())
+        .collect();
+    ensure!(values == [9.0, 30.0], "{cpu}");
+    let token = cpu["continue"]
+        .as_str()
+        .context("a telemetry continue token")?;
+    let more = ok(
+        op,
+        &format!("{base}/telemetry?metric=cpu_percent&since={since}&limit=2&continue={token}"),
+        viewer,
+    )
+    .await?;
+    ensure!(
+        more["items"].as_array().map(Vec::len) == Some(1) && more["items"][0]["value"] == 10.0,
+        "{more}"
+    );
+    let recent = ok(op, &format!("{base}/telemetry"), viewer).await?;
+    ensure!(
+        recent["items"].as_array().map(Vec::len) == Some(3),
+        "the last hour, every metric: {recent}"
+    );
+    Ok(())
+}
+
+/// A viewer cannot steer a rollout; an operator user can, writing what the plugin writes.
+async fn rollout_actions(
+    op: &OperatorProcess,
+    client: &kube::Client,
+    ns: &str,
+    viewer: &str,
+    user: &str,
+) -> Result<()> {
+    let one = ok(op, &format!("/api/v1/namespaces/{ns}/rollouts/v2"), viewer).await?;
+    ensure!(one["status"]["robots"][1]["state"] == "Updating", "{one}");
+    let list = ok(op, &format!("/api/v1/namespaces/{ns}/rollouts"), viewer).await?;
+    ensure!(names(&list) == ["v2"], "{list}");
+    let action = |a: &str| format!("/api/v1/namespaces/{ns}/rollouts/v2/{a}");
+    let (code, _, body) = call(op, "POST", &action("pause"), Some(viewer)).await?;
+    ensure!(
+        code == 403 && body["error"] == "forbidden",
+        "viewer pausing: {code} {body}"
+    );
+    let message = body["message"].as_str().unwrap_or_default();
+    ensure!(
+        message.contains(&format!(
+            "patch robotdeployments.fleet.lekiwi.io v2 in namespace {ns}"
+        )),
+        "{message}"
+    );
+    let api = Api::<RobotDeployment>::namespaced(client.clone(), ns);
+    ensure!(
+        !api.get("v2").await?.spec.paused,
+        "paused by a refused request"
+    );
+    let (code, _, body) = call(op, "POST", &action("pause"), Some(user)).await?;
+    ensure!(
+        code == 200 && body["spec"]["paused"] == true,
+        "pause: {code} {body}"
+    );
+    ensure!(
+        api.get("v2").await?.spec.paused,
+        "the RobotDeployment is not paused"
+    );
+    for (a, annotation) in [
+        ("undo", "fleet.lekiwi.io/undoRequestedAt"),
+        ("restart", "fleet.lekiwi.io/restartedAt"),
+    ] {
+        let (code, _, body) = call(op, "POST", &action(a), Some(user)).await?;
+        ensure!(code == 200, "{a}: {code} {body}");
+        let stamped = api
+            .get("v2")
+            .await?
+            .metadata
+            .annotations
+            .unwrap_or_default();
+        let at = stamped
+            .get(annotation)
+            .with_context(|| format!("{a}: no {annotation}"))?;
+        ensure!(at.parse::<jiff::Timestamp>().is_ok(), "{annotation}: {at}");
+    }
+    let (code, _, body) = call(op, "POST", &action("resume"), Some(user)).await?;
+    ensure!(
+        code == 200 && !api.get("v2").await?.spec.paused,
+        "resume: {code} {body}"
+    );
+    let (code, _, _) = call(
+        op,
+        "POST",
+        &format!("/api/v1/namespaces/{ns}/rollouts/nope/pause"),
+        Some(user),
+    )
+    .await?;
+    ensure!(code == 404, "pausing a missing rollout: {code}");
+    Ok(())
+}
+
+/// 401 without a token or with one the API server refuses; 403 across namespaces and for
+/// all-namespace lists a namespace binding does not grant; history needs its own permission.
+async fn refusals(
+    op: &OperatorProcess,
+    ns: &str,
+    other: &str,
+    viewer: &str,
+    nobody: &str,
+) -> Result<()> {
+    let robots = format!("/api/v1/namespaces/{ns}/robots");
+    for token in [None, Some("not-a-token-the-api-server-knows")] {
+        for path in [robots.as_str(), "/api/v1/openapi.json"] {
+            let (code, _, body) = call(op, "GET", path, token).await?;
+            ensure!(
+                code == 401 && body["error"] == "unauthorized",
+                "{path} with {token:?}: {code} {body}"
+            );
+        }
+    }
+    for (path, token) in [
+        (format!("/api/v1/namespaces/{other}/robots"), viewer),
+        ("/api/v1/robots".to_owned(), viewer),
+        ("/api/v1/rollouts".to_owned(), viewer),
+        (robots.clone(), nobody),
+        (format!("{robots}/kiwi-1/events"), nobody),
+        (format!("{robots}/kiwi-1/telemetry"), nobody),
+    ] {
+        let (code, _, body) = call(op, "GET", &path, Some(token)).await?;
+        ensure!(
+            code == 403 && body["error"] == "forbidden",
+            "{path}: {code} {body}"
+        );
+    }
+    let (code, _, _) = call(op, "GET", "/healthz", None).await?;
+    ensure!(code == 200, "health needs no token");
+    let (code, _, body) = call(op, "GET", "/api/v1/nothing/here", Some(viewer)).await?;
+    ensure!(code == 404 && body["error"] == "not_found", "{code} {body}");
+    let (code, _, body) = call(op, "DELETE", &format!("{robots}/kiwi-1"), Some(viewer)).await?;
+    ensure!(
+        code == 405 && body["error"] == "method_not_allowed",
+        "{code} {body}"
+    );
+    Ok(())
+}
+
+/// Every operation of the OpenAPI document answers (neither 404 nor 405) with its path
+/// parameters filled in.
+async fn openapi_routes_answer(
+    op: &OperatorProcess,
+    ns: &str,
+    viewer: &str,
+    user: &str,
+) -> Result<()> {
+    let doc = ok(op, "/api/v1/openapi.json", viewer).await?;
+    ensure!(
+        doc["openapi"].as_str().is_some_and(|v| v.starts_with("3.")),
+        "{doc}"
+    );
+    let paths = doc["paths"].as_object().context("paths")?;
+    let mut answered = BTreeSet::new();
+    for (path, ops) in paths {
+        for method in ops.as_object().context("operations")?.keys() {
+            let name = if path.contains("/rollouts/") {
+                "v2"
+            } else {
+                "kiwi-1"
+            };
+            let concrete = path.replace("{namespace}", ns).replace("{name}", name);
+            let token = if method == "post" { user } else { viewer };
+            let (code, _, body) = call(op, &method.to_uppercase(), &concrete, Some(token)).await?;
+            ensure!(
+                ![404, 405].contains(&code),
+                "{method} {path} is documented but answers {code} {body}"
+            );
+            answered.insert(format!("{method} {path}"));
+        }
+    }
+    ensure!(answered.len() >= 13, "{answered:?}");
+    Ok(())
+}
+
+/// A burst beyond the viewer's budget: 429 with `Retry-After`, while the operator user is
+/// still served.
+async fn rate_limited(op: &OperatorProcess, ns: &str, viewer: &str, user: &str) -> Result<()> {
+    let path = format!("/api/v1/namespaces/{ns}/robots/kiwi-1");
+    let mut refused = None;
+    for i in 0..200 {
+        let (code, retry, body) = call(op, "GET", &path, Some(viewer)).await?;
+        if code == 429 {
+            refused = Some((i, retry, body));
+            break;
+        }
+        ensure!(code == 200, "{code} {body}");
+    }
+    let (i, retry, body) = refused.context("200 requests in a burst and no 429")?;
+    ensure!(i <= 60, "the 429 came only after {i} requests");
+    ensure!(body["error"] == "rate_limited", "{body}");
+    let seconds: u64 = retry.context("no Retry-After")?.parse()?;
+    ensure!((1..=5).contains(&seconds), "Retry-After: {seconds}");
+    ok(op, &path, user)
+        .await
+        .context("another user is throttled too")?;
+    Ok(())
+}
+
+#[tokio::test]
+async fn the_fleet_api_serves_what_rbac_allows_each_user() -> Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "fleetapi").await?;
+    let other = namespace(&client, "fleetapib").await?;
+    let [viewer_role, user_role] = chart_roles(cp, &client, &ns).await?;
+    let viewer = account(cp, &client, &ns, "viewer", Some(&viewer_role)).await?;
+    let user = account(cp, &client, &ns, "steerer", Some(&user_role)).await?;
+    let nobody = account(cp, &client, &ns, "nobody", None).await?;
+    robots(&client, &ns).await?;
+    rollout(&client, &ns).await?;
+    // Gateway only: no controller rewrites the phases the test set. A budget of 60 at once.
+    let args = ["--role", "gateway", "--api-rate", "1", "--api-burst", "60"];
+    let op = lekiwi_tests::gateway_operator(cp, &ns, "fleetapi", &args).await?;
+    let store = op.event_store().await?;
+    wait_cached(&op, &ns, &viewer).await?;
+    lists_filter_and_page(&op, &ns, &viewer).await?;
+    bad_parameters(&op, &ns, &viewer).await?;
+    history(&op, &store, &ns, &viewer).await?;
+    rollout_actions(&op, &client, &ns, &viewer, &user).await?;
+    refusals(&op, &ns, &other, &viewer, &nobody).await?;
+    openapi_routes_answer(&op, &ns, &viewer, &user).await?;
+    rate_limited(&op, &ns, &viewer, &user).await?;
+    for role in [&viewer_role, &user_role] {
+        Api::<ClusterRole>::all(client.clone())
+            .delete(role, &DeleteParams::default())
+            .await?;
+    }
+    Ok(())
+}
+
+#[tokio::test]
+async fn history_reads_come_from_postgresql_too() -> Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "fleetapipg").await?;
+    let [viewer_role, user_role] = chart_roles(cp, &client, &ns).await?;
+    let viewer = account(cp, &client, &ns, "viewer", Some(&viewer_role)).await?;
+    let pg = Postgres::start()?;
+    let url = pg.create_database("fleet")?;
+    let store_flag = format!("--store-url={url}");
+    let args = ["--role", "gateway", store_flag.as_str()];
+    let op = lekiwi_tests::gateway_operator(cp, &ns, "fleetapipg", &args).await?;
+    let store = Store::connect(&url).await?;
+    ensure!(store.backend() == "postgres");
+    history(&op, &store, &ns, &viewer).await?;
+    for role in [&viewer_role, &user_role] {
+        Api::<ClusterRole>::all(client.clone())
+            .delete(role, &DeleteParams::default())
+            .await?;
+    }
+    Ok(())
+}
+
+/// A busy client (many requests at once with one token) is never refused when the cached
+/// review of its token expires: the review budget (here one) is for unknown tokens.
+#[tokio::test]
+async fn a_busy_client_outlives_its_cached_review() -> Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "fleetapittl").await?;
+    let token = account(cp, &client, &ns, "busy", None).await?;
+    let args = [
+        "--role",
+        "gateway",
+        "--auth-lookup-qps",
+        "0.01",
+        "--auth-lookup-burst",
+        "1",
+    ];
+    let op = lekiwi_tests::gateway_operator(cp, &ns, "fleetapittl", &args).await?;
+    ok(&op, "/api/v1/openapi.json", &token).await?;
+    // Past the 10 s the review is cached for, 20 requests at once.
+    tokio::time::sleep(std::time::Duration::from_millis(10_500)).await;
+    let calls = (0..20).map(|_| call(&op, "GET", "/api/v1/openapi.json", Some(&token)));
+    let codes: Vec<u16> = futures::future::try_join_all(calls)
+        .await?
+        .into_iter()
+        .map(|(code, _, _)| code)
+        .collect();
+    ensure!(codes.iter().all(|c| *c == 200), "{codes:?}");
+    // An unknown token still meets the spent budget.
+    let (code, retry, body) =
+        call(&op, "GET", "/api/v1/openapi.json", Some("unknown-token")).await?;
+    ensure!(code == 503 && retry.is_some(), "{code} {body}");
+    Ok(())
+}
