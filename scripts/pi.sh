@@ -21,6 +21,8 @@
 #!     --status-port P     host port forwarded to guest port 9477 (the agent's status endpoint:
 #!                         pass --status-listen 0.0.0.0:9477); with --count, P, P+1, ...
 #!     --memory MB         guest memory (default 512)
+#!     --forward H:G       with --rootfs: also forward host port 127.0.0.1:H to guest port G
+#!                         (repeatable; e.g. prometheus-node-exporter's 9100)
 #!     --foreground        one guest, not daemonised: this process becomes QEMU and ends when
 #!                         the guest powers off (for tests)
 #!     --rootfs            boot the Debian root filesystem (see `rootfs`) with systemd as PID 1,
@@ -28,11 +30,11 @@
 #!                         second disk mounted at /payload whose run.sh lekiwi-payload.service
 #!                         runs at every boot (output on the console); no AGENT-ARGS. The guest's
 #!                         `systemctl reboot` reboots it in the same QEMU process
-#!   rootfs                build, once, a Debian bookworm arm64 root filesystem with systemd, dpkg,
-#!                         iproute2, ca-certificates and prometheus-node-exporter into
-#!                         $LEKIWI_CACHE/pi/rootfs.qcow2: `debootstrap --foreign` here, the second
-#!                         stage inside the emulated Pi; rebuilt only when its recipe (this
-#!                         script's rootfs functions) changes. Needs `build` first
+#!   rootfs                build, once, a Debian bookworm arm64 root filesystem with systemd, dpkg
+#!                         and prometheus-node-exporter into $LEKIWI_CACHE/pi/debian-arm64.qcow2:
+#!                         `debootstrap --foreign` downloads, this machine's dpkg unpacks, the
+#!                         emulated Pi only configures; rebuilt only when its recipe (this
+#!                         script's rootfs functions) changes. Needs `build` first (and gcc)
 #!   stop [NAME...]        kill the named guests (default: all) and delete their directories
 #!   status                list running guests
 #!   help                  this text
@@ -211,15 +213,17 @@ cmd_build() {
   # The base (kernel, busybox, glibc, /init) follows this script's version.
   [ "$(cat "$PI/base.stamp" 2>/dev/null)" = "$(base_stamp)" ] || build_base
   local agent="$TARGET_DIR/$TRIPLE/release/lekiwi-agent"
-  stamp="$(stat -c %Y "$agent" "$src/README.md" | tr '\n' ' ')$(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
+  stamp="$(stat -c %Y "$agent" "$src/README.md" | tr '\n' ' ')$(find "$src/agent/tests/fixtures" -type f -printf '%T@ ' | sha256sum | cut -c1-16) $(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
   if [ "$(cat "$PI/payload.stamp" 2>/dev/null)" != "$stamp" ]; then
     local root
     root="$(mktemp -d)"
     mkdir -p "$root/bin" "$root/tests"
     aarch64-linux-gnu-strip -o "$root/bin/lekiwi-agent" "$agent"
     echo "$tests" | while read -r name exe; do aarch64-linux-gnu-strip --strip-debug -o "$root/tests/$name" "$exe"; done
-    # A unit test checks the README's flag table: the file, where the test binary looks for it.
-    mkdir -p "$root$src/agent" && cp "$src/README.md" "$root$src/README.md"
+    # Unit tests read the README's flag table and the agent's fixtures (the Pi 5's /sys and
+    # /proc): the files, where the test binary looks for them.
+    mkdir -p "$root$src/agent/tests" && cp "$src/README.md" "$root$src/README.md"
+    cp -a "$src/agent/tests/fixtures" "$root$src/agent/tests/"
     pack "$root" "$PI/agent.cpio.gz"
     rm -rf "$root"
     echo "$stamp" >"$PI/payload.stamp"
@@ -254,7 +258,7 @@ prepare_guest() {
 # Like prepare_guest, for the Debian root filesystem (`boot --rootfs`): a copy-on-write overlay of
 # the cached image, and DIR of --payload as a second disk (/dev/vdb, mounted at /payload).
 prepare_rootfs_guest() {
-  local name="$1" payload="$2" port="$3" mem="$4" dir="$RUN/$1"
+  local name="$1" payload="$2" port="$3" mem="$4" forwards="$5" dir="$RUN/$1"
   [ -e "$ROOTFS" ] && [ -e "$PI/rootinit.cpio.gz" ] || die "no root filesystem yet: run scripts/pi.sh rootfs"
   rm -rf "$dir" && mkdir -p "$dir"
   qemu-img create -q -f qcow2 -F qcow2 -b "$ROOTFS" "$dir/disk.qcow2"
@@ -264,8 +268,9 @@ prepare_rootfs_guest() {
     mkfs.ext4 -q -F -L payload -d "$payload" "$dir/payload.img" "$(( $(du -sm "$payload" | cut -f1) + 16 ))M" >/dev/null
     extra=(-drive "file=$dir/payload.img,format=raw,if=none,id=d1,readonly=on" -device virtio-blk-device,drive=d1)
   fi
-  local fwd=""
+  local fwd="" f
   [ -z "$port" ] || fwd=",hostfwd=tcp:127.0.0.1:$port-:9477"
+  for f in $forwards; do fwd="$fwd,hostfwd=tcp:127.0.0.1:${f%%:*}-:${f#*:}"; done
   # No -no-reboot: the guest's `systemctl reboot` restarts it in the same QEMU process.
   printf '%s\n' -M virt -cpu cortex-a76 -smp 2 -m "$mem" -display none -monitor none \
     -serial "file:$dir/console.log" -netdev "user,id=n0$fwd" -device virtio-net-device,netdev=n0 \
@@ -275,7 +280,7 @@ prepare_rootfs_guest() {
 }
 
 cmd_boot() {
-  local name=pi count=1 run=agent payload="" port="" mem=512 fg=0 rootfs=0
+  local name=pi count=1 run=agent payload="" port="" mem=512 fg=0 rootfs=0 forwards=""
   while [ $# -gt 0 ]; do
     case "$1" in
       --name) name="$2"; shift 2 ;;
@@ -284,6 +289,9 @@ cmd_boot() {
       --payload) payload="$(realpath "$2")"; shift 2 ;;
       --status-port) port="$2"; shift 2 ;;
       --memory) mem="$2"; shift 2 ;;
+      --forward)
+        [[ "$2" =~ ^[0-9]+:[0-9]+$ ]] || die "--forward takes HOSTPORT:GUESTPORT, not '$2'"
+        forwards="$forwards $2"; shift 2 ;;
       --foreground) fg=1; shift ;;
       --rootfs) rootfs=1; shift ;;
       --) shift; break ;;
@@ -293,7 +301,7 @@ cmd_boot() {
   mkdir -p "$RUN"
   if [ "$rootfs" = 1 ]; then
     [ "$count" = 1 ] && [ $# = 0 ] || die "--rootfs boots one guest and takes no agent arguments"
-    mapfile -t qargs < <(prepare_rootfs_guest "$name" "$payload" "$port" "$mem")
+    mapfile -t qargs < <(prepare_rootfs_guest "$name" "$payload" "$port" "$mem" "$forwards")
     [ "${#qargs[@]}" -gt 0 ] || die "preparing $name failed"
     if [ "$fg" = 1 ]; then
       echo $$ >"$RUN/$name/qemu.pid"
@@ -303,6 +311,7 @@ cmd_boot() {
     log "booted $name (Debian, systemd): console $RUN/$name/console.log"
     return
   fi
+  [ -z "$forwards" ] || die "--forward is for --rootfs guests"
   if [ "$fg" = 1 ]; then
     [ "$count" = 1 ] || die "--foreground boots one guest"
     mapfile -t qargs < <(prepare_guest "$name" "$run" "$payload" "$port" "$mem" "$@")
@@ -320,8 +329,15 @@ cmd_boot() {
 }
 
 # ---- A Debian bookworm arm64 root filesystem with systemd (for the .deb; see scripts/deb.sh) ----
-ROOTFS="$PI/rootfs.qcow2"
-ROOTFS_PKGS=systemd,systemd-sysv,dpkg,iproute2,ca-certificates,prometheus-node-exporter
+# (Not rootfs.qcow2: the image debootstrap's second stage made before, with other packages.)
+ROOTFS="$PI/debian-arm64.qcow2" ROOTFS_STAMP="$PI/debian-arm64.stamp"
+# Only what the .deb test and bench/pi.sh use: systemd as PID 1 (dpkg comes with minbase) and
+# prometheus-node-exporter (the figures' yardstick). The network is set with busybox's `ip`, not
+# iproute2's; no ca-certificates (the agent trusts the CA file it is given). Left out of minbase's
+# "required" set because nothing here uses them and each costs the emulated dpkg time: apt (and
+# its TLS stack), tzdata (the guest runs on UTC), e2fsprogs.
+ROOTFS_PKGS=systemd,systemd-sysv,prometheus-node-exporter
+ROOTFS_EXCLUDE=apt,tzdata,e2fsprogs
 
 # The Debian mirror of the machine's apt sources (as scripts/setup.sh finds it).
 debian_mirror() {
@@ -332,7 +348,8 @@ debian_mirror() {
 }
 
 # The initramfs's second /init for the disk: loads the modules (from the base initramfs), sets the
-# clock, then either finishes debootstrap (lekiwi.root=stage2) or hands over to systemd.
+# clock, then either configures the packages unpacked on the host (lekiwi.root=configure, see
+# unpack_on_host) or hands over to systemd.
 write_rootinit() {
   cat >"$1" <<'INIT'
 #!/bin/busybox sh
@@ -347,18 +364,20 @@ t="$(arg time)"
 [ -n "$t" ] && date -s "@$((t + $(cut -d. -f1 /proc/uptime)))" >/dev/null
 mkdir -p /newroot
 mount -t ext4 /dev/vda /newroot || { echo "LEKIWI-EXIT run=root status=99"; poweroff -f; }
-if [ "$(arg root)" = stage2 ]; then
+if [ "$(arg root)" = configure ]; then
   mount --bind /proc /newroot/proc
   mount --bind /sys /newroot/sys
   mount --bind /dev /newroot/dev
   rc=0
-  chroot /newroot /debootstrap/debootstrap --second-stage || rc=$?
-  [ $rc = 0 ] || tail -n 30 /newroot/debootstrap/debootstrap.log
-  chroot /newroot apt-get clean 2>/dev/null || true
+  t0="$(cut -d. -f1 /proc/uptime)"
+  chroot /newroot /usr/bin/env -i PATH=/usr/sbin:/usr/bin:/sbin:/bin LC_ALL=C.UTF-8 \
+    DEBIAN_FRONTEND=noninteractive DEBCONF_NONINTERACTIVE_SEEN=true /bin/sh /lekiwi-configure || rc=$?
+  echo "LEKIWI-CONFIGURE $(( $(cut -d. -f1 /proc/uptime) - t0 ))s"
+  rm -f /newroot/lekiwi-configure
   umount /newroot/dev /newroot/sys /newroot/proc
   sync
   umount /newroot
-  echo "LEKIWI-EXIT run=stage2 status=$rc"
+  echo "LEKIWI-EXIT run=configure status=$rc"
   poweroff -f
 fi
 umount /proc /sys /dev
@@ -384,10 +403,10 @@ Wants=network.target
 [Service]
 Type=oneshot
 RemainAfterExit=yes
-ExecStart=/sbin/ip link set lo up
-ExecStart=/sbin/ip link set eth0 up
-ExecStart=/sbin/ip addr add 10.0.2.15/24 dev eth0
-ExecStart=/sbin/ip route add default via 10.0.2.2
+ExecStart=/usr/local/sbin/busybox ip link set lo up
+ExecStart=/usr/local/sbin/busybox ip link set eth0 up
+ExecStart=/usr/local/sbin/busybox ip addr add 10.0.2.15/24 dev eth0
+ExecStart=/usr/local/sbin/busybox ip route add default via 10.0.2.2
 [Install]
 WantedBy=network-online.target
 UNIT
@@ -407,13 +426,67 @@ TTYPath=/dev/ttyAMA0
 WantedBy=multi-user.target
 UNIT
   mkdir -p "$r/etc/systemd/system/multi-user.target.wants" "$r/etc/systemd/system/network-online.target.wants"
+  # busybox-static (cached for the initramfs) for `ip`.
+  local bb
+  bb="$(mktemp -d)"
+  unpack_pkg busybox-static "$bb"
+  install -D -m 0755 "$bb/bin/busybox" "$r/usr/local/sbin/busybox"
+  rm -rf "$bb"
   ln -sf ../lekiwi-payload.service "$r/etc/systemd/system/multi-user.target.wants/"
   ln -sf ../lekiwi-net.service "$r/etc/systemd/system/network-online.target.wants/"
   ln -sf ../lekiwi-net.service "$r/etc/systemd/system/multi-user.target.wants/"
 }
 
 # What the root filesystem is made from: the functions above and the package list.
-rootfs_stamp() { { declare -f write_rootinit rootfs_overlay build_rootfs; echo "$ROOTFS_PKGS"; } | sha256sum | cut -d' ' -f1; }
+rootfs_stamp() {
+  { declare -f write_rootinit rootfs_overlay unpack_on_host write_configure build_rootfs; echo "$ROOTFS_PKGS $ROOTFS_EXCLUDE"; } \
+    | sha256sum | cut -d' ' -f1
+}
+
+# Unpacks every package debootstrap's first stage downloaded with this machine's dpkg (--root:
+# the files, dpkg's database, conffiles, trigger interests), so that the emulated Pi only has to
+# configure them: unpacking inside it (debootstrap's second stage) was most of its 13 minutes.
+# A package's preinst would run in a chroot of arm64 programs this machine cannot execute: while
+# dpkg unpacks, the stage's /bin/sh is a static x86_64 program that does nothing, and the guest
+# runs the preinsts before configuring (see write_configure). dash, which ships /bin/sh and has
+# no preinst, goes last, after /bin/sh is restored. No documentation, manual pages or translations.
+unpack_on_host() {
+  local r="$1" noop debs=() d
+  command -v gcc >/dev/null || die "gcc is missing (the x86_64 no-op /bin/sh of the unpack)"
+  noop="$(mktemp -d)"
+  printf 'int main(void) { return 0; }\n' | gcc -static -Os -x c -o "$noop/sh" -
+  for d in "$r"/var/cache/apt/archives/*.deb; do [[ "$(basename "$d")" = dash_* ]] || debs+=("$d"); done
+  local dpkg=(dpkg --root="$r" --force-architecture --force-depends --force-unsafe-io
+    --path-exclude='/usr/share/doc/*' --path-exclude='/usr/share/man/*' --path-exclude='/usr/share/info/*'
+    --path-exclude='/usr/share/locale/*' --path-exclude='/usr/share/lintian/*')
+  cp --remove-destination "$noop/sh" "$r/usr/bin/sh"
+  "${dpkg[@]}" --unpack "${debs[@]}" >"$PI/unpack.log" 2>&1 || { tail -20 "$PI/unpack.log" >&2; die "dpkg --unpack failed (log: $PI/unpack.log)"; }
+  ln -sf dash "$r/usr/bin/sh"
+  "${dpkg[@]}" --unpack "$r"/var/cache/apt/archives/dash_*.deb >>"$PI/unpack.log" 2>&1 \
+    || { tail -20 "$PI/unpack.log" >&2; die "dpkg --unpack dash failed (log: $PI/unpack.log)"; }
+  rm -rf "$noop" "$r/debootstrap" "$r"/var/cache/apt/archives/*.deb "$r"/usr/share/{doc,man,info,locale,lintian}/*
+  # The first stage leaves /proc a symlink to the host's /proc (its second stage would replace it).
+  if [ -L "$r/proc" ]; then rm "$r/proc" && mkdir -m 0555 "$r/proc"; fi
+}
+
+# The guest's part (/lekiwi-configure, run in a chroot by /rootinit): the preinsts the host could
+# not run (base-passwd's first: it writes /etc/passwd and /etc/group), with the environment dpkg
+# gives them, then `dpkg --configure -a`, which orders the packages and runs their postinsts and
+# the pending triggers (ldconfig among them).
+write_configure() {
+  cat >"$1" <<'SH'
+set -e
+cd /var/lib/dpkg/info
+for f in base-passwd.preinst $(ls *.preinst | grep -v '^base-passwd\.preinst$'); do
+  p="${f%.preinst}"
+  echo "preinst ${p%:*}"
+  DPKG_MAINTSCRIPT_NAME=preinst DPKG_MAINTSCRIPT_PACKAGE="${p%:*}" DPKG_MAINTSCRIPT_ARCH=arm64 \
+    DPKG_MAINTSCRIPT_PACKAGE_REFCOUNT=1 DPKG_ROOT= DPKG_ADMINDIR=/var/lib/dpkg "./$f" install
+done
+cd /
+dpkg --force-unsafe-io --configure -a
+SH
+}
 
 build_rootfs() {
   local stage img t0 rc
@@ -421,11 +494,14 @@ build_rootfs() {
   stage="$PI/rootfs.stage" img="$PI/rootfs.raw"
   rm -rf "$stage" "$img" && mkdir -p "$stage"
   log "debootstrap --foreign bookworm arm64 ($ROOTFS_PKGS) from $(debian_mirror)"
-  debootstrap --foreign --arch arm64 --variant=minbase --include="$ROOTFS_PKGS" \
+  debootstrap --foreign --arch arm64 --variant=minbase --include="$ROOTFS_PKGS" --exclude="$ROOTFS_EXCLUDE" \
     bookworm "$stage" "$(debian_mirror)" >"$PI/debootstrap.log" 2>&1 \
     || { tail -20 "$PI/debootstrap.log" >&2; die "debootstrap --foreign failed (log: $PI/debootstrap.log)"; }
   rootfs_overlay "$stage"
-  log "first stage in $(( $(date +%s) - t0 ))s; making the disk"
+  log "first stage in $(( $(date +%s) - t0 ))s; unpacking with this machine's dpkg"
+  unpack_on_host "$stage"
+  write_configure "$stage/lekiwi-configure"
+  log "unpacked at $(( $(date +%s) - t0 ))s; making the disk"
   mkfs.ext4 -q -F -L root -d "$stage" "$img" 2G
   rm -rf "$stage"
   local ri
@@ -433,17 +509,19 @@ build_rootfs() {
   write_rootinit "$ri/rootinit"
   pack "$ri" "$PI/rootinit.cpio.gz"
   rm -rf "$ri"
-  log "second stage inside the emulated Pi (console: $PI/stage2.log)"
+  log "configuring inside the emulated Pi (console: $PI/stage2.log)"
   cat "$PI/base.cpio.gz" "$PI/rootinit.cpio.gz" >"$PI/rootfs.initrd"
+  # cache=unsafe: the guest's flushes stop at QEMU (the image is rebuilt if anything fails).
   timeout 1800 qemu-system-aarch64 -M virt -cpu cortex-a76 -smp 2 -m 1024 -display none -monitor none \
-    -no-reboot -nic none -serial "file:$PI/stage2.log" -drive "file=$img,format=raw,if=none,id=d0" \
+    -no-reboot -nic none -serial "file:$PI/stage2.log" -drive "file=$img,format=raw,if=none,id=d0,cache=unsafe" \
     -device virtio-blk-device,drive=d0 -kernel "$PI/vmlinuz" -initrd "$PI/rootfs.initrd" \
-    -append "console=ttyAMA0 rdinit=/rootinit panic=-1 quiet lekiwi.root=stage2 lekiwi.time=$(date +%s)" || true
-  rc="$(sed -nE 's/.*LEKIWI-EXIT run=stage2 status=([0-9]+).*/\1/p' "$PI/stage2.log")"
-  [ "$rc" = 0 ] || { tail -30 "$PI/stage2.log" >&2; rm -f "$img"; die "debootstrap --second-stage failed (status ${rc:-none})"; }
+    -append "console=ttyAMA0 rdinit=/rootinit panic=-1 quiet lekiwi.root=configure lekiwi.time=$(date +%s)" || true
+  rc="$(sed -nE 's/.*LEKIWI-EXIT run=configure status=([0-9]+).*/\1/p' "$PI/stage2.log")"
+  [ "$rc" = 0 ] || { tail -30 "$PI/stage2.log" >&2; rm -f "$img"; die "configuring in the guest failed (status ${rc:-none})"; }
+  log "configured at $(( $(date +%s) - t0 ))s ($(sed -n 's/.*LEKIWI-CONFIGURE //p' "$PI/stage2.log" | tr -d '\r') in the guest); compressing"
   qemu-img convert -c -O qcow2 "$img" "$ROOTFS"
   rm -f "$img"
-  rootfs_stamp >"$PI/rootfs.stamp"
+  rootfs_stamp >"$ROOTFS_STAMP"
   log "root filesystem $ROOTFS ($(du -h "$ROOTFS" | cut -f1)) in $(( $(date +%s) - t0 ))s"
 }
 
@@ -453,9 +531,9 @@ cmd_rootfs() {
   flock 8
   [ -e "$PI/base.cpio.gz" ] || die "run scripts/pi.sh build first"
   command -v debootstrap >/dev/null || die "debootstrap is missing: run scripts/setup.sh"
-  [ -e "$ROOTFS" ] && [ "$(cat "$PI/rootfs.stamp" 2>/dev/null)" = "$(rootfs_stamp)" ] && return 0
+  [ -e "$ROOTFS" ] && [ "$(cat "$ROOTFS_STAMP" 2>/dev/null)" = "$(rootfs_stamp)" ] && return 0
   build_rootfs
-  rm -f "$PI/rootfs.initrd" # the second stage's; guests get their own
+  rm -f "$PI/rootfs.initrd" # the build's; guests get their own
 }
 
 cmd_stop() {

@@ -46,6 +46,7 @@ use crate::config::Config;
 
 mod delta;
 mod probe;
+mod thermal;
 
 pub use delta::{
     CompressionStats, DeltaFilter, Metric, MetricStats, NETWORK_DELTA_FLOOR_BYTES_PER_S, Threshold,

@@ -674,6 +674,72 @@ mod tests {
         v.indicators.iter().map(String::as_str).collect()
     }
 
+    /// `agent/tests/fixtures/pi5/proc` (a Raspberry Pi 5 whose `lekiwi_host` a laptop drives; see
+    /// the fixture's README) laid out under `dir`: its files, and each process's `fd.txt` ("FD
+    /// TARGET" lines) made into the `fd` symlinks the kernel shows, with `/dev/` targets moved to
+    /// `dir/dev/`, where the serial device exists. `established`: keep the ESTABLISHED lines of
+    /// `net/tcp` (the laptop connected), else only the listening ones (an idle host).
+    fn pi5_proc(dir: &Path, established: bool) -> PathBuf {
+        let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/pi5/proc");
+        let root = dir.join("proc");
+        fs::create_dir_all(root.join("net")).unwrap();
+        fs::create_dir_all(dir.join("dev")).unwrap();
+        fs::write(dir.join("dev/ttyACM0"), "").unwrap();
+        for table in ["net/tcp", "net/tcp6"] {
+            let text = fs::read_to_string(fixture.join(table)).unwrap();
+            let kept: String = text
+                .lines()
+                .filter(|l| established || parse_tcp_line(l).is_none_or(|s| s.state == TCP_LISTEN))
+                .flat_map(|l| [l, "\n"])
+                .collect();
+            fs::write(root.join(table), kept).unwrap();
+        }
+        for entry in fs::read_dir(&fixture).unwrap().flatten() {
+            if entry.file_name() == "net" {
+                continue;
+            }
+            let pid = root.join(entry.file_name());
+            fs::create_dir_all(pid.join("fd")).unwrap();
+            fs::copy(entry.path().join("cmdline"), pid.join("cmdline")).unwrap();
+            let fds = fs::read_to_string(entry.path().join("fd.txt")).unwrap();
+            for line in fds.lines() {
+                let (fd, target) = line.split_once(' ').unwrap();
+                let target = match target.strip_prefix("/dev/") {
+                    Some(device) => dir.join("dev").join(device),
+                    None => PathBuf::from(target),
+                };
+                symlink(target, pid.join("fd").join(fd)).unwrap();
+            }
+        }
+        root
+    }
+
+    #[test]
+    fn a_pi5_driven_through_lekiwi_host_fires_every_indicator_and_idle_scores_0_3() {
+        let dir = tempfile::tempdir().unwrap();
+        let driven = Detector::with_proc_root(&config_in(&dir), pi5_proc(dir.path(), true)).check();
+        assert!(driven.active, "{driven:?}");
+        assert_eq!(
+            names(&driven),
+            [PROCESS, COMMAND_CONNECTION, VIDEO_CONNECTION, SERIAL_DEVICE]
+        );
+        assert!((driven.score - 1.2).abs() < 1e-9, "{driven:?}");
+
+        let dir = tempfile::tempdir().unwrap();
+        let idle = Detector::with_proc_root(&config_in(&dir), pi5_proc(dir.path(), false)).check();
+        assert!(!idle.active, "{idle:?}");
+        assert_eq!(names(&idle), [PROCESS, SERIAL_DEVICE]);
+        assert!((idle.score - 0.3).abs() < 1e-9, "{idle:?}");
+    }
+
+    /// The default configuration with the serial device of [`pi5_proc`]'s `dir`.
+    fn config_in(dir: &tempfile::TempDir) -> Config {
+        Config {
+            teleop_serial_device: dir.path().join("dev/ttyACM0"),
+            ..Config::default()
+        }
+    }
+
     #[test]
     fn nothing_running_scores_zero() {
         let fake = FakeProc::new();

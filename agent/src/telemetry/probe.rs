@@ -7,6 +7,8 @@ use sysinfo::{
 };
 use tracing::info;
 
+use super::thermal::ThermalZones;
+
 /// A reading of the memory sampler.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct MemoryReading {
@@ -56,6 +58,9 @@ pub(super) struct SystemProbe {
     system: System,
     networks: Networks,
     networks_at: std::time::Instant,
+    /// The CPU/SoC thermal zones (a Raspberry Pi's `cpu-thermal`): read first, when there are.
+    zones: ThermalZones,
+    /// Else the hwmon sensors.
     components: Components,
     /// Indices into `components` of the sensors that count (see [`pick_sensors`]).
     sensors: Vec<usize>,
@@ -70,12 +75,18 @@ impl SystemProbe {
         // CPU use is a difference of counters: take the first snapshot now.
         system.refresh_cpu_usage();
         let networks = Networks::new_with_refreshed_list();
-        let components = Components::new_with_refreshed_list();
+        let zones = ThermalZones::discover(std::path::Path::new("/sys"));
+        let components = if zones.is_empty() {
+            Components::new_with_refreshed_list()
+        } else {
+            Components::new()
+        };
         let sensors = pick_sensors(components.list().iter().map(sysinfo::Component::label));
         let disks =
             Disks::new_with_refreshed_list_specifics(DiskRefreshKind::nothing().with_storage());
         let root_disk = pick_root_disk(&disks);
         info!(
+            thermal_zones = ?zones.names(),
             sensors = ?sensors
                 .iter()
                 .map(|&i| components.list()[i].label())
@@ -87,6 +98,7 @@ impl SystemProbe {
             system,
             networks,
             networks_at: std::time::Instant::now(),
+            zones,
             components,
             sensors,
             disks,
@@ -141,6 +153,9 @@ impl Probe for SystemProbe {
     }
 
     fn temperature_c(&mut self) -> Option<f64> {
+        if !self.zones.is_empty() {
+            return self.zones.hottest_c();
+        }
         if self.sensors.is_empty() {
             // Sensors may appear late (a driver loading after the agent started): look again,
             // which costs one directory listing when there are none.
