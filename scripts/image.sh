@@ -70,6 +70,8 @@ case "$KIND:${ARCHES:-default}" in
   *) die "--arch $ARCHES: amd64, arm64 or amd64,arm64" ;;
 esac
 IFS=, read -r -a ARCH_LIST <<<"$ARCHES"
+[ -z "$LOAD" ] || [[ ",$ARCHES," == *",$HOST_ARCH,"* ]] ||
+  die "--load loads the host's platform: build $HOST_ARCH too"
 export SOURCE_DATE_EPOCH="${SOURCE_DATE_EPOCH:-$(git -C "$REPO" log -1 --format=%ct)}"
 
 # We write the OCI layout ourselves (scripts/oci.py, ~300 lines of standard-library Python) rather
@@ -211,7 +213,6 @@ case "$KIND" in
   operator) build_operator ;;
 esac
 
-[ -z "$LOAD" ] || [ -n "$LOAD_FILE" ] || die "--load loads the host's platform: build $HOST_ARCH too"
 case "$LOAD" in
   ctr) log "ctr -n k8s.io images import $LOAD_FILE ($ADDRESS)"
        ctr --address "$ADDRESS" -n k8s.io images import "$LOAD_FILE" >&2 ;;
