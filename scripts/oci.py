@@ -6,6 +6,13 @@ The archive holds `oci-layout`, `index.json` and `blobs/sha256/*`: one image wit
 name the image after `--ref` (annotations `io.containerd.image.name` and
 `org.opencontainers.image.ref.name` in `index.json`).
 
+With `--merge` it instead joins single-platform archives (as written above, one per architecture)
+into one multi-platform archive: `index.json` names one image index (the `--ref` annotations on
+its descriptor), whose manifests are the archives' images, each with its `platform`, in the order
+given. A runtime takes its own platform's image from it; `skopeo copy --all` pushes them all.
+(Not the two manifests in `index.json` itself: `ctr images import` names the image after each in
+turn and keeps only the last platform's.)
+
 Reproducible: the same inputs give a byte-identical archive. Tar entries are sorted, owned by
 0:0 with no user or group names, their mtimes are `--epoch` (default `SOURCE_DATE_EPOCH`, else 0);
 the gzip header has mtime 0 and no file name; JSON has sorted keys and no spaces.
@@ -14,6 +21,7 @@ the gzip header has mtime 0 and no file name; JSON has sorted keys and no spaces
         [--dir DEST[:MODE]]... [--symlink TARGET:DEST]... [--entrypoint JSON_ARRAY]
         [--cmd JSON_ARRAY] [--user UID:GID] [--env K=V]... [--workdir DIR] [--label K=V]...
         [--arch amd64|arm64] [--epoch SECONDS]
+    python3 scripts/oci.py --out FILE.tar --ref NAME:TAG --merge A.tar --merge B.tar [--epoch SECONDS]
 
 Prints the manifest digest and the archive size. Python 3.11 standard library only.
 """
@@ -244,6 +252,54 @@ def build(args: argparse.Namespace) -> str:
     return sha256(manifest)
 
 
+def read_archive(path: str) -> tuple[dict, dict[str, bytes]]:
+    """A single-image archive's `index.json` descriptor (with its platform) and its blobs."""
+    try:
+        with tarfile.open(path) as tar:
+            files = {m.name: tar.extractfile(m).read() for m in tar.getmembers() if m.isfile()}
+    except (OSError, tarfile.TarError) as e:
+        fail(f"--merge {path!r}: {e}")
+    manifests = json.loads(files.get("index.json", b"{}")).get("manifests", [])
+    if len(manifests) != 1 or manifests[0].get("mediaType") != MANIFEST_TYPE \
+            or "platform" not in manifests[0]:
+        fail(f"--merge {path!r}: expected one image with a platform in index.json")
+    blobs = {"sha256:" + name.removeprefix("blobs/sha256/"): data
+             for name, data in files.items() if name.startswith("blobs/sha256/")}
+    return manifests[0], blobs
+
+
+def merge(args: argparse.Namespace) -> str:
+    """Writes the multi-platform archive; returns the image index's digest."""
+    epoch = args.epoch if args.epoch is not None else int(os.environ.get("SOURCE_DATE_EPOCH") or 0)
+    blobs: dict[str, bytes] = {}
+    manifests, platforms = [], set()
+    for path in args.merge:
+        desc, more = read_archive(path)
+        platform = json.dumps(desc["platform"], sort_keys=True)
+        if platform in platforms:
+            fail(f"--merge {path!r}: platform {platform} is given twice")
+        platforms.add(platform)
+        manifests.append({k: desc[k] for k in ("mediaType", "digest", "size", "platform")})
+        blobs.update(more)
+    image_index = canonical({"schemaVersion": 2, "mediaType": INDEX_TYPE, "manifests": manifests})
+    blobs[sha256(image_index)] = image_index
+    index = canonical({
+        "schemaVersion": 2,
+        "mediaType": INDEX_TYPE,
+        "manifests": [{
+            "mediaType": INDEX_TYPE,
+            "digest": sha256(image_index),
+            "size": len(image_index),
+            "annotations": {
+                "io.containerd.image.name": args.ref,
+                "org.opencontainers.image.ref.name": args.ref,
+            },
+        }],
+    })
+    write_archive(args.out, dict(sorted(blobs.items())), index, epoch)
+    return sha256(image_index)
+
+
 def parse_args(argv: list[str]) -> argparse.Namespace:
     p = argparse.ArgumentParser(
         prog="oci.py", description=__doc__.split("\n\n")[0],
@@ -263,18 +319,25 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     p.add_argument("--workdir", metavar="DIR")
     p.add_argument("--label", action="append", default=[], metavar="K=V")
     p.add_argument("--arch", choices=["amd64", "arm64"], default="amd64")
+    p.add_argument("--merge", action="append", default=[], metavar="ARCHIVE",
+                   help="join these single-platform archives into one multi-platform archive "
+                        "(no --file/--dir/... then)")
     p.add_argument("--epoch", type=int, metavar="SECONDS",
                    help="mtime of every entry and the image's creation time "
                         "(default SOURCE_DATE_EPOCH, else 0)")
     args = p.parse_args(argv)
     if ":" not in args.ref.rsplit("/", 1)[-1]:
         fail(f"--ref {args.ref!r}: expected NAME:TAG")
+    image_flags = (args.file, args.dir, args.symlink, args.entrypoint, args.cmd, args.user,
+                   args.env, args.workdir, args.label)
+    if args.merge and any(image_flags):
+        fail("--merge joins archives: it takes only --out, --ref and --epoch")
     return args
 
 
 def main(argv: list[str]) -> None:
     args = parse_args(argv)
-    digest = build(args)
+    digest = merge(args) if args.merge else build(args)
     print(f"digest: {digest}")
     print(f"size: {os.path.getsize(args.out)} bytes ({args.out})")
 

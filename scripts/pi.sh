@@ -16,7 +16,8 @@
 #!     --name NAME         guest name (default pi); with --count N the names are NAME-0..NAME-(N-1)
 #!     --count N           how many guests (default 1)
 #!     --run WHAT          agent (default): run /bin/lekiwi-agent AGENT-ARGS; unit-tests: run the
-#!                         agent crate's unit-test binary; shell: a shell on the console
+#!                         agent crate's unit-test binary; script: run /lekiwi/run.sh from the
+#!                         payload; shell: a shell on the console
 #!     --payload DIR       files put into the guest under /lekiwi (token, CA, ...); optional
 #!     --status-port P     host port forwarded to guest port 9477 (the agent's status endpoint:
 #!                         pass --status-listen 0.0.0.0:9477); with --count, P, P+1, ...
@@ -134,6 +135,7 @@ case "$run" in
     cd /tmp
     for t in /tests/*; do "$t" --test-threads=2 || rc=$?; done
     ;;
+  script) sh /lekiwi/run.sh || rc=$? ;;
   shell) setsid cttyhack sh || rc=$? ;;
   *) echo "unknown lekiwi.run=$run"; rc=2 ;;
 esac

@@ -16,8 +16,9 @@ log "code shape: no fn over 80 lines, no module over 400 without a written reaso
 python3 scripts/shape.py --check
 log "building binaries"
 cargo build --quiet --workspace --bins
-# The operator image (release build, cached in ~/.cache/lekiwi/image-target) before the tests, so
-# no test waits minutes for it while others run on its timers.
+# The operator image for amd64 and arm64 (release builds, cached in ~/.cache/lekiwi/image-target
+# and image-target-arm64) before the tests, so no test waits minutes for it while others run on
+# its timers.
 log "building the operator image"
 bash scripts/image.sh >/dev/null
 # The tests' own control plane, apart from the quickstart's (whose operator watches everything).

@@ -93,6 +93,8 @@ pub enum Run {
     Agent,
     /// The agent crate's unit-test binaries.
     UnitTests,
+    /// `/lekiwi/run.sh` from the payload (busybox sh).
+    Script,
 }
 
 /// One emulated Pi 5: the QEMU process (killed when dropped) and its console log.
@@ -116,6 +118,7 @@ impl PiGuest {
         let what = match run {
             Run::Agent => "agent",
             Run::UnitTests => "unit-tests",
+            Run::Script => "script",
         };
         let mut args = vec!["boot", "--foreground", "--name", name, "--run", what];
         args.extend(["--status-port", &port]);
