@@ -105,9 +105,16 @@ trap_cleanup
 take_bench_lock
 
 [ "$SCENARIO" != steady ] || ROBOTS="${STEADY_SIZES##*,}"
+[ "$SCENARIO" = first-boot ] || INCUMBENTS=0
+# Every robot holds one descriptor in the simulator and one in a gateway; a proxy holds two
+# (client and server side), so the robots are spread over as many HAProxy instances as the
+# open-file limit needs (root may raise the hard limit up to fs.nr_open; here it may not).
+ulimit -Hn "$(cat /proc/sys/fs/nr_open)" 2>/dev/null || true
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
-[ "$(ulimit -n)" -gt $(((ROBOTS + INCUMBENTS) * 3 + 1000)) ] \
-  || die "open-file limit $(ulimit -n) is too low for $ROBOTS robots through a proxy (raise the hard limit)"
+FDS="$(ulimit -n)"
+[ "$FDS" -gt $((ROBOTS + INCUMBENTS + 1000)) ] \
+  || die "open-file limit $FDS is too low for $((ROBOTS + INCUMBENTS)) robots (raise the hard limit)"
+LB_COUNT=$(( (2 * (ROBOTS + INCUMBENTS) + FDS - 1001) / (FDS - 1000) ))
 
 log "work directory: $WORK"
 if [ $BUILD = 1 ]; then
@@ -156,8 +163,10 @@ TOKEN="lke_$(openssl rand -hex 32)"
 TOKEN_HASH="$(printf %s "$TOKEN" | sha256sum | cut -d' ' -f1)"
 
 CTRL_HTTP="$(free_port)"
-LB_PORT="$(free_port)"
-LB_STATS="$(free_port)"
+LB_PORTS=()
+for _ in $(seq 1 "$LB_COUNT"); do LB_PORTS+=("$(free_port)"); done
+LB_URLS="$(printf 'ws://127.0.0.1:%s/v1/agent,' "${LB_PORTS[@]}")"
+LB_URLS="${LB_URLS%,}"
 declare -A GW_PORT GW_HTTP GW_PID
 for g in gw-a gw-b; do GW_PORT[$g]="$(free_port)"; GW_HTTP[$g]="$(free_port)"; done
 COMMON=(--kubeconfig "$KUBECONFIG" --namespace lekiwi-system --watch-namespace bench)
@@ -186,10 +195,13 @@ leader() { alive "$CTRL_PID" || die "controller exited: $(tail -5 "$WORK/control
 wait_for "controller leadership" 60 leader
 
 # HAProxy: layer-4 round robin over the replicas, health-checked like a Service's endpoints
-# (a readiness probe of /readyz every second; two failures take a replica out).
-cat >"$WORK/haproxy.cfg" <<EOF
+# (a readiness probe of /readyz every second; two failures take a replica out). With more than
+# one instance (see LB_COUNT), the simulator spreads its robots over them by its URL list; each
+# balances over both gateways, as every node's kube-proxy does for a Service.
+for i in "${!LB_PORTS[@]}"; do
+  cat >"$WORK/haproxy-$i.cfg" <<EOF
 global
-  maxconn $(((ROBOTS + INCUMBENTS) * 2 + 1000))
+  maxconn $((FDS / 2 - 500))
 defaults
   mode tcp
   timeout connect 5s
@@ -197,23 +209,19 @@ defaults
   timeout server 1h
   timeout tunnel 1h
 frontend agents
-  bind 127.0.0.1:$LB_PORT
+  bind 127.0.0.1:${LB_PORTS[$i]}
   default_backend gateways
 backend gateways
   balance roundrobin
   option httpchk GET /readyz
   server gw-a 127.0.0.1:${GW_PORT[gw-a]} check port ${GW_HTTP[gw-a]} inter 1s fall 2 rise 2
   server gw-b 127.0.0.1:${GW_PORT[gw-b]} check port ${GW_HTTP[gw-b]} inter 1s fall 2 rise 2
-listen stats
-  mode http
-  bind 127.0.0.1:$LB_STATS
-  stats enable
-  stats uri /stats
 EOF
-start haproxy haproxy -db -f "$WORK/haproxy.cfg"
-HAPROXY_PID=$LAST_PID
-sleep 1
-alive "$HAPROXY_PID" || die "haproxy exited: $(tail -5 "$WORK/haproxy.log")"
+  start "haproxy-$i" haproxy -db -f "$WORK/haproxy-$i.cfg"
+  sleep 1
+  alive "$LAST_PID" || die "haproxy exited: $(tail -5 "$WORK/haproxy-$i.log")"
+done
+fact load_balancers "$LB_COUNT HAProxy instance(s)"
 
 # ---- the fleet -------------------------------------------------------------------------------
 # Every change of every Robot, time-stamped on arrival: name phase gateway connected. Started
@@ -240,8 +248,8 @@ provisioned_fleet() { # count
   wait_for "all robots Pending" 300 pending "$1"
   sleep 5
   start_watch "$1"
-  log "starting $1 simulated robots through haproxy :$LB_PORT ($EPM events/min each)"
-  start sim "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$LB_PORT/v1/agent" \
+  log "starting $1 simulated robots through $LB_COUNT HAProxy instance(s) ($EPM events/min each)"
+  start sim "$BIN/lekiwi-sim" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN" --namespace bench \
     --robots "$1" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
     --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json"
@@ -341,7 +349,7 @@ scenario_first_boot() {
   t0="$(now)"
   fact boot_time "$t0"
   log "first boot: $ROBOTS new robots enroll at once"
-  start sim-new "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$LB_PORT/v1/agent" \
+  start sim-new "$BIN/lekiwi-sim" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN_ENROLL" --namespace bench --prefix new --robots "$ROBOTS" \
     --heartbeat-interval "$INTERVAL" --connect-rate 1000000 --connect-timeout 300 \
     --token-file "$WORK/new-tokens.json" --report-every 10 --json "$WORK/sim-new.json"
