@@ -125,7 +125,7 @@ def report_first_boot(work, f):
     for g in ("gw-a", "gw-b"):
         for (name, labels), value in parse_metrics(work / f"{g}-after-boot.txt").items():
             if name.startswith("lekiwi_gateway_refused"):
-                refused[dict(labels).get("reason", "?")] += value
+                refused[dict(labels).get("kind", dict(labels).get("reason", "?"))] += value
     codes = all_requests_by_code(parse_metrics(work / "apiserver-before-boot.txt"),
                                  parse_metrics(work / "apiserver-after-boot.txt"))
     sim = json.loads((work / "sim-new.json").read_text()) if (work / "sim-new.json").exists() else {}
