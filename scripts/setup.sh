@@ -27,6 +27,7 @@ if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 export DEBIAN_FRONTEND=noninteractive
 
 APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static rsync haproxy wrk
+  chromium fonts-dejavu-core
   containerd runc containernetworking-plugins iptables conntrack ethtool socat iproute2 util-linux)
 BUILD_PKGS=(dpkg-dev golang-go rsync make golang-github-modern-go-reflect2-dev golang-github-json-iterator-go-dev)
 

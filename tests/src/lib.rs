@@ -6,6 +6,7 @@
 //! [`pi`].
 
 pub mod agent;
+pub mod browser;
 pub mod cluster;
 pub mod control_plane;
 pub mod fleet;
@@ -15,6 +16,7 @@ pub mod operator;
 pub mod pi;
 pub mod postgres;
 mod process;
+pub mod rbac;
 pub mod stand_in;
 
 use std::path::{Path, PathBuf};

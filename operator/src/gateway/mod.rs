@@ -7,6 +7,7 @@ pub mod api;
 pub mod auth;
 pub mod blob_api;
 pub mod blob_store;
+pub mod dashboard;
 pub mod desired;
 pub mod dispatch;
 pub mod enroll;
@@ -266,8 +267,8 @@ impl AppState {
 
 /// The gateway's routes, separate from serving so tests can call them directly.
 pub fn router(state: AppState) -> Router {
-    // Every route but /healthz requires credentials: a success there takes the connection out
-    // of the unauthenticated limits.
+    // Every route but /healthz and the dashboard's static files requires credentials: a
+    // success there takes the connection out of the unauthenticated limits.
     Router::new()
         .route(AGENT_PATH, get(agent_ws))
         .route("/v1/poll", get(poll::poll))
@@ -278,6 +279,7 @@ pub fn router(state: AppState) -> Router {
             listener::authenticated_on_success,
         ))
         .route("/healthz", get(|| async { "ok\n" }))
+        .merge(dashboard::routes())
         .with_state(state)
 }
 

@@ -6,6 +6,7 @@
 //! event store; rollout actions patch the RobotDeployment as `kubectl lekiwi rollout` does.
 //! The routes and their document are listed once, in [`openapi`].
 
+mod access;
 pub mod cache;
 mod history;
 pub mod limits;
@@ -84,6 +85,7 @@ pub fn routes() -> Router<AppState> {
     let wrong = |m: MethodRouter<AppState>| m.fallback(wrong_method);
     Router::new()
         .route(p::OPENAPI, wrong(get(openapi::document)))
+        .route(p::ACCESS, wrong(get(access::access)))
         .route(p::ROBOTS, wrong(get(robots::list_all)))
         .route(p::NAMESPACED_ROBOTS, wrong(get(robots::list_namespaced)))
         .route(p::ROBOT, wrong(get(robots::one)))

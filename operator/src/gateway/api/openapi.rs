@@ -16,6 +16,8 @@ use crate::gateway::{ApiError, AppState};
 pub mod paths {
     /// This document.
     pub const OPENAPI: &str = "/api/v1/openapi.json";
+    /// What the caller may do in a namespace.
+    pub const ACCESS: &str = "/api/v1/namespaces/{namespace}/access";
     /// Robots of every namespace.
     pub const ROBOTS: &str = "/api/v1/robots";
     /// Robots of one namespace.
@@ -43,8 +45,9 @@ pub mod paths {
 }
 
 /// Every route with its method, the list the router and the document are checked against.
-pub const ROUTES: [(&str, &str); 13] = [
+pub const ROUTES: [(&str, &str); 14] = [
     ("get", paths::OPENAPI),
+    ("get", paths::ACCESS),
     ("get", paths::ROBOTS),
     ("get", paths::NAMESPACED_ROBOTS),
     ("get", paths::ROBOT),
@@ -210,6 +213,8 @@ fn build() -> Value {
         "security": [{"bearer": []}],
         "paths": {
             paths::OPENAPI: {"get": op("This document.", "an authenticated user", vec![], json!({"type": "object"}))},
+            paths::ACCESS: {"get": op("Who the caller is and which actions RBAC allows them in the namespace (each the check its route makes).",
+                "an authenticated user", path_params(false), schema("Access"))},
             paths::ROBOTS: {"get": op("Robots of every namespace.", "list robots in all namespaces",
                 listed(false, robot_filters()), page_of("Robot"))},
             paths::NAMESPACED_ROBOTS: {"get": op("Robots of a namespace.", "list robots",
@@ -243,6 +248,16 @@ fn components() -> Value {
             "Error": {"type": "object", "required": ["error", "message"], "properties": {
                 "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, method_not_allowed, rate_limited, unavailable, internal."},
                 "message": {"type": "string"}}},
+            "Access": {"type": "object", "required": ["user", "namespace", "allowed"], "properties": {
+                "user": {"type": "string", "description": "The username the API server gave the token."},
+                "namespace": {"type": "string"},
+                "allowed": {"type": "object", "description": "Each action and whether RBAC allows it.", "properties": {
+                    "listRobots": {"type": "boolean", "description": "list robots"},
+                    "getRobots": {"type": "boolean", "description": "get robots"},
+                    "getEvents": {"type": "boolean", "description": "get robots/events"},
+                    "getTelemetry": {"type": "boolean", "description": "get robots/telemetry"},
+                    "listRollouts": {"type": "boolean", "description": "list robotdeployments"},
+                    "patchRollouts": {"type": "boolean", "description": "patch robotdeployments (pause, resume, undo, restart)"}}}}},
             "Robot": {"type": "object", "description": "The Robot resource (fleet.lekiwi.io/v1alpha1) as `kubectl get -o json` shows it, without managedFields."},
             "RobotDeployment": {"type": "object", "description": "The RobotDeployment resource (fleet.lekiwi.io/v1alpha1) without managedFields."},
             "RobotView": {"type": "object", "required": ["robot"], "properties": {

@@ -1,0 +1,501 @@
+// LeKiwi fleet dashboard. It talks only to the Fleet API (/api/v1) of the gateway that served
+// it, with the bearer token the user pasted (kept in this tab's sessionStorage), so it can do
+// exactly what RBAC allows that token. Views: #/fleet, #/robots/NAMESPACE/NAME, #/rollouts.
+// The shown view refreshes itself every REFRESH_MS (the API answers from the gateway's
+// watch-fed cache, so this costs the API server nothing). Text that comes from robots is set
+// with textContent, never parsed as HTML; the page runs under a strict Content-Security-Policy.
+'use strict';
+
+const REFRESH_MS = 2000;
+const MAX_PAGES = 10; // 10 pages of 1,000 robots
+const MAX_ROWS = 500;
+const PHASES = ['Online', 'Offline', 'Unknown', 'Pending', 'Maintenance'];
+const STATES = ['Updated', 'Updating', 'Waiting', 'Pending', 'Skipped', 'Failed', 'RolledBack'];
+const CHARTS = [
+  ['cpu_percent', 'CPU %', 100],
+  ['memory_percent', 'Memory %', 100],
+  ['temperature_c', 'Temperature °C', null],
+];
+
+const S = {
+  token: sessionStorage.getItem('lekiwi.token') || '',
+  ns: sessionStorage.getItem('lekiwi.namespace') || 'default',
+  access: null,
+  timer: null,
+  generation: 0,
+  filters: { selector: '', phase: '', release: '' },
+};
+
+class ApiError extends Error {
+  constructor(status, message) {
+    super(message);
+    this.status = status;
+  }
+}
+
+/** One Fleet API call; throws ApiError with the API's own message. */
+async function api(path, method = 'GET') {
+  const response = await fetch(path, {
+    method,
+    cache: 'no-store',
+    headers: { Authorization: 'Bearer ' + S.token, Accept: 'application/json' },
+  });
+  let body = null;
+  try {
+    body = await response.json();
+  } catch (_) {
+    body = null;
+  }
+  if (!response.ok) {
+    const message = (body && body.message) || response.status + ' ' + response.statusText;
+    if (response.status === 401) logout('The token was refused: ' + message);
+    throw new ApiError(response.status, message);
+  }
+  return body;
+}
+
+/** Every item of a paged list, at most MAX_PAGES pages. */
+async function listAll(path, query) {
+  const items = [];
+  let next = null;
+  for (let page = 0; page < MAX_PAGES; page++) {
+    const q = new URLSearchParams(query);
+    q.set('limit', '1000');
+    if (next) q.set('continue', next);
+    const body = await api(path + '?' + q.toString());
+    items.push(...body.items);
+    next = body.continue;
+    if (!next) return { items, complete: true };
+  }
+  return { items, complete: false };
+}
+
+/** An element with attributes (`text` sets textContent, `on…` adds a listener) and children. */
+function el(tag, attrs, ...children) {
+  const e = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs || {})) {
+    if (v === undefined || v === null || v === false) continue;
+    if (k === 'class') e.className = v;
+    else if (k === 'text') e.textContent = v;
+    else if (k.startsWith('on')) e.addEventListener(k.slice(2), v);
+    else e.setAttribute(k, v === true ? '' : String(v));
+  }
+  for (const c of children.flat(Infinity)) {
+    if (c === null || c === undefined) continue;
+    e.append(c instanceof Node ? c : document.createTextNode(String(c)));
+  }
+  return e;
+}
+
+const $ = (id) => document.getElementById(id);
+const ns = () => encodeURIComponent(S.ns);
+
+function age(time) {
+  if (!time) return '—';
+  const s = Math.max(0, Math.round((Date.now() - Date.parse(time)) / 1000));
+  if (s < 60) return s + 's ago';
+  if (s < 3600) return Math.floor(s / 60) + 'm ago';
+  if (s < 86400) return Math.floor(s / 3600) + 'h ago';
+  return Math.floor(s / 86400) + 'd ago';
+}
+
+const num = (v, unit) => (v === undefined || v === null ? '—' : v.toFixed(1) + unit);
+const badge = (phase) => el('span', { class: 'badge phase-' + (phase || 'Pending'), text: phase || 'Pending' });
+
+function setStatus(text, error) {
+  const s = $('status');
+  s.textContent = text;
+  s.className = error ? 'status error' : 'status';
+}
+
+// ---------------------------------------------------------------- login and navigation
+
+function logout(why) {
+  S.token = '';
+  S.access = null;
+  sessionStorage.removeItem('lekiwi.token');
+  stop();
+  $('nav').hidden = true;
+  $('view').replaceChildren();
+  $('login').hidden = false;
+  $('login-namespace').value = S.ns;
+  $('login-error').textContent = why || '';
+  setStatus('');
+}
+
+async function loadAccess() {
+  S.access = await api('/api/v1/namespaces/' + ns() + '/access');
+  $('whoami').textContent = S.access.user + ' in ' + S.ns;
+}
+
+async function login(event) {
+  event.preventDefault();
+  S.token = $('login-token').value.trim();
+  S.ns = $('login-namespace').value.trim() || 'default';
+  try {
+    await loadAccess();
+  } catch (e) {
+    $('login-error').textContent = e.message;
+    return;
+  }
+  sessionStorage.setItem('lekiwi.token', S.token);
+  sessionStorage.setItem('lekiwi.namespace', S.ns);
+  $('login-token').value = '';
+  $('login').hidden = true;
+  $('nav').hidden = false;
+  $('namespace').value = S.ns;
+  if (!location.hash || location.hash === '#/') location.hash = '#/fleet';
+  else render();
+}
+
+async function changeNamespace() {
+  const value = $('namespace').value.trim();
+  if (!value || value === S.ns) return;
+  S.ns = value;
+  sessionStorage.setItem('lekiwi.namespace', S.ns);
+  try {
+    await loadAccess();
+  } catch (e) {
+    setStatus(e.message, true);
+  }
+  location.hash = location.hash.startsWith('#/rollouts') ? '#/rollouts' : '#/fleet';
+  render();
+}
+
+function stop() {
+  S.generation++;
+  clearTimeout(S.timer);
+}
+
+/** Shows a view: `setup` builds its frame once, `refresh` fills it now and every REFRESH_MS. */
+function show(view) {
+  stop();
+  const generation = S.generation;
+  const root = el('div');
+  $('view').replaceChildren(root);
+  const refresh = view.setup(root);
+  const tick = async () => {
+    if (generation !== S.generation) return;
+    try {
+      if (!document.hidden) await refresh();
+      if (generation === S.generation) setStatus('Live · updated ' + new Date().toLocaleTimeString());
+    } catch (e) {
+      if (generation === S.generation && S.token) setStatus(e.message, true);
+    }
+    if (generation === S.generation) S.timer = setTimeout(tick, REFRESH_MS);
+  };
+  tick();
+}
+
+function render() {
+  if (!S.token) return logout();
+  const parts = location.hash.replace(/^#\/?/, '').split('/').map(decodeURIComponent);
+  for (const a of document.querySelectorAll('nav a')) a.classList.remove('active');
+  if (parts[0] === 'robots' && parts.length === 3) {
+    $('nav-fleet').classList.add('active');
+    show(robotView(parts[1], parts[2]));
+  } else if (parts[0] === 'rollouts') {
+    $('nav-rollouts').classList.add('active');
+    show(rolloutsView());
+  } else {
+    $('nav-fleet').classList.add('active');
+    show(fleetView());
+  }
+}
+
+// ---------------------------------------------------------------- fleet
+
+function fleetView() {
+  let cards, tbody, note;
+  const setup = (root) => {
+    const f = S.filters;
+    const input = (key, placeholder) =>
+      el('input', {
+        id: 'filter-' + key,
+        placeholder,
+        value: f[key],
+        oninput: (e) => {
+          f[key] = e.target.value.trim();
+          refresh().catch((err) => setStatus(err.message, true));
+        },
+      });
+    const phase = el(
+      'select',
+      {
+        id: 'filter-phase',
+        onchange: (e) => {
+          f.phase = e.target.value;
+          refresh().catch((err) => setStatus(err.message, true));
+        },
+      },
+      el('option', { value: '', text: 'every phase' }),
+      PHASES.map((p) => el('option', { value: p, text: p, selected: p === f.phase })),
+    );
+    cards = el('div', { class: 'cards', id: 'counts' });
+    note = el('p', { class: 'muted', id: 'robots-note' });
+    tbody = el('tbody');
+    const head = ['Robot', 'Phase', 'Release', 'Healthy', 'Teleoperated', 'Last heartbeat', 'Battery', 'CPU', 'Gateway'];
+    root.append(
+      el('h2', { text: 'Fleet' }),
+      cards,
+      el('div', { class: 'filters' }, input('selector', 'label selector, e.g. lab=north'), phase, input('release', 'release version')),
+      note,
+      el('table', { id: 'robots' }, el('thead', {}, el('tr', {}, head.map((h) => el('th', { text: h })))), tbody),
+    );
+    return refresh;
+  };
+  const refresh = async () => {
+    const query = {};
+    if (S.filters.selector) query.labelSelector = S.filters.selector;
+    if (S.filters.release) query.release = S.filters.release;
+    const { items, complete } = await listAll('/api/v1/namespaces/' + ns() + '/robots', query);
+    const counts = Object.fromEntries(PHASES.map((p) => [p, 0]));
+    for (const r of items) counts[(r.status && r.status.phase) || 'Pending']++;
+    cards.replaceChildren(
+      el('div', { class: 'card', id: 'count-total' }, el('div', { class: 'n', text: items.length }), el('div', { class: 'label', text: 'robots' })),
+      ...PHASES.map((p) =>
+        el('div', { class: 'card', id: 'count-' + p }, el('div', { class: 'n', text: counts[p] }), el('div', {}, badge(p))),
+      ),
+    );
+    const shown = items.filter((r) => !S.filters.phase || ((r.status && r.status.phase) || 'Pending') === S.filters.phase);
+    note.textContent =
+      (complete ? '' : 'Only the first ' + items.length + ' robots are counted. ') +
+      (shown.length > MAX_ROWS ? 'Showing ' + MAX_ROWS + ' of ' + shown.length + ' robots; filter to narrow.' : shown.length + ' robots shown.');
+    tbody.replaceChildren(...shown.slice(0, MAX_ROWS).map(robotRow));
+  };
+  return { setup };
+}
+
+function robotRow(r) {
+  const s = r.status || {};
+  const name = r.metadata.name;
+  const t = s.telemetry || {};
+  const href = '#/robots/' + encodeURIComponent(r.metadata.namespace) + '/' + encodeURIComponent(name);
+  return el(
+    'tr',
+    { 'data-robot': name, 'data-phase': s.phase || 'Pending' },
+    el('td', {}, el('a', { href, text: name })),
+    el('td', {}, badge(s.phase)),
+    el('td', { text: (s.currentRelease && s.currentRelease.version) || '—' }),
+    el('td', { text: s.health ? (s.health.healthy ? 'yes' : 'no') : '—' }),
+    el('td', { text: s.teleoperation && s.teleoperation.active ? 'yes' : 'no' }),
+    el('td', { text: age(s.lastHeartbeatTime) }),
+    el('td', { text: num(t.batteryPercent, ' %') }),
+    el('td', { text: num(t.cpuPercent, ' %') }),
+    el('td', { text: s.gateway || '—' }),
+  );
+}
+
+// ---------------------------------------------------------------- one robot
+
+function robotView(namespace, name) {
+  const base = '/api/v1/namespaces/' + encodeURIComponent(namespace) + '/robots/' + encodeURIComponent(name);
+  let facts, conditions, charts, events;
+  const setup = (root) => {
+    facts = el('dl', { class: 'kv', id: 'robot-facts' });
+    conditions = el('tbody');
+    charts = el('div', { class: 'charts', id: 'charts' });
+    events = el('tbody');
+    root.append(
+      el('h2', {}, el('a', { href: '#/fleet', text: 'Fleet' }), ' / ', name),
+      facts,
+      el('h3', { text: 'Conditions' }),
+      el('table', { id: 'conditions' }, el('thead', {}, el('tr', {}, ['Type', 'Status', 'Reason', 'Message', 'Since'].map((h) => el('th', { text: h })))), conditions),
+      el('h3', { text: 'Telemetry (up to the last hour)' }),
+      charts,
+      el('h3', { text: 'Recent events, last hour (newest first)' }),
+      el('table', { id: 'events' }, el('thead', {}, el('tr', {}, ['Time', 'Severity', 'Kind', 'Message'].map((h) => el('th', { text: h })))), events),
+    );
+    return refresh;
+  };
+  const refresh = async () => {
+    const view = await api(base);
+    const r = view.robot;
+    const s = r.status || {};
+    const v = view.vitals || {};
+    const row = (k, value) => [el('dt', { text: k }), el('dd', {}, value)];
+    facts.replaceChildren(
+      ...row('Phase', badge(s.phase)),
+      ...row('Release', (s.currentRelease && s.currentRelease.version) || '—'),
+      ...row('Agent', s.agentVersion || '—'),
+      ...row('Gateway', s.gateway || '—'),
+      ...row('Address', s.address || '—'),
+      ...row('Health', s.health ? (s.health.healthy ? 'healthy' : 'unhealthy') + (s.health.message ? ': ' + s.health.message : '') : '—'),
+      ...row('Teleoperated', s.teleoperation && s.teleoperation.active ? 'yes' : 'no'),
+      ...row('Last heartbeat', age(s.lastHeartbeatTime)),
+      ...row('Vitals', 'CPU ' + num(v.cpuPercent, ' %') + ' · memory ' + num(v.memoryPercent, ' %') + ' · temperature ' + num(v.temperatureCelsius, ' °C') + ' · battery ' + num(v.batteryPercent, ' %')),
+    );
+    conditions.replaceChildren(
+      ...(s.conditions || []).map((c) =>
+        el('tr', { 'data-condition': c.type }, el('td', { text: c.type }), el('td', { text: c.status }), el('td', { text: c.reason }), el('td', { text: c.message || '' }), el('td', { text: age(c.lastTransitionTime) })),
+      ),
+    );
+    const since = new Date(Date.now() - 3600e3).toISOString();
+    if (S.access && S.access.allowed.getTelemetry) {
+      const series = await Promise.all(CHARTS.map(([metric]) => listAll(base + '/telemetry', { metric, since })));
+      charts.replaceChildren(...CHARTS.map(([metric, title, max], i) => chart(metric, title, max, series[i].items)));
+    } else {
+      charts.replaceChildren(el('p', { class: 'muted', text: 'RBAC does not allow you get robots/telemetry here.' }));
+    }
+    if (S.access && S.access.allowed.getEvents) {
+      const { items } = await listAll(base + '/events', { since });
+      events.replaceChildren(
+        ...items.slice(-50).reverse().map((e) =>
+          el('tr', { 'data-seq': e.seq }, el('td', { text: new Date(e.ts_ms).toLocaleTimeString() }), el('td', { class: 'sev-' + e.severity, text: e.severity }), el('td', { text: e.kind }), el('td', { text: e.message })),
+        ),
+      );
+    } else {
+      events.replaceChildren(el('tr', {}, el('td', { colspan: 4, class: 'muted', text: 'RBAC does not allow you get robots/events here.' })));
+    }
+  };
+  return { setup };
+}
+
+/** An SVG line chart of `samples` over the last hour. */
+function chart(metric, title, fixedMax, samples) {
+  const W = 360, H = 140, PAD = 28;
+  const NS = 'http://www.w3.org/2000/svg';
+  const svg = document.createElementNS(NS, 'svg');
+  svg.setAttribute('width', W);
+  svg.setAttribute('height', H);
+  svg.setAttribute('data-metric', metric);
+  svg.setAttribute('data-samples', samples.length);
+  const add = (tag, attrs, text) => {
+    const e = document.createElementNS(NS, tag);
+    for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+    if (text !== undefined) e.textContent = text;
+    svg.append(e);
+  };
+  const now = Date.now();
+  // The last hour, or less when the data is younger: a robot that just connected gets a chart
+  // of its first minutes, not a dot at the right edge.
+  const t0 = Math.max(now - 3600e3, (samples.length ? samples[0].ts_ms : now) - 10e3);
+  const span = now - t0;
+  const max = fixedMax || Math.max(1, ...samples.map((s) => s.value)) * 1.1;
+  const x = (t) => PAD + ((t - t0) / span) * (W - PAD - 6);
+  const y = (v) => H - 16 - (Math.min(v, max) / max) * (H - 30);
+  add('line', { x1: PAD, y1: y(0), x2: W - 6, y2: y(0), stroke: '#cbd5e1' });
+  add('line', { x1: PAD, y1: y(max), x2: W - 6, y2: y(max), stroke: '#eef2f7' });
+  add('text', { x: 2, y: y(max) + 4, 'font-size': 10, fill: '#6b7280' }, max.toFixed(0));
+  add('text', { x: 2, y: y(0) + 4, 'font-size': 10, fill: '#6b7280' }, '0');
+  add('text', { x: PAD, y: H - 2, 'font-size': 10, fill: '#6b7280' }, '−' + (span >= 120e3 ? Math.round(span / 60e3) + ' min' : Math.round(span / 1e3) + ' s'));
+  add('text', { x: W - 30, y: H - 2, 'font-size': 10, fill: '#6b7280' }, 'now');
+  if (samples.length) {
+    const points = samples.map((s) => x(s.ts_ms).toFixed(1) + ',' + y(s.value).toFixed(1)).join(' ');
+    add('polyline', { points, fill: 'none', stroke: '#2563eb', 'stroke-width': 1.5 });
+    const end = samples[samples.length - 1];
+    add('circle', { cx: x(end.ts_ms), cy: y(end.value), r: 2.5, fill: '#2563eb' });
+  }
+  const last = samples.length ? samples[samples.length - 1].value.toFixed(1) : 'no data';
+  return el('div', { class: 'chart' }, el('div', { class: 'title', text: title + ' · ' + last }), svg);
+}
+
+// ---------------------------------------------------------------- rollouts
+
+function rolloutsView() {
+  let list;
+  const setup = (root) => {
+    list = el('div', { id: 'rollouts' });
+    const legend = el('p', { class: 'legend muted' }, 'Per batch:', STATES.map((s) => [el('span', { class: 's-' + s }), s]));
+    root.append(el('h2', { text: 'Rollouts' }), legend, list);
+    return refresh;
+  };
+  const refresh = async () => {
+    const { items } = await listAll('/api/v1/namespaces/' + ns() + '/rollouts', {});
+    list.replaceChildren(...(items.length ? items.map((d) => rolloutCard(d, refresh)) : [el('p', { class: 'muted', text: 'No RobotDeployments in ' + S.ns + '.' })]));
+  };
+  return { setup };
+}
+
+function rolloutCard(d, refresh) {
+  const name = d.metadata.name;
+  const st = d.status || {};
+  const allowed = S.access && S.access.allowed.patchRollouts;
+  const why = allowed ? null : 'RBAC does not allow you patch robotdeployments in ' + S.ns;
+  const act = (action, label) =>
+    el('button', {
+      type: 'button',
+      'data-action': action,
+      disabled: !allowed,
+      title: why,
+      text: label,
+      onclick: async (e) => {
+        e.target.disabled = true;
+        try {
+          await api('/api/v1/namespaces/' + ns() + '/rollouts/' + encodeURIComponent(name) + '/' + action, 'POST');
+          setStatus(label + ' ' + name + ': done');
+          await refresh();
+        } catch (err) {
+          setStatus(label + ' ' + name + ': ' + err.message, true);
+          e.target.disabled = false;
+        }
+      },
+    });
+  const batches = new Map();
+  for (const r of st.robots || []) {
+    if (!batches.has(r.batch)) batches.set(r.batch, []);
+    batches.get(r.batch).push(r);
+  }
+  const canary = (d.spec.strategy && d.spec.strategy.canary) || 0;
+  const last = Math.max(st.totalBatches || 0, ...[...batches.keys()].map((b) => b + 1));
+  const bars = [];
+  for (let b = 0; b < last; b++) bars.push(batchBar(b, batches.get(b) || [], canary));
+  const failed = (st.robots || []).filter((r) => r.state === 'Failed' || r.state === 'RolledBack');
+  return el(
+    'div',
+    { class: 'rollout', 'data-rollout': name, 'data-phase': st.phase || 'Pending' },
+    el(
+      'div',
+      { class: 'head' },
+      el('strong', { text: name }),
+      el('span', { class: 'badge phase-' + rolloutColour(st.phase), text: st.phase || 'Pending' }),
+      el('span', { text: 'release ' + ((d.spec.release && d.spec.release.version) || '?') }),
+      el('span', { class: 'muted', text: (st.progress || '') + (st.totalBatches ? ' · batch ' + (st.currentBatch || 0) + '/' + st.totalBatches : '') }),
+      el('span', { class: 'actions' }, d.spec.paused ? act('resume', 'Resume') : act('pause', 'Pause'), act('undo', 'Undo')),
+    ),
+    st.message ? el('p', { class: 'muted', text: st.message }) : null,
+    bars,
+    failed.length
+      ? el('div', { class: 'failed' }, el('h3', { text: 'Failed or rolled back' }), el('ul', {}, failed.map((r) => el('li', { 'data-failed': r.robot }, el('strong', { text: r.robot }), ' (' + r.state + '): ' + (r.message || 'no message')))))
+      : null,
+  );
+}
+
+function rolloutColour(phase) {
+  if (phase === 'Completed') return 'Online';
+  if (phase === 'Progressing') return 'Progressing';
+  if (phase === 'Failed' || phase === 'RollingBack' || phase === 'RolledBack') return 'Offline';
+  if (phase === 'Paused') return 'Unknown';
+  return 'Pending';
+}
+
+function batchBar(batch, robots, canary) {
+  const counts = {};
+  for (const r of robots) counts[r.state] = (counts[r.state] || 0) + 1;
+  const bar = el('div', { class: 'bar' });
+  for (const s of STATES) {
+    if (!counts[s]) continue;
+    const part = el('span', { class: 's-' + s, title: counts[s] + ' ' + s });
+    part.style.width = (100 * counts[s]) / robots.length + '%';
+    bar.append(part);
+  }
+  const text = robots.length ? STATES.filter((s) => counts[s]).map((s) => counts[s] + ' ' + s.toLowerCase()).join(', ') : 'not started';
+  return el('div', { class: 'batch', 'data-batch': batch, 'data-updated': counts.Updated || 0, 'data-total': robots.length }, el('span', { class: 'name', text: canary > 0 ? (batch === 0 ? 'canary' : 'batch ' + batch) : 'batch ' + (batch + 1) }), bar, el('span', { class: 'muted', text }));
+}
+
+// ---------------------------------------------------------------- start
+
+window.addEventListener('DOMContentLoaded', () => {
+  $('login-form').addEventListener('submit', login);
+  $('logout').addEventListener('click', () => logout('Logged out.'));
+  $('namespace').addEventListener('change', changeNamespace);
+  window.addEventListener('hashchange', () => S.token && render());
+  if (!S.token) return logout();
+  loadAccess()
+    .then(() => {
+      $('nav').hidden = false;
+      $('namespace').value = S.ns;
+      render();
+    })
+    .catch((e) => logout(e.message));
+});
