@@ -7,7 +7,7 @@
 'use strict';
 
 const REFRESH_MS = 2000;
-const MAX_PAGES = 10; // 10 pages of 1,000 robots
+const MAX_PAGES = 10; // of 1,000 items, for the lists that are read whole
 const MAX_ROWS = 500;
 const PHASES = ['Online', 'Offline', 'Unknown', 'Pending', 'Maintenance'];
 const STATES = ['Updated', 'Updating', 'Waiting', 'Pending', 'Skipped', 'Failed', 'RolledBack'];
@@ -248,20 +248,25 @@ function fleetView() {
     const query = {};
     if (S.filters.selector) query.labelSelector = S.filters.selector;
     if (S.filters.release) query.release = S.filters.release;
-    const { items, complete } = await listAll('/api/v1/namespaces/' + ns() + '/robots', query);
-    const counts = Object.fromEntries(PHASES.map((p) => [p, 0]));
-    for (const r of items) counts[(r.status && r.status.phase) || 'Pending']++;
+    // Counts from the summary (its size does not grow with the fleet), rows from one page.
+    const summary = await api('/api/v1/namespaces/' + ns() + '/summary?' + new URLSearchParams(query).toString());
+    const rowsQuery = new URLSearchParams(query);
+    if (S.filters.phase) rowsQuery.set('phase', S.filters.phase);
+    rowsQuery.set('limit', String(MAX_ROWS));
+    const page = await api('/api/v1/namespaces/' + ns() + '/robots?' + rowsQuery.toString());
     cards.replaceChildren(
-      el('div', { class: 'card', id: 'count-total' }, el('div', { class: 'n', text: items.length }), el('div', { class: 'label', text: 'robots' })),
+      el('div', { class: 'card', id: 'count-total' }, el('div', { class: 'n', text: summary.total }), el('div', { class: 'label', text: 'robots' })),
       ...PHASES.map((p) =>
-        el('div', { class: 'card', id: 'count-' + p }, el('div', { class: 'n', text: counts[p] }), el('div', {}, badge(p))),
+        el('div', { class: 'card', id: 'count-' + p }, el('div', { class: 'n', text: summary.phases[p] || 0 }), el('div', {}, badge(p))),
       ),
+      el('div', { class: 'card', id: 'count-teleoperated' }, el('div', { class: 'n', text: summary.teleoperated }), el('div', { class: 'label', text: 'teleoperated' })),
+      el('div', { class: 'card', id: 'count-unhealthy' }, el('div', { class: 'n', text: summary.unhealthy }), el('div', { class: 'label', text: 'unhealthy' })),
     );
-    const shown = items.filter((r) => !S.filters.phase || ((r.status && r.status.phase) || 'Pending') === S.filters.phase);
-    note.textContent =
-      (complete ? '' : 'Only the first ' + items.length + ' robots are counted. ') +
-      (shown.length > MAX_ROWS ? 'Showing ' + MAX_ROWS + ' of ' + shown.length + ' robots; filter to narrow.' : shown.length + ' robots shown.');
-    tbody.replaceChildren(...shown.slice(0, MAX_ROWS).map(robotRow));
+    const matching = S.filters.phase ? summary.phases[S.filters.phase] || 0 : summary.total;
+    note.textContent = page.continue
+      ? 'Showing the first ' + page.items.length + ' of ' + matching + ' robots; filter to narrow.'
+      : page.items.length + ' robots shown.';
+    tbody.replaceChildren(...page.items.map(robotRow));
   };
   return { setup };
 }

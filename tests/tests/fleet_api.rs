@@ -162,6 +162,24 @@ async fn lists_filter_and_page(op: &OperatorProcess, ns: &str, viewer: &str) -> 
         seen == ["kiwi-1", "kiwi-2", "kiwi-3", "kiwi-4", "kiwi-5"],
         "{seen:?}"
     );
+    let summary = ok(op, &format!("/api/v1/namespaces/{ns}/summary"), viewer).await?;
+    ensure!(
+        summary["total"] == 5
+            && summary["phases"]
+                == json!({"Online": 3, "Offline": 1, "Pending": 1, "Unknown": 0, "Maintenance": 0})
+            && summary["releases"] == json!({"1.0.0": 3, "2.0.0": 2}),
+        "{summary}"
+    );
+    let summary = ok(
+        op,
+        &format!("/api/v1/namespaces/{ns}/summary?labelSelector=room%3Db2&release=2.0.0"),
+        viewer,
+    )
+    .await?;
+    ensure!(
+        summary["total"] == 1 && summary["phases"]["Online"] == 1,
+        "{summary}"
+    );
     let one = ok(op, &format!("{base}/kiwi-3"), viewer).await?;
     ensure!(one["robot"]["status"]["phase"] == "Online", "{one}");
     ensure!(

@@ -14,6 +14,7 @@ pub mod openapi;
 mod robots;
 mod rollouts;
 pub mod selector;
+mod summary;
 
 use std::sync::Arc;
 
@@ -87,6 +88,7 @@ pub fn routes() -> Router<AppState> {
         .route(p::OPENAPI, wrong(get(openapi::document)))
         .route(p::ACCESS, wrong(get(access::access)))
         .route(p::ROBOTS, wrong(get(robots::list_all)))
+        .route(p::SUMMARY, wrong(get(summary::summary)))
         .route(p::NAMESPACED_ROBOTS, wrong(get(robots::list_namespaced)))
         .route(p::ROBOT, wrong(get(robots::one)))
         .route(p::ROBOT_EVENTS, wrong(get(history::events)))

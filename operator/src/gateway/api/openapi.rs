@@ -20,6 +20,8 @@ pub mod paths {
     pub const ACCESS: &str = "/api/v1/namespaces/{namespace}/access";
     /// Robots of every namespace.
     pub const ROBOTS: &str = "/api/v1/robots";
+    /// The robots of one namespace, counted.
+    pub const SUMMARY: &str = "/api/v1/namespaces/{namespace}/summary";
     /// Robots of one namespace.
     pub const NAMESPACED_ROBOTS: &str = "/api/v1/namespaces/{namespace}/robots";
     /// One robot.
@@ -45,10 +47,11 @@ pub mod paths {
 }
 
 /// Every route with its method, the list the router and the document are checked against.
-pub const ROUTES: [(&str, &str); 14] = [
+pub const ROUTES: [(&str, &str); 15] = [
     ("get", paths::OPENAPI),
     ("get", paths::ACCESS),
     ("get", paths::ROBOTS),
+    ("get", paths::SUMMARY),
     ("get", paths::NAMESPACED_ROBOTS),
     ("get", paths::ROBOT),
     ("get", paths::ROBOT_EVENTS),
@@ -217,6 +220,12 @@ fn build() -> Value {
                 "an authenticated user", path_params(false), schema("Access"))},
             paths::ROBOTS: {"get": op("Robots of every namespace.", "list robots in all namespaces",
                 listed(false, robot_filters()), page_of("Robot"))},
+            paths::SUMMARY: {"get": op("The robots of a namespace counted by phase and release (the 20 most common; the rest under `(other)`, none reported under `(none)`), teleoperated and unhealthy; the same filters as the list but phase.",
+                "list robots", {
+                    let mut p = path_params(false);
+                    p.extend(robot_filters().into_iter().filter(|f| f["name"] != "phase"));
+                    p
+                }, schema("Summary"))},
             paths::NAMESPACED_ROBOTS: {"get": op("Robots of a namespace.", "list robots",
                 listed(true, robot_filters()), page_of("Robot"))},
             paths::ROBOT: {"get": op("One robot and its latest vitals.", "get robots", named(vec![]), schema("RobotView"))},
@@ -258,6 +267,11 @@ fn components() -> Value {
                     "getTelemetry": {"type": "boolean", "description": "get robots/telemetry"},
                     "listRollouts": {"type": "boolean", "description": "list robotdeployments"},
                     "patchRollouts": {"type": "boolean", "description": "patch robotdeployments (pause, resume, undo, restart)"}}}}},
+            "Summary": {"type": "object", "required": ["total", "phases", "releases", "teleoperated", "unhealthy"], "properties": {
+                "total": {"type": "integer"},
+                "phases": {"type": "object", "additionalProperties": {"type": "integer"}, "description": "Every phase, 0 included; no phase yet counts as Pending."},
+                "releases": {"type": "object", "additionalProperties": {"type": "integer"}, "description": "Robots per status.currentRelease.version."},
+                "teleoperated": {"type": "integer"}, "unhealthy": {"type": "integer"}}},
             "Robot": {"type": "object", "description": "The Robot resource (fleet.lekiwi.io/v1alpha1) as `kubectl get -o json` shows it, without managedFields."},
             "RobotDeployment": {"type": "object", "description": "The RobotDeployment resource (fleet.lekiwi.io/v1alpha1) without managedFields."},
             "RobotView": {"type": "object", "required": ["robot"], "properties": {
