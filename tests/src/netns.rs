@@ -41,6 +41,7 @@ pub struct Lab {
     pub net: u8,
     namespaces: Vec<String>,
     host_links: Vec<String>,
+    /// Agents and other processes started in the namespaces.
     agents: Vec<Child>,
     states: Vec<tempfile::TempDir>,
 }
@@ -123,6 +124,24 @@ impl Lab {
     /// The address of namespace `i` (1-based).
     pub fn address(&self, i: usize) -> String {
         format!("10.{}.0.{}", self.net, 10 + i)
+    }
+
+    /// Runs `program` with `args` in namespace `i` (1-based), its output in the test logs;
+    /// the lab kills it when dropped.
+    pub fn spawn_in(&mut self, i: usize, name: &str, program: &str, args: &[&str]) -> Result<()> {
+        let ns = self.namespaces[i - 1].clone();
+        let log = log_dir().join(format!("netns-{name}-{ns}.log"));
+        let file = std::fs::File::create(&log)?;
+        let child = Command::new("ip")
+            .args(["netns", "exec", &ns, program])
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(file.try_clone()?)
+            .stderr(file)
+            .spawn()
+            .with_context(|| format!("spawn {program} in a network namespace"))?;
+        self.agents.push(child);
+        Ok(())
     }
 
     /// Starts a real agent for `robot` in namespace `i` (1-based), serving `/status` on all
