@@ -65,6 +65,12 @@ pub fn plan(interfaces: &[Interface]) -> (Vec<SweepPlan>, Vec<String>) {
     let mut warnings = Vec::new();
     let mut total = 0usize;
     for iface in interfaces {
+        if iface.ipv4.is_empty() {
+            warnings.push(format!(
+                "arp: {} has no IPv4 address: not swept",
+                iface.name
+            ));
+        }
         for &(own, prefix) in &iface.ipv4 {
             let mut host_bits = 32 - u32::from(prefix.min(32));
             if host_bits > MAX_SWEEP_PREFIX_BITS {
@@ -213,8 +219,9 @@ bad line
 
     #[test]
     fn sweep_plan_is_bounded() {
-        let (plans, warnings) = plan(&[iface("a", &[("10.78.0.1", 24)])]);
-        assert!(warnings.is_empty());
+        let (plans, warnings) = plan(&[iface("a", &[("10.78.0.1", 24)]), iface("c", &[])]);
+        assert_eq!(warnings, ["arp: c has no IPv4 address: not swept"]);
+        assert_eq!(plans.len(), 1);
         assert_eq!(plans[0].targets.len(), 253);
         assert_eq!(plans[0].targets[0], Ipv4Addr::new(10, 78, 0, 2));
         let (plans, warnings) = plan(&[iface("b", &[("10.9.200.7", 8)])]);
