@@ -15,7 +15,8 @@ use super::raw;
 use super::{arp, dhcp, leases};
 
 /// Time before the deadline at which raw sweeps and listening stop, left to confirm the last
-/// candidates (a status probe on a LAN takes a few milliseconds).
+/// candidates (a status probe on a LAN takes a few milliseconds); at most a quarter of the
+/// window, so a short window still reads replies.
 const CONFIRM_MARGIN: Duration = Duration::from_millis(150);
 /// Unreadable lines of a lease file reported one by one; the rest are counted.
 const MAX_LINE_ERRORS: usize = 3;
@@ -71,7 +72,7 @@ pub async fn arp(plan: &Plan, deadline: Instant) -> (Vec<Probed>, Vec<String>) {
         }),
         Err(e) => warnings.push(format!("arp: {e:#}")),
     }
-    let stop = deadline.checked_sub(CONFIRM_MARGIN).unwrap_or(deadline);
+    let stop = raw_stop(plan, deadline);
     match raw::interfaces(&plan.arp_interfaces) {
         Ok(interfaces) => {
             let (sweeps, cut) = arp::plan(&interfaces);
@@ -120,7 +121,7 @@ pub async fn dhcp(plan: &Plan, deadline: Instant) -> (Vec<Probed>, Vec<String>) 
             Err(e) => warnings.push(format!("dhcp: {e:#}")),
         }
     }
-    let stop = deadline.checked_sub(CONFIRM_MARGIN).unwrap_or(deadline);
+    let stop = raw_stop(plan, deadline);
     if !plan.dhcp_interfaces.is_empty() {
         match raw::interfaces(&plan.dhcp_interfaces) {
             Ok(interfaces) => {
@@ -140,6 +141,13 @@ pub async fn dhcp(plan: &Plan, deadline: Instant) -> (Vec<Probed>, Vec<String>) 
         warnings.push(format!("dhcp: {e}"));
     }
     finish(found, warnings)
+}
+
+/// When raw sweeps and listening stop: [`CONFIRM_MARGIN`] (at most a quarter of the window)
+/// before the deadline.
+fn raw_stop(plan: &Plan, deadline: Instant) -> Instant {
+    let margin = CONFIRM_MARGIN.min(plan.timeout / 4);
+    deadline.checked_sub(margin).unwrap_or(deadline)
 }
 
 /// The confirmed findings, or none and a warning when probing was impossible.
