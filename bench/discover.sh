@@ -2,7 +2,7 @@
 #! Discovery benchmark (issue 16): how long `kubectl lekiwi discover` needs to find every robot
 #! of a lab, per method. The lab is N network namespaces on a bridge (10.79.0.0/24), each running
 #! a real `lekiwi-agent` (status endpoint on :9477, mDNS on); a dnsmasq-format lease file lists
-#! them all. For each method alone (mDNS; probe of the /24; ARP sweep of the bridge; DHCP lease
+#! them all. Once the agents have had 15 s to start up, for each method alone (mDNS; probe of the /24; ARP sweep of the bridge; DHCP lease
 #! file) it runs discover once with each window (--timeout) of 100, 200, 300, 500, 750, 1000 and
 #! 1500 ms and reports how many robots it found in each, and the shortest window from which on it
 #! found all N. Runs as the ignored test `discover_time_to_find_per_method` of

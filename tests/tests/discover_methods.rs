@@ -20,6 +20,8 @@ use serde_json::{Value, json};
 /// The test lab's subnet is 10.78.0.0/24, the benchmark's 10.79.0.0/24.
 const NET: u8 = 78;
 const BENCH_NET: u8 = 79;
+/// Time the benchmark's agents get to start up before it measures.
+const BENCH_SETTLE: Duration = Duration::from_secs(15);
 
 /// A DHCP client renewing its lease: a DHCPREQUEST from port 68 to the server `argv[2]`:67
 /// naming its address `argv[1]` (`ciaddr` and option 50), every 100 ms for 20 s.
@@ -289,6 +291,8 @@ async fn discover_time_to_find_per_method() -> Result<()> {
     let Some((lab, robots)) = lab(n, BENCH_NET, &ns, true).await? else {
         return Ok(());
     };
+    // 50 agents starting at once keep the CPUs busy for a while: measure once they idle.
+    tokio::time::sleep(BENCH_SETTLE).await;
     let kubeconfig = cp.kubeconfig();
     let dir = tempfile::tempdir()?;
     let leases = dir.path().join("dnsmasq.leases");
