@@ -272,6 +272,27 @@ mod tests {
         }
     }
 
+    #[test]
+    fn merge_lists_every_method_once() {
+        let via = |p: Probed, via| Probed { via, ..p };
+        let got = merge(
+            "lab",
+            &[found("lab/a", "10.0.0.1")],
+            &[
+                via(probed("lab/a", "10.0.0.1:9477"), "dhcp"),
+                via(probed("lab/a", "10.0.0.1:9477"), "arp"),
+                probed("lab/a", "10.0.0.1:9477"),
+                via(probed("lab/a", "10.0.0.1:9477"), "arp"),
+                via(probed("b", "10.0.0.2:9477"), "dhcp"),
+            ],
+            None,
+        );
+        assert_eq!(got.len(), 2);
+        assert_eq!(got[0].via, ["arp", "dhcp", "mdns", "probe"]);
+        assert_eq!(got[0].addresses, ["10.0.0.1:9477"]);
+        assert_eq!(got[1].via, ["dhcp"]);
+    }
+
     fn probed(robot: &str, addr: &str) -> Probed {
         Probed {
             address: addr.parse().unwrap(),
