@@ -1,11 +1,14 @@
 //! `kubectl lekiwi discover`: finds agents on the network by mDNS (`_lekiwi._tcp.local.`) and,
-//! at the same time, by probing given addresses and CIDRs for the agent's `GET /status`; merges
-//! what both find by robot name and marks which robots are registered in the cluster.
+//! at the same time, by probing given addresses and CIDRs for the agent's `GET /status`, by ARP
+//! (the neighbour table and a sweep of the local subnets) and by DHCP (lease files, listening
+//! to DHCP traffic), the addresses of the last two confirmed by their `GET /status`; merges what
+//! all find by robot name and marks which robots are registered in the cluster.
 //!
-//! mDNS, the probes and the connection to the cluster run concurrently against one deadline,
+//! The methods and the connection to the cluster run concurrently against one deadline,
 //! then each robot found is looked up (one GET each, bounded in time); none waits for another: a method that fails or hangs costs a warning on
 //! stderr, never the others' results.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context as _, bail};
@@ -20,8 +23,13 @@ use tokio::time::Instant;
 
 use crate::Output;
 
+mod arp;
+mod dhcp;
+mod leases;
 mod merge;
+mod methods;
 mod probe;
+mod raw;
 mod targets;
 
 pub use merge::{merge, render};
@@ -49,9 +57,26 @@ pub struct DiscoverArgs {
     /// Port of the status endpoint for probes that name none.
     #[arg(long, default_value_t = 9477)]
     pub port: u16,
-    /// Do not browse mDNS (probe only).
+    /// Do not browse mDNS.
     #[arg(long)]
     pub no_mdns: bool,
+    /// Also find agents by ARP: the kernel's neighbour table, and a sweep of the local IPv4
+    /// subnets (at most 4096 addresses; needs CAP_NET_RAW, without it only the table is read);
+    /// each address found is confirmed by its status endpoint.
+    #[arg(long)]
+    pub arp: bool,
+    /// Interface whose neighbours and subnets ARP reads and sweeps (implies --arp; default:
+    /// every interface that is up, not loopback, with an IPv4 address); repeatable.
+    #[arg(long, value_name = "IFACE")]
+    pub arp_interface: Vec<String>,
+    /// Also probe the addresses leased in this DHCP server lease file (dnsmasq or ISC dhcpd
+    /// format, told apart by content; unreadable lines are reported and skipped); repeatable.
+    #[arg(long, value_name = "PATH")]
+    pub dhcp_leases: Vec<PathBuf>,
+    /// Also listen for DHCP traffic (UDP 67/68) on this interface for the whole window and
+    /// probe the client addresses seen (needs CAP_NET_RAW); repeatable.
+    #[arg(long, value_name = "IFACE")]
+    pub dhcp_listen: Vec<String>,
 }
 
 /// An agent found on the network.
@@ -68,7 +93,7 @@ pub struct Discovered {
     pub registered: Option<bool>,
     /// Status endpoints (`ip:port`) it was found at, sorted.
     pub addresses: Vec<String>,
-    /// How it was found: `mdns`, `probe`.
+    /// How it was found: `arp`, `dhcp`, `mdns`, `probe`.
     pub via: Vec<String>,
     /// Agent version.
     pub agent_version: String,
@@ -99,6 +124,15 @@ pub async fn run(
         browse(args.timeout, deadline + MDNS_GRACE).await
     };
     let probes = probe_all(&targets, args.timeout, deadline);
+    let plan = methods::Plan {
+        port: args.port,
+        timeout: args.timeout,
+        arp: args.arp || !args.arp_interface.is_empty(),
+        arp_interfaces: args.arp_interface.clone(),
+        lease_files: args.dhcp_leases.clone(),
+        dhcp_interfaces: args.dhcp_listen.clone(),
+    };
+    let others = methods::run(&plan, deadline);
     // Connecting early means the per-robot lookups afterwards cost one round trip each.
     let cluster = async {
         let client = client?;
@@ -108,13 +142,16 @@ pub async fn run(
             Err(_) => bail!("the cluster did not answer within {:?}", args.timeout),
         }
     };
-    let (mdns, (probed, probe_warnings), cluster) = tokio::join!(mdns, probes, cluster);
+    let (mdns, (mut probed, mut warnings), (others, other_warnings), cluster) =
+        tokio::join!(mdns, probes, others, cluster);
+    probed.extend(others);
+    warnings.extend(other_warnings);
 
     let mdns = mdns.unwrap_or_else(|e| {
         eprintln!("warning: mDNS browse failed: {e:#}");
         Vec::new()
     });
-    for w in probe_warnings {
+    for w in warnings {
         eprintln!("warning: {}", crate::sanitize::text(&w));
     }
     let mut found = merge(namespace, &mdns, &probed, None);
@@ -235,6 +272,27 @@ mod tests {
         }
     }
 
+    #[test]
+    fn merge_lists_every_method_once() {
+        let via = |p: Probed, via| Probed { via, ..p };
+        let got = merge(
+            "lab",
+            &[found("lab/a", "10.0.0.1")],
+            &[
+                via(probed("lab/a", "10.0.0.1:9477"), "dhcp"),
+                via(probed("lab/a", "10.0.0.1:9477"), "arp"),
+                probed("lab/a", "10.0.0.1:9477"),
+                via(probed("lab/a", "10.0.0.1:9477"), "arp"),
+                via(probed("b", "10.0.0.2:9477"), "dhcp"),
+            ],
+            None,
+        );
+        assert_eq!(got.len(), 2);
+        assert_eq!(got[0].via, ["arp", "dhcp", "mdns", "probe"]);
+        assert_eq!(got[0].addresses, ["10.0.0.1:9477"]);
+        assert_eq!(got[1].via, ["dhcp"]);
+    }
+
     fn probed(robot: &str, addr: &str) -> Probed {
         Probed {
             address: addr.parse().unwrap(),
@@ -243,6 +301,7 @@ mod tests {
                 connected: true,
                 ..StatusSnapshot::default()
             },
+            via: "probe",
         }
     }
 

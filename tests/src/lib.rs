@@ -2,7 +2,8 @@
 //! ([`control_plane`]), the single-node cluster whose Pods really run ([`cluster`]), our operator, agent and `lekiwi-fleet` processes ([`operator`],
 //! [`agent`], [`fleet_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
 //! fleet fixtures and waits ([`fleet`]) and bare HTTP helpers ([`http`]), re-exported here so
-//! tests import them from the crate root; emulated Raspberry Pi 5s running the arm64 agent are in
+//! tests import them from the crate root; robots on other hosts made of network namespaces are
+//! in [`netns`]; emulated Raspberry Pi 5s running the arm64 agent are in
 //! [`pi`].
 
 pub mod agent;
@@ -12,6 +13,7 @@ pub mod control_plane;
 pub mod fleet;
 pub mod fleet_process;
 pub mod http;
+pub mod netns;
 pub mod operator;
 pub mod pi;
 pub mod postgres;

@@ -1,4 +1,4 @@
-//! What `discover` prints: mDNS and probe findings merged into one entry per robot, and their
+//! What `discover` prints: the findings of every method (mDNS, probe, ARP, DHCP) merged into one entry per robot, and their
 //! table, JSON or YAML.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -17,7 +17,8 @@ fn split_robot(robot: &str, namespace: &str) -> (String, String) {
     }
 }
 
-/// Merges both methods' findings by robot, without duplicates, sorted by namespace and name.
+/// Merges the methods' findings by robot (mDNS, and the status endpoints that answered,
+/// each marked with the method that found it), without duplicates, sorted by namespace and name.
 pub fn merge(
     namespace: &str,
     mdns: &[Found],
@@ -54,7 +55,7 @@ pub fn merge(
             .entry(split_robot(&p.status.robot, namespace))
             .or_insert_with(|| entry(&p.status.robot));
         d.addresses.push(p.address.to_string());
-        d.via.push("probe".into());
+        d.via.push(p.via.into());
         d.agent_version.clone_from(&p.status.agent_version);
         d.release = p.status.release.as_ref().map(|r| r.version.clone());
         d.gateway.clone_from(&p.status.gateway);
