@@ -251,6 +251,11 @@ pub struct HealthReport {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(max = rules::MAX_MESSAGE_CHARS))]
     pub message: Option<String>,
+    /// Which check failed, as one CamelCase word (e.g. `HostProcessNotRunning`, `DiskFull`);
+    /// the `Healthy` condition's reason. Absent from agents that do not send one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = rules::MAX_HEALTH_REASON_CHARS), regex(pattern = rules::HEALTH_REASON_PATTERN))]
+    pub reason: Option<String>,
 }
 
 /// The agent's teleoperation verdict.

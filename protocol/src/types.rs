@@ -40,9 +40,24 @@ pub struct SystemFacts {
 pub struct Health {
     /// Whether every check passes.
     pub healthy: bool,
-    /// Why not.
+    /// Why not, for people.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
+    /// Why not, for machines: one CamelCase word naming the first failed check, e.g.
+    /// `HostProcessNotRunning`. Optional (agents before it send only `message`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+impl Health {
+    /// Every check passes.
+    pub fn ok() -> Self {
+        Self {
+            healthy: true,
+            message: None,
+            reason: None,
+        }
+    }
 }
 
 /// The agent's teleoperation verdict.

@@ -105,6 +105,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         health: info.health.as_ref().map(|h| HealthReport {
             healthy: h.healthy,
             message: h.message.clone(),
+            reason: h.reason.clone(),
         }),
         teleoperation: info.teleoperation.as_ref().map(|t| TeleoperationReport {
             active: t.active,
