@@ -7,7 +7,10 @@
 //! directory's file system against `healthDiskMaxPercent`. A check that is not configured is
 //! skipped; with none configured the robot is healthy. The verdict names every failed check in
 //! its message and the first in its `reason`; the run loop hears a changed verdict at once and
-//! sends it in a heartbeat.
+//! sends it in a heartbeat. The same task reads the host process's memory and CPU ([`host`]),
+//! which heartbeats carry in their vitals.
+
+mod host;
 
 use std::path::{Path, PathBuf};
 use std::process::Stdio;
@@ -19,6 +22,7 @@ use tokio::sync::watch;
 use tracing::{info, warn};
 
 use crate::config::Config;
+pub use host::HostStats;
 
 /// Output of the health command kept for the message, characters.
 const OUTPUT_CHARS: usize = 200;
@@ -65,11 +69,16 @@ impl Checks {
     /// The verdict of the checks that start no process (host process, device, disk): what
     /// `hello` says before the first full check has run.
     pub fn quick(&self) -> Health {
-        verdict(self.quick_failures())
+        verdict(self.quick_failures(self.host_pid()))
     }
 
     /// The verdict of every check, the health command included.
     pub async fn run(&self) -> Health {
+        self.run_with(self.host_pid()).await
+    }
+
+    /// [`Checks::run`] with the host process already looked for (`host_pid`).
+    async fn run_with(&self, host_pid: Option<u32>) -> Health {
         let mut failures = Vec::new();
         if !self.command.is_empty()
             && let Err(message) = self.run_command().await
@@ -79,13 +88,13 @@ impl Checks {
                 message,
             });
         }
-        failures.extend(self.quick_failures());
+        failures.extend(self.quick_failures(host_pid));
         verdict(failures)
     }
 
-    fn quick_failures(&self) -> Vec<Failure> {
+    fn quick_failures(&self, host_pid: Option<u32>) -> Vec<Failure> {
         let mut failures = Vec::new();
-        if !self.pattern.is_empty() && !self.host_process_runs() {
+        if !self.pattern.is_empty() && host_pid.is_none() {
             failures.push(Failure {
                 reason: "HostProcessNotRunning",
                 message: format!(
@@ -118,9 +127,13 @@ impl Checks {
         failures
     }
 
-    /// Whether a process other than the agent has the pattern in its command line.
-    fn host_process_runs(&self) -> bool {
-        find_process(&self.proc_root, &self.pattern, self.own_pid).is_some()
+    /// A process other than the agent with the pattern in its command line; `None` also when
+    /// no pattern is configured.
+    fn host_pid(&self) -> Option<u32> {
+        if self.pattern.is_empty() {
+            return None;
+        }
+        find_process(&self.proc_root, &self.pattern, self.own_pid)
     }
 
     /// Runs the health command once, at most the timeout; `Err` says why it failed.
@@ -233,34 +246,50 @@ fn used_percent(path: &Path) -> Option<f64> {
     (total > 0).then(|| total.saturating_sub(available) as f64 * 100.0 / total as f64)
 }
 
-/// Starts the periodic checks on the current runtime; the receiver holds the latest verdict
-/// (at first the quick one) and sees a change. The task ends when every receiver is gone.
-pub fn spawn(config: &Config) -> watch::Receiver<Health> {
+/// What the periodic checks publish: the verdict, whose changes the run loop waits for, and the
+/// host process's latest reading, which it only reads.
+pub struct Watch {
+    /// The latest verdict (at first the quick one).
+    pub health: watch::Receiver<Health>,
+    /// The host process's latest reading; `None` when no host process is configured or runs.
+    pub host: watch::Receiver<Option<HostStats>>,
+}
+
+/// Starts the periodic checks on the current runtime. The task ends when the health receiver
+/// is gone.
+pub fn spawn(config: &Config) -> Watch {
     let checks = Checks::from_config(config);
     let every = Duration::from_secs_f64(config.health_interval_s);
-    let (tx, rx) = watch::channel(checks.quick());
+    let (tx, health) = watch::channel(checks.quick());
+    let (host_tx, host) = watch::channel(None);
+    let mut sampler = host::Sampler::new(&checks.proc_root);
     tokio::spawn(async move {
         loop {
-            let health = checks.run().await;
+            let pid = checks.host_pid();
+            host_tx.send_replace(pid.and_then(|pid| sampler.sample(pid)));
+            let verdict = checks.run_with(pid).await;
             if tx.is_closed() {
                 return;
             }
-            tx.send_if_modified(|old| {
-                let changed = *old != health;
-                if changed {
-                    if health.healthy {
-                        info!("healthy again");
-                    } else {
-                        warn!(reason = ?health.reason, message = ?health.message, "unhealthy");
-                    }
-                    *old = health;
-                }
-                changed
-            });
+            tx.send_if_modified(|old| publish(old, verdict));
             tokio::time::sleep(every).await;
         }
     });
-    rx
+    Watch { health, host }
+}
+
+/// Replaces `old` with `new` if they differ, logging the change; whether they differed.
+fn publish(old: &mut Health, new: Health) -> bool {
+    if *old == new {
+        return false;
+    }
+    if new.healthy {
+        info!("healthy again");
+    } else {
+        warn!(reason = ?new.reason, message = ?new.message, "unhealthy");
+    }
+    *old = new;
+    true
 }
 
 #[cfg(test)]

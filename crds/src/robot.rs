@@ -318,6 +318,14 @@ pub struct TelemetrySummary {
     /// Battery charge in percent, when the robot reports one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub battery_percent: Option<f64>,
+    /// Resident memory of the LeKiwi host process (the agent's `hostProcessPattern`), bytes; at
+    /// most 2^63 - 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("format" = "int64"))]
+    pub host_memory_bytes: Option<u64>,
+    /// CPU use of the LeKiwi host process, percent of all cores.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_cpu_percent: Option<f64>,
 }
 
 impl Robot {

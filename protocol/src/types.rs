@@ -94,6 +94,12 @@ pub struct Vitals {
     /// Battery charge, percent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub battery_percent: Option<f64>,
+    /// Resident memory of the LeKiwi host process (the agent's `hostProcessPattern`), bytes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_rss_bytes: Option<u64>,
+    /// CPU use of the LeKiwi host process since the previous reading, percent of all cores.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_cpu_percent: Option<f64>,
 }
 
 /// One stored agent event as the gateway's events endpoint answers it (and as its store keeps

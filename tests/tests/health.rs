@@ -2,7 +2,8 @@
 //! process matching `--host-process-pattern`) dies turns unhealthy with the reason in its
 //! `Healthy` condition, a rollout waits for it, and it turns healthy again (and is updated)
 //! when the process returns. Real operator, real agent, a control plane of the test's own (so
-//! that the Robot CRD it installs cannot race other worktrees' on the shared one).
+//! that the Robot CRD it installs cannot race other worktrees' on the shared one). The host
+//! process's memory, read by the agent, reaches the Robot's `status.telemetry`.
 
 use std::process::{Child, Command};
 use std::time::Duration;
@@ -65,7 +66,12 @@ async fn a_dead_host_process_makes_the_robot_unhealthy_and_a_rollout_waits() -> 
         &cp,
         &ns,
         "op-health",
-        &["--blob-dir", blobs.to_str().unwrap()],
+        &[
+            "--blob-dir",
+            blobs.to_str().unwrap(),
+            "--status-refresh-seconds",
+            "1",
+        ],
     )?;
     op.wait_ready().await?;
     let token_file = dir.path().join("enroll");
@@ -89,6 +95,17 @@ async fn a_dead_host_process_makes_the_robot_unhealthy_and_a_rollout_waits() -> 
     let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
     let c = wait_healthy(&robots, "kiwi-h", ConditionStatus::True, &agent).await?;
     assert_eq!(c.reason, "HealthChecksPassed");
+    // Its resident memory reaches the Robot's status (the agent reads it from /proc).
+    let rss = wait_for(
+        "the host process's memory",
+        Duration::from_secs(30),
+        || async {
+            let t = robots.get("kiwi-h").await.ok()?.status?.telemetry?;
+            t.host_memory_bytes.filter(|&b| b > 0)
+        },
+    )
+    .await?;
+    assert!(rss < 1 << 30, "a sleeping process of {rss} bytes");
 
     // The host process dies: unhealthy, and the condition says why.
     host.kill()?;

@@ -80,6 +80,8 @@ pub struct Agent {
     /// task is gone (the last verdict is then kept in `last_health`).
     health: Option<tokio::sync::watch::Receiver<Health>>,
     last_health: Health,
+    /// The host process's latest reading, for heartbeat vitals.
+    host_stats: tokio::sync::watch::Receiver<Option<crate::health::HostStats>>,
     status: tokio::sync::watch::Sender<StatusSnapshot>,
     advertiser: Option<Advertiser>,
     /// Samples collected since the last telemetry message was queued.
@@ -123,8 +125,8 @@ impl Agent {
         let telemetry = Telemetry::new(&config);
         let mut detector = Detector::new(&config);
         let teleop = detector.check();
-        let health = crate::health::spawn(&config);
-        let last_health = health.borrow().clone();
+        let checks = crate::health::spawn(&config);
+        let last_health = checks.health.borrow().clone();
         let snapshot = StatusSnapshot {
             robot: config.robot_name.clone(),
             agent_version: AGENT_VERSION.to_owned(),
@@ -144,8 +146,9 @@ impl Agent {
             telemetry,
             detector,
             teleop,
-            health: Some(health),
+            health: Some(checks.health),
             last_health,
+            host_stats: checks.host,
             status,
             advertiser,
             pending_samples: Vec::new(),
@@ -220,6 +223,16 @@ impl Agent {
             self.last_health = rx.borrow().clone();
         }
         self.last_health.clone()
+    }
+
+    /// The readings for a heartbeat: the machine's, and the host process's when it runs.
+    fn vitals(&mut self) -> lekiwi_protocol::Vitals {
+        let host = *self.host_stats.borrow();
+        lekiwi_protocol::Vitals {
+            host_rss_bytes: host.map(|h| h.rss_bytes),
+            host_cpu_percent: host.and_then(|h| h.cpu_percent),
+            ..self.telemetry.vitals()
+        }
     }
 
     /// Queues an event durably; returns its sequence number.

@@ -161,7 +161,7 @@ impl Agent {
         let hb = AgentMessage::Heartbeat {
             sent_at_ms: lekiwi_protocol::now_ms(),
             rtt_ms: self.last_rtt_ms,
-            vitals: self.telemetry.vitals(),
+            vitals: self.vitals(),
             current_release: self.current_release.clone(),
             health: Some(self.health_now()),
             teleoperation: Some(self.teleop.to_wire()),
