@@ -1,11 +1,13 @@
 //! The LeKiwi robot agent: configuration, the gateway connection (shared with the fleet
-//! simulator), the durable outbox, telemetry, teleoperation detection, discovery and the run loop.
+//! simulator), the durable outbox, telemetry, teleoperation detection, health checks, discovery
+//! and the run loop.
 
 pub mod backoff;
 pub mod config;
 pub mod connection;
 pub mod discovery;
 pub mod fleet;
+pub mod health;
 pub mod outbox;
 pub mod release;
 pub mod run;

@@ -33,6 +33,8 @@ mod store;
 #[cfg(test)]
 mod tests;
 
+pub(crate) use hooks::kill_group;
+
 use futures::FutureExt;
 use lekiwi_protocol::Release;
 use lekiwi_protocol::release::{ManifestError, digest_hex};

@@ -236,6 +236,9 @@ impl Telemetry {
             disk_percent: self.latest(Metric::DiskPercent),
             temperature_c: self.latest(Metric::TemperatureC),
             battery_percent: None,
+            // The health checks read the host process (`crate::health`).
+            host_rss_bytes: None,
+            host_cpu_percent: None,
         }
     }
 

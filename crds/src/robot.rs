@@ -251,6 +251,11 @@ pub struct HealthReport {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(max = rules::MAX_MESSAGE_CHARS))]
     pub message: Option<String>,
+    /// Which check failed, as one CamelCase word (e.g. `HostProcessNotRunning`, `DiskFull`);
+    /// the `Healthy` condition's reason. Absent from agents that do not send one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = rules::MAX_HEALTH_REASON_CHARS), regex(pattern = rules::HEALTH_REASON_PATTERN))]
+    pub reason: Option<String>,
 }
 
 /// The agent's teleoperation verdict.
@@ -313,6 +318,14 @@ pub struct TelemetrySummary {
     /// Battery charge in percent, when the robot reports one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub battery_percent: Option<f64>,
+    /// Resident memory of the LeKiwi host process (the agent's `hostProcessPattern`), bytes; at
+    /// most 2^63 - 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(extend("format" = "int64"))]
+    pub host_memory_bytes: Option<u64>,
+    /// CPU use of the LeKiwi host process, percent of all cores.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_cpu_percent: Option<f64>,
 }
 
 impl Robot {

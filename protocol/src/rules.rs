@@ -21,6 +21,10 @@ pub const DIGEST_PATTERN: &str = r"^sha256:[a-f0-9]{64}$";
 pub const MAX_TEXT_CHARS: u32 = 256;
 /// Longest health message, in characters; a longer one is cut to it.
 pub const MAX_MESSAGE_CHARS: u32 = 1024;
+/// Pattern of a health reason: a CamelCase word, as a Kubernetes condition reason.
+pub const HEALTH_REASON_PATTERN: &str = r"^[A-Z][A-Za-z0-9]*$";
+/// Longest health reason, in characters.
+pub const MAX_HEALTH_REASON_CHARS: u32 = 64;
 /// Largest `memory_bytes`: Kubernetes stores integers as int64.
 pub const MAX_MEMORY_BYTES: u64 = i64::MAX as u64;
 
@@ -48,6 +52,15 @@ pub fn is_valid_digest(d: &str) -> bool {
     d.strip_prefix("sha256:").is_some_and(|hex| {
         hex.len() == 64 && hex.bytes().all(|b| matches!(b, b'0'..=b'9' | b'a'..=b'f'))
     })
+}
+
+/// Whether `r` is a valid health reason ([`HEALTH_REASON_PATTERN`], 1 to
+/// [`MAX_HEALTH_REASON_CHARS`]).
+pub fn is_valid_health_reason(r: &str) -> bool {
+    let mut bytes = r.bytes();
+    bytes.next().is_some_and(|b| b.is_ascii_uppercase())
+        && r.len() <= MAX_HEALTH_REASON_CHARS as usize
+        && bytes.all(|b| b.is_ascii_alphanumeric())
 }
 
 /// The digest in its stored form (hex lowercased), or why it is refused.
@@ -151,8 +164,22 @@ fn sanitize_reports(
             Err(e) => refused.push(e),
         }
     }
-    if let Some(message) = health.as_mut().and_then(|h| h.message.as_mut()) {
-        *message = cut_text(message, MAX_MESSAGE_CHARS);
+    if let Some(h) = health.as_mut() {
+        if let Some(message) = h.message.as_mut() {
+            *message = cut_text(message, MAX_MESSAGE_CHARS);
+        }
+        if h.reason
+            .as_deref()
+            .is_some_and(|r| !is_valid_health_reason(r))
+        {
+            h.reason = None;
+            refused.push(FieldError {
+                field: "health.reason",
+                reason: format!(
+                    "must match {HEALTH_REASON_PATTERN} and be at most {MAX_HEALTH_REASON_CHARS} characters"
+                ),
+            });
+        }
     }
     if let Some(t) = teleoperation.as_mut() {
         // NaN cannot arrive in JSON; anything else lands in 0..=1.
@@ -237,5 +264,30 @@ mod tests {
         assert_eq!(refused[0].field, "system.memory_bytes");
         assert_eq!(system.memory_bytes, None);
         assert_eq!(system.hostname.unwrap().len(), MAX_TEXT_CHARS as usize);
+    }
+
+    /// A health reason that is no CamelCase word is refused; the verdict itself stands.
+    #[test]
+    fn a_health_reason_must_be_one_camel_case_word() {
+        for (reason, kept) in [
+            ("HostProcessNotRunning", true),
+            ("DiskFull2", true),
+            ("disk full", false),
+            ("diskFull", false),
+            ("", false),
+            (&"A".repeat(65), false),
+        ] {
+            let mut health = Some(Health {
+                healthy: false,
+                message: None,
+                reason: Some(reason.to_owned()),
+            });
+            let mut refused = Vec::new();
+            sanitize_reports(&mut None, &mut health, &mut None, &mut refused);
+            let health = health.unwrap();
+            assert!(!health.healthy);
+            assert_eq!(health.reason.is_some(), kept, "{reason}");
+            assert_eq!(refused.len(), usize::from(!kept), "{reason}");
+        }
     }
 }

@@ -40,9 +40,24 @@ pub struct SystemFacts {
 pub struct Health {
     /// Whether every check passes.
     pub healthy: bool,
-    /// Why not.
+    /// Why not, for people.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
+    /// Why not, for machines: one CamelCase word naming the first failed check, e.g.
+    /// `HostProcessNotRunning`. Optional (agents before it send only `message`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+impl Health {
+    /// Every check passes.
+    pub fn ok() -> Self {
+        Self {
+            healthy: true,
+            message: None,
+            reason: None,
+        }
+    }
 }
 
 /// The agent's teleoperation verdict.
@@ -79,6 +94,12 @@ pub struct Vitals {
     /// Battery charge, percent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub battery_percent: Option<f64>,
+    /// Resident memory of the LeKiwi host process (the agent's `hostProcessPattern`), bytes.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_rss_bytes: Option<u64>,
+    /// CPU use of the LeKiwi host process since the previous reading, percent of all cores.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub host_cpu_percent: Option<f64>,
 }
 
 /// One stored agent event as the gateway's events endpoint answers it (and as its store keeps

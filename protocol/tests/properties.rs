@@ -93,4 +93,12 @@ proptest! {
             prop_assert!(digest.is_match(&normal));
         }
     }
+
+    /// The agent-side check of a health reason is the CRD's pattern and length.
+    #[test]
+    fn the_health_reason_check_agrees_with_the_crd_pattern(text in "[A-Za-z0-9 _]{0,70}") {
+        let pattern = regex::Regex::new(rules::HEALTH_REASON_PATTERN).unwrap();
+        let fits = (1..=rules::MAX_HEALTH_REASON_CHARS as usize).contains(&text.len());
+        prop_assert_eq!(rules::is_valid_health_reason(&text), fits && pattern.is_match(&text));
+    }
 }

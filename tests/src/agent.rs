@@ -199,6 +199,7 @@ pub fn hello() -> lekiwi_protocol::AgentMessage {
         health: Some(lekiwi_protocol::Health {
             healthy: true,
             message: None,
+            reason: None,
         }),
         teleoperation: Some(lekiwi_protocol::Teleoperation {
             active: false,

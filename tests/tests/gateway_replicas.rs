@@ -359,6 +359,7 @@ async fn an_older_sessions_writes_are_fenced(r: &Replicas) -> anyhow::Result<()>
         Some(Health {
             healthy,
             message: None,
+            reason: None,
         })
     };
     let holder = |gateway: &'static str| {

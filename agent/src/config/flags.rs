@@ -201,6 +201,36 @@ pub struct Flags {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub teleop_serial_weight: Option<f64>,
 
+    /// Shell command run every health interval in the current release directory; exiting
+    /// non-zero (or outliving the health timeout) makes the robot unhealthy. Empty: none.
+    #[arg(long, env = "LEKIWI_HEALTH_COMMAND")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub health_command: Option<String>,
+    /// Seconds between health checks (0.5 to 3600); a change is sent to the gateway at once.
+    #[arg(long, env = "LEKIWI_HEALTH_INTERVAL_S")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub health_interval_s: Option<f64>,
+    /// Seconds the health command may run before it counts as failed and is killed (0.1 to
+    /// 300).
+    #[arg(long, env = "LEKIWI_HEALTH_TIMEOUT_S")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub health_timeout_s: Option<f64>,
+    /// Substring of the command line of the LeKiwi host process, which must run for the robot
+    /// to be healthy (e.g. lerobot.robots.lekiwi.lekiwi_host). Empty: not checked.
+    #[arg(long, env = "LEKIWI_HOST_PROCESS_PATTERN")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub host_process_pattern: Option<String>,
+    /// Device that must exist for the robot to be healthy (e.g. /dev/ttyACM0, the motor serial
+    /// port). Unset: not checked.
+    #[arg(long, env = "LEKIWI_HEALTH_SERIAL_DEVICE")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub health_serial_device: Option<PathBuf>,
+    /// Use of the state directory's file system, percent, from which the robot is unhealthy
+    /// (0 turns the check off).
+    #[arg(long, env = "LEKIWI_HEALTH_DISK_MAX_PERCENT")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub health_disk_max_percent: Option<f64>,
+
     /// Shell command run in the new release directory before the switch; failing it aborts
     /// the deployment (the old release keeps running). Empty: none.
     #[arg(long, env = "LEKIWI_RELEASE_PRE_SWITCH_COMMAND")]

@@ -133,6 +133,20 @@ pub struct Config {
     /// Weight of the held serial device (0: indicator off).
     pub teleop_serial_weight: f64,
 
+    /// Shell command run every health interval; exiting non-zero makes the robot unhealthy.
+    pub health_command: String,
+    /// Seconds between health checks (0.5 to 3600).
+    pub health_interval_s: f64,
+    /// Seconds `healthCommand` may run (0.1 to 300).
+    pub health_timeout_s: f64,
+    /// Substring of the command line of a process that must run; empty: not checked.
+    pub host_process_pattern: String,
+    /// Device (e.g. the motor serial port) that must exist; unset: not checked.
+    pub health_serial_device: Option<PathBuf>,
+    /// Use (percent) of the state directory's file system from which the robot is unhealthy;
+    /// 0: not checked.
+    pub health_disk_max_percent: f64,
+
     /// Shell command run in a new release before the switch; failing aborts the deployment.
     pub release_pre_switch_command: String,
     /// Shell command that restarts the robot's software after a switch.
@@ -189,6 +203,12 @@ impl Default for Config {
             teleop_stream_weight: 0.3,
             teleop_serial_device: PathBuf::from("/dev/ttyACM0"),
             teleop_serial_weight: 0.2,
+            health_command: String::new(),
+            health_interval_s: 10.0,
+            health_timeout_s: 10.0,
+            host_process_pattern: String::new(),
+            health_serial_device: None,
+            health_disk_max_percent: 95.0,
             release_pre_switch_command: String::new(),
             release_restart_command: String::new(),
             release_health_command: String::new(),
@@ -290,6 +310,7 @@ impl Config {
         if self.teleop_interval_s.is_nan() || self.teleop_interval_s <= 0.0 {
             return bad("teleopIntervalS must be > 0".into());
         }
+        health_bounds(self)?;
         if self.status_listen != "off" && self.status_listen.parse::<SocketAddr>().is_err() {
             return bad(format!(
                 "statusListen {:?} is neither host:port nor `off`",
@@ -306,7 +327,7 @@ impl Config {
     }
 
     /// This configuration with sensors quiet: telemetry sampled hourly, teleoperation checked
-    /// hourly with every indicator off. For many agents on one machine (the fleet binary,
+    /// hourly with every indicator off, no health check (always healthy). For many agents on one machine (the fleet binary,
     /// tests), where vitals and processes say nothing about any one robot.
     pub fn without_sensors(self) -> Self {
         Self {
@@ -322,6 +343,11 @@ impl Config {
             teleop_video_weight: 0.0,
             teleop_stream_weight: 0.0,
             teleop_serial_weight: 0.0,
+            health_command: String::new(),
+            health_interval_s: 3600.0,
+            host_process_pattern: String::new(),
+            health_serial_device: None,
+            health_disk_max_percent: 0.0,
             ..self
         }
     }
@@ -358,6 +384,31 @@ impl Config {
                 }),
         }
     }
+}
+
+/// The health check's timing and threshold stay within bounds: a check neither hammers the robot
+/// nor hangs, and a disk threshold is a percentage.
+fn health_bounds(c: &Config) -> Result<(), Error> {
+    let within = |v: f64, lo: f64, hi: f64| v.is_finite() && (lo..=hi).contains(&v);
+    if !within(c.health_interval_s, 0.5, 3600.0) {
+        return Err(Error::Invalid(format!(
+            "healthIntervalS ({}) must be 0.5 to 3600",
+            c.health_interval_s
+        )));
+    }
+    if !within(c.health_timeout_s, 0.1, 300.0) {
+        return Err(Error::Invalid(format!(
+            "healthTimeoutS ({}) must be 0.1 to 300",
+            c.health_timeout_s
+        )));
+    }
+    if !within(c.health_disk_max_percent, 0.0, 100.0) {
+        return Err(Error::Invalid(format!(
+            "healthDiskMaxPercent ({}) must be 0 (off) to 100",
+            c.health_disk_max_percent
+        )));
+    }
+    Ok(())
 }
 
 fn read_file(path: &Path) -> Result<serde_json::Map<String, serde_json::Value>, Error> {

@@ -154,7 +154,7 @@ impl Hooks {
 
 /// Sends SIGKILL to the process group `pgid` (the crate forbids `unsafe`, so by `kill(1)`);
 /// a failure leaves only the group leader to kill, which the caller does anyway.
-fn kill_group(pgid: u32) {
+pub(crate) fn kill_group(pgid: u32) {
     let result = std::process::Command::new("kill")
         .args(["-s", "KILL", "--", &format!("-{pgid}")])
         .stdin(Stdio::null())

@@ -37,6 +37,8 @@ enum Wake<S> {
     Telemetry,
     Batch,
     Teleop,
+    /// The health verdict changed (or, `false`, its task is gone).
+    Health(bool),
     Reconnect,
     Connected(Box<Result<(S, Welcome), ConnectError>>),
     Frame(Option<Result<Message, WsError>>),
@@ -171,6 +173,12 @@ impl Agent {
                 None => std::future::pending().await,
             }
         };
+        let health_changed = async {
+            match self.health.as_mut() {
+                Some(rx) => rx.changed().await.is_ok(),
+                None => std::future::pending().await,
+            }
+        };
         let connect_done = async {
             match lp.connecting.as_mut() {
                 Some((fut, _)) => fut.await,
@@ -186,6 +194,7 @@ impl Agent {
             res = connect_done => Wake::Connected(Box::new(res)),
             () = sleep_until(heartbeat_due) => Wake::Heartbeat,
             () = sleep_until(next_teleop) => Wake::Teleop,
+            alive = health_changed => Wake::Health(alive),
             () = sleep_until(telemetry_due) => Wake::Telemetry,
             () = sleep_until(next_batch) => Wake::Batch,
             () = sleep_until(dead_at) => Wake::Dead,
@@ -213,6 +222,13 @@ impl Agent {
                 if self.on_teleop_check()? {
                     return Ok(self.heartbeat_now(lp).await);
                 }
+            }
+            Wake::Health(alive) => {
+                if !alive {
+                    warn!("the health checks stopped; the last verdict stands");
+                    self.health = None;
+                }
+                return Ok(self.heartbeat_now(lp).await);
             }
             Wake::Reconnect => self.start_connecting(lp)?,
             Wake::Connected(res) => return self.on_connected(lp, *res).await,

@@ -1,5 +1,5 @@
 //! The agent's run loop: one task on a single-threaded runtime that samples telemetry, checks
-//! for teleoperation, keeps the outbox, and holds (or re-establishes) the gateway session.
+//! for teleoperation, hears the health checks' verdict, keeps the outbox, and holds (or re-establishes) the gateway session.
 //!
 //! Everything durable goes through the [`Outbox`] first; the session only sends what the outbox
 //! holds and deletes it when acknowledged, so a dead gateway or a killed agent loses nothing.
@@ -76,6 +76,12 @@ pub struct Agent {
     telemetry: Telemetry,
     detector: Detector,
     teleop: Verdict,
+    /// The latest health verdict of the periodic checks ([`crate::health`]); `None` once their
+    /// task is gone (the last verdict is then kept in `last_health`).
+    health: Option<tokio::sync::watch::Receiver<Health>>,
+    last_health: Health,
+    /// The host process's latest reading, for heartbeat vitals.
+    host_stats: tokio::sync::watch::Receiver<Option<crate::health::HostStats>>,
     status: tokio::sync::watch::Sender<StatusSnapshot>,
     advertiser: Option<Advertiser>,
     /// Samples collected since the last telemetry message was queued.
@@ -119,6 +125,8 @@ impl Agent {
         let telemetry = Telemetry::new(&config);
         let mut detector = Detector::new(&config);
         let teleop = detector.check();
+        let checks = crate::health::spawn(&config);
+        let last_health = checks.health.borrow().clone();
         let snapshot = StatusSnapshot {
             robot: config.robot_name.clone(),
             agent_version: AGENT_VERSION.to_owned(),
@@ -138,6 +146,9 @@ impl Agent {
             telemetry,
             detector,
             teleop,
+            health: Some(checks.health),
+            last_health,
+            host_stats: checks.host,
             status,
             advertiser,
             pending_samples: Vec::new(),
@@ -201,12 +212,27 @@ impl Agent {
             system: crate::telemetry::system_facts(),
             current_release: self.current_release.clone(),
             last_acked_seq: (last > 0).then_some(last),
-            health: Some(Health {
-                healthy: true,
-                message: None,
-            }),
+            health: Some(self.health_now()),
             teleoperation: Some(self.teleop.to_wire()),
         })
+    }
+
+    /// The latest health verdict.
+    fn health_now(&mut self) -> Health {
+        if let Some(rx) = &self.health {
+            self.last_health = rx.borrow().clone();
+        }
+        self.last_health.clone()
+    }
+
+    /// The readings for a heartbeat: the machine's, and the host process's when it runs.
+    fn vitals(&mut self) -> lekiwi_protocol::Vitals {
+        let host = *self.host_stats.borrow();
+        lekiwi_protocol::Vitals {
+            host_rss_bytes: host.map(|h| h.rss_bytes),
+            host_cpu_percent: host.and_then(|h| h.cpu_percent),
+            ..self.telemetry.vitals()
+        }
     }
 
     /// Queues an event durably; returns its sequence number.

@@ -7,8 +7,7 @@ use std::time::Duration;
 
 use futures::SinkExt;
 use lekiwi_protocol::{
-    AgentMessage, ErrorCode, Health, MAX_FRAME_BYTES, MAX_SEQ, ServerMessage, Severity, decode,
-    encode,
+    AgentMessage, ErrorCode, MAX_FRAME_BYTES, MAX_SEQ, ServerMessage, Severity, decode, encode,
 };
 use tokio::time::Instant;
 use tokio_tungstenite::tungstenite::Message;
@@ -162,12 +161,9 @@ impl Agent {
         let hb = AgentMessage::Heartbeat {
             sent_at_ms: lekiwi_protocol::now_ms(),
             rtt_ms: self.last_rtt_ms,
-            vitals: self.telemetry.vitals(),
+            vitals: self.vitals(),
             current_release: self.current_release.clone(),
-            health: Some(Health {
-                healthy: true,
-                message: None,
-            }),
+            health: Some(self.health_now()),
             teleoperation: Some(self.teleop.to_wire()),
         };
         session.next_heartbeat = Instant::now() + session.welcome.heartbeat_interval;

@@ -93,6 +93,7 @@ fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMes
         health: Some(Health {
             healthy: true,
             message: None,
+            reason: None,
         }),
         teleoperation: Some(Teleoperation {
             active: false,

@@ -1,6 +1,7 @@
 //! Pure planning for the Robot controller: phase, conditions and next wake-up from the facts
 //! a gateway recorded, the robot's spec and the state of the gateway's Lease.
 
+use std::borrow::Cow;
 use std::time::Duration;
 
 use jiff::Timestamp;
@@ -91,7 +92,7 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
     .into_iter()
     .map(|(t, s, r, m)| Condition {
         last_transition_time: Time(facts.now),
-        ..Condition::new(t, s, r, m, generation)
+        ..Condition::new(t, s, &r, m, generation)
     })
     .collect();
     let conditions = merge_conditions(&status.conditions, desired);
@@ -140,7 +141,7 @@ impl Presence {
 }
 
 /// A condition before its generation and transition time are filled in.
-type Desired = (&'static str, ConditionStatus, &'static str, String);
+type Desired = (&'static str, ConditionStatus, Cow<'static, str>, String);
 
 fn connected(presence: Presence, gateway: Option<&str>, grace: Duration) -> Desired {
     let gateway = gateway.unwrap_or("none");
@@ -202,7 +203,10 @@ fn healthy(health: Option<&HealthReport>, online: bool) -> Desired {
         (Some(h), true) => cond(
             CONDITION_HEALTHY,
             ConditionStatus::False,
-            "HealthCheckFailed",
+            // The agent's own reason (the gateway let only a CamelCase word through).
+            h.reason
+                .clone()
+                .map_or(Cow::Borrowed("HealthCheckFailed"), Cow::Owned),
             h.message
                 .clone()
                 .unwrap_or_else(|| "a health check failed".into()),
@@ -271,10 +275,10 @@ fn up_to_date(want: Option<&ReleaseRef>, have: Option<&ReleaseRef>) -> Desired {
 fn cond(
     r#type: &'static str,
     status: ConditionStatus,
-    reason: &'static str,
+    reason: impl Into<Cow<'static, str>>,
     message: impl Into<String>,
 ) -> Desired {
-    (r#type, status, reason, message.into())
+    (r#type, status, reason.into(), message.into())
 }
 
 /// The Event reason for entering a phase, or None for the initial `Pending`.
@@ -369,6 +373,26 @@ status:
             transition_reason(Some(RobotPhase::Pending), p.phase),
             Some("RobotOnline")
         );
+    }
+
+    /// An unhealthy report's reason becomes the condition's; without one it is generic.
+    #[test]
+    fn the_agents_health_reason_is_the_conditions() {
+        let mut r = robot(CONNECTED);
+        let now = facts("2026-11-22T10:00:20Z", Some(GatewayState::Alive));
+        r.status.as_mut().unwrap().health = Some(HealthReport {
+            healthy: false,
+            message: Some("no process matching \"lekiwi_host\" runs".into()),
+            reason: Some("HostProcessNotRunning".into()),
+        });
+        let p = plan(&r, &now);
+        assert_eq!(
+            status_of(&p, "Healthy"),
+            (ConditionStatus::False, "HostProcessNotRunning".into())
+        );
+        r.status.as_mut().unwrap().health.as_mut().unwrap().reason = None;
+        let p = plan(&r, &now);
+        assert_eq!(status_of(&p, "Healthy").1, "HealthCheckFailed");
     }
 
     #[test]

@@ -276,7 +276,7 @@ fn components() -> Value {
             "RobotDeployment": {"type": "object", "description": "The RobotDeployment resource (fleet.lekiwi.io/v1alpha1) without managedFields."},
             "RobotView": {"type": "object", "required": ["robot"], "properties": {
                 "robot": schema("Robot"),
-                "vitals": {"type": "object", "nullable": true, "description": "status.telemetry: cpuPercent, memoryPercent, temperatureCelsius, batteryPercent."},
+                "vitals": {"type": "object", "nullable": true, "description": "status.telemetry: cpuPercent, memoryPercent, temperatureCelsius, batteryPercent, hostMemoryBytes, hostCpuPercent."},
                 "vitalsTime": {"type": "string", "format": "date-time", "nullable": true, "description": "status.lastHeartbeatTime."}}},
             "StoredEvent": {"type": "object", "required": ["seq", "ts_ms", "kind", "severity", "message", "data"], "properties": {
                 "seq": {"type": "integer"}, "ts_ms": {"type": "integer", "description": "Unix milliseconds."},

@@ -105,6 +105,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         health: info.health.as_ref().map(|h| HealthReport {
             healthy: h.healthy,
             message: h.message.clone(),
+            reason: h.reason.clone(),
         }),
         teleoperation: info.teleoperation.as_ref().map(|t| TeleoperationReport {
             active: t.active,
@@ -145,6 +146,8 @@ fn telemetry_summary(v: &Vitals) -> Option<TelemetrySummary> {
         memory_percent: finite(v.memory_percent),
         temperature_celsius: finite(v.temperature_c),
         battery_percent: finite(v.battery_percent),
+        host_memory_bytes: v.host_rss_bytes.filter(|&b| b <= rules::MAX_MEMORY_BYTES),
+        host_cpu_percent: finite(v.host_cpu_percent),
     };
     (summary != TelemetrySummary::default()).then_some(summary)
 }

@@ -125,8 +125,11 @@ fn text(max: usize) -> impl Strategy<Value = Option<String>> {
 }
 
 fn reports() -> impl Strategy<Value = (Option<Release>, Option<Health>, Option<Teleoperation>)> {
-    let health =
-        (any::<bool>(), text(1024)).prop_map(|(healthy, message)| Health { healthy, message });
+    let health = (any::<bool>(), text(1024)).prop_map(|(healthy, message)| Health {
+        healthy,
+        message,
+        reason: None,
+    });
     let teleoperation = (any::<bool>(), prop::option::of(any::<f64>()))
         .prop_map(|(active, score)| Teleoperation { active, score });
     (

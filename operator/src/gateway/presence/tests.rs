@@ -52,6 +52,7 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
             health: Some(Health {
                 healthy: false,
                 message: Some("camera missing".into()),
+                reason: None,
             }),
             teleoperation: Some(Teleoperation {
                 active: true,
@@ -85,6 +86,7 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
             health: Some(Health {
                 healthy: true,
                 message: None,
+                reason: None,
             }),
             teleoperation: Some(Teleoperation {
                 active: false,
