@@ -56,8 +56,10 @@ pub struct RobotDeploymentSpec {
     #[serde(default)]
     pub strategy: RolloutStrategy,
 
-    /// Pauses the rollout: robots already updating finish, no new robot starts until this is
-    /// set back to false.
+    /// Pauses the rollout: no new robot starts until this is set back to false. Robots told
+    /// to switch that have not switched yet are told to stay on the release they run (their
+    /// download or pre-switch command is cancelled; the download resumes after the pause);
+    /// robots that switched already finish.
     #[serde(default)]
     pub paused: bool,
 }

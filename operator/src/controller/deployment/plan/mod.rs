@@ -10,6 +10,7 @@
 mod classify;
 mod draft;
 mod gates;
+mod pause;
 mod phase;
 mod progress;
 mod status;

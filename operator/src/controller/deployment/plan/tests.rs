@@ -363,6 +363,43 @@ fn paused_rollouts_start_no_new_robot() {
 }
 
 #[test]
+fn a_pause_sends_robots_not_yet_switched_back_and_a_resume_starts_them_again() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 4);
+    sim.step();
+    sim.d.spec.paused = true;
+    let p = sim.step();
+    let held: Vec<_> = p
+        .writes
+        .iter()
+        .map(|w| (w.robot.as_str(), w.release.clone()))
+        .collect();
+    assert_eq!(
+        held,
+        [("kiwi-00", Some(rel("1"))), ("kiwi-01", Some(rel("1")))],
+        "their spec goes back to the release they run, which cancels the download"
+    );
+    assert!(p.writes.iter().all(|w| w.mark.state == MarkState::Waiting));
+    sim.agents();
+    sim.advance(1000);
+    let p = sim.step();
+    assert!(
+        p.writes.is_empty(),
+        "a pause longer than the wait timeout skips nobody"
+    );
+    assert_eq!(sim.phase(), RolloutPhase::Paused);
+    sim.d.spec.paused = false;
+    let p = sim.step();
+    assert!(
+        p.writes.iter().all(|w| w.release == Some(rel("2"))),
+        "{:?}",
+        p.writes
+    );
+    assert_eq!(p.writes.len(), 2);
+    sim.run_until_done(10);
+    assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
+}
+
+#[test]
 fn an_invalid_release_fails_clearly_and_a_younger_overlap_waits() {
     let sim = Sim::new(deployment(IntOrString::Int(2), 0), 2);
     let mut facts = sim.facts();
