@@ -105,6 +105,7 @@ impl Site {
                 release: release.clone(),
                 strategy: test_strategy(ROBOTS as i32, 0),
                 paused: false,
+                priority: 0,
             },
         );
         self.deployments()

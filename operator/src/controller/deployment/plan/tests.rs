@@ -32,6 +32,7 @@ fn deployment(batch: IntOrString, canary: i32) -> RobotDeployment {
                 ..RolloutStrategy::default()
             },
             paused: false,
+            priority: 0,
         },
     );
     d.metadata = ObjectMeta {
@@ -54,6 +55,7 @@ fn robot(i: usize) -> RobotView {
         current: Some(rel("1")),
         last_update: None,
         mark: None,
+        superseded_by: None,
     }
 }
 
@@ -397,6 +399,55 @@ fn a_pause_sends_robots_not_yet_switched_back_and_a_resume_starts_them_again() {
     assert_eq!(p.writes.len(), 2);
     sim.run_until_done(10);
     assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
+}
+
+#[test]
+fn robots_another_deployment_owns_are_left_alone_and_shown_superseded() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(5), 0), 4);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    for r in &mut sim.robots[2..] {
+        r.superseded_by = Some("team-b".into());
+        r.current = Some(rel("9"));
+    }
+    sim.d.spec.release = rel("2");
+    let p = sim.step();
+    assert!(
+        p.writes.is_empty(),
+        "a superseded robot is not taken back: {:?}",
+        p.writes
+    );
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed));
+    assert_eq!((st.targeted, st.updated, st.superseded), (2, 2, 2));
+    assert_eq!(st.progress.as_deref(), Some("2/2"));
+    let rows: Vec<_> = st
+        .robots
+        .iter()
+        .filter(|r| r.state == RobotRolloutState::Superseded)
+        .collect();
+    assert_eq!(rows.len(), 2);
+    assert_eq!(
+        rows[0].message.as_deref(),
+        Some("owned by deployment team-b")
+    );
+    let event = p
+        .events
+        .iter()
+        .find(|e| e.reason == "RobotsSuperseded")
+        .unwrap();
+    assert!(
+        event.note.contains("team-b (kiwi-02, kiwi-03)"),
+        "{}",
+        event.note
+    );
+    assert!(
+        !sim.step()
+            .events
+            .iter()
+            .any(|e| e.reason == "RobotsSuperseded"),
+        "once"
+    );
 }
 
 #[test]
