@@ -229,8 +229,9 @@ pub struct UpdateReport {
     /// The release the agent was told to run.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub release: Option<ReleaseRef>,
-    /// `done`, `failed` (nothing switched) or `rolled_back` (switched, unhealthy, switched
-    /// back).
+    /// `done`, `failed` (nothing switched), `rolled_back` (switched, unhealthy, switched
+    /// back) or `cancelled` (stopped before the switch because the robot should no longer run
+    /// it: a pause, an undo or an automatic rollback).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub phase: Option<String>,
     /// The agent's explanation.

@@ -259,6 +259,11 @@ pub struct Flags {
     #[arg(long, env = "LEKIWI_RELEASE_KEEP")]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub release_keep: Option<u32>,
+    /// Cap on the download rate of release blobs, bytes per second, over all parallel
+    /// downloads (0: no cap).
+    #[arg(long, env = "LEKIWI_RELEASE_DOWNLOAD_RATE_LIMIT")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_download_rate_limit: Option<u64>,
 }
 
 /// Subcommands.

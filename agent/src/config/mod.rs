@@ -159,6 +159,9 @@ pub struct Config {
     pub release_hook_timeout_s: u64,
     /// Releases kept on disk, the current one included (at least 2, for rollback).
     pub release_keep: u32,
+    /// Cap on the download rate of release blobs, bytes per second, over all parallel
+    /// downloads (0: no cap). For robots on a shared or metered link, and for tests.
+    pub release_download_rate_limit: u64,
 }
 
 impl Default for Config {
@@ -215,6 +218,7 @@ impl Default for Config {
             release_health_timeout_s: 60,
             release_hook_timeout_s: 300,
             release_keep: 3,
+            release_download_rate_limit: 0,
         }
     }
 }

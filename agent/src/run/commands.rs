@@ -22,6 +22,8 @@ pub(super) struct Deploying {
     /// Later command ids for the same release (a reconnect re-sends the command): they get the
     /// same final report.
     aliases: Vec<String>,
+    /// Cancels it (none for a recovery, which finishes what an agent restart interrupted).
+    stop: Option<tokio::sync::watch::Sender<bool>>,
 }
 
 impl Agent {
@@ -41,7 +43,7 @@ impl Agent {
     }
 
     /// A command while a deployment runs: the same release joins it, a cancel drops what is
-    /// queued, anything else is queued (replacing what was).
+    /// queued and stops the deployment, anything else is queued (replacing what was).
     fn on_command_while_deploying(
         &mut self,
         command_id: String,
@@ -66,17 +68,20 @@ impl Agent {
                 if let Some((queued_id, _)) = self.queued.take() {
                     self.report_final(
                         &queued_id,
-                        Phase::Failed,
+                        Phase::Cancelled,
                         "cancelled before it started".into(),
                     )?;
                 }
-                // A running deployment finishes or rolls back by itself; it is not torn down
-                // half-way.
-                self.report_final(
-                    &command_id,
-                    Phase::Failed,
-                    "a deployment in progress is not interrupted; it finishes or rolls back".into(),
-                )?;
+                let running = self.deploying.as_ref();
+                let message = match running.and_then(|d| d.stop.as_ref().map(|s| (d, s))) {
+                    Some((d, stop)) => {
+                        // The deployment reports `cancelled` (or `rolled_back`) itself.
+                        stop.send_replace(true);
+                        format!("cancelling command {}", d.command_id)
+                    }
+                    None => "a recovery after an agent restart is not interrupted".to_owned(),
+                };
+                self.report_final(&command_id, Phase::Done, message)?;
             }
             other => {
                 if let Some((old, _)) = self.queued.replace((command_id, other)) {
@@ -113,6 +118,7 @@ impl Agent {
         };
         let tx = self.progress_tx.clone();
         let id = command_id.clone();
+        let stop = releases.cancel_handle();
         let (release, task) = match command {
             Command::Deploy {
                 release,
@@ -141,6 +147,7 @@ impl Agent {
             command_id,
             release,
             aliases: Vec::new(),
+            stop: Some(stop),
         });
     }
 
@@ -158,6 +165,7 @@ impl Agent {
             command_id: String::new(),
             release: None,
             aliases: Vec::new(),
+            stop: None,
         });
     }
 

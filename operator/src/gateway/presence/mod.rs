@@ -86,7 +86,7 @@ pub struct HeartbeatInfo {
 pub struct UpdateOutcome {
     /// The release it was told to run.
     pub release: Release,
-    /// `done`, `failed` or `rolled_back`.
+    /// `done`, `failed`, `rolled_back` or `cancelled`.
     pub phase: String,
     /// Its explanation.
     pub message: Option<String>,

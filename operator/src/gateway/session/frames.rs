@@ -124,10 +124,8 @@ where
         }
         // A deploy goes out once per desired release and session (PROTOCOL.md §12): a robot
         // that switched away from it is asked again only for a release not yet sent.
-        if self.commands.reported(&info.release)
-            && let Some(cmd) = self.commands.next_deploy(&self.shared.gateway, self.id)
-        {
-            self.conn.send(&cmd).await?;
+        if self.commands.reported(&info.release) {
+            self.send_commands().await?;
         }
         self.shared.presence.heartbeat(self.key, self.id, info);
         Ok(ServerMessage::HeartbeatAck {

@@ -10,6 +10,7 @@
 mod classify;
 mod draft;
 mod gates;
+mod pause;
 mod phase;
 mod progress;
 mod status;
@@ -101,6 +102,9 @@ pub struct RobotView {
     pub last_update: Option<(ReleaseRef, String, Option<String>, Option<Timestamp>)>,
     /// Its mark, if any (of any deployment).
     pub mark: Option<Mark>,
+    /// The deployment that owns the robot instead of this one (newer, or of higher priority):
+    /// this rollout leaves it alone.
+    pub superseded_by: Option<String>,
 }
 
 /// Whether the release can be rolled out.
