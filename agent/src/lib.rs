@@ -9,6 +9,7 @@ pub mod fleet;
 pub mod outbox;
 pub mod release;
 pub mod run;
+pub mod selfupdate;
 pub mod sim;
 pub mod state;
 pub mod telemetry;

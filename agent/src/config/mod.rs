@@ -145,6 +145,10 @@ pub struct Config {
     pub release_hook_timeout_s: u64,
     /// Releases kept on disk, the current one included (at least 2, for rollback).
     pub release_keep: u32,
+    /// Seconds a new agent build has to reach the gateway before the guard switches back.
+    pub agent_update_deadline_s: u64,
+    /// Starts of a new agent build without reaching the gateway before the guard switches back.
+    pub agent_update_max_starts: u32,
 }
 
 impl Default for Config {
@@ -195,6 +199,8 @@ impl Default for Config {
             release_health_timeout_s: 60,
             release_hook_timeout_s: 300,
             release_keep: 3,
+            agent_update_deadline_s: 300,
+            agent_update_max_starts: 3,
         }
     }
 }

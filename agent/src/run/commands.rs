@@ -4,6 +4,7 @@
 use lekiwi_protocol::{AgentMessage, Command, Release};
 use tracing::{error, info};
 
+use super::agent_update::AgentTarget;
 use super::{Agent, Error};
 use crate::outbox::Lane;
 use crate::release::{Outcome, Phase, Releases};
@@ -22,6 +23,25 @@ pub(super) struct Deploying {
     /// Later command ids for the same release (a reconnect re-sends the command): they get the
     /// same final report.
     aliases: Vec<String>,
+    /// The agent build it installs, for an `update_agent` task.
+    agent: Option<AgentTarget>,
+}
+
+impl Deploying {
+    /// The task of an `update_agent` command.
+    pub(super) fn agent(
+        task: tokio::task::JoinHandle<(Releases, Option<Outcome>)>,
+        command_id: String,
+        target: AgentTarget,
+    ) -> Self {
+        Self {
+            task,
+            command_id,
+            release: None,
+            aliases: Vec::new(),
+            agent: Some(target),
+        }
+    }
 }
 
 impl Agent {
@@ -51,7 +71,7 @@ impl Agent {
             Command::Deploy { release, .. } | Command::Rollback { release } => {
                 Some(release.clone())
             }
-            Command::Cancel => None,
+            Command::Cancel | Command::UpdateAgent { .. } => None,
         };
         if let Some(running) = self.deploying.as_mut()
             && target.is_some()
@@ -131,6 +151,15 @@ impl Agent {
                     (releases, Some(o))
                 }),
             ),
+            Command::UpdateAgent {
+                version,
+                digest,
+                url,
+            } => {
+                let target = AgentTarget { version, digest };
+                self.deploying = self.start_agent_update(releases, command_id, target, url);
+                return;
+            }
             Command::Cancel => {
                 self.releases = Some(releases);
                 return;
@@ -141,6 +170,7 @@ impl Agent {
             command_id,
             release,
             aliases: Vec::new(),
+            agent: None,
         });
     }
 
@@ -158,6 +188,7 @@ impl Agent {
             command_id: String::new(),
             release: None,
             aliases: Vec::new(),
+            agent: None,
         });
     }
 
@@ -191,6 +222,9 @@ impl Agent {
             );
             for alias in &done.aliases {
                 self.report_final(alias, o.phase, o.message.clone())?;
+            }
+            if let Some(target) = &done.agent {
+                self.agent_update_done(&done.command_id, target, o)?;
             }
         }
         self.publish_release();

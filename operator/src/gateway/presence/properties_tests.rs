@@ -164,6 +164,7 @@ fn hello() -> impl Strategy<Value = AgentMessage> {
             last_acked_seq: None,
             health,
             teleoperation,
+            features: Vec::new(),
         },
     )
 }
