@@ -33,20 +33,24 @@ fn arch() -> &'static str {
         .as_str()
 }
 
+/// A private control plane (CRDs of this tree: the shared one is re-applied with other
+/// worktrees' CRDs, which prune `spec.agent`), an operator, and the robots' state.
 struct Fleet {
-    cp: &'static ControlPlane,
     client: kube::Client,
     ns: String,
     op: OperatorProcess,
     dir: tempfile::TempDir,
     token_file: PathBuf,
+    /// Last: dropped after the operator.
+    cp: ControlPlane,
 }
 
 async fn fleet(prefix: &str, identity: &str) -> anyhow::Result<Fleet> {
-    let cp = ControlPlane::shared();
+    let cp = ControlPlane::private()?;
+    cp.install_crds()?;
     let client = cp.client().await?;
     let ns = namespace(&client, prefix).await?;
-    let mut op = OperatorProcess::start(cp, &ns, identity, &["--heartbeat-grace-seconds", "60"])?;
+    let mut op = OperatorProcess::start(&cp, &ns, identity, &["--heartbeat-grace-seconds", "60"])?;
     op.wait_ready().await?;
     let dir = tempfile::tempdir()?;
     let token_file = dir.path().join("enroll");
@@ -140,7 +144,6 @@ impl Fleet {
         arch: &str,
         digest: &str,
     ) -> anyhow::Result<()> {
-        self.keep_crds();
         let patch = json!({"spec": {"agent": {"version": version, "builds": [{"arch": arch, "digest": digest}]}}});
         let robot = Api::<Robot>::namespaced(self.client.clone(), &self.ns)
             .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
@@ -152,29 +155,8 @@ impl Fleet {
         Ok(())
     }
 
-    /// Applies this tree's CRDs again: other worktrees' test runs apply theirs to the shared
-    /// control plane, and a CRD without `spec.agent` and `status.agentUpdate` prunes them.
-    fn keep_crds(&self) {
-        if let Err(e) = self.cp.install_crds() {
-            eprintln!("re-applying the CRDs: {e}");
-        }
-    }
-
-    /// `status.agentVersion` and `status.agentUpdate` of robot `name` (re-applying the CRDs at
-    /// most every 10 s, see [`Fleet::keep_crds`]).
+    /// `status.agentVersion` and `status.agentUpdate` of robot `name`.
     async fn agent_status(&self, name: &str) -> Option<(String, Value)> {
-        static LAST: std::sync::Mutex<Option<Instant>> = std::sync::Mutex::new(None);
-        let due = {
-            let mut last = LAST.lock().unwrap();
-            let due = last.is_none_or(|t| t.elapsed() > Duration::from_secs(10));
-            if due {
-                *last = Some(Instant::now());
-            }
-            due
-        };
-        if due {
-            self.keep_crds();
-        }
         let robot = Api::<Robot>::namespaced(self.client.clone(), &self.ns)
             .get(name)
             .await
@@ -249,7 +231,7 @@ async fn ten_agents_update_themselves_without_losing_an_event() -> anyhow::Resul
     let f = fleet("agentupd", "agud").await?;
     let names: Vec<String> = (0..10).map(|i| format!("kiwi-{i}")).collect();
     let robots: Vec<Supervised> = names.iter().map(|n| f.robot(n)).collect();
-    wait_online(&f.client, &f.ns, names.len(), T).await?;
+    wait_online(&f.client, &f.ns, names.len(), 2 * T).await?;
     let b = f.push("agent-b", "9.0.0-b", &wrapper("9.0.0-b", false))?;
     let store = f.op.event_store().await?;
     for r in &robots {
@@ -274,8 +256,14 @@ async fn ten_agents_update_themselves_without_losing_an_event() -> anyhow::Resul
             let (version, update) = f.agent_status(name).await?;
             (version == "9.0.0-b" && update["phase"] == "Succeeded").then(|| t0.elapsed())
         })
-        .await
-        .map_err(|e| anyhow::anyhow!("{e}\n{}", robots[0].log_text()))?;
+        .await;
+        let took = match took {
+            Ok(t) => t,
+            Err(e) => {
+                let status = f.agent_status(name).await;
+                anyhow::bail!("{e}; last status {status:?}");
+            }
+        };
         switched.push(took);
     }
     for r in &robots {
@@ -343,7 +331,7 @@ async fn ten_agents_update_themselves_without_losing_an_event() -> anyhow::Resul
 async fn broken_agents_are_undone_by_the_robot_itself() -> anyhow::Result<()> {
     let f = fleet("agentfb", "agfb").await?;
     let (rc, rd, rx) = (f.robot("kiwi-c"), f.robot("kiwi-d"), f.robot("kiwi-x"));
-    wait_online(&f.client, &f.ns, 3, T).await?;
+    wait_online(&f.client, &f.ns, 3, 2 * T).await?;
     let c = f.push(
         "agent-c",
         "9.0.0-c",
