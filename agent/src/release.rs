@@ -126,6 +126,22 @@ impl Releases {
         self.layout.current()
     }
 
+    /// Downloads the blob `digest` (at most `limit` bytes) into memory and verifies its digest:
+    /// an agent build for `lekiwi-agent`'s self-update (see [`crate::selfupdate`]).
+    pub async fn fetch_verified(&self, url: &str, digest: &str, limit: usize) -> Result<Vec<u8>> {
+        digest_hex(digest)?;
+        let bytes = self.client.get_small(url, limit).await?;
+        let actual = store::sha256_digest(&bytes);
+        if actual != digest {
+            return Err(Error::DigestMismatch {
+                what: format!("agent build {url}"),
+                expected: digest.to_owned(),
+                actual,
+            });
+        }
+        Ok(bytes)
+    }
+
     /// Deploys `release`, whose manifest is at `manifest_url` (a path relative to the gateway's
     /// base URL). Reports progress on `progress`; the last report matches the outcome.
     pub async fn deploy(

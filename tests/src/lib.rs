@@ -20,6 +20,7 @@ pub mod postgres;
 mod process;
 pub mod rbac;
 pub mod stand_in;
+pub mod supervisor;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -4,6 +4,7 @@
 use lekiwi_protocol::{AgentMessage, Command, Release};
 use tracing::{error, info};
 
+use super::agent_update::AgentTarget;
 use super::{Agent, Error};
 use crate::outbox::Lane;
 use crate::release::{Outcome, Phase, Releases};
@@ -24,6 +25,26 @@ pub(super) struct Deploying {
     aliases: Vec<String>,
     /// Cancels it (none for a recovery, which finishes what an agent restart interrupted).
     stop: Option<tokio::sync::watch::Sender<bool>>,
+    /// The agent build it installs, for an `update_agent` task.
+    agent: Option<AgentTarget>,
+}
+
+impl Deploying {
+    /// The task of an `update_agent` command.
+    pub(super) fn agent(
+        task: tokio::task::JoinHandle<(Releases, Option<Outcome>)>,
+        command_id: String,
+        target: AgentTarget,
+    ) -> Self {
+        Self {
+            task,
+            command_id,
+            release: None,
+            aliases: Vec::new(),
+            stop: None,
+            agent: Some(target),
+        }
+    }
 }
 
 impl Agent {
@@ -53,7 +74,7 @@ impl Agent {
             Command::Deploy { release, .. } | Command::Rollback { release } => {
                 Some(release.clone())
             }
-            Command::Cancel => None,
+            Command::Cancel | Command::UpdateAgent { .. } => None,
         };
         if let Some(running) = self.deploying.as_mut()
             && target.is_some()
@@ -137,6 +158,15 @@ impl Agent {
                     (releases, Some(o))
                 }),
             ),
+            Command::UpdateAgent {
+                version,
+                digest,
+                url,
+            } => {
+                let target = AgentTarget { version, digest };
+                self.deploying = self.start_agent_update(releases, command_id, target, url);
+                return;
+            }
             Command::Cancel => {
                 self.releases = Some(releases);
                 return;
@@ -148,6 +178,7 @@ impl Agent {
             release,
             aliases: Vec::new(),
             stop: Some(stop),
+            agent: None,
         });
     }
 
@@ -166,6 +197,7 @@ impl Agent {
             release: None,
             aliases: Vec::new(),
             stop: None,
+            agent: None,
         });
     }
 
@@ -199,6 +231,9 @@ impl Agent {
             );
             for alias in &done.aliases {
                 self.report_final(alias, o.phase, o.message.clone())?;
+            }
+            if let Some(target) = &done.agent {
+                self.agent_update_done(&done.command_id, target, o)?;
             }
         }
         self.publish_release();

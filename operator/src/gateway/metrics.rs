@@ -69,6 +69,10 @@ pub struct GatewayMetrics {
     pub durable: Family<KindLabels, Counter>,
     /// Durable messages refused and never stored, by reason (`quota_rows`, `quota_bytes`).
     pub events_refused: Family<ReasonLabels, Counter>,
+    /// Agent update steps (`spec.agent`), by kind: `sent`, `unavailable`, `unsupported` (what
+    /// the gateway did) and `started`, `succeeded`, `failed`, `fallen_back` (what agents
+    /// reported).
+    pub agent_updates: Family<KindLabels, Counter>,
     /// Heartbeat round-trip time the agents report.
     pub heartbeat_rtt: Histogram,
     /// Robots waiting for a status write, by priority.
@@ -121,6 +125,10 @@ impl GatewayMetrics {
             durable: r.add(
                 "lekiwi_gateway_durable_messages",
                 "Durable agent messages acknowledged, stored or replay",
+            ),
+            agent_updates: r.add(
+                "lekiwi_gateway_agent_updates",
+                "Agent self-update steps, by kind (sent, unavailable, unsupported, started, succeeded, failed, fallen_back)",
             ),
             events_refused: r.add(
                 "lekiwi_gateway_events_refused",

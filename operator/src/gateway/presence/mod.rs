@@ -9,6 +9,7 @@
 //! the number of robots. A status the API server refuses as invalid is not retried: the writer
 //! falls back to presence alone for the rest of the session and says why in a Warning Event.
 
+mod agent;
 mod patch;
 mod phase;
 #[cfg(test)]
@@ -25,6 +26,7 @@ use jiff::Timestamp;
 use lekiwi_protocol::{Health, Release, SystemFacts, Teleoperation, Vitals};
 use tokio::sync::Notify;
 
+pub use self::agent::AgentUpdateOutcome;
 pub use self::phase::PhasePlanner;
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
@@ -109,6 +111,8 @@ struct Entry {
     vitals: Vitals,
     retries: u32,
     last_update: Option<UpdateOutcome>,
+    /// How the latest agent update went (kept across sessions, like `last_update`).
+    agent_update: Option<AgentUpdateOutcome>,
     /// The API server refused this session's full status: write presence facts only.
     presence_only: bool,
     /// A session of a robot last written as disconnected, not written yet: its first write
@@ -188,6 +192,7 @@ impl Presence {
             // Keep the last update's outcome: rollouts read it, and a manager that stops
             // sending a field makes server-side apply drop it.
             let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
+            let agent_update = s.robots.get(key).and_then(|e| e.agent_update.clone());
             s.robots.insert(
                 key.clone(),
                 Entry {
@@ -202,6 +207,7 @@ impl Presence {
                     vitals: Vitals::default(),
                     retries: 0,
                     last_update,
+                    agent_update,
                     presence_only: false,
                     settling: s.known_offline.contains(key),
                 },

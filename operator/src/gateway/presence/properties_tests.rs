@@ -167,6 +167,7 @@ fn hello() -> impl Strategy<Value = AgentMessage> {
             last_acked_seq: None,
             health,
             teleoperation,
+            features: Vec::new(),
         },
     )
 }
@@ -237,6 +238,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         vitals,
         retries: 0,
         last_update: None,
+        agent_update: None,
         presence_only: false,
         settling: false,
     }

@@ -6,7 +6,7 @@ use jiff::Timestamp;
 use lekiwi_protocol::{Command, ProgressPhase, Release, ServerMessage};
 
 /// A short id of this gateway process, different after every restart.
-fn boot_id() -> &'static str {
+pub(super) fn boot_id() -> &'static str {
     static BOOT: std::sync::OnceLock<String> = std::sync::OnceLock::new();
     BOOT.get_or_init(|| format!("{:x}", Timestamp::now().as_millisecond()))
 }
@@ -175,6 +175,7 @@ mod tests {
                     Command::Deploy { release, .. } => format!("deploy {}", release.version),
                     Command::Rollback { release } => format!("rollback {}", release.version),
                     Command::Cancel => "cancel".to_owned(),
+                    Command::UpdateAgent { version, .. } => format!("update_agent {version}"),
                 },
                 other => format!("{other:?}"),
             })

@@ -67,7 +67,11 @@ where
                     message,
                     data,
                 };
-                self.event(&ev).await
+                let stored = Box::pin(self.shared.store.insert_event(self.key, &ev)).await;
+                if matches!(stored, Ok(true)) {
+                    self.agent_event(&ev);
+                }
+                self.durable(ev.seq, stored)
             }
             AgentMessage::Telemetry { seq, samples } => self.telemetry(seq, &samples).await,
             AgentMessage::Progress {

@@ -87,6 +87,9 @@ where
         if let Err(end) = self.send_commands().await {
             return end;
         }
+        if let Err(end) = self.send_agent_update().await {
+            return end;
+        }
         loop {
             let wake = tokio::select! {
                 () = self.shared.cancel.cancelled() => Wake::Shutdown,
@@ -138,6 +141,10 @@ where
             Some(Control::Desired(release)) => {
                 self.commands.set_desired(release.map(|r| *r));
                 self.send_commands().await
+            }
+            Some(Control::DesiredAgent(agent)) => {
+                self.agent.set_desired(agent.map(|a| *a));
+                self.send_agent_update().await
             }
             Some(Control::Credentials { deleted }) => self.check_credentials(deleted).await,
             Some(Control::Replaced) | None => {
