@@ -11,100 +11,18 @@
 use std::collections::BTreeSet;
 
 use anyhow::{Context as _, Result, ensure};
-use k8s_openapi::api::core::v1::ServiceAccount;
-use k8s_openapi::api::rbac::v1::{ClusterRole, RoleBinding};
+use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
 use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::{Robot, RobotDeployment};
 use lekiwi_operator::gateway::event_store::{Sample, Store, StoredEvent};
 use lekiwi_tests::postgres::Postgres;
-use lekiwi_tests::{ControlPlane, OperatorProcess, create_robot, http_request, namespace};
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, account, chart_roles, create_robot, http_request, namespace,
+};
 use serde_json::{Value, json};
 
 const DIGEST_A: &str = "sha256:aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa";
-
-/// The chart's user ClusterRoles, created under names of this test (cluster-scoped) and
-/// without the aggregation labels, so the shared cluster's built-in roles stay as they are.
-/// Returns the names of the viewer and the operator user.
-async fn chart_roles(
-    cp: &ControlPlane,
-    client: &kube::Client,
-    prefix: &str,
-) -> Result<[String; 2]> {
-    let out = cp.tool(
-        "helm",
-        &[
-            "template",
-            "r",
-            "charts/lekiwi-operator",
-            "--show-only",
-            "templates/user-roles.yaml",
-        ],
-    );
-    ensure!(
-        out.status.success(),
-        "helm template: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let api = Api::<ClusterRole>::all(client.clone());
-    let mut names = Vec::new();
-    for doc in String::from_utf8(out.stdout)?.split("\n---") {
-        let Ok(value) = serde_yaml::from_str::<Value>(doc) else {
-            continue;
-        };
-        let Some(name) = value["metadata"]["name"].as_str() else {
-            continue;
-        };
-        let renamed = format!("{prefix}-{name}");
-        let role = json!({"metadata": {"name": renamed}, "rules": value["rules"]});
-        let _ = api.delete(&renamed, &DeleteParams::default()).await;
-        api.create(&PostParams::default(), &serde_json::from_value(role)?)
-            .await?;
-        names.push((name.to_owned(), renamed));
-    }
-    let find = |want: &str| {
-        names
-            .iter()
-            .find(|(n, _)| n == want)
-            .map(|(_, r)| r.clone())
-            .with_context(|| format!("the chart has no ClusterRole {want}: {names:?}"))
-    };
-    Ok([find("lekiwi-viewer")?, find("lekiwi-operator-user")?])
-}
-
-/// A ServiceAccount `name` in `ns`, bound to ClusterRole `role` there when one is given; its
-/// token as `kubectl create token` makes it.
-async fn account(
-    cp: &ControlPlane,
-    client: &kube::Client,
-    ns: &str,
-    name: &str,
-    role: Option<&str>,
-) -> Result<String> {
-    Api::<ServiceAccount>::namespaced(client.clone(), ns)
-        .create(
-            &PostParams::default(),
-            &serde_json::from_value(json!({"metadata": {"name": name}}))?,
-        )
-        .await?;
-    if let Some(role) = role {
-        let binding = json!({
-            "metadata": {"name": name},
-            "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": role},
-            "subjects": [{"kind": "ServiceAccount", "name": name, "namespace": ns}],
-        });
-        Api::<RoleBinding>::namespaced(client.clone(), ns)
-            .create(&PostParams::default(), &serde_json::from_value(binding)?)
-            .await?;
-    }
-    let out = cp.kubectl(&["create", "token", name, "-n", ns, "--duration=1h"]);
-    ensure!(
-        out.status.success(),
-        "kubectl create token: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    Ok(String::from_utf8(out.stdout)?.trim().to_owned())
-}
 
 /// One request to the operator's gateway port: status, `Retry-After` if any, JSON body.
 async fn call(
