@@ -1,7 +1,7 @@
 //! Test harness: the shared local control plane and private ones for disruptive tests
 //! ([`control_plane`]), the single-node cluster whose Pods really run ([`cluster`]), our operator, agent and `lekiwi-fleet` processes ([`operator`],
 //! [`agent`], [`fleet_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
-//! fleet fixtures and waits ([`fleet`]) and bare HTTP helpers ([`http`]), re-exported here so
+//! fleet fixtures and waits ([`fleet`]), RBAC'd users ([`users`]) and bare HTTP helpers ([`http`]), re-exported here so
 //! tests import them from the crate root; emulated Raspberry Pi 5s running the arm64 agent are in
 //! [`pi`].
 
@@ -16,8 +16,8 @@ pub mod operator;
 pub mod pi;
 pub mod postgres;
 mod process;
-pub mod rbac;
 pub mod stand_in;
+pub mod users;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -37,6 +37,7 @@ pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::{OperatorProcess, gateway_operator};
 pub use stand_in::{GATEWAY_FIELD_MANAGER, GatewayStandIn};
+pub use users::{account, chart_roles};
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {

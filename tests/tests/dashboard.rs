@@ -20,11 +20,10 @@ use kube::api::{Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::{ReleaseRef, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::browser::Browser;
-use lekiwi_tests::rbac::{account, chart_roles};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, enrollment_token_file,
-    gateway_url, http_request, log_dir, namespace, push_release, test_strategy, wait_for,
-    wait_online,
+    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, account, chart_roles,
+    enrollment_token_file, gateway_url, http_request, log_dir, namespace, push_release,
+    test_strategy, wait_for, wait_online,
 };
 use serde_json::json;
 
