@@ -178,6 +178,13 @@ async fn dashboard_shows_the_fleet_live_and_obeys_rbac() -> Result<()> {
             LIVE,
         )
         .await?;
+    browser
+        .wait_for(
+            "the fleet view on its subscription",
+            "document.getElementById('status').textContent.startsWith('Live (subscription)')",
+            LIVE,
+        )
+        .await?;
     let online = browser
         .eval("document.querySelector('#count-Online .n').textContent")
         .await?;
@@ -330,6 +337,13 @@ async fn dashboard_shows_the_fleet_live_and_obeys_rbac() -> Result<()> {
         )
         .await?;
     screenshot(&mut browser, "fleet").await?;
+    browser
+        .wait_for(
+            "the viewer's fleet view on its subscription",
+            "document.getElementById('status').textContent.startsWith('Live (subscription)')",
+            LIVE,
+        )
+        .await?;
     fleet.kill();
     solo.kill();
     browser
