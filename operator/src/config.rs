@@ -273,6 +273,10 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_API_BURST", default_value_t = 100)]
     pub api_burst: u32,
 
+    /// The GraphQL endpoint's limits.
+    #[command(flatten)]
+    pub graphql: crate::gateway::api::graphql::GraphQlConfig,
+
     /// Validity of the gateway's own Lease (renewed every third of it).
     #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]
     pub gateway_lease_seconds: u64,

@@ -20,11 +20,10 @@ use kube::api::{Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::{ReleaseRef, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::browser::Browser;
-use lekiwi_tests::rbac::{account, chart_roles};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, enrollment_token_file,
-    gateway_url, http_request, log_dir, namespace, push_release, test_strategy, wait_for,
-    wait_online,
+    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, account, chart_roles,
+    enrollment_token_file, gateway_url, http_request, log_dir, namespace, push_release,
+    test_strategy, wait_for, wait_online,
 };
 use serde_json::json;
 
@@ -180,6 +179,13 @@ async fn dashboard_shows_the_fleet_live_and_obeys_rbac() -> Result<()> {
             LIVE,
         )
         .await?;
+    browser
+        .wait_for(
+            "the fleet view on its subscription",
+            "document.getElementById('status').textContent.startsWith('Live (subscription)')",
+            LIVE,
+        )
+        .await?;
     let online = browser
         .eval("document.querySelector('#count-Online .n').textContent")
         .await?;
@@ -332,6 +338,13 @@ async fn dashboard_shows_the_fleet_live_and_obeys_rbac() -> Result<()> {
         )
         .await?;
     screenshot(&mut browser, "fleet").await?;
+    browser
+        .wait_for(
+            "the viewer's fleet view on its subscription",
+            "document.getElementById('status').textContent.startsWith('Live (subscription)')",
+            LIVE,
+        )
+        .await?;
     fleet.kill();
     solo.kill();
     browser

@@ -120,7 +120,7 @@ pub async fn run(
         watched(&config, &client),
         watched(&config, &client),
         client.clone(),
-        (config.api_rate, config.api_burst),
+        &config,
         &cancel,
     );
     let shared = Shared {

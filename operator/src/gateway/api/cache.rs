@@ -2,7 +2,9 @@
 //! is answered from memory, never by a request to the API server. Objects are kept in a map
 //! ordered by namespace and name, so a page of a list resumes after its `continue` key and a
 //! namespace is one range of the map. Like `kube::runtime::reflector`, a relist replaces the
-//! whole map at once when it is complete.
+//! whole map at once when it is complete. Every change the watch delivers is also sent once on
+//! the cache's broadcast ([`Cache::subscribe`]): the GraphQL subscriptions all share it, none
+//! opens a watch of its own.
 
 use std::collections::BTreeMap;
 use std::ops::Bound;
@@ -13,17 +15,43 @@ use futures::StreamExt;
 use kube::runtime::{WatchStreamExt, watcher};
 use kube::{Api, Resource, ResourceExt};
 use serde::de::DeserializeOwned;
+use tokio::sync::broadcast;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 /// An object's place in the map: namespace, then name.
 pub type Key = (String, String);
 
+/// Changes a subscriber may fall behind by before it is told it lagged (and reads the cache
+/// again instead): the broadcast's memory is bounded whatever the subscribers do.
+pub const CHANGES_BUFFERED: usize = 4096;
+
+/// One change the watch delivered.
+#[derive(Debug)]
+pub enum Change<K> {
+    /// Created or modified (also every object of a relist): as it was before, if known, and as
+    /// it is now.
+    Applied(Option<Arc<K>>, Arc<K>),
+    /// Deleted: as it was.
+    Deleted(Arc<K>),
+}
+
+impl<K> Clone for Change<K> {
+    fn clone(&self) -> Self {
+        match self {
+            Self::Applied(old, new) => Self::Applied(old.clone(), new.clone()),
+            Self::Deleted(o) => Self::Deleted(o.clone()),
+        }
+    }
+}
+
 /// The objects of one kind the watch has delivered, ordered by [`Key`].
 pub struct Cache<K> {
     objects: RwLock<BTreeMap<Key, Arc<K>>>,
     /// Set once the first list is complete.
     ready: AtomicBool,
+    /// Every change, to whoever listens.
+    changes: broadcast::Sender<Change<K>>,
 }
 
 impl<K> Cache<K> {
@@ -31,7 +59,14 @@ impl<K> Cache<K> {
         Self {
             objects: RwLock::default(),
             ready: AtomicBool::new(false),
+            changes: broadcast::channel(CHANGES_BUFFERED).0,
         }
+    }
+
+    /// Every change from now on. A receiver more than [`CHANGES_BUFFERED`] changes behind gets
+    /// `Lagged` and should read the current state with [`Cache::page`].
+    pub fn subscribe(&self) -> broadcast::Receiver<Change<K>> {
+        self.changes.subscribe()
     }
 
     /// Whether the first list is in.
@@ -79,16 +114,22 @@ impl<K> Cache<K> {
         let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
         match event {
             watcher::Event::Apply(o) => {
-                objects.insert(key(&o), Arc::new(o));
+                let o = Arc::new(o);
+                let old = objects.insert(key(o.as_ref()), o.clone());
+                let _ = self.changes.send(Change::Applied(old, o));
             }
             watcher::Event::Delete(o) => {
                 objects.remove(&key(&o));
+                let _ = self.changes.send(Change::Deleted(Arc::new(o)));
             }
             watcher::Event::Init => *relist = Some(BTreeMap::new()),
             watcher::Event::InitApply(o) => {
+                let o = Arc::new(o);
+                let old = objects.get(&key(o.as_ref())).cloned();
                 if let Some(fresh) = relist.as_mut() {
-                    fresh.insert(key(&o), Arc::new(o));
+                    fresh.insert(key(o.as_ref()), o.clone());
                 }
+                let _ = self.changes.send(Change::Applied(old, o));
             }
             watcher::Event::InitDone => {
                 if let Some(fresh) = relist.take() {

@@ -23,15 +23,15 @@ static NO_LABELS: std::collections::BTreeMap<String, String> = std::collections:
 #[serde(deny_unknown_fields, rename_all = "camelCase")]
 pub struct ListQuery {
     /// Label selector, as `kubectl get -l` takes it.
-    label_selector: Option<String>,
+    pub(crate) label_selector: Option<String>,
     /// Only robots in this phase.
-    phase: Option<String>,
+    pub(crate) phase: Option<String>,
     /// Only robots reporting that they run this release version.
-    release: Option<String>,
+    pub(crate) release: Option<String>,
     /// Page size.
-    limit: Option<u32>,
+    pub(crate) limit: Option<u32>,
     /// Token of the page to resume after.
-    r#continue: Option<String>,
+    pub(crate) r#continue: Option<String>,
 }
 
 /// A page of a list.
@@ -86,6 +86,15 @@ async fn list(
     let Query(query) = query.map_err(bad_query)?;
     let access = Access::new("list", "robots", namespace.as_deref().unwrap_or_default());
     authorize(&state, &headers, Some(access)).await?;
+    page(&state, namespace.as_deref(), &query).map(Json)
+}
+
+/// The page of robots `query` asks for in `namespace` (all if `None`), from the cache.
+pub(crate) fn page(
+    state: &AppState,
+    namespace: Option<&str>,
+    query: &ListQuery,
+) -> Result<Page<Arc<Robot>>, ApiError> {
     let limit = page_size(query.limit)?;
     let selector = Selector::parse(query.label_selector.as_deref().unwrap_or_default())
         .map_err(ApiError::BadRequest)?;
@@ -100,11 +109,10 @@ async fn list(
                 .as_deref()
                 .is_none_or(|v| running(r) == Some(v))
     };
-    let (items, more) =
-        state
-            .fleet
-            .robots
-            .page(namespace.as_deref(), after.as_ref(), limit as usize, keep);
+    let (items, more) = state
+        .fleet
+        .robots
+        .page(namespace, after.as_ref(), limit as usize, keep);
     let next = more
         .then(|| {
             items
@@ -112,7 +120,7 @@ async fn list(
                 .map(|r| continue_after(&super::cache::key(r.as_ref())))
         })
         .flatten();
-    Ok(Json(Page { items, next }))
+    Ok(Page { items, next })
 }
 
 /// `GET /api/v1/namespaces/{namespace}/robots/{name}` (`get robots`): the Robot and its vitals.
@@ -144,12 +152,12 @@ pub async fn one(
 }
 
 /// The release version the robot reports it runs.
-fn running(r: &Robot) -> Option<&str> {
+pub(crate) fn running(r: &Robot) -> Option<&str> {
     let status = r.status.as_ref()?;
     status.current_release.as_ref().map(|c| c.version.as_str())
 }
 
-fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
+pub(crate) fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
     RobotPhase::ALL
         .into_iter()
         .find(|p| p.as_str() == text)
