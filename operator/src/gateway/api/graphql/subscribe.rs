@@ -190,12 +190,14 @@ async fn feed<K: Resource>(
 ) -> Result<Feed<K>> {
     check_names(&namespace, None).map_err(refusal)?;
     let access = Access::new("watch", resource, &namespace);
+    tracing::debug!(%namespace, resource, "GraphQL subscription requested");
     let (state, caller) = allowed(ctx, access.clone()).await?;
     if let Err(seconds) = state.fleet.limits.take(&caller.user) {
         state.count_refusal("rate_limited");
         return Err(refusal(ApiError::RateLimited(seconds)));
     }
     let slot = state.fleet.graphql.subscriptions.hold(&caller.user)?;
+    tracing::debug!(user = %caller.user, %namespace, resource, "GraphQL subscription started");
     let cache = cache(state);
     Ok(Feed {
         rx: cache.subscribe(),
