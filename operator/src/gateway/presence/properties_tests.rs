@@ -236,6 +236,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         last_update: None,
         presence_only: false,
         settling: false,
+        moved: false,
     }
 }
 
