@@ -246,7 +246,7 @@ pub struct Config {
     pub status_qps: f64,
 
     /// Lowest rate of status writes the adaptive limit cuts to (writes per second).
-    #[arg(long, env = "LEKIWI_STATUS_QPS_MIN", default_value_t = 5.0)]
+    #[arg(long, env = "LEKIWI_STATUS_QPS_MIN", default_value_t = 20.0)]
     pub status_qps_min: f64,
 
     /// Highest rate of status writes the adaptive limit raises to (writes per second); set it
@@ -254,8 +254,8 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_STATUS_QPS_MAX", default_value_t = 200.0)]
     pub status_qps_max: f64,
 
-    /// A status write answered slower than this (milliseconds) halves the rate, as a 429, a 5xx
-    /// or a timeout does.
+    /// A status write answered slower than this (milliseconds) cuts the rate by a quarter (a
+    /// 429, a 5xx or a timeout halves it).
     #[arg(long, env = "LEKIWI_STATUS_SLOW_MS", default_value_t = 1000)]
     pub status_slow_ms: u64,
 

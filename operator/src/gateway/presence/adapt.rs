@@ -1,6 +1,6 @@
 //! The status writer's rate, adapted to what the API server answers (AIMD): it rises while
-//! writes are answered fast and more wait, and halves on a 429, a 5xx, a timeout or a slow
-//! answer, within `[min, max]`. So a survivor writes its moved robots as fast as the API server
+//! writes are answered fast and more wait, halves on a 429, a 5xx or a timeout and drops by a
+//! quarter on a slow answer, within `[min, max]`. So a survivor writes its moved robots as fast as the API server
 //! allows, and backs off before it overloads it.
 
 use std::time::{Duration, Instant};
@@ -30,8 +30,10 @@ pub(super) enum Answer {
 /// Each fast answer while writes wait raises the rate by this fraction of a write per second
 /// (at 50 writes/s: +5/s each second, i.e. +10 % per second).
 const INCREASE_PER_ANSWER: f64 = 0.1;
-/// A cut halves the rate.
-const DECREASE_FACTOR: f64 = 0.5;
+/// A 429, a 5xx or no answer halves the rate.
+const THROTTLED_FACTOR: f64 = 0.5;
+/// A slow answer cuts it by a quarter: latency also grows with the gateway's own load.
+const SLOW_FACTOR: f64 = 0.75;
 /// Answers to writes sent before a cut say nothing new: at most one cut per this long.
 const CUT_GAP: Duration = Duration::from_secs(1);
 
@@ -89,7 +91,11 @@ impl AdaptiveRate {
                     .last_cut
                     .is_none_or(|t| now.duration_since(t) >= CUT_GAP)
                 {
-                    self.rate = (self.rate * DECREASE_FACTOR).max(self.bounds.min);
+                    let factor = match answer {
+                        Answer::Slow => SLOW_FACTOR,
+                        _ => THROTTLED_FACTOR,
+                    };
+                    self.rate = (self.rate * factor).max(self.bounds.min);
                     self.last_cut = Some(now);
                 }
             }
@@ -130,7 +136,7 @@ mod tests {
             "one cut per second"
         );
         let later = t0 + CUT_GAP;
-        assert_eq!(r.observe(Answer::Slow, true, later), 25.0);
+        assert_eq!(r.observe(Answer::Slow, true, later), 37.5);
         for i in 2..10 {
             r.observe(Answer::Throttled, true, t0 + CUT_GAP * i);
         }
