@@ -241,6 +241,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         agent_update: None,
         presence_only: false,
         settling: false,
+        moved: false,
     }
 }
 

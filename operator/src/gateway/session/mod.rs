@@ -207,13 +207,14 @@ async fn run_inner<W, R, E>(
 }
 
 /// Registers the session (replacing an older one) with an epoch above the one the robot's
-/// status shows, records the connection and tells presence.
+/// status shows, records the connection and tells presence (whether the robot moved here).
 async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
-    let seen = shared
-        .desired
-        .as_ref()
-        .and_then(|d| d.holder(key))
-        .and_then(|h| h.epoch);
+    let holder = shared.desired.as_ref().and_then(|d| d.holder(key));
+    let seen = holder.as_ref().and_then(|h| h.epoch);
+    // Its status names another gateway: it moved here (that gateway may have died).
+    let moved = holder
+        .and_then(|h| h.gateway)
+        .is_some_and(|g| g != shared.gateway);
     let epoch = next_epoch(Timestamp::now(), seen);
     let (id, control) = shared.registry.register(key, epoch);
     let record = ConnectionRecord {
@@ -239,7 +240,7 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
         })
         // Stored before seqs were bounded: not a number to tell an agent; say nothing.
         .filter(|s| *s <= MAX_SEQ);
-    shared.presence.connect(key, id, epoch, hello);
+    shared.presence.connect_moved(key, id, epoch, hello, moved);
     shared.metrics.gateway.connections.inc();
     info!(session = id, epoch, ?stored_seq, "agent connected");
     Opened {
@@ -344,6 +345,7 @@ mod tests {
                     status_refresh: Duration::from_secs(300),
                     poll_grace: Duration::from_secs(180),
                     qps: 1.0,
+                    adaptive: None,
                     burst: 1,
                     concurrency: 1,
                 },
