@@ -17,6 +17,9 @@ pub(super) struct State {
     pub(super) moves: VecDeque<RobotKey>,
     pub(super) high: VecDeque<RobotKey>,
     pub(super) low: VecDeque<RobotKey>,
+    /// Robots whose status write is in flight, each with the priority it was queued at again
+    /// meanwhile: one write per robot at a time, so an older snapshot never lands after a newer.
+    pub(super) writing: HashMap<RobotKey, Option<Priority>>,
 }
 
 impl State {
@@ -53,6 +56,32 @@ impl State {
             Priority::Move => self.moves.push_back(key.clone()),
             Priority::High => self.high.push_back(key.clone()),
             Priority::Low => self.low.push_back(key.clone()),
+        }
+    }
+
+    /// Claims the write of `key` (taken from the queues at `priority`); `false` when one is in
+    /// flight already: then it is queued again at `priority` once that one ends.
+    pub(super) fn begin_write(&mut self, key: &RobotKey, priority: Priority) -> bool {
+        match self.writing.get_mut(key) {
+            Some(again) => {
+                if again.is_none_or(|p| p.rank() < priority.rank()) {
+                    *again = Some(priority);
+                }
+                false
+            }
+            None => {
+                self.writing.insert(key.clone(), None);
+                true
+            }
+        }
+    }
+
+    /// The write of `key` ended (written or not): one asked for meanwhile is queued now.
+    pub(super) fn end_write(&mut self, key: &RobotKey) {
+        if let Some(Some(priority)) = self.writing.remove(key)
+            && self.robots.contains_key(key)
+        {
+            self.enqueue(key, priority);
         }
     }
 

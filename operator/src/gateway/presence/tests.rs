@@ -515,3 +515,28 @@ fn moved_robots_go_first_and_are_claimed_until_written() {
     assert!(p.claims().is_empty(), "a session that ended claims nothing");
     assert_eq!(p.claims_annotation(), None);
 }
+
+/// A change while the robot's write is in flight is written after it, never beside it: two
+/// writes of one robot at once could land in the wrong order and leave the older snapshot (the
+/// race that once left an agent update `Started` after it had `Succeeded`).
+#[test]
+fn one_write_per_robot_at_a_time_and_a_change_meanwhile_follows() {
+    let p = presence();
+    p.connect(&key("a"), 1, 1_000, ConnectInfo::default());
+    p.with_state(|s| {
+        let (k, prio) = s.pop().unwrap();
+        assert!(s.begin_write(&k, prio), "nothing in flight yet");
+        s.take_for_write(&k).unwrap();
+        // The robot changes while its write is in flight: queued, but not written beside it.
+        s.enqueue(&k, Priority::Low);
+        s.enqueue(&k, Priority::High);
+        let (again, prio) = s.pop().unwrap();
+        assert!(!s.begin_write(&again, prio), "one write at a time");
+        assert_eq!(s.pop(), None, "the change waits for the write in flight");
+        s.end_write(&k);
+        assert_eq!(s.pop(), Some((key("a"), Priority::High)), "then follows it");
+        assert!(s.begin_write(&k, Priority::High));
+        s.end_write(&k);
+        assert_eq!(s.pop(), None, "nothing asked for meanwhile: nothing more");
+    });
+}

@@ -93,6 +93,9 @@ impl Presence {
             if let Some(a) = &adaptive {
                 bucket.set_rate(lock(a).rate());
             }
+            if !self.with_state(|s| s.begin_write(&key, priority)) {
+                continue;
+            }
             tokio::select! {
                 () = cancel.cancelled() => return,
                 () = bucket.take() => {}
@@ -101,6 +104,7 @@ impl Presence {
                 return;
             };
             let Some(entry) = self.with_state(|s| s.take_for_write(&key)) else {
+                self.with_state(|s| s.end_write(&key));
                 continue;
             };
             let me = self.clone();
@@ -126,7 +130,9 @@ impl Presence {
                     result = me.write(&client, holders, &key, &bare).await;
                 }
                 drop(permit);
-                let outcome = me.settle(key, priority, &entry, result);
+                let outcome = me.settle(key.clone(), priority, &entry, result);
+                me.with_state(|s| s.end_write(&key));
+                me.wake();
                 me.metrics
                     .gateway
                     .status_writes
