@@ -289,6 +289,15 @@ type Ws =
 
 /// A `graphql-transport-ws` WebSocket after `connection_init` with `token`.
 async fn open(op: &OperatorProcess, token: &str) -> Result<Ws> {
+    let mut ws = connect(op).await?;
+    let init =
+        json!({"type": "connection_init", "payload": {"authorization": format!("Bearer {token}")}});
+    ws.send(Message::text(init.to_string())).await?;
+    Ok(ws)
+}
+
+/// A `graphql-transport-ws` WebSocket that has sent nothing yet.
+async fn connect(op: &OperatorProcess) -> Result<Ws> {
     let mut request =
         format!("ws://127.0.0.1:{}/api/v1/graphql", op.gateway_port).into_client_request()?;
     request
@@ -301,10 +310,33 @@ async fn open(op: &OperatorProcess, token: &str) -> Result<Ws> {
             .get("sec-websocket-protocol")
             .is_some_and(|p| p == "graphql-transport-ws")
     );
-    let init =
-        json!({"type": "connection_init", "payload": {"authorization": format!("Bearer {token}")}});
-    ws.send(Message::text(init.to_string())).await?;
     Ok(ws)
+}
+
+/// A socket that never sends `connection_init` is closed with 4408 after the configured 2 s
+/// (and so holds no connection slot for long); one that did is still served after that.
+async fn init_timeout(op: &OperatorProcess, viewer: &str) -> Result<()> {
+    let started = std::time::Instant::now();
+    let mut silent = connect(op).await?;
+    let mut greeted = open(op, viewer).await?;
+    ensure!(next(&mut greeted, Duration::from_secs(5)).await?["type"] == "connection_ack");
+    let closed = next(&mut silent, Duration::from_secs(10)).await?;
+    let waited = started.elapsed();
+    ensure!(closed["close"] == 4408, "{closed}");
+    ensure!(
+        closed["reason"] == "Connection initialisation timeout",
+        "{closed}"
+    );
+    ensure!(
+        waited >= Duration::from_millis(1900) && waited < Duration::from_secs(8),
+        "closed after {waited:?}"
+    );
+    greeted
+        .send(Message::text(json!({"type": "ping"}).to_string()))
+        .await?;
+    let pong = next(&mut greeted, Duration::from_secs(5)).await?;
+    ensure!(pong["type"] == "pong", "{pong}");
+    Ok(())
 }
 
 /// The next JSON message within `within`, or the close frame's code and reason as
@@ -497,11 +529,14 @@ async fn graphql_serves_what_rbac_allows_and_streams_changes() -> Result<()> {
         "4",
         "--graphql-max-subscriptions-per-user",
         "2",
+        "--graphql-init-timeout-seconds",
+        "2",
     ];
     let op = lekiwi_tests::gateway_operator(cp, &ns, "fleetgql", &args).await?;
     queries(&op, &ns, &viewer).await?;
     refusals_and_mutations(&op, &client, (&ns, &other), (&viewer, &user, &nobody)).await?;
     limits(&op, &ns, &viewer).await?;
+    init_timeout(&op, &viewer).await?;
     subscription(&op, &client, &ns, &user).await?;
     rate_limited(&op, &viewer).await?;
     for role in [&viewer_role, &user_role] {

@@ -37,9 +37,6 @@ use super::{ApiError, AppState, bearer};
 
 /// Items a list answers unless `limit` says otherwise.
 pub const DEFAULT_LIMIT: u32 = 100;
-/// The GraphQL endpoint: `POST` for queries and mutations, `GET` for the subscriptions'
-/// WebSocket.
-pub const GRAPHQL: &str = "/api/v1/graphql";
 /// Most items one page holds; a client pages with `continue`.
 pub const MAX_LIMIT: u32 = 1000;
 
@@ -111,7 +108,10 @@ pub fn routes() -> Router<AppState> {
         .route(p::ROLLOUT_RESUME, wrong(post(rollouts::resume)))
         .route(p::ROLLOUT_UNDO, wrong(post(rollouts::undo)))
         .route(p::ROLLOUT_RESTART, wrong(post(rollouts::restart)))
-        .route(GRAPHQL, wrong(post(graphql::post).get(graphql::websocket)))
+        .route(
+            openapi::paths::GRAPHQL,
+            wrong(post(graphql::post).get(graphql::websocket)),
+        )
         .route("/api/v1/{*rest}", any(unknown_path))
 }
 

@@ -44,10 +44,12 @@ pub mod paths {
     pub const ROLLOUT_UNDO: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/undo";
     /// Restart a rollout.
     pub const ROLLOUT_RESTART: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/restart";
+    /// GraphQL: `POST` for queries and mutations, `GET` for the subscriptions' WebSocket.
+    pub const GRAPHQL: &str = "/api/v1/graphql";
 }
 
 /// Every route with its method, the list the router and the document are checked against.
-pub const ROUTES: [(&str, &str); 15] = [
+pub const ROUTES: [(&str, &str); 17] = [
     ("get", paths::OPENAPI),
     ("get", paths::ACCESS),
     ("get", paths::ROBOTS),
@@ -63,6 +65,8 @@ pub const ROUTES: [(&str, &str); 15] = [
     ("post", paths::ROLLOUT_RESUME),
     ("post", paths::ROLLOUT_UNDO),
     ("post", paths::ROLLOUT_RESTART),
+    ("post", paths::GRAPHQL),
+    ("get", paths::GRAPHQL),
 ];
 
 /// `GET /api/v1/openapi.json`: the document, to any authenticated user.
@@ -243,10 +247,38 @@ fn build() -> Value {
             paths::ROLLOUT_RESUME: action("Resume: sets spec.paused to false."),
             paths::ROLLOUT_UNDO: action("Undo: sets annotation fleet.lekiwi.io/undoRequestedAt to now."),
             paths::ROLLOUT_RESTART: action("Restart: sets annotation fleet.lekiwi.io/restartedAt to now."),
+            paths::GRAPHQL: graphql(),
         },
         "components": components(),
     });
     doc
+}
+
+/// The GraphQL endpoint: a query or mutation by `POST`; subscriptions over a WebSocket.
+fn graphql() -> Value {
+    let mut post = op(
+        "A GraphQL query or mutation over the same data (schema by introspection; README, GraphQL). Each field checks the RBAC permission of the REST route it mirrors; errors come as GraphQL `errors` with `extensions.code` the REST error code.",
+        "an authenticated user, and per field the permission of its REST route",
+        vec![],
+        json!({"type": "object", "properties": {"data": {"type": "object", "nullable": true}, "errors": {"type": "array", "items": {"type": "object"}}}}),
+    );
+    post["requestBody"] = json!({"required": true, "content": {"application/json": {"schema": {
+        "type": "object", "required": ["query"], "properties": {
+            "query": {"type": "string"}, "variables": {"type": "object", "nullable": true},
+            "operationName": {"type": "string", "nullable": true}}}}}});
+    let mut get = op(
+        "Subscriptions (robotChanges, rolloutProgress): a WebSocket with subprotocol `graphql-transport-ws`, the token as `{\"authorization\": \"Bearer TOKEN\"}` in the `connection_init` payload (closed with 4408 when none comes in time, 1002 when refused).",
+        "an authenticated user, and per subscription the permission of its REST route",
+        vec![],
+        json!({"type": "object"}),
+    );
+    let responses = get["responses"].as_object_mut().expect("op has responses");
+    responses.remove("200");
+    responses.insert(
+        "101".into(),
+        json!({"description": "Switching to the WebSocket protocol graphql-transport-ws."}),
+    );
+    json!({"post": post, "get": get})
 }
 
 fn components() -> Value {

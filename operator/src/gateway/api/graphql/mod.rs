@@ -12,15 +12,18 @@ mod query;
 mod subscribe;
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use async_graphql::{Data, ErrorExtensions, Schema};
 use async_graphql_axum::rejection::GraphQLRejection;
 use async_graphql_axum::{GraphQLProtocol, GraphQLRequest, GraphQLResponse, GraphQLWebSocket};
 use axum::extract::State;
-use axum::extract::ws::WebSocketUpgrade;
+use axum::extract::ws::{CloseFrame, Message, WebSocketUpgrade};
 use axum::http::HeaderMap;
 use axum::response::{IntoResponse, Response};
+use futures::{SinkExt, StreamExt};
 use tokio::sync::Semaphore;
 
 use self::query::{MutationRoot, QueryRoot};
@@ -53,6 +56,15 @@ pub struct GraphQlConfig {
         default_value_t = 100
     )]
     pub graphql_max_subscriptions_per_user: usize,
+
+    /// Seconds a GraphQL WebSocket may stay open without its `connection_init`; then it is
+    /// closed with code 4408, as `graphql-transport-ws` prescribes.
+    #[arg(
+        long,
+        env = "LEKIWI_GRAPHQL_INIT_TIMEOUT_SECONDS",
+        default_value_t = 10
+    )]
+    pub graphql_init_timeout_seconds: u64,
 }
 
 /// The schema and what bounds its WebSockets.
@@ -60,6 +72,7 @@ pub struct GraphQl {
     schema: Schema<QueryRoot, MutationRoot, SubscriptionRoot>,
     connections: Arc<Semaphore>,
     subscriptions: Arc<subscribe::PerUser>,
+    init_timeout: Duration,
 }
 
 impl GraphQl {
@@ -76,6 +89,7 @@ impl GraphQl {
                 max: config.graphql_max_subscriptions_per_user,
                 held: Mutex::new(HashMap::new()),
             }),
+            init_timeout: Duration::from_secs(config.graphql_init_timeout_seconds.max(1)),
         }
     }
 
@@ -131,18 +145,44 @@ pub async fn websocket(
         ApiError::Unavailable("the gateway is at its GraphQL connection limit; retry later")
     })?;
     let schema = gql.schema.clone();
+    let init_timeout = gql.init_timeout;
     let mut data = Data::default();
     data.insert(state.clone());
     Ok(upgrade
         .protocols(["graphql-transport-ws"])
         .on_upgrade(move |socket| async move {
-            GraphQLWebSocket::new(socket, schema, protocol)
+            let (mut sink, stream) = socket.split();
+            let initialised = Arc::new(AtomicBool::new(false));
+            let seen = initialised.clone();
+            let served = GraphQLWebSocket::new_with_pair(&mut sink, stream, schema, protocol)
                 .with_data(data)
-                .on_connection_init(move |payload| connection_init(state, payload))
-                .serve()
-                .await;
+                .on_connection_init(move |payload| {
+                    seen.store(true, Ordering::Relaxed);
+                    connection_init(state, payload)
+                })
+                .serve();
+            let timed_out = tokio::select! {
+                () = served => false,
+                () = init_deadline(init_timeout, &initialised) => true,
+            };
+            if timed_out {
+                let close = CloseFrame {
+                    code: 4408,
+                    reason: "Connection initialisation timeout".into(),
+                };
+                let _ = tokio::time::timeout(init_timeout, sink.send(Message::Close(Some(close))))
+                    .await;
+            }
             drop(permit);
         }))
+}
+
+/// Resolves `timeout` after it starts unless `initialised` is set by then; otherwise never.
+async fn init_deadline(timeout: Duration, initialised: &AtomicBool) {
+    tokio::time::sleep(timeout).await;
+    if initialised.load(Ordering::Relaxed) {
+        std::future::pending::<()>().await;
+    }
 }
 
 /// Whether the first GraphQL subprotocol the client offers is `graphql-transport-ws` (the one
