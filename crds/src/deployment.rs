@@ -60,6 +60,12 @@ pub struct RobotDeploymentSpec {
     /// set back to false.
     #[serde(default)]
     pub paused: bool,
+
+    /// Watches each robot for a while after its switch and fails it when its telemetry got
+    /// worse than before by more than the given ratios. Unset: a robot counts as updated as
+    /// soon as it runs the release and reports healthy.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub analysis: Option<crate::analysis::AnalysisSpec>,
 }
 
 /// What to do with a robot that cannot be updated right now.

@@ -1,5 +1,6 @@
 //! Custom resource types of the LeKiwi fleet: `Robot` and `RobotDeployment` (group `fleet.lekiwi.io`).
 
+pub mod analysis;
 pub mod condition;
 pub mod contract;
 pub mod deployment;

@@ -219,6 +219,11 @@ pub struct RobotStatus {
     /// when an update ends; rollouts read it to see failures without waiting for a timeout.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub last_update: Option<UpdateReport>,
+
+    /// The gateway's summary of the robot's metrics before and after its last switch, judged
+    /// by rollouts with `spec.analysis`. Written by the gateway.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub analysis: Option<crate::analysis::AnalysisReport>,
 }
 
 /// How an agent's release update ended. Every field is optional: a gateway that restarts forgets

@@ -176,6 +176,7 @@ async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> anyhow::Resu
         release: release.clone(),
         strategy: test_strategy(1, 0),
         paused: false,
+        analysis: None,
     };
     Api::<RobotDeployment>::namespaced(client.clone(), ns)
         .create(&PostParams::default(), &RobotDeployment::new("pi", spec))

@@ -57,6 +57,7 @@ async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> Result<()> {
             release: release.clone(),
             strategy: test_strategy(2, 1),
             paused: false,
+            analysis: None,
         },
     );
     Api::<RobotDeployment>::namespaced(client.clone(), ns)

@@ -101,6 +101,7 @@ impl Site {
                 release: release.clone(),
                 strategy,
                 paused: false,
+                analysis: None,
             },
         );
         Api::<RobotDeployment>::namespaced(self.client.clone(), &self.ns)

@@ -9,6 +9,7 @@
 //! the number of robots. A status the API server refuses as invalid is not retried: the writer
 //! falls back to presence alone for the rest of the session and says why in a Warning Event.
 
+mod analysis;
 mod patch;
 mod phase;
 #[cfg(test)]
@@ -109,6 +110,8 @@ struct Entry {
     vitals: Vitals,
     retries: u32,
     last_update: Option<UpdateOutcome>,
+    /// Metrics before and after the last switch (kept across sessions, like `last_update`).
+    analysis: analysis::Tracker,
     /// The API server refused this session's full status: write presence facts only.
     presence_only: bool,
     /// A session of a robot last written as disconnected, not written yet: its first write
@@ -188,6 +191,7 @@ impl Presence {
             // Keep the last update's outcome: rollouts read it, and a manager that stops
             // sending a field makes server-side apply drop it.
             let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
+            let analysis = s.robots.get(key).map(|e| e.analysis.clone());
             s.robots.insert(
                 key.clone(),
                 Entry {
@@ -202,6 +206,7 @@ impl Presence {
                     vitals: Vitals::default(),
                     retries: 0,
                     last_update,
+                    analysis: analysis.unwrap_or_default(),
                     presence_only: false,
                     settling: s.known_offline.contains(key),
                 },
@@ -223,6 +228,7 @@ impl Presence {
             };
             e.last_heartbeat = now;
             e.vitals = hb.vitals;
+            e.analysis.record(&e.vitals, now);
             let mut changed = false;
             if hb.release.is_some() && hb.release != e.info.release {
                 e.info.release = hb.release;
@@ -264,6 +270,7 @@ impl Presence {
             };
             if outcome.phase == lekiwi_protocol::ProgressPhase::Done.as_str() {
                 e.info.release = Some(outcome.release.clone());
+                e.analysis.switched(outcome.release.clone(), outcome.time);
             }
             e.last_update = Some(outcome);
             s.enqueue(key, Priority::High);
@@ -370,10 +377,10 @@ impl Presence {
                 if e.info.protocol == "poll" && now.duration_since(e.last_heartbeat) > poll_grace {
                     e.connected = false;
                     due.push((key.clone(), Priority::High));
-                } else if e
-                    .written_heartbeat
-                    .is_some_and(|w| now.duration_since(w) >= refresh && e.last_heartbeat > w)
-                {
+                } else if e.written_heartbeat.is_some_and(|w| {
+                    now.duration_since(w) >= analysis_refresh(refresh, e, now)
+                        && e.last_heartbeat > w
+                }) {
                     due.push((key.clone(), Priority::Low));
                 }
             }
@@ -385,5 +392,20 @@ impl Presence {
         if queued {
             self.wake();
         }
+    }
+}
+
+/// How often `e`'s status is refreshed: `refresh`, or more often while its last switch's
+/// analysis window is open.
+fn analysis_refresh(
+    refresh: jiff::SignedDuration,
+    e: &Entry,
+    now: Timestamp,
+) -> jiff::SignedDuration {
+    let window = jiff::SignedDuration::try_from(analysis::WINDOW_REFRESH).unwrap_or_default();
+    if e.analysis.window_open(now) {
+        refresh.min(window)
+    } else {
+        refresh
     }
 }

@@ -237,6 +237,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         vitals,
         retries: 0,
         last_update: None,
+        analysis: Default::default(),
         presence_only: false,
         settling: false,
     }

@@ -36,6 +36,7 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         vitals: Vitals::default(),
         retries: 0,
         last_update: None,
+        analysis: Default::default(),
         presence_only: false,
         settling: false,
     }
@@ -394,6 +395,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 vitals: Vitals::default(),
                 retries: 0,
                 last_update: None,
+                analysis: Default::default(),
                 presence_only: false,
                 settling: false,
             },

@@ -32,6 +32,7 @@ fn deployment(batch: IntOrString, canary: i32) -> RobotDeployment {
                 ..RolloutStrategy::default()
             },
             paused: false,
+            analysis: None,
         },
     );
     d.metadata = ObjectMeta {
@@ -54,6 +55,7 @@ fn robot(i: usize) -> RobotView {
         current: Some(rel("1")),
         last_update: None,
         mark: None,
+        analysis: None,
     }
 }
 

@@ -1,0 +1,179 @@
+//! Per-robot metrics before and after a release switch, for rollouts with `spec.analysis`: the
+//! gateway folds every heartbeat into a baseline (since the switch before, or since it first saw
+//! the robot) and, once the agent reports a switch `done`, into that switch's window too. A few
+//! numbers per metric, whatever the number of heartbeats: memory is bounded per robot.
+
+use jiff::{SignedDuration, Timestamp};
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use lekiwi_crds::ReleaseRef;
+use lekiwi_crds::analysis::{AnalysisReport, MAX_WINDOW_SECONDS, MetricSummary, MetricWindow};
+use lekiwi_protocol::{Release, Vitals, rules};
+
+/// A robot whose switch is younger than [`MAX_WINDOW_SECONDS`] has its status refreshed at
+/// least this often, so that rollouts see its window without waiting for the routine refresh.
+pub const WINDOW_REFRESH: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// Count, sum and highest of one metric's readings.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Acc {
+    n: u32,
+    sum: f64,
+    max: f64,
+}
+
+impl Acc {
+    fn add(&mut self, x: Option<f64>) {
+        let Some(x) = x.filter(|x| x.is_finite() && *x >= 0.0) else {
+            return;
+        };
+        if self.n == u32::MAX {
+            return;
+        }
+        self.max = if self.n == 0 { x } else { self.max.max(x) };
+        self.n += 1;
+        self.sum += x;
+    }
+
+    fn summary(&self) -> Option<MetricSummary> {
+        (self.n > 0).then(|| MetricSummary {
+            samples: self.n,
+            mean: self.sum / f64::from(self.n),
+            max: self.max,
+        })
+    }
+}
+
+/// The metrics analysis compares.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Metrics {
+    host_memory: Acc,
+    host_cpu: Acc,
+    memory_percent: Acc,
+}
+
+impl Metrics {
+    fn add(&mut self, v: &Vitals) {
+        let rss = v.host_rss_bytes.filter(|&b| b <= rules::MAX_MEMORY_BYTES);
+        self.host_memory.add(rss.map(|b| b as f64));
+        self.host_cpu.add(v.host_cpu_percent);
+        self.memory_percent.add(v.memory_percent);
+    }
+
+    fn window(&self) -> MetricWindow {
+        MetricWindow {
+            host_memory_bytes: self.host_memory.summary(),
+            host_cpu_percent: self.host_cpu.summary(),
+            memory_percent: self.memory_percent.summary(),
+        }
+    }
+}
+
+/// One switch: the release, when it was reported done, the baseline before it and the
+/// readings since.
+#[derive(Clone, Debug, PartialEq)]
+struct Window {
+    release: Release,
+    start: Timestamp,
+    end: Option<Timestamp>,
+    baseline: Metrics,
+    observed: Metrics,
+}
+
+/// What the gateway keeps of one robot for analysis.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Tracker {
+    /// Readings since the last switch (or since the robot was first seen): the next baseline.
+    since_switch: Metrics,
+    /// The last switch, if the gateway saw one.
+    last: Option<Window>,
+}
+
+impl Tracker {
+    /// Folds a heartbeat's vitals, received at `now`, in.
+    pub fn record(&mut self, vitals: &Vitals, now: Timestamp) {
+        self.since_switch.add(vitals);
+        if let Some(w) = self.last.as_mut() {
+            w.observed.add(vitals);
+            w.end = Some(now);
+        }
+    }
+
+    /// The agent reported a switch to `release` done at `at`: a new window opens, with the
+    /// readings since the previous switch as its baseline.
+    pub fn switched(&mut self, release: Release, at: Timestamp) {
+        self.last = Some(Window {
+            release,
+            start: at,
+            end: None,
+            baseline: std::mem::take(&mut self.since_switch),
+            observed: Metrics::default(),
+        });
+    }
+
+    /// Whether the last switch is recent enough for its window to matter to a rollout.
+    pub fn window_open(&self, now: Timestamp) -> bool {
+        self.last.as_ref().is_some_and(|w| {
+            now.duration_since(w.start) <= SignedDuration::from_secs(MAX_WINDOW_SECONDS)
+        })
+    }
+
+    /// The summary written to `status.analysis`; `None` before any switch.
+    pub fn report(&self) -> Option<AnalysisReport> {
+        let w = self.last.as_ref()?;
+        Some(AnalysisReport {
+            release: Some(ReleaseRef {
+                version: w.release.version.clone(),
+                digest: w.release.digest.clone(),
+            }),
+            window_start: Some(Time(w.start)),
+            window_end: w.end.map(Time),
+            baseline: w.baseline.window(),
+            window: w.observed.window(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn vitals(rss: u64, cpu: f64) -> Vitals {
+        Vitals {
+            host_rss_bytes: Some(rss),
+            host_cpu_percent: Some(cpu),
+            ..Vitals::default()
+        }
+    }
+
+    /// Readings before a switch are its baseline (mean and highest), readings after it its
+    /// window; the next switch's baseline is what came after the one before; NaN and absent
+    /// readings are left out.
+    #[test]
+    fn a_switch_splits_baseline_from_window() {
+        let t0 = Timestamp::from_second(1_000).unwrap();
+        let mut t = Tracker::default();
+        assert_eq!(t.report(), None);
+        t.record(&vitals(100, 1.0), t0);
+        t.record(&vitals(300, f64::NAN), t0);
+        let rel = |v: &str| Release {
+            version: v.into(),
+            digest: format!("sha256:{v}"),
+        };
+        t.switched(rel("2"), t0);
+        t.record(&vitals(400, 4.0), t0 + SignedDuration::from_secs(1));
+        let r = t.report().unwrap();
+        let base = r.baseline.host_memory_bytes.unwrap();
+        assert_eq!((base.samples, base.mean, base.max), (2, 200.0, 300.0));
+        assert_eq!(r.baseline.host_cpu_percent.unwrap().samples, 1);
+        assert_eq!(r.baseline.memory_percent, None);
+        assert_eq!(r.window.host_memory_bytes.unwrap().max, 400.0);
+        assert_eq!(r.window_end, Some(Time(t0 + SignedDuration::from_secs(1))));
+        assert!(t.window_open(t0 + SignedDuration::from_secs(MAX_WINDOW_SECONDS)));
+        assert!(!t.window_open(t0 + SignedDuration::from_secs(MAX_WINDOW_SECONDS + 1)));
+
+        t.switched(rel("3"), t0 + SignedDuration::from_secs(2));
+        let r = t.report().unwrap();
+        assert_eq!(r.baseline.host_memory_bytes.unwrap().mean, 400.0);
+        assert_eq!(r.window, MetricWindow::default());
+    }
+}
