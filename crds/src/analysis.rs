@@ -42,6 +42,23 @@ pub struct AnalysisSpec {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(range(min = 0.0))]
     pub max_robot_memory_ratio: Option<f64>,
+
+    /// Largest allowed ratio of the mean heartbeat round-trip time after the switch to before
+    /// it, e.g. 2.0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 0.0))]
+    pub max_rtt_ratio: Option<f64>,
+
+    /// Largest allowed share, from 0 to 1, of `error` events among the events the robot sent in
+    /// the window, e.g. 0.05. Judged only when it sent some.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 0.0, max = 1.0))]
+    pub max_error_event_fraction: Option<f64>,
+
+    /// Largest allowed number of `error` events per minute of the window.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 0.0))]
+    pub max_error_events_per_minute: Option<f64>,
 }
 
 fn default_window() -> i64 {
@@ -55,6 +72,9 @@ impl Default for AnalysisSpec {
             max_host_memory_ratio: None,
             max_host_cpu_ratio: None,
             max_robot_memory_ratio: None,
+            max_rtt_ratio: None,
+            max_error_event_fraction: None,
+            max_error_events_per_minute: None,
         }
     }
 }
@@ -85,6 +105,22 @@ pub struct MetricWindow {
     /// `memory_percent`: the robot's memory use, percent of total.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub memory_percent: Option<MetricSummary>,
+    /// `rtt_ms`: the heartbeat round-trip time the agent measured, milliseconds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rtt_ms: Option<MetricSummary>,
+    /// Events the robot sent (`event` frames), all and `error` ones.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub events: Option<EventCounts>,
+}
+
+/// Events received over a stretch of time.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct EventCounts {
+    /// Every event.
+    pub total: u32,
+    /// Those of severity `error`.
+    pub errors: u32,
 }
 
 /// The gateway's summary of a robot's last switch: the baseline (heartbeats since the switch
@@ -93,6 +129,9 @@ pub struct MetricWindow {
 #[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
 #[serde(rename_all = "camelCase")]
 pub struct AnalysisReport {
+    /// When the baseline's first reading arrived.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub baseline_start: Option<Time>,
     /// The release switched to.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub release: Option<ReleaseRef>,

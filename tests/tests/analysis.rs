@@ -59,6 +59,7 @@ fn analysis() -> AnalysisSpec {
     AnalysisSpec {
         window_seconds: 4,
         max_host_memory_ratio: Some(1.5),
+        max_error_event_fraction: Some(0.5),
         ..AnalysisSpec::default()
     }
 }
@@ -168,6 +169,11 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
     );
     assert!(
         end.duration_since(start) >= jiff::SignedDuration::from_secs(4),
+        "{report:?}"
+    );
+    // The agent's heartbeat round-trip times are summarised too.
+    assert!(
+        report.window.rtt_ms.as_ref().unwrap().samples >= 2,
         "{report:?}"
     );
     assert!(

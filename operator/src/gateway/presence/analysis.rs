@@ -6,7 +6,9 @@
 use jiff::{SignedDuration, Timestamp};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_crds::ReleaseRef;
-use lekiwi_crds::analysis::{AnalysisReport, MAX_WINDOW_SECONDS, MetricSummary, MetricWindow};
+use lekiwi_crds::analysis::{
+    AnalysisReport, EventCounts, MAX_WINDOW_SECONDS, MetricSummary, MetricWindow,
+};
 use lekiwi_protocol::{Release, Vitals, rules};
 
 /// A robot whose switch is younger than [`MAX_WINDOW_SECONDS`] has its status refreshed at
@@ -49,14 +51,25 @@ struct Metrics {
     host_memory: Acc,
     host_cpu: Acc,
     memory_percent: Acc,
+    rtt_ms: Acc,
+    events: u32,
+    error_events: u32,
 }
 
 impl Metrics {
-    fn add(&mut self, v: &Vitals) {
+    fn add(&mut self, v: &Vitals, rtt_ms: Option<f64>) {
         let rss = v.host_rss_bytes.filter(|&b| b <= rules::MAX_MEMORY_BYTES);
         self.host_memory.add(rss.map(|b| b as f64));
         self.host_cpu.add(v.host_cpu_percent);
         self.memory_percent.add(v.memory_percent);
+        self.rtt_ms.add(rtt_ms);
+    }
+
+    fn event(&mut self, error: bool) {
+        self.events = self.events.saturating_add(1);
+        if error {
+            self.error_events = self.error_events.saturating_add(1);
+        }
     }
 
     fn window(&self) -> MetricWindow {
@@ -64,6 +77,11 @@ impl Metrics {
             host_memory_bytes: self.host_memory.summary(),
             host_cpu_percent: self.host_cpu.summary(),
             memory_percent: self.memory_percent.summary(),
+            rtt_ms: self.rtt_ms.summary(),
+            events: (self.events > 0).then_some(EventCounts {
+                total: self.events,
+                errors: self.error_events,
+            }),
         }
     }
 }
@@ -75,6 +93,7 @@ struct Window {
     release: Release,
     start: Timestamp,
     end: Option<Timestamp>,
+    baseline_start: Option<Timestamp>,
     baseline: Metrics,
     observed: Metrics,
 }
@@ -84,17 +103,28 @@ struct Window {
 pub struct Tracker {
     /// Readings since the last switch (or since the robot was first seen): the next baseline.
     since_switch: Metrics,
+    /// When the first of `since_switch` arrived.
+    since_switch_start: Option<Timestamp>,
     /// The last switch, if the gateway saw one.
     last: Option<Window>,
 }
 
 impl Tracker {
-    /// Folds a heartbeat's vitals, received at `now`, in.
-    pub fn record(&mut self, vitals: &Vitals, now: Timestamp) {
-        self.since_switch.add(vitals);
+    /// Folds a heartbeat's vitals and round-trip time, received at `now`, in.
+    pub fn record(&mut self, vitals: &Vitals, rtt_ms: Option<f64>, now: Timestamp) {
+        self.since_switch.add(vitals, rtt_ms);
+        self.since_switch_start.get_or_insert(now);
         if let Some(w) = self.last.as_mut() {
-            w.observed.add(vitals);
+            w.observed.add(vitals, rtt_ms);
             w.end = Some(now);
+        }
+    }
+
+    /// Counts an event the robot sent, `error` if of that severity.
+    pub fn event(&mut self, error: bool) {
+        self.since_switch.event(error);
+        if let Some(w) = self.last.as_mut() {
+            w.observed.event(error);
         }
     }
 
@@ -105,6 +135,7 @@ impl Tracker {
             release,
             start: at,
             end: None,
+            baseline_start: self.since_switch_start.take(),
             baseline: std::mem::take(&mut self.since_switch),
             observed: Metrics::default(),
         });
@@ -125,11 +156,24 @@ impl Tracker {
                 version: w.release.version.clone(),
                 digest: w.release.digest.clone(),
             }),
+            baseline_start: w.baseline_start.map(Time),
             window_start: Some(Time(w.start)),
             window_end: w.end.map(Time),
             baseline: w.baseline.window(),
             window: w.observed.window(),
         })
+    }
+}
+
+impl super::Presence {
+    /// The session `session` of `key` sent an event (`error` if of that severity): counted for
+    /// analysis, written with the next status write.
+    pub fn event(&self, key: &crate::gateway::event_store::RobotKey, session: u64, error: bool) {
+        self.with_state(|s| {
+            if let Some(e) = s.live_session(key, session) {
+                e.analysis.event(error);
+            }
+        });
     }
 }
 
@@ -153,19 +197,31 @@ mod tests {
         let t0 = Timestamp::from_second(1_000).unwrap();
         let mut t = Tracker::default();
         assert_eq!(t.report(), None);
-        t.record(&vitals(100, 1.0), t0);
-        t.record(&vitals(300, f64::NAN), t0);
+        t.record(&vitals(100, 1.0), Some(2.0), t0);
+        t.event(true);
+        t.record(&vitals(300, f64::NAN), None, t0);
         let rel = |v: &str| Release {
             version: v.into(),
             digest: format!("sha256:{v}"),
         };
         t.switched(rel("2"), t0);
-        t.record(&vitals(400, 4.0), t0 + SignedDuration::from_secs(1));
+        t.record(
+            &vitals(400, 4.0),
+            Some(-1.0),
+            t0 + SignedDuration::from_secs(1),
+        );
+        t.event(false);
         let r = t.report().unwrap();
         let base = r.baseline.host_memory_bytes.unwrap();
         assert_eq!((base.samples, base.mean, base.max), (2, 200.0, 300.0));
         assert_eq!(r.baseline.host_cpu_percent.unwrap().samples, 1);
         assert_eq!(r.baseline.memory_percent, None);
+        assert_eq!(r.baseline.rtt_ms.unwrap().mean, 2.0);
+        assert_eq!(r.window.rtt_ms, None, "negative round trips are left out");
+        let counts = |total, errors| Some(EventCounts { total, errors });
+        assert_eq!(r.baseline.events, counts(1, 1));
+        assert_eq!(r.window.events, counts(1, 0));
+        assert_eq!(r.baseline_start, Some(Time(t0)));
         assert_eq!(r.window.host_memory_bytes.unwrap().max, 400.0);
         assert_eq!(r.window_end, Some(Time(t0 + SignedDuration::from_secs(1))));
         assert!(t.window_open(t0 + SignedDuration::from_secs(MAX_WINDOW_SECONDS)));

@@ -80,6 +80,8 @@ pub struct HeartbeatInfo {
     pub teleoperation: Option<Teleoperation>,
     /// CPU, memory, temperature and battery readings, written with the next status refresh.
     pub vitals: Vitals,
+    /// Round-trip time of the previous heartbeat, ms, as the agent measured it (analysis only).
+    pub rtt_ms: Option<f64>,
 }
 
 /// How an agent's release update ended, as it reported it.
@@ -228,7 +230,7 @@ impl Presence {
             };
             e.last_heartbeat = now;
             e.vitals = hb.vitals;
-            e.analysis.record(&e.vitals, now);
+            e.analysis.record(&e.vitals, hb.rtt_ms, now);
             let mut changed = false;
             if hb.release.is_some() && hb.release != e.info.release {
                 e.info.release = hb.release;

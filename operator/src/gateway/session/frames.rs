@@ -48,6 +48,7 @@ where
                     health,
                     teleoperation,
                     vitals,
+                    rtt_ms,
                 };
                 self.heartbeat(sent_at_ms, rtt_ms, info).await?
             }
@@ -138,6 +139,9 @@ where
 
     /// A durable event: stored, then acked.
     async fn event(&self, ev: &StoredEvent) -> ServerMessage {
+        self.shared
+            .presence
+            .event(self.key, self.id, ev.severity == "error");
         let stored = Box::pin(self.shared.store.insert_event(self.key, ev)).await;
         self.durable(ev.seq, stored)
     }

@@ -33,10 +33,12 @@ pub(super) fn switched(
     if report.release.as_ref() != Some(rollout.target) || start.as_second() < since.as_second() {
         return None;
     }
-    if end.duration_since(start) < SignedDuration::from_secs(spec.window_seconds.max(1)) {
+    let span = end.duration_since(start);
+    if span < SignedDuration::from_secs(spec.window_seconds.max(1)) {
         return None;
     }
-    Some(match judge(spec, report) {
+    let failed = judge(spec, report).or_else(|| judge_events(spec, report, span));
+    Some(match failed {
         Some(why) => RobotState::Failed(batch, why),
         None => RobotState::Succeeded(batch),
     })
@@ -82,6 +84,14 @@ fn judge(spec: &AnalysisSpec, report: &AnalysisReport) -> Option<String> {
             window: w.memory_percent.as_ref(),
             peak: true,
         },
+        Check {
+            metric: "rttMs",
+            threshold: "maxRttRatio",
+            max: spec.max_rtt_ratio,
+            baseline: b.rtt_ms.as_ref(),
+            window: w.rtt_ms.as_ref(),
+            peak: false,
+        },
     ];
     checks.iter().find_map(|c| {
         let (max, base, win) = (c.max?, c.baseline?, c.window?);
@@ -104,6 +114,39 @@ fn judge(spec: &AnalysisSpec, report: &AnalysisReport) -> Option<String> {
     })
 }
 
+/// Why the window's `error` events fail `spec` (their share of the events, or their rate over
+/// the window's `span`); `None` if they do not.
+fn judge_events(
+    spec: &AnalysisSpec,
+    report: &AnalysisReport,
+    span: SignedDuration,
+) -> Option<String> {
+    let counts = report.window.events.as_ref()?;
+    let errors = f64::from(counts.errors);
+    if let Some(max) = spec.max_error_event_fraction
+        && counts.total > 0
+    {
+        let fraction = errors / f64::from(counts.total);
+        if fraction > max {
+            return Some(format!(
+                "analysis failed: {} of {} events after the switch are errors ({fraction:.3}; \
+                 maxErrorEventFraction {max})",
+                counts.errors, counts.total
+            ));
+        }
+    }
+    let max = spec.max_error_events_per_minute?;
+    let per_minute = errors * 60.0 / span.as_secs_f64().max(1.0);
+    (per_minute > max).then(|| {
+        format!(
+            "analysis failed: {} error events in {}s after the switch, {per_minute:.2} a minute \
+             (maxErrorEventsPerMinute {max})",
+            counts.errors,
+            span.as_secs()
+        )
+    })
+}
+
 /// A reading for people: whole numbers from 100 up (bytes), two decimals below (percent).
 fn number(x: f64) -> String {
     if x >= 100.0 {
@@ -115,7 +158,7 @@ fn number(x: f64) -> String {
 
 #[cfg(test)]
 mod tests {
-    use lekiwi_crds::analysis::MetricWindow;
+    use lekiwi_crds::analysis::{EventCounts, MetricWindow};
 
     use super::*;
 
@@ -136,11 +179,17 @@ mod tests {
                 host_memory_bytes: summary(100.0, 110.0),
                 host_cpu_percent: summary(10.0, 50.0),
                 memory_percent: None,
+                ..MetricWindow::default()
             },
             window: MetricWindow {
                 host_memory_bytes: summary(120.0, 200.0),
                 host_cpu_percent: summary(15.0, 90.0),
                 memory_percent: summary(90.0, 95.0),
+                events: Some(EventCounts {
+                    total: 10,
+                    errors: 2,
+                }),
+                ..MetricWindow::default()
             },
             ..AnalysisReport::default()
         };
@@ -161,6 +210,28 @@ mod tests {
         let why = judge(&spec(None, Some(1.4)), &report).unwrap();
         assert!(
             why.contains("hostCpuPercent mean 15.00 after the switch is 1.50x"),
+            "{why}"
+        );
+
+        // Errors: 2 of 10 events, 2 in 60 s.
+        let events = |fraction: Option<f64>, per_minute: Option<f64>| AnalysisSpec {
+            max_error_event_fraction: fraction,
+            max_error_events_per_minute: per_minute,
+            ..AnalysisSpec::default()
+        };
+        let minute = SignedDuration::from_secs(60);
+        assert_eq!(
+            judge_events(&events(Some(0.2), Some(2.0)), &report, minute),
+            None
+        );
+        let why = judge_events(&events(Some(0.1), None), &report, minute).unwrap();
+        assert!(
+            why.contains("2 of 10 events after the switch are errors"),
+            "{why}"
+        );
+        let why = judge_events(&events(None, Some(1.5)), &report, minute).unwrap();
+        assert!(
+            why.contains("2 error events in 60s after the switch, 2.00 a minute"),
             "{why}"
         );
     }
