@@ -2,7 +2,8 @@
 //! after a window in which its host process's memory stayed within the ratio over its baseline
 //! before the switch. A real agent's restart hook starts a stand-in host process (a Python
 //! script of the release matching `--host-process-pattern`): a release whose process only
-//! wobbles completes; a release whose process grows past the ratio fails its robot, with the
+//! wobbles completes, though the gateway restarts within its window (the new one goes on from
+//! the summary in the Robot's status); a release whose process grows past the ratio fails its robot, with the
 //! metric, value and baseline in the message, and the fleet rolls back. Real operator, a
 //! control plane of the test's own (as `health.rs`, so its CRDs cannot race other worktrees').
 
@@ -55,9 +56,9 @@ fn stop_host(pid_file: &Path) {
     }
 }
 
-fn analysis() -> AnalysisSpec {
+fn analysis(window_seconds: i64) -> AnalysisSpec {
     AnalysisSpec {
-        window_seconds: 4,
+        window_seconds,
         max_host_memory_ratio: Some(1.5),
         max_error_event_fraction: Some(0.5),
         ..AnalysisSpec::default()
@@ -141,10 +142,18 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
             release: v1.clone(),
             strategy: test_strategy(1, 0),
             paused: false,
-            analysis: Some(analysis()),
+            analysis: Some(analysis(8)),
         },
     );
     deployments.create(&PostParams::default(), &d).await?;
+    // The gateway restarts within the window: the next one goes on from the stored summary.
+    let opened = wait_for("the window of 1.0.0", Duration::from_secs(60), || async {
+        let a = robots.get("kiwi-a").await.ok()?.status?.analysis?;
+        (a.release.as_ref() == Some(&v1)).then_some(a)
+    })
+    .await?;
+    op.restart()?;
+    op.wait_ready().await?;
     let finished = rollout_finished(&deployments, "fleet", Duration::from_secs(90)).await;
     let robot = robots.get("kiwi-a").await?;
     let d = finished.map_err(|e| anyhow::anyhow!("{e}\n{:?}", robot.status))?;
@@ -168,8 +177,13 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         report.window_end.clone().unwrap().0,
     );
     assert!(
-        end.duration_since(start) >= jiff::SignedDuration::from_secs(4),
+        end.duration_since(start) >= jiff::SignedDuration::from_secs(8),
         "{report:?}"
+    );
+    assert_eq!(report.window_start, opened.window_start, "{report:?}");
+    assert_eq!(
+        report.baseline, opened.baseline,
+        "the baseline survived the restart"
     );
     // The agent's heartbeat round-trip times are summarised too.
     assert!(

@@ -65,6 +65,26 @@ impl Metrics {
         self.rtt_ms.add(rtt_ms);
     }
 
+    /// The accumulators a written summary stands for.
+    fn resume(w: &MetricWindow) -> Self {
+        let acc = |s: &Option<MetricSummary>| {
+            s.as_ref().map_or(Acc::default(), |s| Acc {
+                n: s.samples,
+                sum: s.mean * f64::from(s.samples),
+                max: s.max,
+            })
+        };
+        let events = w.events.clone().unwrap_or_default();
+        Self {
+            host_memory: acc(&w.host_memory_bytes),
+            host_cpu: acc(&w.host_cpu_percent),
+            memory_percent: acc(&w.memory_percent),
+            rtt_ms: acc(&w.rtt_ms),
+            events: events.total,
+            error_events: events.errors,
+        }
+    }
+
     fn event(&mut self, error: bool) {
         self.events = self.events.saturating_add(1);
         if error {
@@ -141,6 +161,29 @@ impl Tracker {
         });
     }
 
+    /// The tracker another gateway (or this one before a restart) left in `report`: the window
+    /// goes on from its summary, and its readings are the next baseline so far. `None` when the
+    /// report lacks its release or start.
+    pub fn resume(report: &AnalysisReport) -> Option<Self> {
+        let release = report.release.as_ref()?;
+        let observed = Metrics::resume(&report.window);
+        Some(Self {
+            since_switch: observed,
+            since_switch_start: report.window_start.as_ref().map(|t| t.0),
+            last: Some(Window {
+                release: Release {
+                    version: release.version.clone(),
+                    digest: release.digest.clone(),
+                },
+                start: report.window_start.as_ref()?.0,
+                end: report.window_end.as_ref().map(|t| t.0),
+                baseline_start: report.baseline_start.as_ref().map(|t| t.0),
+                baseline: Metrics::resume(&report.baseline),
+                observed,
+            }),
+        })
+    }
+
     /// Whether the last switch is recent enough for its window to matter to a rollout.
     pub fn window_open(&self, now: Timestamp) -> bool {
         self.last.as_ref().is_some_and(|w| {
@@ -175,6 +218,13 @@ impl super::Presence {
             }
         });
     }
+}
+
+/// Whether `report`'s window is recent enough to matter to a rollout (see [`Tracker::window_open`]).
+pub fn window_open(report: &AnalysisReport) -> bool {
+    report.window_start.as_ref().is_some_and(|t| {
+        Timestamp::now().duration_since(t.0) <= SignedDuration::from_secs(MAX_WINDOW_SECONDS)
+    })
 }
 
 #[cfg(test)]
@@ -212,6 +262,10 @@ mod tests {
         );
         t.event(false);
         let r = t.report().unwrap();
+        // Another gateway resumes from the written summary and writes the same one.
+        let resumed = Tracker::resume(&r).unwrap();
+        assert_eq!(resumed.report(), Some(r.clone()));
+
         let base = r.baseline.host_memory_bytes.unwrap();
         assert_eq!((base.samples, base.mean, base.max), (2, 200.0, 300.0));
         assert_eq!(r.baseline.host_cpu_percent.unwrap().samples, 1);

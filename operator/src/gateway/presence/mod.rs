@@ -9,7 +9,7 @@
 //! the number of robots. A status the API server refuses as invalid is not retried: the writer
 //! falls back to presence alone for the rest of the session and says why in a Warning Event.
 
-mod analysis;
+pub(crate) mod analysis;
 mod patch;
 mod phase;
 #[cfg(test)]
@@ -26,6 +26,7 @@ use jiff::Timestamp;
 use lekiwi_protocol::{Health, Release, SystemFacts, Teleoperation, Vitals};
 use tokio::sync::Notify;
 
+pub use self::analysis::window_open as analysis_window_open;
 pub use self::phase::PhasePlanner;
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
@@ -194,6 +195,7 @@ impl Presence {
             // sending a field makes server-side apply drop it.
             let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
             let analysis = s.robots.get(key).map(|e| e.analysis.clone());
+            let analysis = analysis.or_else(|| self.stored_analysis(key));
             s.robots.insert(
                 key.clone(),
                 Entry {
