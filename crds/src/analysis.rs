@@ -12,6 +12,9 @@ use crate::release::ReleaseRef;
 /// often for this long after its switch.
 pub const MAX_WINDOW_SECONDS: i64 = 600;
 
+/// Most telemetry metrics a window keeps the highest reading of (the first ones seen).
+pub const MAX_TELEMETRY_METRICS: usize = 16;
+
 /// Watches each updated robot for a while after its switch and fails it when its telemetry got
 /// worse than before the switch by more than the given ratios. A failed robot counts against
 /// the batch's `successThreshold` like any other failure (and so can roll the fleet back).
@@ -59,6 +62,23 @@ pub struct AnalysisSpec {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(range(min = 0.0))]
     pub max_error_events_per_minute: Option<f64>,
+
+    /// Absolute ceilings on telemetry the robot sends (`telemetry` frames), by metric name: the
+    /// robot fails if a reading in the window is above its ceiling. At most 16.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    #[schemars(length(max = 16))]
+    pub telemetry: Vec<TelemetryCeiling>,
+}
+
+/// An absolute ceiling on one telemetry metric.
+#[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq)]
+#[serde(rename_all = "camelCase")]
+pub struct TelemetryCeiling {
+    /// The metric's name as the agent sends it, e.g. `cpu_percent`.
+    #[schemars(length(min = 1, max = 64))]
+    pub metric: String,
+    /// Highest allowed reading, in the metric's unit.
+    pub max: f64,
 }
 
 fn default_window() -> i64 {
@@ -75,6 +95,7 @@ impl Default for AnalysisSpec {
             max_rtt_ratio: None,
             max_error_event_fraction: None,
             max_error_events_per_minute: None,
+            telemetry: Vec::new(),
         }
     }
 }
@@ -111,6 +132,11 @@ pub struct MetricWindow {
     /// Events the robot sent (`event` frames), all and `error` ones.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub events: Option<EventCounts>,
+    /// The highest reading of each telemetry metric the robot sent (at most 16 metrics, the
+    /// first seen).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    #[schemars(length(max = 16))]
+    pub telemetry: Vec<TelemetryCeiling>,
 }
 
 /// Events received over a stretch of time.

@@ -7,9 +7,10 @@ use jiff::{SignedDuration, Timestamp};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_crds::ReleaseRef;
 use lekiwi_crds::analysis::{
-    AnalysisReport, EventCounts, MAX_WINDOW_SECONDS, MetricSummary, MetricWindow,
+    AnalysisReport, EventCounts, MAX_TELEMETRY_METRICS, MAX_WINDOW_SECONDS, MetricSummary,
+    MetricWindow, TelemetryCeiling,
 };
-use lekiwi_protocol::{Release, Vitals, rules};
+use lekiwi_protocol::{Release, Sample, Vitals, rules};
 
 /// A robot whose switch is younger than [`MAX_WINDOW_SECONDS`] has its status refreshed at
 /// least this often, so that rollouts see its window without waiting for the routine refresh.
@@ -46,7 +47,7 @@ impl Acc {
 }
 
 /// The metrics analysis compares.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 struct Metrics {
     host_memory: Acc,
     host_cpu: Acc,
@@ -54,9 +55,21 @@ struct Metrics {
     rtt_ms: Acc,
     events: u32,
     error_events: u32,
+    /// Highest reading of each telemetry metric, the first [`MAX_TELEMETRY_METRICS`] seen.
+    telemetry: Vec<(String, f64)>,
 }
 
 impl Metrics {
+    fn telemetry(&mut self, samples: &[Sample]) {
+        for s in samples.iter().filter(|s| s.value.is_finite()) {
+            if let Some((_, max)) = self.telemetry.iter_mut().find(|(m, _)| *m == s.metric) {
+                *max = max.max(s.value);
+            } else if self.telemetry.len() < MAX_TELEMETRY_METRICS && s.metric.len() <= 64 {
+                self.telemetry.push((s.metric.clone(), s.value));
+            }
+        }
+    }
+
     fn add(&mut self, v: &Vitals, rtt_ms: Option<f64>) {
         let rss = v.host_rss_bytes.filter(|&b| b <= rules::MAX_MEMORY_BYTES);
         self.host_memory.add(rss.map(|b| b as f64));
@@ -82,6 +95,11 @@ impl Metrics {
             rtt_ms: acc(&w.rtt_ms),
             events: events.total,
             error_events: events.errors,
+            telemetry: w
+                .telemetry
+                .iter()
+                .map(|t| (t.metric.clone(), t.max))
+                .collect(),
         }
     }
 
@@ -102,6 +120,14 @@ impl Metrics {
                 total: self.events,
                 errors: self.error_events,
             }),
+            telemetry: self
+                .telemetry
+                .iter()
+                .map(|(metric, max)| TelemetryCeiling {
+                    metric: metric.clone(),
+                    max: *max,
+                })
+                .collect(),
         }
     }
 }
@@ -140,6 +166,14 @@ impl Tracker {
         }
     }
 
+    /// Folds a batch of telemetry samples in (their highest reading per metric).
+    pub fn telemetry(&mut self, samples: &[Sample]) {
+        self.since_switch.telemetry(samples);
+        if let Some(w) = self.last.as_mut() {
+            w.observed.telemetry(samples);
+        }
+    }
+
     /// Counts an event the robot sent, `error` if of that severity.
     pub fn event(&mut self, error: bool) {
         self.since_switch.event(error);
@@ -168,7 +202,7 @@ impl Tracker {
         let release = report.release.as_ref()?;
         let observed = Metrics::resume(&report.window);
         Some(Self {
-            since_switch: observed,
+            since_switch: observed.clone(),
             since_switch_start: report.window_start.as_ref().map(|t| t.0),
             last: Some(Window {
                 release: Release {
@@ -218,6 +252,21 @@ impl super::Presence {
             }
         });
     }
+
+    /// The session `session` of `key` sent telemetry: the highest reading per metric is kept
+    /// for analysis.
+    pub fn telemetry(
+        &self,
+        key: &crate::gateway::event_store::RobotKey,
+        session: u64,
+        samples: &[Sample],
+    ) {
+        self.with_state(|s| {
+            if let Some(e) = s.live_session(key, session) {
+                e.analysis.telemetry(samples);
+            }
+        });
+    }
 }
 
 /// Whether `report`'s window is recent enough to matter to a rollout (see [`Tracker::window_open`]).
@@ -261,7 +310,19 @@ mod tests {
             t0 + SignedDuration::from_secs(1),
         );
         t.event(false);
+        let sample = |metric: &str, value: f64| Sample {
+            metric: metric.into(),
+            ts_ms: 0,
+            value,
+        };
+        t.telemetry(&[sample("cpu_percent", 30.0), sample("cpu_percent", 70.0)]);
+        t.telemetry(&[sample("cpu_percent", 50.0), sample("x", f64::NAN)]);
         let r = t.report().unwrap();
+        let ceiling = TelemetryCeiling {
+            metric: "cpu_percent".into(),
+            max: 70.0,
+        };
+        assert_eq!(r.window.telemetry, vec![ceiling]);
         // Another gateway resumes from the written summary and writes the same one.
         let resumed = Tracker::resume(&r).unwrap();
         assert_eq!(resumed.report(), Some(r.clone()));

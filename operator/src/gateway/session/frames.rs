@@ -148,6 +148,7 @@ where
 
     /// A durable batch of telemetry samples: stored, then acked.
     async fn telemetry(&self, seq: u64, samples: &[Sample]) -> ServerMessage {
+        self.shared.presence.telemetry(self.key, self.id, samples);
         let stored = Box::pin(self.shared.store.insert_telemetry(self.key, seq, samples)).await;
         self.durable(seq, stored)
     }

@@ -37,7 +37,9 @@ pub(super) fn switched(
     if span < SignedDuration::from_secs(spec.window_seconds.max(1)) {
         return None;
     }
-    let failed = judge(spec, report).or_else(|| judge_events(spec, report, span));
+    let failed = judge(spec, report)
+        .or_else(|| judge_events(spec, report, span))
+        .or_else(|| judge_telemetry(spec, report));
     Some(match failed {
         Some(why) => RobotState::Failed(batch, why),
         None => RobotState::Succeeded(batch),
@@ -147,6 +149,26 @@ fn judge_events(
     })
 }
 
+/// Why the window's telemetry fails `spec`: the first metric whose highest reading is above
+/// its ceiling; `None` if none is (a metric the robot did not send passes).
+fn judge_telemetry(spec: &AnalysisSpec, report: &AnalysisReport) -> Option<String> {
+    spec.telemetry.iter().find_map(|ceiling| {
+        let seen = report
+            .window
+            .telemetry
+            .iter()
+            .find(|t| t.metric == ceiling.metric)?;
+        (seen.max > ceiling.max).then(|| {
+            format!(
+                "analysis failed: telemetry {} reached {} after the switch (ceiling {})",
+                ceiling.metric,
+                number(seen.max),
+                ceiling.max
+            )
+        })
+    })
+}
+
 /// A reading for people: whole numbers from 100 up (bytes), two decimals below (percent).
 fn number(x: f64) -> String {
     if x >= 100.0 {
@@ -158,9 +180,40 @@ fn number(x: f64) -> String {
 
 #[cfg(test)]
 mod tests {
-    use lekiwi_crds::analysis::{EventCounts, MetricWindow};
+    use lekiwi_crds::analysis::{EventCounts, MetricWindow, TelemetryCeiling};
 
     use super::*;
+
+    fn ceiling(metric: &str, max: f64) -> TelemetryCeiling {
+        TelemetryCeiling {
+            metric: metric.into(),
+            max,
+        }
+    }
+
+    /// A telemetry ceiling fails the robot when the window's highest reading is above it; a
+    /// metric the robot did not send passes.
+    #[test]
+    fn a_reading_above_its_ceiling_fails_the_robot() {
+        let report = AnalysisReport {
+            window: MetricWindow {
+                telemetry: vec![ceiling("cpu_percent", 80.0)],
+                ..MetricWindow::default()
+            },
+            ..AnalysisReport::default()
+        };
+        let spec = |c: Vec<TelemetryCeiling>| AnalysisSpec {
+            telemetry: c,
+            ..AnalysisSpec::default()
+        };
+        let pass = spec(vec![ceiling("cpu_percent", 80.0), ceiling("other", 0.0)]);
+        assert_eq!(judge_telemetry(&pass, &report), None);
+        let why = judge_telemetry(&spec(vec![ceiling("cpu_percent", 75.0)]), &report).unwrap();
+        assert_eq!(
+            why,
+            "analysis failed: telemetry cpu_percent reached 80.00 after the switch (ceiling 75)"
+        );
+    }
 
     fn summary(mean: f64, max: f64) -> Option<MetricSummary> {
         Some(MetricSummary {
@@ -189,6 +242,7 @@ mod tests {
                     total: 10,
                     errors: 2,
                 }),
+                telemetry: vec![ceiling("cpu_percent", 80.0)],
                 ..MetricWindow::default()
             },
             ..AnalysisReport::default()
