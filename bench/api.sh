@@ -12,11 +12,16 @@
 #! Each is measured twice: latency with one connection (one request at a time), and throughput
 #! with --connections connections on two wrk threads. wrk shares the machine's cores with the
 #! servers it measures.
+#! Then subscription fan-out: --subscribers GraphQL WebSockets (graphql-transport-ws, the same
+#! token) subscribe to robotChanges of room r0 and the script's client (tests/src/bin/
+#! graphql-fanout.rs) flips robot-00000's phase 5 times through the API server: p50/p99/max from
+#! just before each write to each subscriber's receipt (goal p99 < 100 ms).
 #!
 #! Usage: bash bench/api.sh [options]
 #!   --robots N         Robots created (default 10000)
 #!   --duration S       seconds per wrk run (default 10; 8 runs)
 #!   --connections C    connections of the throughput runs (default 32)
+#!   --subscribers S    GraphQL subscribers of the fan-out run (default 1000; 0 skips it)
 #!   --no-build         use the binaries already built
 #!   --debug            use (and build) the debug binaries: a smoke test of this script, not a
 #!                      measurement (the table says so)
@@ -34,6 +39,7 @@ RESULTS="$ROOT/bench/results"
 ROBOTS=10000
 DURATION=10
 CONNECTIONS=32
+SUBSCRIBERS=1000
 BUILD=1
 PROFILE=release
 KEEP=0
@@ -49,6 +55,7 @@ while [ $# -gt 0 ]; do
     --robots) positive_int "$1" "${2:-}"; ROBOTS="$2"; shift 2 ;;
     --duration) positive_int "$1" "${2:-}"; DURATION="$2"; shift 2 ;;
     --connections) positive_int "$1" "${2:-}"; CONNECTIONS="$2"; shift 2 ;;
+    --subscribers) [[ "${2:-}" =~ ^[0-9]+$ ]] || die "--subscribers needs a number"; SUBSCRIBERS="$2"; shift 2 ;;
     --no-build) BUILD=0; shift ;;
     --debug) PROFILE=debug; shift ;;
     --keep) KEEP=1; shift ;;
@@ -66,11 +73,13 @@ trap_cleanup
 if [ "$BUILD" = 1 ]; then
   log "building the operator ($PROFILE)"
   flag=(); [ "$PROFILE" = release ] && flag=(--release)
-  (cd "$ROOT" && cargo build "${flag[@]}" --bin lekiwi-operator) >"$WORK/build.log" 2>&1 \
+  (cd "$ROOT" && cargo build "${flag[@]}" --bin lekiwi-operator --bin graphql-fanout) >"$WORK/build.log" 2>&1 \
     || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
 fi
 OPERATOR="$TARGET/$PROFILE/lekiwi-operator"
+FANOUT="$TARGET/$PROFILE/graphql-fanout"
 [ -x "$OPERATOR" ] || die "$OPERATOR is missing (drop --no-build)"
+[ "$SUBSCRIBERS" = 0 ] || [ -x "$FANOUT" ] || die "$FANOUT is missing (drop --no-build)"
 log "scripts/setup.sh"
 bash "$ROOT/scripts/setup.sh" >"$WORK/setup.log" 2>&1 || { tail -30 "$WORK/setup.log" >&2; die "setup failed"; }
 command -v wrk >/dev/null || die "wrk is missing (scripts/setup.sh installs Debian's wrk)"
@@ -121,7 +130,8 @@ start gateway env RUST_LOG=warn "$OPERATOR" --role gateway \
   --identity bench-api --gateway-name bench-api \
   --gateway-addr "127.0.0.1:$GW_PORT" --http-addr "127.0.0.1:$GW_HTTP" \
   --store-url "sqlite://$WORK/events.db" --blob-dir "$WORK/blobs" \
-  --api-rate 1000000000 --api-burst 1000000000 --max-unauthenticated-per-address 0
+  --api-rate 1000000000 --api-burst 1000000000 --max-unauthenticated-per-address 0 \
+  --graphql-max-connections $((SUBSCRIBERS + 100)) --graphql-max-subscriptions-per-user $((SUBSCRIBERS + 100))
 GW_PID=$LAST_PID
 FLEET="http://127.0.0.1:$GW_PORT/api/v1/namespaces/bench/robots"
 LAST="robot-$(printf %05d $((ROBOTS - 1)))"
@@ -156,6 +166,15 @@ for server in fleet kube; do
   run_wrk "$server-one-rps" "$CONNECTIONS" 2 "$base/$ONE"
   run_wrk "$server-list-rps" "$CONNECTIONS" 2 "$base?$LIST"
 done
+
+if [ "$SUBSCRIBERS" -gt 0 ]; then
+  log "subscription fan-out: $SUBSCRIBERS subscribers"
+  # Each subscriber holds a socket here and one in the gateway.
+  ulimit -n "$(ulimit -Hn)"
+  "$FANOUT" --port "$GW_PORT" --token "$TOKEN" --namespace bench --robot robot-00000 \
+    --selector room=r0 --subscribers "$SUBSCRIBERS" --rounds 5 >"$WORK/fanout.json" 2>"$WORK/fanout.log" \
+    || die "fan-out client failed: $(tail -3 "$WORK/fanout.log")"
+fi
 
 # ---- the table ------------------------------------------------------------------------------
 STAMP="$(date +%Y%m%d-%H%M%S)"

@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
 """Turns what bench/api.sh collected in its work directory into the one results table.
 
-Inputs (in WORK): facts.env (KEY=VALUE lines the script wrote) and the output of each wrk run,
-wrk-<server>-<one|list>-<lat|rps>.txt (`wrk --latency`). Arguments: WORK ROBOTS DURATION
+Inputs (in WORK): facts.env (KEY=VALUE lines the script wrote), the output of each wrk run,
+wrk-<server>-<one|list>-<lat|rps>.txt (`wrk --latency`), and fanout.json (graphql-fanout's one
+line) when the fan-out ran. Arguments: WORK ROBOTS DURATION
 CONNECTIONS PROFILE COMMAND. Standard library only.
 """
 
+import json
 import re
 import sys
 from pathlib import Path
@@ -16,6 +18,7 @@ RPS = re.compile(r"^Requests/sec:\s+([\d.]+)")
 ERRORS = re.compile(r"Non-2xx or 3xx responses:\s+(\d+)|Socket errors: (.*)")
 TARGET_P99_MS = 1.0
 TARGET_RPS = 10_000
+TARGET_FANOUT_P99_MS = 100.0
 
 
 def parse_wrk(path):
@@ -80,9 +83,27 @@ def main():
         print(f"| {label} | {name} | {fmt(p50, '.3f')} | {fmt(p99, '.3f')} | "
               f"{fmt(p99_load, '.3f')} | {fmt(rps, '.0f')} | {verdict} | {errors} |")
     print()
+    for row in fanout_rows(work):
+        print(row)
     print("Same ServiceAccount token (a viewer role) for both servers; the API server's answers are")
     print("what `kubectl get robot NAME -o json` and `kubectl get robots -l room=rK --chunk-size=100`")
     print("request. wrk, the gateway and the API server share the machine's cores.")
+
+
+def fanout_rows(work):
+    """The fan-out result as a line and a blank, or nothing when it did not run."""
+    path = work / "fanout.json"
+    if not path.exists() or not path.read_text().strip():
+        return []
+    r = json.loads(path.read_text())
+    ok = r["missed"] == 0 and r["p99_ms"] < TARGET_FANOUT_P99_MS
+    return [
+        f"Subscription fan-out: {r['subscribers']} GraphQL subscribers x {r['rounds']} phase "
+        f"changes: write -> receipt p50 {r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms, max "
+        f"{r['max_ms']:.1f} ms, {r['missed']} missed (target p99 < {TARGET_FANOUT_P99_MS:g} ms: "
+        f"{'PASS' if ok else 'FAIL'})",
+        "",
+    ]
 
 
 if __name__ == "__main__":

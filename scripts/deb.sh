@@ -13,6 +13,8 @@
 #! The package holds
 #!   /usr/bin/lekiwi-agent                     the stripped release binary
 #!   /lib/systemd/system/lekiwi-agent.service  manifests/systemd/lekiwi-agent.service (hardened)
+#!   /lib/systemd/system/lekiwi-agent-guard.{service,timer}  the agent update guard's periodic
+#!                                             check (enabled with lekiwi-agent.service)
 #!   /etc/lekiwi/agent.yaml                    the configuration the unit reads (a conffile:
 #!                                             upgrades keep a lab's edits)
 #!   /usr/share/doc/lekiwi-agent/copyright
@@ -70,7 +72,9 @@ install -d "$stage/DEBIAN" "$stage/usr/bin" "$stage/lib/systemd/system" "$stage/
   "$stage/usr/share/doc/lekiwi-agent"
 $strip -o "$stage/usr/bin/lekiwi-agent" "$bin"
 chmod 0755 "$stage/usr/bin/lekiwi-agent"
-install -m 0644 "$REPO/manifests/systemd/lekiwi-agent.service" "$stage/lib/systemd/system/"
+install -m 0644 "$REPO/manifests/systemd/lekiwi-agent.service" \
+  "$REPO/manifests/systemd/lekiwi-agent-guard.service" \
+  "$REPO/manifests/systemd/lekiwi-agent-guard.timer" "$stage/lib/systemd/system/"
 install -m 0644 "$REPO/agent/debian/agent.yaml" "$stage/etc/lekiwi/agent.yaml"
 install -m 0644 "$REPO/agent/debian/copyright" "$stage/usr/share/doc/lekiwi-agent/copyright"
 for s in postinst prerm postrm; do

@@ -17,7 +17,6 @@ use std::process::Stdio;
 use std::time::Duration;
 
 use lekiwi_protocol::Health;
-use sysinfo::{DiskRefreshKind, Disks};
 use tokio::sync::watch;
 use tracing::{info, warn};
 
@@ -232,17 +231,14 @@ pub fn find_process(proc_root: &Path, pattern: &[u8], own_pid: u32) -> Option<u3
         })
 }
 
-/// Percent in use of the file system holding `path` (the mount point that is its longest
-/// prefix), counting reserved blocks as used; `None` when no mount matches.
+/// Percent in use of the file system holding `path`, counting blocks reserved for root as
+/// used (what `df` shows); `None` when it cannot be read or has no size (ramfs). Asked of the
+/// file system itself (`statvfs`), so it also works where no mount table lists the path, as on
+/// an initramfs root.
 fn used_percent(path: &Path) -> Option<f64> {
-    let path = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_owned());
-    let disks = Disks::new_with_refreshed_list_specifics(DiskRefreshKind::nothing().with_storage());
-    let disk = disks
-        .list()
-        .iter()
-        .filter(|d| path.starts_with(d.mount_point()))
-        .max_by_key(|d| d.mount_point().as_os_str().len())?;
-    let (total, available) = (disk.total_space(), disk.available_space());
+    let st = rustix::fs::statvfs(path).ok()?;
+    let total = st.f_blocks.saturating_mul(st.f_frsize);
+    let available = st.f_bavail.saturating_mul(st.f_frsize);
     (total > 0).then(|| total.saturating_sub(available) as f64 * 100.0 / total as f64)
 }
 
@@ -358,7 +354,16 @@ mod tests {
             .spawn()
             .unwrap();
         let me = std::process::id();
-        let found = find_process(Path::new("/proc"), b"sleep 31.4159", me);
+        // Right after the fork the child still has this binary's command line: look until
+        // its exec has happened (bounded).
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        let found = loop {
+            let found = find_process(Path::new("/proc"), b"sleep 31.4159", me);
+            if found.is_some() || std::time::Instant::now() > deadline {
+                break found;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        };
         let as_itself = find_process(Path::new("/proc"), b"sleep 31.4159", child.id());
         child.kill().unwrap();
         child.wait().unwrap();

@@ -11,6 +11,7 @@ pub mod health;
 pub mod outbox;
 pub mod release;
 pub mod run;
+pub mod selfupdate;
 pub mod sim;
 pub mod state;
 pub mod telemetry;

@@ -4,13 +4,16 @@ use anyhow::Context;
 use clap::Parser;
 use lekiwi_agent::config::{Command, Config, Flags};
 use lekiwi_agent::outbox::{Lane, Outbox};
-use lekiwi_agent::run::Agent;
+use lekiwi_agent::run::{Agent, Stopped};
+use lekiwi_agent::selfupdate::{self, guard};
 use lekiwi_protocol::{AgentMessage, MAX_FRAME_BYTES, MAX_SEQ, Severity};
 
 fn main() -> anyhow::Result<()> {
     let flags = Flags::parse();
-    if let Some(command) = &flags.command {
-        return queue_event(&flags, command);
+    match &flags.command {
+        Some(Command::Guard { check }) => return run_guard(&flags, *check),
+        Some(command) => return queue_event(&flags, command),
+        None => {}
     }
     let hostname = std::fs::read_to_string("/etc/hostname").unwrap_or_default();
     let config = Config::load(&flags, hostname.trim())?;
@@ -25,11 +28,48 @@ fn main() -> anyhow::Result<()> {
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    runtime.block_on(async {
+    let stopped = runtime.block_on(async {
         let agent = Agent::new(config).await?;
-        agent.run(shutdown_signal()).await?;
-        Ok(())
-    })
+        anyhow::Ok(agent.run(shutdown_signal()).await?)
+    })?;
+    if stopped == Stopped::Updated {
+        tracing::info!(
+            status = selfupdate::EXIT_UPDATED,
+            "exiting so that the service manager starts the new agent build"
+        );
+        std::process::exit(selfupdate::EXIT_UPDATED);
+    }
+    Ok(())
+}
+
+/// `lekiwi-agent guard [--check]`: undoes an agent update that did not come back (see
+/// [`guard`]); prints what it did.
+fn run_guard(flags: &Flags, check: bool) -> anyhow::Result<()> {
+    let config = Config::merge(flags)?;
+    let slots = selfupdate::Slots::new(&config.state_dir);
+    let mode = if check {
+        guard::Mode::Check
+    } else {
+        guard::Mode::Start
+    };
+    let undone = match guard::run(&slots, mode, lekiwi_protocol::now_ms()) {
+        Ok(u) => u,
+        Err(e) => {
+            // Never keep the agent from starting: the next run tries again.
+            eprintln!("lekiwi-agent guard: {e}");
+            return Ok(());
+        }
+    };
+    if let Some(fb) = undone {
+        println!(
+            "switched back from agent {} ({}): {}",
+            fb.version, fb.digest, fb.reason
+        );
+        if check {
+            std::process::exit(guard::EXIT_FELL_BACK);
+        }
+    }
+    Ok(())
 }
 
 /// `lekiwi-agent event`: stores the event in the outbox (the running agent sends it) and
@@ -41,7 +81,10 @@ fn queue_event(flags: &Flags, command: &Command) -> anyhow::Result<()> {
         severity,
         data,
         critical,
-    } = command;
+    } = command
+    else {
+        anyhow::bail!("not an event command");
+    };
     let config = Config::merge(flags)?;
     let data: serde_json::Value = match data {
         Some(d) => serde_json::from_str(d).context("--data is not valid JSON")?,

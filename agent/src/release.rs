@@ -34,6 +34,7 @@ mod store;
 mod tests;
 
 pub(crate) use hooks::kill_group;
+use std::sync::Arc;
 
 use futures::FutureExt;
 use lekiwi_protocol::Release;
@@ -75,6 +76,9 @@ pub struct Releases {
     client: Client,
     hooks: Hooks,
     keep: usize,
+    /// Set to true by the holder of the matching sender to cancel the command running now
+    /// (see [`Releases::cancel_handle`]).
+    stop: tokio::sync::watch::Receiver<bool>,
 }
 
 impl Releases {
@@ -82,18 +86,34 @@ impl Releases {
     pub fn open(config: &Config, gateway: GatewayAccess) -> Result<Self> {
         let layout = Layout::new(&config.state_dir);
         layout.create()?;
+        let mut client = Client::new(gateway)?;
+        client.pace = fetch::Pace::new(config.release_download_rate_limit).map(Arc::new);
         Ok(Self {
             layout,
-            client: Client::new(gateway)?,
+            client,
             hooks: Hooks::from_config(config),
             keep: (config.release_keep as usize).max(1),
+            stop: tokio::sync::watch::channel(false).1,
         })
     }
 
     /// Replaces the gateway address and credentials, e.g. after enrollment.
     pub fn set_gateway(&mut self, gateway: GatewayAccess) -> Result<()> {
+        let pace = self.client.pace.take();
         self.client = Client::new(gateway)?;
+        self.client.pace = pace;
         Ok(())
+    }
+
+    /// A new handle that cancels the next command (`deploy` or `rollback`) and replaces the
+    /// previous one: sending `true` stops a download, a verification, an assembly or the
+    /// pre-switch command within moments and reports `cancelled` with the release that ran
+    /// before untouched (downloaded blobs and partial files stay for a later resume); after the
+    /// switch it switches back and reports `rolled_back`.
+    pub fn cancel_handle(&mut self) -> tokio::sync::watch::Sender<bool> {
+        let (tx, rx) = tokio::sync::watch::channel(false);
+        self.stop = rx;
+        tx
     }
 
     /// Replaces the robot's token only (it changes once, at enrollment).
@@ -104,6 +124,22 @@ impl Releases {
     /// The release `current` points at, if any.
     pub fn current(&self) -> Option<Release> {
         self.layout.current()
+    }
+
+    /// Downloads the blob `digest` (at most `limit` bytes) into memory and verifies its digest:
+    /// an agent build for `lekiwi-agent`'s self-update (see [`crate::selfupdate`]).
+    pub async fn fetch_verified(&self, url: &str, digest: &str, limit: usize) -> Result<Vec<u8>> {
+        digest_hex(digest)?;
+        let bytes = self.client.get_small(url, limit).await?;
+        let actual = store::sha256_digest(&bytes);
+        if actual != digest {
+            return Err(Error::DigestMismatch {
+                what: format!("agent build {url}"),
+                expected: digest.to_owned(),
+                actual,
+            });
+        }
+        Ok(bytes)
     }
 
     /// Deploys `release`, whose manifest is at `manifest_url` (a path relative to the gateway's
@@ -316,16 +352,28 @@ impl Releases {
         if let Err(e) = self.write_journal(journal).await {
             return failed(e);
         }
-        if let Err(e) = self
-            .prepare(release, manifest_url, rep, tally)
-            .boxed()
-            .await
-        {
+        let mut stop = self.stop.clone();
+        let prepared = cancellable(
+            &mut stop,
+            self.prepare(release, manifest_url, rep, tally).boxed(),
+        )
+        .await;
+        if !matches!(prepared, Some(Ok(()))) {
             let layout = self.layout.clone();
             if let Err(e) = blocking(move || layout.clean_temporaries()).await {
                 warn!(error = %e, "cannot clean temporary release files");
             }
-            return failed(e);
+        }
+        match prepared {
+            Some(Ok(())) => {}
+            Some(Err(e)) => return failed(e),
+            None => {
+                let message = format!(
+                    "cancelled before the switch to {}; {} bytes downloaded are kept for a later resume",
+                    release.version, rep.bytes_downloaded
+                );
+                return (Phase::Cancelled, message);
+            }
         }
         self.activate(journal, &active, rep, false).boxed().await
     }
@@ -352,6 +400,23 @@ impl Releases {
         if let Err(e) = self.write_journal(journal).await {
             warn!(error = %e, "cannot write the deploy journal");
         }
+    }
+}
+
+/// Runs `work` unless `stop` turns true first (`None` then, and `work` is dropped where it
+/// stands). A dropped sender never cancels.
+async fn cancellable<T>(
+    stop: &mut tokio::sync::watch::Receiver<bool>,
+    work: impl Future<Output = T>,
+) -> Option<T> {
+    let stopped = async {
+        if stop.wait_for(|s| *s).await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
+    tokio::select! {
+        out = work => Some(out),
+        () = stopped => None,
     }
 }
 

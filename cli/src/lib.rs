@@ -104,6 +104,15 @@ pub enum Command {
         #[command(subcommand)]
         command: release::ReleaseCommand,
     },
+    /// Push a build of `lekiwi-agent` to the gateway's blob store, for `Robot.spec.agent`.
+    Agent {
+        /// Where the gateway is and which Kubernetes token to present to it.
+        #[command(flatten)]
+        server: release::ServerArgs,
+        /// What to do.
+        #[command(subcommand)]
+        command: release::agent::AgentCommand,
+    },
 }
 
 /// Runs one command.
@@ -138,6 +147,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Release { server, command } => {
             release::run(&kube, &server, cli.output, command).await?;
+        }
+        Command::Agent { server, command } => {
+            release::agent::run(&kube, &server, command).await?;
         }
         Command::Robot {
             command: tokens::RobotCommand::Add(args),

@@ -32,6 +32,40 @@ pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
 /// Label on the Lease each gateway renews (value `true`; the Lease's name is the gateway's):
 /// the Robot controller's stale-Lease sweep considers only Leases that carry it.
 pub const GATEWAY_LEASE_LABEL: &str = "fleet.lekiwi.io/gateway";
+/// Annotation on a gateway's Lease listing the robots it holds a session of while their status
+/// still names another gateway (its status write has not landed yet): `namespace/name` entries
+/// separated by commas, at most [`MAX_CLAIMS_BYTES`] long. The Robot controller does not mark
+/// such a robot `Unknown` when the gateway its status names dies, as long as this Lease is alive.
+pub const CLAIMS_ANNOTATION: &str = "fleet.lekiwi.io/claimed-robots";
+/// Longest [`CLAIMS_ANNOTATION`] value in bytes: an API server takes at most 256 KiB of
+/// annotations per object; robots beyond this are left out (and may show `Unknown` briefly).
+pub const MAX_CLAIMS_BYTES: usize = 128 * 1024;
+
+/// The [`CLAIMS_ANNOTATION`] value of `robots` (`(namespace, name)`), cut at whole entries
+/// to at most [`MAX_CLAIMS_BYTES`]; also how many robots it lists.
+pub fn encode_claims<'a>(robots: impl IntoIterator<Item = (&'a str, &'a str)>) -> (String, usize) {
+    let mut out = String::new();
+    let mut listed = 0;
+    for (namespace, name) in robots {
+        let extra = usize::from(!out.is_empty()) + namespace.len() + 1 + name.len();
+        if out.len() + extra > MAX_CLAIMS_BYTES {
+            break;
+        }
+        if !out.is_empty() {
+            out.push(',');
+        }
+        out.push_str(namespace);
+        out.push('/');
+        out.push_str(name);
+        listed += 1;
+    }
+    (out, listed)
+}
+
+/// The `namespace/name` entries of a [`CLAIMS_ANNOTATION`] value.
+pub fn parse_claims(value: &str) -> impl Iterator<Item = &str> {
+    value.split(',').map(str::trim).filter(|e| e.contains('/'))
+}
 
 /// Server-side-apply field managers, one per writer, so `managedFields` say who wrote what.
 pub mod managers {
@@ -126,5 +160,21 @@ mod tests {
         let hash = &s.data.unwrap()[HASH_KEY];
         assert_eq!(hash.0, hash_token("lkr_x").into_bytes());
         assert_ne!(hash_token("lkr_x"), hash_token("lkr_y"));
+    }
+    #[test]
+    fn claims_round_trip_and_stay_bounded() {
+        let (value, n) = encode_claims([("fleet", "kiwi-1"), ("lab", "kiwi-2")]);
+        assert_eq!(value, "fleet/kiwi-1,lab/kiwi-2");
+        assert_eq!(n, 2);
+        assert_eq!(
+            parse_claims(&value).collect::<Vec<_>>(),
+            ["fleet/kiwi-1", "lab/kiwi-2"]
+        );
+        assert_eq!(parse_claims("").count(), 0);
+        let names: Vec<String> = (0..20_000).map(|i| format!("robot-{i:05}")).collect();
+        let (value, n) = encode_claims(names.iter().map(|n| ("fleet", n.as_str())));
+        assert!(value.len() <= MAX_CLAIMS_BYTES);
+        assert!(n < 20_000 && n > 5_000, "{n}");
+        assert_eq!(parse_claims(&value).count(), n);
     }
 }

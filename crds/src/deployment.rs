@@ -40,6 +40,7 @@ pub const MAX_ROBOT_RESULTS: usize = 500;
     printcolumn = r#"{"name":"Progress","type":"string","jsonPath":".status.progress"}"#,
     printcolumn = r#"{"name":"Batch","type":"string","jsonPath":".status.batchProgress","priority":1}"#,
     printcolumn = r#"{"name":"Failed","type":"integer","jsonPath":".status.failed"}"#,
+    printcolumn = r#"{"name":"Superseded","type":"integer","jsonPath":".status.superseded"}"#,
     printcolumn = r#"{"name":"Paused","type":"boolean","jsonPath":".spec.paused","priority":1}"#,
     printcolumn = r#"{"name":"Age","type":"date","jsonPath":".metadata.creationTimestamp"}"#
 )]
@@ -56,8 +57,10 @@ pub struct RobotDeploymentSpec {
     #[serde(default)]
     pub strategy: RolloutStrategy,
 
-    /// Pauses the rollout: robots already updating finish, no new robot starts until this is
-    /// set back to false.
+    /// Pauses the rollout: no new robot starts until this is set back to false. Robots told
+    /// to switch that have not switched yet are told to stay on the release they run (their
+    /// download or pre-switch command is cancelled; the download resumes after the pause);
+    /// robots that switched already finish.
     #[serde(default)]
     pub paused: bool,
 
@@ -66,6 +69,17 @@ pub struct RobotDeploymentSpec {
     /// soon as it runs the release and reports healthy.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub analysis: Option<crate::analysis::AnalysisSpec>,
+    /// Which deployment owns a robot that several deployments of the namespace select: the one
+    /// with the highest priority, and among equal priorities the newest (latest creation time,
+    /// then the greater name). The others leave the robot alone and show it `Superseded`.
+    /// From -1000 to 1000; default 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    #[schemars(range(min = -1000, max = 1000))]
+    pub priority: i32,
+}
+
+fn is_zero(n: &i32) -> bool {
+    *n == 0
 }
 
 /// What to do with a robot that cannot be updated right now.
@@ -195,6 +209,9 @@ pub enum RobotRolloutState {
     Failed,
     /// Left out (teleoperated, offline, unhealthy or in maintenance).
     Skipped,
+    /// Left alone: another deployment owns it (newer, or of higher `priority`); the message
+    /// names it.
+    Superseded,
     /// Switched back to the release it ran before.
     RolledBack,
 }
@@ -257,6 +274,10 @@ pub struct RobotDeploymentStatus {
     /// Robots not yet done.
     #[serde(default)]
     pub pending: i32,
+    /// Robots the selector picks that another deployment owns (newer, or of higher
+    /// `priority`): not targeted, left alone, listed in `robots` as `Superseded`.
+    #[serde(default)]
+    pub superseded: i32,
     /// Per-robot outcomes: robots in progress and failures first; at most 500 entries.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     #[schemars(length(max = 500))]

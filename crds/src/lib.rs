@@ -1,5 +1,6 @@
 //! Custom resource types of the LeKiwi fleet: `Robot` and `RobotDeployment` (group `fleet.lekiwi.io`).
 
+pub mod agent;
 pub mod analysis;
 pub mod condition;
 pub mod contract;
@@ -8,6 +9,7 @@ pub mod release;
 pub mod robot;
 mod schema;
 
+pub use agent::{AgentArch, AgentBuild, AgentRef, AgentUpdateReport};
 pub use condition::{Condition, ConditionStatus};
 pub use deployment::{RobotDeployment, RobotDeploymentSpec, RobotDeploymentStatus};
 pub use release::ReleaseRef;

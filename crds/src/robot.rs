@@ -6,6 +6,7 @@ use lekiwi_protocol::rules;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use crate::agent::{AgentRef, AgentUpdateReport};
 use crate::condition::Condition;
 use crate::release::ReleaseRef;
 
@@ -40,6 +41,7 @@ pub const CONDITION_UP_TO_DATE: &str = "UpToDate";
     printcolumn = r#"{"name":"Teleop","type":"string","jsonPath":".status.conditions[?(@.type==\"Teleoperating\")].status"}"#,
     printcolumn = r#"{"name":"Heartbeat","type":"date","jsonPath":".status.lastHeartbeatTime"}"#,
     printcolumn = r#"{"name":"Agent","type":"string","jsonPath":".status.agentVersion","priority":1}"#,
+    printcolumn = r#"{"name":"Desired Agent","type":"string","jsonPath":".spec.agent.version","priority":1}"#,
     printcolumn = r#"{"name":"Gateway","type":"string","jsonPath":".status.gateway","priority":1}"#,
     printcolumn = r#"{"name":"Age","type":"date","jsonPath":".metadata.creationTimestamp"}"#
 )]
@@ -64,6 +66,13 @@ pub struct RobotSpec {
     /// hand; the robot's agent downloads and switches to it. Unset: keep whatever runs now.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub release: Option<ReleaseRef>,
+
+    /// The `lekiwi-agent` version this robot should run, with one build per architecture.
+    /// The gateway sends the robot's agent the build for its own architecture; the agent
+    /// installs it beside itself and restarts into it, and switches back by itself when the
+    /// new agent does not reach the gateway in time. Unset: keep the agent that runs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agent: Option<AgentRef>,
 }
 
 /// Description of a robot's hardware.
@@ -224,6 +233,9 @@ pub struct RobotStatus {
     /// by rollouts with `spec.analysis`. Written by the gateway.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub analysis: Option<crate::analysis::AnalysisReport>,
+    /// How the robot's latest agent update (`spec.agent`) went. Written by the gateway.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agent_update: Option<AgentUpdateReport>,
 }
 
 /// How an agent's release update ended. Every field is optional: a gateway that restarts forgets
@@ -234,8 +246,9 @@ pub struct UpdateReport {
     /// The release the agent was told to run.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub release: Option<ReleaseRef>,
-    /// `done`, `failed` (nothing switched) or `rolled_back` (switched, unhealthy, switched
-    /// back).
+    /// `done`, `failed` (nothing switched), `rolled_back` (switched, unhealthy, switched
+    /// back) or `cancelled` (stopped before the switch because the robot should no longer run
+    /// it: a pause, an undo or an automatic rollback).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub phase: Option<String>,
     /// The agent's explanation.

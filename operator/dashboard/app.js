@@ -1,12 +1,17 @@
 // LeKiwi fleet dashboard. It talks only to the Fleet API (/api/v1) of the gateway that served
 // it, with the bearer token the user pasted (kept in this tab's sessionStorage), so it can do
 // exactly what RBAC allows that token. Views: #/fleet, #/robots/NAMESPACE/NAME, #/rollouts.
-// The shown view refreshes itself every REFRESH_MS (the API answers from the gateway's
-// watch-fed cache, so this costs the API server nothing). Text that comes from robots is set
+// The shown view follows a GraphQL subscription (graphql-transport-ws on /api/v1/graphql): each
+// change it announces re-reads the view (coalesced), and a slow poll catches what it does not
+// announce (deletions); without a subscription the view polls every REFRESH_MS. Either way the
+// API answers from the gateway's watch-fed cache, so this costs the API server nothing. Text that comes from robots is set
 // with textContent, never parsed as HTML; the page runs under a strict Content-Security-Policy.
 'use strict';
 
 const REFRESH_MS = 2000;
+const SUBSCRIBED_REFRESH_MS = 15000; // the safety net while a subscription announces changes
+const COALESCE_MS = 200; // changes within this window cause one re-read
+const MIN_GAP_MS = 1000; // and re-reads are at least this far apart (a busy fleet changes often)
 const MAX_PAGES = 10; // of 1,000 items, for the lists that are read whole
 const MAX_ROWS = 500;
 const PHASES = ['Online', 'Offline', 'Unknown', 'Pending', 'Maintenance'];
@@ -23,6 +28,8 @@ const S = {
   access: null,
   timer: null,
   generation: 0,
+  socket: null,
+  live: 'polling',
   filters: { selector: '', phase: '', release: '' },
 };
 
@@ -165,6 +172,54 @@ async function changeNamespace() {
 function stop() {
   S.generation++;
   clearTimeout(S.timer);
+  if (S.socket) S.socket.close(1000, 'view changed');
+  S.socket = null;
+  S.live = 'polling';
+}
+
+/**
+ * Subscribes to `query` over graphql-transport-ws and calls `changed` for every message; calls
+ * `lost` when the subscription cannot start or ends. Browsers cannot set headers on a
+ * WebSocket: the token goes in connection_init, as the gateway expects.
+ */
+function subscribe(query, variables, changed, lost) {
+  const url = (location.protocol === 'https:' ? 'wss://' : 'ws://') + location.host + '/api/v1/graphql';
+  let socket;
+  try {
+    socket = new WebSocket(url, 'graphql-transport-ws');
+  } catch (_) {
+    lost();
+    return null;
+  }
+  let ended = false;
+  const end = () => {
+    if (!ended) {
+      ended = true;
+      lost();
+    }
+  };
+  socket.onopen = () => socket.send(JSON.stringify({ type: 'connection_init', payload: { authorization: 'Bearer ' + S.token } }));
+  socket.onmessage = (event) => {
+    let message;
+    try {
+      message = JSON.parse(event.data);
+    } catch (_) {
+      return;
+    }
+    if (message.type === 'connection_ack') {
+      socket.send(JSON.stringify({ id: '1', type: 'subscribe', payload: { query, variables } }));
+    } else if (message.type === 'ping') {
+      socket.send(JSON.stringify({ type: 'pong' }));
+    } else if (message.type === 'next' && !(message.payload && message.payload.errors)) {
+      changed();
+    } else if (message.type === 'error' || message.type === 'complete' || message.type === 'next') {
+      socket.close(1000, 'subscription ended');
+      end();
+    }
+  };
+  socket.onclose = end;
+  socket.onerror = end;
+  return socket;
 }
 
 /** Shows a view: `setup` builds its frame once, `refresh` fills it now and every REFRESH_MS. */
@@ -174,16 +229,59 @@ function show(view) {
   const root = el('div');
   $('view').replaceChildren(root);
   const refresh = view.setup(root);
+  let running = false;
+  let again = false;
+  let lastRun = 0;
+  // One re-read at a time; a change announced meanwhile causes one more after it.
   const tick = async () => {
     if (generation !== S.generation) return;
+    clearTimeout(S.timer);
+    if (running) {
+      again = true;
+      return;
+    }
+    running = true;
+    lastRun = Date.now();
     try {
       if (!document.hidden) await refresh();
-      if (generation === S.generation) setStatus('Live · updated ' + new Date().toLocaleTimeString());
+      if (generation === S.generation) {
+        const how = S.live === 'subscription' ? 'Live (subscription)' : 'Live (polling every ' + REFRESH_MS / 1000 + ' s)';
+        setStatus(how + ' · updated ' + new Date().toLocaleTimeString());
+      }
     } catch (e) {
       if (generation === S.generation && S.token) setStatus(e.message, true);
     }
-    if (generation === S.generation) S.timer = setTimeout(tick, REFRESH_MS);
+    running = false;
+    if (generation !== S.generation) return;
+    if (again) {
+      again = false;
+      S.timer = setTimeout(tick, COALESCE_MS);
+    } else {
+      S.timer = setTimeout(tick, S.live === 'subscription' ? SUBSCRIBED_REFRESH_MS : REFRESH_MS);
+    }
   };
+  if (view.subscription) {
+    let pending = null;
+    S.live = 'subscription';
+    S.socket = subscribe(
+      view.subscription.query,
+      view.subscription.variables,
+      () => {
+        if (generation !== S.generation || pending) return;
+        const wait = Math.max(COALESCE_MS, lastRun + MIN_GAP_MS - Date.now());
+        pending = setTimeout(() => {
+          pending = null;
+          tick();
+        }, wait);
+      },
+      () => {
+        if (generation !== S.generation) return;
+        S.live = 'polling';
+        S.socket = null;
+        tick();
+      },
+    );
+  }
   tick();
 }
 
@@ -268,7 +366,12 @@ function fleetView() {
       : page.items.length + ' robots shown.';
     tbody.replaceChildren(...page.items.map(robotRow));
   };
-  return { setup };
+  const subscription = {
+    query: 'subscription ($ns: String!, $sel: String) { robotChanges(namespace: $ns, labelSelector: $sel) { name } }',
+    // The whole namespace: the filters can change while the subscription stays.
+    variables: { ns: S.ns, sel: null },
+  };
+  return { setup, subscription };
 }
 
 function robotRow(r) {
@@ -294,6 +397,7 @@ function robotRow(r) {
 // ---------------------------------------------------------------- one robot
 
 function robotView(namespace, name) {
+  // Polled: a subscription names no single robot, and this view re-reads charts and events too.
   const base = '/api/v1/namespaces/' + encodeURIComponent(namespace) + '/robots/' + encodeURIComponent(name);
   let facts, conditions, charts, events;
   const setup = (root) => {
@@ -409,7 +513,11 @@ function rolloutsView() {
     const { items } = await listAll('/api/v1/namespaces/' + ns() + '/rollouts', {});
     list.replaceChildren(...(items.length ? items.map((d) => rolloutCard(d, refresh)) : [el('p', { class: 'muted', text: 'No RobotDeployments in ' + S.ns + '.' })]));
   };
-  return { setup };
+  const subscription = {
+    query: 'subscription ($ns: String!) { rolloutProgress(namespace: $ns) { name } }',
+    variables: { ns: S.ns },
+  };
+  return { setup, subscription };
 }
 
 function rolloutCard(d, refresh) {

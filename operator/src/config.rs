@@ -240,9 +240,24 @@ pub struct Config {
     )]
     pub max_unauthenticated_connections: usize,
 
-    /// Robot status writes per second, sustained, from this gateway.
+    /// Robot status writes per second from this gateway at start; the rate then adapts to the
+    /// API server's answers within `--status-qps-min`..`--status-qps-max`.
     #[arg(long, env = "LEKIWI_STATUS_QPS", default_value_t = 50.0)]
     pub status_qps: f64,
+
+    /// Lowest rate of status writes the adaptive limit cuts to (writes per second).
+    #[arg(long, env = "LEKIWI_STATUS_QPS_MIN", default_value_t = 20.0)]
+    pub status_qps_min: f64,
+
+    /// Highest rate of status writes the adaptive limit raises to (writes per second); set it
+    /// to `--status-qps` for a fixed rate.
+    #[arg(long, env = "LEKIWI_STATUS_QPS_MAX", default_value_t = 200.0)]
+    pub status_qps_max: f64,
+
+    /// A status write answered slower than this (milliseconds) cuts the rate by a quarter (a
+    /// 429, a 5xx or a timeout halves it).
+    #[arg(long, env = "LEKIWI_STATUS_SLOW_MS", default_value_t = 1000)]
+    pub status_slow_ms: u64,
 
     /// Robot status writes at once.
     #[arg(long, env = "LEKIWI_STATUS_BURST", default_value_t = 100)]
@@ -272,6 +287,10 @@ pub struct Config {
     /// Fleet API requests one user may make at once before that rate applies.
     #[arg(long, env = "LEKIWI_API_BURST", default_value_t = 100)]
     pub api_burst: u32,
+
+    /// The GraphQL endpoint's limits.
+    #[command(flatten)]
+    pub graphql: crate::gateway::api::graphql::GraphQlConfig,
 
     /// Validity of the gateway's own Lease (renewed every third of it).
     #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]

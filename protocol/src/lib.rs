@@ -21,6 +21,10 @@ pub use types::{
 /// Protocol version spoken by this crate. A peer with another version is refused.
 pub const PROTOCOL_VERSION: u32 = 1;
 
+/// The `hello` feature of an agent that handles the `update_agent` command (it replaces itself
+/// by another build, PROTOCOL.md §12.1). The gateway sends that command to no other agent.
+pub const FEATURE_UPDATE_AGENT: &str = "update_agent";
+
 /// Largest frame either side accepts by default, in bytes. The gateway may announce a smaller
 /// limit in `welcome`.
 pub const MAX_FRAME_BYTES: usize = 256 * 1024;
@@ -134,6 +138,7 @@ mod tests {
             },
             current_release: None,
             last_acked_seq: Some(41),
+            features: vec![FEATURE_UPDATE_AGENT.into()],
             health: None,
             teleoperation: None,
         };

@@ -59,6 +59,16 @@ pub enum Command {
         /// The release to return to.
         release: Release,
     },
+    /// Replace the agent itself by another build (PROTOCOL.md §12.1). Sent only to an agent
+    /// whose `hello` lists the [`FEATURE_UPDATE_AGENT`](crate::FEATURE_UPDATE_AGENT) feature.
+    UpdateAgent {
+        /// Version of the new agent build.
+        version: String,
+        /// `sha256:<hex>` digest of the agent binary, for the robot's architecture.
+        digest: String,
+        /// Where to fetch the binary, relative to the gateway's base URL.
+        url: String,
+    },
 }
 
 /// Messages from the agent to the gateway.
@@ -86,6 +96,10 @@ pub enum AgentMessage {
         /// Teleoperation at connect time.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         teleoperation: Option<Teleoperation>,
+        /// Optional protocol features this agent implements, e.g.
+        /// [`FEATURE_UPDATE_AGENT`](crate::FEATURE_UPDATE_AGENT); unknown names are ignored.
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        features: Vec<String>,
     },
     /// Liveness and current state, every `heartbeat_interval_s`.
     Heartbeat {

@@ -27,6 +27,9 @@ pub enum ProgressPhase {
     Failed,
     /// Finished: the release was switched to, failed, and the previous one runs again.
     RolledBack,
+    /// Finished: a `cancel` stopped it before the switch; the release that ran before still
+    /// runs, untouched, and the blobs downloaded so far are kept for a later resume.
+    Cancelled,
 }
 
 impl ProgressPhase {
@@ -43,6 +46,7 @@ impl ProgressPhase {
             ProgressPhase::Done => "done",
             ProgressPhase::Failed => "failed",
             ProgressPhase::RolledBack => "rolled_back",
+            ProgressPhase::Cancelled => "cancelled",
         }
     }
 }
@@ -55,7 +59,7 @@ impl std::fmt::Display for ProgressPhase {
 
 impl ProgressPhase {
     /// Every phase, in the order a deploy goes through them.
-    pub const ALL: [ProgressPhase; 10] = [
+    pub const ALL: [ProgressPhase; 11] = [
         ProgressPhase::Downloading,
         ProgressPhase::Verifying,
         ProgressPhase::Assembling,
@@ -66,6 +70,7 @@ impl ProgressPhase {
         ProgressPhase::Done,
         ProgressPhase::Failed,
         ProgressPhase::RolledBack,
+        ProgressPhase::Cancelled,
     ];
 
     /// The phase a wire name stands for; `None` for a name this version does not know.
@@ -73,11 +78,14 @@ impl ProgressPhase {
         Self::ALL.into_iter().find(|p| p.as_str() == name)
     }
 
-    /// Whether the command is over (`done`, `failed` or `rolled_back`).
+    /// Whether the command is over (`done`, `failed`, `rolled_back` or `cancelled`).
     pub fn is_final(self) -> bool {
         matches!(
             self,
-            ProgressPhase::Done | ProgressPhase::Failed | ProgressPhase::RolledBack
+            ProgressPhase::Done
+                | ProgressPhase::Failed
+                | ProgressPhase::RolledBack
+                | ProgressPhase::Cancelled
         )
     }
 

@@ -205,6 +205,7 @@ pub fn hello() -> lekiwi_protocol::AgentMessage {
             active: false,
             score: Some(0.0),
         }),
+        features: Vec::new(),
     }
 }
 

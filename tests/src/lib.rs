@@ -1,9 +1,10 @@
 //! Test harness: the shared local control plane and private ones for disruptive tests
 //! ([`control_plane`]), the single-node cluster whose Pods really run ([`cluster`]), our operator, agent and `lekiwi-fleet` processes ([`operator`],
 //! [`agent`], [`fleet_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
-//! fleet fixtures and waits ([`fleet`]) and bare HTTP helpers ([`http`]), re-exported here so
-//! tests import them from the crate root; robots on other hosts made of network namespaces are
-//! in [`netns`]; emulated Raspberry Pi 5s running the arm64 agent are in
+//! fleet fixtures and waits ([`fleet`]), RBAC'd users ([`users`]) and bare HTTP helpers
+//! ([`http`]), re-exported here so tests import them from the crate root; robots on other hosts
+//! made of network namespaces are in [`netns`]; a stand-in for systemd is [`supervisor`];
+//! a headless browser is [`browser`]; emulated Raspberry Pi 5s running the arm64 agent are in
 //! [`pi`].
 
 pub mod agent;
@@ -18,8 +19,9 @@ pub mod operator;
 pub mod pi;
 pub mod postgres;
 mod process;
-pub mod rbac;
 pub mod stand_in;
+pub mod supervisor;
+pub mod users;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -39,6 +41,7 @@ pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::{OperatorProcess, gateway_operator};
 pub use stand_in::{GATEWAY_FIELD_MANAGER, GatewayStandIn};
+pub use users::{account, chart_roles};
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {

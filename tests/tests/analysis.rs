@@ -143,6 +143,7 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
             strategy: test_strategy(1, 0),
             paused: false,
             analysis: Some(analysis(8)),
+            priority: 0,
         },
     );
     deployments.create(&PostParams::default(), &d).await?;

@@ -177,6 +177,7 @@ async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> anyhow::Resu
         strategy: test_strategy(1, 0),
         paused: false,
         analysis: None,
+        priority: 0,
     };
     Api::<RobotDeployment>::namespaced(client.clone(), ns)
         .create(&PostParams::default(), &RobotDeployment::new("pi", spec))

@@ -224,6 +224,7 @@ impl Install {
                 strategy: test_strategy(2, 1),
                 paused: false,
                 analysis: None,
+                priority: 0,
             };
             api.create(&PostParams::default(), &RobotDeployment::new(name, spec))
                 .await?;

@@ -20,11 +20,10 @@ use kube::api::{Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::{ReleaseRef, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::browser::Browser;
-use lekiwi_tests::rbac::{account, chart_roles};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, enrollment_token_file,
-    gateway_url, http_request, log_dir, namespace, push_release, test_strategy, wait_for,
-    wait_online,
+    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, account, chart_roles,
+    enrollment_token_file, gateway_url, http_request, log_dir, namespace, push_release,
+    test_strategy, wait_for, wait_online,
 };
 use serde_json::json;
 
@@ -58,6 +57,7 @@ async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> Result<()> {
             strategy: test_strategy(2, 1),
             paused: false,
             analysis: None,
+            priority: 0,
         },
     );
     Api::<RobotDeployment>::namespaced(client.clone(), ns)
@@ -177,6 +177,13 @@ async fn dashboard_shows_the_fleet_live_and_obeys_rbac() -> Result<()> {
         .wait_for(
             "4 Online robots in the table",
             &format!("{} === {ROBOTS}", count("#robots tr[data-phase=Online]")),
+            LIVE,
+        )
+        .await?;
+    browser
+        .wait_for(
+            "the fleet view on its subscription",
+            "document.getElementById('status').textContent.startsWith('Live (subscription)')",
             LIVE,
         )
         .await?;
@@ -332,6 +339,13 @@ async fn dashboard_shows_the_fleet_live_and_obeys_rbac() -> Result<()> {
         )
         .await?;
     screenshot(&mut browser, "fleet").await?;
+    browser
+        .wait_for(
+            "the viewer's fleet view on its subscription",
+            "document.getElementById('status').textContent.startsWith('Live (subscription)')",
+            LIVE,
+        )
+        .await?;
     fleet.kill();
     solo.kill();
     browser

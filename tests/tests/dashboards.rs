@@ -346,6 +346,7 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
                     strategy: test_strategy(3, 1),
                     paused: false,
                     analysis: None,
+                    priority: 0,
                 },
             ),
         )

@@ -404,6 +404,52 @@ async fn concurrent_inserts_store_one_row(db: Db) -> Result<()> {
     Ok(())
 }
 
+/// Many robots' sessions storing at once (and replaying each other's first event): inserts
+/// are batched into far fewer statements, every `(robot, seq)` is stored once, and exactly one
+/// insert of each reports it newly stored.
+async fn many_sessions_insert_in_batches(db: Db) -> Result<()> {
+    const ROBOTS: usize = 40;
+    const EVENTS: u64 = 25;
+    let store = db.store().await?;
+    let mut tasks = tokio::task::JoinSet::new();
+    for i in 0..ROBOTS {
+        for replay in [false, true] {
+            let (store, r) = (store.clone(), robot(&format!("kiwi-{i}")));
+            tasks.spawn(async move {
+                let seqs = if replay { 1..=1 } else { 1..=EVENTS };
+                let mut new = 0;
+                for seq in seqs {
+                    new += usize::from(store.insert_event(&r, &event(seq, 1_000)).await?);
+                }
+                anyhow::Ok(new)
+            });
+        }
+    }
+    let mut new = 0;
+    while let Some(joined) = tasks.join_next().await {
+        new += joined??;
+    }
+    assert_eq!(new, ROBOTS * EVENTS as usize, "one insert of each seq wins");
+    for i in 0..ROBOTS {
+        let r = robot(&format!("kiwi-{i}"));
+        let seqs: Vec<u64> = store
+            .events(&r, None, 1_000)
+            .await?
+            .iter()
+            .map(|e| e.seq)
+            .collect();
+        assert_eq!(seqs, (1..=EVENTS).collect::<Vec<_>>(), "{r:?}");
+    }
+    let statements = store.event_statements().expect("inserts are batched");
+    let inserts = ROBOTS * (EVENTS as usize + 1);
+    println!("{inserts} event inserts in {statements} statements");
+    ensure!(
+        (statements as usize) < inserts / 2,
+        "{statements} statements for {inserts} inserts"
+    );
+    Ok(())
+}
+
 async fn data_survives_reconnects_and_restarts(mut db: Db) -> Result<()> {
     let r = robot("kiwi-1");
     let store = db.store().await?;
@@ -565,5 +611,6 @@ on_both_backends!(
     quota_is_kept_per_robot,
     migration_keeps_old_rows_with_a_clamped_receive_time,
     concurrent_inserts_store_one_row,
+    many_sessions_insert_in_batches,
     data_survives_reconnects_and_restarts,
 );

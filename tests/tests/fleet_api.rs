@@ -17,8 +17,9 @@ use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::{Robot, RobotDeployment};
 use lekiwi_operator::gateway::event_store::{Sample, Store, StoredEvent};
 use lekiwi_tests::postgres::Postgres;
-use lekiwi_tests::rbac::{account, chart_roles};
-use lekiwi_tests::{ControlPlane, OperatorProcess, create_robot, http_request, namespace};
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, account, chart_roles, create_robot, http_request, namespace,
+};
 use serde_json::{Value, json};
 
 const DIGEST_A: &str = "sha256:aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa";

@@ -321,6 +321,7 @@ fn status_writer(
             status_refresh: Duration::from_secs(60),
             poll_grace: Duration::from_secs(60),
             qps: 50.0,
+            adaptive: None,
             burst: 50,
             concurrency: 4,
         },

@@ -222,6 +222,7 @@ async fn a_refused_status_falls_back_to_presence_and_a_warning_event() -> anyhow
             status_refresh: Duration::from_secs(60),
             poll_grace: Duration::from_secs(60),
             qps: 50.0,
+            adaptive: None,
             burst: 50,
             concurrency: 4,
         },

@@ -102,6 +102,7 @@ impl Site {
                 strategy,
                 paused: false,
                 analysis: None,
+                priority: 0,
             },
         );
         Api::<RobotDeployment>::namespaced(self.client.clone(), &self.ns)

@@ -259,6 +259,21 @@ pub struct Flags {
     #[arg(long, env = "LEKIWI_RELEASE_KEEP")]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub release_keep: Option<u32>,
+    /// Cap on the download rate of release blobs, bytes per second, over all parallel
+    /// downloads (0: no cap).
+    #[arg(long, env = "LEKIWI_RELEASE_DOWNLOAD_RATE_LIMIT")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub release_download_rate_limit: Option<u64>,
+    /// Seconds a new agent build (installed by an `update_agent` command) has to reach the
+    /// gateway; past it, `lekiwi-agent guard` switches back to the previous build.
+    #[arg(long, env = "LEKIWI_AGENT_UPDATE_DEADLINE_S")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub agent_update_deadline_s: Option<u64>,
+    /// Starts a new agent build may take without reaching the gateway before
+    /// `lekiwi-agent guard` switches back (it crashes at start).
+    #[arg(long, env = "LEKIWI_AGENT_UPDATE_MAX_STARTS")]
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub agent_update_max_starts: Option<u32>,
 }
 
 /// Subcommands.
@@ -282,5 +297,15 @@ pub enum Command {
         /// Send ahead of telemetry and other events and never drop it.
         #[arg(long)]
         critical: bool,
+    },
+    /// Undo an agent update that did not come back: run by the service manager from the
+    /// package's binary before every start of the agent and (with --check) periodically. Switches
+    /// `<state-dir>/agent/current` back to the previous build when the new one has not reached
+    /// the gateway by its deadline, has started too often, or is for another CPU. Exit status 0;
+    /// with --check, 3 when it switched back (restart the agent then).
+    Guard {
+        /// Periodic check while the agent runs: only the deadline counts, no start is counted.
+        #[arg(long)]
+        check: bool,
     },
 }

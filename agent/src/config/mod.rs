@@ -159,6 +159,13 @@ pub struct Config {
     pub release_hook_timeout_s: u64,
     /// Releases kept on disk, the current one included (at least 2, for rollback).
     pub release_keep: u32,
+    /// Cap on the download rate of release blobs, bytes per second, over all parallel
+    /// downloads (0: no cap). For robots on a shared or metered link, and for tests.
+    pub release_download_rate_limit: u64,
+    /// Seconds a new agent build has to reach the gateway before the guard switches back.
+    pub agent_update_deadline_s: u64,
+    /// Starts of a new agent build without reaching the gateway before the guard switches back.
+    pub agent_update_max_starts: u32,
 }
 
 impl Default for Config {
@@ -215,6 +222,9 @@ impl Default for Config {
             release_health_timeout_s: 60,
             release_hook_timeout_s: 300,
             release_keep: 3,
+            release_download_rate_limit: 0,
+            agent_update_deadline_s: 300,
+            agent_update_max_starts: 3,
         }
     }
 }

@@ -7,7 +7,7 @@ use tracing::warn;
 use super::hooks::HookEnv;
 use super::progress::{Phase, Reporter};
 use super::store::{Active, Journal, JournalPhase};
-use super::{Releases, blocking};
+use super::{Releases, blocking, cancellable};
 
 impl Releases {
     /// Pre-switch hook, switch, restart, health check; reverts on failure after the switch.
@@ -20,20 +20,15 @@ impl Releases {
         resume: bool,
     ) -> (Phase, String) {
         let target = &active.target;
+        let mut stop = self.stop.clone();
         let env = HookEnv {
             dir: self.layout.release_dir(&target.version),
             release: target.clone(),
             previous: active.previous.as_ref().map(|p| p.version.clone()),
         };
         if !resume {
-            if !self.hooks.pre_switch.is_empty() {
-                rep.phase(Phase::PreSwitch, "running the pre-switch command");
-                if let Err(why) = self.hooks.run(&self.hooks.pre_switch, &env).boxed().await {
-                    return (
-                        Phase::Failed,
-                        format!("pre-switch command failed, nothing switched: {why}"),
-                    );
-                }
+            if let Some(ended) = self.pre_switch(&env, rep, &mut stop).await {
+                return ended;
             }
             let mut switching = active.clone();
             switching.phase = JournalPhase::Switching;
@@ -58,7 +53,9 @@ impl Releases {
                 Phase::Restarting,
                 format!("restarting on {}", target.version),
             );
-            if let Err(why) = self.hooks.run(&self.hooks.restart, &env).boxed().await {
+            let run = self.hooks.run(&self.hooks.restart, &env).boxed();
+            let result = cancellable(&mut stop, run).await.unwrap_or_else(cancelled);
+            if let Err(why) = result {
                 let why = format!("restart command failed on {}: {why}", target.version);
                 return self.revert(journal, active, rep, why).boxed().await;
             }
@@ -68,7 +65,11 @@ impl Releases {
                 Phase::HealthCheck,
                 format!("checking the health of {}", target.version),
             );
-            if let Err(why) = self.hooks.health_check(&env).boxed().await {
+            let check = self.hooks.health_check(&env).boxed();
+            let result = cancellable(&mut stop, check)
+                .await
+                .unwrap_or_else(cancelled);
+            if let Err(why) = result {
                 let why = format!("health check of {} failed: {why}", target.version);
                 return self.revert(journal, active, rep, why).boxed().await;
             }
@@ -82,6 +83,32 @@ impl Releases {
             format!("release {} runs", target.version)
         };
         (Phase::Done, message)
+    }
+
+    /// Runs the pre-switch command, if any; the outcome when it ends the deployment (it failed,
+    /// or a cancel stopped it: nothing is switched either way).
+    async fn pre_switch(
+        &self,
+        env: &HookEnv,
+        rep: &mut Reporter<'_>,
+        stop: &mut tokio::sync::watch::Receiver<bool>,
+    ) -> Option<(Phase, String)> {
+        if self.hooks.pre_switch.is_empty() {
+            return None;
+        }
+        rep.phase(Phase::PreSwitch, "running the pre-switch command");
+        let run = self.hooks.run(&self.hooks.pre_switch, env).boxed();
+        match cancellable(stop, run).await {
+            Some(Ok(())) => None,
+            Some(Err(why)) => Some((
+                Phase::Failed,
+                format!("pre-switch command failed, nothing switched: {why}"),
+            )),
+            None => Some((
+                Phase::Cancelled,
+                "cancelled during the pre-switch command, nothing switched".to_owned(),
+            )),
+        }
     }
 
     /// Switches back to the previous release (or to none) and restarts it.
@@ -133,4 +160,9 @@ impl Releases {
         }
         (Phase::RolledBack, message)
     }
+}
+
+/// The error of a hook that a `cancel` stopped after the switch: it rolls back like a failure.
+fn cancelled() -> Result<(), String> {
+    Err("cancelled by the gateway".to_owned())
 }

@@ -29,6 +29,9 @@ const ERROR_BODY_LIMIT: usize = 4096;
 const POOL_SIZE: usize = 4;
 
 mod blob;
+mod pace;
+
+pub(super) use pace::Pace;
 
 /// How to reach the gateway's blob API.
 #[derive(Clone)]
@@ -117,6 +120,8 @@ pub(super) struct Client {
     target: Target,
     tls: Option<tokio_rustls::TlsConnector>,
     idle: Mutex<Vec<Sender>>,
+    /// The download rate cap, shared with the client that replaces this one.
+    pub(super) pace: Option<Arc<Pace>>,
 }
 
 impl Client {
@@ -159,6 +164,7 @@ impl Client {
             target,
             tls: connector,
             idle: Mutex::new(Vec::new()),
+            pace: None,
         })
     }
 

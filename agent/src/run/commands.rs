@@ -4,6 +4,7 @@
 use lekiwi_protocol::{AgentMessage, Command, Release};
 use tracing::{error, info};
 
+use super::agent_update::AgentTarget;
 use super::{Agent, Error};
 use crate::outbox::Lane;
 use crate::release::{Outcome, Phase, Releases};
@@ -22,6 +23,28 @@ pub(super) struct Deploying {
     /// Later command ids for the same release (a reconnect re-sends the command): they get the
     /// same final report.
     aliases: Vec<String>,
+    /// Cancels it (none for a recovery, which finishes what an agent restart interrupted).
+    stop: Option<tokio::sync::watch::Sender<bool>>,
+    /// The agent build it installs, for an `update_agent` task.
+    agent: Option<AgentTarget>,
+}
+
+impl Deploying {
+    /// The task of an `update_agent` command.
+    pub(super) fn agent(
+        task: tokio::task::JoinHandle<(Releases, Option<Outcome>)>,
+        command_id: String,
+        target: AgentTarget,
+    ) -> Self {
+        Self {
+            task,
+            command_id,
+            release: None,
+            aliases: Vec::new(),
+            stop: None,
+            agent: Some(target),
+        }
+    }
 }
 
 impl Agent {
@@ -41,7 +64,7 @@ impl Agent {
     }
 
     /// A command while a deployment runs: the same release joins it, a cancel drops what is
-    /// queued, anything else is queued (replacing what was).
+    /// queued and stops the deployment, anything else is queued (replacing what was).
     fn on_command_while_deploying(
         &mut self,
         command_id: String,
@@ -51,7 +74,7 @@ impl Agent {
             Command::Deploy { release, .. } | Command::Rollback { release } => {
                 Some(release.clone())
             }
-            Command::Cancel => None,
+            Command::Cancel | Command::UpdateAgent { .. } => None,
         };
         if let Some(running) = self.deploying.as_mut()
             && target.is_some()
@@ -66,17 +89,20 @@ impl Agent {
                 if let Some((queued_id, _)) = self.queued.take() {
                     self.report_final(
                         &queued_id,
-                        Phase::Failed,
+                        Phase::Cancelled,
                         "cancelled before it started".into(),
                     )?;
                 }
-                // A running deployment finishes or rolls back by itself; it is not torn down
-                // half-way.
-                self.report_final(
-                    &command_id,
-                    Phase::Failed,
-                    "a deployment in progress is not interrupted; it finishes or rolls back".into(),
-                )?;
+                let running = self.deploying.as_ref();
+                let message = match running.and_then(|d| d.stop.as_ref().map(|s| (d, s))) {
+                    Some((d, stop)) => {
+                        // The deployment reports `cancelled` (or `rolled_back`) itself.
+                        stop.send_replace(true);
+                        format!("cancelling command {}", d.command_id)
+                    }
+                    None => "a recovery after an agent restart is not interrupted".to_owned(),
+                };
+                self.report_final(&command_id, Phase::Done, message)?;
             }
             other => {
                 if let Some((old, _)) = self.queued.replace((command_id, other)) {
@@ -113,6 +139,7 @@ impl Agent {
         };
         let tx = self.progress_tx.clone();
         let id = command_id.clone();
+        let stop = releases.cancel_handle();
         let (release, task) = match command {
             Command::Deploy {
                 release,
@@ -131,6 +158,15 @@ impl Agent {
                     (releases, Some(o))
                 }),
             ),
+            Command::UpdateAgent {
+                version,
+                digest,
+                url,
+            } => {
+                let target = AgentTarget { version, digest };
+                self.deploying = self.start_agent_update(releases, command_id, target, url);
+                return;
+            }
             Command::Cancel => {
                 self.releases = Some(releases);
                 return;
@@ -141,6 +177,8 @@ impl Agent {
             command_id,
             release,
             aliases: Vec::new(),
+            stop: Some(stop),
+            agent: None,
         });
     }
 
@@ -158,6 +196,8 @@ impl Agent {
             command_id: String::new(),
             release: None,
             aliases: Vec::new(),
+            stop: None,
+            agent: None,
         });
     }
 
@@ -191,6 +231,9 @@ impl Agent {
             );
             for alias in &done.aliases {
                 self.report_final(alias, o.phase, o.message.clone())?;
+            }
+            if let Some(target) = &done.agent {
+                self.agent_update_done(&done.command_id, target, o)?;
             }
         }
         self.publish_release();

@@ -15,7 +15,7 @@ use super::commands::Joined;
 use super::link::{Connecting, Connector};
 use super::session::Session;
 use super::status::STATUS_EVERY;
-use super::{AGENT_VERSION, Agent, Error, SAMPLES_PER_MESSAGE};
+use super::{Agent, Error, SAMPLES_PER_MESSAGE, Stopped};
 use crate::backoff::Backoff;
 use crate::config::Config;
 use crate::connection::{ConnectError, Transport, Welcome};
@@ -119,15 +119,17 @@ impl Agent {
         mut self,
         shutdown: impl Future<Output = ()>,
         connect: Connector<S>,
-    ) -> Result<(), Error> {
+    ) -> Result<Stopped, Error> {
         tokio::pin!(shutdown);
+        let version = crate::selfupdate::version();
         self.event(
             Lane::Event,
             "agent_started",
             Severity::Info,
-            format!("lekiwi-agent {AGENT_VERSION} started"),
-            serde_json::json!({"version": AGENT_VERSION}),
+            format!("lekiwi-agent {version} started"),
+            serde_json::json!({"version": version}),
         )?;
+        self.report_fallen_back()?;
         self.start_recovery();
         let mut lp = Loop::new(&self.config, connect);
         loop {
@@ -137,8 +139,13 @@ impl Agent {
             }
             let ending = self.on_wake(&mut lp, wake).await?;
             self.settle(&mut lp, ending).await?;
+            if self.restart_for_update {
+                self.shut_down(lp.session.take()).await?;
+                return Ok(Stopped::Updated);
+            }
         }
-        self.shut_down(lp.session.take()).await
+        self.shut_down(lp.session.take()).await?;
+        Ok(Stopped::Shutdown)
     }
 
     /// Sleeps until the first thing due; `biased`, so shutdown and the gateway's frames come

@@ -86,6 +86,7 @@ impl Agent {
         );
         let mut s = Session::new(ws, welcome);
         self.on_welcome(&s.welcome, enrolling)?;
+        self.commit_agent_update()?;
         self.status
             .send_modify(|st| st.robot = s.welcome.robot.clone());
         let ending = (!self.send_heartbeat(&mut s).await).then(Ending::send_failed);

@@ -7,6 +7,7 @@
 //! connection's life ([`link`]), one connected session ([`session`]), commands and deployments
 //! ([`commands`]), the local status endpoint ([`status`]).
 
+mod agent_update;
 mod commands;
 mod driver;
 mod link;
@@ -106,6 +107,18 @@ pub struct Agent {
     progress_rx: tokio::sync::mpsc::UnboundedReceiver<Progress>,
     /// New credentials for the release store, while a task holds it.
     pending_access: Option<GatewayAccess>,
+    /// An agent update switched `current`: the run loop ends so that the new build starts.
+    restart_for_update: bool,
+}
+
+/// How [`Agent::run`] ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Stopped {
+    /// Shutdown was asked for.
+    Shutdown,
+    /// An agent update switched `current`: exit with
+    /// [`EXIT_UPDATED`](crate::selfupdate::EXIT_UPDATED) so the service manager starts it.
+    Updated,
 }
 
 impl Agent {
@@ -129,7 +142,7 @@ impl Agent {
         let last_health = checks.health.borrow().clone();
         let snapshot = StatusSnapshot {
             robot: config.robot_name.clone(),
-            agent_version: AGENT_VERSION.to_owned(),
+            agent_version: crate::selfupdate::version().to_owned(),
             release: current_release.clone(),
             gateway: config.gateway.clone(),
             connected: false,
@@ -164,6 +177,7 @@ impl Agent {
             progress_tx,
             progress_rx,
             pending_access: None,
+            restart_for_update: false,
         })
     }
 
@@ -173,7 +187,7 @@ impl Agent {
     }
 
     /// Runs until `shutdown` completes; then queues what is pending and closes the session.
-    pub async fn run(self, shutdown: impl Future<Output = ()>) -> Result<(), Error> {
+    pub async fn run(self, shutdown: impl Future<Output = ()>) -> Result<Stopped, Error> {
         let connect = link::websocket(&self.config);
         self.run_with(shutdown, connect).await
     }
@@ -208,12 +222,13 @@ impl Agent {
         let last = self.outbox.last_acked_seq()?;
         Ok(AgentMessage::Hello {
             protocol_version: PROTOCOL_VERSION,
-            agent_version: AGENT_VERSION.to_owned(),
+            agent_version: crate::selfupdate::version().to_owned(),
             system: crate::telemetry::system_facts(),
             current_release: self.current_release.clone(),
             last_acked_seq: (last > 0).then_some(last),
             health: Some(self.health_now()),
             teleoperation: Some(self.teleop.to_wire()),
+            features: vec![lekiwi_protocol::FEATURE_UPDATE_AGENT.to_owned()],
         })
     }
 

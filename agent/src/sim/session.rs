@@ -99,6 +99,7 @@ fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMes
             active: false,
             score: Some(0.0),
         }),
+        features: Vec::new(),
     }
 }
 

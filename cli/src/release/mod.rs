@@ -9,6 +9,7 @@
 //! user's Kubernetes bearer token (from the kubeconfig, or `--token`) and name the namespace
 //! (`?namespace=`) where RBAC must allow `create` and `get` on `releases.fleet.lekiwi.io`.
 
+pub mod agent;
 mod files;
 mod gateway;
 mod push;

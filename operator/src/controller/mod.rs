@@ -42,6 +42,8 @@ pub struct Context {
     pub config: Arc<Config>,
     /// Leases of the gateways, once the Robot controller has started watching them.
     pub gateway_leases: Option<Store<Lease>>,
+    /// The robots live gateways claim in their Leases (see [`robot::claims`]).
+    pub gateway_claims: Arc<robot::claims::ClaimIndex>,
     /// The phase each robot was last seen in and the budget of per-robot phase Events.
     pub robot_events: Arc<robot::events::PhaseEvents>,
     /// Consecutive failures per object, for exponential backoff.
@@ -62,6 +64,7 @@ impl Context {
             metrics,
             config,
             gateway_leases: None,
+            gateway_claims: Arc::default(),
             robot_events: Arc::default(),
             failures: Arc::default(),
         }

@@ -6,7 +6,7 @@ use std::collections::BTreeSet;
 
 use kube::ResourceExt;
 use kube::runtime::reflector::{ObjectRef, Store};
-use lekiwi_crds::Robot;
+use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 
 use crate::gateway::event_store::RobotKey;
@@ -30,6 +30,24 @@ impl DesiredReleases {
         self.0
             .get(&obj)
             .map(|r| r.spec.release.as_ref().map(Release::from))
+    }
+
+    /// The robot's `spec.agent`, if its Robot is in the cache and names one.
+    pub fn agent(&self, key: &RobotKey) -> Option<AgentRef> {
+        let obj = ObjectRef::new(&key.name).within(&key.namespace);
+        self.0.get(&obj).and_then(|r| r.spec.agent.clone())
+    }
+
+    /// The agent build digests the Robots of `namespace` name in `spec.agent`: the agent
+    /// binaries a robot of that namespace may download.
+    pub fn agent_digests_in(&self, namespace: &str) -> BTreeSet<String> {
+        self.0
+            .state()
+            .iter()
+            .filter(|r| r.namespace().as_deref() == Some(namespace))
+            .filter_map(|r| r.spec.agent.as_ref())
+            .flat_map(|a| a.builds.iter().map(|b| b.digest.clone()))
+            .collect()
     }
 
     /// Who holds `key` according to its status as the watch last saw it; `None` when the Robot

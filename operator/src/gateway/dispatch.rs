@@ -9,7 +9,7 @@ use std::sync::Arc;
 use futures::StreamExt;
 use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, ResourceExt};
-use lekiwi_crds::Robot;
+use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
@@ -46,6 +46,7 @@ pub async fn start(
     .applied_objects();
     let task = tokio::spawn(async move {
         let mut seen: HashMap<RobotKey, Option<Release>> = HashMap::new();
+        let mut seen_agent: HashMap<RobotKey, Option<AgentRef>> = HashMap::new();
         let mut stream = std::pin::pin!(stream);
         loop {
             let robot = tokio::select! {
@@ -59,6 +60,12 @@ pub async fn start(
                 && registry.moved(&key, epoch)
             {
                 info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
+            }
+            let agent = robot.spec.agent.clone();
+            if seen_agent.get(&key) != Some(&agent) {
+                let told = registry.notify_desired_agent(&key, agent.clone());
+                debug!(robot = %key, agent = ?agent.as_ref().map(|a| &a.version), told, "desired agent changed");
+                seen_agent.insert(key.clone(), agent);
             }
             let desired = robot.spec.release.as_ref().map(Release::from);
             if seen.get(&key) != Some(&desired) {

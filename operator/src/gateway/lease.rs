@@ -1,5 +1,6 @@
 //! The gateway's own Lease: renewed while the gateway lives, so the Robot controller can tell
-//! that robots held by a dead gateway are Unknown.
+//! that robots held by a dead gateway are Unknown; it also carries the gateway's claims (robots
+//! that moved here and are not written yet, see [`crate::gateway::presence::claims`]).
 
 use std::time::Duration;
 
@@ -12,14 +13,22 @@ use std::collections::BTreeMap;
 use tokio_util::sync::CancellationToken;
 use tracing::warn;
 
-use lekiwi_crds::contract::{GATEWAY_LEASE_LABEL, managers};
+use lekiwi_crds::contract::{CLAIMS_ANNOTATION, GATEWAY_LEASE_LABEL, managers};
 
-/// Renews `namespace/name` every third of `duration` until cancelled.
+use crate::gateway::presence::Presence;
+
+/// Shortest time between two renewals: a robot moving here renews the Lease early (its claim
+/// must be seen before the dead gateway's Lease expires), at most this often.
+const MIN_RENEW_GAP: Duration = Duration::from_secs(1);
+
+/// Renews `namespace/name` every third of `duration` (and, at most every [`MIN_RENEW_GAP`],
+/// when a robot moved here) until cancelled, with the claims of `presence` in its annotation.
 pub async fn renew(
     client: kube::Client,
     namespace: String,
     name: String,
     duration: Duration,
+    presence: Option<Presence>,
     cancel: CancellationToken,
 ) {
     let api: Api<Lease> = Api::namespaced(client, &namespace);
@@ -34,6 +43,11 @@ pub async fn renew(
                     GATEWAY_LEASE_LABEL.to_owned(),
                     "true".to_owned(),
                 )])),
+                // Left out when empty: server-side apply then removes the annotation.
+                annotations: presence
+                    .as_ref()
+                    .and_then(Presence::claims_annotation)
+                    .map(|claims| BTreeMap::from([(CLAIMS_ANNOTATION.to_owned(), claims)])),
                 ..ObjectMeta::default()
             },
             spec: Some(LeaseSpec {
@@ -55,9 +69,16 @@ pub async fn renew(
             Ok(_) => acquired = acquired.or(Some(now)),
             Err(e) => warn!(lease = %name, error = %e, "cannot renew the gateway Lease"),
         }
+        let moved = async {
+            match &presence {
+                Some(p) => p.claims_changed().await,
+                None => std::future::pending().await,
+            }
+        };
         tokio::select! {
             () = cancel.cancelled() => return,
             () = tokio::time::sleep(period) => {}
+            () = moved => tokio::time::sleep(MIN_RENEW_GAP).await,
         }
     }
 }

@@ -18,14 +18,14 @@ use crate::metrics::{KindLabels, Registrar};
 /// Labels of gateway status-queue series.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct PriorityLabels {
-    /// `high` or `low`.
+    /// `move`, `high` or `low`.
     pub priority: &'static str,
 }
 
 /// Labels of gateway status writes.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct WriteLabels {
-    /// `high` or `low`.
+    /// `move`, `high` or `low`.
     pub priority: &'static str,
     /// `ok`, `error` (retried), `conflict` (the Robot kept changing while writing; retried),
     /// `gone`, `superseded` (a later session of another gateway holds the robot; not retried)
@@ -69,10 +69,18 @@ pub struct GatewayMetrics {
     pub durable: Family<KindLabels, Counter>,
     /// Durable messages refused and never stored, by reason (`quota_rows`, `quota_bytes`).
     pub events_refused: Family<ReasonLabels, Counter>,
+    /// Agent update steps (`spec.agent`), by kind: `sent`, `unavailable`, `unsupported` (what
+    /// the gateway did) and `started`, `succeeded`, `failed`, `fallen_back` (what agents
+    /// reported).
+    pub agent_updates: Family<KindLabels, Counter>,
     /// Heartbeat round-trip time the agents report.
     pub heartbeat_rtt: Histogram,
     /// Robots waiting for a status write, by priority.
     pub status_queue: Family<PriorityLabels, Gauge>,
+    /// Robots listed in the gateway Lease's claims annotation at its last renewal.
+    pub claimed_robots: Gauge,
+    /// Status writes per second the writer allows now (it adapts to the API server's answers).
+    pub status_rate: Gauge<f64, AtomicU64>,
     /// Status writes, by priority and result.
     pub status_writes: Family<WriteLabels, Counter>,
     /// Legacy polls answered, `200` or `304`.
@@ -122,6 +130,10 @@ impl GatewayMetrics {
                 "lekiwi_gateway_durable_messages",
                 "Durable agent messages acknowledged, stored or replay",
             ),
+            agent_updates: r.add(
+                "lekiwi_gateway_agent_updates",
+                "Agent self-update steps, by kind (sent, unavailable, unsupported, started, succeeded, failed, fallen_back)",
+            ),
             events_refused: r.add(
                 "lekiwi_gateway_events_refused",
                 "Durable agent messages refused and not stored, by reason (per-robot quota)",
@@ -135,14 +147,13 @@ impl GatewayMetrics {
                 "lekiwi_gateway_status_queue",
                 "Robots waiting for a status write, by priority",
             ),
+            claimed_robots: r.add("lekiwi_gateway_claimed_robots", "Robots the Lease claims"),
+            status_rate: r.add("lekiwi_gateway_status_rate", "Status writes/s allowed now"),
             status_writes: r.add(
                 "lekiwi_gateway_status_writes",
                 "Robot status writes, by priority and result",
             ),
-            polls: r.add(
-                "lekiwi_gateway_polls",
-                "Legacy polls answered, by status code",
-            ),
+            polls: r.add("lekiwi_gateway_polls", "Legacy polls answered, by code"),
             blob_bytes_served: r.add(
                 "lekiwi_gateway_blob_bytes_served",
                 "Release blob bytes sent to robots and clients",

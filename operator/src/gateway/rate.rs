@@ -33,6 +33,12 @@ impl TokenBucket {
         self.last = now;
     }
 
+    /// Changes the rate from now on (tokens gathered so far stay); at least 0.001 per second.
+    pub fn set_rate(&mut self, rate: f64) {
+        self.refill();
+        self.rate = rate.max(0.001);
+    }
+
     /// Takes a token if there is one; never waits.
     pub fn try_take(&mut self) -> bool {
         self.refill();

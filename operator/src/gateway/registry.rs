@@ -5,6 +5,7 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use lekiwi_crds::AgentRef;
 use lekiwi_protocol::{Release, ServerMessage};
 use tokio::sync::mpsc;
 
@@ -27,6 +28,8 @@ pub enum Control {
     Send(Box<ServerMessage>),
     /// The robot's `spec.release` changed to this; the session sends a deploy command if due.
     Desired(Option<Box<Release>>),
+    /// The robot's `spec.agent` changed to this; the session sends `update_agent` if due.
+    DesiredAgent(Option<Box<AgentRef>>),
     /// The robot's token Secret changed (`deleted`: it is gone); the session checks that the
     /// token it was opened with still counts and closes if not.
     Credentials {
@@ -118,6 +121,12 @@ impl Registry {
     /// session here or its channel is full.
     pub fn notify_desired_release(&self, key: &RobotKey, release: Option<Release>) -> bool {
         self.try_send(key, Control::Desired(release.map(Box::new)))
+    }
+
+    /// Tells a robot's session that its desired agent changed; false when the robot has no
+    /// session here or its channel is full.
+    pub fn notify_desired_agent(&self, key: &RobotKey, agent: Option<AgentRef>) -> bool {
+        self.try_send(key, Control::DesiredAgent(agent.map(Box::new)))
     }
 
     /// Tells a robot's session that its token Secret changed; false when the robot has no

@@ -28,7 +28,7 @@ use super::desired::DesiredReleases;
 use super::kube_auth::KubeAuth;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
-use super::presence::{PhasePlanner, Presence, PresenceConfig};
+use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, Shared};
@@ -120,7 +120,7 @@ pub async fn run(
         watched(&config, &client),
         watched(&config, &client),
         client.clone(),
-        (config.api_rate, config.api_burst),
+        &config,
         &cancel,
     );
     let shared = Shared {
@@ -175,8 +175,14 @@ fn presence(config: &Config, name: &str, metrics: &Metrics) -> Presence {
             status_refresh: Duration::from_secs(config.status_refresh_seconds),
             poll_grace: Duration::from_secs(config.poll_grace_seconds),
             qps: config.status_qps,
+            adaptive: Some(RateBounds {
+                min: config.status_qps_min,
+                max: config.status_qps_max,
+                slow: Duration::from_millis(config.status_slow_ms),
+            }),
             burst: config.status_burst,
-            concurrency: 8,
+            // Enough writes in flight for the highest rate at ordinary API latency.
+            concurrency: 32,
         },
         metrics.clone(),
     )
@@ -307,6 +313,7 @@ fn start_background(
         config.namespace.clone(),
         name.to_owned(),
         Duration::from_secs(config.gateway_lease_seconds),
+        Some(presence.clone()),
         cancel.clone(),
     ));
     let retention = store.spawn_retention(

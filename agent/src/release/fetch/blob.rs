@@ -11,7 +11,7 @@ use hyper::{Response, StatusCode};
 use lekiwi_protocol::release::blob_path;
 use tokio::io::AsyncWriteExt;
 
-use super::{Client, Fetched, next_chunk};
+use super::{Client, Fetched, Pace, next_chunk};
 use crate::release::store::{Hasher, Layout};
 use crate::release::{Error, Result, Wanted, blocking, io};
 
@@ -58,7 +58,7 @@ impl Partial {
         url: &str,
         append: bool,
         size: u64,
-        counter: &AtomicU64,
+        meter: (&AtomicU64, Option<&Pace>),
     ) -> Result<tokio::fs::File> {
         if !append {
             self.have = 0;
@@ -78,7 +78,7 @@ impl Partial {
         // Unbuffered on purpose: each chunk reaches the file at once (tokio writes it in the
         // background), so an agent killed mid-transfer loses at most the chunk in flight.
         let mut out = tokio::fs::File::from_std(file);
-        let streamed = self.stream(&mut out, body, url, size, counter).await;
+        let streamed = self.stream(&mut out, body, url, size, meter).await;
         let flushed = out.flush().await.map_err(io(&self.path));
         streamed?;
         flushed?;
@@ -92,7 +92,7 @@ impl Partial {
         body: &mut Incoming,
         url: &str,
         size: u64,
-        counter: &AtomicU64,
+        (counter, pace): (&AtomicU64, Option<&Pace>),
     ) -> Result<()> {
         while let Some(chunk) = next_chunk(body, url).await? {
             if self.have + chunk.len() as u64 > size {
@@ -106,6 +106,9 @@ impl Partial {
             out.write_all(&chunk).await.map_err(io(&self.path))?;
             self.have += chunk.len() as u64;
             counter.fetch_add(chunk.len() as u64, Ordering::Relaxed);
+            if let Some(pace) = pace {
+                pace.spend(chunk.len()).await;
+            }
         }
         Ok(())
     }
@@ -136,7 +139,13 @@ impl Client {
         let (response, sender) = self.get(&path, partial.have).boxed().await?;
         let (append, mut body) = self.continues(response, &url, &partial).await?;
         let out = partial
-            .write_body(&mut body, &url, append, w.size, counter)
+            .write_body(
+                &mut body,
+                &url,
+                append,
+                w.size,
+                (counter, self.pace.as_deref()),
+            )
             .await?;
         self.release(sender);
         if partial.have < w.size {

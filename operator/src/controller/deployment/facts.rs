@@ -40,9 +40,16 @@ pub(super) async fn gather(
     .await
     .map_err(|_| Error::TaskStopped("release check"))?;
     let grace = Duration::from_secs(config.heartbeat_grace_seconds);
+    let mut owners = super::ownership::superseded(&state.deployments, deployment, &ours);
     Ok(Some(Facts {
         now,
-        robots: ours.iter().map(|r| view(r, now, grace)).collect(),
+        robots: ours
+            .iter()
+            .map(|r| RobotView {
+                superseded_by: owners.remove(&r.name_any()),
+                ..view(r, now, grace)
+            })
+            .collect(),
         release,
         overlaps,
         active_deployments,
@@ -167,6 +174,7 @@ fn view(robot: &Robot, now: Timestamp, grace: Duration) -> RobotView {
             .get(MARK_ANNOTATION)
             .and_then(|m| serde_json::from_str::<Mark>(m).ok()),
         analysis: status.analysis,
+        superseded_by: None,
     }
 }
 

@@ -6,6 +6,7 @@
 mod apply;
 mod facts;
 pub mod metrics;
+mod ownership;
 pub mod plan;
 
 use std::sync::Arc;
@@ -34,6 +35,8 @@ struct State {
     ctx: Arc<Context>,
     robots: Store<Robot>,
     deployments: Store<DeserializeGuard<RobotDeployment>>,
+    /// Asks for reconciles of other deployments (see [`ownership::wake_rivals`]).
+    wake: Trigger<DeserializeGuard<RobotDeployment>>,
 }
 
 /// Runs the RobotDeployment controller until `cancel` fires.
@@ -49,7 +52,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     let controller = super::controller_for(deploys, &ctx);
     let deployment_store = controller.store();
     let (wake, wake_requests) = trigger();
-    let (robot_store, robot_watch) = watch_robots(robots, deployment_store.clone(), wake);
+    let (robot_store, robot_watch) = watch_robots(robots, deployment_store.clone(), wake.clone());
     let robot_task = tokio::spawn(robot_watch);
     // Planning before every robot is listed would see too few robots (even none).
     tokio::select! {
@@ -60,6 +63,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         ctx,
         robots: robot_store,
         deployments: deployment_store,
+        wake,
     });
     info!("robot deployment controller started");
     let handlers = (reconcile, error_policy);
@@ -135,6 +139,7 @@ async fn reconcile(
             warn!("selector cannot be evaluated");
             return Ok(Action::await_change());
         };
+        ownership::wake_rivals(&state.deployments, &state.wake, deployment);
         let plan = plan::plan(deployment, &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
         let written = apply::write_robots(&ctx.client, &namespace, &facts, &plan).await?;

@@ -32,7 +32,7 @@ fn valid_until(lease: &Lease) -> Option<Timestamp> {
 }
 
 /// Whether a Lease has a holder and was renewed within its duration.
-fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
+pub(super) fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
     lease
         .spec
         .as_ref()

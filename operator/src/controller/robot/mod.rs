@@ -4,6 +4,7 @@
 //! so for a robot coming Online the controller usually finds nothing to write; it still
 //! notices the change and publishes its Event, within the budget of [`events`].
 
+pub mod claims;
 pub mod events;
 mod gateways;
 pub mod plan;
@@ -114,6 +115,13 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
                 Some(store) => gateway_state(store, &ctx.config.namespace, gw, now),
                 None => GatewayState::Gone,
             });
+        if gateway == Some(GatewayState::Gone)
+            && let Some(claimant) = claimed_elsewhere(&ctx, robot, now)
+        {
+            // Its session is on a live gateway whose write is on its way: no Unknown meanwhile.
+            debug!(%claimant, "the robot's gateway is gone but another one claims it");
+            return Ok(Action::requeue(CLAIM_RECHECK));
+        }
         let facts = Facts {
             now,
             heartbeat_grace: Duration::from_secs(ctx.config.heartbeat_grace_seconds),
@@ -157,6 +165,25 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     }
     .instrument(span)
     .await
+}
+
+/// How soon a robot claimed by a live gateway (see [`claims`]) is looked at again: if the claim
+/// went without a status write (the session there ended too), the robot turns `Unknown` then.
+const CLAIM_RECHECK: Duration = Duration::from_secs(3);
+
+/// The live gateway that claims `robot`, connected through a gateway whose Lease is gone.
+fn claimed_elsewhere(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<String> {
+    let status = robot.status.as_ref()?;
+    if status.connected != Some(true) {
+        return None;
+    }
+    ctx.gateway_claims.claimant(
+        ctx.gateway_leases.as_ref()?,
+        status.gateway.as_deref()?,
+        &robot.namespace().unwrap_or_default(),
+        &robot.name_any(),
+        now,
+    )
 }
 
 /// Publishes the Event of a phase change, or counts it into a summary when the budget of

@@ -1,10 +1,15 @@
 //! In-memory copies of the fleet's resources for the Fleet API, fed by a watch each: every read
 //! is answered from memory, never by a request to the API server. Objects are kept in a map
 //! ordered by namespace and name, so a page of a list resumes after its `continue` key and a
-//! namespace is one range of the map. Like `kube::runtime::reflector`, a relist replaces the
-//! whole map at once when it is complete.
+//! namespace is one range of the map; an index by label `key=value` lets a list with such a
+//! selector read only the objects that carry the label. Each object is kept with its JSON,
+//! serialized once when it changes, so a list is answered by joining ready bytes. Like
+//! `kube::runtime::reflector`, a relist replaces the whole map at once when it is complete.
+//! Every change the watch delivers is also sent once on the cache's broadcast
+//! ([`Cache::subscribe`]): the GraphQL subscriptions all share it, none opens a watch of its
+//! own.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::ops::Bound;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
@@ -12,26 +17,134 @@ use std::sync::{Arc, RwLock};
 use futures::StreamExt;
 use kube::runtime::{WatchStreamExt, watcher};
 use kube::{Api, Resource, ResourceExt};
+use serde::Serialize;
 use serde::de::DeserializeOwned;
+use tokio::sync::broadcast;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 /// An object's place in the map: namespace, then name.
 pub type Key = (String, String);
 
+/// Changes a subscriber may fall behind by before it is told it lagged (and reads the cache
+/// again instead): the broadcast's memory is bounded whatever the subscribers do.
+pub const CHANGES_BUFFERED: usize = 4096;
+
+/// One change the watch delivered.
+#[derive(Debug)]
+pub enum Change<K> {
+    /// Created or modified (also every object of a relist): as it was before, if known, and as
+    /// it is now.
+    Applied(Option<Arc<K>>, Arc<K>),
+    /// Deleted: as it was.
+    Deleted(Arc<K>),
+}
+
+impl<K> Clone for Change<K> {
+    fn clone(&self) -> Self {
+        match self {
+            Self::Applied(old, new) => Self::Applied(old.clone(), new.clone()),
+            Self::Deleted(o) => Self::Deleted(o.clone()),
+        }
+    }
+}
+
+/// An object and its JSON (as the API answers it).
+struct Item<K> {
+    object: Arc<K>,
+    json: Arc<str>,
+}
+
+impl<K> Clone for Item<K> {
+    fn clone(&self) -> Self {
+        Self {
+            object: self.object.clone(),
+            json: self.json.clone(),
+        }
+    }
+}
+
+/// The objects and the label index, changed together under one lock.
+struct Objects<K> {
+    map: BTreeMap<Key, Item<K>>,
+    /// For each label `(key, value)`, the objects that carry it.
+    by_label: HashMap<(String, String), BTreeSet<Key>>,
+}
+
+impl<K> Default for Objects<K> {
+    fn default() -> Self {
+        Self {
+            map: BTreeMap::new(),
+            by_label: HashMap::new(),
+        }
+    }
+}
+
+impl<K: Resource> Objects<K> {
+    fn index(&mut self, k: &Key, o: &K, add: bool) {
+        for (label, value) in o.labels() {
+            let entry = (label.clone(), value.clone());
+            if add {
+                self.by_label.entry(entry).or_default().insert(k.clone());
+            } else if let Some(keys) = self.by_label.get_mut(&entry) {
+                keys.remove(k);
+                if keys.is_empty() {
+                    self.by_label.remove(&entry);
+                }
+            }
+        }
+    }
+
+    /// Keeps `item`; the object it replaces, if any.
+    fn insert(&mut self, item: Item<K>) -> Option<Arc<K>> {
+        let k = key(item.object.as_ref());
+        let old = self.map.insert(k.clone(), item.clone());
+        if let Some(old) = &old {
+            self.index(&k, &old.object, false);
+        }
+        self.index(&k, &item.object, true);
+        old.map(|o| o.object)
+    }
+
+    fn remove(&mut self, k: &Key) {
+        if let Some(old) = self.map.remove(k) {
+            self.index(k, &old.object, false);
+        }
+    }
+}
+
 /// The objects of one kind the watch has delivered, ordered by [`Key`].
 pub struct Cache<K> {
-    objects: RwLock<BTreeMap<Key, Arc<K>>>,
+    objects: RwLock<Objects<K>>,
     /// Set once the first list is complete.
     ready: AtomicBool,
+    /// Every change, to whoever listens.
+    changes: broadcast::Sender<Change<K>>,
+}
+
+/// A page of a list: the items, the key of the last one, and whether more follow.
+pub struct Found<T> {
+    /// What the page holds, in key order.
+    pub items: Vec<T>,
+    /// The key of the last item (where the next page resumes).
+    pub last: Option<Key>,
+    /// Whether more objects follow.
+    pub more: bool,
 }
 
 impl<K> Cache<K> {
     fn new() -> Self {
         Self {
-            objects: RwLock::default(),
+            objects: RwLock::new(Objects::default()),
             ready: AtomicBool::new(false),
+            changes: broadcast::channel(CHANGES_BUFFERED).0,
         }
+    }
+
+    /// Every change from now on. A receiver more than [`CHANGES_BUFFERED`] changes behind gets
+    /// `Lagged` and should read the current state with [`Cache::page`].
+    pub fn subscribe(&self) -> broadcast::Receiver<Change<K>> {
+        self.changes.subscribe()
     }
 
     /// Whether the first list is in.
@@ -43,8 +156,9 @@ impl<K> Cache<K> {
     pub fn get(&self, namespace: &str, name: &str) -> Option<Arc<K>> {
         let objects = self.objects.read().unwrap_or_else(|p| p.into_inner());
         objects
+            .map
             .get(&(namespace.to_owned(), name.to_owned()))
-            .cloned()
+            .map(|i| i.object.clone())
     }
 
     /// Up to `limit` objects of `namespace` (all namespaces if `None`) that `keep` accepts,
@@ -56,43 +170,107 @@ impl<K> Cache<K> {
         limit: usize,
         keep: impl Fn(&K) -> bool,
     ) -> (Vec<Arc<K>>, bool) {
+        let found = self.scan((namespace, after, None), limit, keep, |i| i.object.clone());
+        (found.items, found.more)
+    }
+
+    /// Like [`Cache::page`]; only objects labelled `label` (a `(key, value)` every accepted
+    /// object must carry) are read when one is given.
+    pub fn page_objects(
+        &self,
+        place: (Option<&str>, Option<&Key>, Option<(&str, &str)>),
+        limit: usize,
+        keep: impl Fn(&K) -> bool,
+    ) -> Found<Arc<K>> {
+        self.scan(place, limit, keep, |i| i.object.clone())
+    }
+
+    /// Like [`Cache::page_objects`], the objects' JSON as the API answers them.
+    pub fn page_json(
+        &self,
+        (namespace, after, label): (Option<&str>, Option<&Key>, Option<(&str, &str)>),
+        limit: usize,
+        keep: impl Fn(&K) -> bool,
+    ) -> Found<Arc<str>> {
+        self.scan((namespace, after, label), limit, keep, |i| i.json.clone())
+    }
+
+    fn scan<T>(
+        &self,
+        (namespace, after, label): (Option<&str>, Option<&Key>, Option<(&str, &str)>),
+        limit: usize,
+        keep: impl Fn(&K) -> bool,
+        take: impl Fn(&Item<K>) -> T,
+    ) -> Found<T> {
         let objects = self.objects.read().unwrap_or_else(|p| p.into_inner());
         let start = match (after, namespace) {
             (Some(key), _) => Bound::Excluded(key.clone()),
             (None, Some(ns)) => Bound::Included((ns.to_owned(), String::new())),
             (None, None) => Bound::Unbounded,
         };
-        let mut found = objects
-            .range((start, Bound::Unbounded))
-            .take_while(|((ns, _), _)| namespace.is_none_or(|want| ns == want))
-            .filter(|(_, o)| keep(o))
-            .map(|(_, o)| o.clone());
-        let page: Vec<_> = found.by_ref().take(limit).collect();
+        let in_namespace = |k: &Key| namespace.is_none_or(|want| k.0 == want);
+        let candidates: Box<dyn Iterator<Item = (&Key, &Item<K>)>> = match label {
+            None => Box::new(objects.map.range((start, Bound::Unbounded))),
+            Some((l, v)) => {
+                let keys = objects.by_label.get(&(l.to_owned(), v.to_owned()));
+                Box::new(
+                    keys.into_iter()
+                        .flat_map(move |keys| keys.range((start.clone(), Bound::Unbounded)))
+                        .filter_map(|k| objects.map.get_key_value(k)),
+                )
+            }
+        };
+        let mut found = candidates
+            .take_while(|(k, _)| in_namespace(k))
+            .filter(|(_, i)| keep(&i.object));
+        let mut items = Vec::new();
+        let mut last = None;
+        for (k, item) in found.by_ref().take(limit) {
+            items.push(take(item));
+            last = Some(k);
+        }
         let more = found.next().is_some();
-        (page, more)
+        Found {
+            items,
+            last: last.cloned(),
+            more,
+        }
     }
+}
 
-    fn apply(&self, event: watcher::Event<K>, relist: &mut Option<BTreeMap<Key, Arc<K>>>)
-    where
-        K: Resource,
-    {
-        let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
+impl<K: Resource + Serialize> Cache<K> {
+    fn apply(&self, event: watcher::Event<K>, relist: &mut Option<Objects<K>>) {
+        let item = |o: K| Item {
+            json: serde_json::to_string(&o).unwrap_or_default().into(),
+            object: Arc::new(o),
+        };
         match event {
             watcher::Event::Apply(o) => {
-                objects.insert(key(&o), Arc::new(o));
+                let new = item(o);
+                let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
+                let old = objects.insert(new.clone());
+                let _ = self.changes.send(Change::Applied(old, new.object));
             }
             watcher::Event::Delete(o) => {
+                let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
                 objects.remove(&key(&o));
+                let _ = self.changes.send(Change::Deleted(Arc::new(o)));
             }
-            watcher::Event::Init => *relist = Some(BTreeMap::new()),
+            watcher::Event::Init => *relist = Some(Objects::default()),
             watcher::Event::InitApply(o) => {
+                let new = item(o);
+                let old = self.get(
+                    &new.object.namespace().unwrap_or_default(),
+                    &new.object.name_any(),
+                );
                 if let Some(fresh) = relist.as_mut() {
-                    fresh.insert(key(&o), Arc::new(o));
+                    fresh.insert(new.clone());
                 }
+                let _ = self.changes.send(Change::Applied(old, new.object));
             }
             watcher::Event::InitDone => {
                 if let Some(fresh) = relist.take() {
-                    *objects = fresh;
+                    *self.objects.write().unwrap_or_else(|p| p.into_inner()) = fresh;
                 }
                 self.ready.store(true, Ordering::Release);
             }
@@ -113,7 +291,7 @@ pub fn watch<K>(
     cancel: CancellationToken,
 ) -> (Arc<Cache<K>>, JoinHandle<()>)
 where
-    K: Resource + Clone + DeserializeOwned + std::fmt::Debug + Send + Sync + 'static,
+    K: Resource + Clone + DeserializeOwned + Serialize + std::fmt::Debug + Send + Sync + 'static,
 {
     let cache = Arc::new(Cache::new());
     let filled = cache.clone();
@@ -178,5 +356,70 @@ mod tests {
         assert_eq!(all.len(), 4);
         cache.apply(watcher::Event::Delete(robot("b", "r1")), &mut relist);
         assert!(cache.get("b", "r1").is_none());
+    }
+
+    fn labelled(ns: &str, name: &str, room: &str) -> Robot {
+        let mut r = robot(ns, name);
+        r.metadata.labels = Some([("room".to_owned(), room.to_owned())].into());
+        r
+    }
+
+    /// A list through the label index finds what a scan of every object finds, pages the same,
+    /// follows relabelling and deletion, and answers each object's JSON.
+    #[test]
+    fn the_label_index_answers_what_a_scan_answers() {
+        let cache = Cache::new();
+        let mut relist = None;
+        cache.apply(watcher::Event::Init, &mut relist);
+        for i in 0..1000 {
+            let r = labelled(
+                ["a", "b"][i % 2],
+                &format!("r{i:04}"),
+                &format!("x{}", i % 10),
+            );
+            cache.apply(watcher::Event::InitApply(r), &mut relist);
+        }
+        cache.apply(watcher::Event::InitDone, &mut relist);
+        cache.apply(
+            watcher::Event::Apply(labelled("b", "r0003", "x4")),
+            &mut relist,
+        );
+        cache.apply(
+            watcher::Event::Delete(labelled("b", "r0013", "x3")),
+            &mut relist,
+        );
+        let in_x3 = |r: &Robot| r.labels().get("room").is_some_and(|v| v == "x3");
+        let mut after: Option<Key> = None;
+        loop {
+            let place = (Some("b"), after.as_ref(), Some(("room", "x3")));
+            let indexed = cache.page_json(place, 7, in_x3);
+            let scanned = cache.page_objects((Some("b"), after.as_ref(), None), 7, in_x3);
+            let json: Vec<String> = scanned
+                .items
+                .iter()
+                .map(|r| serde_json::to_string(r.as_ref()).unwrap())
+                .collect();
+            let indexed_json: Vec<String> = indexed.items.iter().map(|j| j.to_string()).collect();
+            assert_eq!(indexed_json, json);
+            assert_eq!((&indexed.last, indexed.more), (&scanned.last, scanned.more));
+            assert!(
+                !json
+                    .iter()
+                    .any(|j| j.contains("r0003") || j.contains("r0013"))
+            );
+            if !indexed.more {
+                break;
+            }
+            after = indexed.last;
+        }
+        let x4 = cache.page_json((Some("b"), None, Some(("room", "x4"))), 1000, |_| true);
+        assert!(x4.items.iter().any(|j| j.contains("r0003")));
+        assert_eq!(
+            cache
+                .page_json((None, None, Some(("room", "nope"))), 10, |_| true)
+                .items
+                .len(),
+            0
+        );
     }
 }

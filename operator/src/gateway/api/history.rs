@@ -20,19 +20,19 @@ use crate::gateway::{ApiError, AppState};
 const DEFAULT_SPAN: SignedDuration = SignedDuration::from_hours(1);
 
 /// Query of the history routes.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct HistoryQuery {
     /// Start of the range (RFC 3339, included); default one hour before `until` or now.
-    since: Option<String>,
+    pub(crate) since: Option<String>,
     /// End of the range (RFC 3339, excluded); default: no end.
-    until: Option<String>,
+    pub(crate) until: Option<String>,
     /// Only samples of this metric (telemetry only).
-    metric: Option<String>,
+    pub(crate) metric: Option<String>,
     /// Page size.
-    limit: Option<u32>,
+    pub(crate) limit: Option<u32>,
     /// Token of the page to resume after.
-    r#continue: Option<String>,
+    pub(crate) r#continue: Option<String>,
 }
 
 impl HistoryQuery {
@@ -92,6 +92,15 @@ pub async fn events(
 ) -> Result<Json<Page<StoredEvent>>, ApiError> {
     let Query(query) = query.map_err(bad_query)?;
     let robot = allowed_robot(&state, &headers, path, "events").await?;
+    read_events(&state, &robot, &query).await.map(Json)
+}
+
+/// The page of `robot`'s stored events `query` asks for.
+pub(crate) async fn read_events(
+    state: &AppState,
+    robot: &RobotKey,
+    query: &HistoryQuery,
+) -> Result<Page<StoredEvent>, ApiError> {
     if query.metric.is_some() {
         return Err(ApiError::BadRequest(
             "metric applies to telemetry only".into(),
@@ -105,17 +114,17 @@ pub async fn events(
     let mut items = state
         .shared
         .store
-        .events_in_range(&robot, after, range, limit + 1)
+        .events_in_range(robot, after, range, limit + 1)
         .await
         .map_err(|e| ApiError::Internal(format!("reading events of {robot}: {e}")))?;
     let next = (items.len() > limit as usize).then(|| {
         items.truncate(limit as usize);
         items.last().map(|e| e.seq.to_string())
     });
-    Ok(Json(Page {
+    Ok(Page {
         items,
         next: next.flatten(),
-    }))
+    })
 }
 
 /// `GET .../robots/{name}/telemetry?metric=&since=&until=&limit=&continue=`: samples, oldest
@@ -128,12 +137,21 @@ pub async fn telemetry(
 ) -> Result<Json<Page<StoredSample>>, ApiError> {
     let Query(query) = query.map_err(bad_query)?;
     let robot = allowed_robot(&state, &headers, path, "telemetry").await?;
+    read_telemetry(&state, &robot, &query).await.map(Json)
+}
+
+/// The page of `robot`'s stored telemetry samples `query` asks for.
+pub(crate) async fn read_telemetry(
+    state: &AppState,
+    robot: &RobotKey,
+    query: &HistoryQuery,
+) -> Result<Page<StoredSample>, ApiError> {
     let (range, limit) = (query.range()?, page_size(query.limit)?);
     let after = query.r#continue.as_deref().map(sample_cursor).transpose()?;
     let mut rows = state
         .shared
         .store
-        .samples_in_range(&robot, query.metric.as_deref(), range, after, limit + 1)
+        .samples_in_range(robot, query.metric.as_deref(), range, after, limit + 1)
         .await
         .map_err(|e| ApiError::Internal(format!("reading telemetry of {robot}: {e}")))?;
     let next = (rows.len() > limit as usize).then(|| {
@@ -141,10 +159,10 @@ pub async fn telemetry(
         rows.last()
             .map(|r| format!("{}.{}", r.cursor.ts_ms, r.cursor.id))
     });
-    Ok(Json(Page {
+    Ok(Page {
         items: rows.into_iter().map(|r| r.sample).collect(),
         next: next.flatten(),
-    }))
+    })
 }
 
 fn sample_cursor(token: &str) -> Result<SampleCursor, ApiError> {

@@ -8,6 +8,7 @@
 
 mod access;
 pub mod cache;
+pub mod graphql;
 mod history;
 pub mod limits;
 pub mod openapi;
@@ -36,6 +37,9 @@ use super::{ApiError, AppState, bearer};
 
 /// Items a list answers unless `limit` says otherwise.
 pub const DEFAULT_LIMIT: u32 = 100;
+/// The GraphQL endpoint: `POST` for queries and mutations, `GET` for the subscriptions'
+/// WebSocket.
+pub const GRAPHQL: &str = "/api/v1/graphql";
 /// Most items one page holds; a client pages with `continue`.
 pub const MAX_LIMIT: u32 = 1000;
 
@@ -47,18 +51,21 @@ pub struct FleetApi {
     pub rollouts: Arc<Cache<RobotDeployment>>,
     /// Each user's request budget.
     pub limits: UserLimits,
+    /// The GraphQL schema and its WebSocket limits.
+    pub graphql: Arc<graphql::GraphQl>,
     /// Patches RobotDeployments for rollout actions (after the caller's own permission check).
     client: kube::Client,
 }
 
 impl FleetApi {
-    /// Starts the watches of `robots` and `rollouts`; at most `rate` requests per second per
-    /// user (`burst` at once). The returned tasks run until `cancel`.
+    /// Starts the watches of `robots` and `rollouts`; at most `--api-rate` requests per second
+    /// per user (`--api-burst` at once), GraphQL limited as `config` says. The returned tasks
+    /// run until `cancel`.
     pub fn start(
         robots: Api<Robot>,
         rollouts: Api<RobotDeployment>,
         client: kube::Client,
-        (rate, burst): (f64, u32),
+        config: &crate::config::Config,
         cancel: &CancellationToken,
     ) -> (Self, Vec<JoinHandle<()>>) {
         let (robots, robot_task) = cache::watch(robots, trim_meta::<Robot>, cancel.clone());
@@ -67,7 +74,8 @@ impl FleetApi {
         let api = Self {
             robots,
             rollouts,
-            limits: UserLimits::new(rate, burst),
+            limits: UserLimits::new(config.api_rate, config.api_burst),
+            graphql: Arc::new(graphql::GraphQl::new(&config.graphql)),
             client,
         };
         (api, vec![robot_task, rollout_task])
@@ -103,6 +111,7 @@ pub fn routes() -> Router<AppState> {
         .route(p::ROLLOUT_RESUME, wrong(post(rollouts::resume)))
         .route(p::ROLLOUT_UNDO, wrong(post(rollouts::undo)))
         .route(p::ROLLOUT_RESTART, wrong(post(rollouts::restart)))
+        .route(GRAPHQL, wrong(post(graphql::post).get(graphql::websocket)))
         .route("/api/v1/{*rest}", any(unknown_path))
 }
 

@@ -6,11 +6,13 @@ use std::sync::Arc;
 use axum::Json;
 use axum::extract::rejection::QueryRejection;
 use axum::extract::{Path, Query, State};
-use axum::http::HeaderMap;
+use axum::http::{HeaderMap, header};
+use axum::response::{IntoResponse, Response};
 use lekiwi_crds::Robot;
 use lekiwi_crds::robot::{RobotPhase, TelemetrySummary};
 use serde::{Deserialize, Serialize};
 
+use super::cache::Key;
 use super::selector::Selector;
 use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
 use crate::gateway::kube_auth::Access;
@@ -23,15 +25,15 @@ static NO_LABELS: std::collections::BTreeMap<String, String> = std::collections:
 #[serde(deny_unknown_fields, rename_all = "camelCase")]
 pub struct ListQuery {
     /// Label selector, as `kubectl get -l` takes it.
-    label_selector: Option<String>,
+    pub(crate) label_selector: Option<String>,
     /// Only robots in this phase.
-    phase: Option<String>,
+    pub(crate) phase: Option<String>,
     /// Only robots reporting that they run this release version.
-    release: Option<String>,
+    pub(crate) release: Option<String>,
     /// Page size.
-    limit: Option<u32>,
+    pub(crate) limit: Option<u32>,
     /// Token of the page to resume after.
-    r#continue: Option<String>,
+    pub(crate) r#continue: Option<String>,
 }
 
 /// A page of a list.
@@ -62,7 +64,7 @@ pub async fn list_all(
     State(state): State<AppState>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
-) -> Result<Json<Page<Arc<Robot>>>, ApiError> {
+) -> Result<Response, ApiError> {
     list(state, None, query, headers).await
 }
 
@@ -72,7 +74,7 @@ pub async fn list_namespaced(
     Path(namespace): Path<String>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
-) -> Result<Json<Page<Arc<Robot>>>, ApiError> {
+) -> Result<Response, ApiError> {
     check_names(&namespace, None)?;
     list(state, Some(namespace), query, headers).await
 }
@@ -82,37 +84,102 @@ async fn list(
     namespace: Option<String>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
-) -> Result<Json<Page<Arc<Robot>>>, ApiError> {
+) -> Result<Response, ApiError> {
     let Query(query) = query.map_err(bad_query)?;
     let access = Access::new("list", "robots", namespace.as_deref().unwrap_or_default());
     authorize(&state, &headers, Some(access)).await?;
-    let limit = page_size(query.limit)?;
-    let selector = Selector::parse(query.label_selector.as_deref().unwrap_or_default())
-        .map_err(ApiError::BadRequest)?;
-    let phase = query.phase.as_deref().map(parse_phase).transpose()?;
-    let after = resume_key(query.r#continue.as_deref())?;
+    let filter = Filter::parse(&query)?;
     ready(&state.fleet.robots)?;
-    let keep = |r: &Robot| {
-        selector.matches(r.metadata.labels.as_ref().unwrap_or(&NO_LABELS))
-            && phase.is_none_or(|p| r.status.as_ref().and_then(|s| s.phase) == Some(p))
-            && query
-                .release
-                .as_deref()
-                .is_none_or(|v| running(r) == Some(v))
-    };
-    let (items, more) =
+    let found =
         state
             .fleet
             .robots
-            .page(namespace.as_deref(), after.as_ref(), limit as usize, keep);
-    let next = more
-        .then(|| {
-            items
-                .last()
-                .map(|r| continue_after(&super::cache::key(r.as_ref())))
+            .page_json(filter.place(namespace.as_deref()), filter.limit, |r| {
+                filter.keep(r)
+            });
+    // The page as `Page` would serialize, from each robot's JSON kept in the cache.
+    let size = found.items.iter().map(|j| j.len() + 1).sum::<usize>();
+    let mut body = String::with_capacity(size + 64);
+    body.push_str(r#"{"items":["#);
+    for (i, json) in found.items.iter().enumerate() {
+        if i > 0 {
+            body.push(',');
+        }
+        body.push_str(json);
+    }
+    body.push(']');
+    if let Some(last) = found.last.as_ref().filter(|_| found.more) {
+        body.push_str(r#","continue":""#);
+        body.push_str(&continue_after(last));
+        body.push('"');
+    }
+    body.push('}');
+    Ok(([(header::CONTENT_TYPE, "application/json")], body).into_response())
+}
+
+/// A robot list's parsed query.
+struct Filter {
+    selector: Selector,
+    phase: Option<RobotPhase>,
+    release: Option<String>,
+    after: Option<Key>,
+    limit: usize,
+}
+
+impl Filter {
+    fn parse(query: &ListQuery) -> Result<Self, ApiError> {
+        Ok(Self {
+            limit: page_size(query.limit)? as usize,
+            selector: Selector::parse(query.label_selector.as_deref().unwrap_or_default())
+                .map_err(ApiError::BadRequest)?,
+            phase: query.phase.as_deref().map(parse_phase).transpose()?,
+            release: query.release.clone(),
+            after: resume_key(query.r#continue.as_deref())?,
         })
-        .flatten();
-    Ok(Json(Page { items, next }))
+    }
+
+    /// Where the list reads: the namespace, after the `continue` key, by a label the selector
+    /// requires.
+    fn place<'a>(
+        &'a self,
+        namespace: Option<&'a str>,
+    ) -> (Option<&'a str>, Option<&'a Key>, Option<(&'a str, &'a str)>) {
+        (namespace, self.after.as_ref(), self.selector.equality())
+    }
+
+    fn keep(&self, r: &Robot) -> bool {
+        self.selector
+            .matches(r.metadata.labels.as_ref().unwrap_or(&NO_LABELS))
+            && self
+                .phase
+                .is_none_or(|p| r.status.as_ref().and_then(|s| s.phase) == Some(p))
+            && self
+                .release
+                .as_deref()
+                .is_none_or(|v| running(r) == Some(v))
+    }
+}
+
+/// The page of robots `query` asks for in `namespace` (all if `None`), from the cache.
+pub(crate) fn page(
+    state: &AppState,
+    namespace: Option<&str>,
+    query: &ListQuery,
+) -> Result<Page<Arc<Robot>>, ApiError> {
+    let filter = Filter::parse(query)?;
+    ready(&state.fleet.robots)?;
+    let found = state
+        .fleet
+        .robots
+        .page_objects(filter.place(namespace), filter.limit, |r| filter.keep(r));
+    let next = found
+        .last
+        .filter(|_| found.more)
+        .map(|k| continue_after(&k));
+    Ok(Page {
+        items: found.items,
+        next,
+    })
 }
 
 /// `GET /api/v1/namespaces/{namespace}/robots/{name}` (`get robots`): the Robot and its vitals.
@@ -144,12 +211,12 @@ pub async fn one(
 }
 
 /// The release version the robot reports it runs.
-fn running(r: &Robot) -> Option<&str> {
+pub(crate) fn running(r: &Robot) -> Option<&str> {
     let status = r.status.as_ref()?;
     status.current_release.as_ref().map(|c| c.version.as_str())
 }
 
-fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
+pub(crate) fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
     RobotPhase::ALL
         .into_iter()
         .find(|p| p.as_str() == text)

@@ -27,13 +27,13 @@ use crate::gateway::{ApiError, AppState};
 const FIELD_MANAGER: &str = "lekiwi-fleet-api";
 
 /// Query of the rollout lists.
-#[derive(Debug, Deserialize)]
+#[derive(Debug, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ListQuery {
     /// Page size.
-    limit: Option<u32>,
+    pub(crate) limit: Option<u32>,
     /// Token of the page to resume after.
-    r#continue: Option<String>,
+    pub(crate) r#continue: Option<String>,
 }
 
 /// `GET /api/v1/rollouts` (`list robotdeployments` in all namespaces).
@@ -70,6 +70,15 @@ async fn list(
         Some(Access::new("list", "robotdeployments", ns)),
     )
     .await?;
+    page(&state, namespace.as_deref(), &query).map(Json)
+}
+
+/// The page of rollouts `query` asks for in `namespace` (all if `None`), from the cache.
+pub(crate) fn page(
+    state: &AppState,
+    namespace: Option<&str>,
+    query: &ListQuery,
+) -> Result<Page<Arc<RobotDeployment>>, ApiError> {
     let limit = page_size(query.limit)?;
     let after = resume_key(query.r#continue.as_deref())?;
     ready(&state.fleet.rollouts)?;
@@ -77,9 +86,7 @@ async fn list(
         state
             .fleet
             .rollouts
-            .page(namespace.as_deref(), after.as_ref(), limit as usize, |_| {
-                true
-            });
+            .page(namespace, after.as_ref(), limit as usize, |_| true);
     let next = more
         .then(|| {
             items
@@ -87,7 +94,7 @@ async fn list(
                 .map(|d| continue_after(&super::cache::key(d.as_ref())))
         })
         .flatten();
-    Ok(Json(Page { items, next }))
+    Ok(Page { items, next })
 }
 
 /// `GET /api/v1/namespaces/{namespace}/rollouts/{name}` (`get robotdeployments`).
@@ -148,7 +155,7 @@ pub async fn restart(
 }
 
 /// The merge patch `kubectl lekiwi rollout undo|restart` sends: the annotation set to now.
-fn stamp(annotation: &str) -> Value {
+pub(crate) fn stamp(annotation: &str) -> Value {
     json!({"metadata": {"annotations": {annotation: Timestamp::now().to_string()}}})
 }
 
@@ -166,20 +173,34 @@ async fn act(
         ..Access::new("patch", "robotdeployments", &namespace)
     };
     let user = authorize(&state, &headers, Some(access)).await?;
-    let api: Api<RobotDeployment> = Api::namespaced(state.fleet.client.clone(), &namespace);
+    patch_rollout(&state, &user, &namespace, &name, &patch)
+        .await
+        .map(Json)
+}
+
+/// Merge-patches RobotDeployment `namespace/name` with `patch` for `user` (whose permission
+/// was checked); the object as patched.
+pub(crate) async fn patch_rollout(
+    state: &AppState,
+    user: &str,
+    namespace: &str,
+    name: &str,
+    patch: &Value,
+) -> Result<RobotDeployment, ApiError> {
+    let api: Api<RobotDeployment> = Api::namespaced(state.fleet.client.clone(), namespace);
     let params = PatchParams {
         field_manager: Some(FIELD_MANAGER.to_owned()),
         ..PatchParams::default()
     };
     let patched = api
-        .patch(&name, &params, &Patch::Merge(&patch))
+        .patch(name, &params, &Patch::Merge(patch))
         .await
         .map_err(|e| match e {
-            kube::Error::Api(s) if s.code == 404 => not_found(&namespace, &name),
+            kube::Error::Api(s) if s.code == 404 => not_found(namespace, name),
             e => ApiError::Internal(format!("patching robotdeployment {namespace}/{name}: {e}")),
         })?;
     info!(%user, robotdeployment = %name, %namespace, %patch, "rollout action through the Fleet API");
-    Ok(Json(patched))
+    Ok(patched)
 }
 
 fn not_found(namespace: &str, name: &str) -> ApiError {

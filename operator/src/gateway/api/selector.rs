@@ -30,6 +30,17 @@ impl Selector {
         Ok(Self(requirements))
     }
 
+    /// One `key=value` requirement of the selector, if it has one: only objects with that
+    /// label can match, so a list may read the label's index instead of every object.
+    pub fn equality(&self) -> Option<(&str, &str)> {
+        self.0.iter().find_map(|r| match r {
+            Requirement::In(key, Some(values)) if values.len() == 1 => {
+                Some((key.as_str(), values[0].as_str()))
+            }
+            _ => None,
+        })
+    }
+
     /// Whether `labels` satisfy every requirement.
     pub fn matches(&self, labels: &BTreeMap<String, String>) -> bool {
         self.0.iter().all(|r| match r {

@@ -93,6 +93,10 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
     if blobs.manifests.referenced(&blobs.store, &own, digest).await {
         return true;
     }
+    // An agent build that a Robot of the namespace names in `spec.agent`.
+    if desired.agent_digests_in(&robot.namespace).contains(digest) {
+        return true;
+    }
     let releases = desired.digests_in(&robot.namespace);
     if blobs
         .manifests

@@ -19,7 +19,9 @@ static POSTGRES_MIGRATIONS: Migrator =
 const SQLITE_BUSY_TIMEOUT: Duration = Duration::from_secs(10);
 /// SQLite serialises writers anyway; a few connections let readers run beside one writer.
 const SQLITE_MAX_CONNECTIONS: u32 = 4;
-const POSTGRES_MAX_CONNECTIONS: u32 = 10;
+/// Event inserts take at most four (batched, see `batch`); the rest serve a reconnect wave's
+/// connection records and `last_seq` reads, and the HTTP API's queries.
+const POSTGRES_MAX_CONNECTIONS: u32 = 16;
 /// How long a query waits for a free connection (or for a new one to open).
 const ACQUIRE_TIMEOUT: Duration = Duration::from_secs(30);
 /// How long opening the first PostgreSQL connection may take.

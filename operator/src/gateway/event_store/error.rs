@@ -90,6 +90,9 @@ pub enum Error {
         /// The quota in force.
         quota: super::Quota,
     },
+    /// The store was closed (the gateway is stopping) before the message was stored.
+    #[error("the event store is closed")]
+    Closed,
     /// A sequence number too large for the database's signed 64-bit integers.
     #[error("sequence number {0} is out of range: the event store holds at most {max}", max = i64::MAX)]
     SeqOutOfRange(u64),

@@ -92,6 +92,8 @@ pub struct Store {
     backend: Backend,
     /// Each robot's usage against the quota, shared by clones.
     ledger: Arc<quota::Ledger>,
+    /// Batches event inserts (see [`batch`]); `None` outside a Tokio runtime.
+    batcher: Option<batch::Batcher>,
 }
 
 #[derive(Clone)]
@@ -137,6 +139,7 @@ macro_rules! with_pool {
 
 // Declared after `with_pool!`, which they use: a `macro_rules!` macro is in scope only below
 // its definition.
+mod batch;
 mod connect;
 mod history;
 mod quota;
@@ -152,7 +155,9 @@ impl Store {
         Store {
             backend,
             ledger: Arc::new(quota::Ledger::new(Quota::UNLIMITED)),
+            batcher: None,
         }
+        .batched()
     }
 
     /// `"sqlite"` or `"postgres"`.

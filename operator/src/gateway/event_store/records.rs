@@ -106,6 +106,22 @@ impl Store {
         let seq = to_db_seq(ev.seq)?;
         let bytes = event_bytes(ev);
         self.check_quota_unless_stored(robot, seq, 1, bytes).await?;
+        let inserted = self.store_event(robot, seq, ev, bytes, received_ms).await?;
+        if inserted {
+            self.count_stored(robot, 1, bytes);
+        }
+        Ok(inserted)
+    }
+
+    /// Inserts one event row by itself; `Ok(true)` if newly stored.
+    pub(super) async fn insert_event_row(
+        &self,
+        robot: &RobotKey,
+        seq: i64,
+        ev: &StoredEvent,
+        bytes: u64,
+        received_ms: i64,
+    ) -> Result<bool> {
         let inserted = with_pool!(self, pool => {
             sqlx::query(INSERT_EVENT)
                 .bind(&robot.namespace)
@@ -127,9 +143,6 @@ impl Store {
             robot: robot.to_string(),
             source,
         })?;
-        if inserted == 1 {
-            self.count_stored(robot, 1, bytes);
-        }
         Ok(inserted == 1)
     }
 

@@ -9,7 +9,10 @@
 //! the number of robots. A status the API server refuses as invalid is not retried: the writer
 //! falls back to presence alone for the rest of the session and says why in a Warning Event.
 
+mod adapt;
+mod agent;
 pub(crate) mod analysis;
+pub mod claims;
 mod patch;
 mod phase;
 #[cfg(test)]
@@ -26,6 +29,8 @@ use jiff::Timestamp;
 use lekiwi_protocol::{Health, Release, SystemFacts, Teleoperation, Vitals};
 use tokio::sync::Notify;
 
+pub use self::adapt::RateBounds;
+pub use self::agent::AgentUpdateOutcome;
 pub use self::analysis::window_open as analysis_window_open;
 pub use self::phase::PhasePlanner;
 use self::queue::State;
@@ -33,9 +38,13 @@ use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::next_epoch;
 use crate::metrics::Metrics;
 
-/// Which queue a robot waits in for its status write: transitions overtake routine refreshes.
+/// Which queue a robot waits in for its status write: moves overtake other transitions, which
+/// overtake routine refreshes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Priority {
+    /// A new session of a robot whose status names another gateway (it moved here, e.g. after
+    /// its gateway died): until written, the old gateway's death could turn it `Unknown`.
+    Move,
     /// Connects, disconnects and other transitions.
     High,
     /// Routine `lastHeartbeatTime` refreshes.
@@ -45,8 +54,18 @@ pub enum Priority {
 impl Priority {
     fn label(self) -> &'static str {
         match self {
+            Priority::Move => "move",
             Priority::High => "high",
             Priority::Low => "low",
+        }
+    }
+
+    /// Higher goes first.
+    fn rank(self) -> u8 {
+        match self {
+            Priority::Move => 2,
+            Priority::High => 1,
+            Priority::Low => 0,
         }
     }
 }
@@ -90,7 +109,7 @@ pub struct HeartbeatInfo {
 pub struct UpdateOutcome {
     /// The release it was told to run.
     pub release: Release,
-    /// `done`, `failed` or `rolled_back`.
+    /// `done`, `failed`, `rolled_back` or `cancelled`.
     pub phase: String,
     /// Its explanation.
     pub message: Option<String>,
@@ -115,11 +134,16 @@ struct Entry {
     last_update: Option<UpdateOutcome>,
     /// Metrics before and after the last switch (kept across sessions, like `last_update`).
     analysis: analysis::Tracker,
+    /// How the latest agent update went (kept across sessions, like `last_update`).
+    agent_update: Option<AgentUpdateOutcome>,
     /// The API server refused this session's full status: write presence facts only.
     presence_only: bool,
     /// A session of a robot last written as disconnected, not written yet: its first write
     /// waits until it has lasted [`SETTLE`] (or something else must be written).
     settling: bool,
+    /// The robot's status named another gateway when this session opened, and no write of this
+    /// session has landed yet: the gateway claims it in its Lease (see [`claims`]).
+    moved: bool,
 }
 
 /// How long a new session of a robot shown as disconnected must last before it is written as
@@ -135,8 +159,10 @@ pub struct PresenceConfig {
     pub status_refresh: Duration,
     /// A polling robot that has not polled for this long is Offline.
     pub poll_grace: Duration,
-    /// Sustained status writes per second.
+    /// Sustained status writes per second (the start, when `adaptive`).
     pub qps: f64,
+    /// Bounds within which the rate adapts to the API server's answers; `None`: fixed at `qps`.
+    pub adaptive: Option<RateBounds>,
     /// Burst of status writes.
     pub burst: u32,
     /// Writes in flight at once.
@@ -148,6 +174,8 @@ pub struct PresenceConfig {
 pub struct Presence {
     state: Arc<Mutex<State>>,
     notify: Arc<Notify>,
+    /// Wakes the Lease renewal when a robot moved here (see [`Presence::claims`]).
+    claims_changed: Arc<Notify>,
     config: Arc<PresenceConfig>,
     metrics: Metrics,
     /// Set once the gateway's Robot cache is ready: status writes then carry the phase too.
@@ -160,6 +188,7 @@ impl Presence {
         Self {
             state: Arc::default(),
             notify: Arc::default(),
+            claims_changed: Arc::default(),
             config: Arc::new(config),
             metrics,
             planner: Arc::default(),
@@ -169,16 +198,20 @@ impl Presence {
     fn with_state<T>(&self, f: impl FnOnce(&mut State) -> T) -> T {
         let mut state = self.state.lock().unwrap_or_else(|p| p.into_inner());
         let out = f(&mut state);
-        self.metrics
-            .gateway
-            .status_queue
-            .get_or_create(&crate::metrics::PriorityLabels { priority: "high" })
-            .set(state.high.len() as i64);
-        self.metrics
-            .gateway
-            .status_queue
-            .get_or_create(&crate::metrics::PriorityLabels { priority: "low" })
-            .set(state.low.len() as i64);
+        let queues = [
+            (Priority::Move, state.moves.len()),
+            (Priority::High, state.high.len()),
+            (Priority::Low, state.low.len()),
+        ];
+        for (priority, len) in queues {
+            let priority = priority.label();
+            let labels = crate::metrics::PriorityLabels { priority };
+            self.metrics
+                .gateway
+                .status_queue
+                .get_or_create(&labels)
+                .set(len as i64);
+        }
         out
     }
 
@@ -188,6 +221,19 @@ impl Presence {
 
     /// A session of `key` with session epoch `epoch` started.
     pub fn connect(&self, key: &RobotKey, session: u64, epoch: i64, info: ConnectInfo) {
+        self.connect_moved(key, session, epoch, info, false);
+    }
+
+    /// A session of `key` started; `moved` when the robot's status names another gateway: its
+    /// write then goes before every other, and the gateway's Lease claims the robot until then.
+    pub fn connect_moved(
+        &self,
+        key: &RobotKey,
+        session: u64,
+        epoch: i64,
+        info: ConnectInfo,
+        moved: bool,
+    ) {
         let now = Timestamp::now();
         self.with_state(|s| {
             let teleoperation_since = info.teleoperation.as_ref().map(|_| now);
@@ -196,6 +242,7 @@ impl Presence {
             let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
             let analysis = s.robots.get(key).map(|e| e.analysis.clone());
             let analysis = analysis.or_else(|| self.stored_analysis(key));
+            let agent_update = s.robots.get(key).and_then(|e| e.agent_update.clone());
             s.robots.insert(
                 key.clone(),
                 Entry {
@@ -211,14 +258,21 @@ impl Presence {
                     retries: 0,
                     last_update,
                     analysis: analysis.unwrap_or_default(),
+                    agent_update,
                     presence_only: false,
-                    settling: s.known_offline.contains(key),
+                    settling: s.known_offline.contains(key) && !moved,
+                    moved,
                 },
             );
-            if !s.known_offline.contains(key) {
+            if moved {
+                s.enqueue(key, Priority::Move);
+            } else if !s.known_offline.contains(key) {
                 s.enqueue(key, Priority::High);
             }
         });
+        if moved {
+            self.claims_changed.notify_one();
+        }
         self.wake();
     }
 

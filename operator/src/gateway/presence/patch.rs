@@ -116,6 +116,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         telemetry: telemetry_summary(&e.vitals),
         last_update: e.last_update.as_ref().map(update_report),
         analysis: e.analysis.report(),
+        agent_update: e.agent_update.as_ref().map(super::agent::report),
     }
 }
 

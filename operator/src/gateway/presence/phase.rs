@@ -148,6 +148,7 @@ status:
                 status_refresh: Duration::from_secs(300),
                 poll_grace: Duration::from_secs(180),
                 qps: 10.0,
+                adaptive: None,
                 burst: 10,
                 concurrency: 2,
             },

@@ -167,6 +167,7 @@ fn hello() -> impl Strategy<Value = AgentMessage> {
             last_acked_seq: None,
             health,
             teleoperation,
+            features: Vec::new(),
         },
     )
 }
@@ -238,8 +239,10 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         retries: 0,
         last_update: None,
         analysis: Default::default(),
+        agent_update: None,
         presence_only: false,
         settling: false,
+        moved: false,
     }
 }
 

@@ -1,5 +1,5 @@
-//! The presence state behind one lock: what each robot last said, and the two write queues
-//! that hold each robot at most once.
+//! The presence state behind one lock: what each robot last said, and the three write queues
+//! (moves, transitions, refreshes) that hold each robot at most once.
 
 use std::collections::{HashMap, HashSet, VecDeque};
 
@@ -14,8 +14,12 @@ pub(super) struct State {
     /// and fails at once (a stolen token in a loop) costs the API server nothing.
     pub(super) known_offline: HashSet<RobotKey>,
     pub(super) queued: HashMap<RobotKey, Priority>,
+    pub(super) moves: VecDeque<RobotKey>,
     pub(super) high: VecDeque<RobotKey>,
     pub(super) low: VecDeque<RobotKey>,
+    /// Robots whose status write is in flight, each with the priority it was queued at again
+    /// meanwhile: one write per robot at a time, so an older snapshot never lands after a newer.
+    pub(super) writing: HashMap<RobotKey, Option<Priority>>,
 }
 
 impl State {
@@ -37,32 +41,62 @@ impl State {
     }
 
     pub(super) fn enqueue(&mut self, key: &RobotKey, priority: Priority) {
-        match self.queued.get(key) {
-            Some(Priority::High) => {}
-            Some(Priority::Low) if priority == Priority::Low => {}
-            _ => {
-                // A robot waiting as Low is promoted: it stays in `low` too, but is skipped
-                // there because `queued` says High.
-                self.queued.insert(key.clone(), priority);
-                match priority {
-                    Priority::High => self.high.push_back(key.clone()),
-                    Priority::Low => self.low.push_back(key.clone()),
+        // A robot already waiting at this priority or above stays where it is; one waiting
+        // lower is promoted: it stays in its old queue too, but is skipped there because
+        // `queued` names the new priority.
+        if self
+            .queued
+            .get(key)
+            .is_some_and(|&p| p.rank() >= priority.rank())
+        {
+            return;
+        }
+        self.queued.insert(key.clone(), priority);
+        match priority {
+            Priority::Move => self.moves.push_back(key.clone()),
+            Priority::High => self.high.push_back(key.clone()),
+            Priority::Low => self.low.push_back(key.clone()),
+        }
+    }
+
+    /// Claims the write of `key` (taken from the queues at `priority`); `false` when one is in
+    /// flight already: then it is queued again at `priority` once that one ends.
+    pub(super) fn begin_write(&mut self, key: &RobotKey, priority: Priority) -> bool {
+        match self.writing.get_mut(key) {
+            Some(again) => {
+                if again.is_none_or(|p| p.rank() < priority.rank()) {
+                    *again = Some(priority);
                 }
+                false
+            }
+            None => {
+                self.writing.insert(key.clone(), None);
+                true
             }
         }
     }
 
-    pub(super) fn pop(&mut self) -> Option<(RobotKey, Priority)> {
-        while let Some(key) = self.high.pop_front() {
-            if self.queued.get(&key) == Some(&Priority::High) {
-                self.queued.remove(&key);
-                return Some((key, Priority::High));
-            }
+    /// The write of `key` ended (written or not): one asked for meanwhile is queued now.
+    pub(super) fn end_write(&mut self, key: &RobotKey) {
+        if let Some(Some(priority)) = self.writing.remove(key)
+            && self.robots.contains_key(key)
+        {
+            self.enqueue(key, priority);
         }
-        while let Some(key) = self.low.pop_front() {
-            if self.queued.get(&key) == Some(&Priority::Low) {
-                self.queued.remove(&key);
-                return Some((key, Priority::Low));
+    }
+
+    pub(super) fn pop(&mut self) -> Option<(RobotKey, Priority)> {
+        for priority in [Priority::Move, Priority::High, Priority::Low] {
+            let queue = match priority {
+                Priority::Move => &mut self.moves,
+                Priority::High => &mut self.high,
+                Priority::Low => &mut self.low,
+            };
+            while let Some(key) = queue.pop_front() {
+                if self.queued.get(&key) == Some(&priority) {
+                    self.queued.remove(&key);
+                    return Some((key, priority));
+                }
             }
         }
         None

@@ -37,8 +37,10 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         retries: 0,
         last_update: None,
         analysis: Default::default(),
+        agent_update: None,
         presence_only: false,
         settling: false,
+        moved: false,
     }
 }
 
@@ -330,6 +332,7 @@ fn presence() -> Presence {
             status_refresh: Duration::from_secs(300),
             poll_grace: Duration::from_secs(180),
             qps: 10.0,
+            adaptive: None,
             burst: 10,
             concurrency: 2,
         },
@@ -396,8 +399,10 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 retries: 0,
                 last_update: None,
                 analysis: Default::default(),
+                agent_update: None,
                 presence_only: false,
                 settling: false,
+                moved: false,
             },
         );
         s.enqueue(&key("a"), Priority::Low);
@@ -486,4 +491,54 @@ fn a_moved_session_is_forgotten_without_a_write() {
     assert_eq!((p.connected(), p.queued()), (0, 0));
     p.disconnect(&key("m"), 1);
     assert_eq!(p.queued(), 0, "its end writes nothing either");
+}
+
+/// A robot that moved here is written before every transition and refresh, and claimed (in
+/// the Lease annotation) until its write lands or its session ends.
+#[test]
+fn moved_robots_go_first_and_are_claimed_until_written() {
+    let p = presence();
+    p.connect(&key("local"), 1, 1_000, ConnectInfo::default());
+    p.connect_moved(&key("m1"), 2, 1_000, ConnectInfo::default(), true);
+    p.connect_moved(&key("m2"), 3, 1_000, ConnectInfo::default(), true);
+    p.with_state(|s| s.enqueue(&key("m2"), Priority::High)); // a change: stays a move
+    assert_eq!(p.claims(), [key("m1"), key("m2")]);
+    assert_eq!(p.claims_annotation().as_deref(), Some("lab/m1,lab/m2"));
+    let m1 = p.with_state(|s| {
+        assert_eq!(s.pop(), Some((key("m1"), Priority::Move)));
+        assert_eq!(s.pop(), Some((key("m2"), Priority::Move)));
+        assert_eq!(s.pop(), Some((key("local"), Priority::High)));
+        assert_eq!(s.pop(), None);
+        s.take_for_write(&key("m1")).unwrap()
+    });
+    p.written(&key("m1"), &m1);
+    assert_eq!(p.claims(), [key("m2")], "written: no claim any more");
+    p.disconnect(&key("m2"), 3);
+    assert!(p.claims().is_empty(), "a session that ended claims nothing");
+    assert_eq!(p.claims_annotation(), None);
+}
+
+/// A change while the robot's write is in flight is written after it, never beside it: two
+/// writes of one robot at once could land in the wrong order and leave the older snapshot (the
+/// race that once left an agent update `Started` after it had `Succeeded`).
+#[test]
+fn one_write_per_robot_at_a_time_and_a_change_meanwhile_follows() {
+    let p = presence();
+    p.connect(&key("a"), 1, 1_000, ConnectInfo::default());
+    p.with_state(|s| {
+        let (k, prio) = s.pop().unwrap();
+        assert!(s.begin_write(&k, prio), "nothing in flight yet");
+        s.take_for_write(&k).unwrap();
+        // The robot changes while its write is in flight: queued, but not written beside it.
+        s.enqueue(&k, Priority::Low);
+        s.enqueue(&k, Priority::High);
+        let (again, prio) = s.pop().unwrap();
+        assert!(!s.begin_write(&again, prio), "one write at a time");
+        assert_eq!(s.pop(), None, "the change waits for the write in flight");
+        s.end_write(&k);
+        assert_eq!(s.pop(), Some((key("a"), Priority::High)), "then follows it");
+        assert!(s.begin_write(&k, Priority::High));
+        s.end_write(&k);
+        assert_eq!(s.pop(), None, "nothing asked for meanwhile: nothing more");
+    });
 }

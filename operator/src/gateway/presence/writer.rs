@@ -1,8 +1,9 @@
-//! The status writer: takes robots off the queues under a rate limit and a concurrency cap,
-//! applies their latest status, and retries failed writes with backoff.
+//! The status writer: takes robots off the queues under a rate limit (adaptive, see
+//! [`super::adapt`]) and a concurrency cap, applies their latest status, and retries failed
+//! writes with backoff.
 
-use std::sync::Arc;
-use std::time::Duration;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use k8s_openapi::api::core::v1::ObjectReference;
 use kube::api::{Patch, PatchParams};
@@ -14,6 +15,7 @@ use tokio::sync::Semaphore;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
+use super::adapt::AdaptiveRate;
 use super::patch::Precondition;
 use super::{Entry, Presence, Priority};
 use crate::gateway::desired::DesiredReleases;
@@ -34,6 +36,19 @@ enum WriteError {
     Refused(String),
     /// The API server refused or failed; retried.
     Api(kube::Error),
+}
+
+/// Whether a write's outcome says the API server is overloaded: a 429, a 5xx, or no answer.
+fn throttled(result: &Result<(), WriteError>) -> bool {
+    match result {
+        Err(WriteError::Api(kube::Error::Api(s))) => s.code == 429 || s.code >= 500,
+        Err(WriteError::Api(_)) => true,
+        _ => false,
+    }
+}
+
+fn lock(rate: &Mutex<AdaptiveRate>) -> std::sync::MutexGuard<'_, AdaptiveRate> {
+    rate.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 /// Longest note of the Warning Event on a refused status (the API server's reason), in bytes.
@@ -57,6 +72,7 @@ impl Presence {
     ) {
         let slots = Arc::new(Semaphore::new(self.config.concurrency.max(1)));
         let mut bucket = TokenBucket::new(self.config.qps, self.config.burst);
+        let adaptive = self.adaptive_rate();
         let recorder = Recorder::new(
             client.clone(),
             Reporter {
@@ -74,6 +90,12 @@ impl Presence {
                     () = tokio::time::sleep(Duration::from_secs(1)) => continue,
                 }
             };
+            if let Some(a) = &adaptive {
+                bucket.set_rate(lock(a).rate());
+            }
+            if !self.with_state(|s| s.begin_write(&key, priority)) {
+                continue;
+            }
             tokio::select! {
                 () = cancel.cancelled() => return,
                 () = bucket.take() => {}
@@ -82,15 +104,21 @@ impl Presence {
                 return;
             };
             let Some(entry) = self.with_state(|s| s.take_for_write(&key)) else {
+                self.with_state(|s| s.end_write(&key));
                 continue;
             };
             let me = self.clone();
             let client = client.clone();
             let recorder = recorder.clone();
             let holders = holders.clone();
+            let adaptive = adaptive.clone();
             tokio::spawn(async move {
                 let holders = holders.as_ref();
+                let started = Instant::now();
                 let mut result = me.write(&client, holders, &key, &entry).await;
+                if let Some(a) = &adaptive {
+                    me.adapt(a, started.elapsed(), throttled(&result));
+                }
                 if let Err(WriteError::Refused(why)) = &result
                     && !entry.presence_only
                 {
@@ -102,7 +130,9 @@ impl Presence {
                     result = me.write(&client, holders, &key, &bare).await;
                 }
                 drop(permit);
-                let outcome = me.settle(key, priority, &entry, result);
+                let outcome = me.settle(key.clone(), priority, &entry, result);
+                me.with_state(|s| s.end_write(&key));
+                me.wake();
                 me.metrics
                     .gateway
                     .status_writes
@@ -113,6 +143,28 @@ impl Presence {
                     .inc();
             });
         }
+    }
+
+    /// The adaptive rate, unless the rate is fixed; exports the starting rate.
+    fn adaptive_rate(&self) -> Option<Arc<Mutex<AdaptiveRate>>> {
+        let adaptive = self
+            .config
+            .adaptive
+            .map(|b| Arc::new(Mutex::new(AdaptiveRate::new(self.config.qps, b))));
+        let rate = adaptive
+            .as_ref()
+            .map_or(self.config.qps, |a| lock(a).rate());
+        self.metrics.gateway.status_rate.set(rate);
+        adaptive
+    }
+
+    /// Feeds how a write was answered into the adaptive rate, and exports the new rate.
+    fn adapt(&self, adaptive: &Mutex<AdaptiveRate>, took: Duration, throttled: bool) {
+        let backlog = self.queued() > 0;
+        let mut a = lock(adaptive);
+        let answer = a.classify(took, throttled);
+        let rate = a.observe(answer, backlog, Instant::now());
+        self.metrics.gateway.status_rate.set(rate);
     }
 
     /// Brings the presence state up to date with how the write of `entry` went, and returns
@@ -166,12 +218,14 @@ impl Presence {
 
     /// `entry` is in the API server now: its heartbeat counts as written, and a disconnected
     /// robot written as such is forgotten.
-    fn written(&self, key: &RobotKey, entry: &Entry) {
+    pub(super) fn written(&self, key: &RobotKey, entry: &Entry) {
         self.with_state(|s| {
             if let Some(e) = s.robots.get_mut(key) {
                 e.retries = 0;
                 if e.session == entry.session {
                     e.written_heartbeat = Some(entry.last_heartbeat);
+                    // The status names this gateway now: no claim needed any more.
+                    e.moved &= !entry.connected;
                 }
                 // A disconnected robot written as such needs no memory any more, except that
                 // the status says so.

@@ -1,25 +1,33 @@
-//! A session's deploy-command bookkeeping: which release the robot runs, which it should run,
-//! and the deploy command already sent for it, so each command goes out once per session.
+//! A session's command bookkeeping: which release the robot runs, which it should run, and the
+//! command in flight, so each command goes out once per session and a change of mind stops
+//! what no longer should happen (`cancel`) or undoes a finished switch (`rollback`).
 
 use jiff::Timestamp;
 use lekiwi_protocol::{Command, ProgressPhase, Release, ServerMessage};
 
 /// A short id of this gateway process, different after every restart.
-fn boot_id() -> &'static str {
+pub(super) fn boot_id() -> &'static str {
     static BOOT: std::sync::OnceLock<String> = std::sync::OnceLock::new();
     BOOT.get_or_init(|| format!("{:x}", Timestamp::now().as_millisecond()))
 }
 
-/// What a session knows about the robot's release and the deploy command it sent.
+/// What a session knows about the robot's release and the commands it sent.
 pub(super) struct CommandLedger {
     /// The release the agent last reported running (in `hello`, a heartbeat, or a `done`).
     current: Option<Release>,
     /// The robot's `spec.release` as the gateway's Robot watch last saw it.
     desired: Option<Release>,
-    /// The last deploy command: its id and release. Not repeated within the session; a new
-    /// session (reconnect) sends it again if the robot still does not run it.
+    /// The last deploy (or rollback) command: its id and release. Not repeated within the
+    /// session; a new session (reconnect) sends it again if the robot still does not run it.
     sent: Option<(String, Release)>,
-    /// Deploy commands made in this session, numbering their ids.
+    /// Whether `sent` has not reported a final phase yet.
+    in_flight: bool,
+    /// The release the robot ran when `sent` went out: a return to it is a `rollback`.
+    before: Option<Release>,
+    /// Commands cancelled in this session, with their releases: their final report (normally
+    /// `cancelled`) is still recorded as the robot's last update.
+    cancelled: Vec<(String, Release)>,
+    /// Commands made in this session, numbering their ids.
     counter: u32,
 }
 
@@ -30,13 +38,11 @@ impl CommandLedger {
             current,
             desired,
             sent: None,
+            in_flight: false,
+            before: None,
+            cancelled: Vec::new(),
             counter: 0,
         }
-    }
-
-    /// The release the robot should run, as last told.
-    pub(super) fn desired(&self) -> Option<&Release> {
-        self.desired.as_ref()
     }
 
     /// Records a new desired release (the Robot's `spec.release` changed).
@@ -45,8 +51,8 @@ impl CommandLedger {
     }
 
     /// Records the release a heartbeat reports; true when it is one and differs from the last
-    /// known, i.e. when a deploy command may be due again (the robot switched elsewhere than
-    /// asked, e.g. finished an older deploy).
+    /// known, i.e. when a command may be due again (the robot switched elsewhere than asked,
+    /// e.g. finished an older deploy).
     pub(super) fn reported(&mut self, release: &Option<Release>) -> bool {
         if release.is_some() && *release != self.current {
             self.current = release.clone();
@@ -55,8 +61,10 @@ impl CommandLedger {
         false
     }
 
-    /// The release of the deploy command `command_id` when this progress report ends it
-    /// (a final phase of the command this session sent last); a `done` makes it the current one.
+    /// The release of the command `command_id` when this progress report ends it (a final
+    /// phase of the command this session sent last, or of one it cancelled); a `done` of the
+    /// last one makes its release the current one. (A cancelled command that finished anyway
+    /// is left to the next heartbeat, which asks for the desired release again.)
     pub(super) fn finished(
         &mut self,
         command_id: &str,
@@ -65,10 +73,14 @@ impl CommandLedger {
         if !phase.is_some_and(ProgressPhase::is_final) {
             return None;
         }
+        if let Some(i) = self.cancelled.iter().position(|(id, _)| id == command_id) {
+            return Some(self.cancelled.swap_remove(i).1);
+        }
         let (sent_id, release) = self.sent.as_ref()?;
-        if sent_id != command_id {
+        if sent_id != command_id || !self.in_flight {
             return None;
         }
+        self.in_flight = false;
         let release = release.clone();
         if phase == Some(ProgressPhase::Done) {
             self.current = Some(release.clone());
@@ -76,26 +88,59 @@ impl CommandLedger {
         Some(release)
     }
 
-    /// The deploy command to send now, if the robot should run another release.
-    pub(super) fn next_deploy(&mut self, gateway: &str, session: u64) -> Option<ServerMessage> {
-        let desired = self.desired.clone()?;
+    /// The commands to send now, in order: a `cancel` when the command in flight is for a
+    /// release the robot should no longer run; then a `rollback` when the robot should return
+    /// to the release it ran before this session's last command, else a `deploy` when it
+    /// should run another release. Unset `spec.release` asks for nothing.
+    pub(super) fn next_commands(&mut self, gateway: &str, session: u64) -> Vec<ServerMessage> {
+        let Some(desired) = self.desired.clone() else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        let in_flight = self.in_flight;
+        if let Some((id, release)) = self.sent.take_if(|(_, r)| in_flight && *r != desired) {
+            self.in_flight = false;
+            self.cancelled.push((id, release));
+            out.push(self.command(gateway, session, Command::Cancel).1);
+        }
         if self.current.as_ref() == Some(&desired)
             || self.sent.as_ref().is_some_and(|(_, r)| *r == desired)
         {
-            return None;
+            return out;
         }
-        self.counter += 1;
-        // Unique across gateway restarts too: agents remember finished command ids and do not
-        // run one twice, and session numbers start over with every process.
-        let command_id = format!("{gateway}-{}-{session}-{}", boot_id(), self.counter);
-        self.sent = Some((command_id.clone(), desired.clone()));
-        Some(ServerMessage::Command {
-            command_id,
-            command: Command::Deploy {
+        let command = if self.before.as_ref() == Some(&desired) {
+            Command::Rollback {
+                release: desired.clone(),
+            }
+        } else {
+            Command::Deploy {
                 manifest_url: lekiwi_protocol::release::blob_path(&desired.digest),
-                release: desired,
-            },
-        })
+                release: desired.clone(),
+            }
+        };
+        let (id, msg) = self.command(gateway, session, command);
+        self.before = self.current.clone();
+        self.sent = Some((id, desired));
+        self.in_flight = true;
+        out.push(msg);
+        out
+    }
+
+    /// A command with a new id, unique across gateway restarts too: agents remember finished
+    /// command ids and do not run one twice, and session numbers start over with every process.
+    fn command(
+        &mut self,
+        gateway: &str,
+        session: u64,
+        command: Command,
+    ) -> (String, ServerMessage) {
+        self.counter += 1;
+        let command_id = format!("{gateway}-{}-{session}-{}", boot_id(), self.counter);
+        let msg = ServerMessage::Command {
+            command_id: command_id.clone(),
+            command,
+        };
+        (command_id, msg)
     }
 }
 
@@ -110,8 +155,10 @@ mod tests {
         }
     }
 
-    fn deployed(cmd: Option<ServerMessage>) -> Option<(String, String)> {
-        match cmd? {
+    /// The one deploy among `cmds`: its id and version.
+    fn deployed(cmds: Vec<ServerMessage>) -> Option<(String, String)> {
+        let [cmd] = <[ServerMessage; 1]>::try_from(cmds).ok()?;
+        match cmd {
             ServerMessage::Command {
                 command_id,
                 command: Command::Deploy { release, .. },
@@ -120,15 +167,30 @@ mod tests {
         }
     }
 
+    /// The actions of `cmds`, with their releases' versions.
+    fn actions(cmds: &[ServerMessage]) -> Vec<String> {
+        cmds.iter()
+            .map(|c| match c {
+                ServerMessage::Command { command, .. } => match command {
+                    Command::Deploy { release, .. } => format!("deploy {}", release.version),
+                    Command::Rollback { release } => format!("rollback {}", release.version),
+                    Command::Cancel => "cancel".to_owned(),
+                    Command::UpdateAgent { version, .. } => format!("update_agent {version}"),
+                },
+                other => format!("{other:?}"),
+            })
+            .collect()
+    }
+
     #[test]
     fn a_deploy_goes_out_once_per_desired_release() {
         let mut ledger = CommandLedger::new(Some(release("1")), Some(release("1")));
-        assert!(ledger.next_deploy("gw", 7).is_none(), "already runs it");
+        assert!(ledger.next_commands("gw", 7).is_empty(), "already runs it");
         ledger.set_desired(Some(release("2")));
-        let (id, version) = deployed(ledger.next_deploy("gw", 7)).unwrap();
+        let (id, version) = deployed(ledger.next_commands("gw", 7)).unwrap();
         assert_eq!(version, "2");
         assert!(id.starts_with("gw-") && id.ends_with("-7-1"), "{id}");
-        assert!(ledger.next_deploy("gw", 7).is_none(), "not repeated");
+        assert!(ledger.next_commands("gw", 7).is_empty(), "not repeated");
         assert_eq!(ledger.finished(&id, Some(ProgressPhase::Downloading)), None);
         assert_eq!(ledger.finished("other", Some(ProgressPhase::Done)), None);
         assert_eq!(
@@ -144,16 +206,58 @@ mod tests {
     #[test]
     fn a_robot_that_switched_elsewhere_is_asked_again_with_a_new_id() {
         let mut ledger = CommandLedger::new(None, Some(release("2")));
-        let (first, _) = deployed(ledger.next_deploy("gw", 1)).unwrap();
+        let (first, _) = deployed(ledger.next_commands("gw", 1)).unwrap();
         assert!(ledger.reported(&Some(release("1"))));
-        assert!(ledger.next_deploy("gw", 1).is_none(), "sent already for 2");
+        assert!(
+            ledger.next_commands("gw", 1).is_empty(),
+            "sent already for 2"
+        );
         ledger.set_desired(Some(release("3")));
-        let (second, version) = deployed(ledger.next_deploy("gw", 1)).unwrap();
+        let cmds = ledger.next_commands("gw", 1);
+        assert_eq!(
+            actions(&cmds),
+            ["cancel", "deploy 3"],
+            "2 is still in flight"
+        );
+        let (second, version) = deployed(cmds[1..].to_vec()).unwrap();
         assert_eq!(version, "3");
         assert_ne!(first, second);
         assert!(
             !ledger.reported(&None),
             "a heartbeat without a release changes nothing"
+        );
+    }
+
+    #[test]
+    fn a_change_of_mind_cancels_the_deploy_in_flight_and_a_resume_sends_it_again() {
+        let mut ledger = CommandLedger::new(Some(release("1")), Some(release("2")));
+        let (first, _) = deployed(ledger.next_commands("gw", 1)).unwrap();
+        ledger.set_desired(Some(release("1")));
+        let cmds = ledger.next_commands("gw", 1);
+        assert_eq!(actions(&cmds), ["cancel"], "the robot still runs 1");
+        assert!(ledger.next_commands("gw", 1).is_empty(), "cancelled once");
+        assert_eq!(
+            ledger.finished(&first, Some(ProgressPhase::Cancelled)),
+            Some(release("2")),
+            "the cancelled command's end is still recorded"
+        );
+        ledger.set_desired(Some(release("2")));
+        let (again, version) = deployed(ledger.next_commands("gw", 1)).unwrap();
+        assert_eq!(version, "2");
+        assert_ne!(first, again);
+    }
+
+    #[test]
+    fn a_return_to_the_release_before_a_finished_switch_is_a_rollback() {
+        let mut ledger = CommandLedger::new(Some(release("1")), Some(release("2")));
+        let (id, _) = deployed(ledger.next_commands("gw", 1)).unwrap();
+        ledger.finished(&id, Some(ProgressPhase::Done));
+        ledger.set_desired(Some(release("1")));
+        assert_eq!(actions(&ledger.next_commands("gw", 1)), ["rollback 1"]);
+        ledger.set_desired(None);
+        assert!(
+            ledger.next_commands("gw", 1).is_empty(),
+            "unset asks nothing"
         );
     }
 }

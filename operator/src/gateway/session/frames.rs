@@ -68,7 +68,11 @@ where
                     message,
                     data,
                 };
-                self.event(&ev).await
+                let stored = Box::pin(self.shared.store.insert_event(self.key, &ev)).await;
+                if matches!(stored, Ok(true)) {
+                    self.agent_event(&ev);
+                }
+                self.durable(ev.seq, stored)
             }
             AgentMessage::Telemetry { seq, samples } => self.telemetry(seq, &samples).await,
             AgentMessage::Progress {
@@ -125,10 +129,8 @@ where
         }
         // A deploy goes out once per desired release and session (PROTOCOL.md §12): a robot
         // that switched away from it is asked again only for a release not yet sent.
-        if self.commands.reported(&info.release)
-            && let Some(cmd) = self.commands.next_deploy(&self.shared.gateway, self.id)
-        {
-            self.conn.send(&cmd).await?;
+        if self.commands.reported(&info.release) {
+            self.send_commands().await?;
         }
         self.shared.presence.heartbeat(self.key, self.id, info);
         Ok(ServerMessage::HeartbeatAck {

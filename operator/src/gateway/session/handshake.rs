@@ -24,6 +24,8 @@ pub(super) struct Hello {
     pub(super) info: ConnectInfo,
     /// Fields dropped from `info` by [`lekiwi_protocol::rules::sanitize`].
     pub(super) refused: Vec<FieldError>,
+    /// The optional features the agent listed (e.g. `update_agent`).
+    pub(super) features: Vec<String>,
 }
 
 /// Waits for the agent's `hello`: what it says about the robot, for presence, or [`Refused`]
@@ -68,6 +70,7 @@ where
             current_release,
             health,
             teleoperation,
+            features,
             ..
         }) => Ok(Hello {
             info: ConnectInfo {
@@ -80,6 +83,7 @@ where
                 address: None,
             },
             refused,
+            features,
         }),
         Ok(_) => {
             conn.fail(

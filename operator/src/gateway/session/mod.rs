@@ -2,6 +2,7 @@
 //! replacement by a newer connection. Generic over the socket halves, so unit tests drive it
 //! with channels and the gateway with a real WebSocket.
 
+mod agent_update;
 mod commands;
 mod conn;
 mod frames;
@@ -19,6 +20,7 @@ use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, info, info_span, warn};
 
+use self::agent_update::AgentLedger;
 use self::commands::CommandLedger;
 use self::conn::{Conn, End};
 use super::auth::{Authenticator, Grant};
@@ -87,6 +89,8 @@ struct Session<'a, W> {
     conn: Conn<W>,
     /// Boxed: the session future lives as long as the connection, so keep it small.
     commands: Box<CommandLedger>,
+    /// Boxed like `commands`.
+    agent: Box<AgentLedger>,
     /// SHA-256 (hex) of the token this session speaks with: the robot's token it presented,
     /// or the one it was issued at enrollment. Rotating or deleting it ends the session.
     token_hash: String,
@@ -155,8 +159,15 @@ async fn run_inner<W, R, E>(
     let handshake::Hello {
         info: hello,
         refused,
+        features,
     } = hello;
     let current = hello.release.clone();
+    let agent = AgentLedger::new(
+        hello.agent_version.clone(),
+        hello.system.arch.clone(),
+        &features,
+        shared.desired.as_ref().and_then(|d| d.agent(&key)),
+    );
     let mut opened = open(&shared, &key, ConnectInfo { address, ..hello }).await;
     let mut session = Session {
         shared: &shared,
@@ -167,6 +178,7 @@ async fn run_inner<W, R, E>(
             current,
             shared.desired.as_ref().and_then(|d| d.get(&key)),
         )),
+        agent: Box::new(agent),
         token_hash,
     };
     let welcomed = session
@@ -195,13 +207,14 @@ async fn run_inner<W, R, E>(
 }
 
 /// Registers the session (replacing an older one) with an epoch above the one the robot's
-/// status shows, records the connection and tells presence.
+/// status shows, records the connection and tells presence (whether the robot moved here).
 async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
-    let seen = shared
-        .desired
-        .as_ref()
-        .and_then(|d| d.holder(key))
-        .and_then(|h| h.epoch);
+    let holder = shared.desired.as_ref().and_then(|d| d.holder(key));
+    let seen = holder.as_ref().and_then(|h| h.epoch);
+    // Its status names another gateway: it moved here (that gateway may have died).
+    let moved = holder
+        .and_then(|h| h.gateway)
+        .is_some_and(|g| g != shared.gateway);
     let epoch = next_epoch(Timestamp::now(), seen);
     let (id, control) = shared.registry.register(key, epoch);
     let record = ConnectionRecord {
@@ -227,7 +240,7 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
         })
         // Stored before seqs were bounded: not a number to tell an agent; say nothing.
         .filter(|s| *s <= MAX_SEQ);
-    shared.presence.connect(key, id, epoch, hello);
+    shared.presence.connect_moved(key, id, epoch, hello, moved);
     shared.metrics.gateway.connections.inc();
     info!(session = id, epoch, ?stored_seq, "agent connected");
     Opened {
@@ -332,6 +345,7 @@ mod tests {
                     status_refresh: Duration::from_secs(300),
                     poll_grace: Duration::from_secs(180),
                     qps: 1.0,
+                    adaptive: None,
                     burst: 1,
                     concurrency: 1,
                 },

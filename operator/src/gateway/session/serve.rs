@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
-use lekiwi_protocol::{AgentMessage, ErrorCode, decode};
+use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, decode};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
@@ -84,7 +84,10 @@ where
         E: std::fmt::Display,
     {
         let mut pace = Pace::new(&self.shared.limits);
-        if let Err(end) = self.send_deploy().await {
+        if let Err(end) = self.send_commands().await {
+            return end;
+        }
+        if let Err(end) = self.send_agent_update().await {
             return end;
         }
         loop {
@@ -106,13 +109,19 @@ where
         }
     }
 
-    /// Sends the deploy command the ledger says is due, if any.
-    async fn send_deploy(&mut self) -> Flow {
-        let Some(cmd) = self.commands.next_deploy(&self.shared.gateway, self.id) else {
-            return Ok(());
-        };
-        info!(release = ?self.commands.desired().map(|r| &r.version), "sending deploy command");
-        self.conn.send(&cmd).await
+    /// Sends the commands the ledger says are due (cancel, rollback, deploy), if any.
+    pub(super) async fn send_commands(&mut self) -> Flow {
+        for cmd in self.commands.next_commands(&self.shared.gateway, self.id) {
+            if let ServerMessage::Command {
+                command,
+                command_id,
+            } = &cmd
+            {
+                info!(%command_id, ?command, "sending command");
+            }
+            self.conn.send(&cmd).await?;
+        }
+        Ok(())
     }
 
     async fn shut_down(&mut self) -> Flow {
@@ -131,7 +140,11 @@ where
             Some(Control::Send(msg)) => self.conn.send(&msg).await,
             Some(Control::Desired(release)) => {
                 self.commands.set_desired(release.map(|r| *r));
-                self.send_deploy().await
+                self.send_commands().await
+            }
+            Some(Control::DesiredAgent(agent)) => {
+                self.agent.set_desired(agent.map(|a| *a));
+                self.send_agent_update().await
             }
             Some(Control::Credentials { deleted }) => self.check_credentials(deleted).await,
             Some(Control::Replaced) | None => {

@@ -62,6 +62,8 @@ pub(super) enum RobotState {
     Maintenance,
     /// Held by another active deployment's mark.
     HeldBy(String),
+    /// Excluded: owned by another deployment (newer, or of higher priority).
+    Superseded(String),
     /// Runs the release, healthy, without being started by this rollout (or finished).
     Updated,
     /// Not yet in a batch.
@@ -119,7 +121,7 @@ impl<'a> Fleet<'a> {
             .collect();
         let targeted = robots
             .iter()
-            .filter(|(_, s)| *s != RobotState::Maintenance)
+            .filter(|(_, s)| !matches!(s, RobotState::Maintenance | RobotState::Superseded(_)))
             .count();
         let canary = usize::try_from(rollout.strategy.canary).unwrap_or(0);
         let size = batch_size(&rollout.strategy.batch_size, targeted);
@@ -143,6 +145,9 @@ impl<'a> Fleet<'a> {
 fn classify(robot: &RobotView, rollout: &Rollout<'_>) -> RobotState {
     if robot.maintenance {
         return RobotState::Maintenance;
+    }
+    if let Some(owner) = &robot.superseded_by {
+        return RobotState::Superseded(owner.clone());
     }
     let ours = robot
         .mark

@@ -11,6 +11,7 @@ mod analysis;
 mod classify;
 mod draft;
 mod gates;
+mod pause;
 mod phase;
 mod progress;
 mod status;
@@ -104,6 +105,9 @@ pub struct RobotView {
     pub mark: Option<Mark>,
     /// `status.analysis`: its metrics before and after its last switch.
     pub analysis: Option<lekiwi_crds::analysis::AnalysisReport>,
+    /// The deployment that owns the robot instead of this one (newer, or of higher priority):
+    /// this rollout leaves it alone.
+    pub superseded_by: Option<String>,
 }
 
 /// Whether the release can be rolled out.

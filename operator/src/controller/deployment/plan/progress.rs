@@ -8,7 +8,7 @@ use lekiwi_crds::deployment::{RolloutPhase, UnavailablePolicy};
 
 use super::classify::{Fleet, RobotState, Unavailable};
 use super::draft::{Draft, Rollout};
-use super::{Mark, MarkState, RobotView, phase, secs, time};
+use super::{Mark, MarkState, RobotView, pause, phase, secs, time};
 
 /// How far the current batch got in this plan.
 enum Outcome {
@@ -212,7 +212,9 @@ fn resolve_batch(
             RobotState::Failed(_, why) => tally.failed.push(format!("{}: {why}", robot.name)),
             RobotState::Updating(_, since) => {
                 tally.unresolved += 1;
-                draft.wake_at(*since + rollout.robot_timeout + SignedDuration::from_secs(1));
+                if !pause::hold(rollout, robot, draft) {
+                    draft.wake_at(*since + rollout.robot_timeout + SignedDuration::from_secs(1));
+                }
             }
             RobotState::Waiting(_, since) => {
                 tally.unresolved += usize::from(resolve_waiting(rollout, robot, *since, draft));
@@ -245,7 +247,10 @@ fn resolve_waiting(
         .mark
         .clone()
         .unwrap_or_else(|| rollout.fallback_mark());
-    if now.duration_since(since) > rollout.wait_timeout {
+    let held = pause::held(robot);
+    if held && rollout.paused {
+        true
+    } else if !held && now.duration_since(since) > rollout.wait_timeout {
         mark.state = MarkState::Skipped;
         mark.message = Some(format!(
             "skipped: still {} after {}s",
@@ -258,9 +263,17 @@ fn resolve_waiting(
     } else if !rollout.paused && robot.available().is_ok() {
         mark.state = MarkState::Started;
         mark.since = now;
+        mark.message = None;
         mark.previous = robot.current.clone();
         draft.write(&robot.name, mark, Some(rollout.target.clone()));
         draft.wake_at(now + rollout.robot_timeout + SignedDuration::from_secs(1));
+        true
+    } else if held {
+        // Resumed while unavailable: an ordinary wait starts now.
+        mark.since = now;
+        mark.message = None;
+        draft.write(&robot.name, mark, None);
+        draft.wake_at(now + rollout.wait_timeout + SignedDuration::from_secs(1));
         true
     } else {
         draft.wake_at(since + rollout.wait_timeout + SignedDuration::from_secs(1));

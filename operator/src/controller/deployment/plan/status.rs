@@ -21,6 +21,8 @@ struct Counts {
     updated: i32,
     failed: i32,
     skipped: i32,
+    /// Not targeted: owned by another deployment.
+    superseded: i32,
 }
 
 /// How one robot counts and shows in `status.robots`.
@@ -62,6 +64,7 @@ pub(super) fn finish(rollout: &Rollout<'_>, fleet: &Fleet<'_>, mut draft: Draft)
     status.updated = counts.updated;
     status.failed = counts.failed;
     status.skipped = counts.skipped;
+    status.superseded = counts.superseded;
     status.pending = (targeted - counts.updated - counts.failed - counts.skipped).max(0);
     status.progress = Some(format!("{}/{targeted}", counts.updated));
     status.current_batch = Some(batch);
@@ -73,6 +76,7 @@ pub(super) fn finish(rollout: &Rollout<'_>, fleet: &Fleet<'_>, mut draft: Draft)
     status.phase = Some(phase);
     status.message = Some(draft.message.clone());
     outcome_conditions(rollout, &counts, targeted, &mut draft);
+    superseded_event(rollout, fleet, &mut draft);
     // Kubernetes 1.20's server-side apply turns "" into null, which the schema refuses.
     for c in &mut draft.conditions {
         if c.message.is_empty() {
@@ -96,6 +100,34 @@ pub(super) fn finish(rollout: &Rollout<'_>, fleet: &Fleet<'_>, mut draft: Draft)
         batch_result: draft.batch_result,
         finished,
     }
+}
+
+/// An Event when robots became superseded since the last status: how many, and by whom.
+fn superseded_event(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
+    let now = draft.status.superseded;
+    if now <= rollout.previous.superseded {
+        return;
+    }
+    let mut owners: BTreeMap<&str, Vec<&str>> = BTreeMap::new();
+    for (robot, state) in &fleet.robots {
+        if let RobotState::Superseded(owner) = state {
+            owners.entry(owner).or_default().push(&robot.name);
+        }
+    }
+    let by: Vec<String> = owners
+        .iter_mut()
+        .map(|(owner, robots)| {
+            robots.sort_unstable();
+            format!("{owner} ({})", robots.join(", "))
+        })
+        .collect();
+    draft.warning(
+        "RobotsSuperseded",
+        format!(
+            "{now} robot(s) are owned by another deployment and left alone: {}",
+            by.join("; ")
+        ),
+    );
 }
 
 fn is_active(phase: RolloutPhase) -> bool {
@@ -151,6 +183,7 @@ fn outcome_conditions(rollout: &Rollout<'_>, counts: &Counts, targeted: i32, dra
         updated,
         failed,
         skipped,
+        ..
     } = counts;
     draft.conditions.extend([
         Condition::new(
@@ -211,6 +244,7 @@ fn robot_results(
         match state {
             RobotRolloutState::Failed => counts.failed += 1,
             RobotRolloutState::Skipped => counts.skipped += 1,
+            RobotRolloutState::Superseded => counts.superseded += 1,
             _ => {}
         }
         let mark = write.map(|w| &w.mark).or(robot.mark.as_ref());
@@ -229,7 +263,9 @@ fn robot_results(
     let rank = |s: RobotRolloutState| match s {
         RobotRolloutState::Updating | RobotRolloutState::Waiting => 0,
         RobotRolloutState::Failed => 1,
-        RobotRolloutState::RolledBack | RobotRolloutState::Skipped => 2,
+        RobotRolloutState::RolledBack
+        | RobotRolloutState::Skipped
+        | RobotRolloutState::Superseded => 2,
         _ => 3,
     };
     results.sort_by(|a, b| {
@@ -269,6 +305,11 @@ fn entry(robot: &RobotView, state: &RobotState, write: Option<&RobotWrite>) -> E
     let written_batch = write.map_or(0, |w| w.mark.batch);
     match (state, write.map(|w| w.mark.state)) {
         (RobotState::Maintenance, _) => Entry::hidden(false),
+        (RobotState::Superseded(owner), _) => Entry::row(
+            RobotRolloutState::Superseded,
+            -1,
+            Some(format!("owned by deployment {owner}")),
+        ),
         (_, Some(MarkState::Started)) => {
             Entry::row(RobotRolloutState::Updating, written_batch, None)
         }

@@ -33,6 +33,7 @@ fn deployment(batch: IntOrString, canary: i32) -> RobotDeployment {
             },
             paused: false,
             analysis: None,
+            priority: 0,
         },
     );
     d.metadata = ObjectMeta {
@@ -56,6 +57,7 @@ fn robot(i: usize) -> RobotView {
         last_update: None,
         mark: None,
         analysis: None,
+        superseded_by: None,
     }
 }
 
@@ -362,6 +364,92 @@ fn paused_rollouts_start_no_new_robot() {
     sim.d.spec.paused = false;
     sim.run_until_done(10);
     assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
+}
+
+#[test]
+fn a_pause_sends_robots_not_yet_switched_back_and_a_resume_starts_them_again() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 4);
+    sim.step();
+    sim.d.spec.paused = true;
+    let p = sim.step();
+    let held: Vec<_> = p
+        .writes
+        .iter()
+        .map(|w| (w.robot.as_str(), w.release.clone()))
+        .collect();
+    assert_eq!(
+        held,
+        [("kiwi-00", Some(rel("1"))), ("kiwi-01", Some(rel("1")))],
+        "their spec goes back to the release they run, which cancels the download"
+    );
+    assert!(p.writes.iter().all(|w| w.mark.state == MarkState::Waiting));
+    sim.agents();
+    sim.advance(1000);
+    let p = sim.step();
+    assert!(
+        p.writes.is_empty(),
+        "a pause longer than the wait timeout skips nobody"
+    );
+    assert_eq!(sim.phase(), RolloutPhase::Paused);
+    sim.d.spec.paused = false;
+    let p = sim.step();
+    assert!(
+        p.writes.iter().all(|w| w.release == Some(rel("2"))),
+        "{:?}",
+        p.writes
+    );
+    assert_eq!(p.writes.len(), 2);
+    sim.run_until_done(10);
+    assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
+}
+
+#[test]
+fn robots_another_deployment_owns_are_left_alone_and_shown_superseded() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(5), 0), 4);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    for r in &mut sim.robots[2..] {
+        r.superseded_by = Some("team-b".into());
+        r.current = Some(rel("9"));
+    }
+    sim.d.spec.release = rel("2");
+    let p = sim.step();
+    assert!(
+        p.writes.is_empty(),
+        "a superseded robot is not taken back: {:?}",
+        p.writes
+    );
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed));
+    assert_eq!((st.targeted, st.updated, st.superseded), (2, 2, 2));
+    assert_eq!(st.progress.as_deref(), Some("2/2"));
+    let rows: Vec<_> = st
+        .robots
+        .iter()
+        .filter(|r| r.state == RobotRolloutState::Superseded)
+        .collect();
+    assert_eq!(rows.len(), 2);
+    assert_eq!(
+        rows[0].message.as_deref(),
+        Some("owned by deployment team-b")
+    );
+    let event = p
+        .events
+        .iter()
+        .find(|e| e.reason == "RobotsSuperseded")
+        .unwrap();
+    assert!(
+        event.note.contains("team-b (kiwi-02, kiwi-03)"),
+        "{}",
+        event.note
+    );
+    assert!(
+        !sim.step()
+            .events
+            .iter()
+            .any(|e| e.reason == "RobotsSuperseded"),
+        "once"
+    );
 }
 
 #[test]

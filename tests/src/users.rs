@@ -1,5 +1,5 @@
-//! Users of the Fleet API for tests: the chart's user ClusterRoles and ServiceAccounts bound to
-//! them, with tokens as `kubectl create token` makes them.
+//! People and tools as the Fleet API sees them: the chart's user ClusterRoles, and
+//! ServiceAccounts bound to them with tokens from `kubectl create token`.
 
 use anyhow::{Context as _, Result, ensure};
 use k8s_openapi::api::core::v1::ServiceAccount;

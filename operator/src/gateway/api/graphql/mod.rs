@@ -1,0 +1,222 @@
+//! GraphQL at `/api/v1/graphql` over the same caches, event store and checks as the REST routes:
+//! `POST` answers queries and mutations (the bearer token in `Authorization`); `GET` upgrades to
+//! a WebSocket speaking `graphql-transport-ws` for subscriptions, authenticated by the
+//! `connection_init` payload `{"authorization": "Bearer <token>"}` (browsers cannot set headers
+//! on WebSockets). Every request, and every WebSocket, costs its user one request of the
+//! per-user budget; each field checks the caller's RBAC (a cached `SubjectAccessReview`) for its
+//! namespace and verb. Queries deeper or more complex than configured are refused before they
+//! run; introspection is open to authenticated callers only (there is no unauthenticated
+//! request). Subscriptions ([`subscribe`]) share the caches' broadcasts.
+
+mod query;
+mod subscribe;
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use async_graphql::{Data, ErrorExtensions, Schema};
+use async_graphql_axum::rejection::GraphQLRejection;
+use async_graphql_axum::{GraphQLProtocol, GraphQLRequest, GraphQLResponse, GraphQLWebSocket};
+use axum::extract::State;
+use axum::extract::ws::WebSocketUpgrade;
+use axum::http::HeaderMap;
+use axum::response::{IntoResponse, Response};
+use tokio::sync::Semaphore;
+
+use self::query::{MutationRoot, QueryRoot};
+use self::subscribe::SubscriptionRoot;
+use super::authorize;
+use crate::gateway::kube_auth::Access;
+use crate::gateway::{ApiError, AppState};
+
+/// The GraphQL endpoint's limits (`lekiwi-operator --help`).
+#[derive(Clone, Debug, clap::Args)]
+pub struct GraphQlConfig {
+    /// Deepest GraphQL selection allowed (fields nested in fields); deeper queries are refused
+    /// before they run.
+    #[arg(long, env = "LEKIWI_GRAPHQL_MAX_DEPTH", default_value_t = 10)]
+    pub graphql_max_depth: usize,
+
+    /// Highest GraphQL query complexity allowed: each field counts 1, a list counts its `limit`
+    /// times its items' fields.
+    #[arg(long, env = "LEKIWI_GRAPHQL_MAX_COMPLEXITY", default_value_t = 20_000)]
+    pub graphql_max_complexity: usize,
+
+    /// GraphQL WebSocket connections open at once; beyond, 503.
+    #[arg(long, env = "LEKIWI_GRAPHQL_MAX_CONNECTIONS", default_value_t = 2_000)]
+    pub graphql_max_connections: usize,
+
+    /// GraphQL subscriptions one user may hold at once, over all their connections.
+    #[arg(
+        long,
+        env = "LEKIWI_GRAPHQL_MAX_SUBSCRIPTIONS_PER_USER",
+        default_value_t = 100
+    )]
+    pub graphql_max_subscriptions_per_user: usize,
+}
+
+/// The schema and what bounds its WebSockets.
+pub struct GraphQl {
+    schema: Schema<QueryRoot, MutationRoot, SubscriptionRoot>,
+    connections: Arc<Semaphore>,
+    subscriptions: Arc<subscribe::PerUser>,
+}
+
+impl GraphQl {
+    /// The schema with `config`'s limits.
+    pub fn new(config: &GraphQlConfig) -> Self {
+        let schema = Schema::build(QueryRoot, MutationRoot, SubscriptionRoot)
+            .limit_depth(config.graphql_max_depth)
+            .limit_complexity(config.graphql_max_complexity)
+            .finish();
+        Self {
+            schema,
+            connections: Arc::new(Semaphore::new(config.graphql_max_connections)),
+            subscriptions: Arc::new(subscribe::PerUser {
+                max: config.graphql_max_subscriptions_per_user,
+                held: Mutex::new(HashMap::new()),
+            }),
+        }
+    }
+
+    /// The schema in GraphQL SDL, for people and code generators.
+    pub fn sdl(&self) -> String {
+        self.schema.sdl()
+    }
+}
+
+/// Who is asking: the token (for the per-field access checks) and its username.
+#[derive(Clone)]
+pub(crate) struct Caller {
+    token: String,
+    user: String,
+}
+
+/// `POST /api/v1/graphql`: a query or mutation, once the token is accepted and its user within
+/// budget (401, 429 as for every Fleet API route); a malformed body is 400 after that.
+pub async fn post(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    request: Result<GraphQLRequest, GraphQLRejection>,
+) -> Result<GraphQLResponse, Response> {
+    let user = authorize(&state, &headers, None)
+        .await
+        .map_err(IntoResponse::into_response)?;
+    let request = request.map_err(IntoResponse::into_response)?.into_inner();
+    let token = crate::gateway::bearer(&headers)
+        .unwrap_or_default()
+        .to_owned();
+    let gql = state.fleet.graphql.clone();
+    let request = request.data(Caller { token, user }).data(state);
+    Ok(gql.schema.execute(request).await.into())
+}
+
+/// `GET /api/v1/graphql`: the `graphql-transport-ws` WebSocket (400 for another subprotocol,
+/// 503 at the connection limit). The token comes in `connection_init`; a refused one closes the
+/// socket with code 1002 and the reason (`unauthorized: ...`, `forbidden: ...`,
+/// `rate_limited: ...`).
+pub async fn websocket(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    protocol: GraphQLProtocol,
+    upgrade: WebSocketUpgrade,
+) -> Result<Response, ApiError> {
+    if !transport_ws(&headers) {
+        return Err(ApiError::BadRequest(
+            "the only WebSocket subprotocol is graphql-transport-ws".into(),
+        ));
+    }
+    let gql = state.fleet.graphql.clone();
+    let permit = gql.connections.clone().try_acquire_owned().map_err(|_| {
+        ApiError::Unavailable("the gateway is at its GraphQL connection limit; retry later")
+    })?;
+    let schema = gql.schema.clone();
+    let mut data = Data::default();
+    data.insert(state.clone());
+    Ok(upgrade
+        .protocols(["graphql-transport-ws"])
+        .on_upgrade(move |socket| async move {
+            GraphQLWebSocket::new(socket, schema, protocol)
+                .with_data(data)
+                .on_connection_init(move |payload| connection_init(state, payload))
+                .serve()
+                .await;
+            drop(permit);
+        }))
+}
+
+/// Whether the first GraphQL subprotocol the client offers is `graphql-transport-ws` (the one
+/// the extractor then picks), not the older `graphql-ws`.
+fn transport_ws(headers: &HeaderMap) -> bool {
+    headers
+        .get(axum::http::header::SEC_WEBSOCKET_PROTOCOL)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|offered| {
+            offered
+                .split(',')
+                .map(str::trim)
+                .find(|p| async_graphql::http::ALL_WEBSOCKET_PROTOCOLS.contains(p))
+        })
+        == Some("graphql-transport-ws")
+}
+
+/// Accepts a WebSocket whose `connection_init` payload carries an accepted token.
+async fn connection_init(
+    state: AppState,
+    payload: serde_json::Value,
+) -> async_graphql::Result<Data> {
+    let token = payload["authorization"]
+        .as_str()
+        .and_then(|a| a.strip_prefix("Bearer "))
+        .map(str::trim)
+        .unwrap_or_default()
+        .to_owned();
+    let mut headers = HeaderMap::new();
+    if let Ok(value) = format!("Bearer {token}").parse() {
+        headers.insert(axum::http::header::AUTHORIZATION, value);
+    }
+    let user = authorize(&state, &headers, None).await.map_err(refusal)?;
+    let mut data = Data::default();
+    data.insert(Caller { token, user });
+    Ok(data)
+}
+
+/// A refusal as a GraphQL error: the message says why, `extensions.code` is the REST error code
+/// (`unauthorized`, `forbidden`, `bad_request`, `not_found`, `rate_limited`, `unavailable`,
+/// `internal`).
+pub(crate) fn refusal(e: ApiError) -> async_graphql::Error {
+    let (code, message) = match e {
+        ApiError::Unauthorized(m) => ("unauthorized", m.to_owned()),
+        ApiError::Forbidden(m) => ("forbidden", m),
+        ApiError::BadRequest(m) => ("bad_request", m),
+        ApiError::NotFound(m) => ("not_found", m),
+        ApiError::Unavailable(m) | ApiError::Throttled(m) => ("unavailable", m.to_owned()),
+        ApiError::RateLimited(s)
+        | ApiError::TooManySessions(s)
+        | ApiError::EnrollmentsThrottled(s) => (
+            "rate_limited",
+            format!("too many requests from this user; retry in {s} s"),
+        ),
+        ApiError::Internal(detail) => {
+            tracing::warn!(%detail, "internal error answering a GraphQL request");
+            ("internal", "internal error".to_owned())
+        }
+    };
+    async_graphql::Error::new(format!("{code}: {message}")).extend_with(|_, e| e.set("code", code))
+}
+
+/// The caller and the gateway's state, once RBAC allows the caller `access`.
+pub(crate) async fn allowed<'a>(
+    ctx: &async_graphql::Context<'a>,
+    access: Access,
+) -> async_graphql::Result<(&'a AppState, &'a Caller)> {
+    let state = ctx.data::<AppState>()?;
+    let caller = ctx.data::<Caller>()?;
+    state
+        .blobs
+        .kube_auth
+        .check(&caller.token, &access)
+        .await
+        .map_err(|d| refusal(state.denied(d)))?;
+    Ok((state, caller))
+}

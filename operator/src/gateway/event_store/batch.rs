@@ -1,0 +1,212 @@
+//! Batched event inserts: events the sessions hand in while the database is busy are written
+//! together, one multi-row `INSERT ... ON CONFLICT (namespace, robot, seq) DO NOTHING RETURNING`
+//! per flush (SQLite and PostgreSQL alike), instead of one statement and one pooled connection
+//! each. A session still waits for its own event: it learns "stored" or "already stored" only
+//! once the statement has committed, so an ack still means durable, and `(robot, seq)` is
+//! still stored once. A batch the database refuses is retried row by row, so one bad row fails
+//! only its own insert.
+
+use std::collections::HashSet;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use sqlx::QueryBuilder;
+use sqlx::types::Json;
+use tokio::sync::{Mutex, mpsc, oneshot};
+
+use super::{Error, Result, RobotKey, Store, StoredEvent};
+
+const INSERT_EVENTS: &str = "INSERT INTO events \
+     (namespace, robot, seq, ts_ms, kind, severity, message, data, received_ms, bytes) ";
+/// Rows already stored are skipped; those stored now are returned.
+const RETURN_STORED: &str =
+    " ON CONFLICT (namespace, robot, seq) DO NOTHING RETURNING namespace, robot, seq";
+
+/// Rows per statement: ten parameters each keeps it under SQLite's 32,766 parameters.
+const EVENTS_PER_STATEMENT: usize = 500;
+/// Events waiting for a flush before a session's insert waits for room.
+const QUEUE: usize = 4096;
+/// Flushes at once on PostgreSQL (each holds one pooled connection while it runs); SQLite
+/// serialises writers anyway, so it gets one.
+const POSTGRES_FLUSHERS: usize = 4;
+
+/// One event waiting for its flush, and who waits for the outcome.
+pub(super) struct Pending {
+    pub(super) robot: RobotKey,
+    pub(super) seq: i64,
+    pub(super) event: StoredEvent,
+    pub(super) bytes: u64,
+    pub(super) received_ms: i64,
+    reply: oneshot::Sender<Result<bool>>,
+}
+
+/// Hands events to the flushers; counts their multi-row statements.
+#[derive(Clone)]
+pub(super) struct Batcher {
+    tx: mpsc::Sender<Pending>,
+    statements: Arc<AtomicU64>,
+}
+
+impl Store {
+    /// This store with its event inserts batched by flusher tasks (none outside a Tokio
+    /// runtime: inserts then go one by one).
+    pub(super) fn batched(mut self) -> Store {
+        if tokio::runtime::Handle::try_current().is_err() {
+            return self;
+        }
+        let (tx, rx) = mpsc::channel(QUEUE);
+        let rx = Arc::new(Mutex::new(rx));
+        let flushers = match self.backend() {
+            "postgres" => POSTGRES_FLUSHERS,
+            _ => 1,
+        };
+        // The flushers' store has no batcher: the channel closes when the last user clone goes.
+        let unbatched = Store {
+            batcher: None,
+            ..self.clone()
+        };
+        let statements = Arc::new(AtomicU64::new(0));
+        for _ in 0..flushers {
+            tokio::spawn(flush_loop(
+                unbatched.clone(),
+                rx.clone(),
+                statements.clone(),
+            ));
+        }
+        self.batcher = Some(Batcher { tx, statements });
+        self
+    }
+
+    /// Multi-row event inserts this store's flushers have made (`None`: inserts are not
+    /// batched); with many sessions storing at once, far fewer than the events.
+    pub fn event_statements(&self) -> Option<u64> {
+        let batcher = self.batcher.as_ref()?;
+        Some(batcher.statements.load(Ordering::Relaxed))
+    }
+
+    /// Stores one event through the batcher if there is one; `Ok(true)` if newly stored.
+    pub(super) async fn store_event(
+        &self,
+        robot: &RobotKey,
+        seq: i64,
+        event: &StoredEvent,
+        bytes: u64,
+        received_ms: i64,
+    ) -> Result<bool> {
+        let Some(Batcher { tx, .. }) = &self.batcher else {
+            return self
+                .insert_event_row(robot, seq, event, bytes, received_ms)
+                .await;
+        };
+        let (reply, answer) = oneshot::channel();
+        let pending = Pending {
+            robot: robot.clone(),
+            seq,
+            event: event.clone(),
+            bytes,
+            received_ms,
+            reply,
+        };
+        if tx.send(pending).await.is_err() {
+            return Err(Error::Closed);
+        }
+        answer.await.unwrap_or(Err(Error::Closed))
+    }
+
+    /// Inserts `batch` in one statement and tells each waiter whether its row is new (the
+    /// second of two equal `(robot, seq)` in one batch is a replay); row by row if it fails.
+    async fn flush(&self, batch: Vec<Pending>) {
+        let mut seen = HashSet::new();
+        let (first, repeats): (Vec<Pending>, Vec<Pending>) = batch
+            .into_iter()
+            .partition(|p| seen.insert((p.robot.clone(), p.seq)));
+        match self.insert_event_rows(&first).await {
+            Ok(inserted) => {
+                for p in first {
+                    let new = inserted.contains(&(
+                        p.robot.namespace.clone(),
+                        p.robot.name.clone(),
+                        p.seq,
+                    ));
+                    let _ = p.reply.send(Ok(new));
+                }
+            }
+            Err(e) => {
+                tracing::warn!(error = %e, events = first.len(), "batched event insert failed; inserting one by one");
+                for p in first {
+                    let single = self
+                        .insert_event_row(&p.robot, p.seq, &p.event, p.bytes, p.received_ms)
+                        .await;
+                    let _ = p.reply.send(single);
+                }
+            }
+        }
+        for p in repeats {
+            let _ = p.reply.send(Ok(false));
+        }
+    }
+
+    /// One multi-row insert of `rows`; the `(namespace, robot, seq)` it stored (not those
+    /// already there).
+    async fn insert_event_rows(&self, rows: &[Pending]) -> Result<HashSet<(String, String, i64)>> {
+        let mut stored = HashSet::new();
+        for chunk in rows.chunks(EVENTS_PER_STATEMENT) {
+            // Built per backend: a query builder is typed by its database.
+            let new: Vec<(String, String, i64)> = with_pool!(self, pool => {
+                let mut insert = QueryBuilder::new(INSERT_EVENTS);
+                insert.push_values(chunk, |mut row, p| {
+                    row.push_bind(&p.robot.namespace)
+                        .push_bind(&p.robot.name)
+                        .push_bind(p.seq)
+                        .push_bind(p.event.ts_ms)
+                        .push_bind(&p.event.kind)
+                        .push_bind(&p.event.severity)
+                        .push_bind(&p.event.message)
+                        .push_bind(Json(&p.event.data))
+                        .push_bind(p.received_ms)
+                        .push_bind(i64::try_from(p.bytes).unwrap_or(i64::MAX));
+                });
+                insert.push(RETURN_STORED);
+                insert.build_query_as().fetch_all(pool).await
+            })
+            .map_err(|source| Error::Insert {
+                what: "events",
+                robot: format!("{} robots", rows.len()),
+                source,
+            })?;
+            stored.extend(new);
+        }
+        Ok(stored)
+    }
+}
+
+/// Takes whatever events wait (at least one, at most a statement's worth) and flushes them,
+/// until every sender is gone.
+async fn flush_loop(
+    store: Store,
+    rx: Arc<Mutex<mpsc::Receiver<Pending>>>,
+    statements: Arc<AtomicU64>,
+) {
+    loop {
+        let batch = {
+            let mut rx = rx.lock().await;
+            let Some(first) = rx.recv().await else {
+                return;
+            };
+            let mut batch = vec![first];
+            while batch.len() < EVENTS_PER_STATEMENT {
+                match rx.try_recv() {
+                    Ok(p) => batch.push(p),
+                    Err(_) => break,
+                }
+            }
+            batch
+        };
+        let rows = batch.len() as u64;
+        store.flush(batch).await;
+        statements.fetch_add(
+            rows.div_ceil(EVENTS_PER_STATEMENT as u64),
+            Ordering::Relaxed,
+        );
+    }
+}

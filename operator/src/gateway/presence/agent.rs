@@ -1,0 +1,74 @@
+//! The robot's latest agent update (`status.agentUpdate`): what the gateway did about
+//! `spec.agent` and what the agent reported back in its `agent_update_*` events.
+
+use jiff::Timestamp;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use lekiwi_crds::AgentUpdateReport;
+
+use super::{Presence, Priority};
+use crate::gateway::event_store::RobotKey;
+
+/// Longest message written to `status.agentUpdate.message`, in characters.
+const MAX_MESSAGE_CHARS: usize = 1024;
+
+/// One step of an agent update, as written to `status.agentUpdate`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AgentUpdateOutcome {
+    /// The agent version it is about.
+    pub version: String,
+    /// `Sent`, `Started`, `Succeeded`, `Failed`, `FallenBack`, `Unavailable` or `Unsupported`.
+    pub phase: &'static str,
+    /// Why, in words.
+    pub message: String,
+    /// When the gateway saw it.
+    pub time: Timestamp,
+}
+
+impl Presence {
+    /// A step of the agent update of `key` in session `session`; written at once if it differs
+    /// from the last one (time aside).
+    pub fn agent_update(&self, key: &RobotKey, session: u64, outcome: AgentUpdateOutcome) {
+        let changed = self.with_state(|s| {
+            let Some(e) = s.robots.get_mut(key).filter(|e| e.session == session) else {
+                return false;
+            };
+            let same = e.agent_update.as_ref().is_some_and(|old| {
+                old.version == outcome.version
+                    && old.phase == outcome.phase
+                    && old.message == outcome.message
+            });
+            if same {
+                return false;
+            }
+            e.agent_update = Some(outcome);
+            s.enqueue(key, Priority::High);
+            true
+        });
+        if changed {
+            self.wake();
+        }
+    }
+}
+
+impl Presence {
+    /// Whether the latest agent update of `key` to `version` fell back (the robot refuses that
+    /// build from then on; the gateway does not send it again).
+    pub fn agent_update_fell_back(&self, key: &RobotKey, version: &str) -> bool {
+        self.with_state(|s| {
+            s.robots
+                .get(key)
+                .and_then(|e| e.agent_update.as_ref())
+                .is_some_and(|o| o.version == version && o.phase == "FallenBack")
+        })
+    }
+}
+
+/// The status field of an outcome.
+pub(super) fn report(o: &AgentUpdateOutcome) -> AgentUpdateReport {
+    AgentUpdateReport {
+        version: Some(o.version.clone()),
+        phase: Some(o.phase.to_owned()),
+        message: Some(o.message.chars().take(MAX_MESSAGE_CHARS).collect()),
+        time: Some(Time(o.time)),
+    }
+}

@@ -1,0 +1,446 @@
+//! Agent self-update with real processes (issue 19): real `lekiwi-agent` processes under a small
+//! supervisor that plays systemd's part as the unit says ([`lekiwi_tests::supervisor`]), a real
+//! operator, builds pushed with `kubectl-lekiwi agent push`, and `Robot.spec.agent` patched by
+//! hand.
+//!
+//! Agent A is the workspace's `lekiwi-agent` (the "package binary"). B is A under another version
+//! name: a wrapper script that sets `LEKIWI_AGENT_VERSION_OVERRIDE` and execs A (the digest,
+//! download, install, switch and guard do not care what the bytes are). C exits at start. D is A
+//! with a wrong gateway URL baked in: it runs but never connects.
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use kube::Api;
+use kube::api::{Patch, PatchParams};
+use lekiwi_crds::{AgentArch, Robot};
+use lekiwi_operator::gateway::event_store::{RobotKey, Store};
+use lekiwi_tests::supervisor::{SuperviseSpec, Supervised};
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, bin, enrollment_token_file, gateway_url, log_dir, namespace,
+    wait_for, wait_online,
+};
+use serde_json::{Value, json};
+
+const T: Duration = Duration::from_secs(60);
+/// `agentUpdateDeadlineS` of the test agents.
+const DEADLINE_S: u64 = 20;
+
+/// The architecture name of this machine's builds.
+fn arch() -> &'static str {
+    AgentArch::of_machine(std::env::consts::ARCH)
+        .expect("a machine with agent builds")
+        .as_str()
+}
+
+/// A private control plane (CRDs of this tree: the shared one is re-applied with other
+/// worktrees' CRDs, which prune `spec.agent`), an operator, and the robots' state.
+struct Fleet {
+    client: kube::Client,
+    ns: String,
+    op: OperatorProcess,
+    dir: tempfile::TempDir,
+    token_file: PathBuf,
+    /// Last: dropped after the operator.
+    cp: ControlPlane,
+}
+
+async fn fleet(prefix: &str, identity: &str) -> anyhow::Result<Fleet> {
+    let cp = ControlPlane::private()?;
+    cp.install_crds()?;
+    let client = cp.client().await?;
+    let ns = namespace(&client, prefix).await?;
+    let mut op = OperatorProcess::start(&cp, &ns, identity, &["--heartbeat-grace-seconds", "60"])?;
+    op.wait_ready().await?;
+    let dir = tempfile::tempdir()?;
+    let token_file = dir.path().join("enroll");
+    enrollment_token_file(&client, &ns, &token_file).await?;
+    Ok(Fleet {
+        cp,
+        client,
+        ns,
+        op,
+        dir,
+        token_file,
+    })
+}
+
+impl Fleet {
+    /// Robot `name` under the supervisor, on agent A.
+    fn robot(&self, name: &str) -> Supervised {
+        let state = self.dir.path().join(name);
+        let args: Vec<String> = [
+            "--config",
+            "/nonexistent/lekiwi-agent.yaml",
+            "--state-dir",
+            state.to_str().unwrap(),
+            "--gateway",
+            &gateway_url(&self.op),
+            "--robot-name",
+            &format!("{}/{name}", self.ns),
+            "--enrollment-token-file",
+            self.token_file.to_str().unwrap(),
+            "--status-listen",
+            "off",
+            "--mdns",
+            "false",
+            "--backoff-initial-ms",
+            "200",
+            "--backoff-max-ms",
+            "2000",
+            "--connect-timeout-s",
+            "5",
+            "--log-format",
+            "json",
+            "--agent-update-deadline-s",
+            &DEADLINE_S.to_string(),
+            "--agent-update-max-starts",
+            "3",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        Supervised::start(SuperviseSpec {
+            args,
+            state_dir: state,
+            log: log_dir().join(format!("agent-update-{}-{name}.log", self.ns)),
+            restart_delay: Duration::from_millis(300),
+            check_every: Duration::from_secs(1),
+        })
+    }
+
+    /// Writes a build (a script) and pushes it with `kubectl-lekiwi agent push`; its digest.
+    fn push(&self, name: &str, version: &str, script: &str) -> anyhow::Result<String> {
+        use std::os::unix::fs::PermissionsExt as _;
+        let path = self.dir.path().join(name);
+        std::fs::write(&path, script)?;
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755))?;
+        let out = std::process::Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(self.cp.kubeconfig())
+            .args(["agent", "push", "--version", version, "--arch", arch()])
+            .arg(&path)
+            .args(["-n", &self.ns])
+            .args([
+                "--server",
+                &format!("http://127.0.0.1:{}", self.op.gateway_port),
+            ])
+            .env_remove("LEKIWI_SERVER")
+            .output()?;
+        let stdout = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+        anyhow::ensure!(
+            out.status.success() && stdout.starts_with("sha256:"),
+            "agent push: {stdout}\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        Ok(stdout)
+    }
+
+    /// Sets `spec.agent` of robot `name`.
+    async fn desire(
+        &self,
+        name: &str,
+        version: &str,
+        arch: &str,
+        digest: &str,
+    ) -> anyhow::Result<()> {
+        let patch = json!({"spec": {"agent": {"version": version, "builds": [{"arch": arch, "digest": digest}]}}});
+        let robot = Api::<Robot>::namespaced(self.client.clone(), &self.ns)
+            .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+            .await?;
+        anyhow::ensure!(
+            robot.spec.agent.is_some(),
+            "the API server pruned spec.agent"
+        );
+        Ok(())
+    }
+
+    /// `status.agentVersion` and `status.agentUpdate` of robot `name`.
+    async fn agent_status(&self, name: &str) -> Option<(String, Value)> {
+        let robot = Api::<Robot>::namespaced(self.client.clone(), &self.ns)
+            .get(name)
+            .await
+            .ok()?;
+        let status = serde_json::to_value(robot.status?).ok()?;
+        Some((
+            status["agentVersion"]
+                .as_str()
+                .unwrap_or_default()
+                .to_owned(),
+            status["agentUpdate"].clone(),
+        ))
+    }
+}
+
+/// Wrapper B/D: A under another version name (D also with a wrong gateway baked in).
+fn wrapper(version: &str, wrong_gateway: bool) -> String {
+    let a = bin("lekiwi-agent");
+    let rewrite = if wrong_gateway {
+        "for i in \"${!args[@]}\"; do [ \"${args[$i]}\" = --gateway ] && args[$((i+1))]=ws://127.0.0.1:9/v1/agent; done\n"
+    } else {
+        ""
+    };
+    format!(
+        "#!/bin/bash\nargs=(\"$@\")\n{rewrite}LEKIWI_AGENT_VERSION_OVERRIDE={version} exec {} \"${{args[@]}}\"\n",
+        a.display()
+    )
+}
+
+/// Queues an event in `state`'s outbox with `lekiwi-agent event` (the running agent sends it).
+fn emit(state: &Path, n: u64) -> anyhow::Result<()> {
+    let out = std::process::Command::new(bin("lekiwi-agent"))
+        .args(["--config", "/nonexistent/lekiwi-agent.yaml"])
+        .args(["--state-dir", state.to_str().unwrap()])
+        .args([
+            "event",
+            "--kind",
+            "switch_test",
+            "--message",
+            &format!("event {n}"),
+        ])
+        .args(["--data", &json!({"n": n}).to_string()])
+        .output()?;
+    anyhow::ensure!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    Ok(())
+}
+
+/// The stored events of robot `name`: (kind, data) in seq order.
+async fn events(store: &Store, ns: &str, name: &str) -> Vec<(String, Value)> {
+    let key = RobotKey::new(ns.to_owned(), name.to_owned());
+    store
+        .events(&key, None, 10_000)
+        .await
+        .unwrap_or_default()
+        .into_iter()
+        .map(|e| (e.kind, e.data))
+        .collect()
+}
+
+fn count(events: &[(String, Value)], kind: &str) -> usize {
+    events.iter().filter(|(k, _)| k == kind).count()
+}
+
+/// (a) Ten robots on A move to B: every robot reports B; events emitted before, during and after
+/// the switch are all stored exactly once.
+#[tokio::test]
+async fn ten_agents_update_themselves_without_losing_an_event() -> anyhow::Result<()> {
+    let f = fleet("agentupd", "agud").await?;
+    let names: Vec<String> = (0..10).map(|i| format!("kiwi-{i}")).collect();
+    let robots: Vec<Supervised> = names.iter().map(|n| f.robot(n)).collect();
+    wait_online(&f.client, &f.ns, names.len(), 2 * T).await?;
+    let b = f.push("agent-b", "9.0.0-b", &wrapper("9.0.0-b", false))?;
+    let store = f.op.event_store().await?;
+    for r in &robots {
+        for n in 1..=5 {
+            emit(&r.state_dir, n)?;
+        }
+    }
+    let t0 = Instant::now();
+    for name in &names {
+        f.desire(name, "9.0.0-b", arch(), &b).await?;
+    }
+    // During the switch: queued while the old agent downloads, exits, or the new one starts.
+    for n in 6..=10 {
+        for r in &robots {
+            emit(&r.state_dir, n)?;
+        }
+        tokio::time::sleep(Duration::from_millis(150)).await;
+    }
+    let mut switched = Vec::new();
+    for name in &names {
+        let took = wait_for(&format!("{name} on B"), T, || async {
+            let (version, update) = f.agent_status(name).await?;
+            (version == "9.0.0-b" && update["phase"] == "Succeeded").then(|| t0.elapsed())
+        })
+        .await;
+        let took = match took {
+            Ok(t) => t,
+            Err(e) => {
+                let status = f.agent_status(name).await;
+                anyhow::bail!("{e}; last status {status:?}");
+            }
+        };
+        switched.push(took);
+    }
+    for r in &robots {
+        for n in 11..=15 {
+            emit(&r.state_dir, n)?;
+        }
+    }
+    for (name, r) in names.iter().zip(&robots) {
+        let stored = wait_for(&format!("{name}: 15 events stored"), T, || async {
+            let ev = events(&store, &f.ns, name).await;
+            (count(&ev, "switch_test") >= 15 && count(&ev, "agent_update_succeeded") >= 1)
+                .then_some(ev)
+        })
+        .await?;
+        let numbers: Vec<u64> = stored
+            .iter()
+            .filter(|(k, _)| k == "switch_test")
+            .map(|(_, d)| d["n"].as_u64().unwrap_or_default())
+            .collect();
+        assert_eq!(
+            numbers,
+            (1..=15).collect::<Vec<_>>(),
+            "{name}: each event once, in order"
+        );
+        assert_eq!(count(&stored, "agent_update_started"), 1, "{name}");
+        assert_eq!(count(&stored, "agent_update_succeeded"), 1, "{name}");
+        let started = stored
+            .iter()
+            .find(|(k, _)| k == "agent_update_started")
+            .unwrap();
+        let bytes = started.1["bytes"].as_u64().unwrap_or_default();
+        let history = r.history.lock().unwrap();
+        let first = &history.starts[0];
+        assert_eq!(
+            first.binary,
+            bin("lekiwi-agent"),
+            "{name}: starts on the package binary"
+        );
+        assert_eq!(first.exit, Some(75), "{name}: A exits 75 after switching");
+        let last = history.starts.last().unwrap();
+        assert!(
+            last.binary.ends_with("agent/current/lekiwi-agent"),
+            "{name}: runs the slot"
+        );
+        assert_eq!(r.current_slot().as_deref(), Some("a"), "{name}");
+        eprintln!(
+            "{name}: on B after {:?}, {bytes} bytes downloaded",
+            switched[names.iter().position(|n| n == name).unwrap()]
+        );
+    }
+    let max = switched.iter().max().unwrap();
+    eprintln!("ten robots switched A -> B; slowest {max:?}");
+    assert_eq!(
+        f.op.metric(r#"lekiwi_gateway_agent_updates_total{kind="succeeded"}"#)
+            .await,
+        Some(10.0)
+    );
+    Ok(())
+}
+
+/// (b) C exits at start and (c) D never connects: each robot is back on A by itself within the
+/// deadline, reports the failure and its reason, and is not sent the same build again; (x) a
+/// robot whose architecture has no build is told so in its status, nothing else happens.
+#[tokio::test]
+async fn broken_agents_are_undone_by_the_robot_itself() -> anyhow::Result<()> {
+    let f = fleet("agentfb", "agfb").await?;
+    let (rc, rd, rx) = (f.robot("kiwi-c"), f.robot("kiwi-d"), f.robot("kiwi-x"));
+    wait_online(&f.client, &f.ns, 3, 2 * T).await?;
+    let c = f.push(
+        "agent-c",
+        "9.0.0-c",
+        "#!/bin/sh\necho 'agent C: exits at start' >&2\nexit 1\n",
+    )?;
+    let d = f.push("agent-d", "9.0.0-d", &wrapper("9.0.0-d", true))?;
+    let store = f.op.event_store().await?;
+    let t0 = Instant::now();
+    f.desire("kiwi-c", "9.0.0-c", arch(), &c).await?;
+    f.desire("kiwi-d", "9.0.0-d", arch(), &d).await?;
+    let other = if arch() == "amd64" { "arm64" } else { "amd64" };
+    f.desire("kiwi-x", "9.0.0-x", other, &c).await?;
+
+    let fell_back = |name: &'static str| {
+        let f = &f;
+        async move {
+            wait_for(
+                &format!("{name} fell back"),
+                T + Duration::from_secs(DEADLINE_S),
+                || async {
+                    let (version, update) = f.agent_status(name).await?;
+                    (version != "9.0.0-c" && update["phase"] == "FallenBack")
+                        .then(|| (t0.elapsed(), version, update))
+                },
+            )
+            .await
+        }
+    };
+    let (c_took, c_version, c_update) = fell_back("kiwi-c")
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\n{}", rc.log_text()))?;
+    let (d_took, d_version, d_update) = fell_back("kiwi-d")
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\n{}", rd.log_text()))?;
+    eprintln!("C fell back after {c_took:?}: {c_update}");
+    eprintln!("D fell back after {d_took:?}: {d_update}");
+    let a = lekiwi_agent::selfupdate::version();
+    assert_eq!(c_version, a, "back on A");
+    assert_eq!(d_version, a, "back on A");
+    assert!(
+        c_update["message"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("crash at start"),
+        "{c_update}"
+    );
+    assert!(
+        d_update["message"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("no connection"),
+        "{d_update}"
+    );
+    assert!(
+        c_took < Duration::from_secs(DEADLINE_S),
+        "C: after its starts, before the deadline: {c_took:?}"
+    );
+    assert!(
+        d_took < Duration::from_secs(DEADLINE_S + 15),
+        "D: at the deadline: {d_took:?}"
+    );
+    for (name, r) in [("kiwi-c", &rc), ("kiwi-d", &rd)] {
+        assert_eq!(r.current_slot(), None, "{name}: the package binary again");
+        let ev = wait_for(&format!("{name}: fallback reported"), T, || async {
+            let ev = events(&store, &f.ns, name).await;
+            (count(&ev, "agent_update_fallen_back") >= 1).then_some(ev)
+        })
+        .await?;
+        assert_eq!(count(&ev, "agent_update_started"), 1, "{name}");
+        assert_eq!(count(&ev, "agent_update_fallen_back"), 1, "{name}");
+        assert_eq!(count(&ev, "agent_update_succeeded"), 0, "{name}");
+        let (_, data) = ev
+            .iter()
+            .find(|(k, _)| k == "agent_update_fallen_back")
+            .unwrap();
+        assert!(
+            data["reason"].as_str().is_some_and(|r| !r.is_empty()),
+            "{data}"
+        );
+    }
+    // No loop: nothing restarts any more, and the status stays.
+    let starts = |r: &Supervised| r.history.lock().unwrap().starts.len();
+    let before = (starts(&rc), starts(&rd), starts(&rx));
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    assert_eq!(
+        before,
+        (starts(&rc), starts(&rd), starts(&rx)),
+        "no further restarts"
+    );
+    assert_eq!(
+        f.agent_status("kiwi-c").await.unwrap().1["phase"],
+        "FallenBack"
+    );
+    // (x) no build for the robot's architecture: a status message, the agent untouched.
+    let (version, update) = f.agent_status("kiwi-x").await.unwrap();
+    assert_eq!(version, a);
+    assert_eq!(update["phase"], "Unavailable", "{update}");
+    assert!(
+        update["message"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("no build for"),
+        "{update}"
+    );
+    assert_eq!(starts(&rx), 1, "kiwi-x never restarted");
+    assert_eq!(
+        f.op.metric(r#"lekiwi_gateway_agent_updates_total{kind="fallen_back"}"#)
+            .await,
+        Some(2.0)
+    );
+    Ok(())
+}

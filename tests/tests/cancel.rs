@@ -1,0 +1,330 @@
+//! Cancelling deployments in flight, end to end: real agent processes (`lekiwi-agent`, each
+//! with its download rate capped by `--release-download-rate-limit`) download a 30 MB release
+//! from the real operator; `kubectl lekiwi rollout undo` and `rollout pause` make the gateway
+//! send `cancel`, the agents stop within moments on the release they ran, and a later rollout
+//! of the same release resumes their partial downloads.
+
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use anyhow::bail;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
+use kube::api::{ListParams, Patch, PatchParams, PostParams};
+use kube::{Api, Client};
+use lekiwi_crds::deployment::RolloutPhase;
+use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
+use lekiwi_tests::{
+    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token_file, gateway_url,
+    http_get_with, namespace, push_release, test_strategy, wait_for, wait_online,
+};
+use serde_json::{Value, json};
+
+/// Robots, each a `lekiwi-agent` process.
+const ROBOTS: usize = 3;
+/// Size of the big release's one file.
+const BIG: u64 = 30 * 1024 * 1024;
+/// Each agent's download cap: the big release takes 15 s.
+const RATE: &str = "2000000";
+
+/// A namespace with an operator, agents and two releases: small `1.0.0` and big `2.0.0`.
+struct Site {
+    cp: &'static ControlPlane,
+    client: Client,
+    ns: String,
+    op: OperatorProcess,
+    dir: tempfile::TempDir,
+    agents: Vec<AgentProcess>,
+}
+
+impl Site {
+    async fn new(prefix: &str) -> anyhow::Result<Self> {
+        let cp = ControlPlane::shared();
+        let client = cp.client().await?;
+        let ns = namespace(&client, prefix).await?;
+        let dir = tempfile::tempdir()?;
+        let blobs = dir.path().join("blobs");
+        std::fs::create_dir_all(&blobs)?;
+        let mut op =
+            OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blobs.to_str().unwrap()])?;
+        op.wait_ready().await?;
+        let token_file = dir.path().join("enroll");
+        enrollment_token_file(&client, &ns, &token_file).await?;
+        let mut agents = Vec::new();
+        for i in 0..ROBOTS {
+            let state = dir.path().join(format!("robot-{i}"));
+            std::fs::create_dir_all(&state)?;
+            agents.push(AgentProcess::start(
+                &gateway_url(&op),
+                &format!("{ns}/kiwi-{i}"),
+                &token_file,
+                &state,
+                &["--release-download-rate-limit", RATE],
+            )?);
+        }
+        wait_online(&client, &ns, ROBOTS, Duration::from_secs(120)).await?;
+        Ok(Self {
+            cp,
+            client,
+            ns,
+            op,
+            dir,
+            agents,
+        })
+    }
+
+    fn push(&self, dir: &Path, version: &str) -> anyhow::Result<ReleaseRef> {
+        let server = format!("http://127.0.0.1:{}", self.op.gateway_port);
+        push_release(&self.cp.kubeconfig(), &self.ns, &server, None, dir, version)
+    }
+
+    /// `kubectl lekiwi rollout <verb> <name>`, which must succeed.
+    fn rollout(&self, verb: &str, name: &str) -> anyhow::Result<()> {
+        let out = Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(self.cp.kubeconfig())
+            .args(["-n", &self.ns, "rollout", verb, name])
+            .env_remove("LEKIWI_SERVER")
+            .output()?;
+        if !out.status.success() {
+            bail!("rollout {verb}: {}", String::from_utf8_lossy(&out.stderr));
+        }
+        Ok(())
+    }
+
+    fn deployments(&self) -> Api<RobotDeployment> {
+        Api::namespaced(self.client.clone(), &self.ns)
+    }
+
+    async fn deploy(&self, name: &str, release: &ReleaseRef) -> anyhow::Result<()> {
+        let d = RobotDeployment::new(
+            name,
+            RobotDeploymentSpec {
+                selector: LabelSelector::default(),
+                release: release.clone(),
+                strategy: test_strategy(ROBOTS as i32, 0),
+                paused: false,
+                priority: 0,
+                analysis: None,
+            },
+        );
+        self.deployments()
+            .create(&PostParams::default(), &d)
+            .await?;
+        Ok(())
+    }
+
+    async fn phase_is(&self, name: &str, want: RolloutPhase, within: u64) -> anyhow::Result<()> {
+        wait_for(
+            &format!("{name} {want:?}"),
+            Duration::from_secs(within),
+            || async {
+                let d = self.deployments().get(name).await.ok()?;
+                (d.status?.phase == Some(want)).then_some(())
+            },
+        )
+        .await
+    }
+
+    async fn robots(&self) -> anyhow::Result<Vec<Robot>> {
+        Ok(Api::<Robot>::namespaced(self.client.clone(), &self.ns)
+            .list(&ListParams::default())
+            .await?
+            .items)
+    }
+
+    /// Bytes of partial downloads in each agent's store.
+    fn partial_bytes(&self) -> Vec<u64> {
+        self.agents
+            .iter()
+            .map(|a| dir_bytes(&a.state_dir.join("blobs/tmp"), ".partial"))
+            .collect()
+    }
+
+    /// Waits until every agent has more than `bytes` of its download.
+    async fn downloading_past(&self, bytes: u64) -> anyhow::Result<()> {
+        wait_for(
+            "every agent downloading",
+            Duration::from_secs(60),
+            || async {
+                self.partial_bytes()
+                    .iter()
+                    .all(|b| *b > bytes)
+                    .then_some(())
+            },
+        )
+        .await
+    }
+
+    /// Waits until every robot reports `release` `cancelled` (a report that reached the gateway
+    /// after `since`), while it runs `running`; fails when that takes longer than `within` from
+    /// `started`; returns how long it took.
+    async fn all_cancelled(
+        &self,
+        release: &ReleaseRef,
+        running: &ReleaseRef,
+        (started, since): (Instant, jiff::Timestamp),
+        within: Duration,
+    ) -> anyhow::Result<Duration> {
+        let left = within.saturating_sub(started.elapsed());
+        // Status times have whole seconds.
+        let floor = since - jiff::SignedDuration::from_secs(1);
+        wait_for("every robot cancelled", left, || async {
+            let robots = self.robots().await.ok()?;
+            let all = robots.len() == ROBOTS
+                && robots.iter().all(|r| {
+                    let Some(st) = r.status.as_ref() else {
+                        return false;
+                    };
+                    let last = st.last_update.as_ref();
+                    st.current_release.as_ref() == Some(running)
+                        && last.and_then(|u| u.release.as_ref()) == Some(release)
+                        && last.and_then(|u| u.phase.as_deref()) == Some("cancelled")
+                        && last
+                            .and_then(|u| u.time.as_ref())
+                            .is_some_and(|t| t.0 >= floor)
+                });
+            all.then_some(())
+        })
+        .await?;
+        Ok(started.elapsed())
+    }
+
+    /// Bytes the gateway served to each robot.
+    async fn bytes_served(&self) -> anyhow::Result<Vec<u64>> {
+        let token = ControlPlane::shared().admin_token()?;
+        let mut out = Vec::new();
+        for i in 0..ROBOTS {
+            let (code, _, body) = http_get_with(
+                self.op.gateway_port,
+                &format!("/v1/blobs-served?robot={}/kiwi-{i}", self.ns),
+                &[("authorization", &format!("Bearer {token}"))],
+            )
+            .await?;
+            if code != 200 {
+                bail!("blobs-served answered {code}: {body}");
+            }
+            let v: Value = serde_json::from_str(&body)?;
+            out.push(v["bytes"].as_u64().unwrap_or_default());
+        }
+        Ok(out)
+    }
+
+    /// Whether any agent holds a release directory of `version`.
+    fn any_installed(&self, version: &str) -> bool {
+        self.agents
+            .iter()
+            .any(|a| a.state_dir.join("releases").join(version).exists())
+    }
+}
+
+/// Total size of the files in `dir` whose names end with `suffix`.
+fn dir_bytes(dir: &Path, suffix: &str) -> u64 {
+    std::fs::read_dir(dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().ends_with(suffix))
+        .filter_map(|e| e.metadata().ok())
+        .map(|m| m.len())
+        .sum()
+}
+
+/// A release directory with one file: `size` random bytes (nothing to compress or share).
+fn release_dir(root: &Path, tag: &str, size: u64) -> anyhow::Result<PathBuf> {
+    let dir = root.join(format!("src-{tag}"));
+    std::fs::create_dir_all(&dir)?;
+    let mut random = std::fs::File::open("/dev/urandom")?.take(size);
+    let mut out = std::fs::File::create(dir.join("policy.bin"))?;
+    std::io::copy(&mut random, &mut out)?;
+    Ok(dir)
+}
+
+/// Undo while every robot downloads a 30 MB release: every robot is back on (still on) the
+/// old release and reports `cancelled` within 5 s, the downloads stop, and none installs the
+/// new release. Then the same release rolled out again and paused mid-download cancels too,
+/// and on resume the agents finish from where they stopped: the gateway serves each of them
+/// less than the release's size for the last leg.
+#[tokio::test]
+async fn undo_and_pause_cancel_downloads_in_flight_and_resume_continues_them() -> anyhow::Result<()>
+{
+    let site = Site::new("cancel").await?;
+    let v1 = site.push(&release_dir(site.dir.path(), "1", 1024)?, "1.0.0")?;
+    let v2 = site.push(&release_dir(site.dir.path(), "2", BIG)?, "2.0.0")?;
+    site.deploy("cx", &v1).await?;
+    site.phase_is("cx", RolloutPhase::Completed, 120).await?;
+
+    site.deployments()
+        .patch(
+            "cx",
+            &PatchParams::default(),
+            &Patch::Merge(&json!({"spec": {"release": v2}})),
+        )
+        .await?;
+    site.downloading_past(2 * 1024 * 1024).await?;
+    let asked = (Instant::now(), jiff::Timestamp::now());
+    site.rollout("undo", "cx")?;
+    let took = site
+        .all_cancelled(&v2, &v1, asked, Duration::from_secs(5))
+        .await?;
+    eprintln!("undo: every robot cancelled and on 1.0.0 after {took:?}");
+    let stopped = site.partial_bytes();
+    assert!(
+        stopped.iter().all(|b| *b > 0 && *b < BIG),
+        "partial downloads are kept: {stopped:?}"
+    );
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert_eq!(site.partial_bytes(), stopped, "the downloads stopped");
+    assert!(!site.any_installed("2.0.0"), "no robot finished 2.0.0");
+    site.phase_is("cx", RolloutPhase::RolledBack, 30).await?;
+
+    // The same release again: the agents resume their partial files (4 MB more take 2 s: the
+    // pause's reports are told from the undo's by their time); a pause cancels again.
+    site.rollout("restart", "cx")?;
+    wait_for("downloads resumed", Duration::from_secs(60), || async {
+        let now = site.partial_bytes();
+        now.iter()
+            .zip(&stopped)
+            .all(|(n, s)| *n > s + 4 * 1024 * 1024)
+            .then_some(())
+    })
+    .await?;
+    let asked = (Instant::now(), jiff::Timestamp::now());
+    site.rollout("pause", "cx")?;
+    let took = site
+        .all_cancelled(&v2, &v1, asked, Duration::from_secs(5))
+        .await?;
+    eprintln!("pause: every robot cancelled and on 1.0.0 after {took:?}");
+    site.phase_is("cx", RolloutPhase::Paused, 10).await?;
+    let paused = site.partial_bytes();
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert_eq!(
+        site.partial_bytes(),
+        paused,
+        "a paused rollout downloads nothing"
+    );
+    assert!(!site.any_installed("2.0.0"));
+
+    let served_before = site.bytes_served().await?;
+    site.rollout("resume", "cx")?;
+    site.phase_is("cx", RolloutPhase::Completed, 120).await?;
+    let served_after = site.bytes_served().await?;
+    for (i, (before, after)) in served_before.iter().zip(&served_after).enumerate() {
+        let last_leg = after - before;
+        assert!(
+            last_leg < BIG - 4 * 1024 * 1024,
+            "kiwi-{i} fetched {last_leg} bytes after the resume: the download started over"
+        );
+    }
+    for r in site.robots().await? {
+        let current = r.status.and_then(|s| s.current_release);
+        assert_eq!(
+            current.as_ref(),
+            Some(&v2),
+            "{}",
+            r.metadata.name.unwrap_or_default()
+        );
+    }
+    Ok(())
+}

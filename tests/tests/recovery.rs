@@ -1,0 +1,272 @@
+//! Recovery after a gateway replica dies, at small scale with real processes: two gateways
+//! (`--role gateway`), a controller and a shared PostgreSQL store on a private control plane.
+//! The survivor writes its status slowly on purpose (a fixed 3 writes/s), so most moved robots
+//! are still unwritten when the dead gateway's Lease expires. Its Lease claims them meanwhile
+//! (`fleet.lekiwi.io/claimed-robots`): none shows `Unknown`, each costs about one write; its
+//! moved robots are written before the robots that are simply new to it; a robot that does not
+//! come back still turns `Unknown`.
+//!
+//! On a private control plane with this tree's CRDs (the gateways write `status.sessionEpoch`).
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use futures::StreamExt;
+use kube::Api;
+use kube::runtime::{WatchStreamExt, watcher};
+use lekiwi_agent::connection::Socket;
+use lekiwi_crds::{Robot, RobotPhase};
+use lekiwi_tests::postgres::Postgres;
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, connect_agent, create_robot, gateway_operator, get_robot,
+    namespace, robot_token, wait_for,
+};
+
+/// The gateways' Lease validity: short, so the killed gateway's Lease expires within seconds.
+const GATEWAY_LEASE_SECS: u64 = 3;
+/// Robots on the gateway that is killed; all but one reconnect through the survivor.
+const ON_A: usize = 30;
+/// Robots that connect to the survivor for the first time while the moved ones arrive.
+const FRESH: usize = 8;
+/// The survivor's fixed status rate (writes per second).
+const SLOW_QPS: &str = "3";
+
+/// What a Robot showed, in order, with when the watch delivered it.
+type Seen = Vec<(Option<RobotPhase>, Option<String>, Instant)>;
+
+/// Every change of phase or named gateway of each Robot of a namespace.
+#[derive(Clone, Default)]
+struct Histories(Arc<Mutex<HashMap<String, Seen>>>);
+
+impl Histories {
+    fn watch(client: &kube::Client, ns: &str) -> Self {
+        let out = Histories::default();
+        let api: Api<Robot> = Api::namespaced(client.clone(), ns);
+        let histories = out.clone();
+        tokio::spawn(async move {
+            let stream = watcher(api, watcher::Config::default())
+                .default_backoff()
+                .applied_objects();
+            let mut robots = std::pin::pin!(stream);
+            while let Some(r) = robots.next().await {
+                let Ok(robot) = r else { continue };
+                let name = robot.metadata.name.clone().unwrap_or_default();
+                let status = robot.status.unwrap_or_default();
+                let mut all = histories.0.lock().unwrap();
+                let seen = all.entry(name).or_default();
+                let now = (status.phase, status.gateway);
+                if seen.last().map(|(p, g, _)| (*p, g.clone())) != Some(now.clone()) {
+                    seen.push((now.0, now.1, Instant::now()));
+                }
+            }
+        });
+        out
+    }
+
+    fn of(&self, name: &str) -> Seen {
+        self.0
+            .lock()
+            .unwrap()
+            .get(name)
+            .cloned()
+            .unwrap_or_default()
+    }
+
+    /// When `name` was first shown Online through `gateway`.
+    fn online_via(&self, name: &str, gateway: &str) -> Option<Instant> {
+        self.of(name)
+            .into_iter()
+            .find(|(p, g, _)| *p == Some(RobotPhase::Online) && g.as_deref() == Some(gateway))
+            .map(|(_, _, t)| t)
+    }
+}
+
+/// Robot and Event writes (create, update, patch, apply, delete) the API server has served.
+fn robot_and_event_writes(cp: &ControlPlane) -> anyhow::Result<f64> {
+    let out = cp.kubectl(&["get", "--raw", "/metrics"]);
+    anyhow::ensure!(out.status.success(), "kubectl get --raw /metrics failed");
+    let text = String::from_utf8(out.stdout)?;
+    let writes = ["POST", "PUT", "PATCH", "APPLY", "DELETE"];
+    Ok(text
+        .lines()
+        .filter(|l| l.starts_with("apiserver_request_total{"))
+        .filter(|l| l.contains("resource=\"robots\"") || l.contains("resource=\"events\""))
+        .filter(|l| writes.iter().any(|v| l.contains(&format!("verb=\"{v}\""))))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum())
+}
+
+/// The controller, gateway A (default status rate), gateway B (slow, fixed) and their store.
+struct Fleet {
+    client: kube::Client,
+    ns: String,
+    a: OperatorProcess,
+    b: OperatorProcess,
+    _controller: OperatorProcess,
+    _pg: Postgres,
+    cp: ControlPlane,
+}
+
+impl Fleet {
+    async fn start() -> anyhow::Result<Fleet> {
+        let cp = ControlPlane::private()?;
+        cp.install_crds()?;
+        let client = cp.client().await?;
+        let ns = namespace(&client, "recovery").await?;
+        let pg = Postgres::start()?;
+        let url = pg.create_database("lekiwi")?;
+        let lease = GATEWAY_LEASE_SECS.to_string();
+        let gateway = ["--role", "gateway", "--store-url", &url];
+        let gateway = [&gateway[..], &["--gateway-lease-seconds", &lease]].concat();
+        let controller = ["--role", "controller", "--store-url", &url];
+        let controller = gateway_operator(&cp, &ns, "ctl", &controller).await?;
+        let a = gateway_operator(&cp, &ns, "a", &gateway).await?;
+        let slow = ["--status-qps", SLOW_QPS, "--status-qps-max", SLOW_QPS];
+        let slow = [&gateway[..], &slow, &["--status-burst", "1"]].concat();
+        let b = gateway_operator(&cp, &ns, "b", &slow).await?;
+        Ok(Fleet {
+            client,
+            ns,
+            a,
+            b,
+            _controller: controller,
+            _pg: pg,
+            cp,
+        })
+    }
+
+    /// Robots `name-0..n`, each with its token.
+    async fn robots(&self, name: &str, n: usize) -> anyhow::Result<Vec<(String, String)>> {
+        let mut out = Vec::new();
+        for i in 0..n {
+            let robot = format!("{name}-{i}");
+            create_robot(&self.client, &self.ns, &robot, &[]).await?;
+            let token = robot_token(&self.client, &self.ns, &robot).await?;
+            out.push((robot, token));
+        }
+        Ok(out)
+    }
+
+    /// Connects each robot to `op`.
+    async fn connect(
+        &self,
+        op: &OperatorProcess,
+        robots: &[(String, String)],
+    ) -> anyhow::Result<Vec<Socket>> {
+        let mut sockets = Vec::new();
+        for (name, token) in robots {
+            let robot = format!("{}/{name}", self.ns);
+            let (ws, _) = connect_agent(op, token, &robot)
+                .await
+                .map_err(|e| anyhow::anyhow!("{name}: {e:?}"))?;
+            sockets.push(ws);
+        }
+        Ok(sockets)
+    }
+
+    /// Waits until every robot of `names` is Online through `gateway`.
+    async fn all_online_via(&self, names: &[&str], gateway: &str) -> anyhow::Result<()> {
+        wait_for(
+            &format!("{} robots Online via {gateway}", names.len()),
+            Duration::from_secs(40),
+            || async {
+                for name in names {
+                    let s = get_robot(&self.client, &self.ns, name).await.ok()?.status?;
+                    let online = s.phase == Some(RobotPhase::Online)
+                        && s.gateway.as_deref() == Some(gateway);
+                    if !online {
+                        return None;
+                    }
+                }
+                Some(())
+            },
+        )
+        .await
+    }
+}
+
+/// Gateway A dies holding 30 robots; 29 reconnect through B at once, next to 8 robots new to B.
+#[tokio::test]
+async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
+    let mut f = Fleet::start().await?;
+    let history = Histories::watch(&f.client, &f.ns);
+    let on_a = f.robots("kiwi", ON_A).await?;
+    let fresh = f.robots("new", FRESH).await?;
+    let sockets_a = f.connect(&f.a, &on_a).await?;
+    let names: Vec<&str> = on_a.iter().map(|(n, _)| n.as_str()).collect();
+    f.all_online_via(&names, "gw-a").await?;
+    // B's Robot watch has seen them on A.
+    tokio::time::sleep(Duration::from_secs(1)).await;
+
+    let before = robot_and_event_writes(&f.cp)?;
+    f.a.kill();
+    let killed = Instant::now();
+    drop(sockets_a);
+    // The new robots connect first, then the moved ones: B writes the moved ones first anyway.
+    let _fresh_b = f.connect(&f.b, &fresh).await?;
+    let (moved, lost) = on_a.split_at(ON_A - 1);
+    let _moved_b = f.connect(&f.b, moved).await?;
+    println!("reconnected {:?} after the kill", killed.elapsed());
+
+    let moved_names: Vec<&str> = moved.iter().map(|(n, _)| n.as_str()).collect();
+    f.all_online_via(&moved_names, "gw-b").await?;
+    let recovered = killed.elapsed();
+    let lost = lost[0].0.as_str();
+    let within = Duration::from_secs(20);
+    lekiwi_tests::wait_phase(&f.client, &f.ns, lost, RobotPhase::Unknown, within).await?;
+    let fresh_names: Vec<&str> = fresh.iter().map(|(n, _)| n.as_str()).collect();
+    f.all_online_via(&fresh_names, "gw-b").await?;
+    // Room for any late controller write before counting.
+    tokio::time::sleep(Duration::from_secs(2 * GATEWAY_LEASE_SECS)).await;
+    // The new robots and the lost one may cost a status write and an Event each; the rest is
+    // what the moved robots cost.
+    let writes = robot_and_event_writes(&f.cp)? - before;
+    let others = 2.0 * (FRESH + 1) as f64;
+    let per_moved = (writes - others).max(0.0) / moved.len() as f64;
+    println!(
+        "all {} moved robots Online via gw-b {recovered:?} after the kill; {writes} Robot/Event \
+         writes, at most {others} of them for the others: {per_moved:.2} per moved robot",
+        moved.len()
+    );
+
+    // No moved robot showed anything but Online from the kill on.
+    let wrong: Vec<_> = moved_names
+        .iter()
+        .filter(|name| {
+            let seen = history.of(name);
+            let mut after = seen.iter().filter(|(_, _, t)| *t >= killed);
+            after.any(|(p, _, _)| *p != Some(RobotPhase::Online))
+        })
+        .collect();
+    println!(
+        "{} moved robots showed another phase than Online",
+        wrong.len()
+    );
+    // Moved robots are written before the robots merely new to B (at most the first writes of
+    // those, taken before the moved ones arrived, go earlier).
+    let last_moved = moved_names
+        .iter()
+        .filter_map(|n| history.online_via(n, "gw-b"))
+        .max()
+        .expect("moved robots were Online via gw-b");
+    let fresh_before = fresh_names
+        .iter()
+        .filter(|n| {
+            history
+                .online_via(n, "gw-b")
+                .is_some_and(|t| t < last_moved)
+        })
+        .count();
+    println!("{fresh_before} of {FRESH} new robots were written before the last moved one");
+    assert!(wrong.is_empty(), "{wrong:?} left Online after the kill");
+    assert!(fresh_before <= 3, "{fresh_before} new robots went first");
+    assert!(
+        per_moved <= 1.2,
+        "{writes} Robot/Event writes for {} moved robots and {others} others",
+        moved.len()
+    );
+    let claimed = f.b.metric("lekiwi_gateway_claimed_robots").await;
+    assert_eq!(claimed, Some(0.0), "B claims nothing once all are written");
+    Ok(())
+}
