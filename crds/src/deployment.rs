@@ -64,6 +64,11 @@ pub struct RobotDeploymentSpec {
     #[serde(default)]
     pub paused: bool,
 
+    /// Watches each robot for a while after its switch and fails it when its telemetry got
+    /// worse than before by more than the given ratios. Unset: a robot counts as updated as
+    /// soon as it runs the release and reports healthy.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub analysis: Option<crate::analysis::AnalysisSpec>,
     /// Which deployment owns a robot that several deployments of the namespace select: the one
     /// with the highest priority, and among equal priorities the newest (latest creation time,
     /// then the greater name). The others leave the robot alone and show it `Superseded`.

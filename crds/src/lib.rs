@@ -1,6 +1,7 @@
 //! Custom resource types of the LeKiwi fleet: `Robot` and `RobotDeployment` (group `fleet.lekiwi.io`).
 
 pub mod agent;
+pub mod analysis;
 pub mod condition;
 pub mod contract;
 pub mod deployment;

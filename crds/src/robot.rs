@@ -229,6 +229,10 @@ pub struct RobotStatus {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub last_update: Option<UpdateReport>,
 
+    /// The gateway's summary of the robot's metrics before and after its last switch, judged
+    /// by rollouts with `spec.analysis`. Written by the gateway.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub analysis: Option<crate::analysis::AnalysisReport>,
     /// How the robot's latest agent update (`spec.agent`) went. Written by the gateway.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub agent_update: Option<AgentUpdateReport>,

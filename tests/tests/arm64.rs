@@ -176,6 +176,7 @@ async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> anyhow::Resu
         release: release.clone(),
         strategy: test_strategy(1, 0),
         paused: false,
+        analysis: None,
         priority: 0,
     };
     Api::<RobotDeployment>::namespaced(client.clone(), ns)

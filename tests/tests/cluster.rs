@@ -223,6 +223,7 @@ impl Install {
                 release: release.clone(),
                 strategy: test_strategy(2, 1),
                 paused: false,
+                analysis: None,
                 priority: 0,
             };
             api.create(&PostParams::default(), &RobotDeployment::new(name, spec))

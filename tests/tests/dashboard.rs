@@ -56,6 +56,7 @@ async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> Result<()> {
             release: release.clone(),
             strategy: test_strategy(2, 1),
             paused: false,
+            analysis: None,
             priority: 0,
         },
     );

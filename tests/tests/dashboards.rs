@@ -345,6 +345,7 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
                     release: v1,
                     strategy: test_strategy(3, 1),
                     paused: false,
+                    analysis: None,
                     priority: 0,
                 },
             ),

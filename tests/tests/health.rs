@@ -128,6 +128,7 @@ async fn a_dead_host_process_makes_the_robot_unhealthy_and_a_rollout_waits() -> 
             release: v1.clone(),
             strategy: test_strategy(1, 0),
             paused: false,
+            analysis: None,
             priority: 0,
         },
     );

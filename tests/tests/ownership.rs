@@ -95,6 +95,7 @@ impl Site {
                 strategy: test_strategy(ROBOTS as i32, 0),
                 paused: false,
                 priority: 0,
+                analysis: None,
             },
         );
         self.deployments()

@@ -101,6 +101,7 @@ impl Site {
                 release: release.clone(),
                 strategy,
                 paused: false,
+                analysis: None,
                 priority: 0,
             },
         );

@@ -68,6 +68,11 @@ pub fn trim_status(status: Option<RobotStatus>) -> Option<RobotStatus> {
         phase: status.phase,
         conditions: status.conditions,
         observed_generation: status.observed_generation,
+        // A switch's analysis window, while open, continues on whichever gateway the robot
+        // reconnects to (`presence::analysis`).
+        analysis: status
+            .analysis
+            .filter(super::presence::analysis_window_open),
         ..RobotStatus::default()
     })
 }

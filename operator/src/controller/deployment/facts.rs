@@ -173,6 +173,7 @@ fn view(robot: &Robot, now: Timestamp, grace: Duration) -> RobotView {
             .annotations()
             .get(MARK_ANNOTATION)
             .and_then(|m| serde_json::from_str::<Mark>(m).ok()),
+        analysis: status.analysis,
         superseded_by: None,
     }
 }

@@ -11,6 +11,7 @@
 
 mod adapt;
 mod agent;
+pub(crate) mod analysis;
 pub mod claims;
 mod patch;
 mod phase;
@@ -30,6 +31,7 @@ use tokio::sync::Notify;
 
 pub use self::adapt::RateBounds;
 pub use self::agent::AgentUpdateOutcome;
+pub use self::analysis::window_open as analysis_window_open;
 pub use self::phase::PhasePlanner;
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
@@ -98,6 +100,8 @@ pub struct HeartbeatInfo {
     pub teleoperation: Option<Teleoperation>,
     /// CPU, memory, temperature and battery readings, written with the next status refresh.
     pub vitals: Vitals,
+    /// Round-trip time of the previous heartbeat, ms, as the agent measured it (analysis only).
+    pub rtt_ms: Option<f64>,
 }
 
 /// How an agent's release update ended, as it reported it.
@@ -128,6 +132,8 @@ struct Entry {
     vitals: Vitals,
     retries: u32,
     last_update: Option<UpdateOutcome>,
+    /// Metrics before and after the last switch (kept across sessions, like `last_update`).
+    analysis: analysis::Tracker,
     /// How the latest agent update went (kept across sessions, like `last_update`).
     agent_update: Option<AgentUpdateOutcome>,
     /// The API server refused this session's full status: write presence facts only.
@@ -234,6 +240,8 @@ impl Presence {
             // Keep the last update's outcome: rollouts read it, and a manager that stops
             // sending a field makes server-side apply drop it.
             let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
+            let analysis = s.robots.get(key).map(|e| e.analysis.clone());
+            let analysis = analysis.or_else(|| self.stored_analysis(key));
             let agent_update = s.robots.get(key).and_then(|e| e.agent_update.clone());
             s.robots.insert(
                 key.clone(),
@@ -249,6 +257,7 @@ impl Presence {
                     vitals: Vitals::default(),
                     retries: 0,
                     last_update,
+                    analysis: analysis.unwrap_or_default(),
                     agent_update,
                     presence_only: false,
                     settling: s.known_offline.contains(key) && !moved,
@@ -277,6 +286,7 @@ impl Presence {
             };
             e.last_heartbeat = now;
             e.vitals = hb.vitals;
+            e.analysis.record(&e.vitals, hb.rtt_ms, now);
             let mut changed = false;
             if hb.release.is_some() && hb.release != e.info.release {
                 e.info.release = hb.release;
@@ -318,6 +328,7 @@ impl Presence {
             };
             if outcome.phase == lekiwi_protocol::ProgressPhase::Done.as_str() {
                 e.info.release = Some(outcome.release.clone());
+                e.analysis.switched(outcome.release.clone(), outcome.time);
             }
             e.last_update = Some(outcome);
             s.enqueue(key, Priority::High);
@@ -424,10 +435,10 @@ impl Presence {
                 if e.info.protocol == "poll" && now.duration_since(e.last_heartbeat) > poll_grace {
                     e.connected = false;
                     due.push((key.clone(), Priority::High));
-                } else if e
-                    .written_heartbeat
-                    .is_some_and(|w| now.duration_since(w) >= refresh && e.last_heartbeat > w)
-                {
+                } else if e.written_heartbeat.is_some_and(|w| {
+                    now.duration_since(w) >= analysis_refresh(refresh, e, now)
+                        && e.last_heartbeat > w
+                }) {
                     due.push((key.clone(), Priority::Low));
                 }
             }
@@ -439,5 +450,20 @@ impl Presence {
         if queued {
             self.wake();
         }
+    }
+}
+
+/// How often `e`'s status is refreshed: `refresh`, or more often while its last switch's
+/// analysis window is open.
+fn analysis_refresh(
+    refresh: jiff::SignedDuration,
+    e: &Entry,
+    now: Timestamp,
+) -> jiff::SignedDuration {
+    let window = jiff::SignedDuration::try_from(analysis::WINDOW_REFRESH).unwrap_or_default();
+    if e.analysis.window_open(now) {
+        refresh.min(window)
+    } else {
+        refresh
     }
 }

@@ -115,6 +115,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         system: system_info(&info.system),
         telemetry: telemetry_summary(&e.vitals),
         last_update: e.last_update.as_ref().map(update_report),
+        analysis: e.analysis.report(),
         agent_update: e.agent_update.as_ref().map(super::agent::report),
     }
 }

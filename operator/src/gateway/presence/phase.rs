@@ -87,6 +87,17 @@ fn robot_as_written(cached: &Robot, status: &RobotStatus, stored: Option<&RobotS
 }
 
 impl Presence {
+    /// The analysis summary stored in the Robot's status, when the gateway's cache has one (see
+    /// [`super::analysis`]).
+    pub(super) fn stored_analysis(&self, key: &RobotKey) -> Option<super::analysis::Tracker> {
+        let planner = self.planner.get()?;
+        let cached = planner
+            .robots
+            .get(&ObjectRef::new(&key.name).within(&key.namespace))?;
+        let report = cached.status.as_ref()?.analysis.as_ref()?;
+        super::analysis::Tracker::resume(report)
+    }
+
     /// Plans phases from now on (see the module docs).
     pub fn plan_phases(&self, planner: PhasePlanner) {
         let _ = self.planner.set(Arc::new(planner));

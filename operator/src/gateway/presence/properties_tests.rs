@@ -238,6 +238,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         vitals,
         retries: 0,
         last_update: None,
+        analysis: Default::default(),
         agent_update: None,
         presence_only: false,
         settling: false,

@@ -48,6 +48,7 @@ where
                     health,
                     teleoperation,
                     vitals,
+                    rtt_ms,
                 };
                 self.heartbeat(sent_at_ms, rtt_ms, info).await?
             }
@@ -140,12 +141,16 @@ where
 
     /// A durable event: stored, then acked.
     async fn event(&self, ev: &StoredEvent) -> ServerMessage {
+        self.shared
+            .presence
+            .event(self.key, self.id, ev.severity == "error");
         let stored = Box::pin(self.shared.store.insert_event(self.key, ev)).await;
         self.durable(ev.seq, stored)
     }
 
     /// A durable batch of telemetry samples: stored, then acked.
     async fn telemetry(&self, seq: u64, samples: &[Sample]) -> ServerMessage {
+        self.shared.presence.telemetry(self.key, self.id, samples);
         let stored = Box::pin(self.shared.store.insert_telemetry(self.key, seq, samples)).await;
         self.durable(seq, stored)
     }

@@ -180,8 +180,8 @@ fn classify(robot: &RobotView, rollout: &Rollout<'_>) -> RobotState {
 /// a failure since it was started, or when it is still not there after the robot timeout.
 fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_>) -> RobotState {
     let target = rollout.target;
-    if robot.runs(target) && robot.healthy {
-        return RobotState::Succeeded(batch);
+    if let Some(state) = super::analysis::switched(robot, batch, since, rollout) {
+        return state;
     }
     if let Some((release, phase, message, at)) = &robot.last_update
         && release == target

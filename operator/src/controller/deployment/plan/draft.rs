@@ -39,6 +39,8 @@ pub(super) struct Rollout<'a> {
     pub robot_timeout: SignedDuration,
     /// How long an unavailable robot is waited for before it is skipped.
     pub wait_timeout: SignedDuration,
+    /// `spec.analysis`: what a switched robot's metrics must stay within.
+    pub analysis: Option<&'a lekiwi_crds::analysis::AnalysisSpec>,
     /// The selected robots, maintenance ones included.
     pub robots: &'a [RobotView],
     /// Validity of the release.
@@ -88,6 +90,7 @@ impl<'a> Rollout<'a> {
             now,
             robot_timeout: secs(spec.strategy.robot_timeout_seconds),
             wait_timeout: secs(spec.strategy.wait_timeout_seconds),
+            analysis: spec.analysis.as_ref(),
             robots: &facts.robots,
             release: &facts.release,
             overlaps: &facts.overlaps,

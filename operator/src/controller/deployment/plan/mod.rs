@@ -7,6 +7,7 @@
 //! release a robot ran before are read back from the marks, so a new leader resumes exactly
 //! where the old one stopped and never redeploys a robot that already finished.
 
+mod analysis;
 mod classify;
 mod draft;
 mod gates;
@@ -102,6 +103,8 @@ pub struct RobotView {
     pub last_update: Option<(ReleaseRef, String, Option<String>, Option<Timestamp>)>,
     /// Its mark, if any (of any deployment).
     pub mark: Option<Mark>,
+    /// `status.analysis`: its metrics before and after its last switch.
+    pub analysis: Option<lekiwi_crds::analysis::AnalysisReport>,
     /// The deployment that owns the robot instead of this one (newer, or of higher priority):
     /// this rollout leaves it alone.
     pub superseded_by: Option<String>,

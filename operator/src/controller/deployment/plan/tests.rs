@@ -32,6 +32,7 @@ fn deployment(batch: IntOrString, canary: i32) -> RobotDeployment {
                 ..RolloutStrategy::default()
             },
             paused: false,
+            analysis: None,
             priority: 0,
         },
     );
@@ -55,6 +56,7 @@ fn robot(i: usize) -> RobotView {
         current: Some(rel("1")),
         last_update: None,
         mark: None,
+        analysis: None,
         superseded_by: None,
     }
 }
