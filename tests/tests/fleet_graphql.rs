@@ -303,7 +303,7 @@ async fn connect(op: &OperatorProcess) -> Result<Ws> {
     request
         .headers_mut()
         .insert("sec-websocket-protocol", "graphql-transport-ws".parse()?);
-    let (mut ws, response) = tokio_tungstenite::connect_async(request).await?;
+    let (ws, response) = tokio_tungstenite::connect_async(request).await?;
     ensure!(
         response
             .headers()
