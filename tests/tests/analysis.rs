@@ -228,6 +228,18 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         "{why}"
     );
     assert!(why.contains("maxHostMemoryRatio 1.5"), "{why}");
+    // `kubectl lekiwi rollout status` shows the verdict.
+    let out = Command::new(lekiwi_tests::bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args(["-n", &ns, "rollout", "status", "fleet", "--watch=false"])
+        .output()?;
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        text.contains("RolledBack") && text.contains("maxHostMemoryRatio 1.5"),
+        "{text}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let back = wait_for(
         "the robot back on 1.0.0",
         Duration::from_secs(60),
