@@ -3,8 +3,8 @@
 //! before the switch. A real agent's restart hook starts a stand-in host process (a Python
 //! script of the release matching `--host-process-pattern`): a release whose process only
 //! wobbles completes, though the gateway restarts within its window (the new one goes on from
-//! the summary in the Robot's status); a release whose process grows past the ratio fails its robot, with the
-//! metric, value and baseline in the message, and the fleet rolls back. Real operator, a
+//! the summary in the Robot's status); a release whose process grows past the ratio fails its robots, with the
+//! metric, value and baseline in the message, so the batch of three fails and the fleet rolls back. Real operator, a
 //! control plane of the test's own (as `health.rs`, so its CRDs cannot race other worktrees').
 
 use std::path::Path;
@@ -40,6 +40,9 @@ while True:
         ballast.append(bytearray(b"\x01") * (4 * MB))
     time.sleep(0.2)
 "#;
+
+/// The fleet: one batch of three robots.
+const ROBOTS: [&str; 3] = ["kiwi-a", "kiwi-b", "kiwi-c"];
 
 /// A release directory whose `host.py` runs in `mode`.
 fn release_dir(root: &Path, mode: &str) -> anyhow::Result<std::path::PathBuf> {
@@ -91,43 +94,49 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
     let token_file = dir.path().join("enroll");
     enrollment_token_file(&client, &ns, &token_file).await?;
 
-    // The host process before any release: the test starts it, the hook replaces it.
-    let token = format!("kiwi-host-{}", std::process::id());
-    let pid_file = dir.path().join("host.pid");
+    // Each robot's host process before any release: the test starts it, the hook replaces it.
     let steady = release_dir(dir.path(), "steady")?;
-    let mut first: Child = Command::new("python3")
-        .arg(steady.join("host.py"))
-        .args([&token, pid_file.to_str().unwrap()])
-        .spawn()?;
-    let restart = format!(
-        "kill \"$(cat {pid})\" 2>/dev/null; python3 host.py {token} {pid} >/dev/null 2>&1 &",
-        pid = pid_file.display()
-    );
-    let agent = lekiwi_tests::AgentProcess::start(
-        &gateway_url(&op),
-        &format!("{ns}/kiwi-a"),
-        &token_file,
-        &dir.path().join("robot"),
-        &[
-            "--host-process-pattern",
-            &token,
-            "--health-interval-s",
-            "0.5",
-            "--release-restart-command",
-            &restart,
-        ],
-    )?;
-    wait_online(&client, &ns, 1, Duration::from_secs(60)).await?;
+    let mut sites = Vec::new();
+    for name in ROBOTS {
+        let token = format!("kiwi-host-{}-{name}", std::process::id());
+        let pid_file = dir.path().join(format!("{name}.pid"));
+        let first: Child = Command::new("python3")
+            .arg(steady.join("host.py"))
+            .args([&token, pid_file.to_str().unwrap()])
+            .spawn()?;
+        let restart = format!(
+            "kill \"$(cat {pid})\" 2>/dev/null; python3 host.py {token} {pid} >/dev/null 2>&1 &",
+            pid = pid_file.display()
+        );
+        let agent = lekiwi_tests::AgentProcess::start(
+            &gateway_url(&op),
+            &format!("{ns}/{name}"),
+            &token_file,
+            &dir.path().join(name),
+            &[
+                "--host-process-pattern",
+                &token,
+                "--health-interval-s",
+                "0.5",
+                "--release-restart-command",
+                &restart,
+            ],
+        )?;
+        sites.push((first, pid_file, agent));
+    }
+    wait_online(&client, &ns, ROBOTS.len(), Duration::from_secs(60)).await?;
     let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
-    wait_for(
-        "the host process's memory",
-        Duration::from_secs(30),
-        || async {
-            let t = robots.get("kiwi-a").await.ok()?.status?.telemetry?;
-            t.host_memory_bytes.filter(|&b| b > 0)
-        },
-    )
-    .await?;
+    for name in ROBOTS {
+        wait_for(
+            "the host process's memory",
+            Duration::from_secs(30),
+            || async {
+                let t = robots.get(name).await.ok()?.status?.telemetry?;
+                t.host_memory_bytes.filter(|&b| b > 0)
+            },
+        )
+        .await?;
+    }
     tokio::time::sleep(Duration::from_secs(2)).await;
 
     // A release whose host process only wobbles: the window passes, the rollout completes.
@@ -140,7 +149,7 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         RobotDeploymentSpec {
             selector: LabelSelector::default(),
             release: v1.clone(),
-            strategy: test_strategy(1, 0),
+            strategy: test_strategy(ROBOTS.len() as i32, 0),
             paused: false,
             analysis: Some(analysis(8)),
             priority: 0,
@@ -159,12 +168,17 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
     let robot = robots.get("kiwi-a").await?;
     let d = finished.map_err(|e| anyhow::anyhow!("{e}\n{:?}", robot.status))?;
     let st = d.status.unwrap();
-    assert_eq!(
-        st.phase,
-        Some(RolloutPhase::Completed),
-        "{st:?}\n{:?}",
-        robot.status
-    );
+    if st.phase != Some(RolloutPhase::Completed) {
+        let mut all = String::new();
+        for name in ROBOTS {
+            let r = robots.get(name).await?;
+            all += &format!("{name}: {:?}\n", r.status);
+        }
+        for (_, _, agent) in &sites {
+            all += &agent.log_text();
+        }
+        panic!("{st:?}\n{all}");
+    }
     let report = robots
         .get("kiwi-a")
         .await?
@@ -195,8 +209,10 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         report.baseline.host_memory_bytes.as_ref().unwrap().samples >= 2,
         "{report:?}"
     );
-    let _ = first.kill();
-    let _ = first.wait();
+    for (first, _, _) in &mut sites {
+        let _ = first.kill();
+        let _ = first.wait();
+    }
 
     // A release whose host process grows to several times its size: failed, rolled back.
     let grow = release_dir(dir.path(), "grow")?;
@@ -217,17 +233,23 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         },
     )
     .await
-    .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
+    .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", sites[0].2.log_text()))?;
     let st = d.status.unwrap();
-    assert_eq!(st.failed, 1, "{st:?}");
-    let r = &st.robots[0];
-    assert_eq!(r.state, RobotRolloutState::RolledBack, "{r:?}");
-    let why = r.message.as_deref().unwrap_or_default();
-    assert!(
-        why.contains("hostMemoryBytes highest") && why.contains("baseline mean"),
-        "{why}"
-    );
-    assert!(why.contains("maxHostMemoryRatio 1.5"), "{why}");
+    // The batch rolls back as soon as its threshold cannot be met: robots whose window had not
+    // ended by then are rolled back without a verdict of their own.
+    assert!(st.failed >= 1, "{st:?}");
+    assert_eq!(st.robots.len(), ROBOTS.len(), "{st:?}");
+    let mut verdicts = 0;
+    for r in &st.robots {
+        assert_eq!(r.state, RobotRolloutState::RolledBack, "{r:?}");
+        let why = r.message.as_deref().unwrap_or_default();
+        if why.contains("hostMemoryBytes highest") {
+            assert!(why.contains("baseline mean"), "{why}");
+            assert!(why.contains("maxHostMemoryRatio 1.5"), "{why}");
+            verdicts += 1;
+        }
+    }
+    assert!(verdicts >= 1, "{st:?}");
     // `kubectl lekiwi rollout status` shows the verdict.
     let out = Command::new(lekiwi_tests::bin("kubectl-lekiwi"))
         .arg("--kubeconfig")
@@ -240,19 +262,22 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         "{text}\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let back = wait_for(
-        "the robot back on 1.0.0",
-        Duration::from_secs(60),
-        || async {
-            let s = robots.get("kiwi-a").await.ok()?.status?;
-            (s.current_release.as_ref() == Some(&v1)).then_some(s)
-        },
-    )
-    .await?;
-    assert!(back.current_release.is_some());
+    for name in ROBOTS {
+        wait_for(
+            "every robot back on 1.0.0",
+            Duration::from_secs(60),
+            || async {
+                let s = robots.get(name).await.ok()?.status?;
+                (s.current_release.as_ref() == Some(&v1)).then_some(())
+            },
+        )
+        .await?;
+    }
 
-    stop_host(&pid_file);
-    drop(agent);
+    for (_, pid_file, agent) in sites {
+        stop_host(&pid_file);
+        drop(agent);
+    }
     op.terminate()?;
     Ok(())
 }

@@ -68,6 +68,9 @@ pub fn trim_status(status: Option<RobotStatus>) -> Option<RobotStatus> {
         phase: status.phase,
         conditions: status.conditions,
         observed_generation: status.observed_generation,
+        // The release a gateway last saw the robot run: a robot that reconnects on another one
+        // tells a switch no gateway saw (`presence::analysis`).
+        current_release: status.current_release,
         // A switch's analysis window, while open, continues on whichever gateway the robot
         // reconnects to (`presence::analysis`).
         analysis: status

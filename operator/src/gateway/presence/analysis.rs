@@ -182,9 +182,14 @@ impl Tracker {
         }
     }
 
-    /// The agent reported a switch to `release` done at `at`: a new window opens, with the
-    /// readings since the previous switch as its baseline.
+    /// The robot switched to `release` at `at` (the agent's `done`, or a heartbeat or hello
+    /// that first shows it): a new window opens, with the readings since the previous switch
+    /// as its baseline. Nothing changes when the last window is already of `release` (the
+    /// heartbeat and the `done` of one switch).
     pub fn switched(&mut self, release: Release, at: Timestamp) {
+        if self.last.as_ref().is_some_and(|w| w.release == release) {
+            return;
+        }
         self.last = Some(Window {
             release,
             start: at,
@@ -326,6 +331,10 @@ mod tests {
         // Another gateway resumes from the written summary and writes the same one.
         let resumed = Tracker::resume(&r).unwrap();
         assert_eq!(resumed.report(), Some(r.clone()));
+        // A second sign of the same switch (the heartbeat, then the `done`) changes nothing.
+        let mut again = t.clone();
+        again.switched(rel("2"), t0 + SignedDuration::from_secs(5));
+        assert_eq!(again.report(), Some(r.clone()));
 
         let base = r.baseline.host_memory_bytes.unwrap();
         assert_eq!((base.samples, base.mean, base.max), (2, 200.0, 300.0));

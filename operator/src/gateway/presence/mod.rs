@@ -241,7 +241,20 @@ impl Presence {
             // sending a field makes server-side apply drop it.
             let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
             let analysis = s.robots.get(key).map(|e| e.analysis.clone());
-            let analysis = analysis.or_else(|| self.stored_analysis(key));
+            let mut analysis = analysis
+                .or_else(|| self.stored_analysis(key))
+                .unwrap_or_default();
+            // The robot runs another release than its status says (and than this gateway
+            // knew): it switched while no gateway saw its `done` (a restart, a move).
+            let known = s.robots.get(key).map(|e| e.info.release.clone());
+            if let Some(release) = &info.release
+                && known.is_none_or(|k| k.as_ref() != Some(release))
+                && self.stored_release(key).is_some_and(|r| {
+                    r.is_none_or(|r| r.version != release.version || r.digest != release.digest)
+                })
+            {
+                analysis.switched(release.clone(), now);
+            }
             let agent_update = s.robots.get(key).and_then(|e| e.agent_update.clone());
             s.robots.insert(
                 key.clone(),
@@ -257,7 +270,7 @@ impl Presence {
                     vitals: Vitals::default(),
                     retries: 0,
                     last_update,
-                    analysis: analysis.unwrap_or_default(),
+                    analysis,
                     agent_update,
                     presence_only: false,
                     settling: s.known_offline.contains(key) && !moved,
@@ -289,6 +302,11 @@ impl Presence {
             e.analysis.record(&e.vitals, hb.rtt_ms, now);
             let mut changed = false;
             if hb.release.is_some() && hb.release != e.info.release {
+                // A switch within the session: its window opens now unless the `done` of a
+                // command opened it already (a command of an earlier session, or none).
+                if let (Some(_), Some(release)) = (&e.info.release, &hb.release) {
+                    e.analysis.switched(release.clone(), now);
+                }
                 e.info.release = hb.release;
                 changed = true;
             }

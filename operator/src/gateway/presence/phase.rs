@@ -98,6 +98,17 @@ impl Presence {
         super::analysis::Tracker::resume(report)
     }
 
+    /// The release the Robot's status says it runs (`Some(None)`: none), when the gateway's
+    /// cache has the Robot and a gateway has written its status (it has a phase).
+    pub(super) fn stored_release(&self, key: &RobotKey) -> Option<Option<lekiwi_crds::ReleaseRef>> {
+        let planner = self.planner.get()?;
+        let cached = planner
+            .robots
+            .get(&ObjectRef::new(&key.name).within(&key.namespace))?;
+        let status = cached.status.as_ref().filter(|s| s.phase.is_some())?;
+        Some(status.current_release.clone())
+    }
+
     /// Plans phases from now on (see the module docs).
     pub fn plan_phases(&self, planner: PhasePlanner) {
         let _ = self.planner.set(Arc::new(planner));

@@ -203,8 +203,15 @@ fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_
             .current
             .as_ref()
             .map_or("no release".to_owned(), |r| r.version.clone());
-        let why = if robot.runs(target) {
+        let why = if robot.runs(target) && !robot.healthy {
             "unhealthy".to_owned()
+        } else if robot.runs(target) {
+            // Healthy on the release, but `spec.analysis` never saw its window: no gateway
+            // saw the switch's `done` (e.g. it was reported while the robot's gateway restarted).
+            format!(
+                "runs {} healthy, but no analysis window of its switch",
+                target.version
+            )
         } else {
             format!("still runs {runs}")
         };

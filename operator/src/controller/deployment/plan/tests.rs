@@ -611,3 +611,25 @@ fn a_rollback_the_marks_record_goes_on_under_an_older_status() {
     );
     assert!(sim.robots.iter().all(|r| r.current == Some(rel("1"))));
 }
+
+/// A robot that runs the release healthy but whose switch no gateway saw (so no analysis
+/// window) fails at the timeout with that reason, not as "unhealthy".
+#[test]
+fn a_switch_without_an_analysis_window_times_out_naming_it() {
+    let mut d = deployment(IntOrString::Int(1), 0);
+    d.spec.analysis = Some(lekiwi_crds::analysis::AnalysisSpec {
+        window_seconds: 30,
+        ..lekiwi_crds::analysis::AnalysisSpec::default()
+    });
+    let mut sim = Sim::new(d, 1);
+    sim.step();
+    sim.agents();
+    sim.advance(61);
+    sim.step();
+    let st = sim.d.status.as_ref().unwrap();
+    let why = st.robots[0].message.as_deref().unwrap_or_default();
+    assert!(
+        why.contains("runs 2 healthy, but no analysis window of its switch"),
+        "{st:?}"
+    );
+}
