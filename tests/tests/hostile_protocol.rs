@@ -146,7 +146,9 @@ async fn a_future_hello_with_other_field_types_gets_unsupported_version() -> any
     let mut request = gateway_url(&op).into_client_request()?;
     let headers = request.headers_mut();
     headers.insert("authorization", format!("Bearer {enroll}").parse()?);
-    headers.insert("x-lekiwi-robot", "kiwi-v2".parse()?);
+    // With its namespace: a token created a moment ago is then looked up if the gateway's
+    // watch has not delivered it yet (a bare name is only matched against the watch).
+    headers.insert("x-lekiwi-robot", format!("{ns}/kiwi-v2").parse()?);
     let (mut ws, _) = tokio_tungstenite::connect_async(request).await?;
     let v2 = json!({
         "type": "hello", "protocol_version": 2, "agent_version": "2.0.0",
