@@ -19,6 +19,7 @@ pub mod operator;
 pub mod pi;
 pub mod postgres;
 mod process;
+mod site;
 pub mod stand_in;
 pub mod supervisor;
 pub mod users;
@@ -40,8 +41,9 @@ pub use fleet::{
 pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::{OperatorProcess, gateway_operator};
+pub use site::OperatorSite;
 pub use stand_in::{GATEWAY_FIELD_MANAGER, GatewayStandIn};
-pub use users::{account, chart_roles};
+pub use users::{account, chart_roles, chart_roles_named};
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {

@@ -18,6 +18,23 @@ pub async fn chart_roles(
     client: &kube::Client,
     prefix: &str,
 ) -> Result<[String; 2]> {
+    chart_roles_named(
+        cp,
+        client,
+        prefix,
+        ["lekiwi-viewer", "lekiwi-operator-user"],
+    )
+    .await
+}
+
+/// Every user ClusterRole of the chart (`helm template`), created as `chart_roles` says;
+/// returns the new names of the roles `wanted` names, in that order.
+pub async fn chart_roles_named<const N: usize>(
+    cp: &ControlPlane,
+    client: &kube::Client,
+    prefix: &str,
+    wanted: [&str; N],
+) -> Result<[String; N]> {
     let out = cp.tool(
         "helm",
         &[
@@ -46,7 +63,8 @@ pub async fn chart_roles(
         let role = json!({"metadata": {"name": renamed}, "rules": value["rules"]});
         let _ = api.delete(&renamed, &DeleteParams::default()).await;
         api.create(&PostParams::default(), &serde_json::from_value(role)?)
-            .await?;
+            .await
+            .with_context(|| format!("create ClusterRole {renamed}"))?;
         names.push((name.to_owned(), renamed));
     }
     let find = |want: &str| {
@@ -56,7 +74,11 @@ pub async fn chart_roles(
             .map(|(_, r)| r.clone())
             .with_context(|| format!("the chart has no ClusterRole {want}: {names:?}"))
     };
-    Ok([find("lekiwi-viewer")?, find("lekiwi-operator-user")?])
+    let mut found = Vec::with_capacity(N);
+    for want in wanted {
+        found.push(find(want)?);
+    }
+    Ok(found.try_into().expect("one name for each wanted role"))
 }
 
 /// A ServiceAccount `name` in `ns`, bound to ClusterRole `role` there when one is given; its

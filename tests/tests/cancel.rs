@@ -11,13 +11,13 @@ use std::time::{Duration, Instant};
 
 use anyhow::bail;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
+use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
-use kube::{Api, Client};
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token_file, gateway_url,
-    http_get_with, namespace, push_release, test_strategy, wait_for, wait_online,
+    AgentProcess, OperatorSite, bin, gateway_url, http_get_with, test_strategy, wait_for,
+    wait_online,
 };
 use serde_json::{Value, json};
 
@@ -30,53 +30,30 @@ const RATE: &str = "2000000";
 
 /// A namespace with an operator, agents and two releases: small `1.0.0` and big `2.0.0`.
 struct Site {
-    cp: &'static ControlPlane,
-    client: Client,
-    ns: String,
-    op: OperatorProcess,
-    dir: tempfile::TempDir,
+    base: OperatorSite,
     agents: Vec<AgentProcess>,
 }
 
+lekiwi_tests::deref_to_operator_site!(Site);
+
 impl Site {
     async fn new(prefix: &str) -> anyhow::Result<Self> {
-        let cp = ControlPlane::shared();
-        let client = cp.client().await?;
-        let ns = namespace(&client, prefix).await?;
-        let dir = tempfile::tempdir()?;
-        let blobs = dir.path().join("blobs");
-        std::fs::create_dir_all(&blobs)?;
-        let mut op =
-            OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blobs.to_str().unwrap()])?;
-        op.wait_ready().await?;
-        let token_file = dir.path().join("enroll");
-        enrollment_token_file(&client, &ns, &token_file).await?;
+        let base = OperatorSite::start(prefix).await?;
+        let (dir, ns, op, token_file) = (&base.dir, &base.ns, &base.op, &base.token_file);
         let mut agents = Vec::new();
         for i in 0..ROBOTS {
             let state = dir.path().join(format!("robot-{i}"));
             std::fs::create_dir_all(&state)?;
             agents.push(AgentProcess::start(
-                &gateway_url(&op),
+                &gateway_url(op),
                 &format!("{ns}/kiwi-{i}"),
-                &token_file,
+                token_file,
                 &state,
                 &["--release-download-rate-limit", RATE],
             )?);
         }
-        wait_online(&client, &ns, ROBOTS, Duration::from_secs(120)).await?;
-        Ok(Self {
-            cp,
-            client,
-            ns,
-            op,
-            dir,
-            agents,
-        })
-    }
-
-    fn push(&self, dir: &Path, version: &str) -> anyhow::Result<ReleaseRef> {
-        let server = format!("http://127.0.0.1:{}", self.op.gateway_port);
-        push_release(&self.cp.kubeconfig(), &self.ns, &server, None, dir, version)
+        wait_online(&base.client, ns, ROBOTS, Duration::from_secs(120)).await?;
+        Ok(Self { base, agents })
     }
 
     /// `kubectl lekiwi rollout <verb> <name>`, which must succeed.
@@ -193,7 +170,7 @@ impl Site {
 
     /// Bytes the gateway served to each robot.
     async fn bytes_served(&self) -> anyhow::Result<Vec<u64>> {
-        let token = ControlPlane::shared().admin_token()?;
+        let token = self.cp.admin_token()?;
         let mut out = Vec::new();
         for i in 0..ROBOTS {
             let (code, _, body) = http_get_with(

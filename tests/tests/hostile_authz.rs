@@ -9,100 +9,14 @@ use std::path::Path;
 use std::process::{Command, Output};
 
 use anyhow::{Context as _, Result, ensure};
-use k8s_openapi::api::core::v1::{Secret, ServiceAccount};
-use k8s_openapi::api::rbac::v1::{ClusterRole, RoleBinding};
+use k8s_openapi::api::core::v1::Secret;
+use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
-use kube::api::{DeleteParams, PostParams};
-use lekiwi_tests::{ControlPlane, OperatorProcess, bin, gateway_operator, http_request, namespace};
-use serde_json::{Value, json};
-
-/// The chart's user ClusterRoles (`helm template`), created under names of this test (they are
-/// cluster-scoped) and without the aggregation labels, so the shared cluster's edit/view roles
-/// stay as they are. Returns the names, pusher first.
-async fn chart_roles(
-    cp: &ControlPlane,
-    client: &kube::Client,
-    prefix: &str,
-) -> Result<[String; 2]> {
-    let out = cp.tool(
-        "helm",
-        &[
-            "template",
-            "r",
-            "charts/lekiwi-operator",
-            "--show-only",
-            "templates/user-roles.yaml",
-        ],
-    );
-    ensure!(
-        out.status.success(),
-        "helm template: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let text = String::from_utf8(out.stdout)?;
-    let api = Api::<ClusterRole>::all(client.clone());
-    let mut names = Vec::new();
-    for doc in text.split("\n---") {
-        let Ok(value) = serde_yaml::from_str::<Value>(doc) else {
-            continue;
-        };
-        let Some(name) = value["metadata"]["name"].as_str() else {
-            continue;
-        };
-        let renamed = format!("{prefix}-{name}");
-        let role = json!({
-            "metadata": {"name": renamed},
-            "rules": value["rules"],
-        });
-        let _ = api.delete(&renamed, &DeleteParams::default()).await;
-        api.create(&PostParams::default(), &serde_json::from_value(role)?)
-            .await
-            .with_context(|| format!("create ClusterRole {renamed}"))?;
-        names.push((name.to_owned(), renamed));
-    }
-    let find = |want: &str| {
-        names
-            .iter()
-            .find(|(n, _)| n == want)
-            .map(|(_, r)| r.clone())
-            .with_context(|| format!("the chart has no ClusterRole {want}: {names:?}"))
-    };
-    Ok([find("lekiwi-release-pusher")?, find("lekiwi-viewer")?])
-}
-
-/// A ServiceAccount `name` in `ns` bound to ClusterRole `role` there; returns its token (a
-/// TokenRequest, as `kubectl create token` makes it).
-async fn account(
-    cp: &ControlPlane,
-    client: &kube::Client,
-    ns: &str,
-    name: &str,
-    role: &str,
-) -> Result<String> {
-    Api::<ServiceAccount>::namespaced(client.clone(), ns)
-        .create(
-            &PostParams::default(),
-            &serde_json::from_value(json!({"metadata": {"name": name}}))?,
-        )
-        .await?;
-    Api::<RoleBinding>::namespaced(client.clone(), ns)
-        .create(
-            &PostParams::default(),
-            &serde_json::from_value(json!({
-                "metadata": {"name": name},
-                "roleRef": {"apiGroup": "rbac.authorization.k8s.io", "kind": "ClusterRole", "name": role},
-                "subjects": [{"kind": "ServiceAccount", "name": name, "namespace": ns}],
-            }))?,
-        )
-        .await?;
-    let out = cp.kubectl(&["create", "token", name, "-n", ns, "--duration=1h"]);
-    ensure!(
-        out.status.success(),
-        "kubectl create token: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    Ok(String::from_utf8(out.stdout)?.trim().to_owned())
-}
+use kube::api::DeleteParams;
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, account, bin, chart_roles_named, gateway_operator, http_request,
+    namespace,
+};
 
 /// `kubectl-lekiwi --kubeconfig KUBECONFIG ARGS --server <op's gateway>`.
 fn plugin(kubeconfig: &Path, op: &OperatorProcess, args: &[&str]) -> Output {
@@ -147,9 +61,10 @@ async fn kubernetes_rbac_decides_who_pushes_releases_and_reads_events_where() ->
     let client = cp.client().await?;
     let a = namespace(&client, "authza").await?;
     let b = namespace(&client, "authzb").await?;
-    let [pusher_role, viewer_role] = chart_roles(cp, &client, &a).await?;
-    let pusher = account(cp, &client, &a, "pusher", &pusher_role).await?;
-    let viewer = account(cp, &client, &a, "viewer", &viewer_role).await?;
+    let [pusher_role, viewer_role] =
+        chart_roles_named(cp, &client, &a, ["lekiwi-release-pusher", "lekiwi-viewer"]).await?;
+    let pusher = account(cp, &client, &a, "pusher", Some(&pusher_role)).await?;
+    let viewer = account(cp, &client, &a, "viewer", Some(&viewer_role)).await?;
     let op = gateway_operator(cp, &a, "authz", &[]).await?;
     let dir = tempfile::tempdir()?;
     let kubeconfig = dir.path().join("kubeconfig-pusher");

@@ -8,44 +8,32 @@ use std::time::Duration;
 
 use k8s_openapi::api::core::v1::Event;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
+use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
-use kube::{Api, Client};
 use lekiwi_crds::deployment::{RobotRolloutState, RolloutPhase};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::{
-    ControlPlane, FleetProcess, FleetSpec, OperatorProcess, enrollment_token_file, gateway_url,
-    namespace, push_release, test_strategy, wait_for, wait_online,
+    FleetProcess, FleetSpec, OperatorSite, gateway_url, test_strategy, wait_for, wait_online,
 };
 use serde_json::json;
 
 const ROBOTS: usize = 4;
 
 struct Site {
-    cp: &'static ControlPlane,
-    client: Client,
-    ns: String,
-    op: OperatorProcess,
-    dir: tempfile::TempDir,
+    base: OperatorSite,
     _fleet: FleetProcess,
 }
 
+lekiwi_tests::deref_to_operator_site!(Site);
+
 impl Site {
     async fn new(prefix: &str) -> anyhow::Result<Self> {
-        let cp = ControlPlane::shared();
-        let client = cp.client().await?;
-        let ns = namespace(&client, prefix).await?;
-        let dir = tempfile::tempdir()?;
-        let blobs = dir.path().join("blobs");
-        std::fs::create_dir_all(&blobs)?;
-        let mut op =
-            OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blobs.to_str().unwrap()])?;
-        op.wait_ready().await?;
-        let token_file = dir.path().join("enroll");
-        enrollment_token_file(&client, &ns, &token_file).await?;
+        let base = OperatorSite::start(prefix).await?;
+        let (dir, ns, op, token_file) = (&base.dir, &base.ns, &base.op, &base.token_file);
         let fleet = FleetProcess::start(FleetSpec {
-            gateway: &gateway_url(&op),
-            token_file: &token_file,
-            namespace: &ns,
+            gateway: &gateway_url(op),
+            token_file,
+            namespace: ns,
             robots: ROBOTS,
             state_root: &dir.path().join("robots"),
             health_command: "true",
@@ -53,28 +41,16 @@ impl Site {
             rust_log: "warn",
             extra: &[],
         })?;
-        wait_online(&client, &ns, ROBOTS, Duration::from_secs(120)).await?;
+        wait_online(&base.client, ns, ROBOTS, Duration::from_secs(120)).await?;
         Ok(Self {
-            cp,
-            client,
-            ns,
-            op,
-            dir,
+            base,
             _fleet: fleet,
         })
     }
 
     fn push(&self, version: &str) -> anyhow::Result<ReleaseRef> {
         let dir = release_dir(self.dir.path(), version)?;
-        let server = format!("http://127.0.0.1:{}", self.op.gateway_port);
-        push_release(
-            &self.cp.kubeconfig(),
-            &self.ns,
-            &server,
-            None,
-            &dir,
-            version,
-        )
+        self.base.push(&dir, version)
     }
 
     fn deployments(&self) -> Api<RobotDeployment> {

@@ -9,57 +9,31 @@ use std::time::Duration;
 
 use anyhow::bail;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
+use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
-use kube::{Api, Client};
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_tests::{
-    AgentProcess, ControlPlane, FleetProcess, FleetSpec, OperatorProcess, bin,
-    enrollment_token_file, gateway_url, http_get_with, namespace, push_release, rollout_finished,
-    test_strategy, wait_for, wait_online,
+    AgentProcess, FleetProcess, FleetSpec, OperatorSite, bin, gateway_url, http_get_with,
+    rollout_finished, test_strategy, wait_for, wait_online,
 };
 use serde_json::{Value, json};
 
 const HEALTH: &str = r#"test ! -e "$LEKIWI_RELEASE_DIR/../../fail-health""#;
 
-/// A namespace with an operator (blob store in a temp dir) and an enrollment token file.
+/// The shared operator site (`OperatorSite`), and what these tests do with it.
 struct Site {
-    cp: &'static ControlPlane,
-    client: Client,
-    ns: String,
-    op: OperatorProcess,
-    dir: tempfile::TempDir,
-    token_file: PathBuf,
+    base: OperatorSite,
 }
+
+lekiwi_tests::deref_to_operator_site!(Site);
 
 impl Site {
     async fn new(prefix: &str) -> anyhow::Result<Self> {
-        let cp = ControlPlane::shared();
-        let client = cp.client().await?;
-        let ns = namespace(&client, prefix).await?;
-        let dir = tempfile::tempdir()?;
-        let blobs = dir.path().join("blobs");
-        std::fs::create_dir_all(&blobs)?;
-        let mut op =
-            OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blobs.to_str().unwrap()])?;
-        op.wait_ready().await?;
-        let token_file = dir.path().join("enroll");
-        enrollment_token_file(&client, &ns, &token_file).await?;
         Ok(Self {
-            cp,
-            client,
-            ns,
-            op,
-            dir,
-            token_file,
+            base: OperatorSite::start(prefix).await?,
         })
-    }
-
-    /// Pushes `dir` as `version` with the real CLI; returns the release.
-    fn push(&self, dir: &Path, version: &str) -> anyhow::Result<ReleaseRef> {
-        let server = format!("http://127.0.0.1:{}", self.op.gateway_port);
-        push_release(&self.cp.kubeconfig(), &self.ns, &server, None, dir, version)
     }
 
     fn cli(&self, args: &[&str]) -> anyhow::Result<std::process::Output> {
@@ -154,7 +128,7 @@ impl Site {
     /// Bytes the gateway served to one robot, counted by the gateway.
     async fn bytes_served(&self, robot: &str) -> anyhow::Result<u64> {
         // A Kubernetes user's token (the admin's: RBAC allows it `get robots`).
-        let token = ControlPlane::shared().admin_token()?;
+        let token = self.cp.admin_token()?;
         let (code, _, body) = http_get_with(
             self.op.gateway_port,
             &format!("/v1/blobs-served?robot={}/{robot}", self.ns),
