@@ -5,11 +5,11 @@
 
 use jiff::{SignedDuration, Timestamp};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
-use lekiwi_crds::ReleaseRef;
 use lekiwi_crds::analysis::{
     AnalysisReport, EventCounts, MAX_TELEMETRY_METRICS, MAX_WINDOW_SECONDS, MetricSummary,
     MetricWindow, TelemetryCeiling,
 };
+use lekiwi_crds::{ReleaseRef, RobotStatus};
 use lekiwi_protocol::{Release, Sample, Vitals, rules};
 
 /// A robot whose switch is younger than [`MAX_WINDOW_SECONDS`] has its status refreshed at
@@ -221,6 +221,40 @@ impl Tracker {
                 observed,
             }),
         })
+    }
+
+    /// The tracker a new session of a robot that runs `running` starts from: this gateway's
+    /// own (`ours`, with the release it last saw), else the one the Robot's `stored` status
+    /// holds. If the robot runs another release than this gateway and its status (when a
+    /// gateway wrote it: it has a phase) last saw, it switched while no gateway saw its `done`
+    /// (a restart, a move), and that switch's window opens `now`.
+    pub fn at_connect(
+        ours: Option<(&Tracker, Option<&Release>)>,
+        stored: Option<&RobotStatus>,
+        running: Option<&Release>,
+        now: Timestamp,
+    ) -> Self {
+        let mut tracker = match ours {
+            Some((t, _)) => t.clone(),
+            None => stored
+                .and_then(|s| s.analysis.as_ref())
+                .and_then(Self::resume)
+                .unwrap_or_default(),
+        };
+        let seen_here = ours.and_then(|(_, r)| r);
+        let seen_stored = stored.filter(|s| s.phase.is_some()).map(|s| {
+            s.current_release.as_ref().map(|r| Release {
+                version: r.version.clone(),
+                digest: r.digest.clone(),
+            })
+        });
+        if let Some(release) = running
+            && (ours.is_none() || seen_here != Some(release))
+            && seen_stored.is_some_and(|r| r.as_ref() != Some(release))
+        {
+            tracker.switched(release.clone(), now);
+        }
+        tracker
     }
 
     /// Whether the last switch is recent enough for its window to matter to a rollout.

@@ -12,6 +12,8 @@
 mod adapt;
 mod agent;
 pub(crate) mod analysis;
+#[cfg(test)]
+mod analysis_tests;
 pub mod claims;
 mod patch;
 mod phase;
@@ -239,23 +241,16 @@ impl Presence {
             let teleoperation_since = info.teleoperation.as_ref().map(|_| now);
             // Keep the last update's outcome: rollouts read it, and a manager that stops
             // sending a field makes server-side apply drop it.
-            let last_update = s.robots.get(key).and_then(|e| e.last_update.clone());
-            let analysis = s.robots.get(key).map(|e| e.analysis.clone());
-            let mut analysis = analysis
-                .or_else(|| self.stored_analysis(key))
-                .unwrap_or_default();
-            // The robot runs another release than its status says (and than this gateway
-            // knew): it switched while no gateway saw its `done` (a restart, a move).
-            let known = s.robots.get(key).map(|e| e.info.release.clone());
-            if let Some(release) = &info.release
-                && known.is_none_or(|k| k.as_ref() != Some(release))
-                && self.stored_release(key).is_some_and(|r| {
-                    r.is_none_or(|r| r.version != release.version || r.digest != release.digest)
-                })
-            {
-                analysis.switched(release.clone(), now);
-            }
-            let agent_update = s.robots.get(key).and_then(|e| e.agent_update.clone());
+            let old = s.robots.get(key);
+            let last_update = old.and_then(|e| e.last_update.clone());
+            let agent_update = old.and_then(|e| e.agent_update.clone());
+            let cached = self.cached_robot(key);
+            let analysis = analysis::Tracker::at_connect(
+                old.map(|e| (&e.analysis, e.info.release.as_ref())),
+                cached.as_ref().and_then(|r| r.status.as_ref()),
+                info.release.as_ref(),
+                now,
+            );
             s.robots.insert(
                 key.clone(),
                 Entry {

@@ -87,26 +87,13 @@ fn robot_as_written(cached: &Robot, status: &RobotStatus, stored: Option<&RobotS
 }
 
 impl Presence {
-    /// The analysis summary stored in the Robot's status, when the gateway's cache has one (see
-    /// [`super::analysis`]).
-    pub(super) fn stored_analysis(&self, key: &RobotKey) -> Option<super::analysis::Tracker> {
+    /// The Robot as the gateway's cache holds it (its status trimmed to what the gateway
+    /// reads), once the cache is there.
+    pub(super) fn cached_robot(&self, key: &RobotKey) -> Option<Arc<Robot>> {
         let planner = self.planner.get()?;
-        let cached = planner
+        planner
             .robots
-            .get(&ObjectRef::new(&key.name).within(&key.namespace))?;
-        let report = cached.status.as_ref()?.analysis.as_ref()?;
-        super::analysis::Tracker::resume(report)
-    }
-
-    /// The release the Robot's status says it runs (`Some(None)`: none), when the gateway's
-    /// cache has the Robot and a gateway has written its status (it has a phase).
-    pub(super) fn stored_release(&self, key: &RobotKey) -> Option<Option<lekiwi_crds::ReleaseRef>> {
-        let planner = self.planner.get()?;
-        let cached = planner
-            .robots
-            .get(&ObjectRef::new(&key.name).within(&key.namespace))?;
-        let status = cached.status.as_ref().filter(|s| s.phase.is_some())?;
-        Some(status.current_release.clone())
+            .get(&ObjectRef::new(&key.name).within(&key.namespace))
     }
 
     /// Plans phases from now on (see the module docs).
