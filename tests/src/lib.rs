@@ -3,7 +3,7 @@
 //! [`agent`], [`fleet_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
 //! fleet fixtures and waits ([`fleet`]), RBAC'd users ([`users`]) and bare HTTP helpers
 //! ([`http`]), re-exported here so tests import them from the crate root; robots on other hosts
-//! made of network namespaces are in [`netns`]; a stand-in for systemd is [`supervisor`];
+//! made of network namespaces are in [`netns`]; a GraphQL WebSocket client is [`graphql`]; a stand-in for systemd is [`supervisor`];
 //! a headless browser is [`browser`]; emulated Raspberry Pi 5s running the arm64 agent are in
 //! [`pi`].
 
@@ -13,6 +13,7 @@ pub mod cluster;
 pub mod control_plane;
 pub mod fleet;
 pub mod fleet_process;
+pub mod graphql;
 pub mod http;
 pub mod netns;
 pub mod operator;

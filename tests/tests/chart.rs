@@ -129,7 +129,7 @@ gateway:
   enroll: {rate: 5, burst: 10}
   authLookup: {qps: 2.5, burst: 20}
   apiRateLimit: {perSecond: 5.5, burst: 7}
-  graphql: {maxDepth: 6, maxComplexity: 5000, maxConnections: 300, maxSubscriptionsPerUser: 9, initTimeoutSeconds: 4}
+  graphql: {maxDepth: 6, maxComplexity: 5000, maxConnections: 300, maxSubscriptionsPerUser: 9, maxConnectionsPerUser: 3, initTimeoutSeconds: 4}
   service:
     type: LoadBalancer
     port: 443
@@ -229,6 +229,7 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--graphql-max-complexity=5000",
         "--graphql-max-connections=300",
         "--graphql-max-subscriptions-per-user=9",
+        "--graphql-max-connections-per-user=3",
         "--graphql-init-timeout-seconds=4",
     ] {
         assert!(args.contains(&want), "{want} missing from {args:?}");

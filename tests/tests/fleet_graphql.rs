@@ -4,7 +4,8 @@
 //! the schema (introspection); another namespace is refused; a viewer's mutation is refused and
 //! an operator user's pauses the rollout; a subscription over `graphql-transport-ws` (the token
 //! in `connection_init`) sees a simulated robot go Online, then Offline, another a rollout's
-//! progress, and a third is over the user's cap; a too-deep query is
+//! progress, and a third is over the user's cap; a user's third WebSocket is over their cap of
+//! two until one of theirs closes; a too-deep query is
 //! refused before it runs; no token or a bad one gets 401 (a WebSocket is closed); a burst
 //! beyond the user's budget gets 429 with `Retry-After`.
 
@@ -16,13 +17,13 @@ use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
 use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::{Robot, RobotDeployment};
+use lekiwi_tests::graphql::{Ws, connect, next, open, subscribe};
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, account, chart_roles, connect_agent, create_robot,
     enrollment_token, http_request, namespace,
 };
 use serde_json::{Value, json};
 use tokio_tungstenite::tungstenite::Message;
-use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 
 const DIGEST: &str = "sha256:aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa";
 
@@ -284,35 +285,6 @@ async fn limits(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
     Ok(())
 }
 
-type Ws =
-    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
-
-/// A `graphql-transport-ws` WebSocket after `connection_init` with `token`.
-async fn open(op: &OperatorProcess, token: &str) -> Result<Ws> {
-    let mut ws = connect(op).await?;
-    let init =
-        json!({"type": "connection_init", "payload": {"authorization": format!("Bearer {token}")}});
-    ws.send(Message::text(init.to_string())).await?;
-    Ok(ws)
-}
-
-/// A `graphql-transport-ws` WebSocket that has sent nothing yet.
-async fn connect(op: &OperatorProcess) -> Result<Ws> {
-    let mut request =
-        format!("ws://127.0.0.1:{}/api/v1/graphql", op.gateway_port).into_client_request()?;
-    request
-        .headers_mut()
-        .insert("sec-websocket-protocol", "graphql-transport-ws".parse()?);
-    let (ws, response) = tokio_tungstenite::connect_async(request).await?;
-    ensure!(
-        response
-            .headers()
-            .get("sec-websocket-protocol")
-            .is_some_and(|p| p == "graphql-transport-ws")
-    );
-    Ok(ws)
-}
-
 /// A socket that never sends `connection_init` is closed with 4408 after the configured 2 s
 /// (and so holds no connection slot for long); one that did is still served after that.
 async fn init_timeout(op: &OperatorProcess, viewer: &str) -> Result<()> {
@@ -337,27 +309,6 @@ async fn init_timeout(op: &OperatorProcess, viewer: &str) -> Result<()> {
     let pong = next(&mut greeted, Duration::from_secs(5)).await?;
     ensure!(pong["type"] == "pong", "{pong}");
     Ok(())
-}
-
-/// The next JSON message within `within`, or the close frame's code and reason as
-/// `{"close": code, "reason": ...}`.
-async fn next(ws: &mut Ws, within: Duration) -> Result<Value> {
-    loop {
-        let msg = tokio::time::timeout(within, ws.next())
-            .await
-            .with_context(|| format!("nothing within {within:?}"))?
-            .context("closed")??;
-        match msg {
-            Message::Text(t) => return Ok(serde_json::from_str(&t)?),
-            Message::Close(frame) => {
-                let (code, reason) = frame
-                    .map(|f| (u16::from(f.code), f.reason.to_string()))
-                    .unwrap_or_default();
-                return Ok(json!({"close": code, "reason": reason}));
-            }
-            _ => {}
-        }
-    }
 }
 
 /// Reads changes until `name` is in `phase`; every change must match the selector (not
@@ -406,8 +357,7 @@ async fn subscription(
     let query = format!(
         r#"subscription {{ robotChanges(namespace: "{ns}", labelSelector: "room!=b1") {{ name phase }} }}"#
     );
-    let subscribe = json!({"id": "1", "type": "subscribe", "payload": {"query": query}});
-    ws.send(Message::text(subscribe.to_string())).await?;
+    subscribe(&mut ws, "1", &query).await?;
     // Subscribed once a change of kiwi-2 (toggled until one arrives) comes through.
     let api = Api::<Robot>::namespaced(client.clone(), ns);
     let mut subscribed = false;
@@ -451,8 +401,7 @@ async fn rollout_progress(ws: &mut Ws, client: &kube::Client, ns: &str) -> Resul
     let query = format!(
         r#"subscription {{ rolloutProgress(namespace: "{ns}", name: "v2") {{ name updated phase }} }}"#
     );
-    let subscribe = json!({"id": "2", "type": "subscribe", "payload": {"query": query}});
-    ws.send(Message::text(subscribe.to_string())).await?;
+    subscribe(ws, "2", &query).await?;
     let api = Api::<RobotDeployment>::namespaced(client.clone(), ns);
     let mut progressed = false;
     for updated in 2..62 {
@@ -473,8 +422,7 @@ async fn rollout_progress(ws: &mut Ws, client: &kube::Client, ns: &str) -> Resul
         }
     }
     ensure!(progressed, "no rollout progress arrived");
-    let third = json!({"id": "3", "type": "subscribe", "payload": {"query": query}});
-    ws.send(Message::text(third.to_string())).await?;
+    subscribe(ws, "3", &query).await?;
     for _ in 0..20 {
         let msg = next(ws, Duration::from_secs(30))
             .await
@@ -490,6 +438,45 @@ async fn rollout_progress(ws: &mut Ws, client: &kube::Client, ns: &str) -> Resul
         }
     }
     bail!("the third subscription was neither refused nor answered")
+}
+
+/// A user holds at most two WebSockets (the cap this gateway runs with): a third's
+/// `connection_init` is refused with 1002 and the reason; once one of the two is closed, a new
+/// one is accepted (its slot given back).
+async fn connection_cap(op: &OperatorProcess, token: &str) -> Result<()> {
+    let mut held = Vec::new();
+    for _ in 0..2 {
+        let mut ws = open(op, token).await?;
+        let ack = next(&mut ws, Duration::from_secs(30)).await?;
+        ensure!(ack["type"] == "connection_ack", "{ack}");
+        held.push(ws);
+    }
+    let mut third = open(op, token).await?;
+    let closed = next(&mut third, Duration::from_secs(30)).await?;
+    ensure!(
+        closed["close"] == 1002
+            && closed["reason"]
+                == "forbidden: this user holds 2 GraphQL WebSockets, the most allowed",
+        "{closed}"
+    );
+    let mut first = held.remove(0);
+    first.close(None).await?;
+    while first.next().await.is_some() {}
+    let accepted = lekiwi_tests::wait_for(
+        "a WebSocket once one was closed",
+        Duration::from_secs(10),
+        || async {
+            let mut ws = open(op, token).await.ok()?;
+            let ack = next(&mut ws, Duration::from_secs(5)).await.ok()?;
+            (ack["type"] == "connection_ack").then_some(ws)
+        },
+    )
+    .await;
+    ensure!(
+        accepted.is_ok(),
+        "no WebSocket was accepted after one closed"
+    );
+    Ok(())
 }
 
 /// A burst beyond the viewer's budget: 429 with `Retry-After`.
@@ -529,6 +516,8 @@ async fn graphql_serves_what_rbac_allows_and_streams_changes() -> Result<()> {
         "4",
         "--graphql-max-subscriptions-per-user",
         "2",
+        "--graphql-max-connections-per-user",
+        "2",
         "--graphql-init-timeout-seconds",
         "2",
     ];
@@ -538,6 +527,7 @@ async fn graphql_serves_what_rbac_allows_and_streams_changes() -> Result<()> {
     limits(&op, &ns, &viewer).await?;
     init_timeout(&op, &viewer).await?;
     subscription(&op, &client, &ns, &user).await?;
+    connection_cap(&op, &nobody).await?;
     rate_limited(&op, &viewer).await?;
     for role in [&viewer_role, &user_role] {
         Api::<ClusterRole>::all(client.clone())

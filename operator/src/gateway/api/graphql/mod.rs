@@ -57,6 +57,15 @@ pub struct GraphQlConfig {
     )]
     pub graphql_max_subscriptions_per_user: usize,
 
+    /// GraphQL WebSockets one user may hold open at once; beyond, `connection_init` is refused
+    /// (close code 1002, reason `forbidden: ...`), so no one user takes every connection.
+    #[arg(
+        long,
+        env = "LEKIWI_GRAPHQL_MAX_CONNECTIONS_PER_USER",
+        default_value_t = 20
+    )]
+    pub graphql_max_connections_per_user: usize,
+
     /// Seconds a GraphQL WebSocket may stay open without its `connection_init`; then it is
     /// closed with code 4408, as `graphql-transport-ws` prescribes.
     #[arg(
@@ -72,6 +81,7 @@ pub struct GraphQl {
     schema: Schema<QueryRoot, MutationRoot, SubscriptionRoot>,
     connections: Arc<Semaphore>,
     subscriptions: Arc<subscribe::PerUser>,
+    sockets: Arc<subscribe::PerUser>,
     init_timeout: Duration,
 }
 
@@ -86,7 +96,13 @@ impl GraphQl {
             schema,
             connections: Arc::new(Semaphore::new(config.graphql_max_connections)),
             subscriptions: Arc::new(subscribe::PerUser {
+                what: "subscriptions",
                 max: config.graphql_max_subscriptions_per_user,
+                held: Mutex::new(HashMap::new()),
+            }),
+            sockets: Arc::new(subscribe::PerUser {
+                what: "GraphQL WebSockets",
+                max: config.graphql_max_connections_per_user,
                 held: Mutex::new(HashMap::new()),
             }),
             init_timeout: Duration::from_secs(config.graphql_init_timeout_seconds.max(1)),
@@ -146,6 +162,9 @@ pub async fn websocket(
     })?;
     let schema = gql.schema.clone();
     let init_timeout = gql.init_timeout;
+    // The user's WebSocket slot, taken at `connection_init`, given back when the socket ends.
+    let slot = Arc::new(Mutex::new(None));
+    let held = slot.clone();
     let mut data = Data::default();
     data.insert(state.clone());
     Ok(upgrade
@@ -158,7 +177,7 @@ pub async fn websocket(
                 .with_data(data)
                 .on_connection_init(move |payload| {
                     seen.store(true, Ordering::Relaxed);
-                    connection_init(state, payload)
+                    connection_init(state, payload, held)
                 })
                 .serve();
             let timed_out = tokio::select! {
@@ -173,6 +192,7 @@ pub async fn websocket(
                 let _ = tokio::time::timeout(init_timeout, sink.send(Message::Close(Some(close))))
                     .await;
             }
+            drop(slot.lock().unwrap_or_else(|p| p.into_inner()).take());
             drop(permit);
         }))
 }
@@ -200,10 +220,12 @@ fn transport_ws(headers: &HeaderMap) -> bool {
         == Some("graphql-transport-ws")
 }
 
-/// Accepts a WebSocket whose `connection_init` payload carries an accepted token.
+/// Accepts a WebSocket whose `connection_init` payload carries an accepted token of a user
+/// below their WebSocket cap; the user's slot goes into `held`.
 async fn connection_init(
     state: AppState,
     payload: serde_json::Value,
+    held: Arc<Mutex<Option<subscribe::Slot>>>,
 ) -> async_graphql::Result<Data> {
     let token = payload["authorization"]
         .as_str()
@@ -216,6 +238,8 @@ async fn connection_init(
         headers.insert(axum::http::header::AUTHORIZATION, value);
     }
     let user = authorize(&state, &headers, None).await.map_err(refusal)?;
+    let slot = state.fleet.graphql.sockets.hold(&user)?;
+    *held.lock().unwrap_or_else(|p| p.into_inner()) = Some(slot);
     let mut data = Data::default();
     data.insert(Caller { token, user });
     Ok(data)

@@ -25,28 +25,31 @@ use crate::gateway::api::selector::Selector;
 use crate::gateway::kube_auth::{Access, TTL};
 use crate::gateway::{ApiError, AppState};
 
-/// Subscriptions held per user, capped.
+/// Things (subscriptions, WebSockets) held per user, capped.
 pub struct PerUser {
-    /// Most subscriptions one user may hold at once.
+    /// What is held, plural, for the refusal's message.
+    pub what: &'static str,
+    /// Most of them one user may hold at once.
     pub max: usize,
-    /// Subscriptions each user holds now.
+    /// How many each user holds now.
     pub held: Mutex<HashMap<String, usize>>,
 }
 
-/// One held subscription; dropping it gives the slot back.
-struct Slot {
+/// One held thing; dropping it gives the slot back.
+pub(crate) struct Slot {
     owner: Arc<PerUser>,
     user: String,
 }
 
 impl PerUser {
-    fn hold(self: &Arc<Self>, user: &str) -> Result<Slot> {
+    /// A slot for `user`, or a `forbidden` refusal when they hold `max` already.
+    pub(crate) fn hold(self: &Arc<Self>, user: &str) -> Result<Slot> {
         let mut held = self.held.lock().unwrap_or_else(|p| p.into_inner());
         let n = held.entry(user.to_owned()).or_default();
         if *n >= self.max {
             let message = format!(
-                "this user holds {} subscriptions, the most allowed",
-                self.max
+                "this user holds {} {}, the most allowed",
+                self.max, self.what
             );
             return Err(refusal(ApiError::Forbidden(message)));
         }
