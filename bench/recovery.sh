@@ -170,7 +170,7 @@ LB_URLS="${LB_URLS%,}"
 declare -A GW_PORT GW_HTTP GW_PID
 for g in gw-a gw-b; do GW_PORT[$g]="$(free_port)"; GW_HTTP[$g]="$(free_port)"; done
 COMMON=(--kubeconfig "$KUBECONFIG" --namespace lekiwi-system --watch-namespace bench)
-start controller env RUST_LOG=warn "$BIN/lekiwi-operator" --role controller "${COMMON[@]}" \
+start controller env RUST_LOG="${LEKIWI_BENCH_LOG:-warn}" "$BIN/lekiwi-operator" --role controller "${COMMON[@]}" \
   --identity bench-controller --http-addr "127.0.0.1:$CTRL_HTTP"
 CTRL_PID=$LAST_PID
 CTRL_METRICS="http://127.0.0.1:$CTRL_HTTP/metrics"
@@ -178,7 +178,7 @@ CTRL_METRICS="http://127.0.0.1:$CTRL_HTTP/metrics"
 # start_gateway NAME: one replica, its log appended across restarts.
 start_gateway() {
   local g="$1"
-  env RUST_LOG=warn "$BIN/lekiwi-operator" --role gateway "${COMMON[@]}" \
+  env RUST_LOG="${LEKIWI_BENCH_LOG:-warn}" "$BIN/lekiwi-operator" --role gateway "${COMMON[@]}" \
     --identity "$g" --gateway-name "$g" \
     --gateway-addr "127.0.0.1:${GW_PORT[$g]}" --http-addr "127.0.0.1:${GW_HTTP[$g]}" \
     --store-url "$STORE_URL" --max-unauthenticated-per-address 0 \
@@ -307,8 +307,10 @@ scenario_kill() {
 
   # ---- the restart -----------------------------------------------------------------------------
   log "restarting gw-a; observing for $AFTER_RESTART s"
+  T_START="$(now)"
   start_gateway gw-a
-  wait_for gw-a 60 ready "${GW_PID[gw-a]}" gw-a "http://127.0.0.1:${GW_HTTP[gw-a]}/readyz"
+  wait_for gw-a 300 ready "${GW_PID[gw-a]}" gw-a "http://127.0.0.1:${GW_HTTP[gw-a]}/readyz"
+  fact restart_ready_seconds "$(elapsed "$T_START")"
   T_RESTART="$(now)"
   fact restart_time "$T_RESTART"
   sleep "$AFTER_RESTART"

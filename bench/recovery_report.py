@@ -240,6 +240,7 @@ def report_kill(work, f):
     row("API answers 429 / 5xx (kill to end of restart window)",
         f"{int(sum(v for c, v in codes.items() if c == '429'))} / "
         f"{int(sum(v for c, v in codes.items() if c.startswith('5')))}", "0 / 0")
+    row("restarted gw-a ready (/readyz) after", f"{f.get('restart_ready_seconds', '?')} s")
     row(f"API writes in the {float(f['after_restart_seconds']):.0f} s after gw-a restarted",
         ", ".join(f"{r} {int(v)}" for r, v in rst_writes.most_common()) or "0")
     row("sessions after the restart window (gw-a / gw-b)",

@@ -33,38 +33,58 @@ pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
 /// the Robot controller's stale-Lease sweep considers only Leases that carry it.
 pub const GATEWAY_LEASE_LABEL: &str = "fleet.lekiwi.io/gateway";
 /// Annotation on a gateway's Lease listing the robots it holds a session of while their status
-/// still names another gateway (its status write has not landed yet): `namespace/name` entries
-/// separated by commas, at most [`MAX_CLAIMS_BYTES`] long. The Robot controller does not mark
+/// still names another gateway (its status write has not landed yet): entries separated by
+/// commas, each `namespace/name`, or a bare `name` in the namespace of the entry before it (so a
+/// namespace is written once per run of its robots); at most [`MAX_CLAIMS_BYTES`] long. The Robot controller does not mark
 /// such a robot `Unknown` when the gateway its status names dies, as long as this Lease is alive.
 pub const CLAIMS_ANNOTATION: &str = "fleet.lekiwi.io/claimed-robots";
 /// Longest [`CLAIMS_ANNOTATION`] value in bytes: an API server takes at most 256 KiB of
 /// annotations per object; robots beyond this are left out (and may show `Unknown` briefly).
 pub const MAX_CLAIMS_BYTES: usize = 128 * 1024;
 
-/// The [`CLAIMS_ANNOTATION`] value of `robots` (`(namespace, name)`), cut at whole entries
-/// to at most [`MAX_CLAIMS_BYTES`]; also how many robots it lists.
+/// The [`CLAIMS_ANNOTATION`] value of `robots` (`(namespace, name)`), in their order, cut at
+/// whole entries to at most [`MAX_CLAIMS_BYTES`]; also how many robots it lists. A robot of the
+/// same namespace as the one before it is written as its bare name.
 pub fn encode_claims<'a>(robots: impl IntoIterator<Item = (&'a str, &'a str)>) -> (String, usize) {
     let mut out = String::new();
     let mut listed = 0;
+    let mut previous: Option<&str> = None;
     for (namespace, name) in robots {
-        let extra = usize::from(!out.is_empty()) + namespace.len() + 1 + name.len();
+        let same = previous == Some(namespace);
+        let prefix = if same { 0 } else { namespace.len() + 1 };
+        let extra = usize::from(!out.is_empty()) + prefix + name.len();
         if out.len() + extra > MAX_CLAIMS_BYTES {
             break;
         }
         if !out.is_empty() {
             out.push(',');
         }
-        out.push_str(namespace);
-        out.push('/');
+        if !same {
+            out.push_str(namespace);
+            out.push('/');
+        }
         out.push_str(name);
+        previous = Some(namespace);
         listed += 1;
     }
     (out, listed)
 }
 
-/// The `namespace/name` entries of a [`CLAIMS_ANNOTATION`] value.
-pub fn parse_claims(value: &str) -> impl Iterator<Item = &str> {
-    value.split(',').map(str::trim).filter(|e| e.contains('/'))
+/// The `namespace/name` of every entry of a [`CLAIMS_ANNOTATION`] value (bare names take the
+/// namespace of the entry before them; a bare name with none before it is skipped).
+pub fn parse_claims(value: &str) -> impl Iterator<Item = String> + '_ {
+    let mut namespace: Option<&str> = None;
+    value
+        .split(',')
+        .map(str::trim)
+        .filter(|e| !e.is_empty())
+        .filter_map(move |entry| match entry.split_once('/') {
+            Some((ns, _)) => {
+                namespace = Some(ns);
+                Some(entry.to_owned())
+            }
+            None => namespace.map(|ns| format!("{ns}/{entry}")),
+        })
 }
 
 /// Server-side-apply field managers, one per writer, so `managedFields` say who wrote what.
@@ -163,18 +183,38 @@ mod tests {
     }
     #[test]
     fn claims_round_trip_and_stay_bounded() {
-        let (value, n) = encode_claims([("fleet", "kiwi-1"), ("lab", "kiwi-2")]);
-        assert_eq!(value, "fleet/kiwi-1,lab/kiwi-2");
-        assert_eq!(n, 2);
+        let robots = [
+            ("fleet", "kiwi-1"),
+            ("fleet", "kiwi-3"),
+            ("lab", "kiwi-2"),
+            ("fleet", "kiwi-4"),
+        ];
+        let (value, n) = encode_claims(robots);
+        assert_eq!(value, "fleet/kiwi-1,kiwi-3,lab/kiwi-2,fleet/kiwi-4");
+        assert_eq!(n, 4);
         assert_eq!(
             parse_claims(&value).collect::<Vec<_>>(),
-            ["fleet/kiwi-1", "lab/kiwi-2"]
+            ["fleet/kiwi-1", "fleet/kiwi-3", "lab/kiwi-2", "fleet/kiwi-4"]
         );
         assert_eq!(parse_claims("").count(), 0);
+        // The first format (every entry `namespace/name`) still parses; a bare name with no
+        // namespace before it is skipped.
+        assert_eq!(
+            parse_claims("orphan,a/x, a/y ,,b/z").collect::<Vec<_>>(),
+            ["a/x", "a/y", "b/z"]
+        );
+        // 10,000 robots of one namespace, even a long one, fit whole; 20,000 are cut at an
+        // entry.
+        let ns = "recovery-bench-namespace-0123456789";
         let names: Vec<String> = (0..20_000).map(|i| format!("robot-{i:05}")).collect();
-        let (value, n) = encode_claims(names.iter().map(|n| ("fleet", n.as_str())));
+        let (value, n) = encode_claims(names[..10_000].iter().map(|n| (ns, n.as_str())));
+        assert_eq!(n, 10_000);
+        let parsed: Vec<String> = parse_claims(&value).collect();
+        assert_eq!(parsed.len(), 10_000);
+        assert_eq!(parsed[9_999], format!("{ns}/robot-09999"));
+        let (value, n) = encode_claims(names.iter().map(|n| (ns, n.as_str())));
         assert!(value.len() <= MAX_CLAIMS_BYTES);
-        assert!(n < 20_000 && n > 5_000, "{n}");
+        assert!(n < 20_000 && n > 10_000, "{n}");
         assert_eq!(parse_claims(&value).count(), n);
     }
 }

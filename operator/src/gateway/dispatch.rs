@@ -12,7 +12,7 @@ use kube::{Api, ResourceExt};
 use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info};
+use tracing::{debug, info, warn};
 
 use super::desired::DesiredReleases;
 use super::holder::{Holder, trim_status};
@@ -44,13 +44,14 @@ pub async fn start(
             }),
     )
     .applied_objects();
+    let watch_cancel = cancel.clone();
     let task = tokio::spawn(async move {
         let mut seen: HashMap<RobotKey, Option<Release>> = HashMap::new();
         let mut seen_agent: HashMap<RobotKey, Option<AgentRef>> = HashMap::new();
         let mut stream = std::pin::pin!(stream);
         loop {
             let robot = tokio::select! {
-                () = cancel.cancelled() => return,
+                () = watch_cancel.cancelled() => return,
                 r = stream.next() => match r { Some(Ok(r)) => r, Some(Err(_)) => continue, None => return },
             };
             let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
@@ -75,12 +76,40 @@ pub async fn start(
             }
         }
     });
-    tokio::select! {
-        () = async { let _ = store.wait_until_ready().await; } => {}
-        () = tokio::time::sleep(std::time::Duration::from_secs(120)) => {
-            task.abort();
-            return Err(Error::TaskStopped("robot reflector of the gateway"));
+    wait_listed(&store, &task, &cancel).await?;
+    Ok((DesiredReleases(store), task))
+}
+
+/// Longest wait for the first list of Robots. Under heavy write load a list of 10,000 Robots
+/// took over two minutes here (the API server answers pages slowly then); giving up sooner only
+/// restarts the same list. The gateway is not ready (`/readyz`) meanwhile.
+const FIRST_LIST_DEADLINE: std::time::Duration = std::time::Duration::from_secs(600);
+
+/// Waits until `store` holds the first full list (it fails if the watch task ended), telling
+/// the log every 30 s how long it has waited; fails after [`FIRST_LIST_DEADLINE`].
+async fn wait_listed(
+    store: &reflector::Store<Robot>,
+    task: &tokio::task::JoinHandle<()>,
+    cancel: &CancellationToken,
+) -> Result<()> {
+    let started = tokio::time::Instant::now();
+    let every = std::time::Duration::from_secs(30);
+    let mut progress = tokio::time::interval_at(started + every, every);
+    let mut ready = std::pin::pin!(store.wait_until_ready());
+    loop {
+        tokio::select! {
+            r = &mut ready => {
+                return r.map_err(|_| Error::TaskStopped("robot reflector of the gateway"));
+            }
+            () = cancel.cancelled() => return Ok(()),
+            () = tokio::time::sleep_until(started + FIRST_LIST_DEADLINE) => {
+                task.abort();
+                return Err(Error::TaskStopped("robot reflector of the gateway"));
+            }
+            _ = progress.tick() => warn!(
+                waited_s = started.elapsed().as_secs(),
+                "still listing Robots before accepting connections (the API server is slow)"
+            ),
         }
     }
-    Ok((DesiredReleases(store), task))
 }

@@ -214,7 +214,12 @@ async fn watch_token_secrets(
     // of the token Secrets would cost more memory than the hashes themselves.
     let token_secrets = watcher(
         watched::<Secret>(config, client),
-        watcher::Config::default().labels(TOKEN_LABEL),
+        // Listed from the API server's watch cache: a restart under load must not wait for
+        // 10,000 Secrets paged out of etcd one slow page at a time; the watch that follows
+        // brings every later change.
+        watcher::Config::default()
+            .labels(TOKEN_LABEL)
+            .any_semantic(),
     )
     .default_backoff()
     .modify(|secret: &mut Secret| {

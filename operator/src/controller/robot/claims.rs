@@ -58,7 +58,7 @@ impl ClaimIndex {
             lease
                 .annotations()
                 .get(CLAIMS_ANNOTATION)
-                .map(|v| parse_claims(v).map(str::to_owned).collect())
+                .map(|v| parse_claims(v).collect())
                 .unwrap_or_default(),
         );
         parsed.insert(name, (version, claims.clone()));

@@ -226,8 +226,10 @@ impl Tracker {
     /// The tracker a new session of a robot that runs `running` starts from: this gateway's
     /// own (`ours`, with the release it last saw), else the one the Robot's `stored` status
     /// holds. If the robot runs another release than this gateway and its status (when a
-    /// gateway wrote it: it has a phase) last saw, it switched while no gateway saw its `done`
-    /// (a restart, a move), and that switch's window opens `now`.
+    /// gateway wrote it: it has a heartbeat time; the controller alone writes only a phase)
+    /// last saw, it switched while no gateway saw its `done` (a restart, a move), and that
+    /// switch's window opens `now`. A robot's first connection is no switch: opening a window
+    /// there would refresh every new robot's status every few seconds for ten minutes.
     pub fn at_connect(
         ours: Option<(&Tracker, Option<&Release>)>,
         stored: Option<&RobotStatus>,
@@ -242,7 +244,7 @@ impl Tracker {
                 .unwrap_or_default(),
         };
         let seen_here = ours.and_then(|(_, r)| r);
-        let seen_stored = stored.filter(|s| s.phase.is_some()).map(|s| {
+        let seen_stored = stored.filter(|s| s.last_heartbeat_time.is_some()).map(|s| {
             s.current_release.as_ref().map(|r| Release {
                 version: r.version.clone(),
                 digest: r.digest.clone(),

@@ -2,6 +2,7 @@
 //! saw opens its window at the reconnect; a robot that did not switch keeps its tracker.
 
 use jiff::Timestamp;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_crds::{ReleaseRef, RobotPhase, RobotStatus};
 use lekiwi_protocol::Release;
 
@@ -17,6 +18,7 @@ fn rel(v: &str) -> Release {
 fn stored(current: Option<&str>) -> RobotStatus {
     RobotStatus {
         phase: Some(RobotPhase::Online),
+        last_heartbeat_time: Some(Time(Timestamp::from_second(1_000).unwrap())),
         current_release: current.map(|v| ReleaseRef {
             version: v.into(),
             digest: format!("sha256:{v}"),
@@ -54,6 +56,17 @@ fn a_robot_that_did_not_switch_keeps_its_tracker() {
     let never_written = RobotStatus::default();
     let t = Tracker::at_connect(None, Some(&never_written), Some(&rel("2")), now);
     assert_eq!(window_release(&t), None);
+    // A new robot the controller marked Pending (a phase, but no gateway ever saw it).
+    let pending = RobotStatus {
+        phase: Some(RobotPhase::Pending),
+        ..RobotStatus::default()
+    };
+    let t = Tracker::at_connect(None, Some(&pending), Some(&rel("2")), now);
+    assert_eq!(
+        window_release(&t),
+        None,
+        "a first connection opens no window"
+    );
     let t = Tracker::at_connect(None, None, Some(&rel("2")), now);
     assert_eq!(window_release(&t), None);
     // This gateway saw 2 already (its status write may still be on its way): no new window.

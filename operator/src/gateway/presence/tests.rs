@@ -503,7 +503,11 @@ fn moved_robots_go_first_and_are_claimed_until_written() {
     p.connect_moved(&key("m2"), 3, 1_000, ConnectInfo::default(), true);
     p.with_state(|s| s.enqueue(&key("m2"), Priority::High)); // a change: stays a move
     assert_eq!(p.claims(), [key("m1"), key("m2")]);
-    assert_eq!(p.claims_annotation().as_deref(), Some("lab/m1,lab/m2"));
+    assert_eq!(
+        p.claims_annotation().as_deref(),
+        Some("lab/m1,m2"),
+        "the namespace written once"
+    );
     let m1 = p.with_state(|s| {
         assert_eq!(s.pop(), Some((key("m1"), Priority::Move)));
         assert_eq!(s.pop(), Some((key("m2"), Priority::Move)));
