@@ -12,6 +12,7 @@ fn main() -> anyhow::Result<()> {
     let flags = Flags::parse();
     match &flags.command {
         Some(Command::Guard { check }) => return run_guard(&flags, *check),
+        Some(Command::Adopt { robot, token_file }) => return run_adopt(&flags, robot, token_file),
         Some(command) => return queue_event(&flags, command),
         None => {}
     }
@@ -67,6 +68,34 @@ fn run_guard(flags: &Flags, check: bool) -> anyhow::Result<()> {
         );
         if check {
             std::process::exit(guard::EXIT_FELL_BACK);
+        }
+    }
+    Ok(())
+}
+
+/// `lekiwi-agent adopt`: saves a robot's existing token as the state directory's credentials.
+fn run_adopt(flags: &Flags, robot: &str, token_file: &std::path::Path) -> anyhow::Result<()> {
+    use std::io::Read as _;
+    let config = Config::merge(flags)?;
+    let mut token = String::new();
+    if token_file.as_os_str() == "-" {
+        std::io::stdin()
+            .take(4096)
+            .read_to_string(&mut token)
+            .context("reading the token from standard input")?;
+    } else {
+        std::fs::File::open(token_file)
+            .and_then(|f| f.take(4096).read_to_string(&mut token))
+            .with_context(|| format!("reading the token from {}", token_file.display()))?;
+    }
+    let dir = &config.state_dir;
+    match lekiwi_agent::state::adopt(dir, robot, token.trim())? {
+        lekiwi_agent::state::Adopted::Written => println!(
+            "saved the token of {robot} in {}; the agent connects as that robot",
+            dir.display()
+        ),
+        lekiwi_agent::state::Adopted::Unchanged => {
+            println!("{} already holds this token of {robot}", dir.display())
         }
     }
     Ok(())

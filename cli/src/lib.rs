@@ -72,8 +72,9 @@ pub struct Cli {
 /// Subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
-    /// List robots with phase, release, teleoperation and last heartbeat.
-    Robots,
+    /// List robots with phase, release, teleoperation and last heartbeat, or count them by
+    /// agent version, release or phase (`--group-by`).
+    Robots(robots::RobotsArgs),
     /// Register robots by hand.
     Robot {
         /// What to do.
@@ -133,13 +134,13 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
     let kube = context(&cli).await?;
     let (client, namespace) = (kube.client.clone(), kube.namespace.clone());
     match cli.command {
-        Command::Robots => {
+        Command::Robots(args) => {
             let ns = if cli.all_namespaces {
                 None
             } else {
                 Some(namespace.as_str())
             };
-            let out = robots::list(client, ns, cli.output).await?;
+            let out = robots::list(client, ns, cli.output, args.group_by).await?;
             print!("{out}");
         }
         Command::Rollout { command } => {

@@ -1,7 +1,8 @@
 //! `kubectl lekiwi` as a user runs it, against the shared control plane and a real operator:
 //! `robot add` credentials that a real agent connects with, an `enroll-token` a real agent
 //! enrolls with, `events` from the event store, and `discover` finding real agents by probe
-//! and by mDNS in under two seconds, registered or not, with or without a cluster.
+//! and by mDNS in under two seconds, registered or not, with or without a cluster; `robots
+//! --group-by` counting a mixed fleet by agent version.
 
 use std::os::unix::fs::PermissionsExt;
 use std::path::Path;
@@ -482,5 +483,70 @@ async fn enroll_token_lets_a_real_agent_enroll() -> Result<()> {
     .await
     .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
     assert!(state.join("credentials.json").exists());
+    Ok(())
+}
+
+/// `robots --group-by`: a mixed fleet counted by the agent version it runs (from status) and
+/// the one its spec asks for, as a table and as JSON, read from the real API server.
+#[tokio::test]
+async fn robots_group_by_agent_version() -> Result<()> {
+    use kube::api::{Patch, PatchParams};
+    use lekiwi_crds::Robot;
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "cligroup").await?;
+    let api = Api::<Robot>::namespaced(client.clone(), &ns);
+    let digest = format!("sha256:{}", "b".repeat(64));
+    for (name, phase, agent) in [
+        ("kiwi-1", "Online", Some("0.2.0")),
+        ("kiwi-2", "Offline", Some("0.1.0")),
+        ("kiwi-3", "Online", Some("0.2.0")),
+        ("kiwi-4", "Online", None),
+    ] {
+        lekiwi_tests::create_robot(&client, &ns, name, &[]).await?;
+        let status = serde_json::json!({"status": {"phase": phase, "agentVersion": agent}});
+        api.patch_status(name, &PatchParams::default(), &Patch::Merge(&status))
+            .await?;
+    }
+    let spec = serde_json::json!({"spec": {"agent": {"version": "0.2.0",
+        "builds": [{"arch": "amd64", "digest": digest}]}}});
+    api.patch("kiwi-2", &PatchParams::default(), &Patch::Merge(&spec))
+        .await?;
+
+    let table = ok(cp, &["-n", &ns, "robots", "--group-by", "agent"])?;
+    let rows: Vec<Vec<&str>> = table
+        .lines()
+        .map(|l| l.split_whitespace().collect())
+        .collect();
+    ensure!(
+        rows == [
+            vec!["AGENT", "ROBOTS", "ONLINE", "NAMES"],
+            vec!["0.1.0", "1", "0", "kiwi-2"],
+            vec!["0.2.0", "2", "2", "kiwi-1,kiwi-3"],
+            vec!["-", "1", "1", "kiwi-4"],
+        ],
+        "{table}"
+    );
+    let json = ok(
+        cp,
+        &[
+            "-n",
+            &ns,
+            "-o",
+            "json",
+            "robots",
+            "--group-by",
+            "desired-agent",
+        ],
+    )?;
+    let groups: Value = serde_json::from_str(&json)?;
+    ensure!(
+        groups
+            == serde_json::json!([
+                {"value": "0.2.0", "robots": 1, "online": 0, "names": ["kiwi-2"]},
+                {"value": "-", "robots": 3, "online": 3, "names": ["kiwi-1", "kiwi-3", "kiwi-4"]},
+            ]),
+        "{json}"
+    );
     Ok(())
 }

@@ -308,4 +308,17 @@ pub enum Command {
         #[arg(long)]
         check: bool,
     },
+    /// Take over a robot's existing token instead of enrolling: a robot moving from the legacy
+    /// polling endpoint to the agent, or a reinstalled robot whose token was kept. Writes
+    /// `<state-dir>/credentials.json` (mode 0600); the agent then connects as that robot. Refuses
+    /// an enrollment token, and credentials of another robot already in the state directory.
+    Adopt {
+        /// The robot, as `namespace/name`.
+        #[arg(long)]
+        robot: String,
+        /// File holding the robot's own token (`lkr_...`, from `kubectl lekiwi robot add`);
+        /// `-` reads standard input. Surrounding whitespace is ignored.
+        #[arg(long)]
+        token_file: PathBuf,
+    },
 }

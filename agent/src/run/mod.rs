@@ -58,7 +58,8 @@ pub enum Error {
     /// Neither saved credentials nor an enrollment token.
     #[error(
         "not enrolled: no credentials in {0} and no enrollment token \
-         (set enrollmentTokenFile, --enrollment-token-file or LEKIWI_ENROLLMENT_TOKEN_FILE)"
+         (set enrollmentTokenFile, --enrollment-token-file or LEKIWI_ENROLLMENT_TOKEN_FILE; \
+         or give it a robot's own token with `lekiwi-agent adopt`)"
     )]
     NotEnrolled(std::path::PathBuf),
 }
