@@ -200,6 +200,15 @@ pub struct RobotStatus {
     #[schemars(length(max = rules::MAX_TEXT_CHARS))]
     pub agent_version: Option<String>,
 
+    /// Digest of the agent build running on the robot (`sha256:` and 64 hex digits): the file
+    /// its service manager starts, an A/B slot's binary or the package's own. Setting
+    /// `spec.agent` back to this version and digest later switches the robot back to this
+    /// build from its own disk, without a download, even if it was never pushed. Absent for
+    /// agents older than 0.2 and for legacy polling robots.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(regex(pattern = rules::DIGEST_PATTERN))]
+    pub agent_digest: Option<String>,
+
     /// The release the robot reports it runs now.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub current_release: Option<ReleaseRef>,

@@ -131,6 +131,7 @@ mod tests {
         let hello = AgentMessage::Hello {
             protocol_version: PROTOCOL_VERSION,
             agent_version: "0.1.0".into(),
+            agent_digest: Some(format!("sha256:{}", "a".repeat(64))),
             system: SystemFacts {
                 arch: Some("aarch64".into()),
                 cpus: Some(4),

@@ -81,6 +81,11 @@ pub enum AgentMessage {
         protocol_version: u32,
         /// Version of the agent software.
         agent_version: String,
+        /// `sha256:<hex>` digest of the agent build that runs: the file the service manager
+        /// started (an A/B slot's binary, or the package's own). A rollback of an agent update
+        /// names it, and the robot switches back to it from its own disk.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        agent_digest: Option<String>,
         /// Facts about the computer.
         #[serde(default)]
         system: SystemFacts,

@@ -110,6 +110,7 @@ pub fn sanitize(msg: &mut AgentMessage) -> Vec<FieldError> {
     match msg {
         AgentMessage::Hello {
             agent_version,
+            agent_digest,
             system,
             current_release,
             health,
@@ -117,6 +118,15 @@ pub fn sanitize(msg: &mut AgentMessage) -> Vec<FieldError> {
             ..
         } => {
             *agent_version = cut_text(agent_version, MAX_TEXT_CHARS);
+            if let Some(d) = agent_digest.take() {
+                match normalize_digest(&d) {
+                    Ok(d) => *agent_digest = Some(d),
+                    Err(reason) => refused.push(FieldError {
+                        field: "agent_digest",
+                        reason,
+                    }),
+                }
+            }
             sanitize_system(system, &mut refused);
             sanitize_reports(current_release, health, teleoperation, &mut refused);
         }
@@ -264,6 +274,45 @@ mod tests {
         assert_eq!(refused[0].field, "system.memory_bytes");
         assert_eq!(system.memory_bytes, None);
         assert_eq!(system.hostname.unwrap().len(), MAX_TEXT_CHARS as usize);
+    }
+
+    /// A hello's agent digest is lowercased, or dropped and named when it is no digest; the
+    /// rest of the hello stands.
+    #[test]
+    fn a_hellos_agent_digest_is_normalised_or_refused() {
+        let hello = |digest: &str| AgentMessage::Hello {
+            protocol_version: crate::PROTOCOL_VERSION,
+            agent_version: "0.2.0".into(),
+            agent_digest: Some(digest.into()),
+            system: SystemFacts::default(),
+            current_release: None,
+            last_acked_seq: None,
+            health: None,
+            teleoperation: None,
+            features: Vec::new(),
+        };
+        let digest_of = |msg: &AgentMessage| match msg {
+            AgentMessage::Hello { agent_digest, .. } => agent_digest.clone(),
+            _ => panic!(),
+        };
+        let mut upper = hello(&format!("sha256:{}", "CD".repeat(32)));
+        assert!(sanitize(&mut upper).is_empty());
+        assert_eq!(
+            digest_of(&upper),
+            Some(format!("sha256:{}", "cd".repeat(32)))
+        );
+        for bad in [
+            "",
+            "sha256:12",
+            "md5:00",
+            &format!("sha256:{}", "g".repeat(64)),
+        ] {
+            let mut msg = hello(bad);
+            let refused = sanitize(&mut msg);
+            assert_eq!(refused.len(), 1, "{bad:?}");
+            assert_eq!(refused[0].field, "agent_digest");
+            assert_eq!(digest_of(&msg), None, "{bad:?}");
+        }
     }
 
     /// A health reason that is no CamelCase word is refused; the verdict itself stands.

@@ -189,6 +189,7 @@ pub fn hello() -> lekiwi_protocol::AgentMessage {
     lekiwi_protocol::AgentMessage::Hello {
         protocol_version: lekiwi_protocol::PROTOCOL_VERSION,
         agent_version: "0.1.0-test".into(),
+        agent_digest: None,
         system: lekiwi_protocol::SystemFacts {
             arch: Some("aarch64".into()),
             cpus: Some(4),

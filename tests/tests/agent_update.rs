@@ -21,6 +21,7 @@ use lekiwi_tests::{
     wait_for, wait_online,
 };
 use serde_json::{Value, json};
+use sha2::Digest as _;
 
 const T: Duration = Duration::from_secs(60);
 /// `agentUpdateDeadlineS` of the test agents.
@@ -155,6 +156,15 @@ impl Fleet {
         Ok(())
     }
 
+    /// `status.agentDigest` of robot `name`.
+    async fn agent_digest(&self, name: &str) -> Option<String> {
+        let robot = Api::<Robot>::namespaced(self.client.clone(), &self.ns)
+            .get(name)
+            .await
+            .ok()?;
+        robot.status?.agent_digest
+    }
+
     /// `status.agentVersion` and `status.agentUpdate` of robot `name`.
     async fn agent_status(&self, name: &str) -> Option<(String, Value)> {
         let robot = Api::<Robot>::namespaced(self.client.clone(), &self.ns)
@@ -232,6 +242,13 @@ async fn ten_agents_update_themselves_without_losing_an_event() -> anyhow::Resul
     let names: Vec<String> = (0..10).map(|i| format!("kiwi-{i}")).collect();
     let robots: Vec<Supervised> = names.iter().map(|n| f.robot(n)).collect();
     wait_online(&f.client, &f.ns, names.len(), 2 * T).await?;
+    // A reports the digest of the package binary it runs.
+    let a_digest = format!(
+        "sha256:{}",
+        hex::encode(sha2::Sha256::digest(std::fs::read(bin("lekiwi-agent"))?))
+    );
+    let a_version = f.agent_status("kiwi-0").await.unwrap_or_default().0;
+    assert_eq!(f.agent_digest("kiwi-0").await, Some(a_digest.clone()));
     let b = f.push("agent-b", "9.0.0-b", &wrapper("9.0.0-b", false))?;
     let store = f.op.event_store().await?;
     for r in &robots {
@@ -321,6 +338,58 @@ async fn ten_agents_update_themselves_without_losing_an_event() -> anyhow::Resul
             .await,
         Some(10.0)
     );
+    roll_back_to_the_package_binary(&f, &robots[0], &store, &a_version, &a_digest, &b).await?;
+    Ok(())
+}
+
+/// (a, continued) kiwi-0 is rolled back to A by naming A's version and digest (from its
+/// status before the update): A was never pushed; the robot switches back to its package
+/// binary from its own disk, downloads nothing and commits as after any update.
+async fn roll_back_to_the_package_binary(
+    f: &Fleet,
+    robot: &Supervised,
+    store: &Store,
+    a_version: &str,
+    a_digest: &str,
+    b_digest: &str,
+) -> anyhow::Result<()> {
+    let name = "kiwi-0";
+    assert_eq!(f.agent_digest(name).await.as_deref(), Some(b_digest));
+    let t0 = Instant::now();
+    f.desire(name, a_version, arch(), a_digest).await?;
+    let took = wait_for(&format!("{name} back on A"), T, || async {
+        let (version, update) = f.agent_status(name).await?;
+        (version == a_version && update["phase"] == "Succeeded").then(|| t0.elapsed())
+    })
+    .await?;
+    assert_eq!(f.agent_digest(name).await.as_deref(), Some(a_digest));
+    assert_eq!(
+        robot.current_slot(),
+        None,
+        "current removed: the package runs"
+    );
+    let last = robot
+        .history
+        .lock()
+        .unwrap()
+        .starts
+        .last()
+        .map(|s| s.binary.clone());
+    assert_eq!(last, Some(bin("lekiwi-agent")), "runs the package binary");
+    let ev = wait_for("the rollback's events", T, || async {
+        let ev = events(store, &f.ns, name).await;
+        (count(&ev, "agent_update_succeeded") >= 2).then_some(ev)
+    })
+    .await?;
+    let started: Vec<&Value> = ev
+        .iter()
+        .filter(|(k, _)| k == "agent_update_started")
+        .map(|(_, d)| d)
+        .collect();
+    assert_eq!(started.len(), 2, "{ev:?}");
+    assert_eq!(started[1]["version"], a_version, "{ev:?}");
+    assert_eq!(started[1]["bytes"], 0, "nothing downloaded: {ev:?}");
+    eprintln!("{name}: rolled back B -> A (never pushed) in {took:?}, 0 bytes downloaded");
     Ok(())
 }
 

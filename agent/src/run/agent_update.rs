@@ -1,5 +1,7 @@
 //! The `update_agent` command on the robot: download and verify the build, install it into the
-//! inactive slot, write the pending-update record, flip `current` (all in a task that holds the
+//! inactive slot (or, for a build the robot keeps already, its inactive slot or the package
+//! binary, none of that: a rollback downloads nothing), write the pending-update record, flip
+//! `current` (all in a task that holds the
 //! release store, like a deployment), then end the run loop so that `main` exits with
 //! [`EXIT_UPDATED`](crate::selfupdate::EXIT_UPDATED). Also the two ends of an update: the new
 //! agent commits once a gateway welcomed it, and the agent after a fallback reports it.
@@ -17,6 +19,7 @@ use super::commands::Deploying;
 use super::{Agent, Error};
 use crate::outbox::Lane;
 use crate::release::{Outcome, Phase, Releases};
+use crate::selfupdate::local::LocalBuild;
 use crate::selfupdate::{self, Pending, Slots};
 
 /// Largest agent build downloaded, in bytes (it is held in memory while verified).
@@ -197,6 +200,20 @@ async fn install(
         files_downloaded: usize::from(bytes > 0),
         files_reused: 0,
     };
+    let local = {
+        let (slots, digest) = (slots.clone(), pending.digest.clone());
+        tokio::task::spawn_blocking(move || slots.find_local(&digest))
+            .await
+            .ok()
+            .flatten()
+    };
+    if let Some(local) = local {
+        let o = match switch_local(slots, pending, local).await {
+            Ok(message) => outcome(Phase::Done, message, 0),
+            Err(message) => outcome(Phase::Failed, message, 0),
+        };
+        return (releases, Some(o));
+    }
     let bytes = match releases
         .fetch_verified(&url, &pending.digest, MAX_AGENT_BYTES)
         .await
@@ -220,4 +237,26 @@ async fn install(
         Err(e) => outcome(Phase::Failed, e.to_string(), size),
     };
     (releases, Some(o))
+}
+
+/// Switches to a build kept on this robot (a rollback, mostly): no download.
+async fn switch_local(
+    slots: Slots,
+    mut pending: Pending,
+    local: LocalBuild,
+) -> Result<String, String> {
+    let message = format!(
+        "switched to the build kept as {} (no download)",
+        local.describe()
+    );
+    tokio::task::spawn_blocking(move || {
+        pending.previous = slots.current();
+        pending.slot = local.slot().unwrap_or_default().to_owned();
+        slots.set_pending(&pending)?;
+        slots.switch_local(&local)
+    })
+    .await
+    .map_err(|e| e.to_string())?
+    .map_err(|e| e.to_string())?;
+    Ok(message)
 }

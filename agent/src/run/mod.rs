@@ -110,6 +110,31 @@ pub struct Agent {
     pending_access: Option<GatewayAccess>,
     /// An agent update switched `current`: the run loop ends so that the new build starts.
     restart_for_update: bool,
+    /// `sha256:` digest of the build that runs (sent in `hello`), if it could be read.
+    agent_digest: Option<String>,
+}
+
+/// The digest of the build that runs, from the state directory `state_dir` (see
+/// [`Slots::identify_running`](crate::selfupdate::Slots::identify_running)); `None`, logged,
+/// when it cannot be read.
+async fn running_build(state_dir: &std::path::Path) -> Option<String> {
+    let slots = crate::selfupdate::Slots::new(state_dir);
+    let exe = match std::env::current_exe() {
+        Ok(exe) => exe,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot tell which binary runs; hello carries no agent digest");
+            return None;
+        }
+    };
+    let version = crate::selfupdate::version();
+    let digest = tokio::task::spawn_blocking(move || slots.identify_running(&exe, version))
+        .await
+        .ok()
+        .flatten();
+    if digest.is_none() {
+        tracing::warn!("cannot read the running agent build; hello carries no agent digest");
+    }
+    digest
 }
 
 /// How [`Agent::run`] ended.
@@ -154,6 +179,7 @@ impl Agent {
             started_at_ms: lekiwi_protocol::now_ms(),
         };
         let (status, advertiser) = status::start(&config, snapshot).await?;
+        let config_dir = config.state_dir.clone();
         Ok(Self {
             config,
             outbox,
@@ -179,6 +205,7 @@ impl Agent {
             progress_rx,
             pending_access: None,
             restart_for_update: false,
+            agent_digest: running_build(&config_dir).await,
         })
     }
 
@@ -224,6 +251,7 @@ impl Agent {
         Ok(AgentMessage::Hello {
             protocol_version: PROTOCOL_VERSION,
             agent_version: crate::selfupdate::version().to_owned(),
+            agent_digest: self.agent_digest.clone(),
             system: crate::telemetry::system_facts(),
             current_release: self.current_release.clone(),
             last_acked_seq: (last > 0).then_some(last),

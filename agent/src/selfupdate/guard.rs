@@ -30,13 +30,17 @@ pub fn run(slots: &Slots, mode: Mode, now_ms: i64) -> Result<Option<FallenBack>,
     let Some(mut pending) = slots.pending() else {
         return Ok(None);
     };
-    if slots.current().as_deref() != Some(pending.slot.as_str()) {
+    // An empty slot is a switch back to the package binary: no `current`.
+    if slots.current().unwrap_or_default() != pending.slot {
         // Written, but the switch never happened (or was undone): nothing runs the new build.
         slots.clear_pending()?;
         return Ok(None);
     }
-    let binary = slots.binary(&pending.slot);
-    let reason = if let Some(why) = unusable(&binary) {
+    // The package binary is this guard's own: it runs here.
+    let unusable = (!pending.slot.is_empty())
+        .then(|| unusable(&slots.binary(&pending.slot)))
+        .flatten();
+    let reason = if let Some(why) = unusable {
         Some(why)
     } else if now_ms > pending.deadline_ms {
         Some(format!(
@@ -173,6 +177,23 @@ mod tests {
         assert_eq!(run(&slots, Mode::Check, 999).unwrap(), None);
         let undone = run(&slots, Mode::Check, 1_001).unwrap().unwrap();
         assert!(undone.reason.starts_with("no connection"), "{undone:?}");
+    }
+
+    #[test]
+    fn a_switch_back_to_the_package_binary_is_guarded_too() {
+        let dir = tempfile::tempdir().unwrap();
+        let slots = installed(dir.path(), b"#!/bin/sh\n", 1_000);
+        // B in slot a runs; a rollback to the package binary removed `current`.
+        let mut back = slots.pending().unwrap();
+        back.slot = String::new();
+        back.previous = Some("a".into());
+        slots.set_pending(&back).unwrap();
+        slots.switch(None).unwrap();
+        assert_eq!(run(&slots, Mode::Start, 10).unwrap(), None);
+        assert_eq!(slots.pending().unwrap().starts, 1, "the start was counted");
+        let undone = run(&slots, Mode::Check, 1_001).unwrap().unwrap();
+        assert!(undone.reason.starts_with("no connection"), "{undone:?}");
+        assert_eq!(slots.current().as_deref(), Some("a"), "back on slot a");
     }
 
     #[test]

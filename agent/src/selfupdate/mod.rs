@@ -12,6 +12,7 @@
 //! agent/current -> a        the slot the service manager starts; absent: /usr/bin/lekiwi-agent
 //! agent/pending.json        the update not yet committed (see [`Pending`])
 //! agent/fallen-back.json    the last update the guard undid, and why (see [`FallenBack`])
+//! agent/package.json        the package binary's path, version and digest (see [`local`])
 //! ```
 //!
 //! Every file is replaced by writing a temporary file, fsync and rename, and `current` by a
@@ -19,6 +20,7 @@
 //! The outbox lives elsewhere in the state directory and is shared by every build.
 
 pub mod guard;
+pub mod local;
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
@@ -61,7 +63,7 @@ pub struct Pending {
     pub from_version: String,
     /// The slot `current` pointed at before (`a` or `b`); `None`: no slot, the package binary.
     pub previous: Option<String>,
-    /// The slot the new build is in.
+    /// The slot the new build is in; empty: the package binary (a switch back to it).
     pub slot: String,
     /// Unix ms by which the new build must have committed.
     pub deadline_ms: i64,

@@ -80,6 +80,7 @@ fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMes
     AgentMessage::Hello {
         protocol_version: PROTOCOL_VERSION,
         agent_version: concat!("sim-", env!("CARGO_PKG_VERSION")).to_owned(),
+        agent_digest: None,
         system: SystemFacts {
             hostname: Some(name.to_owned()),
             os: Some("Debian GNU/Linux 12 (bookworm)".into()),

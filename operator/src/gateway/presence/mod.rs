@@ -79,6 +79,8 @@ pub struct ConnectInfo {
     pub protocol: &'static str,
     /// Agent software version.
     pub agent_version: String,
+    /// Digest of the agent build (validated by `rules::sanitize`), `status.agentDigest`.
+    pub agent_digest: Option<String>,
     /// Release it runs, written to `status.currentRelease`.
     pub release: Option<Release>,
     /// Its health verdict at connect, if it sent one.

@@ -100,6 +100,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         session_epoch: Some(e.epoch),
         agent_version: Some(rules::cut_text(&info.agent_version, rules::MAX_TEXT_CHARS))
             .filter(|v| !v.is_empty()),
+        agent_digest: info.agent_digest.clone(),
         current_release: info.release.as_ref().map(release_ref),
         address: info.address.clone(),
         health: info.health.as_ref().map(|h| HealthReport {

@@ -158,16 +158,21 @@ fn hello() -> impl Strategy<Value = AgentMessage> {
                 memory_bytes,
             },
         );
-    (text(256), system, reports()).prop_map(
-        |(agent_version, system, (current_release, health, teleoperation))| AgentMessage::Hello {
-            protocol_version: 1,
-            agent_version: agent_version.unwrap_or_default(),
-            system,
-            current_release,
-            last_acked_seq: None,
-            health,
-            teleoperation,
-            features: Vec::new(),
+    // Half the digests are well formed (some in upper case), half arbitrary text.
+    let digest = prop_oneof!["(sha256:)[0-9a-fA-F]{64}".prop_map(Some), text(80),];
+    (text(256), digest, system, reports()).prop_map(
+        |(agent_version, agent_digest, system, (current_release, health, teleoperation))| {
+            AgentMessage::Hello {
+                protocol_version: 1,
+                agent_version: agent_version.unwrap_or_default(),
+                agent_digest,
+                system,
+                current_release,
+                last_acked_seq: None,
+                health,
+                teleoperation,
+                features: Vec::new(),
+            }
         },
     )
 }
@@ -198,6 +203,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
     sanitize(&mut heartbeat);
     let AgentMessage::Hello {
         agent_version,
+        agent_digest,
         system,
         current_release,
         health,
@@ -225,6 +231,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         info: ConnectInfo {
             protocol: "websocket",
             agent_version,
+            agent_digest,
             release: r.or(current_release),
             health: h.or(health),
             teleoperation: t.or(teleoperation),

@@ -51,6 +51,7 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
         ConnectInfo {
             protocol: "websocket",
             agent_version: "0.9.1".into(),
+            agent_digest: Some(format!("sha256:{}", "9".repeat(64))),
             release: Some(release("1.4.2")),
             health: Some(Health {
                 healthy: false,
@@ -85,6 +86,7 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
         ConnectInfo {
             protocol: "websocket",
             agent_version: "1.0.0-rc.1".into(),
+            agent_digest: None,
             release: Some(release("2.0.0")),
             health: Some(Health {
                 healthy: true,
@@ -168,6 +170,7 @@ fn hand_written_patches() -> Vec<Value> {
             "kind": "Robot",
             "status": {
                 "address": "10.0.0.7:40112",
+                "agentDigest": format!("sha256:{}", "9".repeat(64)),
                 "agentVersion": "0.9.1",
                 "connected": true,
                 "connectedSince": "2026-11-20T08:00:00Z",

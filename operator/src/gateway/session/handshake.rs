@@ -66,6 +66,7 @@ where
     match decoded {
         Ok(AgentMessage::Hello {
             agent_version,
+            agent_digest,
             system,
             current_release,
             health,
@@ -76,6 +77,7 @@ where
             info: ConnectInfo {
                 protocol: "websocket",
                 agent_version,
+                agent_digest,
                 release: current_release,
                 health,
                 teleoperation,
