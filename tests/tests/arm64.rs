@@ -2,7 +2,8 @@
 //! (`scripts/pi.sh`: QEMU `virt`, Cortex-A76, Debian's arm64 kernel). Its unit tests pass there,
 //! and an arm64 agent enrolls against the x86_64 operator over wss://, goes Online, reports
 //! telemetry and teleoperation, applies a release from a RobotDeployment and rolls back when the
-//! next one fails its health check.
+//! next one fails its health check. Installed from the `.deb` under systemd, it also survives a
+//! reboot and updates itself to another agent build and back to the package's own binary.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -580,6 +581,161 @@ async fn the_arm64_deb_installs_on_a_systemd_pi5_rolls_out_and_survives_a_reboot
         reported_release(&client, &ns).await.as_deref(),
         Some("1.0.0")
     );
+
+    site.update_agent_and_back(cp, &client, &ns, &guest, &deb)
+        .await?;
     let _ = site.op.terminate();
     Ok(())
+}
+
+/// `sha256:<hex>` of `/usr/bin/lekiwi-agent` in the .deb `deb`.
+fn packaged_agent_digest(deb: &Path) -> anyhow::Result<String> {
+    use sha2::Digest as _;
+    let dir = tempfile::tempdir()?;
+    let out = Command::new("dpkg-deb")
+        .arg("-x")
+        .arg(deb)
+        .arg(dir.path())
+        .output()?;
+    anyhow::ensure!(out.status.success(), "dpkg-deb -x: {out:?}");
+    let bytes = std::fs::read(dir.path().join("usr/bin/lekiwi-agent"))?;
+    Ok(format!(
+        "sha256:{}",
+        hex::encode(sha2::Sha256::digest(bytes))
+    ))
+}
+
+/// Sets kiwi-pi's `spec.agent` to `version` with its arm64 build `digest`.
+async fn desire_agent(
+    client: &Client,
+    ns: &str,
+    version: &str,
+    digest: &str,
+) -> anyhow::Result<()> {
+    let patch = json!({"spec": {"agent": {"version": version, "builds": [{"arch": "arm64", "digest": digest}]}}});
+    let robot = Api::<lekiwi_crds::Robot>::namespaced(client.clone(), ns)
+        .patch("kiwi-pi", &PatchParams::default(), &Patch::Merge(&patch))
+        .await?;
+    anyhow::ensure!(
+        robot.spec.agent.is_some(),
+        "the API server pruned spec.agent"
+    );
+    Ok(())
+}
+
+/// Waits until kiwi-pi's agent reports `version` and its update `Succeeded`; its status.
+async fn agent_on(
+    client: &Client,
+    ns: &str,
+    guest: &PiGuest,
+    version: &str,
+) -> anyhow::Result<lekiwi_crds::RobotStatus> {
+    wait_for(
+        &format!("kiwi-pi on agent {version}"),
+        Duration::from_secs(180),
+        || async {
+            let s = get_robot(client, ns, "kiwi-pi").await.ok()?.status?;
+            let done = s.agent_update.as_ref().is_some_and(|u| {
+                u.phase.as_deref() == Some("Succeeded") && u.version.as_deref() == Some(version)
+            });
+            (s.agent_version.as_deref() == Some(version) && done).then_some(s)
+        },
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\nconsole tail:\n{}", guest.console_tail(60)))
+}
+
+impl Site {
+    /// The arm64 agent updates itself under systemd (issue 19): build B, pushed with the real
+    /// CLI, is downloaded over https://, installed into a slot and started by systemd after the
+    /// agent exits 75; then `spec.agent` names the package's own binary again (A, never pushed)
+    /// and the robot switches back from its disk, downloading nothing.
+    async fn update_agent_and_back(
+        &self,
+        cp: &ControlPlane,
+        client: &Client,
+        ns: &str,
+        guest: &PiGuest,
+        deb: &Path,
+    ) -> anyhow::Result<()> {
+        let guest_status = get_robot(client, ns, "kiwi-pi")
+            .await?
+            .status
+            .unwrap_or_default();
+        let a_version = guest_status.agent_version.context("no agentVersion")?;
+        let a_digest = guest_status.agent_digest.context("no agentDigest")?;
+        assert_eq!(
+            a_digest,
+            packaged_agent_digest(deb)?,
+            "the digest of the .deb's binary"
+        );
+        // B: the package binary under another version name (a wrapper, as in agent_update.rs).
+        let b_file = self.dir.path().join("agent-b");
+        std::fs::write(
+            &b_file,
+            "#!/bin/sh\nLEKIWI_AGENT_VERSION_OVERRIDE=9.0.0-pi exec /usr/bin/lekiwi-agent \"$@\"\n",
+        )?;
+        let out = Command::new(lekiwi_tests::bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(cp.kubeconfig())
+            .args([
+                "-n",
+                ns,
+                "agent",
+                "push",
+                "--version",
+                "9.0.0-pi",
+                "--arch",
+                "arm64",
+            ])
+            .arg(&b_file)
+            .args([
+                "--server",
+                &format!("https://127.0.0.1:{}", self.op.gateway_port),
+            ])
+            .arg("--certificate-authority")
+            .arg(&self.ca)
+            .env_remove("LEKIWI_SERVER")
+            .output()?;
+        let b_digest = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+        anyhow::ensure!(out.status.success(), "agent push: {out:?}");
+        let t0 = Instant::now();
+        desire_agent(client, ns, "9.0.0-pi", &b_digest).await?;
+        let on_b = agent_on(client, ns, guest, "9.0.0-pi").await?;
+        let to_b = t0.elapsed();
+        assert_eq!(on_b.agent_digest.as_deref(), Some(b_digest.as_str()));
+
+        let t1 = Instant::now();
+        desire_agent(client, ns, &a_version, &a_digest).await?;
+        let on_a = agent_on(client, ns, guest, &a_version).await?;
+        let to_a = t1.elapsed();
+        assert_eq!(on_a.agent_digest.as_deref(), Some(a_digest.as_str()));
+        let store = self.op.event_store().await?;
+        let key = lekiwi_operator::gateway::event_store::RobotKey::new(
+            ns.to_owned(),
+            "kiwi-pi".to_owned(),
+        );
+        let started: Vec<serde_json::Value> = store
+            .events(&key, None, 10_000)
+            .await?
+            .into_iter()
+            .filter(|e| e.kind == "agent_update_started")
+            .map(|e| e.data)
+            .collect();
+        assert_eq!(started.len(), 2, "{started:?}");
+        assert!(
+            started[0]["bytes"].as_u64().unwrap_or_default() > 0,
+            "{started:?}"
+        );
+        assert_eq!(
+            started[1]["bytes"], 0,
+            "the rollback downloaded nothing: {started:?}"
+        );
+        eprintln!(
+            "arm64 agent self-update under systemd: A -> B in {to_b:?} ({} bytes), \
+             rollback B -> A (never pushed) in {to_a:?} (0 bytes)",
+            started[0]["bytes"]
+        );
+        Ok(())
+    }
 }
