@@ -334,7 +334,7 @@ async fn ten_agents_update_themselves_without_losing_an_event() -> anyhow::Resul
     let max = switched.iter().max().unwrap();
     eprintln!("ten robots switched A -> B; slowest {max:?}");
     assert_eq!(
-        f.op.metric(r#"lekiwi_gateway_agent_updates_total{kind="succeeded"}"#)
+        f.op.metric(r#"lekiwi_gateway_agent_updates_total{kind="succeeded",version="9.0.0-b"}"#)
             .await,
         Some(10.0)
     );
@@ -506,10 +506,12 @@ async fn broken_agents_are_undone_by_the_robot_itself() -> anyhow::Result<()> {
         "{update}"
     );
     assert_eq!(starts(&rx), 1, "kiwi-x never restarted");
-    assert_eq!(
-        f.op.metric(r#"lekiwi_gateway_agent_updates_total{kind="fallen_back"}"#)
-            .await,
-        Some(2.0)
-    );
+    // Labelled by the version spec.agent names (the robot's own reports cannot add series).
+    for version in ["9.0.0-c", "9.0.0-d"] {
+        let series = format!(
+            r#"lekiwi_gateway_agent_updates_total{{kind="fallen_back",version="{version}"}}"#
+        );
+        assert_eq!(f.op.metric(&series).await, Some(1.0), "{series}");
+    }
     Ok(())
 }

@@ -50,6 +50,17 @@ pub struct ReasonLabels {
 }
 
 /// What the gateway exports.
+/// Labels of `lekiwi_gateway_agent_updates_total`: the step and the agent version. The version
+/// is one an administrator named in a Robot's `spec.agent` (the session's desired one), or
+/// `other`: a robot's events cannot create series.
+#[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
+pub struct AgentUpdateLabels {
+    /// `sent`, `unavailable`, `unsupported`, `started`, `succeeded`, `failed`, `fallen_back`.
+    pub kind: &'static str,
+    /// The agent version of the step.
+    pub version: String,
+}
+
 #[derive(Clone)]
 pub struct GatewayMetrics {
     /// Agent connections open now.
@@ -72,7 +83,7 @@ pub struct GatewayMetrics {
     /// Agent update steps (`spec.agent`), by kind: `sent`, `unavailable`, `unsupported` (what
     /// the gateway did) and `started`, `succeeded`, `failed`, `fallen_back` (what agents
     /// reported).
-    pub agent_updates: Family<KindLabels, Counter>,
+    pub agent_updates: Family<AgentUpdateLabels, Counter>,
     /// Heartbeat round-trip time the agents report.
     pub heartbeat_rtt: Histogram,
     /// Robots waiting for a status write, by priority.
@@ -132,7 +143,7 @@ impl GatewayMetrics {
             ),
             agent_updates: r.add(
                 "lekiwi_gateway_agent_updates",
-                "Agent self-update steps, by kind (sent, unavailable, unsupported, started, succeeded, failed, fallen_back)",
+                "Agent self-update steps, by kind (sent, unavailable, unsupported, started, succeeded, failed, fallen_back) and agent version (one that a Robot's spec.agent names, else other)",
             ),
             events_refused: r.add(
                 "lekiwi_gateway_events_refused",

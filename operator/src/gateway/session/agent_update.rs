@@ -2,7 +2,7 @@
 //! command for the build of the robot's architecture, sent once per desired version and
 //! session; the status message when there is no such build or the agent cannot update itself;
 //! and the agent's `agent_update_*` events, which move `status.agentUpdate` and the
-//! `lekiwi_gateway_agent_updates_total` counter.
+//! `lekiwi_gateway_agent_updates_total{kind, version}` counter.
 
 use axum::extract::ws::Message;
 use futures::Sink;
@@ -14,8 +14,8 @@ use tracing::info;
 use super::Session;
 use super::conn::Flow;
 use crate::gateway::event_store::StoredEvent;
+use crate::gateway::metrics::AgentUpdateLabels;
 use crate::gateway::presence::AgentUpdateOutcome;
-use crate::metrics::KindLabels;
 
 /// What the session knows about the robot's agent and the `update_agent` it sent.
 pub(super) struct AgentLedger {
@@ -120,6 +120,16 @@ impl AgentLedger {
     }
 }
 
+/// The `version` label of a step about `version`: itself when it is the version `spec.agent`
+/// names (`desired`), else `other` (robot-reported text never makes a series of its own).
+fn metric_version(version: &str, desired: Option<&str>) -> String {
+    if desired == Some(version) {
+        version.to_owned()
+    } else {
+        "other".to_owned()
+    }
+}
+
 /// The counter kind of what the gateway did (`Sent`, `Unavailable`, `Unsupported`).
 fn own_kind(phase: &str) -> &'static str {
     match phase {
@@ -187,11 +197,15 @@ where
         kind: &'static str,
         message: String,
     ) {
+        let labels = AgentUpdateLabels {
+            kind,
+            version: metric_version(&version, self.agent.desired_version()),
+        };
         self.shared
             .metrics
             .gateway
             .agent_updates
-            .get_or_create(&KindLabels { kind })
+            .get_or_create(&labels)
             .inc();
         let outcome = AgentUpdateOutcome {
             version,
@@ -245,6 +259,13 @@ mod tests {
             "{command:?}"
         );
         assert_eq!(l.next("gw", 1), None, "once per session");
+    }
+
+    #[test]
+    fn only_a_desired_version_labels_the_metric() {
+        assert_eq!(metric_version("0.2.0", Some("0.2.0")), "0.2.0");
+        assert_eq!(metric_version("0.2.0", Some("0.3.0")), "other");
+        assert_eq!(metric_version(&"x".repeat(10_000), None), "other");
     }
 
     #[test]
