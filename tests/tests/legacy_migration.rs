@@ -179,8 +179,18 @@ async fn a_polling_robot_moves_to_the_agent_and_keeps_its_identity() -> Result<(
         robot: format!("{ns}/old-1"),
         token: token.clone(),
     };
-    let answer = poller.poll("1.0.0").await?;
-    assert_eq!(answer["update_available"], true, "{answer}");
+    // The gateway answers from its Robot watch, which may not have the patch yet (a CI
+    // failure), and keeps that answer for `poll::CACHE_TTL` (60 s): poll again, as a real poller
+    // would, until it offers the release.
+    let answer = lekiwi_tests::wait_for(
+        "the poll to offer 2.0.0",
+        lekiwi_operator::gateway::poll::CACHE_TTL + Duration::from_secs(30),
+        || async {
+            let answer = poller.poll("1.0.0").await.ok()?;
+            (answer["update_available"] == true).then_some(answer)
+        },
+    )
+    .await?;
     assert_eq!(answer["target_digest"], release.digest.as_str());
     let online = |protocol: &'static str| {
         move |s: &RobotStatus| {
