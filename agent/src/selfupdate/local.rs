@@ -109,20 +109,19 @@ impl Slots {
         Some(digest)
     }
 
-    /// A build of `digest` on this robot other than the running one: the inactive slot's, or
-    /// the package binary while a slot runs; each is hashed again, so a changed file never
-    /// counts.
+    /// A build of `digest` on this robot other than the running one: the inactive slot's (the
+    /// build before the running one, or the one a rollback left), or the package binary while a
+    /// slot runs. Each is hashed again, so a changed file never counts.
     pub fn find_local(&self, digest: &str) -> Option<LocalBuild> {
-        let current = self.current()?;
         let inactive = self.inactive();
         let slot_bin = self.binary(inactive);
         if slot_bin.exists() && file_digest(&slot_bin).ok().as_deref() == Some(digest) {
             return Some(LocalBuild::Slot(inactive));
         }
+        // Without `current` the package binary is the running build.
+        self.current()?;
         let package = self.package().filter(|p| p.digest == digest)?;
-        let same = file_digest(&package.path).ok().as_deref() == Some(digest);
-        // The running slot is never the package; `current` names it.
-        (same && current != inactive).then_some(LocalBuild::Package)
+        (file_digest(&package.path).ok().as_deref() == Some(digest)).then_some(LocalBuild::Package)
     }
 
     /// Switches `current` to `local`.
@@ -165,6 +164,20 @@ mod tests {
         slots.switch(Some("b")).unwrap();
         assert_eq!(slots.find_local(&b), Some(LocalBuild::Slot("a")));
         assert_eq!(slots.find_local(&a), Some(LocalBuild::Package));
+
+        // Rolled back to the package binary: C, in the slot it left, is found for a roll
+        // forward; B was in the other slot, which is not the inactive one now.
+        slots.switch(None).unwrap();
+        let c = file_digest(&slots.binary("b")).unwrap();
+        assert_eq!(slots.inactive(), "a");
+        assert_eq!(
+            slots.find_local(&c),
+            None,
+            "C is in slot b, not the inactive slot a"
+        );
+        assert_eq!(slots.find_local(&b), Some(LocalBuild::Slot("a")));
+        assert_eq!(slots.find_local(&a), None, "A runs");
+        slots.switch(Some("b")).unwrap();
 
         // A package upgrade replaced the file: its old digest is no longer found.
         std::fs::write(&exe, b"package build A2").unwrap();
