@@ -253,7 +253,7 @@ async fn switch_local(
         pending.previous = slots.current();
         pending.slot = local.slot().unwrap_or_default().to_owned();
         slots.set_pending(&pending)?;
-        slots.switch_local(&local)
+        slots.switch(local.slot())
     })
     .await
     .map_err(|e| e.to_string())?

@@ -179,7 +179,7 @@ impl Agent {
             started_at_ms: lekiwi_protocol::now_ms(),
         };
         let (status, advertiser) = status::start(&config, snapshot).await?;
-        let config_dir = config.state_dir.clone();
+        let agent_digest = running_build(&config.state_dir).await;
         Ok(Self {
             config,
             outbox,
@@ -205,7 +205,7 @@ impl Agent {
             progress_rx,
             pending_access: None,
             restart_for_update: false,
-            agent_digest: running_build(&config_dir).await,
+            agent_digest,
         })
     }
 

@@ -37,10 +37,10 @@ pub fn run(slots: &Slots, mode: Mode, now_ms: i64) -> Result<Option<FallenBack>,
         return Ok(None);
     }
     // The package binary is this guard's own: it runs here.
-    let unusable = (!pending.slot.is_empty())
+    let cannot_run = (!pending.slot.is_empty())
         .then(|| unusable(&slots.binary(&pending.slot)))
         .flatten();
-    let reason = if let Some(why) = unusable {
+    let reason = if let Some(why) = cannot_run {
         Some(why)
     } else if now_ms > pending.deadline_ms {
         Some(format!(

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::{Error, Slots, read_json};
+use super::{Slots, read_json};
 
 /// The package binary as it last ran: the build the service manager starts when `current` is
 /// absent.
@@ -72,14 +72,16 @@ pub fn file_digest(path: &Path) -> std::io::Result<String> {
     Ok(out)
 }
 
-/// [`file_digest`] of this process's own binary `exe`, read once per process (`lekiwi-fleet`
-/// runs hundreds of agents from one binary).
+/// [`file_digest`] of `exe`, the process's own binary, read once per process (`lekiwi-fleet`
+/// runs hundreds of agents from one binary); another path is read each time.
 fn exe_digest(exe: &Path) -> Option<String> {
-    static DIGEST: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
-    if cfg!(test) {
-        return file_digest(exe).ok();
+    static FIRST: std::sync::OnceLock<(PathBuf, Option<String>)> = std::sync::OnceLock::new();
+    let (path, digest) = FIRST.get_or_init(|| (exe.to_owned(), file_digest(exe).ok()));
+    if path == exe {
+        digest.clone()
+    } else {
+        file_digest(exe).ok()
     }
-    DIGEST.get_or_init(|| file_digest(exe).ok()).clone()
 }
 
 impl Slots {
@@ -122,11 +124,6 @@ impl Slots {
         self.current()?;
         let package = self.package().filter(|p| p.digest == digest)?;
         (file_digest(&package.path).ok().as_deref() == Some(digest)).then_some(LocalBuild::Package)
-    }
-
-    /// Switches `current` to `local`.
-    pub fn switch_local(&self, local: &LocalBuild) -> Result<(), Error> {
-        self.switch(local.slot())
     }
 }
 
