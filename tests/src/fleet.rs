@@ -6,7 +6,7 @@ use std::time::Duration;
 use anyhow::Result;
 use k8s_openapi::api::core::v1::Secret;
 use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
-use kube::api::PostParams;
+use kube::api::{Patch, PatchParams, PostParams};
 use kube::{Api, Client};
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy, UnavailablePolicy};
 use lekiwi_crds::{Robot, RobotDeployment, RobotPhase};
@@ -112,6 +112,42 @@ pub async fn create_robot(
     Ok(Api::<Robot>::namespaced(client.clone(), namespace)
         .create(&PostParams::default(), &robot)
         .await?)
+}
+
+/// Sets robot `name`'s `spec.release` to `release` (a `ReleaseRef` as JSON, or a hand-written
+/// one), by merge patch.
+pub async fn set_release(
+    client: &Client,
+    namespace: &str,
+    name: &str,
+    release: &Value,
+) -> Result<Robot> {
+    let patch = json!({"spec": {"release": release}});
+    Ok(Api::<Robot>::namespaced(client.clone(), namespace)
+        .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+        .await?)
+}
+
+/// Sets robot `name`'s `spec.agent` to `version` with the one build `arch`/`digest`; fails when
+/// the API server pruned the field (a CRD without it).
+pub async fn set_agent(
+    client: &Client,
+    namespace: &str,
+    name: &str,
+    version: &str,
+    arch: &str,
+    digest: &str,
+) -> Result<()> {
+    let agent = json!({"version": version, "builds": [{"arch": arch, "digest": digest}]});
+    let patch = json!({"spec": {"agent": agent}});
+    let robot = Api::<Robot>::namespaced(client.clone(), namespace)
+        .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+        .await?;
+    anyhow::ensure!(
+        robot.spec.agent.is_some(),
+        "the API server pruned spec.agent"
+    );
+    Ok(())
 }
 
 /// The gateway's WebSocket URL of an operator process.

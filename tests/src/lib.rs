@@ -37,7 +37,7 @@ pub use agent::{AgentProcess, connect_agent, heartbeat, hello, recv};
 pub use control_plane::{ControlPlane, namespace};
 pub use fleet::{
     create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot, robot_token,
-    rollout_finished, test_strategy, wait_online, wait_phase,
+    rollout_finished, set_agent, set_release, test_strategy, wait_online, wait_phase,
 };
 pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
@@ -126,6 +126,47 @@ pub fn push_release(
         version: version.into(),
         digest: String::from_utf8_lossy(&out.stdout).trim().to_owned(),
     })
+}
+
+/// Pushes the agent build `file` as `version` for `arch` with `kubectl lekiwi agent push`
+/// (over https:// when `ca` is given); its digest.
+pub fn push_agent(
+    kubeconfig: &Path,
+    namespace: &str,
+    server: &str,
+    ca: Option<&Path>,
+    file: &Path,
+    version: &str,
+    arch: &str,
+) -> Result<String> {
+    let mut cmd = Command::new(bin("kubectl-lekiwi"));
+    cmd.arg("--kubeconfig")
+        .arg(kubeconfig)
+        .args([
+            "-n",
+            namespace,
+            "agent",
+            "push",
+            "--version",
+            version,
+            "--arch",
+            arch,
+        ])
+        .arg(file)
+        .args(["--server", server])
+        .env_remove("LEKIWI_SERVER");
+    if let Some(ca) = ca {
+        cmd.arg("--certificate-authority").arg(ca);
+    }
+    let out = cmd.output()?;
+    let digest = String::from_utf8_lossy(&out.stdout).trim().to_owned();
+    if !out.status.success() || !digest.starts_with("sha256:") {
+        bail!(
+            "agent push of {version} failed: {digest}\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Ok(digest)
 }
 
 /// A directory for logs of processes a test starts, kept after the run for debugging.

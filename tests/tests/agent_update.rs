@@ -12,7 +12,6 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use kube::Api;
-use kube::api::{Patch, PatchParams};
 use lekiwi_crds::{AgentArch, Robot};
 use lekiwi_operator::gateway::event_store::{RobotKey, Store};
 use lekiwi_tests::supervisor::{SuperviseSpec, Supervised};
@@ -116,25 +115,16 @@ impl Fleet {
         let path = self.dir.path().join(name);
         std::fs::write(&path, script)?;
         std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755))?;
-        let out = std::process::Command::new(bin("kubectl-lekiwi"))
-            .arg("--kubeconfig")
-            .arg(self.cp.kubeconfig())
-            .args(["agent", "push", "--version", version, "--arch", arch()])
-            .arg(&path)
-            .args(["-n", &self.ns])
-            .args([
-                "--server",
-                &format!("http://127.0.0.1:{}", self.op.gateway_port),
-            ])
-            .env_remove("LEKIWI_SERVER")
-            .output()?;
-        let stdout = String::from_utf8_lossy(&out.stdout).trim().to_owned();
-        anyhow::ensure!(
-            out.status.success() && stdout.starts_with("sha256:"),
-            "agent push: {stdout}\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        Ok(stdout)
+        let server = format!("http://127.0.0.1:{}", self.op.gateway_port);
+        lekiwi_tests::push_agent(
+            &self.cp.kubeconfig(),
+            &self.ns,
+            &server,
+            None,
+            &path,
+            version,
+            arch(),
+        )
     }
 
     /// Sets `spec.agent` of robot `name`.
@@ -145,15 +135,7 @@ impl Fleet {
         arch: &str,
         digest: &str,
     ) -> anyhow::Result<()> {
-        let patch = json!({"spec": {"agent": {"version": version, "builds": [{"arch": arch, "digest": digest}]}}});
-        let robot = Api::<Robot>::namespaced(self.client.clone(), &self.ns)
-            .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
-            .await?;
-        anyhow::ensure!(
-            robot.spec.agent.is_some(),
-            "the API server pruned spec.agent"
-        );
-        Ok(())
+        lekiwi_tests::set_agent(&self.client, &self.ns, name, version, arch, digest).await
     }
 
     /// `status.agentDigest` of robot `name`.

@@ -605,24 +605,6 @@ fn packaged_agent_digest(deb: &Path) -> anyhow::Result<String> {
     ))
 }
 
-/// Sets kiwi-pi's `spec.agent` to `version` with its arm64 build `digest`.
-async fn desire_agent(
-    client: &Client,
-    ns: &str,
-    version: &str,
-    digest: &str,
-) -> anyhow::Result<()> {
-    let patch = json!({"spec": {"agent": {"version": version, "builds": [{"arch": "arm64", "digest": digest}]}}});
-    let robot = Api::<lekiwi_crds::Robot>::namespaced(client.clone(), ns)
-        .patch("kiwi-pi", &PatchParams::default(), &Patch::Merge(&patch))
-        .await?;
-    anyhow::ensure!(
-        robot.spec.agent.is_some(),
-        "the API server pruned spec.agent"
-    );
-    Ok(())
-}
-
 /// Waits until kiwi-pi's agent reports `version` and its update `Succeeded`; its status.
 async fn agent_on(
     client: &Client,
@@ -675,38 +657,24 @@ impl Site {
             &b_file,
             "#!/bin/sh\nLEKIWI_AGENT_VERSION_OVERRIDE=9.0.0-pi exec /usr/bin/lekiwi-agent \"$@\"\n",
         )?;
-        let out = Command::new(lekiwi_tests::bin("kubectl-lekiwi"))
-            .arg("--kubeconfig")
-            .arg(cp.kubeconfig())
-            .args([
-                "-n",
-                ns,
-                "agent",
-                "push",
-                "--version",
-                "9.0.0-pi",
-                "--arch",
-                "arm64",
-            ])
-            .arg(&b_file)
-            .args([
-                "--server",
-                &format!("https://127.0.0.1:{}", self.op.gateway_port),
-            ])
-            .arg("--certificate-authority")
-            .arg(&self.ca)
-            .env_remove("LEKIWI_SERVER")
-            .output()?;
-        let b_digest = String::from_utf8_lossy(&out.stdout).trim().to_owned();
-        anyhow::ensure!(out.status.success(), "agent push: {out:?}");
+        let server = format!("https://127.0.0.1:{}", self.op.gateway_port);
+        let b_digest = lekiwi_tests::push_agent(
+            &cp.kubeconfig(),
+            ns,
+            &server,
+            Some(&self.ca),
+            &b_file,
+            "9.0.0-pi",
+            "arm64",
+        )?;
         let t0 = Instant::now();
-        desire_agent(client, ns, "9.0.0-pi", &b_digest).await?;
+        lekiwi_tests::set_agent(client, ns, "kiwi-pi", "9.0.0-pi", "arm64", &b_digest).await?;
         let on_b = agent_on(client, ns, guest, "9.0.0-pi").await?;
         let to_b = t0.elapsed();
         assert_eq!(on_b.agent_digest.as_deref(), Some(b_digest.as_str()));
 
         let t1 = Instant::now();
-        desire_agent(client, ns, &a_version, &a_digest).await?;
+        lekiwi_tests::set_agent(client, ns, "kiwi-pi", &a_version, "arm64", &a_digest).await?;
         let on_a = agent_on(client, ns, guest, &a_version).await?;
         let to_a = t1.elapsed();
         assert_eq!(on_a.agent_digest.as_deref(), Some(a_digest.as_str()));

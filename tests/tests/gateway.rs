@@ -438,13 +438,7 @@ async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Res
     let enroll = enrollment_token(&client, &ns).await?;
     lekiwi_tests::create_robot(&client, &ns, "old-1", &[]).await?;
     let release = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
-    Api::<Robot>::namespaced(client.clone(), &ns)
-        .patch(
-            "old-1",
-            &PatchParams::default(),
-            &Patch::Merge(json!({"spec": {"release": release}})),
-        )
-        .await?;
+    lekiwi_tests::set_release(&client, &ns, "old-1", &release).await?;
     // Only the robot's own token may poll for it (an enrollment token gets 401: hostile_identity).
     let own = lekiwi_tests::robot_token(&client, &ns, "old-1").await?;
     let auth = format!("Bearer {own}");

@@ -30,13 +30,7 @@ async fn poll_with_the_enrollment_token_is_refused_and_fakes_nothing() -> anyhow
     let enroll = enrollment_token(&client, &ns).await?;
     create_robot(&client, &ns, "kiwi-1", &[]).await?;
     let release = json!({"version": "2.0.0", "digest": format!("sha256:{}", "b".repeat(64))});
-    Api::<Robot>::namespaced(client.clone(), &ns)
-        .patch(
-            "kiwi-1",
-            &PatchParams::default(),
-            &Patch::Merge(json!({"spec": {"release": release}})),
-        )
-        .await?;
+    lekiwi_tests::set_release(&client, &ns, "kiwi-1", &release).await?;
     let auth = format!("Bearer {enroll}");
     for path in [
         format!("/v1/poll?robot={ns}/kiwi-1&version=2.0.0&agent=forged"),

@@ -13,8 +13,7 @@ use std::time::Duration;
 use anyhow::{Context as _, Result, bail, ensure};
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
-use kube::api::{Patch, PatchParams};
-use lekiwi_crds::{Robot, RobotPhase, RobotStatus};
+use lekiwi_crds::{RobotPhase, RobotStatus};
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, bin, free_port, get_robot, http_request, log_dir, namespace,
     repo_root, wait_for,
@@ -165,13 +164,7 @@ async fn a_polling_robot_moves_to_the_agent_and_keeps_its_identity() -> Result<(
     let server = format!("http://127.0.0.1:{}", op.gateway_port);
     let release =
         lekiwi_tests::push_release(&cp.kubeconfig(), &ns, &server, None, &source, "2.0.0")?;
-    Api::<Robot>::namespaced(client.clone(), &ns)
-        .patch(
-            "old-1",
-            &PatchParams::default(),
-            &Patch::Merge(json!({"spec": {"release": release}})),
-        )
-        .await?;
+    lekiwi_tests::set_release(&client, &ns, "old-1", &json!(release)).await?;
 
     // The old poller polls; the robot is Online as a polling robot.
     let poller = Poller {
