@@ -71,6 +71,9 @@ pub fn trim_status(status: Option<RobotStatus>) -> Option<RobotStatus> {
         // The release a gateway last saw the robot run: a robot that reconnects on another one
         // tells a switch no gateway saw (`presence::analysis`).
         current_release: status.current_release,
+        // Whether a gateway wrote this status at all (the controller alone writes only a
+        // phase): `Tracker::at_connect` reads it before it counts `current_release` as seen.
+        last_heartbeat_time: status.last_heartbeat_time,
         // A switch's analysis window, while open, continues on whichever gateway the robot
         // reconnects to (`presence::analysis`).
         analysis: status
