@@ -75,14 +75,21 @@ marker() {
 source "$(dirname "${BASH_SOURCE[0]}")/procs.sh"
 
 # Waits until "$@" succeeds; dies naming $what (and the log of $proc) after $TIMEOUT seconds.
+# The last attempt's own output is printed too, and each step's time is logged (a slow step is
+# the first thing to look at when a CI machine's `up` fails).
 wait_for() {
-  local what="$1" proc="$2" deadline=$((SECONDS + TIMEOUT))
+  local what="$1" proc="$2" t0=$SECONDS deadline=$((SECONDS + TIMEOUT)) out
   shift 2
-  until "$@" >/dev/null 2>&1; do
-    [ -z "$proc" ] || still_running "$proc" || { tail_log "$proc" 40; die "$proc exited"; }
-    [ $SECONDS -lt $deadline ] || { [ -z "$proc" ] || tail_log "$proc" 40; die "$what: not after ${TIMEOUT}s"; }
+  until out=$("$@" 2>&1); do
+    [ -z "$proc" ] || still_running "$proc" || { tail_log "$proc" 40; die "$proc exited (waiting for: $what)"; }
+    if [ $SECONDS -ge $deadline ]; then
+      [ -z "$proc" ] || tail_log "$proc" 40
+      printf '[cluster] the last attempt printed:\n%s\n' "$(tail -n 20 <<<"$out")" >&2
+      die "$what: not after ${TIMEOUT}s"
+    fi
     sleep 0.3
   done
+  log "$what (at ${SECONDS}s, this step $((SECONDS - t0))s)"
 }
 
 # ---- state: ports, certificates, tokens, kubeconfigs (created once) -------------------------
@@ -432,8 +439,9 @@ start_node() {
   spawn containerd /usr/bin/containerd "$(marker containerd)"
   wait_for "containerd at $SOCK" containerd ctr --address "$SOCK" version
   [ -s "$PAUSE_TAR" ] || "$SCRIPT_DIR/image.sh" pause >&2 || die "no pause image at $PAUSE_TAR"
-  ctr --address "$SOCK" -n k8s.io images import "$PAUSE_TAR" >/dev/null \
-    || die "could not import $PAUSE_TAR into containerd"
+  # containerd answers `version` before every plugin (content store, snapshotter) is loaded.
+  wait_for "pause image imported into containerd" containerd \
+    ctr --address "$SOCK" -n k8s.io images import "$PAUSE_TAR"
   write_kubelet_config
   spawn kubelet "$K8S_DIR/kubelet" "$(marker kubelet)" --config="$STATE/kubelet.yaml" \
     --kubeconfig="$STATE/kubeconfigs/kubelet" --container-runtime=remote \
@@ -511,9 +519,11 @@ all_live() {
   for name in "${PROCS[@]}"; do live_pid "$name" >/dev/null || return 1; done
 }
 
+# Healthy = what `up` waits for, all of it: a cluster an interrupted `up` left half ready (the node
+# Ready, the basics not yet) is finished by the next `up`, never taken as done.
 healthy() {
   load_ports 2>/dev/null || return 1
-  all_live && apiserver_ready && node_ready
+  all_live && apiserver_ready && node_ready && basics_ready
 }
 
 # ---- up -------------------------------------------------------------------------------------
@@ -561,7 +571,8 @@ cmd_up() {
     log "starting containerd, kubelet and kube-proxy (node $NODE_NAME, $NODE_IP)"
     start_node
   fi
-  apply_storage
+  # Retried like a readiness step: /readyz can answer ok before every resource is served.
+  wait_for "StorageClass and PVs applied" kube-apiserver apply_storage
   wait_for "node $NODE_NAME Ready" kubelet node_ready
   wait_for "ServiceAccount token, kube-proxy sync, StorageClass" kube-proxy basics_ready
   recycle_pvs

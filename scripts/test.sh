@@ -28,6 +28,10 @@ bash scripts/control-plane.sh up
 eval "$(bash scripts/control-plane.sh env)"
 
 log "running tests"
+# A failing test ends its output with its own message (a cluster.sh failure prints the script's
+# log there), not with pages of stack frames that push the message out of CI's excerpt. Set
+# LEKIWI_TEST_BACKTRACE=1 for frames.
+export RUST_BACKTRACE="${LEKIWI_TEST_BACKTRACE:-0}" RUST_LIB_BACKTRACE=0
 # Tests that keep the CPU busy for long (emulated Pis, a whole cluster with Pods, image builds)
 # run after the others, one at a time, so they never starve the timing of the rest.
 HEAVY='binary_id(/^lekiwi-tests::(arm64|cluster|node|image)$/)'

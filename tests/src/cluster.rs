@@ -28,11 +28,17 @@ pub struct Cluster {
 
 impl Cluster {
     /// The cluster shared by every test (`cluster.sh up`: a no-op when it is already healthy).
-    /// Panics with the script's output when the node cannot run: a test never skips silently.
+    /// A failed `up` is printed and tried once more (it resumes where it stopped: a first start
+    /// on a CI machine that restored a stopped cluster's state once failed and left a cluster
+    /// the next test found healthy). Panics with the script's output when the node still cannot
+    /// run: a test never skips silently.
     pub fn shared() -> &'static Cluster {
         static SHARED: OnceLock<Cluster> = OnceLock::new();
         SHARED.get_or_init(|| {
-            script(&["up"]).expect("scripts/cluster.sh up");
+            if let Err(first) = script(&["up"]) {
+                eprintln!("{first:#}\nscripts/cluster.sh up failed once; trying again");
+                script(&["up"]).expect("scripts/cluster.sh up, the second time");
+            }
             let env = String::from_utf8_lossy(&script(&["env"]).expect("cluster.sh env").stdout)
                 .into_owned();
             let var = |name: &str| {
