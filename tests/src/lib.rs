@@ -8,6 +8,7 @@
 //! [`pi`].
 
 pub mod agent;
+pub mod agent_fleet;
 pub mod browser;
 pub mod cluster;
 pub mod control_plane;
