@@ -158,11 +158,21 @@ pub fn summary_line(d: &RobotDeployment) -> String {
 /// quote robots: control characters escaped).
 pub fn report(d: &RobotDeployment) -> String {
     let st = d.status.clone().unwrap_or_default();
+    let target = match (&d.spec.release, &d.spec.agent) {
+        (Some(r), _) => format!("{} → {}", r.version, r.digest),
+        (None, Some(a)) => {
+            let builds: Vec<String> = a
+                .builds
+                .iter()
+                .map(|b| format!("{} {}", b.arch.as_str(), b.digest))
+                .collect();
+            format!("agent {} → {}", a.version, builds.join(", "))
+        }
+        (None, None) => "nothing (set spec.release or spec.agent)".to_owned(),
+    };
     let mut out = format!(
-        "robotdeployment/{}: {} → {}\n{}\n",
+        "robotdeployment/{}: {target}\n{}\n",
         d.name_any(),
-        d.spec.release.version,
-        d.spec.release.digest,
         summary_line(d)
     );
     let busy: Vec<_> = st

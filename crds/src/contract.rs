@@ -97,6 +97,9 @@ pub mod managers {
     pub const ROBOT_CONTROLLER: &str = "lekiwi-robot-controller";
     /// The RobotDeployment controller's rollouts: `Robot.spec.release` and the rollout mark.
     pub const ROLLOUT: &str = "lekiwi-rollout";
+    /// The RobotDeployment controller's agent rollouts: `Robot.spec.agent` and the agent
+    /// rollout mark.
+    pub const AGENT_ROLLOUT: &str = "lekiwi-agent-rollout";
     /// The RobotDeployment controller: `RobotDeployment.status`.
     pub const DEPLOYMENT_STATUS: &str = "lekiwi-deployment-controller";
     /// `kubectl lekiwi`: tokens and rollout actions.

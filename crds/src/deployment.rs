@@ -1,4 +1,5 @@
-//! The `RobotDeployment` resource: roll one release out to the robots a selector picks.
+//! The `RobotDeployment` resource: roll one release (or one `lekiwi-agent` version) out to the
+//! robots a selector picks.
 
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, Time};
 use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
@@ -6,7 +7,9 @@ use kube::CustomResource;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use crate::agent::AgentRef;
 use crate::condition::Condition;
+use crate::contract::managers;
 use crate::release::ReleaseRef;
 
 /// Annotation on a RobotDeployment whose change restarts the rollout from its first batch
@@ -15,14 +18,18 @@ pub const RESTART_ANNOTATION: &str = "fleet.lekiwi.io/restartedAt";
 /// Annotation on a RobotDeployment, an RFC 3339 time, asking to roll every robot it updated back
 /// to the release it ran before (`kubectl lekiwi rollout undo`).
 pub const UNDO_ANNOTATION: &str = "fleet.lekiwi.io/undoRequestedAt";
-/// Annotation on a Robot holding, as JSON, its state in the rollout that last touched it.
+/// Annotation on a Robot holding, as JSON, its state in the release rollout that last touched it.
 pub const MARK_ANNOTATION: &str = "fleet.lekiwi.io/rollout";
+/// The same for agent rollouts (deployments with `spec.agent`): a robot's release and agent
+/// rollouts keep separate marks, so neither overwrites the other's.
+pub const AGENT_MARK_ANNOTATION: &str = "fleet.lekiwi.io/agent-rollout";
 
 /// Most per-robot results kept in status; the event store keeps the full history.
 pub const MAX_ROBOT_RESULTS: usize = 500;
 
-/// Rolls a release out to the robots a label selector picks, batch by batch, skipping robots
-/// that are teleoperated, offline or unhealthy, and rolling back when a batch fails.
+/// Rolls a release (or a `lekiwi-agent` version) out to the robots a label selector picks,
+/// batch by batch, skipping robots that are teleoperated, offline or unhealthy, and rolling back
+/// when a batch fails.
 #[derive(CustomResource, Clone, Debug, Deserialize, Serialize, JsonSchema, PartialEq)]
 #[kube(
     group = "fleet.lekiwi.io",
@@ -34,8 +41,9 @@ pub const MAX_ROBOT_RESULTS: usize = 500;
     namespaced,
     status = "RobotDeploymentStatus",
     derive = "PartialEq",
-    doc = "Rolls a release out to the robots a label selector picks, in batches, with automatic rollback.",
+    doc = "Rolls a release (or a lekiwi-agent version) out to the robots a label selector picks, in batches, with automatic rollback.",
     printcolumn = r#"{"name":"Release","type":"string","jsonPath":".spec.release.version"}"#,
+    printcolumn = r#"{"name":"Agent","type":"string","jsonPath":".spec.agent.version"}"#,
     printcolumn = r#"{"name":"Phase","type":"string","jsonPath":".status.phase"}"#,
     printcolumn = r#"{"name":"Progress","type":"string","jsonPath":".status.progress"}"#,
     printcolumn = r#"{"name":"Batch","type":"string","jsonPath":".status.batchProgress","priority":1}"#,
@@ -45,13 +53,27 @@ pub const MAX_ROBOT_RESULTS: usize = 500;
     printcolumn = r#"{"name":"Age","type":"date","jsonPath":".metadata.creationTimestamp"}"#
 )]
 #[serde(rename_all = "camelCase")]
+#[schemars(extend("oneOf" = [{"required": ["release"]}, {"required": ["agent"]}]))]
 pub struct RobotDeploymentSpec {
     /// Which robots of this namespace to update, by label. An empty selector (`{}`) selects
     /// every robot of the namespace.
     pub selector: LabelSelector,
 
-    /// The release to roll out.
-    pub release: ReleaseRef,
+    /// The release to roll out. Exactly one of `release` and `agent` is set.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub release: Option<ReleaseRef>,
+
+    /// The `lekiwi-agent` version to roll out instead of a release (the builds pushed with
+    /// `kubectl lekiwi agent push`). Each started robot gets it in its `spec.agent`, installs the
+    /// build for its own architecture beside the running agent and restarts into it; a new
+    /// agent that does not come back is undone by the robot itself and counts as failed.
+    /// Rolling back sets each updated robot's `spec.agent` to the version and digest it ran
+    /// before, which it switches back to from its own disk. Robots whose architecture has no
+    /// build are skipped with that reason. Agent and release rollouts of a robot are
+    /// independent: each kind only competes with deployments of its own kind for a robot.
+    /// `analysis` applies to releases only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub agent: Option<AgentRef>,
 
     /// How fast to go and when to stop.
     #[serde(default)]
@@ -80,6 +102,55 @@ pub struct RobotDeploymentSpec {
 
 fn is_zero(n: &i32) -> bool {
     *n == 0
+}
+
+/// What a RobotDeployment rolls out: a release (`spec.release`) or an agent (`spec.agent`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RolloutKind {
+    /// A software release of the robot's own programs.
+    Release,
+    /// A `lekiwi-agent` version.
+    Agent,
+}
+
+impl RolloutKind {
+    /// The Robot annotation holding a robot's mark in rollouts of this kind.
+    pub fn mark_annotation(self) -> &'static str {
+        match self {
+            RolloutKind::Release => MARK_ANNOTATION,
+            RolloutKind::Agent => AGENT_MARK_ANNOTATION,
+        }
+    }
+
+    /// The field manager of this kind's Robot writes (`spec.release` or `spec.agent`, and the
+    /// mark): separate, so applying one never drops the field the other owns.
+    pub fn manager(self) -> &'static str {
+        match self {
+            RolloutKind::Release => managers::ROLLOUT,
+            RolloutKind::Agent => managers::AGENT_ROLLOUT,
+        }
+    }
+}
+
+impl RobotDeploymentSpec {
+    /// What this deployment rolls out; `agent` only when it alone is set (a spec with both or
+    /// neither is refused by the controller, and by the API server's schema).
+    pub fn kind(&self) -> RolloutKind {
+        if self.release.is_none() && self.agent.is_some() {
+            RolloutKind::Agent
+        } else {
+            RolloutKind::Release
+        }
+    }
+
+    /// What is rolled out, in words: `release 1.2.0` or `agent 0.3.0`.
+    pub fn what(&self) -> String {
+        match (&self.release, &self.agent) {
+            (Some(r), _) => format!("release {}", r.version),
+            (None, Some(a)) => format!("agent {}", a.version),
+            (None, None) => "nothing".to_owned(),
+        }
+    }
 }
 
 /// What to do with a robot that cannot be updated right now.

@@ -562,7 +562,7 @@ function rolloutCard(d, refresh) {
       { class: 'head' },
       el('strong', { text: name }),
       el('span', { class: 'badge phase-' + rolloutColour(st.phase), text: st.phase || 'Pending' }),
-      el('span', { text: 'release ' + ((d.spec.release && d.spec.release.version) || '?') }),
+      el('span', { text: d.spec.agent && !d.spec.release ? 'agent ' + d.spec.agent.version : 'release ' + ((d.spec.release && d.spec.release.version) || '?') }),
       el('span', { class: 'muted', text: (st.progress || '') + (st.totalBatches ? ' · batch ' + (st.currentBatch || 0) + '/' + st.totalBatches : '') }),
       el('span', { class: 'actions' }, d.spec.paused ? act('resume', 'Resume') : act('pause', 'Pause'), act('undo', 'Undo')),
     ),

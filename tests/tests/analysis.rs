@@ -148,7 +148,8 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         "fleet",
         RobotDeploymentSpec {
             selector: LabelSelector::default(),
-            release: v1.clone(),
+            release: Some(v1.clone()),
+            agent: None,
             strategy: test_strategy(ROBOTS.len() as i32, 0),
             paused: false,
             analysis: Some(analysis(8)),

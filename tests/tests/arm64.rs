@@ -174,7 +174,8 @@ fn release(root: &Path, tag: &str, failing: bool) -> anyhow::Result<std::path::P
 async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> anyhow::Result<()> {
     let spec = RobotDeploymentSpec {
         selector: LabelSelector::default(),
-        release: release.clone(),
+        release: Some(release.clone()),
+        agent: None,
         strategy: test_strategy(1, 0),
         paused: false,
         analysis: None,

@@ -220,7 +220,8 @@ impl Install {
         } else {
             let spec = RobotDeploymentSpec {
                 selector: LabelSelector::default(),
-                release: release.clone(),
+                release: Some(release.clone()),
+                agent: None,
                 strategy: test_strategy(2, 1),
                 paused: false,
                 analysis: None,

@@ -53,7 +53,8 @@ async fn deploy(client: &Client, ns: &str, release: &ReleaseRef) -> Result<()> {
         "demo",
         RobotDeploymentSpec {
             selector: LabelSelector::default(),
-            release: release.clone(),
+            release: Some(release.clone()),
+            agent: None,
             strategy: test_strategy(2, 1),
             paused: false,
             analysis: None,

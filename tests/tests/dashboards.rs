@@ -342,7 +342,8 @@ async fn every_dashboard_panel_returns_data_from_a_real_prometheus() -> anyhow::
                 "fleet",
                 RobotDeploymentSpec {
                     selector,
-                    release: v1,
+                    release: Some(v1),
+                    agent: None,
                     strategy: test_strategy(3, 1),
                     paused: false,
                     analysis: None,

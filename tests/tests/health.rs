@@ -125,7 +125,8 @@ async fn a_dead_host_process_makes_the_robot_unhealthy_and_a_rollout_waits() -> 
         "fleet",
         RobotDeploymentSpec {
             selector: LabelSelector::default(),
-            release: v1.clone(),
+            release: Some(v1.clone()),
+            agent: None,
             strategy: test_strategy(1, 0),
             paused: false,
             analysis: None,

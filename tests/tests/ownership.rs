@@ -67,7 +67,8 @@ impl Site {
             name,
             RobotDeploymentSpec {
                 selector,
-                release: release.clone(),
+                release: Some(release.clone()),
+                agent: None,
                 strategy: test_strategy(ROBOTS as i32, 0),
                 paused: false,
                 priority: 0,

@@ -113,6 +113,19 @@ async fn crds_and_examples_apply_and_explain_reads_like_docs() -> anyhow::Result
 /// Each invalid object, and the words the API server must use to refuse it.
 const INVALID: &[(&str, &str, &str)] = &[
     (
+        "a deployment of a release and an agent at once",
+        r#"{"apiVersion":"fleet.lekiwi.io/v1alpha1","kind":"RobotDeployment","metadata":{"name":"bad-both"},
+            "spec":{"selector":{},"release":{"version":"1.0.0","digest":"sha256:0000000000000000000000000000000000000000000000000000000000000000"},
+            "agent":{"version":"0.3.0","builds":[{"arch":"arm64","digest":"sha256:0000000000000000000000000000000000000000000000000000000000000000"}]}}}"#,
+        "must validate one and only one schema (oneOf)",
+    ),
+    (
+        "a deployment of nothing",
+        r#"{"apiVersion":"fleet.lekiwi.io/v1alpha1","kind":"RobotDeployment","metadata":{"name":"bad-none"},
+            "spec":{"selector":{}}}"#,
+        "must validate one and only one schema (oneOf)",
+    ),
+    (
         "negative batch size",
         r#"{"apiVersion":"fleet.lekiwi.io/v1alpha1","kind":"RobotDeployment","metadata":{"name":"bad-batch"},
             "spec":{"selector":{},"release":{"version":"1.0.0","digest":"sha256:0000000000000000000000000000000000000000000000000000000000000000"},

@@ -72,7 +72,8 @@ impl Site {
             name,
             RobotDeploymentSpec {
                 selector,
-                release: release.clone(),
+                release: Some(release.clone()),
+                agent: None,
                 strategy,
                 paused: false,
                 analysis: None,

@@ -1,6 +1,6 @@
 //! Client steps of the RobotDeployment controller: write the planned robots (mark plus
-//! `spec.release`, by server-side apply under the rollout's own field manager), apply the
-//! status, and publish the planned Events.
+//! `spec.release`, or `spec.agent` for agent rollouts, by server-side apply under the rollout
+//! kind's own field manager), apply the status, and publish the planned Events.
 
 use std::collections::BTreeMap;
 
@@ -9,21 +9,23 @@ use kube::api::{Patch, PatchParams};
 use kube::runtime::events::{Event, EventType, Recorder};
 use kube::{Api, Resource};
 use lekiwi_crds::contract::managers;
-use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment};
+use lekiwi_crds::deployment::RolloutKind;
+use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, ReleaseRef, Robot, RobotDeployment};
 use serde_json::json;
 use tracing::{debug, info, warn};
 
-use super::plan::{Facts, MARK_ANNOTATION, Mark, Plan, PlannedEvent};
+use super::plan::{Facts, Mark, Plan, PlannedEvent, RobotView};
 use crate::controller::apply_status;
 use crate::error::{Error, Result};
 
 /// Robot writes in flight at once.
 const WRITE_CONCURRENCY: usize = 16;
 
-/// One robot as this reconcile wrote it: its name, the mark annotation's text and the
+/// One robot as this reconcile wrote it: its name, the mark annotation's key and text, and the
 /// resourceVersion the API server gave the write.
 pub(super) struct Written {
     pub robot: String,
+    pub key: &'static str,
     pub mark: String,
     pub resource_version: Option<String>,
 }
@@ -31,33 +33,31 @@ pub(super) struct Written {
 /// Writes every planned robot, a few at a time; fails with the first error after trying all.
 pub(super) async fn write_robots(
     client: &kube::Client,
-    namespace: &str,
+    deployment: &RobotDeployment,
     facts: &Facts,
     plan: &Plan,
 ) -> Result<Vec<Written>> {
-    let robots: Api<Robot> = Api::namespaced(client.clone(), namespace);
-    let desired: BTreeMap<&str, Option<&ReleaseRef>> = facts
-        .robots
-        .iter()
-        .map(|r| (r.name.as_str(), r.desired.as_ref()))
-        .collect();
-    let jobs: Vec<(String, Mark, Option<ReleaseRef>)> = plan
+    let namespace = deployment.metadata.namespace.clone().unwrap_or_default();
+    let robots: Api<Robot> = Api::namespaced(client.clone(), &namespace);
+    let kind = deployment.spec.kind();
+    let views: BTreeMap<&str, &RobotView> =
+        facts.robots.iter().map(|r| (r.name.as_str(), r)).collect();
+    let jobs: Vec<(String, Mark, Option<serde_json::Value>)> = plan
         .writes
         .iter()
         .map(|w| {
-            // Keep owning `spec.release` even for a mark-only write: server-side apply
-            // would otherwise drop the field this manager set earlier.
-            let release = w
-                .release
-                .clone()
-                .or_else(|| desired.get(w.robot.as_str()).copied().flatten().cloned());
-            (w.robot.clone(), w.mark.clone(), release)
+            let view = views.get(w.robot.as_str()).copied();
+            let spec = match kind {
+                RolloutKind::Release => release_spec(w.release.as_ref(), view),
+                RolloutKind::Agent => agent_spec(w.release.as_ref(), view, facts, deployment),
+            };
+            (w.robot.clone(), w.mark.clone(), spec)
         })
         .collect();
     let results: Vec<Result<Written>> = futures::stream::iter(jobs)
-        .map(|(robot, mark, release)| {
+        .map(|(robot, mark, spec)| {
             let robots = robots.clone();
-            async move { write_robot(&robots, &robot, &mark, release.as_ref()).await }
+            async move { write_robot(&robots, kind, &robot, &mark, spec).await }
         })
         .buffer_unordered(WRITE_CONCURRENCY)
         .collect()
@@ -69,25 +69,73 @@ pub(super) async fn write_robots(
     results.into_iter().collect()
 }
 
+/// The Robot `spec` of a release rollout's write: the planned release, else (a mark-only
+/// write) the one it has, so that server-side apply keeps this manager owning `spec.release`
+/// instead of dropping it.
+fn release_spec(
+    planned: Option<&ReleaseRef>,
+    view: Option<&RobotView>,
+) -> Option<serde_json::Value> {
+    let release = planned.or_else(|| view.and_then(|v| v.desired.as_ref()))?;
+    Some(json!({ "release": release }))
+}
+
+/// The Robot `spec` of an agent rollout's write: the deployment's `spec.agent` when the robot
+/// is started; the version and digest it ran before, as a build of its own architecture, when
+/// it is rolled back (it switches to that build from its own disk); else the `spec.agent` it
+/// has, kept owned like [`release_spec`] keeps `spec.release`.
+fn agent_spec(
+    planned: Option<&ReleaseRef>,
+    view: Option<&RobotView>,
+    facts: &Facts,
+    deployment: &RobotDeployment,
+) -> Option<serde_json::Value> {
+    let agent = match planned {
+        Some(target) if *target == facts.target => deployment.spec.agent.clone()?,
+        Some(previous) => {
+            // The digest names one file, so both architectures may name it when the robot's
+            // own is unknown: the robot finds it on its disk whichever it is.
+            let arches = match view.and_then(|v| v.arch) {
+                Some(arch) => vec![arch],
+                None => vec![AgentArch::Amd64, AgentArch::Arm64],
+            };
+            AgentRef {
+                version: previous.version.clone(),
+                builds: arches
+                    .into_iter()
+                    .map(|arch| AgentBuild {
+                        arch,
+                        digest: previous.digest.clone(),
+                    })
+                    .collect(),
+            }
+        }
+        None => view.and_then(|v| v.desired_agent.clone())?,
+    };
+    Some(json!({ "agent": agent }))
+}
+
 async fn write_robot(
     api: &Api<Robot>,
+    kind: RolloutKind,
     name: &str,
     mark: &Mark,
-    release: Option<&ReleaseRef>,
+    spec: Option<serde_json::Value>,
 ) -> Result<Written> {
     let text = serde_json::to_string(mark).unwrap_or_default();
+    let key = kind.mark_annotation();
     let mut patch = json!({
         "apiVersion": "fleet.lekiwi.io/v1alpha1",
         "kind": "Robot",
-        "metadata": { "annotations": { MARK_ANNOTATION: &text } },
+        "metadata": { "annotations": { key: &text } },
     });
-    if let Some(release) = release {
-        patch["spec"] = json!({ "release": release });
+    if let Some(spec) = &spec {
+        patch["spec"] = spec.clone();
     }
     let robot = api
         .patch(
             name,
-            &PatchParams::apply(managers::ROLLOUT).force(),
+            &PatchParams::apply(kind.manager()).force(),
             &Patch::Apply(&patch),
         )
         .await
@@ -95,9 +143,10 @@ async fn write_robot(
             object: name.to_owned(),
             source,
         })?;
-    debug!(robot = %name, state = ?mark.state, batch = mark.batch, release = ?release.map(|r| r.version.as_str()), "robot written");
+    debug!(robot = %name, state = ?mark.state, batch = mark.batch, ?spec, "robot written");
     Ok(Written {
         robot: name.to_owned(),
+        key,
         mark: text,
         resource_version: robot.metadata.resource_version,
     })

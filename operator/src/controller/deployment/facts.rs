@@ -10,11 +10,13 @@ use std::time::Duration;
 use jiff::{SignedDuration, Timestamp};
 use kube::ResourceExt;
 use kube::core::{DeserializeGuard, Selector, SelectorExt};
-use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotPhase};
+use lekiwi_crds::deployment::RolloutKind;
+use lekiwi_crds::{AgentArch, AgentRef, ReleaseRef, Robot, RobotDeployment, RobotPhase};
+use lekiwi_protocol::ProgressPhase;
 use lekiwi_protocol::release::{ReleaseManifest, digest_hex};
 
 use super::State;
-use super::plan::{Facts, MARK_ANNOTATION, Mark, Overlap, ReleaseCheck, RobotView};
+use super::plan::{Facts, Mark, Overlap, ReleaseCheck, RobotView};
 use crate::error::{Error, Result};
 
 /// The facts for one plan of `deployment`, or None when its selector cannot be evaluated.
@@ -32,28 +34,132 @@ pub(super) async fn gather(
     let (overlaps, active_deployments) = overlaps(state, deployment, &all_robots, &ours);
     let config = &state.ctx.config;
     let blob_dir = config.blob_dir.clone();
-    let release = deployment.spec.release.clone();
+    let spec = deployment.spec.clone();
     // Reading the manifest and probing every blob is file I/O: keep it off the async workers.
     let release = tokio::task::spawn_blocking(move || {
-        check_release(blob_dir.is_dir().then_some(blob_dir.as_path()), &release)
+        check_spec(blob_dir.is_dir().then_some(blob_dir.as_path()), &spec)
     })
     .await
     .map_err(|_| Error::TaskStopped("release check"))?;
     let grace = Duration::from_secs(config.heartbeat_grace_seconds);
     let mut owners = super::ownership::superseded(&state.deployments, deployment, &ours);
+    let target = target(&deployment.spec);
+    let agent = deployment.spec.agent.as_ref();
+    let kind = deployment.spec.kind();
     Ok(Some(Facts {
         now,
         robots: ours
             .iter()
-            .map(|r| RobotView {
-                superseded_by: owners.remove(&r.name_any()),
-                ..view(r, now, grace)
+            .map(|r| {
+                let view = RobotView {
+                    superseded_by: owners.remove(&r.name_any()),
+                    ..view(r, now, grace, kind)
+                };
+                match (kind, agent) {
+                    (RolloutKind::Agent, Some(agent)) => agent_view(view, r, agent, &target),
+                    _ => view,
+                }
             })
             .collect(),
+        target,
         release,
         overlaps,
         active_deployments,
     }))
+}
+
+/// What a deployment moves robots to, as the reference the planner compares and keys its
+/// rollout id on: the release, or for an agent rollout the agent's version with a digest over
+/// its builds (an identity, not a blob: pushing other builds of a version makes a new rollout).
+pub(super) fn target(spec: &lekiwi_crds::RobotDeploymentSpec) -> ReleaseRef {
+    use sha2::Digest;
+    match (&spec.release, &spec.agent) {
+        (Some(release), _) => release.clone(),
+        (None, Some(agent)) => {
+            let mut h = sha2::Sha256::new();
+            h.update(b"lekiwi-agent\0");
+            h.update(agent.version.as_bytes());
+            let mut builds: Vec<(&str, &str)> = agent
+                .builds
+                .iter()
+                .map(|b| (b.arch.as_str(), b.digest.as_str()))
+                .collect();
+            builds.sort_unstable();
+            for (arch, digest) in builds {
+                h.update(format!("\0{arch}={digest}").as_bytes());
+            }
+            ReleaseRef {
+                version: agent.version.clone(),
+                digest: format!("sha256:{}", hex::encode(h.finalize())),
+            }
+        }
+        (None, None) => ReleaseRef::default(),
+    }
+}
+
+/// A robot as an agent rollout sees it: it runs the target when it reports the target's agent
+/// version (the gateway's own rule for `spec.agent`), else the version and digest it reports
+/// (its rollback target; unknown without a digest); `status.agentUpdate` is its update report;
+/// a robot whose architecture has no build is left out, with that reason.
+pub(super) fn agent_view(
+    view: RobotView,
+    robot: &Robot,
+    agent: &AgentRef,
+    target: &ReleaseRef,
+) -> RobotView {
+    let status = robot.status.as_ref();
+    let version = status.and_then(|s| s.agent_version.clone());
+    let current = match (version, status.and_then(|s| s.agent_digest.clone())) {
+        (Some(v), _) if v == agent.version => Some(target.clone()),
+        (Some(version), Some(digest)) => Some(ReleaseRef { version, digest }),
+        _ => None,
+    };
+    let machine = status.and_then(|s| s.system.as_ref()?.arch.clone());
+    let arch = machine.as_deref().and_then(AgentArch::of_machine);
+    let no_build = match (&machine, arch) {
+        (Some(m), None) => Some(format!(
+            "skipped: no agent builds exist for architecture {m}"
+        )),
+        (_, Some(a)) if agent.build_for(a).is_none() => Some(format!(
+            "skipped: agent {} has no {} build",
+            agent.version,
+            a.as_str()
+        )),
+        _ => None,
+    };
+    let last_update = status
+        .and_then(|s| s.agent_update.clone())
+        .filter(|u| u.version.as_deref() == Some(agent.version.as_str()))
+        .and_then(|u| {
+            let phase = agent_update_phase(u.phase.as_deref()?);
+            Some((
+                target.clone(),
+                phase.as_str().to_owned(),
+                u.message,
+                u.time.map(|t| t.0),
+            ))
+        });
+    RobotView {
+        desired: None,
+        desired_agent: robot.spec.agent.clone(),
+        arch,
+        no_build,
+        current,
+        last_update,
+        analysis: None,
+        ..view
+    }
+}
+
+/// The release-update phase an agent update's phase (`status.agentUpdate.phase`) counts as:
+/// `Succeeded` is done; `Failed`, `FallenBack`, `Unavailable` and `Unsupported` are failures;
+/// `Sent` and `Started` are in progress.
+fn agent_update_phase(phase: &str) -> ProgressPhase {
+    match phase {
+        "Succeeded" => ProgressPhase::Done,
+        "Failed" | "FallenBack" | "Unavailable" | "Unsupported" => ProgressPhase::Failed,
+        _ => ProgressPhase::Switching,
+    }
 }
 
 fn selector(deployment: &RobotDeployment) -> Option<Selector> {
@@ -93,7 +199,10 @@ fn overlaps(
     let mut active = vec![name.clone()];
     for guard in state.deployments.state() {
         let Ok(other) = &guard.0 else { continue };
-        if other.namespace().as_deref() != Some(namespace.as_str()) || other.name_any() == name {
+        if other.namespace().as_deref() != Some(namespace.as_str())
+            || other.name_any() == name
+            || other.spec.kind() != deployment.spec.kind()
+        {
             continue;
         }
         if !is_active(&guard) {
@@ -137,7 +246,7 @@ pub(super) fn is_active(guard: &DeserializeGuard<RobotDeployment>) -> bool {
         )
     });
     let key = super::plan::rollout_id(
-        &d.spec.release,
+        &target(&d.spec),
         d.annotations()
             .get(super::plan::RESTART_ANNOTATION)
             .map(String::as_str),
@@ -146,7 +255,7 @@ pub(super) fn is_active(guard: &DeserializeGuard<RobotDeployment>) -> bool {
 }
 
 /// What a rollout needs to know about one robot.
-fn view(robot: &Robot, now: Timestamp, grace: Duration) -> RobotView {
+fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: RolloutKind) -> RobotView {
     let status = robot.status.clone().unwrap_or_default();
     // `phase` is the Robot controller's verdict, which may lag (e.g. right after an operator
     // restart); a rollout only counts a robot Online with a live connection and a fresh heartbeat.
@@ -171,11 +280,49 @@ fn view(robot: &Robot, now: Timestamp, grace: Duration) -> RobotView {
             .and_then(|u| Some((u.release?, u.phase?, u.message, u.time.map(|t| t.0)))),
         mark: robot
             .annotations()
-            .get(MARK_ANNOTATION)
+            .get(kind.mark_annotation())
             .and_then(|m| serde_json::from_str::<Mark>(m).ok()),
         analysis: status.analysis,
         superseded_by: None,
+        ..RobotView::default()
     }
+}
+
+/// Checks what a deployment rolls out: exactly one of `release` and `agent`; a release against
+/// the blob store ([`check_release`]); an agent's builds present in it, and no `analysis`.
+/// Blocking file I/O: call it from `spawn_blocking`.
+pub fn check_spec(
+    blob_dir: Option<&Path>,
+    spec: &lekiwi_crds::RobotDeploymentSpec,
+) -> ReleaseCheck {
+    match (&spec.release, &spec.agent) {
+        (Some(release), None) => check_release(blob_dir, release),
+        (None, Some(_)) if spec.analysis.is_some() => ReleaseCheck::Invalid(
+            "spec.analysis watches a release's host process and does not apply to agent rollouts: remove it".to_owned(),
+        ),
+        (None, Some(agent)) => check_agent(blob_dir, agent),
+        _ => ReleaseCheck::Invalid("set exactly one of spec.release and spec.agent".to_owned()),
+    }
+}
+
+/// Every build of the agent is in the blob store.
+fn check_agent(blob_dir: Option<&Path>, agent: &AgentRef) -> ReleaseCheck {
+    let Some(dir) = blob_dir else {
+        return ReleaseCheck::Unchecked;
+    };
+    for build in &agent.builds {
+        let present =
+            digest_hex(&build.digest).is_ok_and(|hex| dir.join("sha256").join(hex).is_file());
+        if !present {
+            return ReleaseCheck::Invalid(format!(
+                "the {} build of agent {} ({}) is not in the blob store: push it with `kubectl lekiwi agent push`",
+                build.arch.as_str(),
+                agent.version,
+                build.digest
+            ));
+        }
+    }
+    ReleaseCheck::Valid
 }
 
 /// Checks the release against the blob store: the manifest exists, parses, names the same

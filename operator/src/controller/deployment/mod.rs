@@ -5,6 +5,8 @@
 
 mod apply;
 mod facts;
+#[cfg(test)]
+mod facts_tests;
 pub mod metrics;
 mod ownership;
 pub mod plan;
@@ -142,7 +144,7 @@ async fn reconcile(
         ownership::wake_rivals(&state.deployments, &state.wake, deployment);
         let plan = plan::plan(deployment, &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
-        let written = apply::write_robots(&ctx.client, &namespace, &facts, &plan).await?;
+        let written = apply::write_robots(&ctx.client, deployment, &facts, &plan).await?;
         let status_version = apply::update_status(&ctx.client, deployment, &plan).await?;
         apply::publish_events(&ctx.recorder, deployment, &plan.events).await;
         let own = OwnWrites {
@@ -193,7 +195,7 @@ impl OwnWrites<'_> {
                 let key = ObjectRef::new(&w.robot).within(namespace);
                 state.robots.get(&key).is_none_or(|r| {
                     r.resource_version() == w.resource_version
-                        || r.annotations().get(plan::MARK_ANNOTATION) == Some(&w.mark)
+                        || r.annotations().get(w.key) == Some(&w.mark)
                 })
             })
     }

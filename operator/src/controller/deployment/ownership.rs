@@ -1,7 +1,8 @@
 //! Who owns a robot that several RobotDeployments of its namespace select: the one with the
 //! highest `spec.priority`, and among equal priorities the newest (latest creation time, then
 //! the greater name). Every other deployment that selects it leaves it alone and shows it
-//! `Superseded`. Ownership follows from the deployments alone (their selectors, priorities and
+//! `Superseded`. Release and agent deployments (`spec.agent`) never compete: each kind owns a
+//! robot apart from the other. Ownership follows from the deployments alone (their selectors, priorities and
 //! ages), not from what any rollout did, so it never flips back and forth.
 
 use std::collections::BTreeMap;
@@ -41,6 +42,7 @@ pub(super) fn superseded(
         .iter()
         .filter_map(|g| g.0.as_ref().ok())
         .filter(|d| d.namespace() == namespace && d.name_any() != deployment.name_any())
+        .filter(|d| d.spec.kind() == deployment.spec.kind())
         .filter(|d| d.metadata.deletion_timestamp.is_none())
         .filter(|d| rank(d) > mine)
         .filter_map(|d| Some((rank(d), Selector::try_from(d.spec.selector.clone()).ok()?)))

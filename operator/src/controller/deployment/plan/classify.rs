@@ -164,6 +164,9 @@ fn classify(robot: &RobotView, rollout: &Rollout<'_>) -> RobotState {
         if robot.runs(rollout.target) && robot.healthy {
             return RobotState::Updated;
         }
+        if let Some(why) = &robot.no_build {
+            return RobotState::Skipped(-1, why.clone());
+        }
         return RobotState::Pending;
     };
     let batch = mark.batch;

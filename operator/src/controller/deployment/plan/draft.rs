@@ -59,7 +59,7 @@ impl<'a> Rollout<'a> {
         let spec = &deployment.spec;
         let annotations = deployment.metadata.annotations.as_ref();
         let annotation = |key: &str| annotations.and_then(|a| a.get(key)).map(String::as_str);
-        let key = rollout_id(&spec.release, annotation(RESTART_ANNOTATION));
+        let key = rollout_id(&facts.target, annotation(RESTART_ANNOTATION));
         let previous = deployment.status.clone().unwrap_or_default();
         let is_new = !same_rollout(previous.rollout_id.as_deref(), &key);
         let id = if is_new {
@@ -80,7 +80,7 @@ impl<'a> Rollout<'a> {
             name: deployment.metadata.name.clone().unwrap_or_default(),
             id,
             is_new,
-            target: &spec.release,
+            target: &facts.target,
             strategy: &spec.strategy,
             paused: spec.paused,
             generation: deployment.metadata.generation,

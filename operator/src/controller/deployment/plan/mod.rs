@@ -108,6 +108,13 @@ pub struct RobotView {
     /// The deployment that owns the robot instead of this one (newer, or of higher priority):
     /// this rollout leaves it alone.
     pub superseded_by: Option<String>,
+    /// Agent rollouts: `spec.agent`, kept on mark-only writes like `desired` is for releases.
+    pub desired_agent: Option<lekiwi_crds::AgentRef>,
+    /// Agent rollouts: the robot's architecture (from its `hello`), for a rollback's build.
+    pub arch: Option<lekiwi_crds::AgentArch>,
+    /// Agent rollouts: why the robot cannot take the agent (no build for its architecture);
+    /// such a robot is skipped with this message instead of started.
+    pub no_build: Option<String>,
 }
 
 /// Whether the release can be rolled out.
@@ -139,6 +146,9 @@ pub struct Facts {
     pub now: Timestamp,
     /// The robots the selector picks (maintenance ones included; the plan excludes them).
     pub robots: Vec<RobotView>,
+    /// What the robots move to: the release, or an agent rollout's version and identity (see
+    /// the controller's `facts::target`).
+    pub target: ReleaseRef,
     /// Validity of the release.
     pub release: ReleaseCheck,
     /// Other active deployments selecting some of the same robots.

@@ -21,7 +21,8 @@ fn deployment(batch: IntOrString, canary: i32) -> RobotDeployment {
         "roll",
         RobotDeploymentSpec {
             selector: LabelSelector::default(),
-            release: rel("2"),
+            release: Some(rel("2")),
+            agent: None,
             strategy: RolloutStrategy {
                 batch_size: batch,
                 canary,
@@ -58,6 +59,7 @@ fn robot(i: usize) -> RobotView {
         mark: None,
         analysis: None,
         superseded_by: None,
+        ..RobotView::default()
     }
 }
 
@@ -85,6 +87,7 @@ impl Sim {
         Facts {
             now: self.now,
             robots: self.robots.clone(),
+            target: self.d.spec.release.clone().unwrap(),
             release: ReleaseCheck::Valid,
             overlaps: Vec::new(),
             active_deployments: vec!["roll".into()],
@@ -332,7 +335,7 @@ fn editing_the_release_starts_over_from_the_canary() {
     sim.step();
     sim.agents();
     sim.step();
-    sim.d.spec.release = rel("3");
+    sim.d.spec.release = Some(rel("3"));
     let p = sim.step();
     assert_eq!(
         p.writes.len(),
@@ -412,7 +415,7 @@ fn robots_another_deployment_owns_are_left_alone_and_shown_superseded() {
         r.superseded_by = Some("team-b".into());
         r.current = Some(rel("9"));
     }
-    sim.d.spec.release = rel("2");
+    sim.d.spec.release = Some(rel("2"));
     let p = sim.step();
     assert!(
         p.writes.is_empty(),
@@ -530,13 +533,13 @@ fn rolling_a_release_out_again_ignores_the_marks_of_its_earlier_rollout() {
     sim.run_until_done(10);
     assert_eq!(sim.phase(), RolloutPhase::RolledBack);
     // Back to 1, which every robot runs: done at once, no robot written.
-    sim.d.spec.release = rel("1");
+    sim.d.spec.release = Some(rel("1"));
     sim.advance(1);
     sim.run_until_done(10);
     assert_eq!(sim.phase(), RolloutPhase::Completed);
     // 2 again, now healthy: a new rollout that updates everyone.
     sim.failing.clear();
-    sim.d.spec.release = rel("2");
+    sim.d.spec.release = Some(rel("2"));
     sim.advance(1);
     sim.run_until_done(10);
     assert_eq!(sim.phase(), RolloutPhase::Completed);

@@ -245,9 +245,13 @@ impl RolloutObject {
     async fn name(&self) -> String {
         self.0.name_any()
     }
-    /// The release version it rolls out.
-    async fn release(&self) -> &str {
-        &self.0.spec.release.version
+    /// The release version it rolls out (null for an agent rollout).
+    async fn release(&self) -> Option<&str> {
+        self.0.spec.release.as_ref().map(|r| r.version.as_str())
+    }
+    /// The `lekiwi-agent` version it rolls out (null for a release rollout).
+    async fn agent(&self) -> Option<&str> {
+        self.0.spec.agent.as_ref().map(|a| a.version.as_str())
     }
     async fn paused(&self) -> bool {
         self.0.spec.paused
