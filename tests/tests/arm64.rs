@@ -3,7 +3,9 @@
 //! and an arm64 agent enrolls against the x86_64 operator over wss://, goes Online, reports
 //! telemetry and teleoperation, applies a release from a RobotDeployment and rolls back when the
 //! next one fails its health check. Installed from the `.deb` under systemd, it also survives a
-//! reboot and updates itself to another agent build and back to the package's own binary.
+//! reboot and updates itself to another agent build and back to the package's own binary; and a
+//! robot of the legacy polling endpoint moves to the agent with the migration script and the
+//! `.deb`.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -707,4 +709,125 @@ impl Site {
         );
         Ok(())
     }
+}
+
+/// The guest's `run.sh` for the migration test: a stand-in for the legacy poller's unit (which
+/// the migration disables), then the poller's install step: the downloaded release's
+/// `migrate-to-agent.sh`, run as root with what the poller knows (`/payload/env`).
+const MIGRATE_SH: &str = r#"[ -n "${BASH_VERSION:-}" ] || exec /bin/bash "$0" "$@"
+P=/payload
+[ ! -e /var/lib/lekiwi-test/migrated ] || exit 0
+printf '[Service]\nExecStart=/bin/sleep infinity\n[Install]\nWantedBy=multi-user.target\n' \
+  >/etc/systemd/system/legacy-poller.service
+systemctl daemon-reload && systemctl enable --now legacy-poller
+echo "LEKIWI-POLLER $(systemctl is-active legacy-poller)"
+install -m 0600 "$P/token" /etc/legacy-token
+install -m 0644 "$P/ca.crt" /etc/legacy-ca.crt
+mkdir -p /opt/legacy && cp -r "$P/release" /opt/legacy/2.0.0
+set -a; . "$P/env"; set +a
+if sh /opt/legacy/2.0.0/lekiwi-migrate/migrate-to-agent.sh; then echo "LEKIWI-MIGRATED ok"; fi
+echo "LEKIWI-POLLER-AFTER $(systemctl is-enabled legacy-poller)"
+echo "LEKIWI-AGENT $(systemctl is-active lekiwi-agent) $(systemctl is-enabled lekiwi-agent-guard.timer)"
+mkdir -p /var/lib/lekiwi-test && touch /var/lib/lekiwi-test/migrated
+"#;
+
+/// Issue 19's migration path with the package: a robot known to the fleet only through the
+/// legacy polling endpoint (its Robot and token exist, nothing of the agent is on it) runs
+/// `migrate-to-agent.sh` from a release holding the arm64 `.deb`. dpkg installs the package
+/// (unit, guard timer), `adopt` hands the robot's own token over, systemd starts the agent and
+/// the poller's unit is disabled: the robot is Online over the agent under its old name, with
+/// the same token Secret.
+#[tokio::test]
+async fn the_arm64_deb_moves_a_polling_robot_to_the_agent_on_a_systemd_pi5() -> anyhow::Result<()> {
+    let deb = pi::deb()?;
+    pi::rootfs()?;
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "arm64-migrate").await?;
+    let site = Site::start(cp, &client, &ns, "arm64-migrate").await?;
+    lekiwi_tests::create_robot(&client, &ns, "kiwi-old", &[]).await?;
+    let token = lekiwi_tests::robot_token(&client, &ns, "kiwi-old").await?;
+    let secrets = Api::<k8s_openapi::api::core::v1::Secret>::namespaced(client.clone(), &ns);
+    let secret_version = secrets
+        .get("kiwi-old-agent-token")
+        .await?
+        .metadata
+        .resource_version;
+
+    let payload = &site.payload;
+    let migrate = payload.join("release/lekiwi-migrate");
+    std::fs::create_dir_all(&migrate)?;
+    std::fs::copy(
+        lekiwi_tests::repo_root().join("manifests/legacy/migrate-to-agent.sh"),
+        migrate.join("migrate-to-agent.sh"),
+    )?;
+    let deb_name = deb.file_name().context("deb name")?;
+    std::fs::copy(&deb, migrate.join(deb_name))?;
+    std::fs::write(payload.join("token"), format!("{token}\n"))?;
+    std::fs::write(
+        payload.join("env"),
+        format!(
+            "LEKIWI_ROBOT={ns}/kiwi-old\nLEKIWI_TOKEN_FILE=/etc/legacy-token\n\
+             LEKIWI_GATEWAY_URL=wss://{HOST_FROM_GUEST}:{}/v1/agent\n\
+             LEKIWI_CA_FILE=/etc/legacy-ca.crt\nLEKIWI_LEGACY_SERVICE=legacy-poller.service\n",
+            site.op.gateway_port
+        ),
+    )?;
+    std::fs::write(payload.join("run.sh"), MIGRATE_SH)?;
+
+    let guest = PiGuest::boot_rootfs(&format!("migrate-{}", std::process::id()), payload)?;
+    let robot = wait_for(
+        "kiwi-old Online over the agent",
+        Duration::from_secs(300),
+        || async {
+            let r = get_robot(&client, &ns, "kiwi-old").await.ok()?;
+            let s = r.status.as_ref()?;
+            (s.phase == Some(RobotPhase::Online) && s.protocol.as_deref() == Some("websocket"))
+                .then_some(r)
+        },
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\nconsole tail:\n{}", guest.console_tail(60)))?;
+    let took = guest.booted.elapsed();
+    let console = wait_for(
+        "the migration's last lines",
+        Duration::from_secs(30),
+        || async {
+            let c = guest.console();
+            c.contains("LEKIWI-AGENT ").then_some(c)
+        },
+    )
+    .await?;
+    assert!(console.contains("LEKIWI-POLLER active"), "{console}");
+    assert!(console.contains("LEKIWI-MIGRATED ok"), "{console}");
+    assert!(
+        console.contains(&format!("installing {}", deb_name.to_string_lossy())),
+        "{console}"
+    );
+    assert!(
+        console.contains("LEKIWI-POLLER-AFTER disabled"),
+        "{console}"
+    );
+    assert!(console.contains("LEKIWI-AGENT active enabled"), "{console}");
+    let status = robot.status.clone().unwrap_or_default();
+    assert_eq!(
+        status.agent_digest.as_deref(),
+        Some(packaged_agent_digest(&deb)?.as_str()),
+        "the package's binary runs"
+    );
+    assert_eq!(
+        status.system.and_then(|s| s.arch).as_deref(),
+        Some("aarch64")
+    );
+    let after = secrets
+        .get("kiwi-old-agent-token")
+        .await?
+        .metadata
+        .resource_version;
+    assert_eq!(
+        after, secret_version,
+        "the same token: adopted, not re-enrolled"
+    );
+    eprintln!("arm64 .deb migration of a polling robot: boot to Online over the agent in {took:?}");
+    Ok(())
 }
