@@ -117,8 +117,10 @@ pub(super) fn agent_view(
     let machine = status.and_then(|s| s.system.as_ref()?.arch.clone());
     let arch = machine.as_deref().and_then(AgentArch::of_machine);
     let no_build = match (&machine, arch) {
+        // The robot's own words, quoted and cut: they end up in the deployment's status.
         (Some(m), None) => Some(format!(
-            "skipped: no agent builds exist for architecture {m}"
+            "skipped: no agent builds exist for architecture {:?}",
+            m.chars().take(32).collect::<String>()
         )),
         (_, Some(a)) if agent.build_for(a).is_none() => Some(format!(
             "skipped: agent {} has no {} build",

@@ -144,7 +144,13 @@ fn a_robot_without_a_build_for_its_architecture_is_left_out_with_the_reason() {
         &b,
         &t,
     );
-    assert!(riscv.no_build.unwrap().contains("riscv64"));
+    assert!(riscv.no_build.unwrap().contains("\"riscv64\""));
+    // A robot's long or odd architecture text is quoted and cut before it reaches the status.
+    let odd = "\u{1b}[2J".repeat(500);
+    let why = agent_view(RobotView::default(), &robot("0.2.0", &odd, None), &b, &t)
+        .no_build
+        .unwrap();
+    assert!(why.len() < 200 && !why.contains('\u{1b}'), "{why}");
 }
 
 #[test]
