@@ -108,6 +108,15 @@ async fn fleet(client: &kube::Client, ns: &str) -> Result<()> {
         "robots": [{"robot": "kiwi-2", "batch": 0, "state": "Updated"}, {"robot": "kiwi-3", "batch": 1, "state": "Updating"}]}});
     rds.patch_status("v2", &PatchParams::default(), &Patch::Merge(&status))
         .await?;
+    // An agent rollout: `agent` names its version, `release` is null.
+    let agent = json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "RobotDeployment",
+        "metadata": {"name": "agent-v3"},
+        "spec": {"selector": {"matchLabels": {"room": "none"}},
+            "agent": {"version": "3.0.0", "builds": [{"arch": "arm64", "digest": DIGEST}]}},
+    });
+    rds.create(&PostParams::default(), &serde_json::from_value(agent)?)
+        .await?;
     Ok(())
 }
 
@@ -156,20 +165,26 @@ async fn queries(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
         "{d}"
     );
     let q = format!(
-        r#"{{ rollout(namespace: "{ns}", name: "v2") {{ release paused phase targeted updated robots }} }}"#
+        r#"{{ rollout(namespace: "{ns}", name: "v2") {{ release agent paused phase targeted updated robots }}
+            agentRollout: rollout(namespace: "{ns}", name: "agent-v3") {{ release agent }} }}"#
     );
     let d = lekiwi_tests::wait_for(
         "the rollout in the cache",
         Duration::from_secs(20),
         || async {
             let d = data(op, viewer, &q).await.ok()?;
-            d["rollout"]["robots"].is_array().then_some(d)
+            (d["rollout"]["robots"].is_array() && d["agentRollout"].is_object()).then_some(d)
         },
     )
     .await?;
     let r = &d["rollout"];
     ensure!(
+        d["agentRollout"] == json!({"release": null, "agent": "3.0.0"}),
+        "{d}"
+    );
+    ensure!(
         r["release"] == "2.0.0"
+            && r["agent"].is_null()
             && r["phase"] == "Progressing"
             && r["targeted"] == 2
             && r["updated"] == 1,
