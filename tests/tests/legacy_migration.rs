@@ -145,7 +145,17 @@ async fn a_polling_robot_moves_to_the_agent_and_keeps_its_identity() -> Result<(
     let ns = namespace(&client, "legacy").await?;
     let blobs = tempfile::tempdir()?;
     let blob_dir = blobs.path().to_str().unwrap();
-    let args = ["--blob-dir", blob_dir, "--heartbeat-grace-seconds", "60"];
+    // The grace must exceed the status refresh (as `--help` says): with the default refresh
+    // (300 s) a grace of 60 s let the Robot controller mark the polling robot Offline whenever
+    // the wait for the offer below took a minute (a CI failure, twice).
+    let args = [
+        "--blob-dir",
+        blob_dir,
+        "--heartbeat-grace-seconds",
+        "60",
+        "--status-refresh-seconds",
+        "15",
+    ];
     let mut op = OperatorProcess::start(cp, &ns, "gw-legacy", &args)?;
     op.wait_ready().await?;
     lekiwi_tests::create_robot(&client, &ns, "old-1", &[]).await?;
