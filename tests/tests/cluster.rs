@@ -172,11 +172,24 @@ impl Install {
     }
 
     /// A robot's stored events, from the gateway's event store through the NodePort.
+    /// Tried up to three times, 5 s apart: right after a `helm upgrade` a connect through the
+    /// NodePort once timed out in CI while kube-proxy moved it to the new Pod.
     fn events(&self, robot: &str) -> anyhow::Result<Vec<Value>> {
-        let out = self.cli(&[
+        let args = [
             "events", robot, "-o", "json", "--since", "2h", "--limit", "1000",
-        ])?;
-        Ok(serde_json::from_str(&out)?)
+        ];
+        let mut last = None;
+        for _ in 0..3 {
+            match self.cli(&args) {
+                Ok(out) => return Ok(serde_json::from_str(&out)?),
+                Err(e) => {
+                    eprintln!("{e:#}; trying again");
+                    last = Some(e);
+                    std::thread::sleep(std::time::Duration::from_secs(5));
+                }
+            }
+        }
+        Err(last.expect("three attempts"))
     }
 
     fn fleet(&self, robots: usize, extra: &[&str]) -> anyhow::Result<FleetProcess> {
