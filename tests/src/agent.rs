@@ -15,6 +15,21 @@ use crate::operator::OperatorProcess;
 use crate::process::{ChildProcess, Launch};
 use crate::{bin, free_port, log_dir, wait_for};
 
+/// The flags every test agent runs with: no mDNS, quick reconnects and connect timeouts, JSON
+/// logs (which the tests read).
+pub const QUICK_AGENT_FLAGS: [&str; 10] = [
+    "--mdns",
+    "false",
+    "--backoff-initial-ms",
+    "200",
+    "--backoff-max-ms",
+    "2000",
+    "--connect-timeout-s",
+    "5",
+    "--log-format",
+    "json",
+];
+
 /// A real `lekiwi-agent` process with its own state directory, for tests; SIGKILLed when dropped.
 pub struct AgentProcess {
     process: ChildProcess,
@@ -61,20 +76,11 @@ impl AgentProcess {
             state_dir.to_str().unwrap(),
             "--status-listen",
             &format!("127.0.0.1:{status_port}"),
-            "--mdns",
-            "false",
-            "--backoff-initial-ms",
-            "200",
-            "--backoff-max-ms",
-            "2000",
-            "--connect-timeout-s",
-            "5",
             "--teleop-interval-s",
             "0.5",
-            "--log-format",
-            "json",
         ]
         .iter()
+        .chain(QUICK_AGENT_FLAGS.iter())
         .map(|s| s.to_string())
         .collect();
         args.extend(extra.iter().map(|s| s.to_string()));

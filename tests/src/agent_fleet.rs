@@ -85,22 +85,13 @@ impl AgentFleet {
             self.token_file.to_str().unwrap(),
             "--status-listen",
             "off",
-            "--mdns",
-            "false",
-            "--backoff-initial-ms",
-            "200",
-            "--backoff-max-ms",
-            "2000",
-            "--connect-timeout-s",
-            "5",
-            "--log-format",
-            "json",
             "--agent-update-deadline-s",
             &DEADLINE_S.to_string(),
             "--agent-update-max-starts",
             "3",
         ]
         .iter()
+        .chain(crate::agent::QUICK_AGENT_FLAGS.iter())
         .map(|s| s.to_string())
         .collect();
         Supervised::start(SuperviseSpec {
