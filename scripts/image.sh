@@ -8,7 +8,7 @@ set -euo pipefail
 usage() {
   cat <<'EOF'
 Usage: scripts/image.sh [operator|pause] [--out FILE] [--arch LIST] [--load ctr|podman]
-                        [--address SOCK]
+                        [--address SOCK] [--arm64-profile NAME]
 
   operator (default)  ghcr.io/lekiwi-fleet/lekiwi-operator:<Chart.yaml appVersion> for linux/amd64
                       and linux/arm64; for each, the release binary (cargo build --release
@@ -29,6 +29,11 @@ Usage: scripts/image.sh [operator|pause] [--out FILE] [--arch LIST] [--load ctr|
                       import) at --address
   --load podman       podman load (the host's platform)
   --address SOCK      containerd socket for --load ctr (default /run/containerd/containerd.sock)
+  --arm64-profile NAME
+                      the cargo profile of the arm64 cross-build (default release, what a lab
+                      runs; also LEKIWI_IMAGE_ARM64_PROFILE). The test suite builds `image-check`
+                      (Cargo.toml: release at opt-level 0), a fraction of release's cold build
+                      time; either way the image's label fleet.lekiwi.io/cargo-profile names it
 
 Environment: LEKIWI_IMAGE_TARGET (cargo target dir, default ~/.cache/lekiwi/image-target, kept
 so later builds are incremental), LEKIWI_IMAGE_TARGET_ARM64 (the aarch64 build's, with Debian's
@@ -46,6 +51,7 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 source "$REPO/scripts/cache-build.sh"
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 KIND=operator OUT="" ARCHES="" LOAD="" ADDRESS=/run/containerd/containerd.sock
+ARM64_PROFILE="${LEKIWI_IMAGE_ARM64_PROFILE:-release}"
 HOST_ARCH=amd64
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -54,12 +60,15 @@ while [ $# -gt 0 ]; do
     --arch) ARCHES="$2"; shift ;;
     --load) LOAD="$2"; shift ;;
     --address) ADDRESS="$2"; shift ;;
+    --arm64-profile) ARM64_PROFILE="$2"; shift ;;
     -h|--help) usage; exit 0 ;;
     *) usage >&2; die "unknown argument: $1" ;;
   esac
   shift
 done
 case "$LOAD" in ""|ctr|podman) ;; *) die "--load: ctr or podman, not $LOAD" ;; esac
+grep -q "^\[profile\.$ARM64_PROFILE\]\$" "$REPO/Cargo.toml" || [ "$ARM64_PROFILE" = release ] ||
+  die "--arm64-profile $ARM64_PROFILE: no such profile in Cargo.toml (release or image-check)"
 [ "$(dpkg --print-architecture)" = "$HOST_ARCH" ] || die "this script runs on an amd64 host"
 case "$KIND:${ARCHES:-default}" in
   pause:default|pause:amd64) ARCHES=amd64 ;;
@@ -126,30 +135,35 @@ arm64_libraries() {
 }
 
 # Builds the operator for $1 (amd64, or arm64 with Debian's rustc, as scripts/pi.sh builds the
-# agent) from the source copy $2; sets BIN to the binary. The binary must not depend on where the
-# sources, the cargo home or the target dir are. SOURCE_DATE_EPOCH is fixed for cargo: ring's
-# build script reruns when it changes (at every commit, with the commit time), rebuilding the
-# whole TLS stack; nothing embeds a build date.
+# agent) from the source copy $2; sets BIN to the binary and PROFILE to its cargo profile (amd64:
+# release; arm64: $ARM64_PROFILE). The binary must not depend on where the sources, the cargo home
+# or the target dir are. SOURCE_DATE_EPOCH is fixed for cargo: ring's build script reruns when it
+# changes (at every commit, with the commit time), rebuilding the whole TLS stack; nothing embeds
+# a build date.
 cargo_build() {
   local arch="$1" src="$2" target cross=()
   target="${LEKIWI_IMAGE_TARGET:-$CACHE/image-target}"
+  PROFILE=release
   if [ "$arch" = arm64 ]; then
     # Its own target dir: Debian's rustc 1.96 and rustup's would otherwise rebuild each other's
     # build scripts; and not scripts/pi.sh's: different sources path and RUSTFLAGS rebuild all.
     target="${LEKIWI_IMAGE_TARGET_ARM64:-$CACHE/image-target-arm64}"
+    PROFILE="$ARM64_PROFILE"
     [ -x /usr/bin/rustc ] && command -v aarch64-linux-gnu-gcc >/dev/null ||
       die "the arm64 toolchain is missing: run scripts/setup.sh (or build with --arch amd64)"
     cross=(RUSTC=/usr/bin/rustc CARGO_TARGET_AARCH64_UNKNOWN_LINUX_GNU_LINKER=aarch64-linux-gnu-gcc
       CC_aarch64_unknown_linux_gnu=aarch64-linux-gnu-gcc)
   fi
-  local cargo=cargo triple=() bin="$target/release/lekiwi-operator"
+  local cargo=cargo triple=() bin="$target/$PROFILE/lekiwi-operator"
   [ "$arch" = amd64 ] || { cargo=/usr/bin/cargo triple=(--target aarch64-unknown-linux-gnu)
-    bin="$target/aarch64-unknown-linux-gnu/release/lekiwi-operator"; }
-  log "cargo build --release --locked -p lekiwi-operator ${triple[*]} (target dir $target)"
+    bin="$target/aarch64-unknown-linux-gnu/$PROFILE/lekiwi-operator"; }
+  log "cargo build --profile $PROFILE --locked -p lekiwi-operator ${triple[*]} (target dir $target)"
   clean_env
+  local t0=$SECONDS
   ( cd "$src" && env "${CLEAN_ENV[@]}" "${cross[@]}" CARGO_TARGET_DIR="$target" SOURCE_DATE_EPOCH=0 \
       RUSTFLAGS="--remap-path-prefix=$src=/src --remap-path-prefix=${CARGO_HOME:-$HOME/.cargo}=/cargo --remap-path-prefix=$target=/target" \
-      "$cargo" build --release --locked -p lekiwi-operator --bin lekiwi-operator "${triple[@]}" )
+      "$cargo" build --profile "$PROFILE" --locked -p lekiwi-operator --bin lekiwi-operator "${triple[@]}" )
+  log "$arch build ($PROFILE): $((SECONDS - t0)) s"
   BIN="$bin"
 }
 
@@ -167,7 +181,7 @@ pack_operator() {
     --dir /tmp:1777 --dir /var/lib/lekiwi:0755 --dir /home/nonroot:0755 \
     --entrypoint '["/usr/bin/lekiwi-operator"]' --user 65532:65532 --workdir /home/nonroot \
     --env SSL_CERT_FILE=/etc/ssl/certs/ca-certificates.crt \
-    --label "org.opencontainers.image.version=$TAG" \
+    --label "org.opencontainers.image.version=$TAG" --label "fleet.lekiwi.io/cargo-profile=$PROFILE" \
     --label org.opencontainers.image.source=https://github.com/lekiwi-fleet/lekiwi-fleet \
     --label "org.opencontainers.image.revision=$(git -C "$REPO" rev-parse HEAD)"
 }

@@ -339,6 +339,16 @@ fn check_contents(image: &Image, annotations: &Value, tag: &str, arch: &str) {
     );
     assert!(run.get("Cmd").is_none(), "the chart passes args only");
     assert_eq!(image.config["architecture"], arch);
+    // amd64 is always release; arm64 what scripts/test.sh asked for (or release).
+    let profile = match arch {
+        "arm64" => std::env::var("LEKIWI_IMAGE_ARM64_PROFILE").unwrap_or("release".into()),
+        _ => "release".into(),
+    };
+    assert_eq!(
+        run["Labels"]["fleet.lekiwi.io/cargo-profile"],
+        profile.as_str(),
+        "{arch}: the cargo profile label"
+    );
     let epoch = commit_time();
     for (path, entry) in &image.layer {
         let base = path.rsplit('/').next().unwrap();
