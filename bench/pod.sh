@@ -50,7 +50,7 @@ log "cluster, binaries and image"
 bash scripts/cluster.sh up >&2
 eval "$(bash scripts/cluster.sh env)"
 cargo build --quiet --workspace --bins
-bash scripts/image.sh operator --load ctr --address "$CONTAINERD_ADDRESS" >/dev/null
+bash scripts/image.sh operator --arch amd64 --load ctr --address "$CONTAINERD_ADDRESS" >/dev/null
 
 log "helm install $NS"
 kubectl create namespace "$NS" >/dev/null
