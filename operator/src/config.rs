@@ -263,6 +263,14 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_STATUS_BURST", default_value_t = 100)]
     pub status_burst: u32,
 
+    /// Robot status writes in flight at most. A rate needs rate x latency writes in flight:
+    /// 32 keeps 200 writes/s going up to 160 ms per answer; raise it for a large API server
+    /// whose answers take longer, within its own limit on mutating requests in flight (200
+    /// by default).
+    #[arg(long, env = "LEKIWI_STATUS_CONCURRENCY", default_value_t = 32,
+          value_parser = clap::value_parser!(u16).range(1..=1000))]
+    pub status_concurrency: u16,
+
     /// API-server reads per second, sustained, that the gateway may make for requests its
     /// token cache cannot authenticate (a token minted a moment ago, or a guess); beyond it they
     /// are refused with 503. The HTTP API's TokenReviews of uncached tokens have a budget of the

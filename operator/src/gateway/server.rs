@@ -181,8 +181,7 @@ fn presence(config: &Config, name: &str, metrics: &Metrics) -> Presence {
                 slow: Duration::from_millis(config.status_slow_ms),
             }),
             burst: config.status_burst,
-            // Enough writes in flight for the highest rate at ordinary API latency.
-            concurrency: 32,
+            concurrency: usize::from(config.status_concurrency),
         },
         metrics.clone(),
     )
