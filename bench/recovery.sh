@@ -45,6 +45,8 @@
 #!
 #! Writes the table to bench/results/recovery-<scenario>-<date>.txt and
 #! bench/results/recovery-<scenario>-latest.txt.
+#! Environment: LEKIWI_BENCH_LOG (the processes' RUST_LOG, default warn); LEKIWI_BENCH_GATEWAY_ARGS
+#! (more flags for both gateways, split on spaces, e.g. "--status-qps 100").
 #! Bounded in time (about 10 minutes for 10,000 robots once built; at most ~25), cleans up on exit
 #! and Ctrl-C. Needs root or a `postgres` user (PostgreSQL refuses to run as root).
 set -euo pipefail
@@ -131,7 +133,7 @@ command -v haproxy >/dev/null || die "haproxy is missing (scripts/setup.sh insta
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), $(awk '/^MemTotal/ { printf "%.0f GiB", $2 / 1048576 }' /proc/meminfo) RAM, load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
 fact_source
-fact command "$COMMAND"
+fact command "${LEKIWI_BENCH_GATEWAY_ARGS:+LEKIWI_BENCH_GATEWAY_ARGS='$LEKIWI_BENCH_GATEWAY_ARGS' }$COMMAND"
 fact robots "$ROBOTS"
 fact scenario "$SCENARIO"
 fact events_per_minute "$EPM"
@@ -182,7 +184,7 @@ start_gateway() {
     --identity "$g" --gateway-name "$g" \
     --gateway-addr "127.0.0.1:${GW_PORT[$g]}" --http-addr "127.0.0.1:${GW_HTTP[$g]}" \
     --store-url "$STORE_URL" --max-unauthenticated-per-address 0 \
-    --heartbeat-interval-seconds "$INTERVAL" >>"$WORK/$g.log" 2>&1 8>&- </dev/null &
+    --heartbeat-interval-seconds "$INTERVAL" ${LEKIWI_BENCH_GATEWAY_ARGS:-} >>"$WORK/$g.log" 2>&1 8>&- </dev/null &
   GW_PID[$g]=$!
   PIDS+=("${GW_PID[$g]}")
 }
