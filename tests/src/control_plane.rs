@@ -213,18 +213,31 @@ impl ControlPlane {
                 String::from_utf8_lossy(&out.stderr)
             );
         }
-        let out = self.kubectl(&[
-            "wait",
-            "--for=condition=Established",
-            "--timeout=60s",
-            "crd/robots.fleet.lekiwi.io",
-            "crd/robotdeployments.fleet.lekiwi.io",
-        ]);
-        if !out.status.success() {
-            bail!(
-                "CRDs not established: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
+        // Polled rather than `kubectl wait --for=condition=Established`: a CRD created a moment
+        // ago may have no `status.conditions` yet, which that command takes for an error and
+        // gives up on at once (a CI flake), while `get` prints nothing for it.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        for crd in ["robots.fleet.lekiwi.io", "robotdeployments.fleet.lekiwi.io"] {
+            loop {
+                let out = self.kubectl(&[
+                    "get",
+                    "crd",
+                    crd,
+                    "-o",
+                    r#"jsonpath={.status.conditions[?(@.type=="Established")].status}"#,
+                ]);
+                if out.status.success() && out.stdout == b"True" {
+                    break;
+                }
+                if std::time::Instant::now() > deadline {
+                    bail!(
+                        "CRD {crd} not established within 60 s: {}{}",
+                        String::from_utf8_lossy(&out.stdout),
+                        String::from_utf8_lossy(&out.stderr)
+                    );
+                }
+                std::thread::sleep(std::time::Duration::from_millis(200));
+            }
         }
         Ok(())
     }
