@@ -177,12 +177,33 @@ pub fn log_dir() -> PathBuf {
     dir
 }
 
-/// A free loopback port.
+/// A free loopback port, picked outside the kernel's ephemeral range as
+/// `scripts/free-ports.py` picks them: a port the kernel may give a client socket can be taken
+/// by any of the many connections parallel tests open between this pick and the server's bind
+/// (a CI flake: an operator's "Address already in use").
 pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("free port")
+    use std::hash::{BuildHasher, Hasher};
+    let ephemeral_lo = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<u16>().ok())
+        .unwrap_or(32768);
+    let (lo, hi) = if ephemeral_lo > 20000 {
+        (10000, ephemeral_lo - 1)
+    } else {
+        (61000, 65000)
+    };
+    let random = std::collections::hash_map::RandomState::new();
+    let mut attempt = 0u64;
+    loop {
+        let mut h = random.build_hasher();
+        h.write_u64(attempt);
+        let port = lo + (h.finish() % u64::from(hi - lo + 1)) as u16;
+        if std::net::TcpListener::bind(("127.0.0.1", port)).is_ok() {
+            return port;
+        }
+        attempt += 1;
+        assert!(attempt < 10_000, "no free loopback port in {lo}..={hi}");
+    }
 }
 
 /// Polls `f` every 100 ms until it returns `Some`, or fails after `timeout` with `what`.

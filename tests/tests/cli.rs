@@ -482,7 +482,14 @@ async fn enroll_token_lets_a_real_agent_enroll() -> Result<()> {
     })
     .await
     .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
-    assert!(state.join("credentials.json").exists());
+    // The gateway may show the robot Online before the agent has saved (and fsynced) the token
+    // its `welcome` carried.
+    let credentials = state.join("credentials.json");
+    wait_for("the agent's saved credentials", T, || async {
+        credentials.exists().then_some(())
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
     Ok(())
 }
 
