@@ -181,15 +181,7 @@ start_control_plane() {
   eval "$("$ROOT/scripts/control-plane.sh" env)"
   # shellcheck disable=SC1091
   . "$CP_DIR/ports.env"
-  kubectl apply -f "$ROOT/manifests/crds/" >/dev/null
-  # A CRD created a moment ago may have no status.conditions yet, which `kubectl wait` takes for
-  # an error at once: try again for up to 30 s, then show its message.
-  local try
-  for try in $(seq 1 30); do
-    kubectl wait --for=condition=Established --timeout=60s crd --all >/dev/null 2>&1 && break
-    [ "$try" -lt 30 ] || kubectl wait --for=condition=Established --timeout=1s crd --all >/dev/null
-    sleep 1
-  done
+  "$ROOT/scripts/control-plane.sh" crds 8>&-
 }
 
 # Writes a new fleet enrollment token to file $2 (mode 600) and its hash to the Secret

@@ -14,6 +14,9 @@
 #!   status        print state, ports and pids; exit 0 if healthy, 1 otherwise
 #!   env           print `export KUBECONFIG=...` and `export PATH=...` lines, for
 #!                 eval "$(scripts/control-plane.sh env)"
+#!   crds          server-side apply manifests/crds/ and wait (60 s at most) until each is
+#!                 Established; a CRD created a moment ago has no status.conditions yet, which
+#!                 `kubectl wait --for=condition=Established` takes for an error at once
 #!   help          this text
 #!
 #! Environment:
@@ -326,6 +329,18 @@ cmd_env() {
   printf 'export PATH=%q:"$PATH"\n' "$BIN_DIR"
 }
 
+cmd_crds() {
+  local kubectl=("$BIN_DIR/kubectl" --kubeconfig "$STATE/kubeconfig") crd deadline=$((SECONDS + 60))
+  "${kubectl[@]}" apply --server-side --force-conflicts -f "$SCRIPT_DIR/../manifests/crds/" >/dev/null
+  for crd in robots.fleet.lekiwi.io robotdeployments.fleet.lekiwi.io; do
+    until [ "$("${kubectl[@]}" get crd "$crd" \
+             -o 'jsonpath={.status.conditions[?(@.type=="Established")].status}')" = True ]; do
+      [ $SECONDS -lt $deadline ] || die "CRD $crd not Established within 60 s"
+      sleep 0.2
+    done
+  done
+}
+
 case "${1:-help}" in
   up) cmd_up ;;
   down) shift; cmd_down "$@" ;;
@@ -333,6 +348,7 @@ case "${1:-help}" in
   kill) shift; cmd_kill "$@" ;;
   status) cmd_status ;;
   env) cmd_env ;;
+  crds) cmd_crds ;;
   help|-h|--help) usage ;;
   *) usage >&2; exit 2 ;;
 esac

@@ -46,15 +46,7 @@ eval "$(bash scripts/control-plane.sh env)"
 export PATH="$ROOT/target/debug:$PATH"   # so `kubectl lekiwi` finds the plugin
 
 log "installing the CRDs"
-kubectl apply --server-side --force-conflicts -f manifests/crds/ >/dev/null
-# A CRD created a moment ago may have no status.conditions yet, which `kubectl wait` takes for an
-# error at once: try again for up to 30 s, then show its message.
-crds=(crd/robots.fleet.lekiwi.io crd/robotdeployments.fleet.lekiwi.io)
-for try in $(seq 1 30); do
-  kubectl wait --for=condition=Established --timeout=60s "${crds[@]}" >/dev/null 2>&1 && break
-  [ "$try" -lt 30 ] || kubectl wait --for=condition=Established --timeout=1s "${crds[@]}" >/dev/null
-  sleep 1
-done
+bash scripts/control-plane.sh crds
 for ns in "$SYSTEM_NS" "$NS"; do
   kubectl get namespace "$ns" >/dev/null 2>&1 || kubectl create namespace "$ns" >/dev/null
 done

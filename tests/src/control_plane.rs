@@ -198,48 +198,10 @@ impl ControlPlane {
             .expect("run kubectl")
     }
 
-    /// Server-side applies our CRDs and waits until they are served.
+    /// Server-side applies our CRDs and waits until they are served
+    /// (`scripts/control-plane.sh crds`).
     pub fn install_crds(&self) -> Result<()> {
-        let out = self.kubectl(&[
-            "apply",
-            "--server-side",
-            "--force-conflicts",
-            "-f",
-            "manifests/crds/",
-        ]);
-        if !out.status.success() {
-            bail!(
-                "kubectl apply crds: {}",
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        // Polled rather than `kubectl wait --for=condition=Established`: a CRD created a moment
-        // ago may have no `status.conditions` yet, which that command takes for an error and
-        // gives up on at once (a CI flake), while `get` prints nothing for it.
-        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
-        for crd in ["robots.fleet.lekiwi.io", "robotdeployments.fleet.lekiwi.io"] {
-            loop {
-                let out = self.kubectl(&[
-                    "get",
-                    "crd",
-                    crd,
-                    "-o",
-                    r#"jsonpath={.status.conditions[?(@.type=="Established")].status}"#,
-                ]);
-                if out.status.success() && out.stdout == b"True" {
-                    break;
-                }
-                if std::time::Instant::now() > deadline {
-                    bail!(
-                        "CRD {crd} not established within 60 s: {}{}",
-                        String::from_utf8_lossy(&out.stdout),
-                        String::from_utf8_lossy(&out.stderr)
-                    );
-                }
-                std::thread::sleep(std::time::Duration::from_millis(200));
-            }
-        }
-        Ok(())
+        self.script(&["crds"]).map(drop)
     }
 }
 
