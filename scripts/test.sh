@@ -19,9 +19,7 @@ cargo build --quiet --workspace --bins
 # The operator image for amd64 and arm64 (cached in ~/.cache/lekiwi/image-target and
 # image-target-arm64) before the tests, so no test waits minutes for it while others run on
 # its timers.
-# The arm64 image's binary is built unoptimised (Cargo.toml's image-check profile): its tests
-# prove the cross-build, the image and the binary on an emulated Pi 5, and a release cross-build
-# would cost a cold run about 10 more minutes. `scripts/image.sh` alone builds release.
+# The arm64 binary with Cargo.toml's image-check profile (it says why); image.sh alone: release.
 export LEKIWI_IMAGE_ARM64_PROFILE="${LEKIWI_IMAGE_ARM64_PROFILE:-image-check}"
 log "building the operator image (arm64: profile $LEKIWI_IMAGE_ARM64_PROFILE)"
 bash scripts/image.sh >/dev/null

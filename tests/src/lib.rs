@@ -177,33 +177,28 @@ pub fn log_dir() -> PathBuf {
     dir
 }
 
-/// A free loopback port, picked outside the kernel's ephemeral range as
-/// `scripts/free-ports.py` picks them: a port the kernel may give a client socket can be taken
-/// by any of the many connections parallel tests open between this pick and the server's bind
-/// (a CI flake: an operator's "Address already in use").
+/// `count` distinct free loopback ports from `scripts/free-ports.py`, which picks them outside
+/// the kernel's ephemeral range: a port the kernel may give a client socket can be taken by any
+/// of the many connections parallel tests open between the pick and the server's bind (a CI
+/// flake: an operator's "Address already in use").
+pub fn free_ports(count: usize) -> Vec<u16> {
+    let out = Command::new("python3")
+        .arg(repo_root().join("scripts/free-ports.py"))
+        .arg(count.to_string())
+        .output()
+        .expect("run scripts/free-ports.py");
+    assert!(out.status.success(), "scripts/free-ports.py: {out:?}");
+    let ports: Vec<u16> = String::from_utf8_lossy(&out.stdout)
+        .lines()
+        .map(|l| l.trim().parse().expect("a port number"))
+        .collect();
+    assert_eq!(ports.len(), count, "scripts/free-ports.py {count}");
+    ports
+}
+
+/// One free loopback port (see [`free_ports`]).
 pub fn free_port() -> u16 {
-    use std::hash::{BuildHasher, Hasher};
-    let ephemeral_lo = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
-        .ok()
-        .and_then(|s| s.split_whitespace().next()?.parse::<u16>().ok())
-        .unwrap_or(32768);
-    let (lo, hi) = if ephemeral_lo > 20000 {
-        (10000, ephemeral_lo - 1)
-    } else {
-        (61000, 65000)
-    };
-    let random = std::collections::hash_map::RandomState::new();
-    let mut attempt = 0u64;
-    loop {
-        let mut h = random.build_hasher();
-        h.write_u64(attempt);
-        let port = lo + (h.finish() % u64::from(hi - lo + 1)) as u16;
-        if std::net::TcpListener::bind(("127.0.0.1", port)).is_ok() {
-            return port;
-        }
-        attempt += 1;
-        assert!(attempt < 10_000, "no free loopback port in {lo}..={hi}");
-    }
+    free_ports(1)[0]
 }
 
 /// Polls `f` every 100 ms until it returns `Some`, or fails after `timeout` with `what`.

@@ -8,7 +8,7 @@ use anyhow::{Result, bail};
 use crate::control_plane::ControlPlane;
 use crate::http::{http_get, sample};
 use crate::process::{ChildProcess, Launch};
-use crate::{free_port, log_dir};
+use crate::{free_ports, log_dir};
 
 /// A `lekiwi-operator` process; SIGKILLed when dropped.
 pub struct OperatorProcess {
@@ -103,8 +103,9 @@ impl OperatorProcess {
 
     fn spawn(spec: OperatorSpec<'_>) -> Result<Self> {
         let (namespace, identity) = (spec.namespace, spec.identity);
-        let http_port = free_port();
-        let gateway_port = free_port();
+        let [http_port, gateway_port] = free_ports(2)[..] else {
+            unreachable!("free_ports returns as many as asked")
+        };
         let log = log_dir().join(format!("{namespace}-{identity}.log"));
         let store_path = log_dir().join(format!("{namespace}-{identity}.db"));
         let _ = std::fs::remove_file(&store_path);
