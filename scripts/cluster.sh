@@ -305,12 +305,15 @@ for table, name in chains:
 }
 
 # ---- configuration files --------------------------------------------------------------------
-# This VM's kernel refuses writes to /proc/self/oom_score_adj; then runc needs scripts/runc-wrapper.
+# This VM's kernel refuses writes to /proc/self/oom_score_adj; then runc needs scripts/runc-wrapper,
+# copied into the state directory: the cluster outlives the checkout that started it (a deleted
+# CI clone left containerd with "fork/exec .../scripts/runc-wrapper: no such file").
 runc_binary() {
   if (echo -999 >/proc/self/oom_score_adj) 2>/dev/null; then
     command -v runc
   else
-    echo "$SCRIPT_DIR/runc-wrapper"
+    install -m 0755 "$SCRIPT_DIR/runc-wrapper" "$STATE/runc-wrapper"
+    echo "$STATE/runc-wrapper"
   fi
 }
 
