@@ -132,6 +132,9 @@ struct Entry {
     connected_since: Timestamp,
     last_heartbeat: Timestamp,
     written_heartbeat: Option<Timestamp>,
+    /// When the last write of this session landed: routine refreshes count their period from
+    /// it (`written_heartbeat` is the heartbeat's own time, up to an interval earlier).
+    written_at: Option<Timestamp>,
     teleoperation_since: Option<Timestamp>,
     vitals: Vitals,
     retries: u32,
@@ -255,7 +258,7 @@ impl Presence {
             );
             s.robots.insert(
                 key.clone(),
-                Entry {
+                Box::new(Entry {
                     session,
                     epoch,
                     connected: true,
@@ -263,6 +266,7 @@ impl Presence {
                     connected_since: now,
                     last_heartbeat: now,
                     written_heartbeat: None,
+                    written_at: None,
                     teleoperation_since,
                     vitals: Vitals::default(),
                     retries: 0,
@@ -272,7 +276,7 @@ impl Presence {
                     presence_only: false,
                     settling: s.known_offline.contains(key) && !moved,
                     moved,
-                },
+                }),
             );
             if moved {
                 s.enqueue(key, Priority::Move);
@@ -450,10 +454,10 @@ impl Presence {
                 if e.info.protocol == "poll" && now.duration_since(e.last_heartbeat) > poll_grace {
                     e.connected = false;
                     due.push((key.clone(), Priority::High));
-                } else if e.written_heartbeat.is_some_and(|w| {
-                    now.duration_since(w) >= analysis_refresh(refresh, e, now)
-                        && e.last_heartbeat > w
-                }) {
+                } else if e.written_heartbeat.is_some_and(|w| e.last_heartbeat > w)
+                    && e.written_at
+                        .is_some_and(|at| refresh_due(key, e, at, now, refresh))
+                {
                     due.push((key.clone(), Priority::Low));
                 }
             }
@@ -468,17 +472,45 @@ impl Presence {
     }
 }
 
-/// How often `e`'s status is refreshed: `refresh`, or more often while its last switch's
-/// analysis window is open.
-fn analysis_refresh(
-    refresh: jiff::SignedDuration,
+/// Whether the routine refresh of `e`, last written at `written`, is due at `now`.
+///
+/// Normally once per `refresh` period, at the robot's own point in it ([`refresh_phase`]): a
+/// refresh is due once such a point passed since the last write. A fleet that connected within
+/// a minute (after a gateway restart, say) then refreshes spread evenly over the whole period,
+/// at most N/period writes per second at any time, instead of in the same one-minute wave every
+/// period; a transition's write does not move the robot's point. So `lastHeartbeatTime` is
+/// never more than a period old (the Robot controller's `--heartbeat-grace-seconds` counts on
+/// that), and a robot's first refresh after a transition may come sooner than a period. While
+/// its last switch's analysis window is open, every [`analysis::WINDOW_REFRESH`] since the
+/// last write instead.
+fn refresh_due(
+    key: &RobotKey,
     e: &Entry,
+    written: Timestamp,
     now: Timestamp,
-) -> jiff::SignedDuration {
-    let window = jiff::SignedDuration::try_from(analysis::WINDOW_REFRESH).unwrap_or_default();
+    refresh: jiff::SignedDuration,
+) -> bool {
     if e.analysis.window_open(now) {
-        refresh.min(window)
-    } else {
-        refresh
+        let window = jiff::SignedDuration::try_from(analysis::WINDOW_REFRESH).unwrap_or_default();
+        return now.duration_since(written) >= refresh.min(window);
     }
+    let period = refresh.as_micros().clamp(1, i64::MAX.into()) as i64;
+    let phase = refresh_phase(key, period);
+    let slot = |t: Timestamp| t.as_microsecond().saturating_sub(phase).div_euclid(period);
+    slot(now) > slot(written)
+}
+
+/// The robot's point in each refresh period of `period` µs: from a hash of its name, so it is
+/// spread evenly over the fleet and the same on every gateway and after every restart.
+fn refresh_phase(key: &RobotKey, period: i64) -> i64 {
+    use sha2::Digest;
+    let digest = sha2::Sha256::new()
+        .chain_update(key.namespace.as_bytes())
+        .chain_update(b"/")
+        .chain_update(key.name.as_bytes())
+        .finalize();
+    let mut first = [0u8; 8];
+    first.copy_from_slice(&digest[..8]);
+    // `period` is positive, so the remainder fits in i64.
+    (u64::from_be_bytes(first) % period.unsigned_abs()) as i64
 }

@@ -241,6 +241,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         connected_since: now,
         last_heartbeat: now,
         written_heartbeat: None,
+        written_at: None,
         teleoperation_since: Some(now),
         vitals,
         retries: 0,

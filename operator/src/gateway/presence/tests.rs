@@ -32,6 +32,7 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         connected_since: at("2026-11-20T08:00:00Z"),
         last_heartbeat: at("2026-11-20T08:05:30.250Z"),
         written_heartbeat: None,
+        written_at: None,
         teleoperation_since: None,
         vitals: Vitals::default(),
         retries: 0,
@@ -389,7 +390,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
     p.with_state(|s| {
         s.robots.insert(
             key("a"),
-            Entry {
+            Box::new(Entry {
                 session: 1,
                 epoch: 1_000,
                 connected: true,
@@ -397,6 +398,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 connected_since: Timestamp::now(),
                 last_heartbeat: Timestamp::now(),
                 written_heartbeat: None,
+                written_at: None,
                 teleoperation_since: None,
                 vitals: Vitals::default(),
                 retries: 0,
@@ -406,7 +408,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 presence_only: false,
                 settling: false,
                 moved: false,
-            },
+            }),
         );
         s.enqueue(&key("a"), Priority::Low);
     });
@@ -442,7 +444,9 @@ fn routine_heartbeats_write_nothing_until_refresh_but_changes_do() {
     );
     p.with_state(|s| {
         s.pop();
-        s.robots.get_mut(&key("a")).unwrap().written_heartbeat = Some(Timestamp::now());
+        let e = s.robots.get_mut(&key("a")).unwrap();
+        e.written_heartbeat = Some(Timestamp::now());
+        e.written_at = e.written_heartbeat;
     });
     for _ in 0..100 {
         p.heartbeat(
@@ -548,4 +552,61 @@ fn one_write_per_robot_at_a_time_and_a_change_meanwhile_follows() {
         s.end_write(&k);
         assert_eq!(s.pop(), None, "nothing asked for meanwhile: nothing more");
     });
+}
+
+/// Robots whose status was written at the same moment (a fleet that reconnected at once) are
+/// refreshed spread evenly over the following period, none later than one period after that
+/// write, and then exactly once per period.
+#[test]
+fn routine_refreshes_spread_over_the_period() {
+    let period = jiff::SignedDuration::from_secs(300);
+    let secs = jiff::SignedDuration::from_secs;
+    let written = at("2026-11-28T00:00:00Z");
+    let e = entry(true, ConnectInfo::default());
+    let mut first_due = Vec::new();
+    for i in 0..3_000 {
+        let k = key(&format!("r{i:05}"));
+        let due = (0..=300)
+            .find(|&s| refresh_due(&k, &e, written, written + secs(s), period))
+            .expect("due within one period of its last write");
+        assert!(due > 0, "not due the moment it was written");
+        first_due.push(due);
+        // Written then: due again exactly one period later, not before.
+        let w2 = written + secs(due);
+        assert!(!refresh_due(&k, &e, w2, w2 + secs(299), period));
+        assert!(refresh_due(&k, &e, w2, w2 + period, period));
+    }
+    // Ten slices of the period each get about a tenth of the fleet (300 ± 90).
+    let mut slices = [0usize; 10];
+    for s in first_due {
+        slices[((s - 1) / 30) as usize] += 1;
+    }
+    assert!(
+        slices.iter().all(|&n| (210..=390).contains(&n)),
+        "{slices:?}"
+    );
+}
+
+/// A refresh's period counts from when the write landed, not from the heartbeat it wrote
+/// (which is up to an interval older): a robot just refreshed is not due again at once.
+#[test]
+fn a_robot_just_written_is_not_due_again() {
+    let p = Presence::new(
+        PresenceConfig {
+            status_refresh: Duration::from_secs(2),
+            ..(*presence().config).clone()
+        },
+        Metrics::default(),
+    );
+    let robots: Vec<RobotKey> = (0..50).map(|i| key(&format!("w{i}"))).collect();
+    for (i, k) in robots.iter().enumerate() {
+        p.connect(k, i as u64, 1_000, ConnectInfo::default());
+        p.heartbeat(k, i as u64, HeartbeatInfo::default());
+        let mut written = p.with_state(|s| Entry::clone(&s.robots[k]));
+        written.last_heartbeat -= jiff::SignedDuration::from_millis(1_500);
+        p.written(k, &written);
+    }
+    p.with_state(|s| while s.pop().is_some() {});
+    p.tick();
+    assert_eq!(p.with_state(|s| s.pop()), None);
 }

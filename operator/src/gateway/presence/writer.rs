@@ -5,6 +5,7 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use jiff::Timestamp;
 use k8s_openapi::api::core::v1::ObjectReference;
 use kube::api::{Patch, PatchParams};
 use kube::runtime::events::{Event, EventType, Recorder, Reporter};
@@ -224,6 +225,7 @@ impl Presence {
                 e.retries = 0;
                 if e.session == entry.session {
                     e.written_heartbeat = Some(entry.last_heartbeat);
+                    e.written_at = Some(Timestamp::now());
                     // The status names this gateway now: no claim needed any more.
                     e.moved &= !entry.connected;
                 }
