@@ -18,6 +18,7 @@ pub mod kube_auth;
 pub mod lease;
 pub mod listener;
 pub mod lookup;
+pub mod mailbox;
 pub mod metrics;
 pub mod poll;
 pub mod presence;

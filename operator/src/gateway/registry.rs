@@ -5,12 +5,11 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use crate::gateway::event_store::RobotKey;
+use crate::gateway::mailbox::{self, Receiver, Sender};
+use crate::gateway::rate::TokenBucket;
 use lekiwi_crds::AgentRef;
 use lekiwi_protocol::{Release, ServerMessage};
-use tokio::sync::mpsc;
-
-use crate::gateway::event_store::RobotKey;
-use crate::gateway::rate::TokenBucket;
 
 /// Robots whose session-opening budget is tracked at most; past it the full (idle) ones go.
 const MAX_OPEN_BUDGETS: usize = 50_000;
@@ -43,7 +42,7 @@ pub enum Control {
 struct Slot {
     id: u64,
     epoch: i64,
-    tx: mpsc::Sender<Control>,
+    tx: Sender<Control>,
 }
 
 /// The sessions of this gateway, one per robot, each with the channel that reaches it, and how
@@ -90,9 +89,9 @@ impl Registry {
     /// Registers a new session for `key` with session epoch `epoch`, telling an older one that
     /// it was replaced; returns the session's id and the channel it reads its [`Control`]
     /// messages from.
-    pub(super) fn register(&self, key: &RobotKey, epoch: i64) -> (u64, mpsc::Receiver<Control>) {
+    pub(super) fn register(&self, key: &RobotKey, epoch: i64) -> (u64, Receiver<Control>) {
         let id = self.next.fetch_add(1, Ordering::Relaxed) + 1;
-        let (tx, rx) = mpsc::channel(16);
+        let (tx, rx) = mailbox::mailbox(16);
         let old = self.lock().insert(key.clone(), Slot { id, epoch, tx });
         if let Some(old) = old {
             let _ = old.tx.try_send(Control::Replaced);
@@ -189,9 +188,9 @@ mod tests {
         let (_, mut rx) = registry.register(&key, 100);
         assert!(!registry.moved(&key, 50));
         assert!(!registry.moved(&key, 100));
-        assert!(rx.try_recv().is_err());
+        assert!(rx.try_recv().is_none());
         assert!(registry.moved(&key, 200));
-        assert!(matches!(rx.try_recv(), Ok(Control::Moved)));
+        assert!(matches!(rx.try_recv(), Some(Control::Moved)));
         assert!(!registry.moved(&RobotKey::new("lab", "other"), 200));
     }
 }

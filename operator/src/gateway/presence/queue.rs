@@ -8,7 +8,8 @@ use crate::gateway::event_store::RobotKey;
 
 #[derive(Default)]
 pub(super) struct State {
-    pub(super) robots: HashMap<RobotKey, Entry>,
+    /// Boxed: the table keeps room for more entries than it holds, and an entry is over a KiB.
+    pub(super) robots: HashMap<RobotKey, Box<Entry>>,
     /// Robots this gateway last wrote as disconnected (and then forgot): a new session of one
     /// of them is written only once it has lasted [`super::SETTLE`], so a session that opens
     /// and fails at once (a stolen token in a loop) costs the API server nothing.
@@ -29,6 +30,7 @@ impl State {
         self.robots
             .get_mut(key)
             .filter(|e| e.session == session && e.connected)
+            .map(|e| &mut **e)
     }
 
     /// The entry of `key` as the writer takes it to write: from now on a disconnect of its
@@ -36,7 +38,7 @@ impl State {
     pub(super) fn take_for_write(&mut self, key: &RobotKey) -> Option<Entry> {
         self.robots.get_mut(key).map(|e| {
             e.settling = false;
-            e.clone()
+            Entry::clone(e)
         })
     }
 

@@ -6,6 +6,8 @@ use std::time::Duration;
 use axum::extract::ws::{CloseFrame, Message, Utf8Bytes};
 use futures::{Sink, SinkExt};
 use lekiwi_protocol::{ErrorCode, ServerMessage, encode};
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
 use serde::Serialize;
 use tracing::warn;
 
@@ -84,7 +86,9 @@ pub(super) fn wire_name<T: Serialize>(value: &T) -> String {
 /// The socket's sending half, with the metrics its error frames count in.
 pub(super) struct Conn<W> {
     sink: W,
-    metrics: Metrics,
+    /// `lekiwi_gateway_error_frames` (only this family, not all of [`Metrics`]: the connection's
+    /// memory lives as long as it does).
+    errors: Family<KindLabels, Counter>,
     /// How long one frame (written and flushed) may take before the session ends.
     send_timeout: Duration,
     /// A send timed out: the socket is unusable, every later send fails at once.
@@ -92,10 +96,10 @@ pub(super) struct Conn<W> {
 }
 
 impl<W: Sink<Message> + Unpin> Conn<W> {
-    pub(super) fn new(sink: W, metrics: Metrics, send_timeout: Duration) -> Self {
+    pub(super) fn new(sink: W, metrics: &Metrics, send_timeout: Duration) -> Self {
         Self {
             sink,
-            metrics,
+            errors: metrics.gateway.errors.clone(),
             send_timeout,
             stuck: false,
         }
@@ -194,10 +198,6 @@ impl<W: Sink<Message> + Unpin> Conn<W> {
     }
 
     fn count_error(&self, kind: &'static str) {
-        self.metrics
-            .gateway
-            .errors
-            .get_or_create(&KindLabels { kind })
-            .inc();
+        self.errors.get_or_create(&KindLabels { kind }).inc();
     }
 }

@@ -12,11 +12,11 @@ mod serve;
 use std::sync::Arc;
 use std::time::Duration;
 
+use crate::gateway::mailbox::Receiver;
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
 use jiff::Timestamp;
 use lekiwi_protocol::{MAX_SEQ, PROTOCOL_VERSION, ServerMessage};
-use tokio::sync::mpsc;
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, info, info_span, warn};
 
@@ -101,7 +101,7 @@ struct Opened {
     /// This session's number in the registry.
     id: u64,
     /// Where the registry reaches this session.
-    control: mpsc::Receiver<Control>,
+    control: Receiver<Control>,
     /// The connection record to close, if the store took it.
     record_id: Option<i64>,
     /// The highest sequence number stored for the robot, announced in `welcome`.
@@ -142,13 +142,15 @@ async fn run_inner<W, R, E>(
     E: std::fmt::Display,
 {
     let key = grant.robot().clone();
-    let mut conn = Conn::new(sink, shared.metrics.clone(), shared.limits.send_timeout);
+    // Every step but the main loop is boxed: this future lives (and holds its memory) as long
+    // as the connection, and a step inline would add its size to it for that whole time.
+    let mut conn = Conn::new(sink, &shared.metrics, shared.limits.send_timeout);
     // 1. The hello, within the handshake timeout.
-    let Ok(hello) = handshake::hello(&shared, &mut conn, &mut stream).await else {
+    let Ok(hello) = Box::pin(handshake::hello(&shared, &mut conn, &mut stream)).await else {
         return;
     };
     // 2. Enrollment mints the robot's own token.
-    let Ok(robot_token) = handshake::enroll(&shared, &grant, &mut conn).await else {
+    let Ok(robot_token) = Box::pin(handshake::enroll(&shared, &grant, &mut conn)).await else {
         return;
     };
     let token_hash = robot_token
@@ -168,7 +170,7 @@ async fn run_inner<W, R, E>(
         &features,
         shared.desired.as_ref().and_then(|d| d.agent(&key)),
     );
-    let mut opened = open(&shared, &key, ConnectInfo { address, ..hello }).await;
+    let mut opened = Box::pin(open(&shared, &key, ConnectInfo { address, ..hello })).await;
     let mut session = Session {
         shared: &shared,
         key: &key,
@@ -181,17 +183,11 @@ async fn run_inner<W, R, E>(
         agent: Box::new(agent),
         token_hash,
     };
-    let welcomed = session
-        .conn
-        .send(&welcome(
-            &shared.limits,
-            &key,
-            opened.stored_seq,
-            robot_token,
-        ))
-        .await;
+    let welcome = welcome(&shared.limits, &key, opened.stored_seq, robot_token);
+    let welcomed = Box::pin(session.conn.send(&welcome)).await;
+    drop(welcome);
     let welcomed = match welcomed {
-        Ok(()) => session.invalid_fields(refused).await,
+        Ok(()) => Box::pin(session.invalid_fields(refused)).await,
         Err(end) => Err(end),
     };
     let end = match welcomed {
@@ -200,10 +196,10 @@ async fn run_inner<W, R, E>(
     };
     // Closed: nothing left to read; SendTimeout: no Close frame went out to be answered.
     if !matches!(end, End::Closed | End::SendTimeout) {
-        drain_until_close(&mut stream).await;
+        Box::pin(drain_until_close(&mut stream)).await;
     }
     // 4. Clean up: a replaced session leaves presence to its successor.
-    close(&shared, &key, &opened, &end).await;
+    Box::pin(close(&shared, &key, &opened, &end)).await;
 }
 
 /// Registers the session (replacing an older one) with an epoch above the one the robot's

@@ -3,10 +3,10 @@
 
 use std::time::Duration;
 
+use crate::gateway::mailbox::Receiver;
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
 use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, decode};
-use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
@@ -77,17 +77,17 @@ where
     pub(super) async fn serve<R, E>(
         &mut self,
         stream: &mut R,
-        control: &mut mpsc::Receiver<Control>,
+        control: &mut Receiver<Control>,
     ) -> End
     where
         R: Stream<Item = Result<Message, E>> + Unpin + Send,
         E: std::fmt::Display,
     {
         let mut pace = Pace::new(&self.shared.limits);
-        if let Err(end) = self.send_commands().await {
+        if let Err(end) = Box::pin(self.send_commands()).await {
             return end;
         }
-        if let Err(end) = self.send_agent_update().await {
+        if let Err(end) = Box::pin(self.send_agent_update()).await {
             return end;
         }
         loop {
@@ -97,11 +97,14 @@ where
                 () = tokio::time::sleep_until(pace.deadline) => Wake::Silence,
                 frame = stream.next() => Wake::Socket(frame),
             };
+            // Each handler's future is boxed: it lives only while it handles this wake-up, and
+            // inline it would add its size to this loop's future, which lives (and holds its
+            // memory) as long as the connection.
             let flow = match wake {
-                Wake::Shutdown => self.shut_down().await,
-                Wake::Control(ctl) => self.on_control(ctl).await,
-                Wake::Silence => self.silent(pace.silence).await,
-                Wake::Socket(frame) => self.on_socket(frame, &mut pace).await,
+                Wake::Shutdown => Box::pin(self.shut_down()).await,
+                Wake::Control(ctl) => Box::pin(self.on_control(ctl)).await,
+                Wake::Silence => Box::pin(self.silent(pace.silence)).await,
+                Wake::Socket(frame) => Box::pin(self.on_socket(frame, &mut pace)).await,
             };
             if let Err(end) = flow {
                 return end;
