@@ -139,10 +139,17 @@ current() {
 
 rss_kib() { awk '/^VmRSS:/ { print $2 }' "/proc/$1/status"; }
 
-# CPU seconds (user + system) a process has used so far.
+# CPU seconds (user + system) a process and its live descendants have used so far (PostgreSQL
+# is a postmaster with a backend per connection, under runuser).
 cpu_seconds() {
-  local ticks
-  ticks="$(awk '{ print $14 + $15 }' "/proc/$1/stat" 2>/dev/null || echo 0)"
+  local pids=("$1") ticks=0 i=0 child
+  while [ "$i" -lt "${#pids[@]}" ]; do
+    for child in $(cat /proc/"${pids[$i]}"/task/*/children 2>/dev/null); do pids+=("$child"); done
+    i=$((i + 1))
+  done
+  for i in "${pids[@]}"; do
+    ticks=$((ticks + $(awk '{ print $14 + $15 }' "/proc/$i/stat" 2>/dev/null || echo 0)))
+  done
   awk -v t="$ticks" -v hz="$(getconf CLK_TCK)" 'BEGIN { printf "%.2f", t / hz }'
 }
 

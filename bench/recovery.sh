@@ -200,6 +200,7 @@ wait_for "controller leadership" 60 leader
 # (a readiness probe of /readyz every second; two failures take a replica out). With more than
 # one instance (see LB_COUNT), the simulator spreads its robots over them by its URL list; each
 # balances over both gateways, as every node's kube-proxy does for a Service.
+LB_PIDS=()
 for i in "${!LB_PORTS[@]}"; do
   cat >"$WORK/haproxy-$i.cfg" <<EOF
 global
@@ -220,6 +221,7 @@ backend gateways
   server gw-b 127.0.0.1:${GW_PORT[gw-b]} check port ${GW_HTTP[gw-b]} inter 1s fall 2 rise 2
 EOF
   start "haproxy-$i" haproxy -db -f "$WORK/haproxy-$i.cfg"
+  LB_PIDS+=("$LAST_PID")
   sleep 1
   alive "$LAST_PID" || die "haproxy exited: $(tail -5 "$WORK/haproxy-$i.log")"
 done
@@ -282,6 +284,12 @@ scenario_kill() {
   fact kill_time "$T_KILL"
   log "SIGKILL gw-a (pid ${GW_PID[gw-a]})"
   kill -KILL "${GW_PID[gw-a]}"
+  # Where the machine's CPU goes while the survivor takes over (reported over the window below).
+  local lbs=() i
+  for i in "${!LB_PIDS[@]}"; do lbs+=("haproxy-$i:${LB_PIDS[$i]}"); done
+  cpu_snapshot "gw-b:${GW_PID[gw-b]}" "controller:$CTRL_PID" "sim:$SIM_PID" "postgres:$PG_PID" \
+    "apiserver:$(cat "$CP_DIR/kube-apiserver.pid")" "etcd:$(cat "$CP_DIR/etcd.pid")" \
+    "watch:$WATCH_PID" "${lbs[@]}"
   wait "${GW_PID[gw-a]}" 2>/dev/null || true
   forget "${GW_PID[gw-a]}"
   # Recovered: the survivor holds every session and the controller counts every robot Online.
@@ -306,6 +314,7 @@ scenario_kill() {
   sleep 30
   scrape_apiserver "$WORK/apiserver-after-recovery.txt"
   fact recovery_window_seconds "$(elapsed "$T_KILL")"
+  cpu_report recovery "$(elapsed "$T_KILL")"
 
   # ---- the restart -----------------------------------------------------------------------------
   log "restarting gw-a; observing for $AFTER_RESTART s"

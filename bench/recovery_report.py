@@ -8,6 +8,7 @@ holds). Standard library only; the metric parsing is bench/report.py's.
 """
 
 import json
+import os
 import sys
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -254,6 +255,10 @@ def report_kill(work, f):
     row("events resent after reconnects", sim["events_resent"])
     row("simulator reconnects / connect errors", f"{sim['reconnects']} / {sim['connect_errors']}")
     row("API write codes in the recovery window", dict(rec_codes) or "-")
+    cpu = sorted(((k.removeprefix("cpu_recovery_window_"), float(v)) for k, v in f.items()
+                  if k.startswith("cpu_recovery_window_")), key=lambda kv: -kv[1])
+    row(f"CPU in the {float(f['recovery_window_seconds']):.0f} s after the kill (cores; "
+        f"{os.cpu_count()} in the machine)", ", ".join(f"{k} {v:.2f}" for k, v in cpu) or "-")
 
 
 if __name__ == "__main__":
