@@ -322,6 +322,9 @@ scenario_kill() {
   start_gateway gw-a
   wait_for gw-a 300 ready "${GW_PID[gw-a]}" gw-a "http://127.0.0.1:${GW_HTTP[gw-a]}/readyz"
   fact restart_ready_seconds "$(elapsed "$T_START")"
+  # The writes after it is ready are what a rebalancing would cost; those while it lists count
+  # with the recovery.
+  scrape_apiserver "$WORK/apiserver-restart-ready.txt"
   T_RESTART="$(now)"
   fact restart_time "$T_RESTART"
   sleep "$AFTER_RESTART"

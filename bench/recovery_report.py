@@ -207,8 +207,9 @@ def report_kill(work, f):
     before = parse_metrics(work / "apiserver-before-kill.txt")
     after = parse_metrics(work / "apiserver-after-recovery.txt")
     restart = parse_metrics(work / "apiserver-after-restart.txt")
+    ready = parse_metrics(work / "apiserver-restart-ready.txt")
     rec_writes, rec_codes = writes(before, after)
-    rst_writes, rst_codes = writes(after, restart)
+    rst_writes, rst_codes = writes(ready, restart)
     codes = all_requests_by_code(before, restart)
     moved = max(len(on_killed), 1)
     robot_writes = sum(v for r, v in rec_writes.items() if r.startswith(("robots", "events")))
@@ -242,7 +243,7 @@ def report_kill(work, f):
         f"{int(sum(v for c, v in codes.items() if c == '429'))} / "
         f"{int(sum(v for c, v in codes.items() if c.startswith('5')))}", "0 / 0")
     row("restarted gw-a ready (/readyz) after", f"{f.get('restart_ready_seconds', '?')} s")
-    row(f"API writes in the {float(f['after_restart_seconds']):.0f} s after gw-a restarted",
+    row(f"API writes in the {float(f['after_restart_seconds']):.0f} s after the restarted gw-a was ready",
         ", ".join(f"{r} {int(v)}" for r, v in rst_writes.most_common()) or "0")
     row("sessions after the restart window (gw-a / gw-b)",
         f"{f.get('sessions_after_restart_gw-a')} / {f.get('sessions_after_restart_gw-b')}")
