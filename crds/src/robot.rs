@@ -225,26 +225,29 @@ pub struct RobotStatus {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub teleoperation: Option<TeleoperationReport>,
 
+    // The larger reports below are boxed: gateways and the controller cache every Robot, and a
+    // boxed report costs a pointer while unset and its own size only once written (the JSON
+    // and the schema are the same).
     /// Facts about the robot's computer, reported at connect.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub system: Option<SystemInfo>,
+    pub system: Option<Box<SystemInfo>>,
 
     /// A small summary of recent telemetry; full series live in the event store.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub telemetry: Option<TelemetrySummary>,
+    pub telemetry: Option<Box<TelemetrySummary>>,
 
     /// Outcome of the agent's latest release update, as it reported it. Written by the gateway
     /// when an update ends; rollouts read it to see failures without waiting for a timeout.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub last_update: Option<UpdateReport>,
+    pub last_update: Option<Box<UpdateReport>>,
 
     /// The gateway's summary of the robot's metrics before and after its last switch, judged
     /// by rollouts with `spec.analysis`. Written by the gateway.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub analysis: Option<crate::analysis::AnalysisReport>,
+    pub analysis: Option<Box<crate::analysis::AnalysisReport>>,
     /// How the robot's latest agent update (`spec.agent`) went. Written by the gateway.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub agent_update: Option<AgentUpdateReport>,
+    pub agent_update: Option<Box<AgentUpdateReport>>,
 }
 
 /// How an agent's release update ended. Every field is optional: a gateway that restarts forgets

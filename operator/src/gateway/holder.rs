@@ -78,7 +78,7 @@ pub fn trim_status(status: Option<RobotStatus>) -> Option<RobotStatus> {
         // reconnects to (`presence::analysis`).
         analysis: status
             .analysis
-            .filter(super::presence::analysis_window_open),
+            .filter(|a| super::presence::analysis_window_open(a)),
         ..RobotStatus::default()
     })
 }

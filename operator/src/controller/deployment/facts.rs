@@ -284,7 +284,7 @@ fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: RolloutKind) -> Ro
             .annotations()
             .get(kind.mark_annotation())
             .and_then(|m| serde_json::from_str::<Mark>(m).ok()),
-        analysis: status.analysis,
+        analysis: status.analysis.map(|a| *a),
         superseded_by: None,
         ..RobotView::default()
     }

@@ -42,15 +42,17 @@ fn robot(version: &str, arch: &str, update: Option<(&str, &str)>) -> Robot {
     r.status = Some(RobotStatus {
         agent_version: Some(version.into()),
         agent_digest: Some(digest('a')),
-        system: Some(SystemInfo {
+        system: Some(Box::new(SystemInfo {
             arch: Some(arch.into()),
             ..SystemInfo::default()
-        }),
-        agent_update: update.map(|(version, phase)| AgentUpdateReport {
-            version: Some(version.into()),
-            phase: Some(phase.into()),
-            message: Some("crash at start".into()),
-            time: Some(Time("2026-11-25T10:00:00Z".parse().unwrap())),
+        })),
+        agent_update: update.map(|(version, phase)| {
+            Box::new(AgentUpdateReport {
+                version: Some(version.into()),
+                phase: Some(phase.into()),
+                message: Some("crash at start".into()),
+                time: Some(Time("2026-11-25T10:00:00Z".parse().unwrap())),
+            })
         }),
         ..RobotStatus::default()
     });

@@ -202,7 +202,7 @@ pub async fn one(
         .ok_or_else(|| ApiError::NotFound(format!("robot {namespace}/{name} not found")))?;
     let status = robot.status.as_ref();
     Ok(Json(RobotView {
-        vitals: status.and_then(|s| s.telemetry.clone()),
+        vitals: status.and_then(|s| s.telemetry.as_deref().cloned()),
         vitals_time: status
             .and_then(|s| s.last_heartbeat_time.as_ref())
             .map(|t| t.0.to_string()),

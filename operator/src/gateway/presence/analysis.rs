@@ -239,7 +239,7 @@ impl Tracker {
         let mut tracker = match ours {
             Some((t, _)) => t.clone(),
             None => stored
-                .and_then(|s| s.analysis.as_ref())
+                .and_then(|s| s.analysis.as_deref())
                 .and_then(Self::resume)
                 .unwrap_or_default(),
         };

@@ -113,11 +113,14 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
             score: t.score.map(|s| s.clamp(0.0, 1.0)),
             since: e.teleoperation_since.map(Time),
         }),
-        system: system_info(&info.system),
-        telemetry: telemetry_summary(&e.vitals),
-        last_update: e.last_update.as_ref().map(update_report),
-        analysis: e.analysis.report(),
-        agent_update: e.agent_update.as_ref().map(super::agent::report),
+        system: system_info(&info.system).map(Box::new),
+        telemetry: telemetry_summary(&e.vitals).map(Box::new),
+        last_update: e.last_update.as_ref().map(|u| Box::new(update_report(u))),
+        analysis: e.analysis.report().map(Box::new),
+        agent_update: e
+            .agent_update
+            .as_ref()
+            .map(|u| Box::new(super::agent::report(u))),
     }
 }
 

@@ -87,7 +87,12 @@ impl RobotObject {
         status.last_heartbeat_time.as_ref().map(|t| t.0.to_string())
     }
     async fn vitals(&self) -> Option<Vitals> {
-        self.0.status.as_ref()?.telemetry.as_ref().map(Vitals::from)
+        self.0
+            .status
+            .as_ref()?
+            .telemetry
+            .as_deref()
+            .map(Vitals::from)
     }
     /// The whole status, as the API server holds it.
     async fn status(&self) -> Json<Value> {
