@@ -2,9 +2,10 @@
 //! only as SHA-256 hashes; registration of unknown robots that present an enrollment token.
 //! (People and tools authenticate to the HTTP API with Kubernetes tokens: see `kube_auth`.)
 
+use std::sync::Arc;
+
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
-use kube::runtime::reflector::{ObjectRef, Store};
 use lekiwi_crds::contract::{
     HASH_KEY, KIND_ENROLLMENT, KIND_ROBOT, MAX_ROBOT_NAME_LEN, ROBOT_LABEL, TOKEN_LABEL,
     hash_token, robot_secret_name,
@@ -13,6 +14,7 @@ use lekiwi_crds::contract::{
 use crate::gateway::enroll;
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::lookup::{Lookups, Skip, Subject};
+use crate::gateway::tokens::{TokenIndex, TokenKind};
 
 /// Why a connection was refused (logged and counted; never with the token).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -111,7 +113,7 @@ fn robot_of(header: Option<&str>) -> Result<(Option<String>, String), Refusal> {
 #[derive(Clone)]
 pub struct Authenticator {
     client: kube::Client,
-    secrets: Store<Secret>,
+    tokens: Arc<TokenIndex>,
     /// Enrollment costs three API requests; a fleet enrolling at once waits here instead of
     /// flooding the API server.
     enrollments: std::sync::Arc<tokio::sync::Semaphore>,
@@ -149,18 +151,19 @@ impl Authenticator {
     /// Secrets alone: false when its Secret is gone (or not seen yet), not ours, or holds
     /// another hash (the token was rotated or revoked).
     pub fn still_counts(&self, robot: &RobotKey, hash: &str) -> bool {
-        let secret_ref =
-            ObjectRef::<Secret>::new(&robot_secret_name(&robot.name)).within(&robot.namespace);
-        self.secrets.get(&secret_ref).is_some_and(|s| {
-            robot_hash(&s, &robot.name).is_some_and(|h| same_hash(&h, hash.as_bytes()))
-        })
+        self.tokens
+            .get(&robot.namespace, &robot_secret_name(&robot.name))
+            .is_some_and(|t| {
+                matches!(&t.kind, TokenKind::Robot(r) if **r == *robot.name)
+                    && t.hash.is_some_and(|h| same_hash(&h, hash.as_bytes()))
+            })
     }
 
-    /// An authenticator over a reflector of token Secrets, with the default [`Lookups`].
-    pub fn new(client: kube::Client, secrets: Store<Secret>) -> Self {
+    /// An authenticator over the watched token Secrets, with the default [`Lookups`].
+    pub fn new(client: kube::Client, tokens: Arc<TokenIndex>) -> Self {
         Self {
             client,
-            secrets,
+            tokens,
             enrollments: std::sync::Arc::new(tokio::sync::Semaphore::new(
                 MAX_CONCURRENT_ENROLLMENTS,
             )),
@@ -234,25 +237,15 @@ impl Authenticator {
     /// The namespace of the cached enrollment token `hash` matches (in `namespace` when given),
     /// and whether the cache holds any enrollment token of `namespace`.
     fn cached_enrollment(&self, namespace: &Option<String>, hash: &[u8]) -> (Option<String>, bool) {
-        let mut namespace_has_enrollment = false;
-        for secret in self.secrets.state() {
-            let labels = secret.metadata.labels.as_ref();
-            if labels.and_then(|l| l.get(TOKEN_LABEL)).map(String::as_str) != Some(KIND_ENROLLMENT)
-            {
-                continue;
-            }
-            let Some(secret_ns) = secret.metadata.namespace.clone() else {
-                continue;
-            };
-            if namespace.as_ref().is_some_and(|ns| *ns != secret_ns) {
-                continue;
-            }
-            namespace_has_enrollment = true;
-            if secret_hash(&secret).is_some_and(|h| same_hash(&h, hash)) {
-                return (Some(secret_ns), true);
-            }
-        }
-        (None, namespace_has_enrollment)
+        let namespace = namespace.as_deref();
+        let matched = self
+            .tokens
+            .enrollments(namespace)
+            .into_iter()
+            .find(|(_, h)| same_hash(h, hash))
+            .map(|(ns, _)| ns);
+        let has = matched.is_some() || self.tokens.has_enrollment(namespace);
+        (matched, has)
     }
 
     /// Reads robot `ns/name`'s token Secret from the API server, within the budget, and says
@@ -299,7 +292,7 @@ impl Authenticator {
     /// Its live reads wait for an enrollment slot, so they are bounded too.
     pub async fn may_enroll(&self, robot: &RobotKey) -> Result<(), enroll::Error> {
         let _slot = self.enrollments.acquire().await;
-        enroll::check(&self.client, &self.secrets, robot).await
+        enroll::check(&self.client, &self.tokens, robot).await
     }
 
     /// Registers an enrolling robot and mints its token (see [`enroll::register`]), a few at a

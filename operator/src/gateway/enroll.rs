@@ -6,7 +6,6 @@ use std::collections::BTreeMap;
 
 use k8s_openapi::api::core::v1::Secret;
 use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
-use kube::runtime::reflector::{ObjectRef, Store};
 use kube::{Api, Resource};
 use lekiwi_crds::Robot;
 use lekiwi_crds::contract::{
@@ -14,6 +13,7 @@ use lekiwi_crds::contract::{
 };
 
 use crate::gateway::event_store::RobotKey;
+use crate::gateway::tokens::TokenIndex;
 
 /// Why an enrollment token may not (re-)enroll a robot.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -84,12 +84,11 @@ fn permission(robot: &Robot) -> Result<(), Refused> {
 /// [`register`] decides again, atomically.
 pub async fn check(
     client: &kube::Client,
-    secrets: &Store<Secret>,
+    tokens: &TokenIndex,
     robot: &RobotKey,
 ) -> Result<(), Error> {
     let secret_name = robot_secret_name(&robot.name);
-    let cached = ObjectRef::<Secret>::new(&secret_name).within(&robot.namespace);
-    let has_token = secrets.get(&cached).is_some()
+    let has_token = tokens.get(&robot.namespace, &secret_name).is_some()
         || Api::<Secret>::namespaced(client.clone(), &robot.namespace)
             .get_metadata_opt(&secret_name)
             .await?

@@ -11,7 +11,7 @@ use axum::Router;
 use futures::StreamExt;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
-use kube::runtime::{WatchStreamExt, reflector, watcher};
+use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_crds::contract::TOKEN_LABEL;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -32,6 +32,7 @@ use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, Shared};
+use super::tokens::TokenIndex;
 use super::{AppState, blob_api, dispatch, lease, router};
 use crate::config::Config;
 use crate::error::{Error, Result};
@@ -99,7 +100,7 @@ pub async fn run(
         config.session_opens_per_minute,
         config.session_open_burst,
     ));
-    let Some((secret_store, secret_task)) =
+    let Some((tokens, secret_task)) =
         watch_token_secrets(&config, &client, registry.clone(), &cancel).await?
     else {
         return Ok(());
@@ -126,8 +127,7 @@ pub async fn run(
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
-        auth: Authenticator::new(client.clone(), secret_store)
-            .with_lookups(lookups(&config, &metrics)),
+        auth: Authenticator::new(client.clone(), tokens).with_lookups(lookups(&config, &metrics)),
         registry,
         limits: limits(&config),
         metrics: metrics.clone(),
@@ -207,10 +207,11 @@ async fn watch_token_secrets(
     client: &kube::Client,
     registry: Arc<Registry>,
     cancel: &CancellationToken,
-) -> Result<Option<(reflector::Store<Secret>, JoinHandle<()>)>> {
-    let (secret_store, writer) = reflector::store();
-    // Keep only what authentication reads: at 10,000 robots the managed fields and annotations
-    // of the token Secrets would cost more memory than the hashes themselves.
+) -> Result<Option<(Arc<TokenIndex>, JoinHandle<()>)>> {
+    // Only what authentication reads is kept (see `TokenIndex`): the gateway holds every
+    // robot's token Secret, so a whole `Secret` each would cost ~2 KiB per robot of the fleet.
+    let tokens = Arc::new(TokenIndex::default());
+    let index = tokens.clone();
     let token_secrets = watcher(
         watched::<Secret>(config, client),
         // Listed from the API server's watch cache: a restart under load must not wait for
@@ -220,13 +221,12 @@ async fn watch_token_secrets(
             .labels(TOKEN_LABEL)
             .any_semantic(),
     )
-    .default_backoff()
-    .modify(|secret: &mut Secret| {
-        secret.metadata.managed_fields = None;
-        secret.metadata.annotations = None;
-        secret.metadata.owner_references = None;
-    });
-    let secret_watch = reflector(writer, token_secrets).for_each(move |event| {
+    .default_backoff();
+    let secret_watch = token_secrets.for_each(move |event| {
+        // The index first: a session told below checks its token against it.
+        if let Ok(event) = &event {
+            index.apply(event);
+        }
         match event {
             Ok(watcher::Event::Apply(s)) => credentials_changed(&registry, &s, false),
             Ok(watcher::Event::Delete(s)) => credentials_changed(&registry, &s, true),
@@ -247,10 +247,7 @@ async fn watch_token_secrets(
     let secret_task = tokio::spawn(secret_watch);
     tokio::select! {
         () = cancel.cancelled() => { secret_task.abort(); Ok(None) }
-        r = secret_store.wait_until_ready() => match r {
-            Ok(()) => Ok(Some((secret_store, secret_task))),
-            Err(_) => Err(Error::TaskStopped("token secret reflector")),
-        }
+        () = tokens.wait_until_ready() => Ok(Some((tokens, secret_task))),
     }
 }
 

@@ -328,11 +328,6 @@ mod tests {
         let client =
             kube::Client::try_from(kube::Config::new("http://127.0.0.1:1".parse().unwrap()))
                 .unwrap();
-        let (_writer, secrets) = {
-            let (store, writer) =
-                kube::runtime::reflector::store::<k8s_openapi::api::core::v1::Secret>();
-            (writer, store)
-        };
         let metrics = Metrics::default();
         let shared = Arc::new(Shared {
             presence: Presence::new(
@@ -348,7 +343,10 @@ mod tests {
                 metrics.clone(),
             ),
             store: Store::connect("sqlite::memory:").await.unwrap(),
-            auth: Authenticator::new(client.clone(), secrets),
+            auth: Authenticator::new(
+                client.clone(),
+                Arc::new(crate::gateway::tokens::TokenIndex::listed([])),
+            ),
             registry: Arc::default(),
             limits: Limits {
                 max_frame_bytes: 1024,
@@ -375,7 +373,8 @@ mod tests {
         let session = run(shared, grant, String::new(), None, sink, stream);
         let size = std::mem::size_of_val(&session);
         println!("session future: {size} bytes");
-        // Every connection holds one of these for its whole life: keep it well under 8 KiB.
-        assert!(size < 8 * 1024, "session future is {size} bytes");
+        // Every connection holds one of these for its whole life: each step but the main loop
+        // is boxed (about 2.2 KiB in a debug build).
+        assert!(size < 4 * 1024, "session future is {size} bytes");
     }
 }
