@@ -12,9 +12,10 @@ use std::time::{Duration, Instant};
 
 use futures::{SinkExt, StreamExt};
 use kube::Api;
-use kube::runtime::{WatchStreamExt, reflector, watcher};
+use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
 use lekiwi_crds::{Robot, RobotPhase};
+use lekiwi_operator::gateway::api::cache::Cache;
 use lekiwi_operator::gateway::desired::DesiredReleases;
 use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_operator::gateway::presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};
@@ -350,9 +351,7 @@ fn writes(metrics: &Metrics, result: &str) -> f64 {
 /// every write meets a conflict first and decides on the Robot read again.
 async fn an_older_sessions_writes_are_fenced(r: &Replicas) -> anyhow::Result<()> {
     let created = create_robot(&r.client, &r.ns, "kiwi-f", &[]).await?;
-    let (cache, mut fill) = reflector::store::<Robot>();
-    fill.apply_watcher_event(&watcher::Event::Apply(created));
-    let cache = DesiredReleases(cache);
+    let cache = DesiredReleases(Arc::new(Cache::listed([created])));
     let key = RobotKey::new(&r.ns, "kiwi-f");
     let (old, old_metrics, old_cancel) = status_writer(&r.client, "gw-old", &cache);
     let (new, new_metrics, new_cancel) = status_writer(&r.client, "gw-new", &cache);

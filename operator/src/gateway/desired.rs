@@ -3,21 +3,26 @@
 //! (what the status writer's fence reads first).
 
 use std::collections::BTreeSet;
+use std::sync::Arc;
 
-use kube::ResourceExt;
-use kube::runtime::reflector::{ObjectRef, Store};
 use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 
+use crate::gateway::api::cache::Cache;
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::Holder;
 
-/// Looks up a robot's `spec.release` in the gateway's Robot cache (a reflector store filled by
-/// [`super::dispatch::start`]).
+/// Looks up a robot's `spec.release` in the gateway's Robot cache (the one the Fleet API answers
+/// from, see [`super::dispatch::start`]).
 #[derive(Clone)]
-pub struct DesiredReleases(pub Store<Robot>);
+pub struct DesiredReleases(pub Arc<Cache<Robot>>);
 
 impl DesiredReleases {
+    /// The Robot `key` as the cache holds it.
+    pub fn robot(&self, key: &RobotKey) -> Option<Arc<Robot>> {
+        self.0.get(&key.namespace, &key.name)
+    }
+
     /// The release `key` should run, if its Robot is in the cache and names one.
     pub fn get(&self, key: &RobotKey) -> Option<Release> {
         self.lookup(key).flatten()
@@ -26,25 +31,20 @@ impl DesiredReleases {
     /// `None` when the Robot is not in the cache (it may not exist, or the watch has not
     /// delivered it yet); otherwise its `spec.release`, which may be unset.
     pub fn lookup(&self, key: &RobotKey) -> Option<Option<Release>> {
-        let obj = ObjectRef::new(&key.name).within(&key.namespace);
-        self.0
-            .get(&obj)
+        self.robot(key)
             .map(|r| r.spec.release.as_ref().map(Release::from))
     }
 
     /// The robot's `spec.agent`, if its Robot is in the cache and names one.
     pub fn agent(&self, key: &RobotKey) -> Option<AgentRef> {
-        let obj = ObjectRef::new(&key.name).within(&key.namespace);
-        self.0.get(&obj).and_then(|r| r.spec.agent.clone())
+        self.robot(key).and_then(|r| r.spec.agent.clone())
     }
 
     /// The agent build digests the Robots of `namespace` name in `spec.agent`: the agent
     /// binaries a robot of that namespace may download.
     pub fn agent_digests_in(&self, namespace: &str) -> BTreeSet<String> {
-        self.0
-            .state()
+        self.in_namespace(namespace)
             .iter()
-            .filter(|r| r.namespace().as_deref() == Some(namespace))
             .filter_map(|r| r.spec.agent.as_ref())
             .flat_map(|a| a.builds.iter().map(|b| b.digest.clone()))
             .collect()
@@ -53,18 +53,19 @@ impl DesiredReleases {
     /// Who holds `key` according to its status as the watch last saw it; `None` when the Robot
     /// is not in the cache.
     pub fn holder(&self, key: &RobotKey) -> Option<Holder> {
-        let obj = ObjectRef::new(&key.name).within(&key.namespace);
-        self.0.get(&obj).map(|r| Holder::of(&r))
+        self.robot(key).map(|r| Holder::of(&r))
     }
 
     /// The manifest digests the Robots of `namespace` name in `spec.release`: the releases a
     /// robot of that namespace may download.
     pub fn digests_in(&self, namespace: &str) -> BTreeSet<String> {
-        self.0
-            .state()
+        self.in_namespace(namespace)
             .iter()
-            .filter(|r| r.namespace().as_deref() == Some(namespace))
             .filter_map(|r| r.spec.release.as_ref().map(|rel| rel.digest.clone()))
             .collect()
+    }
+
+    fn in_namespace(&self, namespace: &str) -> Vec<Arc<Robot>> {
+        self.0.page(Some(namespace), None, usize::MAX, |_| true).0
     }
 }

@@ -8,7 +8,7 @@
 //! higher epoch of another gateway on a robot it holds a session of closes that session.
 
 use jiff::Timestamp;
-use lekiwi_crds::{Robot, RobotStatus};
+use lekiwi_crds::Robot;
 
 /// Who holds a robot according to its status, and the version of the Robot that says so.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -55,32 +55,6 @@ impl Holder {
 pub fn next_epoch(now: Timestamp, seen: Option<i64>) -> i64 {
     let now = now.as_microsecond();
     seen.map_or(now, |seen| now.max(seen.saturating_add(1)))
-}
-
-/// The part of a Robot's status the gateway's Robot watch keeps: who holds it (for the fence),
-/// and the phase, conditions and generation the gateway's own phase planning starts from
-/// (`presence::PhasePlanner`). The rest is dropped to keep the cache small.
-pub fn trim_status(status: Option<RobotStatus>) -> Option<RobotStatus> {
-    let status = status?;
-    Some(RobotStatus {
-        gateway: status.gateway,
-        session_epoch: status.session_epoch,
-        phase: status.phase,
-        conditions: status.conditions,
-        observed_generation: status.observed_generation,
-        // The release a gateway last saw the robot run: a robot that reconnects on another one
-        // tells a switch no gateway saw (`presence::analysis`).
-        current_release: status.current_release,
-        // Whether a gateway wrote this status at all (the controller alone writes only a
-        // phase): `Tracker::at_connect` reads it before it counts `current_release` as seen.
-        last_heartbeat_time: status.last_heartbeat_time,
-        // A switch's analysis window, while open, continues on whichever gateway the robot
-        // reconnects to (`presence::analysis`).
-        analysis: status
-            .analysis
-            .filter(|a| super::presence::analysis_window_open(a)),
-        ..RobotStatus::default()
-    })
 }
 
 #[cfg(test)]

@@ -106,17 +106,8 @@ pub async fn run(
         return Ok(());
     };
     let presence = presence(&config, &name, &metrics);
-    let (desired, dispatch_task) = dispatch::start(
-        watched(&config, &client),
-        registry.clone(),
-        name.clone(),
-        cancel.clone(),
-    )
-    .await?;
-    presence.plan_phases(PhasePlanner::new(
-        desired.0.clone(),
-        Duration::from_secs(config.heartbeat_grace_seconds),
-    ));
+    // One watch of Robots per gateway: the Fleet API's cache is also what sessions, the status
+    // writer's fence and phase planning read, and what deploy dispatch follows.
     let (fleet, fleet_tasks) = FleetApi::start(
         watched(&config, &client),
         watched(&config, &client),
@@ -124,6 +115,17 @@ pub async fn run(
         &config,
         &cancel,
     );
+    let (desired, dispatch_task) = dispatch::start(
+        fleet.robots.clone(),
+        registry.clone(),
+        name.clone(),
+        cancel.clone(),
+    )
+    .await?;
+    presence.plan_phases(PhasePlanner::new(
+        desired.clone(),
+        Duration::from_secs(config.heartbeat_grace_seconds),
+    ));
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),

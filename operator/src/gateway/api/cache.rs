@@ -239,6 +239,19 @@ impl<K> Cache<K> {
 }
 
 impl<K: Resource + Serialize> Cache<K> {
+    /// A cache that holds `objects` as a complete first list and follows no watch (tests, and
+    /// what must not change).
+    pub fn listed(objects: impl IntoIterator<Item = K>) -> Self {
+        let cache = Self::new();
+        let mut relist = None;
+        cache.apply(watcher::Event::Init, &mut relist);
+        for o in objects {
+            cache.apply(watcher::Event::InitApply(o), &mut relist);
+        }
+        cache.apply(watcher::Event::InitDone, &mut relist);
+        cache
+    }
+
     fn apply(&self, event: watcher::Event<K>, relist: &mut Option<Objects<K>>) {
         let item = |o: K| Item {
             json: serde_json::to_string(&o).unwrap_or_default().into(),

@@ -240,6 +240,8 @@ impl Tracker {
             Some((t, _)) => t.clone(),
             None => stored
                 .and_then(|s| s.analysis.as_deref())
+                // A window that closed is not resumed: the status then drops it.
+                .filter(|a| window_open(a))
                 .and_then(Self::resume)
                 .unwrap_or_default(),
         };

@@ -12,27 +12,26 @@ use std::time::Duration;
 
 use jiff::Timestamp;
 use kube::api::ObjectMeta;
-use kube::runtime::reflector::{ObjectRef, Store};
 use lekiwi_crds::{Robot, RobotStatus};
 use serde_json::Value;
 
 use super::patch::{Precondition, planned_status_patch};
 use super::{Entry, Presence};
 use crate::controller::robot::plan::{Facts, GatewayState, plan};
+use crate::gateway::desired::DesiredReleases;
 use crate::gateway::event_store::RobotKey;
 
 /// What the gateway needs to plan a robot's phase: its Robot cache (spec, generation, phase and
 /// conditions) and the controller's heartbeat grace.
 #[derive(Clone)]
 pub struct PhasePlanner {
-    robots: Store<Robot>,
+    robots: DesiredReleases,
     heartbeat_grace: Duration,
 }
 
 impl PhasePlanner {
-    /// A planner over the gateway's Robot cache, which must keep `status.phase` and
-    /// `status.conditions`.
-    pub fn new(robots: Store<Robot>, heartbeat_grace: Duration) -> Self {
+    /// A planner over the gateway's Robot cache.
+    pub fn new(robots: DesiredReleases, heartbeat_grace: Duration) -> Self {
         Self {
             robots,
             heartbeat_grace,
@@ -43,10 +42,7 @@ impl PhasePlanner {
     /// `observedGeneration` the controller would derive from it; leaves it alone when the robot
     /// is not in the cache (the controller then writes them, as before).
     fn plan_into(&self, key: &RobotKey, status: &mut RobotStatus, now: Timestamp) {
-        let Some(cached) = self
-            .robots
-            .get(&ObjectRef::new(&key.name).within(&key.namespace))
-        else {
+        let Some(cached) = self.robots.robot(key) else {
             return;
         };
         let stored = cached.status.as_ref();
@@ -87,13 +83,9 @@ fn robot_as_written(cached: &Robot, status: &RobotStatus, stored: Option<&RobotS
 }
 
 impl Presence {
-    /// The Robot as the gateway's cache holds it (its status trimmed to what the gateway
-    /// reads), once the cache is there.
+    /// The Robot as the gateway's cache holds it, once the cache is there.
     pub(super) fn cached_robot(&self, key: &RobotKey) -> Option<Arc<Robot>> {
-        let planner = self.planner.get()?;
-        planner
-            .robots
-            .get(&ObjectRef::new(&key.name).within(&key.namespace))
+        self.planner.get()?.robots.robot(key)
     }
 
     /// Plans phases from now on (see the module docs).
@@ -119,8 +111,9 @@ impl Presence {
 
 #[cfg(test)]
 mod tests {
-    use kube::runtime::{reflector, watcher};
     use serde_json::json;
+
+    use crate::gateway::api::cache::Cache;
 
     use super::*;
     use crate::gateway::presence::{ConnectInfo, PresenceConfig};
@@ -159,10 +152,9 @@ status:
     /// a robot not in it, the write holds the gateway's facts alone, as before.
     #[test]
     fn a_connect_write_carries_the_phase_the_controller_would_write() {
-        let (store, mut writer) = reflector::store::<Robot>();
-        writer.apply_watcher_event(&watcher::Event::Apply(
-            serde_yaml::from_str(CACHED).unwrap(),
-        ));
+        let store = DesiredReleases(Arc::new(Cache::listed([
+            serde_yaml::from_str(CACHED).unwrap()
+        ])));
         let p = presence();
         let (cached, stranger) = (
             RobotKey::new("lab", "kiwi-1"),

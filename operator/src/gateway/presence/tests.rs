@@ -593,7 +593,7 @@ fn routine_refreshes_spread_over_the_period() {
 fn a_robot_just_written_is_not_due_again() {
     let p = Presence::new(
         PresenceConfig {
-            status_refresh: Duration::from_secs(2),
+            status_refresh: Duration::from_secs(3_600),
             ..(*presence().config).clone()
         },
         Metrics::default(),
@@ -603,7 +603,9 @@ fn a_robot_just_written_is_not_due_again() {
         p.connect(k, i as u64, 1_000, ConnectInfo::default());
         p.heartbeat(k, i as u64, HeartbeatInfo::default());
         let mut written = p.with_state(|s| Entry::clone(&s.robots[k]));
-        written.last_heartbeat -= jiff::SignedDuration::from_millis(1_500);
+        // A heartbeat 40 minutes old: counted from it, most robots' point in the hour would
+        // lie between it and now.
+        written.last_heartbeat -= jiff::SignedDuration::from_mins(40);
         p.written(k, &written);
     }
     p.with_state(|s| while s.pop().is_some() {});
