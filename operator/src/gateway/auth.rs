@@ -257,8 +257,9 @@ impl Authenticator {
         let matches = match api.get_opt(&robot_secret_name(name)).await {
             Ok(Some(s)) => robot_hash(&s, name).is_some_and(|h| same_hash(&h, hash)),
             Ok(None) => false,
-            // Not remembered: the API server may answer the next try.
-            Err(_) => return Ok(false),
+            // Not remembered, and no verdict: an API server that failed to answer says nothing
+            // about the token, so the caller is told to retry (503), not that it is wrong.
+            Err(_) => return Err(Skip::Throttled),
         };
         if !matches {
             self.reads.missed(subject);
@@ -280,7 +281,8 @@ impl Authenticator {
                 .items
                 .iter()
                 .any(|s| secret_hash(s).is_some_and(|h| same_hash(&h, hash))),
-            Err(_) => return Ok(false),
+            // As in `read_robot_secret`: no answer, no verdict.
+            Err(_) => return Err(Skip::Throttled),
         };
         if !matches {
             self.reads.missed(subject);
