@@ -284,14 +284,14 @@ scenario_kill() {
   fact kill_time "$T_KILL"
   log "SIGKILL gw-a (pid ${GW_PID[gw-a]})"
   kill -KILL "${GW_PID[gw-a]}"
+  wait "${GW_PID[gw-a]}" 2>/dev/null || true
+  forget "${GW_PID[gw-a]}"
   # Where the machine's CPU goes while the survivor takes over (reported over the window below).
   local lbs=() i
   for i in "${!LB_PIDS[@]}"; do lbs+=("haproxy-$i:${LB_PIDS[$i]}"); done
   cpu_snapshot "gw-b:${GW_PID[gw-b]}" "controller:$CTRL_PID" "sim:$SIM_PID" "postgres:$PG_PID" \
     "apiserver:$(cat "$CP_DIR/kube-apiserver.pid")" "etcd:$(cat "$CP_DIR/etcd.pid")" \
     "watch:$WATCH_PID" "${lbs[@]}"
-  wait "${GW_PID[gw-a]}" 2>/dev/null || true
-  forget "${GW_PID[gw-a]}"
   # Recovered: the survivor holds every session and the controller counts every robot Online.
   recovered() {
     alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
