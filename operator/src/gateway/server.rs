@@ -106,8 +106,7 @@ pub async fn run(
         return Ok(());
     };
     let presence = presence(&config, &name, &metrics);
-    // One watch of Robots per gateway: the Fleet API's cache is also what sessions, the status
-    // writer's fence and phase planning read, and what deploy dispatch follows.
+    // One watch of Robots per gateway: the Fleet API's cache serves dispatch and sessions too.
     let (fleet, fleet_tasks) = FleetApi::start(
         watched(&config, &client),
         watched(&config, &client),
