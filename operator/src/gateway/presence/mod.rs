@@ -135,6 +135,9 @@ struct Entry {
     /// When the last write of this session landed: routine refreshes count their period from
     /// it (`written_heartbeat` is the heartbeat's own time, up to an interval earlier).
     written_at: Option<Timestamp>,
+    /// A hash of the robot's name, fixing its point in each refresh period (see
+    /// [`refresh_due`]); computed once here, not on every tick.
+    refresh_hash: u64,
     teleoperation_since: Option<Timestamp>,
     vitals: Vitals,
     retries: u32,
@@ -267,6 +270,7 @@ impl Presence {
                     last_heartbeat: now,
                     written_heartbeat: None,
                     written_at: None,
+                    refresh_hash: refresh_hash(key),
                     teleoperation_since,
                     vitals: Vitals::default(),
                     retries: 0,
@@ -456,7 +460,7 @@ impl Presence {
                     due.push((key.clone(), Priority::High));
                 } else if e.written_heartbeat.is_some_and(|w| e.last_heartbeat > w)
                     && e.written_at
-                        .is_some_and(|at| refresh_due(key, e, at, now, refresh))
+                        .is_some_and(|at| refresh_due(e, at, now, refresh))
                 {
                     due.push((key.clone(), Priority::Low));
                 }
@@ -474,7 +478,7 @@ impl Presence {
 
 /// Whether the routine refresh of `e`, last written at `written`, is due at `now`.
 ///
-/// Normally once per `refresh` period, at the robot's own point in it ([`refresh_phase`]): a
+/// Normally once per `refresh` period, at the robot's own point in it (its [`refresh_hash`]): a
 /// refresh is due once such a point passed since the last write. A fleet that connected within
 /// a minute (after a gateway restart, say) then refreshes spread evenly over the whole period,
 /// at most N/period writes per second at any time, instead of in the same one-minute wave every
@@ -484,7 +488,6 @@ impl Presence {
 /// its last switch's analysis window is open, every [`analysis::WINDOW_REFRESH`] since the
 /// last write instead.
 fn refresh_due(
-    key: &RobotKey,
     e: &Entry,
     written: Timestamp,
     now: Timestamp,
@@ -495,14 +498,15 @@ fn refresh_due(
         return now.duration_since(written) >= refresh.min(window);
     }
     let period = refresh.as_micros().clamp(1, i64::MAX.into()) as i64;
-    let phase = refresh_phase(key, period);
+    // `period` is positive, so the remainder fits in i64.
+    let phase = (e.refresh_hash % period.unsigned_abs()) as i64;
     let slot = |t: Timestamp| t.as_microsecond().saturating_sub(phase).div_euclid(period);
     slot(now) > slot(written)
 }
 
-/// The robot's point in each refresh period of `period` µs: from a hash of its name, so it is
-/// spread evenly over the fleet and the same on every gateway and after every restart.
-fn refresh_phase(key: &RobotKey, period: i64) -> i64 {
+/// A hash of the robot's name that places it in each refresh period: spread evenly over the
+/// fleet, and the same on every gateway and after every restart.
+fn refresh_hash(key: &RobotKey) -> u64 {
     use sha2::Digest;
     let digest = sha2::Sha256::new()
         .chain_update(key.namespace.as_bytes())
@@ -511,6 +515,5 @@ fn refresh_phase(key: &RobotKey, period: i64) -> i64 {
         .finalize();
     let mut first = [0u8; 8];
     first.copy_from_slice(&digest[..8]);
-    // `period` is positive, so the remainder fits in i64.
-    (u64::from_be_bytes(first) % period.unsigned_abs()) as i64
+    u64::from_be_bytes(first)
 }

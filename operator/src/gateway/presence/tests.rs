@@ -33,6 +33,7 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         last_heartbeat: at("2026-11-20T08:05:30.250Z"),
         written_heartbeat: None,
         written_at: None,
+        refresh_hash: 0,
         teleoperation_since: None,
         vitals: Vitals::default(),
         retries: 0,
@@ -399,6 +400,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 last_heartbeat: Timestamp::now(),
                 written_heartbeat: None,
                 written_at: None,
+                refresh_hash: 0,
                 teleoperation_since: None,
                 vitals: Vitals::default(),
                 retries: 0,
@@ -562,19 +564,21 @@ fn routine_refreshes_spread_over_the_period() {
     let period = jiff::SignedDuration::from_secs(300);
     let secs = jiff::SignedDuration::from_secs;
     let written = at("2026-11-28T00:00:00Z");
-    let e = entry(true, ConnectInfo::default());
     let mut first_due = Vec::new();
     for i in 0..3_000 {
-        let k = key(&format!("r{i:05}"));
+        let e = Entry {
+            refresh_hash: refresh_hash(&key(&format!("r{i:05}"))),
+            ..entry(true, ConnectInfo::default())
+        };
         let due = (0..=300)
-            .find(|&s| refresh_due(&k, &e, written, written + secs(s), period))
+            .find(|&s| refresh_due(&e, written, written + secs(s), period))
             .expect("due within one period of its last write");
         assert!(due > 0, "not due the moment it was written");
         first_due.push(due);
         // Written then: due again exactly one period later, not before.
         let w2 = written + secs(due);
-        assert!(!refresh_due(&k, &e, w2, w2 + secs(299), period));
-        assert!(refresh_due(&k, &e, w2, w2 + period, period));
+        assert!(!refresh_due(&e, w2, w2 + secs(299), period));
+        assert!(refresh_due(&e, w2, w2 + period, period));
     }
     // Ten slices of the period each get about a tenth of the fleet (300 ± 90).
     let mut slices = [0usize; 10];
