@@ -40,7 +40,7 @@ impl Presence {
             if same {
                 return false;
             }
-            e.agent_update = Some(outcome);
+            e.agent_update = Some(Box::new(outcome));
             s.enqueue(key, Priority::High);
             true
         });

@@ -151,8 +151,9 @@ pub struct Tracker {
     since_switch: Metrics,
     /// When the first of `since_switch` arrived.
     since_switch_start: Option<Timestamp>,
-    /// The last switch, if the gateway saw one.
-    last: Option<Window>,
+    /// The last switch, if the gateway saw one (boxed: most robots have none, and every
+    /// connected robot's presence entry holds a tracker).
+    last: Option<Box<Window>>,
 }
 
 impl Tracker {
@@ -190,14 +191,14 @@ impl Tracker {
         if self.last.as_ref().is_some_and(|w| w.release == release) {
             return;
         }
-        self.last = Some(Window {
+        self.last = Some(Box::new(Window {
             release,
             start: at,
             end: None,
             baseline_start: self.since_switch_start.take(),
             baseline: std::mem::take(&mut self.since_switch),
             observed: Metrics::default(),
-        });
+        }));
     }
 
     /// The tracker another gateway (or this one before a restart) left in `report`: the window
@@ -209,7 +210,7 @@ impl Tracker {
         Some(Self {
             since_switch: observed.clone(),
             since_switch_start: report.window_start.as_ref().map(|t| t.0),
-            last: Some(Window {
+            last: Some(Box::new(Window {
                 release: Release {
                     version: release.version.clone(),
                     digest: release.digest.clone(),
@@ -219,7 +220,7 @@ impl Tracker {
                 baseline_start: report.baseline_start.as_ref().map(|t| t.0),
                 baseline: Metrics::resume(&report.baseline),
                 observed,
-            }),
+            })),
         })
     }
 

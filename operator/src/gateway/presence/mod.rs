@@ -141,11 +141,11 @@ struct Entry {
     teleoperation_since: Option<Timestamp>,
     vitals: Vitals,
     retries: u32,
-    last_update: Option<UpdateOutcome>,
+    last_update: Option<Box<UpdateOutcome>>,
     /// Metrics before and after the last switch (kept across sessions, like `last_update`).
     analysis: analysis::Tracker,
     /// How the latest agent update went (kept across sessions, like `last_update`).
-    agent_update: Option<AgentUpdateOutcome>,
+    agent_update: Option<Box<AgentUpdateOutcome>>,
     /// The API server refused this session's full status: write presence facts only.
     presence_only: bool,
     /// A session of a robot last written as disconnected, not written yet: its first write
@@ -353,7 +353,7 @@ impl Presence {
                 e.info.release = Some(outcome.release.clone());
                 e.analysis.switched(outcome.release.clone(), outcome.time);
             }
-            e.last_update = Some(outcome);
+            e.last_update = Some(Box::new(outcome));
             s.enqueue(key, Priority::High);
             true
         });

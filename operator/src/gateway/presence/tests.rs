@@ -136,22 +136,22 @@ fn representative_robots() -> Vec<(&'static str, Entry)> {
             ..ConnectInfo::default()
         },
     );
-    updated.last_update = Some(UpdateOutcome {
+    updated.last_update = Some(Box::new(UpdateOutcome {
         release: release("1.5.0"),
         phase: "rolled_back".into(),
         message: Some("é".repeat(1500)),
         time: at("2026-11-20T08:06:00Z"),
-    });
+    }));
     let mut done = updated.clone();
     done.connected = false;
     // A `done` outcome also makes its release the current one.
     done.info.release = Some(release("1.5.0"));
-    done.last_update = Some(UpdateOutcome {
+    done.last_update = Some(Box::new(UpdateOutcome {
         release: release("1.5.0"),
         phase: "done".into(),
         message: None,
         time: at("2026-11-20T08:07:00Z"),
-    });
+    }));
     vec![
         ("connected with vitals", with_vitals),
         ("healthy, not teleoperated", healthy),
@@ -615,4 +615,13 @@ fn a_robot_just_written_is_not_due_again() {
     p.with_state(|s| while s.pop().is_some() {});
     p.tick();
     assert_eq!(p.with_state(|s| s.pop()), None);
+}
+
+/// Every connected robot holds an entry for its whole session: what most robots never have (a
+/// switch's analysis window, an update's outcome, an agent update) is boxed, not inline.
+#[test]
+fn an_entry_is_small() {
+    let size = std::mem::size_of::<Entry>();
+    // 792 bytes; 1,328 with those three inline.
+    assert!(size <= 800, "a presence entry is {size} bytes");
 }
