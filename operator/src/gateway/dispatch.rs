@@ -4,11 +4,10 @@
 //! command, PROTOCOL.md §12) or when another gateway's later session took the robot over (the
 //! session closes, see [`super::holder`]).
 
-use std::collections::HashMap;
 use std::sync::Arc;
 
 use kube::ResourceExt;
-use lekiwi_crds::{AgentRef, Robot};
+use lekiwi_crds::Robot;
 use lekiwi_protocol::Release;
 use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
@@ -36,12 +35,7 @@ pub async fn start(
     wait_listed(&robots, &cancel).await?;
     let cache = robots.clone();
     let task = tokio::spawn(async move {
-        let mut dispatch = Dispatch {
-            registry,
-            gateway,
-            seen: HashMap::new(),
-            seen_agent: HashMap::new(),
-        };
+        let dispatch = Dispatch { registry, gateway };
         // What the first list held, and everything since then through the changes.
         dispatch.all(&cache);
         loop {
@@ -50,9 +44,11 @@ pub async fn start(
                 c = changes.recv() => c,
             };
             match change {
-                Ok(Change::Applied(_, robot)) => dispatch.applied(&robot),
-                Ok(Change::Deleted(robot)) => dispatch.deleted(&robot),
-                // Fell behind (a relist of a large fleet): the cache holds the truth.
+                Ok(Change::Applied(old, robot)) => dispatch.applied(old.as_deref(), &robot),
+                Ok(Change::Deleted(_)) => {}
+                // Fell behind (a relist of a large fleet): the cache holds the truth, and
+                // every robot's session is told its desired release and agent again (a
+                // session ignores what it already knows).
                 Err(RecvError::Lagged(missed)) => {
                     debug!(missed, "Robot changes lagged; reading the whole cache");
                     dispatch.all(&cache);
@@ -64,24 +60,24 @@ pub async fn start(
     Ok((DesiredReleases(robots), task))
 }
 
-/// What the dispatch task remembers: the desired release and agent each robot was last seen
-/// with, so a session is told only of a change.
+/// The dispatch task: which sessions to tell, and this gateway's name. It keeps nothing per
+/// robot: each change carries the Robot as it was, so a change of `spec.release` or
+/// `spec.agent` shows by comparing the two.
 struct Dispatch {
     registry: Arc<Registry>,
     gateway: String,
-    seen: HashMap<RobotKey, Option<Release>>,
-    seen_agent: HashMap<RobotKey, Option<AgentRef>>,
 }
 
 impl Dispatch {
-    /// Every Robot of the cache, as if each had just changed (telling only what did).
-    fn all(&mut self, cache: &Cache<Robot>) {
+    /// Every Robot of the cache, as if each had just appeared.
+    fn all(&self, cache: &Cache<Robot>) {
         for robot in cache.page(None, None, usize::MAX, |_| true).0 {
-            self.applied(&robot);
+            self.applied(None, &robot);
         }
     }
 
-    fn applied(&mut self, robot: &Robot) {
+    /// `robot` changed from `old` (`None`: new to this gateway, or the cache was read again).
+    fn applied(&self, old: Option<&Robot>, robot: &Robot) {
         let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
         let holder = Holder::of(robot);
         if let (Some(epoch), Some(other)) = (holder.epoch, holder.gateway.as_deref())
@@ -90,24 +86,17 @@ impl Dispatch {
         {
             info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
         }
-        let agent = robot.spec.agent.clone();
-        if self.seen_agent.get(&key) != Some(&agent) {
+        let agent = &robot.spec.agent;
+        if old.is_none_or(|o| o.spec.agent != *agent) {
             let told = self.registry.notify_desired_agent(&key, agent.clone());
             debug!(robot = %key, agent = ?agent.as_ref().map(|a| &a.version), told, "desired agent changed");
-            self.seen_agent.insert(key.clone(), agent);
         }
-        let desired = robot.spec.release.as_ref().map(Release::from);
-        if self.seen.get(&key) != Some(&desired) {
-            let told = self.registry.notify_desired_release(&key, desired.clone());
-            debug!(robot = %key, release = ?desired.as_ref().map(|r| &r.version), told, "desired release changed");
-            self.seen.insert(key, desired);
+        if old.is_none_or(|o| o.spec.release != robot.spec.release) {
+            let desired = robot.spec.release.as_ref().map(Release::from);
+            let version = desired.as_ref().map(|r| r.version.clone());
+            let told = self.registry.notify_desired_release(&key, desired);
+            debug!(robot = %key, release = ?version, told, "desired release changed");
         }
-    }
-
-    fn deleted(&mut self, robot: &Robot) {
-        let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
-        self.seen.remove(&key);
-        self.seen_agent.remove(&key);
     }
 }
 
