@@ -320,8 +320,9 @@ async fn agent_ws(
     Ok(ws
         .max_message_size(hard_cap)
         .max_frame_size(hard_cap)
-        // Frames are small (a heartbeat is ~200 bytes); bigger ones are read in several chunks.
-        .read_buffer_size(2 * 1024)
+        // Frames are small (a heartbeat is ~200 bytes): the read buffer lives as long as the
+        // connection, so it is sized for them; a bigger frame grows it as far as it needs.
+        .read_buffer_size(512)
         .write_buffer_size(0)
         .on_upgrade(move |socket| async move {
             let (sink, stream) = socket.split();
