@@ -22,9 +22,12 @@
 #! A third, --scenario steady, is the steady state as the fleet grows: for each size of
 #! --steady-sizes (default 10000,50000) it brings that many robots Online, spread directly over the
 #! two gateways (the simulator's comma-separated --gateway list: one address pair has only ~28,000
-#! ephemeral ports), and over a window of --window seconds measures heartbeat round trip p99 (the
-#! robots' own, as they report it), gateway RSS per connection, API-server writes per second
-#! against N/300 (one status refresh per robot per 5 minutes) and the gateways' CPU.
+#! ephemeral ports), started as simulator processes of at most (open-file limit - 2,000) robots
+#! each; every gateway holds half the fleet, so the open-file limit caps the fleet at about twice
+#! it (20,000 here: 38,000 robots), and over a window of --window seconds measures heartbeat
+#! round trip p99 (the robots' own, as they report it), gateway RSS per connection, API-server
+#! writes per second against N/300 (one status refresh per robot per 5 minutes) and the
+#! gateways' CPU.
 #!
 #! Usage: bash bench/recovery.sh [options]
 #!   --scenario kill|first-boot|steady  see above (default kill)
@@ -114,8 +117,16 @@ take_bench_lock
 ulimit -Hn "$(cat /proc/sys/fs/nr_open)" 2>/dev/null || true
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 FDS="$(ulimit -n)"
-[ "$FDS" -gt $((ROBOTS + INCUMBENTS + 1000)) ] \
-  || die "open-file limit $FDS is too low for $((ROBOTS + INCUMBENTS)) robots (raise the hard limit)"
+if [ "$SCENARIO" = steady ]; then
+  # The steady scenario starts its robots as several simulator processes of at most SIM_CHUNK
+  # robots each, straight to the gateways; each gateway holds half of them.
+  SIM_CHUNK=$((FDS - 2000))
+  [ "$FDS" -gt $((ROBOTS / 2 + 1000)) ] \
+    || die "open-file limit $FDS is too low for $((ROBOTS / 2)) robots per gateway (raise the hard limit; at most $(( (FDS - 1000) * 2 )) robots fit on two gateways)"
+else
+  [ "$FDS" -gt $((ROBOTS + INCUMBENTS + 1000)) ] \
+    || die "open-file limit $FDS is too low for $((ROBOTS + INCUMBENTS)) robots (raise the hard limit)"
+fi
 LB_COUNT=$(( (2 * (ROBOTS + INCUMBENTS) + FDS - 1001) / (FDS - 1000) ))
 
 log "work directory: $WORK"
@@ -395,7 +406,7 @@ scenario_first_boot() {
 
 # ---- scenario steady -------------------------------------------------------------------------
 scenario_steady() {
-  local size have=0 part=0 t0 gw_urls g
+  local size have=0 part=0 t0 gw_urls g chunk left n
   gw_urls="ws://127.0.0.1:${GW_PORT[gw-a]}/v1/agent,ws://127.0.0.1:${GW_PORT[gw-b]}/v1/agent"
   sleep 2
   for g in gw-a gw-b; do fact "rss_base_$g" "$(rss_kib "${GW_PID[$g]}")"; done
@@ -404,10 +415,16 @@ scenario_steady() {
     [ "$size" -gt "$have" ] || die "--steady-sizes must ascend"
     part=$((part + 1))
     log "steady state at $size robots: provisioning $((size - have)) more"
-    provision_robots bench "$((size - have))" "$TOKEN_HASH" "s$part"
-    start "sim-$part" "$BIN/lekiwi-sim" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
-      --namespace bench --prefix "s$part" --robots "$((size - have))" \
-      --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
+    # In simulator processes of at most SIM_CHUNK robots (one open file each).
+    chunk=0
+    for ((left = size - have; left > 0; left -= n)); do
+      n=$((left < SIM_CHUNK ? left : SIM_CHUNK))
+      chunk=$((chunk + 1))
+      provision_robots bench "$n" "$TOKEN_HASH" "s$part-$chunk"
+      start "sim-$part-$chunk" "$BIN/lekiwi-sim" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
+        --namespace bench --prefix "s$part-$chunk" --robots "$n" \
+        --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
+    done
     have=$size
     t0="$(now)"
     online_n() { [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$1" ]; }
