@@ -324,10 +324,16 @@ async fn agent_ws(
         // connection, so it is sized for them; a bigger frame grows it as far as it needs.
         .read_buffer_size(512)
         .write_buffer_size(0)
-        .on_upgrade(move |socket| async move {
+        // The socket is split and the session's future made before the returned future: what
+        // that future captures it holds for the life of the connection, and a socket moved
+        // out of it would still take its size there.
+        .on_upgrade(move |socket| {
             let (sink, stream) = socket.split();
             let address = Some(peer.ip().to_string());
-            session::run(shared, grant, token_hash, address, sink, stream).await;
-            drop(permit);
+            let session = session::run(shared, grant, token_hash, address, sink, stream);
+            async move {
+                session.await;
+                drop(permit);
+            }
         }))
 }
