@@ -108,12 +108,12 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
             status
                 .current_release
                 .as_ref()
-                .map(|x| x.version.clone())
+                .map(|x| x.version.to_string())
                 .unwrap_or_else(dash),
             r.spec
                 .release
                 .as_ref()
-                .map(|x| x.version.clone())
+                .map(|x| x.version.to_string())
                 .unwrap_or_else(dash),
             r.condition(CONDITION_TELEOPERATING)
                 .map(|c| match c.status {
@@ -129,8 +129,8 @@ pub fn table(robots: &[Robot], with_namespace: bool, wide: bool, now: Timestamp)
                 .unwrap_or_else(dash),
         ];
         if wide {
-            row.push(status.agent_version.unwrap_or_else(dash));
-            row.push(status.gateway.unwrap_or_else(dash));
+            row.push(status.agent_version.map(String::from).unwrap_or_else(dash));
+            row.push(status.gateway.map(String::from).unwrap_or_else(dash));
             row.push(status.address.unwrap_or_else(dash));
         }
         if with_namespace {
@@ -148,18 +148,18 @@ pub fn groups(robots: &[Robot], by: GroupBy, with_namespace: bool) -> Vec<Group>
     for r in robots {
         let status = r.status.as_ref();
         let value = match by {
-            GroupBy::Agent => status.and_then(|s| s.agent_version.clone()),
+            GroupBy::Agent => status.and_then(|s| s.agent_version.clone().map(String::from)),
             GroupBy::DesiredAgent => r.spec.agent.as_ref().map(|a| a.version.clone()),
             GroupBy::Release => status
                 .and_then(|s| s.current_release.as_ref())
-                .map(|x| x.version.clone()),
+                .map(|x| x.version.to_string()),
             GroupBy::Phase => Some(
                 status
                     .and_then(|s| s.phase)
                     .map(|p| p.to_string())
                     .unwrap_or_else(|| "Pending".into()),
             ),
-            GroupBy::Protocol => status.and_then(|s| s.protocol.clone()),
+            GroupBy::Protocol => status.and_then(|s| s.protocol.clone().map(String::from)),
         };
         let key = (value.is_none(), value.unwrap_or_else(|| "-".to_owned()));
         let group = by_value.entry(key.clone()).or_insert_with(|| Group {

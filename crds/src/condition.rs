@@ -5,6 +5,8 @@ use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use crate::text::Text;
+
 /// Whether a condition holds.
 #[derive(Clone, Copy, Debug, Deserialize, Serialize, JsonSchema, PartialEq, Eq)]
 pub enum ConditionStatus {
@@ -23,17 +25,17 @@ pub enum ConditionStatus {
 pub struct Condition {
     /// Kind of condition in CamelCase, for example `Connected` or `Progressing`.
     #[schemars(length(min = 1, max = 316))]
-    pub r#type: String,
+    pub r#type: Text,
     /// `True`, `False` or `Unknown`.
     pub status: ConditionStatus,
     /// When `status` last changed.
     pub last_transition_time: Time,
     /// Machine-readable CamelCase reason for the current status.
     #[schemars(length(min = 1, max = 1024))]
-    pub reason: String,
+    pub reason: Text,
     /// Human-readable explanation of the current status; may be empty.
     #[serde(default)]
-    pub message: String,
+    pub message: Text,
     /// The `metadata.generation` the condition was computed from.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub observed_generation: Option<i64>,
@@ -49,11 +51,11 @@ impl Condition {
         generation: Option<i64>,
     ) -> Self {
         Self {
-            r#type: r#type.to_owned(),
+            r#type: r#type.into(),
             status,
             last_transition_time: Time(Timestamp::now()),
-            reason: reason.to_owned(),
-            message: message.into(),
+            reason: reason.into(),
+            message: Text::from(message.into()),
             observed_generation: generation,
         }
     }

@@ -8,12 +8,14 @@ pub mod deployment;
 pub mod release;
 pub mod robot;
 mod schema;
+pub mod text;
 
 pub use agent::{AgentArch, AgentBuild, AgentRef, AgentUpdateReport};
 pub use condition::{Condition, ConditionStatus};
 pub use deployment::{RobotDeployment, RobotDeploymentSpec, RobotDeploymentStatus};
 pub use release::ReleaseRef;
 pub use robot::{Robot, RobotPhase, RobotSpec, RobotStatus, UpdateReport};
+pub use text::Text;
 
 /// The API group of every LeKiwi resource.
 pub const GROUP: &str = "fleet.lekiwi.io";

@@ -4,6 +4,8 @@ use lekiwi_protocol::rules;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
+use crate::text::Text;
+
 /// A software release: a version name plus the digest of its file manifest.
 #[derive(Clone, Debug, Default, Deserialize, Serialize, JsonSchema, PartialEq, Eq, Hash)]
 #[serde(rename_all = "camelCase")]
@@ -14,13 +16,13 @@ pub struct ReleaseRef {
         length(min = 1, max = rules::MAX_VERSION_CHARS),
         regex(pattern = rules::VERSION_PATTERN)
     )]
-    pub version: String,
+    pub version: Text,
 
     /// Digest of the release's file manifest, as printed by `kubectl lekiwi release push`:
     /// `sha256:` followed by 64 lowercase hex digits. The manifest lists every file of the
     /// release with its own digest, so two robots with the same digest run the same bytes.
     #[schemars(regex(pattern = rules::DIGEST_PATTERN))]
-    pub digest: String,
+    pub digest: Text,
 }
 
 impl std::fmt::Display for ReleaseRef {
@@ -33,8 +35,8 @@ impl std::fmt::Display for ReleaseRef {
 impl From<&ReleaseRef> for lekiwi_protocol::Release {
     fn from(release: &ReleaseRef) -> Self {
         lekiwi_protocol::Release {
-            version: release.version.clone(),
-            digest: release.digest.clone(),
+            version: release.version.to_string(),
+            digest: release.digest.to_string(),
         }
     }
 }

@@ -3,6 +3,8 @@
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use kube::CustomResource;
 use lekiwi_protocol::rules;
+
+use crate::text::Text;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
@@ -171,11 +173,11 @@ pub struct RobotStatus {
     /// Identity of the gateway holding (or that last held) the connection; also the name of
     /// that gateway's Lease, which it renews while it is alive.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub gateway: Option<String>,
+    pub gateway: Option<Text>,
 
     /// How the agent talks to the gateway: `websocket`, or `poll` for legacy polling agents.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub protocol: Option<String>,
+    pub protocol: Option<Text>,
 
     /// When the gateway last recorded a heartbeat. Refreshed on every change and at least every
     /// few minutes while connected, not on every heartbeat.
@@ -198,7 +200,7 @@ pub struct RobotStatus {
     /// Version of the agent software running on the robot.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(max = rules::MAX_TEXT_CHARS))]
-    pub agent_version: Option<String>,
+    pub agent_version: Option<Text>,
 
     /// Digest of the agent build running on the robot (`sha256:` and 64 hex digits): the file
     /// its service manager starts, an A/B slot's binary or the package's own. Setting
@@ -207,7 +209,7 @@ pub struct RobotStatus {
     /// agents older than 0.2 and for legacy polling robots.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(regex(pattern = rules::DIGEST_PATTERN))]
-    pub agent_digest: Option<String>,
+    pub agent_digest: Option<Text>,
 
     /// The release the robot reports it runs now.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -314,15 +316,15 @@ pub struct SystemInfo {
     /// Operating system and version, for example `Debian GNU/Linux 12 (bookworm)`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(max = rules::MAX_TEXT_CHARS))]
-    pub os: Option<String>,
+    pub os: Option<Text>,
     /// Kernel version.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(max = rules::MAX_TEXT_CHARS))]
-    pub kernel: Option<String>,
+    pub kernel: Option<Text>,
     /// CPU architecture, for example `aarch64`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schemars(length(max = rules::MAX_TEXT_CHARS))]
-    pub arch: Option<String>,
+    pub arch: Option<Text>,
     /// Number of logical CPUs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cpus: Option<u32>,

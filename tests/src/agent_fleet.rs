@@ -138,7 +138,7 @@ impl AgentFleet {
             .get(name)
             .await
             .ok()?;
-        robot.status?.agent_digest
+        robot.status?.agent_digest.map(String::from)
     }
 
     /// `status.agentVersion` and `status.agentUpdate` of robot `name`.

@@ -125,7 +125,7 @@ pub fn push_release(
     }
     Ok(lekiwi_crds::ReleaseRef {
         version: version.into(),
-        digest: String::from_utf8_lossy(&out.stdout).trim().to_owned(),
+        digest: String::from_utf8_lossy(&out.stdout).trim().into(),
     })
 }
 

@@ -208,7 +208,7 @@ async fn finished(
 
 async fn reported_release(client: &Client, ns: &str) -> Option<String> {
     let robot = get_robot(client, ns, "kiwi-pi").await.ok()?;
-    Some(robot.status?.current_release?.version)
+    Some(robot.status?.current_release?.version.to_string())
 }
 
 #[tokio::test]

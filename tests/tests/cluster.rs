@@ -167,7 +167,7 @@ impl Install {
         ])?;
         Ok(ReleaseRef {
             version: version.into(),
-            digest: out.trim().to_owned(),
+            digest: out.trim().into(),
         })
     }
 
@@ -503,7 +503,7 @@ async fn releases(site: &Install) -> anyhow::Result<BTreeMap<String, usize>> {
     let mut by = BTreeMap::new();
     for r in site.robots().await? {
         let v = r.status.and_then(|s| s.current_release);
-        *by.entry(v.map_or("-".to_owned(), |r| r.version))
+        *by.entry(v.map_or("-".to_owned(), |r| r.version.to_string()))
             .or_default() += 1;
     }
     Ok(by)

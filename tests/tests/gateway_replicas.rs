@@ -142,7 +142,7 @@ impl PhaseHistory {
                 let Ok(robot) = r else { continue };
                 let status = robot.status.unwrap_or_default();
                 let mut seen = out.0.lock().unwrap();
-                let now = (status.phase, status.gateway);
+                let now = (status.phase, status.gateway.map(String::from));
                 if seen.last() != Some(&now) {
                     seen.push(now);
                 }

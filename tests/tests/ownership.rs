@@ -116,7 +116,7 @@ impl Site {
                 let v = r.status.and_then(|s| s.current_release);
                 (
                     r.metadata.name.unwrap_or_default(),
-                    v.map_or("-".into(), |v| v.version),
+                    v.map_or("-".into(), |v| v.version.to_string()),
                 )
             })
             .collect();

@@ -55,7 +55,7 @@ impl Histories {
                 let status = robot.status.unwrap_or_default();
                 let mut all = histories.0.lock().unwrap();
                 let seen = all.entry(name).or_default();
-                let now = (status.phase, status.gateway);
+                let now = (status.phase, status.gateway.map(String::from));
                 if seen.last().map(|(p, g, _)| (*p, g.clone())) != Some(now.clone()) {
                     seen.push((now.0, now.1, Instant::now()));
                 }

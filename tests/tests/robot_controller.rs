@@ -27,7 +27,7 @@ fn condition(r: &Robot, t: &str) -> (ConditionStatus, String) {
     let c = r
         .condition(t)
         .unwrap_or_else(|| panic!("no {t} condition in {:?}", r.status));
-    (c.status, c.reason.clone())
+    (c.status, c.reason.to_string())
 }
 
 /// Event reasons about `robot` with how often each was emitted: repeats of the same reason are

@@ -120,7 +120,7 @@ impl Site {
             let v = r
                 .status
                 .and_then(|s| s.current_release)
-                .map_or("-".to_owned(), |r| r.version);
+                .map_or("-".to_owned(), |r| r.version.to_string());
             *by.entry(v).or_default() += 1;
         }
         Ok(by)
@@ -488,7 +488,7 @@ async fn teleoperated_robot_is_waited_for_and_invalid_release_is_clear() -> anyh
     // A digest nobody pushed.
     let bogus = ReleaseRef {
         version: "9.9.9".into(),
-        digest: format!("sha256:{}", "0".repeat(64)),
+        digest: format!("sha256:{}", "0".repeat(64)).into(),
     };
     site.deploy(
         "bogus",

@@ -61,7 +61,7 @@ impl DesiredReleases {
     pub fn digests_in(&self, namespace: &str) -> BTreeSet<String> {
         self.in_namespace(namespace)
             .iter()
-            .filter_map(|r| r.spec.release.as_ref().map(|rel| rel.digest.clone()))
+            .filter_map(|r| r.spec.release.as_ref().map(|rel| rel.digest.to_string()))
             .collect()
     }
 

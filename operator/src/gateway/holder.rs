@@ -26,7 +26,7 @@ impl Holder {
     pub fn of(robot: &Robot) -> Self {
         let status = robot.status.as_ref();
         Self {
-            gateway: status.and_then(|s| s.gateway.clone()),
+            gateway: status.and_then(|s| s.gateway.clone().map(String::from)),
             epoch: status.and_then(|s| s.session_epoch),
             resource_version: robot.metadata.resource_version.clone(),
         }

@@ -100,12 +100,12 @@ fn agent_spec(
                 None => vec![AgentArch::Amd64, AgentArch::Arm64],
             };
             AgentRef {
-                version: previous.version.clone(),
+                version: previous.version.to_string(),
                 builds: arches
                     .into_iter()
                     .map(|arch| AgentBuild {
                         arch,
-                        digest: previous.digest.clone(),
+                        digest: previous.digest.to_string(),
                     })
                     .collect(),
             }

@@ -89,8 +89,8 @@ pub(super) fn target(spec: &lekiwi_crds::RobotDeploymentSpec) -> ReleaseRef {
                 h.update(format!("\0{arch}={digest}").as_bytes());
             }
             ReleaseRef {
-                version: agent.version.clone(),
-                digest: format!("sha256:{}", hex::encode(h.finalize())),
+                version: agent.version.clone().into(),
+                digest: format!("sha256:{}", hex::encode(h.finalize())).into(),
             }
         }
         (None, None) => ReleaseRef::default(),

@@ -41,7 +41,7 @@ fn robot(version: &str, arch: &str, update: Option<(&str, &str)>) -> Robot {
     let mut r = Robot::new("kiwi-1", RobotSpec::default());
     r.status = Some(RobotStatus {
         agent_version: Some(version.into()),
-        agent_digest: Some(digest('a')),
+        agent_digest: Some(digest('a').into()),
         system: Some(Box::new(SystemInfo {
             arch: Some(arch.into()),
             ..SystemInfo::default()
@@ -78,7 +78,7 @@ fn a_robot_on_another_agent_runs_its_own_version_and_digest_and_one_on_the_targe
         old.current,
         Some(ReleaseRef {
             version: "0.2.0".into(),
-            digest: digest('a')
+            digest: digest('a').into()
         }),
         "the rollback target is what it runs"
     );

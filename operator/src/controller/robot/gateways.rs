@@ -174,7 +174,7 @@ impl Census {
             if let Some(gw) = status.gateway.clone() {
                 census
                     .by_gateway
-                    .entry(gw)
+                    .entry(gw.to_string())
                     .or_default()
                     .push(ObjectRef::from_obj(guard.as_ref()));
             }

@@ -198,7 +198,7 @@ async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &p
         .conditions
         .iter()
         .find(|c| c.r#type == lekiwi_crds::robot::CONDITION_CONNECTED)
-        .map(|c| c.message.clone());
+        .map(|c| c.message.to_string());
     let event = Event {
         type_: if matches!(plan.phase, RobotPhase::Offline | RobotPhase::Unknown) {
             EventType::Warning

@@ -315,7 +315,7 @@ mod tests {
 
     fn status_of(plan: &Plan, t: &str) -> (ConditionStatus, String) {
         let c = plan.conditions.iter().find(|c| c.r#type == t).unwrap();
-        (c.status, c.reason.clone())
+        (c.status, c.reason.to_string())
     }
 
     const CONNECTED: &str = r#"

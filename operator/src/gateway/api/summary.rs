@@ -143,7 +143,7 @@ mod tests {
             phase,
             current_release: release.map(|v| ReleaseRef {
                 version: v.into(),
-                digest: String::new(),
+                digest: Default::default(),
             }),
             ..RobotStatus::default()
         });

@@ -212,8 +212,8 @@ impl Tracker {
             since_switch_start: report.window_start.as_ref().map(|t| t.0),
             last: Some(Box::new(Window {
                 release: Release {
-                    version: release.version.clone(),
-                    digest: release.digest.clone(),
+                    version: release.version.to_string(),
+                    digest: release.digest.to_string(),
                 },
                 start: report.window_start.as_ref()?.0,
                 end: report.window_end.as_ref().map(|t| t.0),
@@ -249,8 +249,8 @@ impl Tracker {
         let seen_here = ours.and_then(|(_, r)| r);
         let seen_stored = stored.filter(|s| s.last_heartbeat_time.is_some()).map(|s| {
             s.current_release.as_ref().map(|r| Release {
-                version: r.version.clone(),
-                digest: r.digest.clone(),
+                version: r.version.to_string(),
+                digest: r.digest.to_string(),
             })
         });
         if let Some(release) = running
@@ -274,8 +274,8 @@ impl Tracker {
         let w = self.last.as_ref()?;
         Some(AnalysisReport {
             release: Some(ReleaseRef {
-                version: w.release.version.clone(),
-                digest: w.release.digest.clone(),
+                version: w.release.version.clone().into(),
+                digest: w.release.digest.clone().into(),
             }),
             baseline_start: w.baseline_start.map(Time),
             window_start: Some(Time(w.start)),

@@ -21,14 +21,14 @@ fn stored(current: Option<&str>) -> RobotStatus {
         last_heartbeat_time: Some(Time(Timestamp::from_second(1_000).unwrap())),
         current_release: current.map(|v| ReleaseRef {
             version: v.into(),
-            digest: format!("sha256:{v}"),
+            digest: format!("sha256:{v}").into(),
         }),
         ..RobotStatus::default()
     }
 }
 
 fn window_release(t: &Tracker) -> Option<String> {
-    Some(t.report()?.release?.version)
+    Some(t.report()?.release?.version.to_string())
 }
 
 /// A gateway that restarted (nothing of its own) meets a robot whose status says 1 (or no

@@ -78,8 +78,8 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
     if e.presence_only {
         return RobotStatus {
             connected: Some(e.connected),
-            gateway: Some(gateway.to_owned()),
-            protocol: Some(info.protocol.to_owned()),
+            gateway: Some(gateway.into()),
+            protocol: Some(info.protocol.into()),
             last_heartbeat_time: Some(Time(e.last_heartbeat)),
             connected_since: Some(Time(e.connected_since)),
             session_epoch: Some(e.epoch),
@@ -93,14 +93,15 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
         observed_generation: None,
         // Owned by the gateway.
         connected: Some(e.connected),
-        gateway: Some(gateway.to_owned()),
-        protocol: Some(info.protocol.to_owned()),
+        gateway: Some(gateway.into()),
+        protocol: Some(info.protocol.into()),
         last_heartbeat_time: Some(Time(e.last_heartbeat)),
         connected_since: Some(Time(e.connected_since)),
         session_epoch: Some(e.epoch),
         agent_version: Some(rules::cut_text(&info.agent_version, rules::MAX_TEXT_CHARS))
-            .filter(|v| !v.is_empty()),
-        agent_digest: info.agent_digest.clone(),
+            .filter(|v| !v.is_empty())
+            .map(Into::into),
+        agent_digest: info.agent_digest.clone().map(Into::into),
         current_release: info.release.as_ref().map(release_ref),
         address: info.address.clone(),
         health: info.health.as_ref().map(|h| HealthReport {
@@ -126,8 +127,8 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
 
 fn release_ref(r: &Release) -> ReleaseRef {
     ReleaseRef {
-        version: r.version.clone(),
-        digest: r.digest.clone(),
+        version: r.version.clone().into(),
+        digest: r.digest.clone().into(),
     }
 }
 
@@ -135,9 +136,9 @@ fn release_ref(r: &Release) -> ReleaseRef {
 fn system_info(sys: &SystemFacts) -> Option<SystemInfo> {
     let info = SystemInfo {
         hostname: sys.hostname.clone(),
-        os: sys.os.clone(),
-        kernel: sys.kernel.clone(),
-        arch: sys.arch.clone(),
+        os: sys.os.clone().map(Into::into),
+        kernel: sys.kernel.clone().map(Into::into),
+        arch: sys.arch.clone().map(Into::into),
         cpus: sys.cpus,
         memory_bytes: sys.memory_bytes,
     };

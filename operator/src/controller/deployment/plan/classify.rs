@@ -205,7 +205,7 @@ fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_
         let runs = robot
             .current
             .as_ref()
-            .map_or("no release".to_owned(), |r| r.version.clone());
+            .map_or("no release".to_owned(), |r| r.version.to_string());
         let why = if robot.runs(target) && !robot.healthy {
             "unhealthy".to_owned()
         } else if robot.runs(target) {

@@ -12,7 +12,8 @@ fn rel(v: &str) -> ReleaseRef {
         digest: format!(
             "sha256:{}",
             v.repeat(64).chars().take(64).collect::<String>()
-        ),
+        )
+        .into(),
     }
 }
 
