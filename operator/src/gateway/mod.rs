@@ -40,7 +40,7 @@ use axum::extract::{ConnectInfo as PeerAddr, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
-use futures::StreamExt;
+use futures::{FutureExt, StreamExt};
 use lekiwi_protocol::{AGENT_PATH, ROBOT_HEADER};
 use tokio::sync::Semaphore;
 use tracing::warn;
@@ -324,16 +324,14 @@ async fn agent_ws(
         // connection, so it is sized for them; a bigger frame grows it as far as it needs.
         .read_buffer_size(512)
         .write_buffer_size(0)
-        // The socket is split and the session's future made before the returned future: what
-        // that future captures it holds for the life of the connection, and a socket moved
-        // out of it would still take its size there.
+        // The socket is split and the session's future made before the returned future, which
+        // is that future itself (`map`, not an `async` block: one that awaits a captured future
+        // keeps a second, moved-out copy of it). Whatever the returned future holds, it holds
+        // for the life of the connection.
         .on_upgrade(move |socket| {
             let (sink, stream) = socket.split();
             let address = Some(peer.ip().to_string());
-            let session = session::run(shared, grant, token_hash, address, sink, stream);
-            async move {
-                session.await;
-                drop(permit);
-            }
+            session::run(shared, grant, token_hash, address, sink, stream)
+                .map(move |()| drop(permit))
         }))
 }
