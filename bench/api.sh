@@ -131,7 +131,8 @@ start gateway env RUST_LOG=warn "$OPERATOR" --role gateway \
   --gateway-addr "127.0.0.1:$GW_PORT" --http-addr "127.0.0.1:$GW_HTTP" \
   --store-url "sqlite://$WORK/events.db" --blob-dir "$WORK/blobs" \
   --api-rate 1000000000 --api-burst 1000000000 --max-unauthenticated-per-address 0 \
-  --graphql-max-connections $((SUBSCRIBERS + 100)) --graphql-max-subscriptions-per-user $((SUBSCRIBERS + 100))
+  --graphql-max-connections $((SUBSCRIBERS + 100)) --graphql-max-subscriptions-per-user $((SUBSCRIBERS + 100)) \
+  --graphql-max-connections-per-user $((SUBSCRIBERS + 100))
 GW_PID=$LAST_PID
 FLEET="http://127.0.0.1:$GW_PORT/api/v1/namespaces/bench/robots"
 LAST="robot-$(printf %05d $((ROBOTS - 1)))"

@@ -79,7 +79,13 @@ async fn subscriber(
     );
     let mut acked = false;
     while let Some(msg) = ws.next().await {
-        let Message::Text(text) = msg? else { continue };
+        let text = match msg? {
+            Message::Text(text) => text,
+            // A refusal (e.g. the per-user connection limit) closes the socket: say why,
+            // instead of leaving the run to time out waiting for this subscriber.
+            Message::Close(frame) => bail!("subscriber {i}: closed by the gateway: {frame:?}"),
+            _ => continue,
+        };
         let v: Value = serde_json::from_str(&text)?;
         match v["type"].as_str() {
             Some("connection_ack") if !acked => {
@@ -99,6 +105,10 @@ async fn subscriber(
             _ => bail!("subscriber {i}: {text}"),
         }
     }
+    ensure!(
+        acked,
+        "subscriber {i}: the connection ended before connection_ack"
+    );
     Ok(())
 }
 
