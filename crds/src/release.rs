@@ -32,6 +32,15 @@ impl std::fmt::Display for ReleaseRef {
     }
 }
 
+impl From<&lekiwi_protocol::Release> for ReleaseRef {
+    fn from(release: &lekiwi_protocol::Release) -> Self {
+        ReleaseRef {
+            version: release.version.as_str().into(),
+            digest: release.digest.as_str().into(),
+        }
+    }
+}
+
 impl From<&ReleaseRef> for lekiwi_protocol::Release {
     fn from(release: &ReleaseRef) -> Self {
         lekiwi_protocol::Release {

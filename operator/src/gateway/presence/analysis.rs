@@ -211,10 +211,7 @@ impl Tracker {
             since_switch: observed.clone(),
             since_switch_start: report.window_start.as_ref().map(|t| t.0),
             last: Some(Box::new(Window {
-                release: Release {
-                    version: release.version.to_string(),
-                    digest: release.digest.to_string(),
-                },
+                release: Release::from(release),
                 start: report.window_start.as_ref()?.0,
                 end: report.window_end.as_ref().map(|t| t.0),
                 baseline_start: report.baseline_start.as_ref().map(|t| t.0),
@@ -247,12 +244,9 @@ impl Tracker {
                 .unwrap_or_default(),
         };
         let seen_here = ours.and_then(|(_, r)| r);
-        let seen_stored = stored.filter(|s| s.last_heartbeat_time.is_some()).map(|s| {
-            s.current_release.as_ref().map(|r| Release {
-                version: r.version.to_string(),
-                digest: r.digest.to_string(),
-            })
-        });
+        let seen_stored = stored
+            .filter(|s| s.last_heartbeat_time.is_some())
+            .map(|s| s.current_release.as_ref().map(Release::from));
         if let Some(release) = running
             && (ours.is_none() || seen_here != Some(release))
             && seen_stored.is_some_and(|r| r.as_ref() != Some(release))
@@ -273,10 +267,7 @@ impl Tracker {
     pub fn report(&self) -> Option<AnalysisReport> {
         let w = self.last.as_ref()?;
         Some(AnalysisReport {
-            release: Some(ReleaseRef {
-                version: w.release.version.clone().into(),
-                digest: w.release.digest.clone().into(),
-            }),
+            release: Some(ReleaseRef::from(&w.release)),
             baseline_start: w.baseline_start.map(Time),
             window_start: Some(Time(w.start)),
             window_end: w.end.map(Time),

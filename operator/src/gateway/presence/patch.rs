@@ -14,7 +14,7 @@ use lekiwi_crds::robot::{
     HealthReport, Robot, RobotStatus, SystemInfo, TelemetrySummary, TeleoperationReport,
     UpdateReport,
 };
-use lekiwi_protocol::{Release, SystemFacts, Vitals, rules};
+use lekiwi_protocol::{SystemFacts, Vitals, rules};
 use serde::Serialize;
 use serde_json::Value;
 
@@ -102,7 +102,7 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
             .filter(|v| !v.is_empty())
             .map(Into::into),
         agent_digest: info.agent_digest.clone().map(Into::into),
-        current_release: info.release.as_ref().map(release_ref),
+        current_release: info.release.as_ref().map(ReleaseRef::from),
         address: info.address.clone(),
         health: info.health.as_ref().map(|h| HealthReport {
             healthy: h.healthy,
@@ -122,13 +122,6 @@ pub(super) fn gateway_status(gateway: &str, e: &Entry) -> RobotStatus {
             .agent_update
             .as_ref()
             .map(|u| Box::new(super::agent::report(u))),
-    }
-}
-
-fn release_ref(r: &Release) -> ReleaseRef {
-    ReleaseRef {
-        version: r.version.clone().into(),
-        digest: r.digest.clone().into(),
     }
 }
 
@@ -161,7 +154,7 @@ fn telemetry_summary(v: &Vitals) -> Option<TelemetrySummary> {
 
 fn update_report(u: &UpdateOutcome) -> UpdateReport {
     UpdateReport {
-        release: Some(release_ref(&u.release)),
+        release: Some(ReleaseRef::from(&u.release)),
         phase: Some(u.phase.clone()),
         message: u
             .message
