@@ -1,7 +1,8 @@
 //! [`Text`]: an immutable string for status fields whose values repeat across a fleet (condition
 //! types, reasons and messages, gateway names, agent versions and digests). Every gateway and
 //! the controller keep every Robot in memory; deserialized, equal short values share one
-//! allocation from a bounded table instead of one each.
+//! allocation from a bounded table instead of one each. A `Text` made in code (a status about
+//! to be written, then dropped) is a plain allocation and never touches the table.
 
 use std::collections::HashSet;
 use std::fmt;
@@ -62,18 +63,6 @@ impl std::ops::Deref for Text {
     }
 }
 
-impl AsRef<str> for Text {
-    fn as_ref(&self) -> &str {
-        &self.0
-    }
-}
-
-impl std::borrow::Borrow<str> for Text {
-    fn borrow(&self) -> &str {
-        &self.0
-    }
-}
-
 impl fmt::Debug for Text {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         fmt::Debug::fmt(&*self.0, f)
@@ -88,19 +77,13 @@ impl fmt::Display for Text {
 
 impl From<&str> for Text {
     fn from(s: &str) -> Self {
-        Self::shared(s)
+        Self(Arc::from(s))
     }
 }
 
 impl From<String> for Text {
     fn from(s: String) -> Self {
-        Self::shared(&s)
-    }
-}
-
-impl From<&String> for Text {
-    fn from(s: &String) -> Self {
-        Self::shared(s)
+        Self(Arc::from(s))
     }
 }
 
@@ -125,18 +108,6 @@ impl PartialEq<&str> for Text {
 impl PartialEq<String> for Text {
     fn eq(&self, other: &String) -> bool {
         *self.0 == **other
-    }
-}
-
-impl PartialEq<Text> for str {
-    fn eq(&self, other: &Text) -> bool {
-        *self == *other.0
-    }
-}
-
-impl PartialEq<Text> for &str {
-    fn eq(&self, other: &Text) -> bool {
-        **self == *other.0
     }
 }
 
