@@ -399,6 +399,23 @@ mod tests {
         r
     }
 
+    /// An object's JSON, once a list made it, is what the API answers after the object's next
+    /// change too: the new object's, never the one made before.
+    #[test]
+    fn a_listed_objects_json_follows_its_change() {
+        let cache = Cache::listed([labelled("b", "r1", "x1")]);
+        let json = |c: &Cache<Robot>| {
+            let found = c.page_json((Some("b"), None, None), 10, |_| true);
+            assert_eq!(found.items.len(), 1);
+            found.items[0].to_string()
+        };
+        assert!(json(&cache).contains(r#""room":"x1""#));
+        let mut relist = None;
+        let changed = labelled("b", "r1", "x2");
+        cache.apply(watcher::Event::Apply(changed.clone()), &mut relist);
+        assert_eq!(json(&cache), serde_json::to_string(&changed).unwrap());
+    }
+
     /// A list through the label index finds what a scan of every object finds, pages the same,
     /// follows relabelling and deletion, and answers each object's JSON.
     #[test]
