@@ -38,6 +38,13 @@ pub const GATEWAY_LEASE_LABEL: &str = "fleet.lekiwi.io/gateway";
 /// namespace is written once per run of its robots); at most [`MAX_CLAIMS_BYTES`] long. The Robot controller does not mark
 /// such a robot `Unknown` when the gateway its status names dies, as long as this Lease is alive.
 pub const CLAIMS_ANNOTATION: &str = "fleet.lekiwi.io/claimed-robots";
+/// Annotation on a gateway's Lease: how many seconds (a whole number) the robot next in line for
+/// a status write has waited there, when that is a second or more. While a gateway's status
+/// writes run late, the `lastHeartbeatTime` of its connected robots ages past the refresh period;
+/// the Robot controller extends their heartbeat grace by this much (at most its
+/// `--max-status-lag-seconds`) instead of showing them `Offline`.
+pub const STATUS_LAG_ANNOTATION: &str = "fleet.lekiwi.io/status-lag-seconds";
+
 /// Longest [`CLAIMS_ANNOTATION`] value in bytes: an API server takes at most 256 KiB of
 /// annotations per object; robots beyond this are left out (and may show `Unknown` briefly).
 pub const MAX_CLAIMS_BYTES: usize = 128 * 1024;

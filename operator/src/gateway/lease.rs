@@ -1,8 +1,9 @@
 //! The gateway's own Lease: renewed while the gateway lives, so the Robot controller can tell
 //! that robots held by a dead gateway are Unknown; it also carries the gateway's claims (robots
-//! that moved here and are not written yet, see [`crate::gateway::presence::claims`]).
+//! that moved here and are not written yet, see [`crate::gateway::presence::claims`]) and how
+//! late its status writes run (see [`crate::gateway::presence::Presence::status_lag`]).
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use jiff::Timestamp;
 use k8s_openapi::api::coordination::v1::{Lease, LeaseSpec};
@@ -11,15 +12,55 @@ use kube::Api;
 use kube::api::{ObjectMeta, Patch, PatchParams};
 use std::collections::BTreeMap;
 use tokio_util::sync::CancellationToken;
-use tracing::warn;
+use tracing::{info, warn};
 
-use lekiwi_crds::contract::{CLAIMS_ANNOTATION, GATEWAY_LEASE_LABEL, managers};
+use lekiwi_crds::contract::{
+    CLAIMS_ANNOTATION, GATEWAY_LEASE_LABEL, STATUS_LAG_ANNOTATION, managers,
+};
 
 use crate::gateway::presence::Presence;
 
 /// Shortest time between two renewals: a robot moving here renews the Lease early (its claim
 /// must be seen before the dead gateway's Lease expires), at most this often.
 const MIN_RENEW_GAP: Duration = Duration::from_secs(1);
+/// A status lag above this is logged as a warning, at most once per [`LAG_WARN_EVERY`].
+const LAG_WARN: Duration = Duration::from_secs(30);
+const LAG_WARN_EVERY: Duration = Duration::from_secs(60);
+
+/// The Lease's annotations from `presence` (`None` when it has none: server-side apply then
+/// removes those it set before), and its status lag.
+fn annotations(presence: Option<&Presence>) -> (Option<BTreeMap<String, String>>, Duration) {
+    let Some(p) = presence else {
+        return (None, Duration::ZERO);
+    };
+    let lag = p.status_lag();
+    let mut out = BTreeMap::new();
+    if let Some(claims) = p.claims_annotation() {
+        out.insert(CLAIMS_ANNOTATION.to_owned(), claims);
+    }
+    if let Some(lag) = p.status_lag_annotation() {
+        out.insert(STATUS_LAG_ANNOTATION.to_owned(), lag);
+    }
+    ((!out.is_empty()).then_some(out), lag)
+}
+
+/// Warns (at most once per [`LAG_WARN_EVERY`]) while status writes run more than [`LAG_WARN`]
+/// late, and says when they caught up again.
+fn report_lag(lag: Duration, warned: &mut Option<Instant>) {
+    if lag > LAG_WARN {
+        if warned.is_none_or(|t| t.elapsed() >= LAG_WARN_EVERY) {
+            warn!(
+                lag_seconds = lag.as_secs(),
+                "status writes run late: the API server takes fewer writes than this gateway's \
+                 robots need; the Robot controller extends their heartbeat grace by the lag (see \
+                 --max-status-lag-seconds)"
+            );
+            *warned = Some(Instant::now());
+        }
+    } else if lag.is_zero() && warned.take().is_some() {
+        info!("status writes caught up");
+    }
+}
 
 /// Renews `namespace/name` every third of `duration` (and, at most every [`MIN_RENEW_GAP`],
 /// when a robot moved here) until cancelled, with the claims of `presence` in its annotation.
@@ -34,8 +75,11 @@ pub async fn renew(
     let api: Api<Lease> = Api::namespaced(client, &namespace);
     let period = (duration / 3).max(Duration::from_millis(500));
     let mut acquired: Option<MicroTime> = None;
+    let mut warned = None;
     loop {
         let now = MicroTime(Timestamp::now());
+        let (annotations, lag) = annotations(presence.as_ref());
+        report_lag(lag, &mut warned);
         let lease = Lease {
             metadata: ObjectMeta {
                 name: Some(name.clone()),
@@ -43,11 +87,7 @@ pub async fn renew(
                     GATEWAY_LEASE_LABEL.to_owned(),
                     "true".to_owned(),
                 )])),
-                // Left out when empty: server-side apply then removes the annotation.
-                annotations: presence
-                    .as_ref()
-                    .and_then(Presence::claims_annotation)
-                    .map(|claims| BTreeMap::from([(CLAIMS_ANNOTATION.to_owned(), claims)])),
+                annotations,
                 ..ObjectMeta::default()
             },
             spec: Some(LeaseSpec {

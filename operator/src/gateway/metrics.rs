@@ -90,6 +90,9 @@ pub struct GatewayMetrics {
     pub status_queue: Family<PriorityLabels, Gauge>,
     /// Robots listed in the gateway Lease's claims annotation at its last renewal.
     pub claimed_robots: Gauge,
+    /// How long the robot next in line for a status write has waited, seconds (held while it
+    /// decays): what the gateway's Lease declares as its status lag.
+    pub status_lag: Gauge<f64, AtomicU64>,
     /// Status writes per second the writer allows now (it adapts to the API server's answers).
     pub status_rate: Gauge<f64, AtomicU64>,
     /// Status writes, by priority and result.
@@ -113,6 +116,7 @@ pub struct GatewayMetrics {
 }
 
 impl GatewayMetrics {
+    // shape: a flat list, one entry per metric, read as the gateway's metrics catalogue.
     pub(crate) fn register(registry: &mut Registry) -> Self {
         let mut r = Registrar(registry);
         Self {
@@ -159,6 +163,10 @@ impl GatewayMetrics {
                 "Robots waiting for a status write, by priority",
             ),
             claimed_robots: r.add("lekiwi_gateway_claimed_robots", "Robots the Lease claims"),
+            status_lag: r.add(
+                "lekiwi_gateway_status_lag_seconds",
+                "Wait of the robot next in line for a status write, as the Lease declares it",
+            ),
             status_rate: r.add("lekiwi_gateway_status_rate", "Status writes/s allowed now"),
             status_writes: r.add(
                 "lekiwi_gateway_status_writes",

@@ -15,6 +15,7 @@ pub(crate) mod analysis;
 #[cfg(test)]
 mod analysis_tests;
 pub mod claims;
+mod lag;
 mod patch;
 mod phase;
 #[cfg(test)]

@@ -2,6 +2,7 @@
 //! (moves, transitions, refreshes) that hold each robot at most once.
 
 use std::collections::{HashMap, HashSet, VecDeque};
+use std::time::{Duration, Instant};
 
 use super::{Entry, Priority};
 use crate::gateway::event_store::RobotKey;
@@ -14,13 +15,17 @@ pub(super) struct State {
     /// of them is written only once it has lasted [`super::SETTLE`], so a session that opens
     /// and fails at once (a stolen token in a loop) costs the API server nothing.
     pub(super) known_offline: HashSet<RobotKey>,
-    pub(super) queued: HashMap<RobotKey, Priority>,
+    /// Each waiting robot's priority and since when it waits (kept when it is promoted).
+    pub(super) queued: HashMap<RobotKey, (Priority, Instant)>,
     pub(super) moves: VecDeque<RobotKey>,
     pub(super) high: VecDeque<RobotKey>,
     pub(super) low: VecDeque<RobotKey>,
     /// Robots whose status write is in flight, each with the priority it was queued at again
     /// meanwhile: one write per robot at a time, so an older snapshot never lands after a newer.
     pub(super) writing: HashMap<RobotKey, Option<Priority>>,
+    /// The highest wait [`State::oldest_wait`] reported and when: what it reports decays from
+    /// there at one second per second.
+    pub(super) wait_peak: Option<(Duration, Instant)>,
 }
 
 impl State {
@@ -46,14 +51,12 @@ impl State {
         // A robot already waiting at this priority or above stays where it is; one waiting
         // lower is promoted: it stays in its old queue too, but is skipped there because
         // `queued` names the new priority.
-        if self
-            .queued
-            .get(key)
-            .is_some_and(|&p| p.rank() >= priority.rank())
-        {
-            return;
-        }
-        self.queued.insert(key.clone(), priority);
+        let since = match self.queued.get(key) {
+            Some(&(p, _)) if p.rank() >= priority.rank() => return,
+            Some(&(_, since)) => since,
+            None => Instant::now(),
+        };
+        self.queued.insert(key.clone(), (priority, since));
         match priority {
             Priority::Move => self.moves.push_back(key.clone()),
             Priority::High => self.high.push_back(key.clone()),
@@ -95,12 +98,91 @@ impl State {
                 Priority::Low => &mut self.low,
             };
             while let Some(key) = queue.pop_front() {
-                if self.queued.get(&key) == Some(&priority) {
+                if self.queued.get(&key).is_some_and(|&(p, _)| p == priority) {
                     self.queued.remove(&key);
                     return Some((key, priority));
                 }
             }
         }
         None
+    }
+
+    /// How long the robot next in line has waited for its status write, the longest of the
+    /// three queues; held as a peak that decays at one second per second, so it does not drop
+    /// to nothing while the writes of the robots that waited longest are still in flight.
+    pub(super) fn oldest_wait(&mut self, now: Instant) -> Duration {
+        let mut wait = Duration::ZERO;
+        for priority in [Priority::Move, Priority::High, Priority::Low] {
+            let queue = match priority {
+                Priority::Move => &mut self.moves,
+                Priority::High => &mut self.high,
+                Priority::Low => &mut self.low,
+            };
+            // Entries of robots promoted or dropped meanwhile are skipped by `pop` anyway.
+            while let Some(key) = queue.front() {
+                match self.queued.get(key) {
+                    Some(&(p, since)) if p == priority => {
+                        wait = wait.max(now.saturating_duration_since(since));
+                        break;
+                    }
+                    _ => {
+                        queue.pop_front();
+                    }
+                }
+            }
+        }
+        let decayed = self.wait_peak.map_or(Duration::ZERO, |(peak, at)| {
+            peak.saturating_sub(now.saturating_duration_since(at))
+        });
+        if wait >= decayed {
+            self.wait_peak = Some((wait, now));
+        }
+        wait.max(decayed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn key(name: &str) -> RobotKey {
+        RobotKey::new("fleet", name)
+    }
+
+    /// The wait of the robot next in line, the longest over the queues; a promoted robot keeps
+    /// its wait; once the queues empty, the last peak decays at one second per second.
+    #[test]
+    fn the_oldest_wait_is_the_next_in_lines_and_decays() {
+        let mut s = State::default();
+        let t0 = Instant::now();
+        let secs = Duration::from_secs;
+        assert_eq!(s.oldest_wait(t0), Duration::ZERO);
+        s.enqueue(&key("a"), Priority::Low);
+        s.enqueue(&key("b"), Priority::Low);
+        let waited = s.oldest_wait(t0 + secs(10));
+        // Enqueued a moment after `t0`.
+        assert!(waited > secs(9) && waited <= secs(10), "{waited:?}");
+        // `a` promoted: it is skipped in the low queue and keeps its wait in the high one.
+        let since = s.queued[&key("a")].1;
+        s.enqueue(&key("a"), Priority::High);
+        assert_eq!(s.queued[&key("a")], (Priority::High, since));
+        assert_eq!(
+            s.pop().map(|(k, p)| (k.name, p)),
+            Some(("a".into(), Priority::High))
+        );
+        let waited = s.oldest_wait(t0 + secs(20));
+        assert!(
+            waited > secs(19) && waited <= secs(20),
+            "b waits: {waited:?}"
+        );
+        assert_eq!(
+            s.pop().map(|(k, p)| (k.name, p)),
+            Some(("b".into(), Priority::Low))
+        );
+        assert_eq!(s.pop(), None);
+        // Nothing waits: the peak of 20 s decays.
+        let held = s.oldest_wait(t0 + secs(25));
+        assert!(held > secs(14) && held <= secs(15), "{held:?}");
+        assert_eq!(s.oldest_wait(t0 + secs(45)), Duration::ZERO);
     }
 }
