@@ -83,6 +83,13 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_HEARTBEAT_GRACE_SECONDS", default_value_t = 360)]
     pub heartbeat_grace_seconds: u64,
 
+    /// A gateway whose status writes run late (the API server takes fewer writes than its
+    /// robots' refreshes need) declares by how much on its Lease; the heartbeat grace of the
+    /// robots it holds grows by that much, but by at most this many seconds, so a gateway that
+    /// cannot write at all does not keep its robots Online for ever.
+    #[arg(long, env = "LEKIWI_MAX_STATUS_LAG_SECONDS", default_value_t = 900)]
+    pub max_status_lag_seconds: u64,
+
     /// Most reconciles running at once.
     #[arg(long, env = "LEKIWI_CONCURRENCY", default_value_t = 16)]
     pub concurrency: u16,

@@ -231,6 +231,11 @@ async fn run_while_leader(
             r = wait_leader(&mut leader, true) => if r.is_err() { return Ok(()) },
         }
         let term = cancel.child_token();
+        let Some((ctx, leases)) = controller::robot::watch_gateway_leases(&ctx, &term).await?
+        else {
+            return Ok(());
+        };
+        let _leases = tokio_util::task::AbortOnDropHandle::new(leases);
         let mut robot = tokio::spawn(controller::robot::run(ctx.clone(), term.clone()));
         let mut rollout = tokio::spawn(controller::deployment::run(ctx.clone(), term.clone()));
         let stopped = |r: Result<Result<()>, tokio::task::JoinError>, what: &'static str| match r {

@@ -99,6 +99,24 @@ impl Context {
         self.next_backoff(name, namespace)
     }
 
+    /// The heartbeat age past which a robot connected through `gateway` is Offline:
+    /// `--heartbeat-grace-seconds`, plus the status lag that gateway's live Lease declares (at
+    /// most `--max-status-lag-seconds`): its robots' heartbeats are only as fresh as its writes.
+    pub fn heartbeat_grace(&self, gateway: Option<&str>, now: jiff::Timestamp) -> Duration {
+        let grace = Duration::from_secs(self.config.heartbeat_grace_seconds);
+        let lag = match (gateway, &self.gateway_leases) {
+            (Some(gateway), Some(leases)) => robot::status_lag(
+                leases,
+                &self.config.namespace,
+                gateway,
+                now,
+                Duration::from_secs(self.config.max_status_lag_seconds),
+            ),
+            _ => Duration::ZERO,
+        };
+        grace + lag
+    }
+
     /// Forgets an object's failures after a successful reconcile.
     pub fn reset_backoff(&self, name: &str, namespace: &str) {
         let mut failures = self.failures.lock().unwrap_or_else(|p| p.into_inner());

@@ -41,7 +41,6 @@ pub(super) async fn gather(
     })
     .await
     .map_err(|_| Error::TaskStopped("release check"))?;
-    let grace = Duration::from_secs(config.heartbeat_grace_seconds);
     let mut owners = super::ownership::superseded(&state.deployments, deployment, &ours);
     let target = target(&deployment.spec);
     let agent = deployment.spec.agent.as_ref();
@@ -51,6 +50,8 @@ pub(super) async fn gather(
         robots: ours
             .iter()
             .map(|r| {
+                let gateway = r.status.as_ref().and_then(|s| s.gateway.as_deref());
+                let grace = state.ctx.heartbeat_grace(gateway, now);
                 let view = RobotView {
                     superseded_by: owners.remove(&r.name_any()),
                     ..view(r, now, grace, kind)
@@ -260,7 +261,8 @@ pub(super) fn is_active(guard: &DeserializeGuard<RobotDeployment>) -> bool {
 fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: RolloutKind) -> RobotView {
     let status = robot.status.clone().unwrap_or_default();
     // `phase` is the Robot controller's verdict, which may lag (e.g. right after an operator
-    // restart); a rollout only counts a robot Online with a live connection and a fresh heartbeat.
+    // restart); a rollout only counts a robot Online with a live connection and a heartbeat
+    // within the grace (the Robot controller's, extended by its gateway's status lag).
     let fresh = status.connected == Some(true)
         && status.last_heartbeat_time.as_ref().is_some_and(|t| {
             now.duration_since(t.0) <= SignedDuration::try_from(grace).unwrap_or_default()

@@ -11,6 +11,7 @@ use k8s_openapi::api::coordination::v1::Lease;
 use kube::core::DeserializeGuard;
 use kube::runtime::reflector::{ObjectRef, Store};
 use kube::{Api, ResourceExt};
+use lekiwi_crds::contract::STATUS_LAG_ANNOTATION;
 use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
@@ -51,6 +52,27 @@ pub(super) fn gateway_state(
         Some(lease) if lease_alive(&lease, now) => GatewayState::Alive,
         _ => GatewayState::Gone,
     }
+}
+
+/// The status lag (see [`lekiwi_crds::contract::STATUS_LAG_ANNOTATION`]) that the live Lease of
+/// `gateway` declares, at most `max`; zero for a dead or missing Lease, or a value that is not a
+/// whole number of seconds.
+pub(crate) fn status_lag(
+    store: &Store<Lease>,
+    namespace: &str,
+    gateway: &str,
+    now: Timestamp,
+    max: Duration,
+) -> Duration {
+    store
+        .get(&ObjectRef::new(gateway).within(namespace))
+        .filter(|lease| lease_alive(lease, now))
+        .and_then(|lease| {
+            let value = lease.annotations().get(STATUS_LAG_ANNOTATION)?;
+            value.parse::<u64>().ok().map(Duration::from_secs)
+        })
+        .unwrap_or_default()
+        .min(max)
 }
 
 /// A gateway Lease expired this long and held by no robot is deleted.
@@ -286,6 +308,42 @@ mod tests {
                 ("gw-never-renewed".to_owned(), Some("7".to_owned())),
                 ("gw-old".to_owned(), Some("7".to_owned()))
             ]
+        );
+    }
+
+    /// A live Lease's status lag counts, capped; a dead Lease's, a missing one's or a value
+    /// that is not whole seconds does not.
+    #[test]
+    fn a_live_gateways_status_lag_extends_within_the_cap() {
+        use kube::runtime::{reflector, watcher};
+        let (store, mut writer) = reflector::store::<Lease>();
+        let annotated = |name: &str, renewed_ago_s: i64, lag: &str| {
+            let mut l = (*lease(name, true, renewed_ago_s)).clone();
+            l.metadata.namespace = Some("ops".into());
+            l.metadata.annotations =
+                Some([(STATUS_LAG_ANNOTATION.to_owned(), lag.to_owned())].into());
+            l
+        };
+        for l in [
+            annotated("gw-late", 2, "120"),
+            annotated("gw-very-late", 2, "5000"),
+            annotated("gw-dead", 60, "120"),
+            annotated("gw-garbled", 2, "2m"),
+            annotated("gw-negative", 2, "-30"),
+        ] {
+            writer.apply_watcher_event(&watcher::Event::Apply(l));
+        }
+        let max = Duration::from_secs(900);
+        let lag = |gw: &str| status_lag(&store, "ops", gw, Timestamp::now(), max).as_secs();
+        assert_eq!(lag("gw-late"), 120);
+        assert_eq!(lag("gw-very-late"), 900, "capped");
+        assert_eq!(lag("gw-dead"), 0, "a dead gateway vouches for nothing");
+        assert_eq!(lag("gw-garbled"), 0);
+        assert_eq!(lag("gw-negative"), 0);
+        assert_eq!(lag("gw-missing"), 0);
+        assert_eq!(
+            status_lag(&store, "lab", "gw-late", Timestamp::now(), max).as_secs(),
+            0
         );
     }
 }

@@ -25,6 +25,7 @@ use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, debug, info, info_span, warn};
 
+pub(crate) use self::gateways::status_lag;
 use self::gateways::{gateway_state, watch_gateways};
 use self::plan::{Facts, GatewayState};
 use super::Context;
@@ -32,12 +33,14 @@ use super::trigger::trigger;
 use crate::error::{Error, Result};
 use crate::metrics::{ControllerName, PhaseLabels};
 
-/// Runs the Robot controller until `cancel` fires.
-pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
-    let robots: Api<DeserializeGuard<Robot>> = match &ctx.config.watch_namespace {
-        Some(ns) => Api::namespaced(ctx.client.clone(), ns),
-        None => Api::all(ctx.client.clone()),
-    };
+/// Watches the gateways' Leases in the operator's namespace until `cancel` fires: returns `ctx`
+/// with their store, once it has listed them (both controllers read it: whether a robot's
+/// gateway lives, and by how much its status writes lag), and the watch's task; `None` if
+/// cancelled first.
+pub async fn watch_gateway_leases(
+    ctx: &Context,
+    cancel: &CancellationToken,
+) -> Result<Option<(Arc<Context>, tokio::task::JoinHandle<()>)>> {
     let leases: Api<Lease> = Api::namespaced(ctx.client.clone(), &ctx.config.namespace);
     let (lease_store, lease_writer) = reflector::store();
     let lease_watch = reflector(lease_writer, watcher(leases, watcher::Config::default()))
@@ -47,13 +50,28 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     let lease_task = tokio::spawn(lease_watch);
     // Without the gateways' Leases every connected robot would look Unknown for a moment.
     tokio::select! {
-        () = cancel.cancelled() => { lease_task.abort(); return Ok(()); }
-        r = lease_store.wait_until_ready() => if r.is_err() { return Err(Error::TaskStopped("lease reflector")); }
+        () = cancel.cancelled() => { lease_task.abort(); return Ok(None); }
+        r = lease_store.wait_until_ready() => if r.is_err() {
+            lease_task.abort();
+            return Err(Error::TaskStopped("lease reflector"));
+        }
     }
     let ctx = Arc::new(Context {
-        gateway_leases: Some(lease_store.clone()),
-        ..(*ctx).clone()
+        gateway_leases: Some(lease_store),
+        ..ctx.clone()
     });
+    Ok(Some((ctx, lease_task)))
+}
+
+/// Runs the Robot controller until `cancel` fires; `ctx` comes from [`watch_gateway_leases`].
+pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
+    let robots: Api<DeserializeGuard<Robot>> = match &ctx.config.watch_namespace {
+        Some(ns) => Api::namespaced(ctx.client.clone(), ns),
+        None => Api::all(ctx.client.clone()),
+    };
+    let Some(lease_store) = ctx.gateway_leases.clone() else {
+        return Err(Error::TaskStopped("gateway Lease watch"));
+    };
 
     let controller = super::controller_for(robots, &ctx);
     let robot_store = controller.store();
@@ -84,7 +102,6 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     .await;
     liveness.abort();
     summaries.abort();
-    lease_task.abort();
     info!("robot controller stopped");
     Ok(())
 }
@@ -124,7 +141,10 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
         }
         let facts = Facts {
             now,
-            heartbeat_grace: Duration::from_secs(ctx.config.heartbeat_grace_seconds),
+            heartbeat_grace: ctx.heartbeat_grace(
+                robot.status.as_ref().and_then(|s| s.gateway.as_deref()),
+                now,
+            ),
             gateway,
         };
         let plan = plan::plan(robot, &facts);
