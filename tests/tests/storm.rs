@@ -235,3 +235,79 @@ async fn enrollment_beyond_admission_is_told_when_to_retry() -> anyhow::Result<(
     assert!(op.running());
     Ok(())
 }
+
+/// Robots in the late-writes test.
+const LATE: usize = 40;
+
+/// A gateway whose status writes run late (here a fixed 2 writes/s for 40 robots refreshing
+/// every 3 s, a 20 s cycle against an 8 s heartbeat grace) declares its lag on its Lease, and
+/// the Robot controller keeps its connected robots Online though their recorded heartbeats age
+/// past the grace; once they disconnect, they still turn Offline.
+#[tokio::test]
+async fn late_status_writes_turn_no_connected_robot_offline() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "late").await?;
+    #[rustfmt::skip]
+    let args = [
+        "--heartbeat-grace-seconds", "8", "--status-refresh-seconds", "3",
+        "--heartbeat-interval-seconds", "1", "--gateway-lease-seconds", "3",
+        "--status-qps", "2", "--status-qps-min", "2", "--status-qps-max", "2",
+        "--status-burst", "1",
+    ];
+    let mut op = OperatorProcess::start(cp, &ns, "op-late", &args)?;
+    op.wait_ready().await?;
+    let dir = tempfile::tempdir()?;
+    let token_file = dir.path().join("enroll-token");
+    enrollment_token_file(&client, &ns, &token_file).await?;
+    let mut fleet = FleetProcess::start(FleetSpec {
+        gateway: &gateway_url(&op),
+        token_file: &token_file,
+        namespace: &ns,
+        robots: LATE,
+        state_root: &dir.path().join("robots"),
+        health_command: "true",
+        report_every: "5",
+        rust_log: "warn",
+        extra: &[],
+    })?;
+    wait_online(&client, &ns, LATE, Duration::from_secs(120)).await?;
+
+    // For 30 s: every robot stays Online, while recorded heartbeats age past the grace.
+    let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
+    let leases: Api<k8s_openapi::api::coordination::v1::Lease> =
+        Api::namespaced(client.clone(), &ns);
+    let (mut oldest, mut declared, mut gateway) = (0i64, 0u64, String::new());
+    let until = std::time::Instant::now() + Duration::from_secs(30);
+    while std::time::Instant::now() < until {
+        let now = jiff::Timestamp::now();
+        for r in robots.list(&ListParams::default()).await?.items {
+            let s = r.status.unwrap_or_default();
+            assert_eq!(s.phase, Some(RobotPhase::Online), "{:?}", s.conditions);
+            gateway = s.gateway.map(String::from).unwrap_or_default();
+            let beat = s.last_heartbeat_time.map(|t| t.0).unwrap_or(now);
+            oldest = oldest.max(now.duration_since(beat).as_secs());
+        }
+        let lease = leases.get(&gateway).await?;
+        let lag = lease.metadata.annotations.unwrap_or_default();
+        let lag = lag.get(lekiwi_crds::contract::STATUS_LAG_ANNOTATION);
+        declared = declared.max(lag.and_then(|v| v.parse().ok()).unwrap_or(0));
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    eprintln!("oldest recorded heartbeat {oldest} s; largest declared lag {declared} s");
+    assert!(
+        oldest > 8,
+        "no heartbeat aged past the grace: the test proves nothing"
+    );
+    assert!(declared >= 5, "declared status lag {declared} s");
+    let exported = op.metric("lekiwi_gateway_status_lag_seconds").await;
+    assert!(exported.is_some_and(|v| v > 0.0), "{exported:?}");
+
+    // A lag hides no disconnect: the fleet stops, every robot turns Offline.
+    fleet.kill();
+    wait_for("every robot Offline", Duration::from_secs(90), || async {
+        (count_phase(&robots, RobotPhase::Offline).await == LATE).then_some(())
+    })
+    .await?;
+    Ok(())
+}
