@@ -30,6 +30,10 @@
 #!                         robots / connect rate + robots / 40 + 120, at most 600: a robot coming
 #!                         Online costs one status write, an enrolling one about 4 writes, and the
 #!                         API server takes ~200 writes/s on 2 cores)
+#!   --tls                 the gateway serves wss:// (a CA and certificate made here with openssl)
+#!                         and the simulator trusts that CA, as agents in production; the echo
+#!                         floor stays plain ws://, so compare RSS per connection with a run
+#!                         without --tls
 #!   --no-build            use the binaries already in target/release
 #!   --keep                keep the work directory (logs, metric scrapes) instead of deleting it
 #!   -h, --help            this text
@@ -55,6 +59,7 @@ STATUS_QPS=500
 STATUS_BURST=1000
 STATUS_REFRESH=300
 ONLINE_TIMEOUT=
+TLS=0
 BUILD=1
 KEEP=0
 COMMAND="bash bench/gateway.sh $*"
@@ -76,6 +81,7 @@ while [ $# -gt 0 ]; do
     --status-burst) positive_int "$1" "${2:-}"; STATUS_BURST="$2"; shift 2 ;;
     --status-refresh) positive_int "$1" "${2:-}"; STATUS_REFRESH="$2"; shift 2 ;;
     --online-timeout) positive_int "$1" "${2:-}"; ONLINE_TIMEOUT="$2"; shift 2 ;;
+    --tls) TLS=1; shift ;;
     --no-build) BUILD=0; shift ;;
     --keep) KEEP=1; shift ;;
     -h|--help) usage; exit 0 ;;
@@ -157,6 +163,24 @@ GATEWAY_FLAGS=(
   --status-refresh-seconds "$STATUS_REFRESH" --heartbeat-interval-seconds "$INTERVAL"
 )
 fact gateway_flags "${GATEWAY_FLAGS[*]} --store-url sqlite://\$WORK/events.db (WAL, synchronous=FULL, ext4)"
+GW_SCHEME=ws
+SIM_TLS=()
+if [ $TLS = 1 ]; then
+  # A CA of the run's own and a certificate for 127.0.0.1 signed by it (ECDSA P-256, as a
+  # cert-manager default would issue).
+  (cd "$WORK" \
+    && openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 1 \
+         -subj /CN=lekiwi-bench-ca -keyout ca.key -out ca.crt \
+    && openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj /CN=lekiwi-gateway \
+         -keyout tls.key -out tls.csr \
+    && printf 'subjectAltName=IP:127.0.0.1\n' >ext \
+    && openssl x509 -req -in tls.csr -CA ca.crt -CAkey ca.key -CAcreateserial -days 1 \
+         -extfile ext -out tls.crt) >"$WORK/openssl.log" 2>&1 || die "openssl failed: $(tail -3 "$WORK/openssl.log")"
+  GATEWAY_FLAGS+=(--tls-cert "$WORK/tls.crt" --tls-key "$WORK/tls.key")
+  GW_SCHEME=wss
+  SIM_TLS=(--ca-file "$WORK/ca.crt")
+fi
+fact tls "$([ $TLS = 1 ] && echo "wss:// to the gateway (rustls, ECDSA P-256 certificate); the echo floor plain ws://" || echo "none (plain ws:// on loopback)")"
 
 log "starting the controller (http :$CTRL_HTTP) and the gateway (ws :$GW_PORT, http :$GW_HTTP)"
 start controller env RUST_LOG=warn "$BIN/lekiwi-operator" --role controller \
@@ -321,9 +345,9 @@ sleep 2
 log "phase 2: $ROBOTS robots -> gateway (connect rate $CONNECT_RATE/s, heartbeat ${INTERVAL}s)"
 scrape_apiserver "$WORK/apiserver-start.txt"
 T0="$(now)"
-start sim-gateway "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$GW_PORT/v1/agent" \
+start sim-gateway "$BIN/lekiwi-sim" --gateway "$GW_SCHEME://127.0.0.1:$GW_PORT/v1/agent" \
   --enrollment-token "$TOKEN" --connect-rate "$CONNECT_RATE" --json "$WORK/sim-gateway.json" \
-  "${SIM_COMMON[@]}"
+  "${SIM_TLS[@]}" "${SIM_COMMON[@]}"
 SIM_PID=$LAST_PID
 progress_extra() { gateway_progress; }
 cpu_snapshot "gateway:$GW_PID" "sim:$SIM_PID" "controller:$CTRL_PID" \

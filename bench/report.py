@@ -398,6 +398,7 @@ def main():
             else "enroll on first connect with the fleet enrollment token (Robot + token Secret each)"
         ),
         f"gateway: {f.get('gateway_flags', '?')}",
+        f"transport: {f.get('tls', 'none (plain ws:// on loopback)')}",
         f"windows: gateway {window_gw:.0f} s, echo {window_echo:.0f} s of steady state;"
         " RTT = agent-reported heartbeat round trip, read from the server's histogram"
         " (bounds 0.5 ms x 2^k; ~ = interpolated inside a bucket)",

@@ -67,6 +67,10 @@ pub struct Args {
     /// Exit as soon as every robot has connected once.
     #[arg(long)]
     pub exit_when_connected: bool,
+    /// PEM file of the CA certificate(s) to trust for `wss://` gateway URLs (default: the public
+    /// web roots), as the agent's `--ca-file`.
+    #[arg(long, env = "LEKIWI_CA_FILE")]
+    pub ca_file: Option<std::path::PathBuf>,
     /// Seconds to wait for `welcome` (enrollment of a large fleet queues on the gateway).
     #[arg(long, default_value_t = 120.0)]
     pub connect_timeout: f64,

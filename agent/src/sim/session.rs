@@ -15,7 +15,7 @@ use rand::Rng;
 use tokio_tungstenite::tungstenite::Message;
 
 use super::{Fleet, Stats, lock};
-use crate::connection::{ConnectError, Credentials, connect};
+use crate::connection::{ConnectError, Credentials, connect_with_ca};
 
 /// The durable events of one robot not yet acknowledged, by `seq`, and the next `seq` to use.
 /// It lives as long as the robot's task, across sessions, as the agent's outbox does on disk.
@@ -120,7 +120,7 @@ pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
     loop {
         let hello = hello(&name, &fleet.release, outbox.last_acked());
         let mut floor = Duration::ZERO;
-        match connect(&url, &creds, &hello, timeout).await {
+        match connect_with_ca(&url, &creds, &hello, timeout, args.ca_file.as_deref()).await {
             Ok((ws, welcome)) => {
                 backoff.reset();
                 if let Some(token) = welcome.robot_token.clone() {
