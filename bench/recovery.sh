@@ -405,6 +405,23 @@ scenario_first_boot() {
 }
 
 # ---- scenario steady -------------------------------------------------------------------------
+# For $2 seconds, every 5 s: the fewest robots the controller counts Online and the largest
+# status lag a gateway declares (lekiwi_gateway_status_lag_seconds), as facts for size $1.
+window_watch() {
+  local size="$1" end=$((SECONDS + $2)) fewest="" lag=0 v g
+  while [ $SECONDS -lt $end ]; do
+    v="$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')"
+    if [ "$v" -ge 0 ] && { [ -z "$fewest" ] || [ "$v" -lt "$fewest" ]; }; then fewest="$v"; fi
+    for g in gw-a gw-b; do
+      v="$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_status_lag_seconds)"
+      lag="$(awk -v a="$lag" -v b="${v:-0}" 'BEGIN { print (b > a ? b : a) }')"
+    done
+    sleep $(( end - SECONDS < 5 ? (end - SECONDS > 0 ? end - SECONDS : 0) : 5 ))
+  done
+  fact "steady_${size}_fewest_online" "${fewest:-?}"
+  fact "steady_${size}_max_status_lag" "$lag"
+}
+
 scenario_steady() {
   local size have=0 part=0 t0 gw_urls g chunk left n
   gw_urls="ws://127.0.0.1:${GW_PORT[gw-a]}/v1/agent,ws://127.0.0.1:${GW_PORT[gw-b]}/v1/agent"
@@ -436,7 +453,7 @@ scenario_steady() {
     for g in gw-a gw-b; do scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-a.txt"; done
     cpu_snapshot "gw-a:${GW_PID[gw-a]}" "gw-b:${GW_PID[gw-b]}" "apiserver:$(cat "$CP_DIR/kube-apiserver.pid")"
     t0="$(now)"
-    sleep "$WINDOW"
+    window_watch "$size" "$WINDOW"
     scrape_apiserver "$WORK/apiserver-$size-b.txt"
     for g in gw-a gw-b; do
       scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-b.txt"

@@ -157,8 +157,9 @@ def report_steady(work, f):
           f"{f.get('interval')} s; status refresh every 300 s (the default)")
     print()
     print("| robots | Online after | heartbeat RTT p50 / p99 (goal p99 < 10 ms) | gateway RSS per "
-          "connection gw-a / gw-b (goal ≤ 16 KiB) | API writes/s (N/300) | CPU gw-a / gw-b / apiserver (cores) |")
-    print("|---|---|---|---|---|---|")
+          "connection gw-a / gw-b (goal ≤ 16 KiB) | API writes/s (N/300) | CPU gw-a / gw-b / apiserver (cores) "
+          "| fewest Online in the window | largest declared status lag |")
+    print("|---|---|---|---|---|---|---|---|")
     for size in f["steady_sizes"].split(","):
         buckets = {}
         for g in ("gw-a", "gw-b"):
@@ -177,7 +178,9 @@ def report_steady(work, f):
         p50, p99 = (quantile(rtt, q) for q in (0.5, 0.99))
         rtt_cell = "no heartbeats" if p50 is None else f"{p50 * 1000:.2f} / {p99 * 1000:.2f} ms"
         print(f"| {size} | {f.get(f'steady_{size}_online_seconds')} s | {rtt_cell} | "
-              f"{' / '.join(per_conn)} | {api_writes:.1f} ({int(size) / 300:.1f}) | {cpu} |")
+              f"{' / '.join(per_conn)} | {api_writes:.1f} ({int(size) / 300:.1f}) | {cpu} | "
+              f"{f.get(f'steady_{size}_fewest_online', '?')} | "
+              f"{f.get(f'steady_{size}_max_status_lag', '?')} s |")
 
 
 def main():
