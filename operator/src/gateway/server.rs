@@ -100,8 +100,13 @@ pub async fn run(
         config.session_opens_per_minute,
         config.session_open_burst,
     ));
-    // One Robot watch per gateway (the Fleet API's cache serves dispatch and sessions too); it
-    // lists while the token Secrets do, so a restart waits for the longer list, not the sum.
+    let Some((tokens, secret_task)) =
+        watch_token_secrets(&config, &client, registry.clone(), &cancel).await?
+    else {
+        return Ok(());
+    };
+    let presence = presence(&config, &name, &metrics);
+    // One watch of Robots per gateway: the Fleet API's cache serves dispatch and sessions too.
     let (fleet, fleet_tasks) = FleetApi::start(
         watched(&config, &client),
         watched(&config, &client),
@@ -109,11 +114,6 @@ pub async fn run(
         &config,
         &cancel,
     );
-    let secrets = watch_token_secrets(&config, &client, registry.clone(), &cancel).await;
-    let Some((tokens, secret_task)) = secrets.inspect_err(|_| abort(&fleet_tasks))? else {
-        return Ok(());
-    };
-    let presence = presence(&config, &name, &metrics);
     let (desired, dispatch_task) = dispatch::start(
         fleet.robots.clone(),
         registry.clone(),
@@ -250,11 +250,6 @@ async fn watch_token_secrets(
         () = cancel.cancelled() => { secret_task.abort(); Ok(None) }
         () = tokens.wait_until_ready() => Ok(Some((tokens, secret_task))),
     }
-}
-
-/// Stops `tasks` (the gateway ends before it served).
-fn abort(tasks: &[tokio::task::JoinHandle<()>]) {
-    tasks.iter().for_each(tokio::task::JoinHandle::abort);
 }
 
 /// Tells the session of the robot whose token Secret `secret` is that it changed.
