@@ -18,7 +18,7 @@ use lekiwi_crds::contract::{
     CLAIMS_ANNOTATION, GATEWAY_LEASE_LABEL, STATUS_LAG_ANNOTATION, managers,
 };
 
-use crate::gateway::presence::Presence;
+use crate::gateway::presence::{Presence, status_lag_annotation};
 
 /// Shortest time between two renewals: a robot moving here renews the Lease early (its claim
 /// must be seen before the dead gateway's Lease expires), at most this often.
@@ -38,8 +38,8 @@ fn annotations(presence: Option<&Presence>) -> (Option<BTreeMap<String, String>>
     if let Some(claims) = p.claims_annotation() {
         out.insert(CLAIMS_ANNOTATION.to_owned(), claims);
     }
-    if let Some(lag) = p.status_lag_annotation() {
-        out.insert(STATUS_LAG_ANNOTATION.to_owned(), lag);
+    if let Some(value) = status_lag_annotation(lag) {
+        out.insert(STATUS_LAG_ANNOTATION.to_owned(), value);
     }
     ((!out.is_empty()).then_some(out), lag)
 }

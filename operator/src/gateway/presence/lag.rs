@@ -17,12 +17,27 @@ impl Presence {
         self.metrics.gateway.status_lag.set(lag.as_secs_f64());
         lag
     }
+}
 
-    /// The [`lekiwi_crds::contract::STATUS_LAG_ANNOTATION`] value of [`Presence::status_lag`]:
-    /// whole seconds, rounded up; `None` under a second (writes keep up).
-    pub fn status_lag_annotation(&self) -> Option<String> {
-        let lag = self.status_lag();
-        let seconds = lag.as_secs() + u64::from(lag.subsec_nanos() > 0);
-        (lag >= Duration::from_secs(1)).then(|| seconds.to_string())
+/// The [`lekiwi_crds::contract::STATUS_LAG_ANNOTATION`] value of a lag: whole seconds, rounded
+/// up; `None` under a second (writes keep up).
+pub fn status_lag_annotation(lag: Duration) -> Option<String> {
+    let seconds = lag.as_secs() + u64::from(lag.subsec_nanos() > 0);
+    (lag >= Duration::from_secs(1)).then(|| seconds.to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Whole seconds rounded up, and nothing while writes keep up.
+    #[test]
+    fn the_annotation_is_whole_seconds_rounded_up() {
+        let ms = Duration::from_millis;
+        assert_eq!(status_lag_annotation(ms(0)), None);
+        assert_eq!(status_lag_annotation(ms(999)), None);
+        assert_eq!(status_lag_annotation(ms(1000)).as_deref(), Some("1"));
+        assert_eq!(status_lag_annotation(ms(1200)).as_deref(), Some("2"));
+        assert_eq!(status_lag_annotation(ms(269_000)).as_deref(), Some("269"));
     }
 }

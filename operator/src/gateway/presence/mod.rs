@@ -35,6 +35,7 @@ use tokio::sync::Notify;
 pub use self::adapt::RateBounds;
 pub use self::agent::AgentUpdateOutcome;
 pub use self::analysis::window_open as analysis_window_open;
+pub use self::lag::status_lag_annotation;
 pub use self::phase::PhasePlanner;
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
