@@ -56,20 +56,23 @@ pub enum Priority {
 }
 
 impl Priority {
+    /// Every priority, the one written first first.
+    const ALL: [Priority; 3] = [Priority::Move, Priority::High, Priority::Low];
+
+    /// Its queue's place in `State::queues` and in [`Priority::ALL`]: lower goes first.
+    fn index(self) -> usize {
+        match self {
+            Priority::Move => 0,
+            Priority::High => 1,
+            Priority::Low => 2,
+        }
+    }
+
     fn label(self) -> &'static str {
         match self {
             Priority::Move => "move",
             Priority::High => "high",
             Priority::Low => "low",
-        }
-    }
-
-    /// Higher goes first.
-    fn rank(self) -> u8 {
-        match self {
-            Priority::Move => 2,
-            Priority::High => 1,
-            Priority::Low => 0,
         }
     }
 }
@@ -210,12 +213,8 @@ impl Presence {
     fn with_state<T>(&self, f: impl FnOnce(&mut State) -> T) -> T {
         let mut state = self.state.lock().unwrap_or_else(|p| p.into_inner());
         let out = f(&mut state);
-        let queues = [
-            (Priority::Move, state.moves.len()),
-            (Priority::High, state.high.len()),
-            (Priority::Low, state.low.len()),
-        ];
-        for (priority, len) in queues {
+        for priority in Priority::ALL {
+            let len = state.queues[priority.index()].len();
             let priority = priority.label();
             let labels = crate::metrics::PriorityLabels { priority };
             self.metrics

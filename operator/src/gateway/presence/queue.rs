@@ -17,9 +17,8 @@ pub(super) struct State {
     pub(super) known_offline: HashSet<RobotKey>,
     /// Each waiting robot's priority and since when it waits (kept when it is promoted).
     pub(super) queued: HashMap<RobotKey, (Priority, Instant)>,
-    pub(super) moves: VecDeque<RobotKey>,
-    pub(super) high: VecDeque<RobotKey>,
-    pub(super) low: VecDeque<RobotKey>,
+    /// The queue of each priority, in [`Priority::ALL`]'s order (see [`Priority::index`]).
+    pub(super) queues: [VecDeque<RobotKey>; 3],
     /// Robots whose status write is in flight, each with the priority it was queued at again
     /// meanwhile: one write per robot at a time, so an older snapshot never lands after a newer.
     pub(super) writing: HashMap<RobotKey, Option<Priority>>,
@@ -52,16 +51,12 @@ impl State {
         // lower is promoted: it stays in its old queue too, but is skipped there because
         // `queued` names the new priority.
         let since = match self.queued.get(key) {
-            Some(&(p, _)) if p.rank() >= priority.rank() => return,
+            Some(&(p, _)) if p.index() <= priority.index() => return,
             Some(&(_, since)) => since,
             None => Instant::now(),
         };
         self.queued.insert(key.clone(), (priority, since));
-        match priority {
-            Priority::Move => self.moves.push_back(key.clone()),
-            Priority::High => self.high.push_back(key.clone()),
-            Priority::Low => self.low.push_back(key.clone()),
-        }
+        self.queues[priority.index()].push_back(key.clone());
     }
 
     /// Claims the write of `key` (taken from the queues at `priority`); `false` when one is in
@@ -69,7 +64,7 @@ impl State {
     pub(super) fn begin_write(&mut self, key: &RobotKey, priority: Priority) -> bool {
         match self.writing.get_mut(key) {
             Some(again) => {
-                if again.is_none_or(|p| p.rank() < priority.rank()) {
+                if again.is_none_or(|p| p.index() > priority.index()) {
                     *again = Some(priority);
                 }
                 false
@@ -91,12 +86,8 @@ impl State {
     }
 
     pub(super) fn pop(&mut self) -> Option<(RobotKey, Priority)> {
-        for priority in [Priority::Move, Priority::High, Priority::Low] {
-            let queue = match priority {
-                Priority::Move => &mut self.moves,
-                Priority::High => &mut self.high,
-                Priority::Low => &mut self.low,
-            };
+        for priority in Priority::ALL {
+            let queue = &mut self.queues[priority.index()];
             while let Some(key) = queue.pop_front() {
                 if self.queued.get(&key).is_some_and(|&(p, _)| p == priority) {
                     self.queued.remove(&key);
@@ -112,12 +103,8 @@ impl State {
     /// to nothing while the writes of the robots that waited longest are still in flight.
     pub(super) fn oldest_wait(&mut self, now: Instant) -> Duration {
         let mut wait = Duration::ZERO;
-        for priority in [Priority::Move, Priority::High, Priority::Low] {
-            let queue = match priority {
-                Priority::Move => &mut self.moves,
-                Priority::High => &mut self.high,
-                Priority::Low => &mut self.low,
-            };
+        for priority in Priority::ALL {
+            let queue = &mut self.queues[priority.index()];
             // Entries of robots promoted or dropped meanwhile are skipped by `pop` anyway.
             while let Some(key) = queue.front() {
                 match self.queued.get(key) {
