@@ -36,6 +36,28 @@ fn writes(cp: &ControlPlane, resource: &str) -> anyhow::Result<f64> {
         .sum())
 }
 
+/// `robots` simulated robots of namespace `ns` enrolling through `gateway` with the token in
+/// `token_file`, their state under `dir`, healthy, logging warnings only.
+fn start_fleet(
+    gateway: &str,
+    token_file: &std::path::Path,
+    ns: &str,
+    robots: usize,
+    dir: &std::path::Path,
+) -> anyhow::Result<FleetProcess> {
+    FleetProcess::start(FleetSpec {
+        gateway,
+        token_file,
+        namespace: ns,
+        robots,
+        state_root: &dir.join("robots"),
+        health_command: "true",
+        report_every: "5",
+        rust_log: "warn",
+        extra: &[],
+    })
+}
+
 /// Robots of `ns` in `phase`.
 async fn count_phase(api: &Api<Robot>, phase: RobotPhase) -> usize {
     api.list(&ListParams::default())
@@ -74,17 +96,7 @@ async fn fleet_coming_online_costs_one_write_per_robot() -> anyhow::Result<()> {
 
     // Enroll the fleet, then crash it: every robot is Offline.
     let url = gateway_url(&op);
-    let mut fleet = FleetProcess::start(FleetSpec {
-        gateway: &url,
-        token_file: &token_file,
-        namespace: &ns,
-        robots: ROBOTS,
-        state_root: &dir.path().join("robots"),
-        health_command: "true",
-        report_every: "5",
-        rust_log: "warn",
-        extra: &[],
-    })?;
+    let mut fleet = start_fleet(&url, &token_file, &ns, ROBOTS, dir.path())?;
     wait_online(&client, &ns, ROBOTS, Duration::from_secs(120)).await?;
     fleet.kill();
     wait_for("every robot Offline", Duration::from_secs(60), || async {
@@ -180,17 +192,7 @@ async fn enrollment_beyond_admission_is_told_when_to_retry() -> anyhow::Result<(
     let since = r.status.and_then(|s| s.connected_since);
 
     // The crowd: more enrollments at once than the burst admits.
-    let _fleet = FleetProcess::start(FleetSpec {
-        gateway: &url,
-        token_file: &token_file,
-        namespace: &ns,
-        robots: ENROLLING,
-        state_root: &dir.path().join("robots"),
-        health_command: "true",
-        report_every: "5",
-        rust_log: "warn",
-        extra: &[],
-    })?;
+    let _fleet = start_fleet(&url, &token_file, &ns, ENROLLING, dir.path())?;
     wait_for("a refused enrollment", Duration::from_secs(30), || async {
         let refused = op.metric(THROTTLED).await.unwrap_or(0.0);
         (refused >= 1.0).then_some(())
@@ -261,17 +263,7 @@ async fn late_status_writes_turn_no_connected_robot_offline() -> anyhow::Result<
     let dir = tempfile::tempdir()?;
     let token_file = dir.path().join("enroll-token");
     enrollment_token_file(&client, &ns, &token_file).await?;
-    let mut fleet = FleetProcess::start(FleetSpec {
-        gateway: &gateway_url(&op),
-        token_file: &token_file,
-        namespace: &ns,
-        robots: LATE,
-        state_root: &dir.path().join("robots"),
-        health_command: "true",
-        report_every: "5",
-        rust_log: "warn",
-        extra: &[],
-    })?;
+    let mut fleet = start_fleet(&gateway_url(&op), &token_file, &ns, LATE, dir.path())?;
     wait_online(&client, &ns, LATE, Duration::from_secs(120)).await?;
 
     // For 30 s: every robot stays Online, while recorded heartbeats age past the grace.
