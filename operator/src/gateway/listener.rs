@@ -21,11 +21,11 @@ use prometheus_client::metrics::family::Family;
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
-use tokio_rustls::TlsAcceptor;
 use tokio_util::sync::CancellationToken;
 use tower::ServiceExt;
 use tracing::{debug, warn};
 
+use super::tls::Acceptor;
 use crate::metrics::KindLabels;
 
 /// How the gateway treats connections before they are authenticated.
@@ -127,7 +127,7 @@ pub async fn authenticated_on_success(request: Request, next: Next) -> Response 
 /// What every connection task shares.
 struct Serving {
     app: Router,
-    tls: Option<TlsAcceptor>,
+    tls: Option<Acceptor>,
     http: http1::Builder,
     limits: ConnLimits,
     dropped: Family<KindLabels, Counter>,
@@ -147,7 +147,7 @@ impl Serving {
 pub async fn serve(
     listener: TcpListener,
     app: Router,
-    tls: Option<TlsAcceptor>,
+    tls: Option<Acceptor>,
     limits: ConnLimits,
     dropped: Family<KindLabels, Counter>,
     cancel: CancellationToken,

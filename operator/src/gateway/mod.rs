@@ -27,6 +27,7 @@ pub mod rate;
 pub mod registry;
 pub mod server;
 pub mod session;
+pub mod tls;
 pub mod tokens;
 
 pub use self::server::run;

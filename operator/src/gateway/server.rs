@@ -2,7 +2,6 @@
 //! shared state, starts the background tasks, serves plain HTTP or TLS until cancelled, and
 //! drains the status writer before it returns.
 
-use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
@@ -373,7 +372,7 @@ async fn serve(
     let addr = config.gateway_addr;
     let tls = match (&config.tls_cert, &config.tls_key) {
         (Some(cert), Some(key)) => Some(
-            tls_acceptor(cert, key)
+            super::tls::Acceptor::from_pem_files(cert, key)
                 .await
                 .map_err(|source| Error::Serve { addr, source })?,
         ),
@@ -392,16 +391,6 @@ async fn serve(
         unauthenticated: config.max_unauthenticated_connections.max(1),
     };
     Ok(listener::serve(listener, app, tls, limits, dropped, cancel.clone()).await)
-}
-
-/// The TLS acceptor for the PEM certificate chain and key; HTTP/1.1 only (agents speak
-/// WebSocket over HTTP/1.1; the gateway serves no HTTP/2).
-async fn tls_acceptor(cert: &Path, key: &Path) -> std::io::Result<tokio_rustls::TlsAcceptor> {
-    let _ = rustls::crypto::ring::default_provider().install_default();
-    let pem = axum_server::tls_rustls::RustlsConfig::from_pem_file(cert, key).await?;
-    let mut server = (*pem.get_inner()).clone();
-    server.alpn_protocols = vec![b"http/1.1".to_vec()];
-    Ok(tokio_rustls::TlsAcceptor::from(Arc::new(server)))
 }
 
 /// Lets the status writer flush the sessions' disconnects (bounded) before the process goes,
