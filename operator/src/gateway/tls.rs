@@ -9,6 +9,7 @@
 
 use std::future::poll_fn;
 use std::io;
+use std::mem::MaybeUninit;
 use std::path::Path;
 use std::pin::Pin;
 use std::sync::Arc;
@@ -248,8 +249,8 @@ impl TlsStream {
         }
     }
 
-    /// Waits until the socket is readable and appends what it has (at most one record's worth)
-    /// to the received bytes; at end of file, sets `eof`.
+    /// Waits until the socket is readable and appends what it has (at most one record's worth,
+    /// read through the stack) to the received bytes; at end of file, sets `eof`.
     fn poll_fill(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         let room = MAX_INCOMING.saturating_sub(self.incoming.len());
         if room == 0 {
@@ -258,23 +259,14 @@ impl TlsStream {
                 "a TLS message larger than this server accepts",
             )));
         }
-        loop {
-            ready!(self.io.poll_read_ready(cx))?;
-            let mut chunk = [0u8; READ_CHUNK];
-            let limit = room.min(READ_CHUNK);
-            match self.io.try_read(&mut chunk[..limit]) {
-                Ok(0) => {
-                    self.eof = true;
-                    return Poll::Ready(Ok(()));
-                }
-                Ok(n) => {
-                    self.incoming.extend_from_slice(&chunk[..n]);
-                    return Poll::Ready(Ok(()));
-                }
-                Err(e) if e.kind() == io::ErrorKind::WouldBlock => continue,
-                Err(e) => return Poll::Ready(Err(e)),
-            }
+        let mut chunk = [MaybeUninit::<u8>::uninit(); READ_CHUNK];
+        let mut read = ReadBuf::uninit(&mut chunk[..room.min(READ_CHUNK)]);
+        ready!(Pin::new(&mut self.io).poll_read(cx, &mut read))?;
+        match read.filled() {
+            [] => self.eof = true,
+            bytes => self.incoming.extend_from_slice(bytes),
         }
+        Poll::Ready(Ok(()))
     }
 
     /// Writes the encrypted bytes waiting, freeing their buffer once the socket took them all.
