@@ -581,6 +581,52 @@ async fn migration_keeps_old_rows_with_a_clamped_receive_time(db: Db) -> Result<
     Ok(())
 }
 
+/// Many sessions ending at once (a fleet leaving a gateway): their connection records are
+/// closed in far fewer statements than sessions, each with its own time and reason, more than
+/// one statement's worth included; a later close of a closed record changes nothing.
+async fn many_sessions_close_in_batches(db: Db) -> Result<()> {
+    const ROBOTS: usize = 1_200;
+    let store = db.store().await?;
+    let mut ids = Vec::new();
+    for i in 0..ROBOTS {
+        let r = robot(&format!("kiwi-{i}"));
+        ids.push((
+            r.clone(),
+            store.record_connect(&r, &connection(1_000)).await?,
+        ));
+    }
+    let before = store.close_statements().expect("closes are batched");
+    let close_all = |at: i64, reason: &'static str| {
+        let mut tasks = tokio::task::JoinSet::new();
+        for (i, (_, id)) in ids.iter().enumerate() {
+            let (store, id) = (store.clone(), *id);
+            tasks.spawn(async move { store.record_disconnect(id, at + i as i64, reason).await });
+        }
+        tasks
+    };
+    let mut tasks = close_all(2_000, "closed");
+    while let Some(joined) = tasks.join_next().await {
+        joined??;
+    }
+    let statements = store.close_statements().expect("closes are batched") - before;
+    println!("{ROBOTS} connection closes in {statements} statements");
+    ensure!(
+        (statements as usize) < ROBOTS / 4,
+        "{statements} statements for {ROBOTS} closes"
+    );
+    let mut tasks = close_all(9_000, "late");
+    while let Some(joined) = tasks.join_next().await {
+        joined??;
+    }
+    for (i, (r, _)) in ids.iter().enumerate() {
+        let conns = store.connections(r, 10).await?;
+        assert_eq!(conns.len(), 1, "{r:?}");
+        assert_eq!(conns[0].disconnected_at_ms, Some(2_000 + i as i64), "{r:?}");
+        assert_eq!(conns[0].reason.as_deref(), Some("closed"), "{r:?}");
+    }
+    Ok(())
+}
+
 /// Runs each check once per backend, as `sqlite::name` and `postgres::name`.
 macro_rules! on_both_backends {
     ($($name:ident),* $(,)?) => {
@@ -612,5 +658,6 @@ on_both_backends!(
     migration_keeps_old_rows_with_a_clamped_receive_time,
     concurrent_inserts_store_one_row,
     many_sessions_insert_in_batches,
+    many_sessions_close_in_batches,
     data_survives_reconnects_and_restarts,
 );

@@ -40,10 +40,14 @@ pub(super) struct Pending {
     reply: oneshot::Sender<Result<bool>>,
 }
 
-/// Hands events to the flushers; counts their multi-row statements.
+/// Hands events to the flushers (counting their multi-row statements), and connection closes to
+/// theirs.
 #[derive(Clone)]
 pub(super) struct Batcher {
     tx: mpsc::Sender<Pending>,
+    /// Connection records to close (see [`super::closes`]).
+    pub(super) closes: mpsc::Sender<super::closes::Close>,
+    pub(super) close_statements: Arc<AtomicU64>,
     statements: Arc<AtomicU64>,
 }
 
@@ -73,7 +77,19 @@ impl Store {
                 statements.clone(),
             ));
         }
-        self.batcher = Some(Batcher { tx, statements });
+        let (closes, closes_rx) = mpsc::channel(super::closes::QUEUE);
+        let close_statements = Arc::new(AtomicU64::new(0));
+        tokio::spawn(super::closes::close_loop(
+            unbatched,
+            closes_rx,
+            close_statements.clone(),
+        ));
+        self.batcher = Some(Batcher {
+            tx,
+            closes,
+            close_statements,
+            statements,
+        });
         self
     }
 

@@ -140,6 +140,7 @@ macro_rules! with_pool {
 // Declared after `with_pool!`, which they use: a `macro_rules!` macro is in scope only below
 // its definition.
 mod batch;
+mod closes;
 mod connect;
 mod history;
 mod quota;

@@ -287,9 +287,19 @@ impl Store {
         })
     }
 
-    /// Marks connection `id` closed at `at_ms`. A connection already closed keeps its first
-    /// time and reason; an unknown id changes nothing.
+    /// Marks connection `id` closed at `at_ms` (batched with other sessions' closes). A
+    /// connection already closed keeps its first time and reason; an unknown id changes nothing.
     pub async fn record_disconnect(&self, id: i64, at_ms: i64, reason: &str) -> Result<()> {
+        self.close_connection(id, at_ms, reason).await
+    }
+
+    /// [`Store::record_disconnect`] in a statement of its own.
+    pub(super) async fn close_connection_row(
+        &self,
+        id: i64,
+        at_ms: i64,
+        reason: &str,
+    ) -> Result<()> {
         with_pool!(self, pool => {
             sqlx::query(CLOSE_CONNECTION)
                 .bind(id)
