@@ -24,7 +24,7 @@ export LEKIWI_IMAGE_ARM64_PROFILE="${LEKIWI_IMAGE_ARM64_PROFILE:-image-check}"
 log "building the operator image (arm64: profile $LEKIWI_IMAGE_ARM64_PROFILE)"
 bash scripts/image.sh >/dev/null
 # The tests' own control plane, apart from the quickstart's (whose operator watches everything).
-export LEKIWI_CP_DIR="${LEKIWI_CP_DIR:-$HOME/.cache/lekiwi/test-control-plane}"
+export LEKIWI_CP_DIR="${LEKIWI_CP_DIR:-${LEKIWI_CACHE:-$HOME/.cache/lekiwi}/test-control-plane}"
 log "starting the shared control plane ($LEKIWI_CP_DIR)"
 bash scripts/control-plane.sh up
 eval "$(bash scripts/control-plane.sh env)"

@@ -28,12 +28,9 @@ impl ControlPlane {
         SHARED.get_or_init(|| {
             let dir = std::env::var("LEKIWI_CP_DIR")
                 .map(PathBuf::from)
-                .unwrap_or_else(|_| {
-                    let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
-                    // Not the quickstart's control plane: an operator left running there watches
-                    // every namespace and would fight the tests' own operators.
-                    PathBuf::from(home).join(".cache/lekiwi/test-control-plane")
-                });
+                // Not the quickstart's control plane: an operator left running there watches
+                // every namespace and would fight the tests' own operators.
+                .unwrap_or_else(|_| crate::cache_dir().join("test-control-plane"));
             let cp = ControlPlane { dir, private: None };
             cp.prune_kubectl_caches();
             cp.up().expect("start the shared control plane");

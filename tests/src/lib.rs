@@ -55,11 +55,16 @@ pub fn repo_root() -> PathBuf {
         .expect("repo root")
 }
 
-/// kubectl and helm as installed by `scripts/setup.sh`.
-pub fn tool(name: &str) -> PathBuf {
+/// The cache `scripts/setup.sh` fills: `$LEKIWI_CACHE`, by default `~/.cache/lekiwi`.
+pub fn cache_dir() -> PathBuf {
     let home = std::env::var("HOME").unwrap_or_else(|_| "/root".into());
     let cache = std::env::var("LEKIWI_CACHE").unwrap_or_else(|_| format!("{home}/.cache/lekiwi"));
-    PathBuf::from(cache).join("bin").join(name)
+    PathBuf::from(cache)
+}
+
+/// kubectl and helm as installed by `scripts/setup.sh`.
+pub fn tool(name: &str) -> PathBuf {
+    cache_dir().join("bin").join(name)
 }
 
 /// Path of one of our binaries, built once per test process.
