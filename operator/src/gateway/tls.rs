@@ -94,8 +94,8 @@ pub struct TlsStream {
     close_sent: bool,
     /// The socket gave end of file.
     eof: bool,
-    /// rustls refused what the peer sent: every later read or write fails at once (stepping
-    /// again would meet the same bytes).
+    /// A step failed (rustls refused what the peer sent, say): every later read or write fails
+    /// at once (stepping again would meet the same bytes).
     broken: bool,
     /// The task waiting to read, woken when a write decrypts data it had not seen.
     read_waker: Option<Waker>,
@@ -128,7 +128,7 @@ impl TlsStream {
         self.incoming.capacity() + self.plaintext.capacity() + self.outgoing.capacity()
     }
 
-    /// One step of the state machine over the received bytes held.
+    /// One step of the state machine over the received bytes held; after a failure, none.
     fn step(&mut self, want: Want<'_>) -> io::Result<Step> {
         if self.broken {
             return Err(io::Error::new(
@@ -136,6 +136,14 @@ impl TlsStream {
                 "the TLS connection failed earlier",
             ));
         }
+        let step = self.step_once(want);
+        self.broken = step.is_err();
+        step
+    }
+
+    /// Hands rustls the received bytes, does what the state it returns asks, and discards the
+    /// bytes it consumed (freeing the buffer when it empties).
+    fn step_once(&mut self, want: Want<'_>) -> io::Result<Step> {
         let Self {
             conn,
             incoming,
@@ -198,7 +206,6 @@ impl TlsStream {
     /// the socket takes it now (the connection is dropped either way). The state machine is not
     /// stepped past what is queued: it would meet the same bad bytes again.
     fn fail(&mut self, error: rustls::Error) -> io::Error {
-        self.broken = true;
         while self.conn.wants_write() {
             let status = self.conn.process_tls_records(&mut self.incoming);
             match status.state {
