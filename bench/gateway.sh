@@ -166,16 +166,7 @@ fact gateway_flags "${GATEWAY_FLAGS[*]} --store-url sqlite://\$WORK/events.db (W
 GW_SCHEME=ws
 SIM_TLS=()
 if [ $TLS = 1 ]; then
-  # A CA of the run's own and a certificate for 127.0.0.1 signed by it (ECDSA P-256, as a
-  # cert-manager default would issue).
-  (cd "$WORK" \
-    && openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 1 \
-         -subj /CN=lekiwi-bench-ca -keyout ca.key -out ca.crt \
-    && openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj /CN=lekiwi-gateway \
-         -keyout tls.key -out tls.csr \
-    && printf 'subjectAltName=IP:127.0.0.1\n' >ext \
-    && openssl x509 -req -in tls.csr -CA ca.crt -CAkey ca.key -CAcreateserial -days 1 \
-         -extfile ext -out tls.crt) >"$WORK/openssl.log" 2>&1 || die "openssl failed: $(tail -3 "$WORK/openssl.log")"
+  make_tls "$WORK"
   GATEWAY_FLAGS+=(--tls-cert "$WORK/tls.crt" --tls-key "$WORK/tls.key")
   GW_SCHEME=wss
   SIM_TLS=(--ca-file "$WORK/ca.crt")

@@ -179,6 +179,19 @@ cpu_report() {
 # ---- the cluster ----------------------------------------------------------------------------
 # A private control plane in $CP_DIR (taken down by cleanup) with our CRDs established; exports
 # its environment (KUBECONFIG, PATH) and reads its ports (APISERVER_PORT, ...).
+# make_tls DIR: a CA of the run's own (DIR/ca.crt) and a certificate for 127.0.0.1 it signed
+# (DIR/tls.crt, DIR/tls.key), ECDSA P-256 as a cert-manager default would issue.
+make_tls() {
+  (cd "$1" \
+    && openssl req -x509 -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -days 1 \
+         -subj /CN=lekiwi-bench-ca -keyout ca.key -out ca.crt \
+    && openssl req -newkey ec -pkeyopt ec_paramgen_curve:P-256 -nodes -subj /CN=lekiwi-gateway \
+         -keyout tls.key -out tls.csr \
+    && printf 'subjectAltName=IP:127.0.0.1\n' >ext \
+    && openssl x509 -req -in tls.csr -CA ca.crt -CAkey ca.key -CAcreateserial -days 1 \
+         -extfile ext -out tls.crt) >"$1/openssl.log" 2>&1 || die "openssl failed: $(tail -3 "$1/openssl.log")"
+}
+
 start_control_plane() {
   log "starting a private control plane in $CP_DIR"
   export LEKIWI_CP_DIR="$CP_DIR"

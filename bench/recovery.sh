@@ -40,6 +40,8 @@
 #!   --settle S             steady state before the kill, seconds (default 30)
 #!   --recovery-timeout S   give up waiting for recovery after S seconds (default 180)
 #!   --after-restart S      observation window after the killed gateway restarts (default 60)
+#!   --tls                  the gateways serve wss:// (a CA and certificate made here with openssl;
+#!                          HAProxy passes TLS through, as a TCP Service does)
 #!   --no-build             use the binaries already in target/release
 #!   --bin DIR              use the binaries in DIR instead (implies --no-build; e.g. a quick
 #!                          check of the script itself with debug builds and --robots 200)
@@ -71,6 +73,7 @@ RECOVERY_TIMEOUT=180
 AFTER_RESTART=60
 BUILD=1
 KEEP=0
+TLS=0
 COMMAND="bash bench/recovery.sh $*"
 
 # shellcheck source=bench/lib.sh
@@ -92,6 +95,7 @@ while [ $# -gt 0 ]; do
     --settle) positive_int "$1" "${2:-}"; SETTLE="$2"; shift 2 ;;
     --recovery-timeout) positive_int "$1" "${2:-}"; RECOVERY_TIMEOUT="$2"; shift 2 ;;
     --after-restart) positive_int "$1" "${2:-}"; AFTER_RESTART="$2"; shift 2 ;;
+    --tls) TLS=1; shift ;;
     --no-build) BUILD=0; shift ;;
     --bin) [ -d "${2:-}" ] || die "--bin needs a directory"; BIN="$(cd "$2" && pwd)"; BUILD=0; shift 2 ;;
     --keep) KEEP=1; shift ;;
@@ -178,7 +182,18 @@ TOKEN_HASH="$(printf %s "$TOKEN" | sha256sum | cut -d' ' -f1)"
 CTRL_HTTP="$(free_port)"
 LB_PORTS=()
 for _ in $(seq 1 "$LB_COUNT"); do LB_PORTS+=("$(free_port)"); done
-LB_URLS="$(printf 'ws://127.0.0.1:%s/v1/agent,' "${LB_PORTS[@]}")"
+# --tls: every gateway serves wss:// with one certificate; every simulator trusts its CA.
+SCHEME=ws
+TLS_FLAGS=()
+SIM_TLS=()
+if [ "$TLS" = 1 ]; then
+  make_tls "$WORK"
+  SCHEME=wss
+  TLS_FLAGS=(--tls-cert "$WORK/tls.crt" --tls-key "$WORK/tls.key")
+  SIM_TLS=(--ca-file "$WORK/ca.crt")
+fi
+fact transport "$([ "$TLS" = 1 ] && echo "wss:// to the gateways (rustls, ECDSA P-256), passed through by HAProxy" || echo "plain ws:// on loopback")"
+LB_URLS="$(printf "$SCHEME://127.0.0.1:%s/v1/agent," "${LB_PORTS[@]}")"
 LB_URLS="${LB_URLS%,}"
 declare -A GW_PORT GW_HTTP GW_PID
 for g in gw-a gw-b; do GW_PORT[$g]="$(free_port)"; GW_HTTP[$g]="$(free_port)"; done
@@ -195,7 +210,7 @@ start_gateway() {
     --identity "$g" --gateway-name "$g" \
     --gateway-addr "127.0.0.1:${GW_PORT[$g]}" --http-addr "127.0.0.1:${GW_HTTP[$g]}" \
     --store-url "$STORE_URL" --max-unauthenticated-per-address 0 \
-    --heartbeat-interval-seconds "$INTERVAL" ${LEKIWI_BENCH_GATEWAY_ARGS:-} >>"$WORK/$g.log" 2>&1 8>&- </dev/null &
+    --heartbeat-interval-seconds "$INTERVAL" "${TLS_FLAGS[@]}" ${LEKIWI_BENCH_GATEWAY_ARGS:-} >>"$WORK/$g.log" 2>&1 8>&- </dev/null &
   GW_PID[$g]=$!
   PIDS+=("${GW_PID[$g]}")
 }
@@ -264,7 +279,7 @@ provisioned_fleet() { # count
   sleep 5
   start_watch "$1"
   log "starting $1 simulated robots through $LB_COUNT HAProxy instance(s) ($EPM events/min each)"
-  start sim "$BIN/lekiwi-sim" --gateway "$LB_URLS" \
+  start sim "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN" --namespace bench \
     --robots "$1" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
     --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json"
@@ -376,7 +391,7 @@ scenario_first_boot() {
   t0="$(now)"
   fact boot_time "$t0"
   log "first boot: $ROBOTS new robots enroll at once"
-  start sim-new "$BIN/lekiwi-sim" --gateway "$LB_URLS" \
+  start sim-new "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN_ENROLL" --namespace bench --prefix new --robots "$ROBOTS" \
     --heartbeat-interval "$INTERVAL" --connect-rate 1000000 --connect-timeout 300 \
     --token-file "$WORK/new-tokens.json" --report-every 10 --json "$WORK/sim-new.json"
@@ -424,7 +439,7 @@ window_watch() {
 
 scenario_steady() {
   local size have=0 part=0 t0 gw_urls g chunk left n
-  gw_urls="ws://127.0.0.1:${GW_PORT[gw-a]}/v1/agent,ws://127.0.0.1:${GW_PORT[gw-b]}/v1/agent"
+  gw_urls="$SCHEME://127.0.0.1:${GW_PORT[gw-a]}/v1/agent,$SCHEME://127.0.0.1:${GW_PORT[gw-b]}/v1/agent"
   sleep 2
   for g in gw-a gw-b; do fact "rss_base_$g" "$(rss_kib "${GW_PID[$g]}")"; done
   fact steady_sizes "$STEADY_SIZES"
@@ -438,7 +453,7 @@ scenario_steady() {
       n=$((left < SIM_CHUNK ? left : SIM_CHUNK))
       chunk=$((chunk + 1))
       provision_robots bench "$n" "$TOKEN_HASH" "s$part-$chunk"
-      start "sim-$part-$chunk" "$BIN/lekiwi-sim" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
+      start "sim-$part-$chunk" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
         --namespace bench --prefix "s$part-$chunk" --robots "$n" \
         --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
     done

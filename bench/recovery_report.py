@@ -107,6 +107,7 @@ def header(f, what):
     print()
     print(f"- source: {f.get('source', '?')}; command: `{f.get('command', '?')}`")
     print(f"- host: {f.get('host', '?')}")
+    print(f"- transport: {f.get('transport', 'plain ws:// on loopback')}")
 
 
 def report_first_boot(work, f):
