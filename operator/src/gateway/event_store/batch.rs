@@ -204,19 +204,8 @@ async fn flush_loop(
     statements: Arc<AtomicU64>,
 ) {
     loop {
-        let batch = {
-            let mut rx = rx.lock().await;
-            let Some(first) = rx.recv().await else {
-                return;
-            };
-            let mut batch = vec![first];
-            while batch.len() < EVENTS_PER_STATEMENT {
-                match rx.try_recv() {
-                    Ok(p) => batch.push(p),
-                    Err(_) => break,
-                }
-            }
-            batch
+        let Some(batch) = next_batch(&mut *rx.lock().await, EVENTS_PER_STATEMENT).await else {
+            return;
         };
         let rows = batch.len() as u64;
         store.flush(batch).await;
@@ -225,4 +214,17 @@ async fn flush_loop(
             Ordering::Relaxed,
         );
     }
+}
+
+/// Waits for one item, then takes whatever else waits already, up to `max` in all; `None` once
+/// every sender is gone.
+pub(super) async fn next_batch<T>(rx: &mut mpsc::Receiver<T>, max: usize) -> Option<Vec<T>> {
+    let mut batch = vec![rx.recv().await?];
+    while batch.len() < max {
+        match rx.try_recv() {
+            Ok(item) => batch.push(item),
+            Err(_) => break,
+        }
+    }
+    Some(batch)
 }

@@ -116,14 +116,7 @@ pub(super) async fn close_loop(
     mut rx: mpsc::Receiver<Close>,
     statements: Arc<AtomicU64>,
 ) {
-    while let Some(first) = rx.recv().await {
-        let mut batch = vec![first];
-        while batch.len() < CLOSES_PER_STATEMENT {
-            match rx.try_recv() {
-                Ok(c) => batch.push(c),
-                Err(_) => break,
-            }
-        }
+    while let Some(batch) = super::batch::next_batch(&mut rx, CLOSES_PER_STATEMENT).await {
         store.flush_closes(batch, &statements).await;
     }
 }
