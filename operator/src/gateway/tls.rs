@@ -27,7 +27,7 @@ use records::{append, take_records, write_traffic};
 const MAX_RECORD: usize = 5 + 16_384 + 2_048;
 /// The most received bytes a connection holds unprocessed: one handshake message may span
 /// records up to 64 KiB (rustls's own bound), and one more record may follow it.
-pub const MAX_INCOMING: usize = 0xffff + MAX_RECORD;
+const MAX_INCOMING: usize = 0xffff + MAX_RECORD;
 /// Bytes read from the socket at once: one whole record of the largest size.
 const READ_CHUNK: usize = MAX_RECORD;
 /// Application bytes encrypted into one record.
@@ -123,8 +123,9 @@ enum Step {
 }
 
 impl TlsStream {
-    /// The bytes this connection holds in its own buffers (for tests and accounting).
-    pub fn buffered_capacity(&self) -> usize {
+    /// The bytes this connection holds in its own buffers.
+    #[cfg(test)]
+    fn buffered_capacity(&self) -> usize {
         self.incoming.capacity() + self.plaintext.capacity() + self.outgoing.capacity()
     }
 
