@@ -627,6 +627,98 @@ async fn many_sessions_close_in_batches(db: Db) -> Result<()> {
     Ok(())
 }
 
+/// Many sessions opening at once (a fleet arriving at a gateway): their connection records and
+/// last-seq reads take far fewer statements than sessions, two sessions of one robot included;
+/// each session gets an id of its own record (its close lands on the row it opened) and its
+/// robot's last seq, whether events, telemetry or nothing was stored.
+async fn many_sessions_open_in_batches(db: Db) -> Result<()> {
+    const ROBOTS: usize = 600;
+    let store = db.store().await?;
+    let robots: Vec<RobotKey> = (0..ROBOTS).map(|i| robot(&format!("kiwi-{i}"))).collect();
+    let mut expected = Vec::new();
+    for (i, r) in robots.iter().enumerate() {
+        expected.push(match i % 3 {
+            0 => {
+                store.insert_event(r, &event(i as u64, 1_000)).await?;
+                Some(i as u64)
+            }
+            1 => {
+                let samples = [sample("cpu_percent", 1_000, 1.0)];
+                store.insert_telemetry(r, i as u64 + 5, &samples).await?;
+                Some(i as u64 + 5)
+            }
+            _ => None,
+        });
+    }
+    // Two sessions per robot; for even robots the two records are equal in every column.
+    let session = |i: usize, second: bool| {
+        let mut rec = connection(1_000 + i as i64);
+        if second && i % 2 == 1 {
+            rec.address = Some(format!("10.0.1.{}:40112", i % 250));
+        }
+        rec
+    };
+    let before = store.open_statements().expect("opens are batched");
+    let barrier = Arc::new(Barrier::new(2 * ROBOTS));
+    let mut tasks = tokio::task::JoinSet::new();
+    for (i, r) in robots.iter().enumerate() {
+        for second in [false, true] {
+            let (store, r, rec, barrier) = (
+                store.clone(),
+                r.clone(),
+                session(i, second),
+                barrier.clone(),
+            );
+            tasks.spawn(async move {
+                barrier.wait().await;
+                let start = store.open_session(&r, &rec).await;
+                anyhow::Ok((i, rec, start.record_id?, start.last_seq?))
+            });
+        }
+    }
+    let mut opened = Vec::new();
+    while let Some(joined) = tasks.join_next().await {
+        opened.push(joined??);
+    }
+    let statements = store.open_statements().expect("opens are batched") - before;
+    println!("{} session opens in {statements} statements", 2 * ROBOTS);
+    ensure!(
+        (statements as usize) < ROBOTS / 2,
+        "{statements} statements for {} session opens",
+        2 * ROBOTS
+    );
+    let mut ids: Vec<i64> = opened.iter().map(|(_, _, id, _)| *id).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(
+        ids.len(),
+        2 * ROBOTS,
+        "every session has a record of its own"
+    );
+    // Each session closes its record with a reason naming its robot, address and time: a
+    // record whose reason names another was closed through another session's id.
+    let said = |r: &RobotKey, address: &Option<String>, at: i64| format!("{r} {address:?} {at}");
+    for (i, rec, id, last_seq) in &opened {
+        assert_eq!(*last_seq, expected[*i], "{:?}", robots[*i]);
+        let reason = said(&robots[*i], &rec.address, rec.connected_at_ms);
+        store.record_disconnect(*id, 5_000, &reason).await?;
+    }
+    for (i, r) in robots.iter().enumerate() {
+        let conns = store.connections(r, 10).await?;
+        assert_eq!(conns.len(), 2, "{r:?}");
+        for c in &conns {
+            assert_eq!(c.connected_at_ms, 1_000 + i as i64, "{r:?}");
+            let own = said(r, &c.address, c.connected_at_ms);
+            assert_eq!(
+                c.reason.as_ref(),
+                Some(&own),
+                "closed through another session's id"
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Runs each check once per backend, as `sqlite::name` and `postgres::name`.
 macro_rules! on_both_backends {
     ($($name:ident),* $(,)?) => {
@@ -659,5 +751,6 @@ on_both_backends!(
     concurrent_inserts_store_one_row,
     many_sessions_insert_in_batches,
     many_sessions_close_in_batches,
+    many_sessions_open_in_batches,
     data_survives_reconnects_and_restarts,
 );

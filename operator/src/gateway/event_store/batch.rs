@@ -40,14 +40,17 @@ pub(super) struct Pending {
     reply: oneshot::Sender<Result<bool>>,
 }
 
-/// Hands events to the flushers (counting their multi-row statements), and connection closes to
-/// theirs.
+/// Hands events to the flushers (counting their multi-row statements), and session opens and
+/// connection closes to theirs.
 #[derive(Clone)]
 pub(super) struct Batcher {
     tx: mpsc::Sender<Pending>,
     /// Connection records to close (see [`super::closes`]).
     pub(super) closes: mpsc::Sender<super::closes::Close>,
     pub(super) close_statements: Arc<AtomicU64>,
+    /// Sessions to open (see [`super::opens`]).
+    pub(super) opens: mpsc::Sender<super::opens::Open>,
+    pub(super) open_statements: Arc<AtomicU64>,
     statements: Arc<AtomicU64>,
 }
 
@@ -80,14 +83,23 @@ impl Store {
         let (closes, closes_rx) = mpsc::channel(super::closes::QUEUE);
         let close_statements = Arc::new(AtomicU64::new(0));
         tokio::spawn(super::closes::close_loop(
-            unbatched,
+            unbatched.clone(),
             closes_rx,
             close_statements.clone(),
+        ));
+        let (opens, opens_rx) = mpsc::channel(super::opens::QUEUE);
+        let open_statements = Arc::new(AtomicU64::new(0));
+        tokio::spawn(super::opens::open_loop(
+            unbatched,
+            opens_rx,
+            open_statements.clone(),
         ));
         self.batcher = Some(Batcher {
             tx,
             closes,
             close_statements,
+            opens,
+            open_statements,
             statements,
         });
         self

@@ -92,7 +92,8 @@ pub struct Store {
     backend: Backend,
     /// Each robot's usage against the quota, shared by clones.
     ledger: Arc<quota::Ledger>,
-    /// Batches event inserts (see [`batch`]); `None` outside a Tokio runtime.
+    /// Batches event inserts, session opens and connection closes (see [`batch`]); `None`
+    /// outside a Tokio runtime.
     batcher: Option<batch::Batcher>,
 }
 
@@ -143,11 +144,13 @@ mod batch;
 mod closes;
 mod connect;
 mod history;
+mod opens;
 mod quota;
 mod records;
 mod retention;
 
 pub use self::history::{PagedSample, SampleCursor, TimeRange};
+pub use self::opens::SessionStart;
 pub use self::quota::{Quota, QuotaLimit};
 
 impl Store {

@@ -252,15 +252,13 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
         disconnected_at_ms: None,
         reason: None,
     };
-    let record_id = match Box::pin(shared.store.record_connect(key, &record)).await {
-        Ok(id) => Some(id),
-        Err(e) => {
-            warn!(error = %e, "cannot record the connection in the event store");
-            None
-        }
-    };
-    let stored_seq = Box::pin(shared.store.last_seq(key))
-        .await
+    let start = Box::pin(shared.store.open_session(key, &record)).await;
+    let record_id = start
+        .record_id
+        .inspect_err(|e| warn!(error = %e, "cannot record the connection in the event store"))
+        .ok();
+    let stored_seq = start
+        .last_seq
         .unwrap_or_else(|e| {
             warn!(error = %e, "cannot read the last stored sequence number");
             None
