@@ -21,10 +21,11 @@
 #!
 #! A third, --scenario steady, is the steady state as the fleet grows: for each size of
 #! --steady-sizes (default 10000,50000) it brings that many robots Online, spread directly over the
-#! two gateways (the simulator's comma-separated --gateway list: one address pair has only ~28,000
+#! gateways (the simulator's comma-separated --gateway list: one address pair has only ~28,000
 #! ephemeral ports), started as simulator processes of at most (open-file limit - 2,000) robots
-#! each; every gateway holds half the fleet, so the open-file limit caps the fleet at about twice
-#! it (20,000 here: 38,000 robots), and over a window of --window seconds measures heartbeat
+#! each; every gateway holds its share of the fleet, so the open-file limit caps the fleet at about
+#! --gateways times it (20,000 here: 38,000 robots on two; 50,000 needs three), and over a window
+#! of --window seconds measures heartbeat
 #! round trip p99 (the robots' own, as they report it), gateway RSS per connection, API-server
 #! writes per second against N/300 (one status refresh per robot per 5 minutes) and the
 #! gateways' CPU.
@@ -33,6 +34,8 @@
 #!   --scenario kill|first-boot|steady  see above (default kill)
 #!   --steady-sizes A,B,... steady: fleet sizes to measure, ascending (default 10000,50000)
 #!   --window S             steady: measurement window per size, seconds (default 60)
+#!   --gateways G           steady: gateway replicas (default 2, at most 26; the other
+#!                          scenarios always run two)
 #!   --incumbents M         first-boot: robots Online before the new fleet comes (default 1000)
 #!   --robots N             simulated robots (default 10000)
 #!   --events-per-minute E  durable events per robot per minute (default 6)
@@ -74,6 +77,7 @@ AFTER_RESTART=60
 BUILD=1
 KEEP=0
 TLS=0
+GATEWAYS=2
 COMMAND="bash bench/recovery.sh $*"
 
 # shellcheck source=bench/lib.sh
@@ -90,6 +94,9 @@ while [ $# -gt 0 ]; do
       [[ "${2:-}" =~ ^[1-9][0-9]*(,[1-9][0-9]*)*$ ]] || die "--steady-sizes is a comma-separated list of counts"
       STEADY_SIZES="$2"; shift 2 ;;
     --window) positive_int "$1" "${2:-}"; WINDOW="$2"; shift 2 ;;
+    --gateways)
+      [[ "${2:-}" =~ ^([2-9]|1[0-9]|2[0-6])$ ]] || die "--gateways is a number from 2 to 26"
+      GATEWAYS="$2"; shift 2 ;;
     --events-per-minute) positive_int "$1" "${2:-}"; EPM="$2"; shift 2 ;;
     --interval) positive_int "$1" "${2:-}"; INTERVAL="$2"; shift 2 ;;
     --settle) positive_int "$1" "${2:-}"; SETTLE="$2"; shift 2 ;;
@@ -114,6 +121,10 @@ trap_cleanup
 take_bench_lock
 
 [ "$SCENARIO" != steady ] || ROBOTS="${STEADY_SIZES##*,}"
+[ "$SCENARIO" = steady ] || [ "$GATEWAYS" = 2 ] || die "--gateways is for --scenario steady (kill and first-boot run two)"
+# The replicas' names: gw-a, gw-b, ...
+GW_NAMES=()
+for ((i = 0; i < GATEWAYS; i++)); do GW_NAMES+=("gw-$(printf "\\$(printf %o $((97 + i)))")"); done
 [ "$SCENARIO" = first-boot ] || INCUMBENTS=0
 # Every robot holds one descriptor in the simulator and one in a gateway; a proxy holds two
 # (client and server side), so the robots are spread over as many HAProxy instances as the
@@ -123,10 +134,11 @@ ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 FDS="$(ulimit -n)"
 if [ "$SCENARIO" = steady ]; then
   # The steady scenario starts its robots as several simulator processes of at most SIM_CHUNK
-  # robots each, straight to the gateways; each gateway holds half of them.
+  # robots each, straight to the gateways; each gateway holds its share of them.
   SIM_CHUNK=$((FDS - 2000))
-  [ "$FDS" -gt $((ROBOTS / 2 + 1000)) ] \
-    || die "open-file limit $FDS is too low for $((ROBOTS / 2)) robots per gateway (raise the hard limit; at most $(( (FDS - 1000) * 2 )) robots fit on two gateways)"
+  PER_GATEWAY=$(( (ROBOTS + GATEWAYS - 1) / GATEWAYS ))
+  [ "$FDS" -gt $((PER_GATEWAY + 1000)) ] \
+    || die "open-file limit $FDS is too low for $PER_GATEWAY robots per gateway (raise the hard limit, or --gateways $(( (ROBOTS + FDS - 1001) / (FDS - 1000) )); at most $(( (FDS - 1000) * GATEWAYS )) robots fit on $GATEWAYS gateways)"
 else
   [ "$FDS" -gt $((ROBOTS + INCUMBENTS + 1000)) ] \
     || die "open-file limit $FDS is too low for $((ROBOTS + INCUMBENTS)) robots (raise the hard limit)"
@@ -150,6 +162,7 @@ fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/
 fact_source
 fact command "${LEKIWI_BENCH_GATEWAY_ARGS:+LEKIWI_BENCH_GATEWAY_ARGS='$LEKIWI_BENCH_GATEWAY_ARGS' }$COMMAND"
 fact robots "$ROBOTS"
+fact gateways "${GW_NAMES[*]}"
 fact scenario "$SCENARIO"
 fact events_per_minute "$EPM"
 fact interval "$INTERVAL"
@@ -196,7 +209,7 @@ fact transport "$([ "$TLS" = 1 ] && echo "wss:// to the gateways (rustls, ECDSA 
 LB_URLS="$(printf "$SCHEME://127.0.0.1:%s/v1/agent," "${LB_PORTS[@]}")"
 LB_URLS="${LB_URLS%,}"
 declare -A GW_PORT GW_HTTP GW_PID
-for g in gw-a gw-b; do GW_PORT[$g]="$(free_port)"; GW_HTTP[$g]="$(free_port)"; done
+for g in "${GW_NAMES[@]}"; do GW_PORT[$g]="$(free_port)"; GW_HTTP[$g]="$(free_port)"; done
 COMMON=(--kubeconfig "$KUBECONFIG" --namespace lekiwi-system --watch-namespace bench)
 start controller env RUST_LOG="${LEKIWI_BENCH_LOG:-warn}" "$BIN/lekiwi-operator" --role controller "${COMMON[@]}" \
   --identity bench-controller --http-addr "127.0.0.1:$CTRL_HTTP"
@@ -215,7 +228,7 @@ start_gateway() {
   PIDS+=("${GW_PID[$g]}")
 }
 ready() { alive "$1" || die "$2 exited: $(tail -5 "$WORK/$2.log")"; curl -fsS --max-time 2 "$3" >/dev/null 2>&1; }
-for g in gw-a gw-b; do
+for g in "${GW_NAMES[@]}"; do
   start_gateway "$g"
   wait_for "$g" 60 ready "${GW_PID[$g]}" "$g" "http://127.0.0.1:${GW_HTTP[$g]}/readyz"
 done
@@ -225,8 +238,12 @@ wait_for "controller leadership" 60 leader
 # HAProxy: layer-4 round robin over the replicas, health-checked like a Service's endpoints
 # (a readiness probe of /readyz every second; two failures take a replica out). With more than
 # one instance (see LB_COUNT), the simulator spreads its robots over them by its URL list; each
-# balances over both gateways, as every node's kube-proxy does for a Service.
+# balances over every gateway, as every node's kube-proxy does for a Service.
 LB_PIDS=()
+SERVERS=""
+for g in "${GW_NAMES[@]}"; do
+  SERVERS+="  server $g 127.0.0.1:${GW_PORT[$g]} check port ${GW_HTTP[$g]} inter 1s fall 2 rise 2"$'\n'
+done
 for i in "${!LB_PORTS[@]}"; do
   cat >"$WORK/haproxy-$i.cfg" <<EOF
 global
@@ -243,8 +260,7 @@ frontend agents
 backend gateways
   balance roundrobin
   option httpchk GET /readyz
-  server gw-a 127.0.0.1:${GW_PORT[gw-a]} check port ${GW_HTTP[gw-a]} inter 1s fall 2 rise 2
-  server gw-b 127.0.0.1:${GW_PORT[gw-b]} check port ${GW_HTTP[gw-b]} inter 1s fall 2 rise 2
+${SERVERS%$'\n'}
 EOF
   start "haproxy-$i" haproxy -db -f "$WORK/haproxy-$i.cfg"
   LB_PIDS+=("$LAST_PID")
@@ -427,7 +443,7 @@ window_watch() {
   while [ $SECONDS -lt $end ]; do
     v="$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')"
     if [ "$v" -ge 0 ] && { [ -z "$fewest" ] || [ "$v" -lt "$fewest" ]; }; then fewest="$v"; fi
-    for g in gw-a gw-b; do
+    for g in "${GW_NAMES[@]}"; do
       v="$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_status_lag_seconds)"
       lag="$(awk -v a="$lag" -v b="${v:-0}" 'BEGIN { print (b > a ? b : a) }')"
     done
@@ -438,10 +454,13 @@ window_watch() {
 }
 
 scenario_steady() {
-  local size have=0 part=0 t0 gw_urls g chunk left n
-  gw_urls="$SCHEME://127.0.0.1:${GW_PORT[gw-a]}/v1/agent,$SCHEME://127.0.0.1:${GW_PORT[gw-b]}/v1/agent"
+  local size have=0 part=0 t0 gw_urls="" g chunk left n gws=() sims=()
+  for g in "${GW_NAMES[@]}"; do
+    gw_urls+="${gw_urls:+,}$SCHEME://127.0.0.1:${GW_PORT[$g]}/v1/agent"
+    gws+=("$g:${GW_PID[$g]}")
+  done
   sleep 2
-  for g in gw-a gw-b; do fact "rss_base_$g" "$(rss_kib "${GW_PID[$g]}")"; done
+  for g in "${GW_NAMES[@]}"; do fact "rss_base_$g" "$(rss_kib "${GW_PID[$g]}")"; done
   fact steady_sizes "$STEADY_SIZES"
   for size in ${STEADY_SIZES//,/ }; do
     [ "$size" -gt "$have" ] || die "--steady-sizes must ascend"
@@ -456,6 +475,7 @@ scenario_steady() {
       start "sim-$part-$chunk" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
         --namespace bench --prefix "s$part-$chunk" --robots "$n" \
         --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
+      sims+=("sim-$part-$chunk:$LAST_PID")
     done
     have=$size
     t0="$(now)"
@@ -465,12 +485,12 @@ scenario_steady() {
     log "  $size Online after $(elapsed "$t0") s; settling 30 s, then a $WINDOW s window"
     sleep 30
     scrape_apiserver "$WORK/apiserver-$size-a.txt"
-    for g in gw-a gw-b; do scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-a.txt"; done
-    cpu_snapshot "gw-a:${GW_PID[gw-a]}" "gw-b:${GW_PID[gw-b]}" "apiserver:$(cat "$CP_DIR/kube-apiserver.pid")"
+    for g in "${GW_NAMES[@]}"; do scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-a.txt"; done
+    cpu_snapshot "${gws[@]}" "apiserver:$(cat "$CP_DIR/kube-apiserver.pid")" "${sims[@]}"
     t0="$(now)"
     window_watch "$size" "$WINDOW"
     scrape_apiserver "$WORK/apiserver-$size-b.txt"
-    for g in gw-a gw-b; do
+    for g in "${GW_NAMES[@]}"; do
       scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-$size-b.txt"
       fact "rss_${size}_$g" "$(rss_kib "${GW_PID[$g]}")"
       fact "connections_${size}_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"

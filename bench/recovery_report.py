@@ -154,32 +154,37 @@ def report_first_boot(work, f):
 def report_steady(work, f):
     """The steady scenario: one row per fleet size."""
     header(f, "steady state as the fleet grows")
-    print(f"- two gateways, robots spread over both by the simulator's URL list; heartbeat every "
-          f"{f.get('interval')} s; status refresh every 300 s (the default)")
+    gateways = f.get("gateways", "gw-a gw-b").split()
+    names = " / ".join(gateways)
+    print(f"- {len(gateways)} gateways, robots spread over them by the simulator's URL list; heartbeat "
+          f"every {f.get('interval')} s; status refresh every 300 s (the default)")
     print()
-    print("| robots | Online after | heartbeat RTT p50 / p99 (goal p99 < 10 ms) | gateway RSS per "
-          "connection gw-a / gw-b (goal ≤ 16 KiB) | API writes/s (N/300) | CPU gw-a / gw-b / apiserver (cores) "
-          "| fewest Online in the window | largest declared status lag |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(f"| robots | Online after | heartbeat RTT p50 / p99 (goal p99 < 10 ms) | gateway RSS per "
+          f"connection {names} (goal ≤ 16 KiB) | API writes/s (N/300) | CPU {names} / apiserver (cores) "
+          "| CPU simulators / machine (cores of 2) | fewest Online in the window | largest declared status lag |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for size in f["steady_sizes"].split(","):
         buckets = {}
-        for g in ("gw-a", "gw-b"):
+        for g in gateways:
             a, b = (parse_metrics(work / f"{g}-{size}-{x}.txt") for x in "ab")
             for bound, n in histogram(a, b, "lekiwi_gateway_heartbeat_rtt_seconds"):
                 buckets[bound] = buckets.get(bound, 0.0) + n
         rtt = sorted(buckets.items())
         per_conn = []
-        for g in ("gw-a", "gw-b"):
+        for g in gateways:
             grown = int(f[f"rss_{size}_{g}"]) - int(f[f"rss_base_{g}"])
             per_conn.append(f"{grown / max(int(f[f'connections_{size}_{g}']), 1):.1f} KiB")
         api_a, api_b = (parse_metrics(work / f"apiserver-{size}-{x}.txt") for x in "ab")
         window = float(f[f"window_{size}_seconds"])
         api_writes = sum(writes(api_a, api_b)[0].values()) / window
-        cpu = " / ".join(f.get(f"cpu_{size}_window_{n}", "?") for n in ("gw-a", "gw-b", "apiserver"))
+        cpu = " / ".join(f.get(f"cpu_{size}_window_{n}", "?") for n in [*gateways, "apiserver"])
+        sims = sum(float(v) for k, v in f.items() if k.startswith(f"cpu_{size}_window_sim-"))
+        machine = f.get(f"cpu_{size}_window_machine", "?")
         p50, p99 = (quantile(rtt, q) for q in (0.5, 0.99))
         rtt_cell = "no heartbeats" if p50 is None else f"{p50 * 1000:.2f} / {p99 * 1000:.2f} ms"
         print(f"| {size} | {f.get(f'steady_{size}_online_seconds')} s | {rtt_cell} | "
               f"{' / '.join(per_conn)} | {api_writes:.1f} ({int(size) / 300:.1f}) | {cpu} | "
+              f"{sims:.2f} / {machine} | "
               f"{f.get(f'steady_{size}_fewest_online', '?')} | "
               f"{f.get(f'steady_{size}_max_status_lag', '?')} s |")
 
