@@ -2,7 +2,9 @@
 //! [`super::api::cache`]: one watch of Robots per gateway), the gateway tells a connected
 //! robot's session when its `spec.release` changes (the session then sends the agent a `deploy`
 //! command, PROTOCOL.md §12) or when another gateway's later session took the robot over (the
-//! session closes, see [`super::holder`]).
+//! session closes, see [`super::holder`]); and presence when another gateway's earlier session
+//! shows up only now in a robot whose session is here (the robot moved here: see
+//! [`super::presence::claims`]).
 
 use std::sync::Arc;
 
@@ -16,6 +18,7 @@ use tracing::{debug, info, warn};
 use super::api::cache::{Cache, Change};
 use super::desired::DesiredReleases;
 use super::holder::Holder;
+use super::presence::Presence;
 use super::registry::Registry;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::RobotKey;
@@ -27,15 +30,21 @@ use crate::gateway::event_store::RobotKey;
 pub async fn start(
     robots: Arc<Cache<Robot>>,
     registry: Arc<Registry>,
-    gateway: String,
-    cancel: CancellationToken,
+    presence: Presence,
+    gateway: &str,
+    cancel: &CancellationToken,
 ) -> Result<(DesiredReleases, tokio::task::JoinHandle<()>)> {
+    let (gateway, cancel) = (gateway.to_owned(), cancel.clone());
     // Subscribed before the first list is awaited, so no change falls between the two.
     let mut changes = robots.subscribe();
     wait_listed(&robots, &cancel).await?;
     let cache = robots.clone();
     let task = tokio::spawn(async move {
-        let dispatch = Dispatch { registry, gateway };
+        let dispatch = Dispatch {
+            registry,
+            presence,
+            gateway,
+        };
         // What the first list held, and everything since then through the changes.
         dispatch.all(&cache);
         loop {
@@ -60,11 +69,12 @@ pub async fn start(
     Ok((DesiredReleases(robots), task))
 }
 
-/// The dispatch task: which sessions to tell, and this gateway's name. It keeps nothing per
+/// The dispatch task: which sessions to tell, the robots' presence, and this gateway's name. It keeps nothing per
 /// robot: each change carries the Robot as it was, so a change of `spec.release` or
 /// `spec.agent` shows by comparing the two.
 struct Dispatch {
     registry: Arc<Registry>,
+    presence: Presence,
     gateway: String,
 }
 
@@ -82,9 +92,12 @@ impl Dispatch {
         let holder = Holder::of(robot);
         if let (Some(epoch), Some(other)) = (holder.epoch, holder.gateway.as_deref())
             && other != self.gateway
-            && self.registry.moved(&key, epoch)
         {
-            info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
+            if self.registry.moved(&key, epoch) {
+                info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
+            } else if self.presence.moved_later(&key, epoch) {
+                debug!(robot = %key, gateway = other, "the robot's status names an earlier session on another gateway; claiming it");
+            }
         }
         let agent = &robot.spec.agent;
         if old.is_none_or(|o| o.spec.agent != *agent) {

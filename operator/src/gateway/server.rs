@@ -11,6 +11,7 @@ use futures::StreamExt;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use kube::runtime::{WatchStreamExt, watcher};
+use lekiwi_crds::Robot;
 use lekiwi_crds::contract::TOKEN_LABEL;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
@@ -21,6 +22,7 @@ use tracing::{info, warn};
 
 use super::admission::EnrollAdmission;
 use super::api::FleetApi;
+use super::api::cache::Cache;
 use super::auth::Authenticator;
 use super::blob_store::BlobStore;
 use super::desired::DesiredReleases;
@@ -113,17 +115,14 @@ pub async fn run(
         &config,
         &cancel,
     );
-    let (desired, dispatch_task) = dispatch::start(
+    let (desired, dispatch_task) = start_dispatch(
+        &config,
         fleet.robots.clone(),
         registry.clone(),
-        name.clone(),
-        cancel.clone(),
+        &presence,
+        &cancel,
     )
     .await?;
-    presence.plan_phases(PhasePlanner::new(
-        desired.clone(),
-        Duration::from_secs(config.heartbeat_grace_seconds),
-    ));
     let shared = Shared {
         presence: presence.clone(),
         store: store.clone(),
@@ -165,6 +164,24 @@ pub async fn run(
     cancel.cancel();
     drain(&presence, tasks).await;
     served.map_err(|source| Error::Serve { addr, source })
+}
+
+/// Starts the dispatch of Robot changes to this gateway's sessions and presence once `robots`
+/// holds the first list, and lets presence plan phases from it: the desired releases (and
+/// holders) of the robots, and the dispatch task.
+async fn start_dispatch(
+    config: &Config,
+    robots: Arc<Cache<Robot>>,
+    registry: Arc<Registry>,
+    presence: &Presence,
+    cancel: &CancellationToken,
+) -> Result<(DesiredReleases, JoinHandle<()>)> {
+    let name = config.gateway_name();
+    let (desired, task) =
+        dispatch::start(robots, registry, presence.clone(), &name, cancel).await?;
+    let grace = Duration::from_secs(config.heartbeat_grace_seconds);
+    presence.plan_phases(PhasePlanner::new(desired.clone(), grace));
+    Ok((desired, task))
 }
 
 /// The gateway's presence: the robots' states and the status writer's limits.

@@ -2,10 +2,15 @@
 //! because their first write here has not landed. The gateway's Lease lists them
 //! ([`lekiwi_crds::contract::CLAIMS_ANNOTATION`]), so the Robot controller does not mark them
 //! `Unknown` when that other gateway's Lease expires (one write per moved robot, not two).
+//!
+//! A session learns at its start, from the gateway's Robot cache, whether its robot moved. The
+//! cache can be behind: the old gateway's last write may land, or reach this gateway's watch,
+//! only after the session here opened (an API server answering seconds late). Such a write,
+//! older than the session, makes the robot claimed then ([`Presence::moved_later`]).
 
 use lekiwi_crds::contract::encode_claims;
 
-use super::Presence;
+use super::{Presence, Priority};
 use crate::gateway::event_store::RobotKey;
 
 impl Presence {
@@ -38,5 +43,29 @@ impl Presence {
     /// Returns once a robot moved here since the last call (or at once if one did meanwhile).
     pub async fn claims_changed(&self) {
         self.claims_changed.notified().await;
+    }
+
+    /// The Robot cache shows `key`'s status naming another gateway with session epoch
+    /// `epoch`: if this gateway's session of the robot is later and not written yet, the robot
+    /// moved here after all. It is claimed and its write goes first, as if the session had
+    /// known at its start. `true` if it was not claimed before.
+    pub fn moved_later(&self, key: &RobotKey, epoch: i64) -> bool {
+        let claimed = self.with_state(|s| {
+            let Some(e) = s.robots.get_mut(key) else {
+                return false;
+            };
+            if !e.connected || e.moved || e.epoch <= epoch || e.written_at.is_some() {
+                return false;
+            }
+            e.moved = true;
+            e.settling = false;
+            s.enqueue(key, Priority::Move);
+            true
+        });
+        if claimed {
+            self.claims_changed.notify_one();
+            self.wake();
+        }
+        claimed
     }
 }

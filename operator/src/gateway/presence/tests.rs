@@ -531,6 +531,36 @@ fn moved_robots_go_first_and_are_claimed_until_written() {
     assert_eq!(p.claims_annotation(), None);
 }
 
+/// A session that opened before the Robot cache showed the old gateway's write (it landed, or
+/// reached this gateway's watch, late) is claimed and goes first once the cache shows it; not
+/// when the other session is the later one, nor once this session's own write landed.
+#[test]
+fn a_move_the_cache_shows_late_is_claimed_then() {
+    let p = presence();
+    p.connect(&key("local"), 1, 1_000, ConnectInfo::default());
+    p.connect(&key("late"), 2, 1_000, ConnectInfo::default());
+    p.connect(&key("written"), 3, 1_000, ConnectInfo::default());
+    assert!(p.claims().is_empty());
+    assert!(
+        !p.moved_later(&key("late"), 2_000),
+        "the other session is later"
+    );
+    assert!(!p.moved_later(&key("absent"), 500), "no session here");
+    let written = p.with_state(|s| s.take_for_write(&key("written")).unwrap());
+    p.written(&key("written"), &written);
+    assert!(
+        !p.moved_later(&key("written"), 500),
+        "its own write landed first"
+    );
+    assert!(p.moved_later(&key("late"), 500));
+    assert!(!p.moved_later(&key("late"), 500), "claimed once");
+    assert_eq!(p.claims(), [key("late")]);
+    p.with_state(|s| {
+        assert_eq!(s.pop(), Some((key("late"), Priority::Move)));
+        assert_eq!(s.pop(), Some((key("local"), Priority::High)));
+    });
+}
+
 /// A change while the robot's write is in flight is written after it, never beside it: two
 /// writes of one robot at once could land in the wrong order and leave the older snapshot (the
 /// race that once left an agent update `Started` after it had `Succeeded`).
