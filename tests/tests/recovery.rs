@@ -4,7 +4,9 @@
 //! are still unwritten when the dead gateway's Lease expires. Its Lease claims them meanwhile
 //! (`fleet.lekiwi.io/claimed-robots`): none shows `Unknown`, each costs about one write; its
 //! moved robots are written before the robots that are simply new to it; a robot that does not
-//! come back still turns `Unknown`.
+//! come back still turns `Unknown`. And a write the dead gateway sent before it died, landing
+//! only after its Lease expired and after the robot's session on the survivor opened, shows the
+//! robot `Unknown` neither.
 //!
 //! On a private control plane with this tree's CRDs (the gateways write `status.sessionEpoch`).
 
@@ -14,6 +16,7 @@ use std::time::{Duration, Instant};
 
 use futures::StreamExt;
 use kube::Api;
+use kube::api::{Patch, PatchParams};
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
 use lekiwi_crds::{Robot, RobotPhase};
@@ -268,5 +271,69 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
     );
     let claimed = f.b.metric("lekiwi_gateway_claimed_robots").await;
     assert_eq!(claimed, Some(0.0), "B claims nothing once all are written");
+    Ok(())
+}
+
+/// A status write of gateway A that lands late (A sent it before it died; the API server applies
+/// it after A's Lease expired and after the robot's session on B opened, so B's Robot cache did
+/// not show the move when the session started): the robot never shows `Unknown`. The controller
+/// holds the `Unknown` back for a write that landed after its gateway's Lease expired, and B
+/// claims the robot once its watch shows the write (the test prints how many of the robots
+/// queued ahead of it B wrote after it).
+#[tokio::test]
+async fn a_late_write_of_a_dead_gateway_turns_no_robot_unknown() -> anyhow::Result<()> {
+    let mut f = Fleet::start().await?;
+    let history = Histories::watch(&f.client, &f.ns);
+    let queued = f.robots("new", FRESH).await?;
+    let late = f.robots("late", 1).await?;
+    let name = late[0].0.clone();
+    f.a.kill();
+    // A's Lease expires.
+    tokio::time::sleep(Duration::from_secs(GATEWAY_LEASE_SECS + 2)).await;
+    // B's slow writer has FRESH robots to write before the late one; the late one's status
+    // names no gateway yet, so its session opens as a robot new to B.
+    let _queued_b = f.connect(&f.b, &queued).await?;
+    let _late_b = f.connect(&f.b, &late).await?;
+    // What A sent before it died: the robot connected through A, with A's earlier epoch.
+    let landed = Instant::now();
+    let robots: Api<lekiwi_crds::Robot> = Api::namespaced(f.client.clone(), &f.ns);
+    let status = serde_json::json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1",
+        "kind": "Robot",
+        "metadata": { "name": name },
+        "status": {
+            "phase": "Online",
+            "connected": true,
+            "gateway": "gw-a",
+            "sessionEpoch": 1,
+            "lastHeartbeatTime": jiff::Timestamp::now().to_string(),
+        },
+    });
+    let apply = PatchParams::apply(lekiwi_crds::contract::managers::GATEWAY).force();
+    robots
+        .patch_status(&name, &apply, &Patch::Apply(&status))
+        .await?;
+    f.all_online_via(&[name.as_str()], "gw-b").await?;
+    let online_b = history
+        .online_via(&name, "gw-b")
+        .expect("seen Online via gw-b");
+    // Room for a late controller write.
+    tokio::time::sleep(Duration::from_secs(2 * GATEWAY_LEASE_SECS)).await;
+    let shown: Vec<_> = history
+        .of(&name)
+        .into_iter()
+        .filter(|(_, _, t)| *t >= landed)
+        .map(|(p, g, _)| (p, g))
+        .collect();
+    println!("{name} showed {shown:?} after the late write");
+    let unknown = shown
+        .iter()
+        .any(|(p, _)| matches!(p, Some(RobotPhase::Unknown | RobotPhase::Offline)));
+    assert!(!unknown, "{name} showed {shown:?}");
+    let queued_after = queued
+        .iter()
+        .filter(|(n, _)| history.online_via(n, "gw-b").is_none_or(|t| t > online_b))
+        .count();
+    println!("{queued_after} of {FRESH} robots queued ahead were written after the late one");
     Ok(())
 }

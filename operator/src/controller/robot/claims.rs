@@ -2,6 +2,11 @@
 //! robots that moved to it and are not written yet in its Lease
 //! ([`lekiwi_crds::contract::CLAIMS_ANNOTATION`]); the Robot controller does not mark those
 //! `Unknown` (the claimant's status write, queued first, follows within seconds).
+//!
+//! A write the dead gateway sent before it died can land after its Lease expired (an API server
+//! answering seconds late). The gateway that holds the robot now claims it once its own watch
+//! shows that write; until then, for at most [`LATE_WRITE_GRACE`], [`late_write_wait`] holds
+//! the `Unknown` back.
 
 use std::collections::{HashMap, HashSet};
 use std::sync::{Arc, Mutex};
@@ -9,10 +14,52 @@ use std::sync::{Arc, Mutex};
 use jiff::Timestamp;
 use k8s_openapi::api::coordination::v1::Lease;
 use kube::ResourceExt;
-use kube::runtime::reflector::Store;
-use lekiwi_crds::contract::{CLAIMS_ANNOTATION, GATEWAY_LEASE_LABEL, parse_claims};
+use kube::runtime::reflector::{ObjectRef, Store};
+use lekiwi_crds::Robot;
+use lekiwi_crds::contract::{CLAIMS_ANNOTATION, GATEWAY_LEASE_LABEL, managers, parse_claims};
 
-use super::gateways::lease_alive;
+use super::gateways::{lease_alive, valid_until};
+
+/// How long after a gateway's status write that landed once its Lease had expired the robot
+/// may still be claimed before it turns `Unknown`: the new gateway's watch, its Lease renewal
+/// and the controller's Lease watch, on an API server that answers late.
+pub const LATE_WRITE_GRACE: std::time::Duration = std::time::Duration::from_secs(30);
+
+/// How long to wait before calling connected robot `robot` `Unknown` because its gateway's
+/// Lease (in `leases`, namespace `namespace`) expired: `Some` while its status was last
+/// written by a gateway after that Lease had expired (a request that outlived its sender),
+/// for at most [`LATE_WRITE_GRACE`] after that write; the gateway now holding the robot claims
+/// it meanwhile. The time of the write is the API server's, from the gateways' entry in the
+/// managed fields.
+pub fn late_write_wait(
+    leases: &Store<Lease>,
+    namespace: &str,
+    robot: &Robot,
+    now: Timestamp,
+) -> Option<std::time::Duration> {
+    let status = robot.status.as_ref()?;
+    if status.connected != Some(true) {
+        return None;
+    }
+    let lease = leases.get(&ObjectRef::new(status.gateway.as_deref()?).within(namespace))?;
+    let expired = valid_until(&lease)?;
+    let written = robot
+        .metadata
+        .managed_fields
+        .iter()
+        .flatten()
+        .filter(|f| f.manager.as_deref() == Some(managers::GATEWAY))
+        // API servers before 1.22 name no subresource.
+        .filter(|f| f.subresource.as_deref().is_none_or(|s| s == "status"))
+        .filter_map(|f| f.time.as_ref().map(|t| t.0))
+        .max()?;
+    if written <= expired {
+        return None;
+    }
+    let until = written.checked_add(LATE_WRITE_GRACE).ok()?;
+    let left = now.duration_until(until);
+    (left.is_positive()).then(|| left.unsigned_abs())
+}
 
 /// The claimed `namespace/name` entries of one Lease version (its resourceVersion).
 type Parsed = (Option<String>, Arc<HashSet<String>>);
@@ -123,5 +170,62 @@ mod tests {
         )));
         assert_eq!(who("kiwi-2"), None);
         assert_eq!(who("kiwi-1").as_deref(), Some("gw-b"));
+    }
+
+    /// A connected robot's status written by its gateway after that gateway's Lease expired
+    /// holds `Unknown` back for at most the grace after the write; a write from before the
+    /// expiry, another manager's, or a disconnected robot's does not.
+    #[test]
+    fn a_write_landing_after_the_lease_expired_waits_for_a_claim() {
+        use k8s_openapi::apimachinery::pkg::apis::meta::v1::{ManagedFieldsEntry, Time};
+        use lekiwi_crds::{RobotSpec, RobotStatus};
+
+        let (store, mut writer) = reflector::store::<Lease>();
+        // Renewed 60 s ago for 15 s: expired 45 s ago.
+        writer.apply_watcher_event(&watcher::Event::Apply(lease("gw-a", "1", 60, None)));
+        let now = Timestamp::now();
+        let robot = |manager: &str, written_ago_s: i64, connected: bool| {
+            let mut r = Robot::new("kiwi-1", RobotSpec::default());
+            r.metadata.namespace = Some("fleet".into());
+            r.metadata.managed_fields = Some(vec![ManagedFieldsEntry {
+                manager: Some(manager.into()),
+                operation: Some("Apply".into()),
+                subresource: Some("status".into()),
+                time: Some(Time(now - jiff::SignedDuration::from_secs(written_ago_s))),
+                ..ManagedFieldsEntry::default()
+            }]);
+            r.status = Some(RobotStatus {
+                connected: Some(connected),
+                gateway: Some("gw-a".into()),
+                ..RobotStatus::default()
+            });
+            r
+        };
+        let wait = |r: &Robot| late_write_wait(&store, "ops", r, now);
+        let waited = wait(&robot(managers::GATEWAY, 10, true)).expect("a late write waits");
+        assert!(
+            waited.as_secs() >= 19 && waited.as_secs() <= 20,
+            "{waited:?}"
+        );
+        assert_eq!(
+            wait(&robot(managers::GATEWAY, 50, true)),
+            None,
+            "written before"
+        );
+        assert_eq!(
+            wait(&robot(managers::GATEWAY, 40, true)),
+            None,
+            "grace over"
+        );
+        assert_eq!(
+            wait(&robot(managers::GATEWAY, 10, false)),
+            None,
+            "disconnected"
+        );
+        assert_eq!(
+            wait(&robot("someone-else", 10, true)),
+            None,
+            "not a gateway"
+        );
     }
 }

@@ -22,7 +22,7 @@ use crate::controller::trigger::Trigger;
 use crate::metrics::PhaseLabels;
 
 /// The end of a Lease's validity: its last renewal plus its duration (`None` without either).
-fn valid_until(lease: &Lease) -> Option<Timestamp> {
+pub(super) fn valid_until(lease: &Lease) -> Option<Timestamp> {
     let spec = lease.spec.as_ref()?;
     let renew = spec.renew_time.as_ref()?.0;
     renew

@@ -133,11 +133,9 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
                 None => GatewayState::Gone,
             });
         if gateway == Some(GatewayState::Gone)
-            && let Some(claimant) = claimed_elsewhere(&ctx, robot, now)
+            && let Some(wait) = hold_unknown(&ctx, robot, now)
         {
-            // Its session is on a live gateway whose write is on its way: no Unknown meanwhile.
-            debug!(%claimant, "the robot's gateway is gone but another one claims it");
-            return Ok(Action::requeue(CLAIM_RECHECK));
+            return Ok(Action::requeue(wait));
         }
         let facts = Facts {
             now,
@@ -185,6 +183,25 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     }
     .instrument(span)
     .await
+}
+
+/// How long to look again instead of calling `robot`, whose gateway is gone, `Unknown`: while a
+/// live gateway claims it, or while its status may be a write that outlived its gateway (see
+/// [`claims::late_write_wait`]); `None` when nothing holds it back.
+fn hold_unknown(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Duration> {
+    if let Some(claimant) = claimed_elsewhere(ctx, robot, now) {
+        // Its session is on a live gateway whose write is on its way: no Unknown meanwhile.
+        debug!(%claimant, "the robot's gateway is gone but another one claims it");
+        return Some(CLAIM_RECHECK);
+    }
+    let leases = ctx.gateway_leases.as_ref()?;
+    let wait = claims::late_write_wait(leases, &ctx.config.namespace, robot, now)?;
+    // The gateway that holds the robot now claims it once it sees that write.
+    debug!(
+        ?wait,
+        "the robot's status was written after its gateway's Lease expired; waiting for a claim"
+    );
+    Some(wait.min(CLAIM_RECHECK))
 }
 
 /// How soon a robot claimed by a live gateway (see [`claims`]) is looked at again: if the claim
