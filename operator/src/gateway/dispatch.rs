@@ -69,9 +69,9 @@ pub async fn start(
     Ok((DesiredReleases(robots), task))
 }
 
-/// The dispatch task: which sessions to tell, the robots' presence, and this gateway's name. It keeps nothing per
-/// robot: each change carries the Robot as it was, so a change of `spec.release` or
-/// `spec.agent` shows by comparing the two.
+/// The dispatch task: which sessions to tell, the robots' presence, and this gateway's name. It
+/// keeps nothing per robot: each change carries the Robot as it was, so a change of
+/// `spec.release` or `spec.agent` shows by comparing the two.
 struct Dispatch {
     registry: Arc<Registry>,
     presence: Presence,
