@@ -98,6 +98,20 @@ def moves(rows, t_kill, t_end):
     return state, on_killed, recovered, wrong, dipped
 
 
+def watch_churn(a, b):
+    """Between two scrapes: watches the API server closed because their client fell behind
+    (apiserver_terminated_watchers_total), and watch requests begun, each by resource."""
+    closed, begun = Counter(), Counter()
+    for (name, labels), value in b.items():
+        d = dict(labels)
+        if name == "apiserver_terminated_watchers_total":
+            closed[d.get("resource", "?")] += value - a.get((name, labels), 0.0)
+        elif name == "apiserver_request_total" and d.get("verb") == "WATCH":
+            begun[d.get("resource", "?")] += value - a.get((name, labels), 0.0)
+    cell = lambda c: ", ".join(f"{r} {int(v)}" for r, v in c.most_common() if v) or "0"
+    return cell(closed), cell(begun)
+
+
 def row(what, value, goal=""):
     print(f"| {what} | {value} | {goal} |")
 
@@ -159,7 +173,7 @@ def report_steady(work, f):
     print(f"- {len(gateways)} gateways, robots spread over them by the simulator's URL list; heartbeat "
           f"every {f.get('interval')} s; status refresh every 300 s (the default)")
     print()
-    print(f"| robots | Online after | heartbeat RTT p50 / p99 (goal p99 < 10 ms) | gateway RSS per "
+    print(f"| robots | provisioned in / Online after | heartbeat RTT p50 / p99 (goal p99 < 10 ms) | gateway RSS per "
           f"connection {names} (goal ≤ 16 KiB) | API writes/s (N/300) | CPU {names} / apiserver (cores) "
           "| CPU simulators / machine (cores of 2) | fewest Online in the window | largest declared status lag |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -182,11 +196,18 @@ def report_steady(work, f):
         machine = f.get(f"cpu_{size}_window_machine", "?")
         p50, p99 = (quantile(rtt, q) for q in (0.5, 0.99))
         rtt_cell = "no heartbeats" if p50 is None else f"{p50 * 1000:.2f} / {p99 * 1000:.2f} ms"
-        print(f"| {size} | {f.get(f'steady_{size}_online_seconds')} s | {rtt_cell} | "
+        print(f"| {size} | {f.get(f'steady_{size}_provision_seconds', '?')} s / "
+              f"{f.get(f'steady_{size}_online_seconds')} s | {rtt_cell} | "
               f"{' / '.join(per_conn)} | {api_writes:.1f} ({int(size) / 300:.1f}) | {cpu} | "
               f"{sims:.2f} / {machine} | "
               f"{f.get(f'steady_{size}_fewest_online', '?')} | "
               f"{f.get(f'steady_{size}_max_status_lag', '?')} s |")
+    print()
+    for size in f["steady_sizes"].split(","):
+        api_a, api_b = (parse_metrics(work / f"apiserver-{size}-{x}.txt") for x in "ab")
+        closed, begun = watch_churn(api_a, api_b)
+        print(f"- {size} robots, in the window: watches the API server closed as unresponsive "
+              f"{closed}; watch requests begun {begun}")
 
 
 def main():
@@ -243,8 +264,10 @@ def report_kill(work, f):
     row("per-robot recovery p50 / p99", f"{percentile(times, 0.5):.1f} s / {percentile(times, 0.99):.1f} s")
     row("moved robots that showed Unknown/Offline before recovering", len(dipped))
     row("robots wrongly not Online after recovering (or on the survivor)", len(wrong), "0")
-    row("recovery by the metrics (survivor sessions = N, controller Online = N)",
-        f"{f.get('recovered_seconds_by_metrics')} s")
+    row("sessions moved (survivor sessions = N, controller Online = N)",
+        f"{f['recovered_seconds_by_metrics']} s" if "recovered_seconds_by_metrics" in f else "not reached")
+    row("every robot Online through the survivor in the watch (the write window ends 30 s later)",
+        f"{f['recovered_seconds_by_watch']} s" if "recovered_seconds_by_watch" in f else "not reached")
     row(f"API writes in the {float(f['recovery_window_seconds']):.0f} s after the kill",
         ", ".join(f"{r} {int(v)}" for r, v in rec_writes.most_common()) or "0")
     row("  of them Robot + Event writes per robot moved", f"{robot_writes / moved:.2f}", "≤ 1.2")
@@ -265,6 +288,9 @@ def report_kill(work, f):
     row("events resent after reconnects", sim["events_resent"])
     row("simulator reconnects / connect errors", f"{sim['reconnects']} / {sim['connect_errors']}")
     row("API write codes in the recovery window", dict(rec_codes) or "-")
+    closed, begun = watch_churn(before, restart)
+    row("watches the API server closed as unresponsive / watch requests begun (kill to end of "
+        "restart window)", f"{closed} / {begun}")
     cpu = sorted(((k.removeprefix("cpu_recovery_window_"), float(v)) for k, v in f.items()
                   if k.startswith("cpu_recovery_window_")), key=lambda kv: -kv[1])
     row(f"CPU in the {float(f['recovery_window_seconds']):.0f} s after the kill (cores; "
