@@ -73,6 +73,8 @@ cleanup() {
   # A script's own last step (e.g. restoring a system setting it changed), if it set one.
   [ -n "${ON_EXIT:-}" ] && eval "$ON_EXIT"
   if [ "$CP_UP" = 1 ]; then
+    # A kept work directory keeps the control plane's logs too (the purge removes its state).
+    [ "${KEEP:-0}" = 1 ] && cp "$CP_DIR"/*.log "$WORK/" 2>/dev/null
     LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
   fi
   keep_or_remove_work "$rc"
