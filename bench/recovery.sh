@@ -11,7 +11,7 @@
 #!     survivor (p50, p99, max, all), and whether any robot showed Unknown/Offline after that;
 #!   - API-server write requests during the recovery (until the watch shows every robot Online
 #!     through the survivor, and 30 s more), by resource, per robot moved;
-#!   - API-server 429s and 5xx, and watches it closed as unresponsive;
+#!   - API-server 429s and 5xx, and the watches and lists of Robots it served;
 #! then restarts the killed gateway and measures the writes and sessions after it (does the fleet
 #! rebalance?), and finally drains the simulator and compares events sent with events stored.
 #!
@@ -339,7 +339,8 @@ scenario_kill() {
   # Online (a moved robot stays Online, through the dead gateway, until the survivor writes it).
   # Recovered: besides, the Robot watch shows every robot Online through the survivor. The API
   # writes are counted up to then (and 30 s more), so every moved robot's write is in them.
-  moved=""
+  # The watch log is read every 5 s only (its per-robot times come from the log itself).
+  local moved_at="" through=0 timed_out=0 deadline last
   sessions_moved() {
     [ "$(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections)" -ge "$ROBOTS" ] \
       && [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$ROBOTS" ]
@@ -348,23 +349,24 @@ scenario_kill() {
     awk -F'|' '{ s[$3] = ($4 == "Online" && $5 == "gw-b" && $6 == "true") }
       END { n = 0; for (r in s) n += s[r]; print n }' "$WORK/robots.log"
   }
-  recovered() {
-    alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
-    sessions_moved || return 1
-    [ -n "$moved" ] || { moved="$(elapsed "$T_KILL")"; fact recovered_seconds_by_metrics "$moved"; }
-    [ "$(on_survivor)" -ge "$ROBOTS" ]
-  }
   deadline=$((SECONDS + RECOVERY_TIMEOUT))
-  last=$SECONDS
-  until recovered; do
-    if [ $SECONDS -ge $deadline ]; then log "not recovered after $RECOVERY_TIMEOUT s"; break; fi
+  last=$((SECONDS - 5))
+  while :; do
+    alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
+    if [ -z "$moved_at" ] && sessions_moved; then
+      moved_at="$(elapsed "$T_KILL")"
+      fact sessions_moved_seconds "$moved_at"
+    fi
     if [ $((SECONDS - last)) -ge 5 ]; then
       last=$SECONDS
-      log "  $(elapsed "$T_KILL") s: gw-b sessions $(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections), Online $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}'), Unknown $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Unknown"}'), Offline $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Offline"}'), Online through gw-b $(on_survivor)"
+      through="$(on_survivor)"
+      [ -n "$moved_at" ] && [ "$through" -ge "$ROBOTS" ] && break
+      log "  $(elapsed "$T_KILL") s: gw-b sessions $(current "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" lekiwi_gateway_connections), Online $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}'), Unknown $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Unknown"}'), Offline $(current "$CTRL_METRICS" 'lekiwi_robots{phase="Offline"}'), Online through gw-b $through"
     fi
+    if [ $SECONDS -ge $deadline ]; then log "not recovered after $RECOVERY_TIMEOUT s"; timed_out=1; break; fi
     sleep 0.5
   done
-  [ $SECONDS -ge $deadline ] || fact recovered_seconds_by_watch "$(elapsed "$T_KILL")"
+  [ "$timed_out" = 1 ] || fact recovered_seconds_by_watch "$(elapsed "$T_KILL")"
   # The writes that follow the recovery (the controller's Unknown checks, the dead gateway's
   # Lease) belong to it too: count them over a fixed window that covers the Lease's expiry.
   sleep 30
@@ -468,7 +470,7 @@ window_watch() {
 }
 
 scenario_steady() {
-  local size have=0 part=0 t0 gw_urls="" g chunk left n gws=() sims=() chunks
+  local size have=0 part=0 t0 gw_urls="" g i chunk left n gws=() sims=() chunks
   for g in "${GW_NAMES[@]}"; do
     gw_urls+="${gw_urls:+,}$SCHEME://127.0.0.1:${GW_PORT[$g]}/v1/agent"
     gws+=("$g:${GW_PID[$g]}")
@@ -493,9 +495,9 @@ scenario_steady() {
     done
     fact "steady_${size}_provision_seconds" "$(elapsed "$t0")"
     log "  provisioned in $(elapsed "$t0") s; starting ${#chunks[@]} simulator(s)"
-    for chunk in "${!chunks[@]}"; do
-      n="${chunks[$chunk]}"
-      chunk=$((chunk + 1))
+    for i in "${!chunks[@]}"; do
+      n="${chunks[$i]}"
+      chunk=$((i + 1))
       start "sim-$part-$chunk" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
         --namespace bench --prefix "s$part-$chunk" --robots "$n" \
         --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
