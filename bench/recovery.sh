@@ -180,6 +180,9 @@ as_postgres "$PG_BIN/initdb" -D "$PG_DIR/data" -U postgres -A trust -E UTF8 --lo
 start postgres as_postgres "$PG_BIN/postgres" -D "$PG_DIR/data" -h 127.0.0.1 -p "$PG_PORT" \
   -k "$PG_DIR" -c max_connections=200 -c fsync=on -c synchronous_commit=on
 PG_PID=$LAST_PID
+# As root, PG_PID is runuser's, and killing it leaves the postmaster running: stop it by its
+# data directory on exit as well.
+ON_EXIT='as_postgres "$PG_BIN/pg_ctl" -D "$PG_DIR/data" stop -m immediate >/dev/null 2>&1'
 pg_ready() { alive "$PG_PID" || die "postgres exited: $(tail -5 "$WORK/postgres.log")"; "$PG_BIN/pg_isready" -q -h 127.0.0.1 -p "$PG_PORT"; }
 wait_for postgres 60 pg_ready
 psql_do() { "$PG_BIN/psql" -X -q -At -h 127.0.0.1 -p "$PG_PORT" -U postgres -d "${2:-postgres}" -c "$1"; }
