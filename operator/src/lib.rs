@@ -24,6 +24,7 @@ use crate::config::Config;
 use crate::controller::Context;
 pub use crate::error::{Error, Result};
 use crate::metrics::Metrics;
+use axum::http::{HeaderValue, header::USER_AGENT};
 
 /// Builds a client from `--kubeconfig`/`--context`, `$KUBECONFIG`, `~/.kube/config` or the
 /// in-cluster service account, in that order.
@@ -32,7 +33,7 @@ pub async fn client(config: &Config) -> Result<kube::Client> {
         context: config.context.clone(),
         ..KubeConfigOptions::default()
     };
-    let kube_config = match (&config.kubeconfig, &config.context) {
+    let mut kube_config = match (&config.kubeconfig, &config.context) {
         (Some(path), _) => {
             let kc = Kubeconfig::read_from(path)
                 .map_err(|e| Error::KubeConfig(format!("{}: {e}", path.display())))?;
@@ -47,7 +48,18 @@ pub async fn client(config: &Config) -> Result<kube::Client> {
             .await
             .map_err(|e| Error::KubeConfig(e.to_string()))?,
     };
+    kube_config.headers.push((USER_AGENT, user_agent(config)));
     kube::Client::try_from(kube_config).map_err(|e| Error::KubeConfig(e.to_string()))
+}
+
+/// `lekiwi-operator/<version> (<role>; <identity>)`: the API server's audit log and request
+/// logs tell the replicas (and the controller from a gateway) apart by it.
+fn user_agent(config: &Config) -> HeaderValue {
+    let role = format!("{:?}", config.role).to_lowercase();
+    let product = format!("lekiwi-operator/{}", env!("CARGO_PKG_VERSION"));
+    HeaderValue::from_str(&format!("{product} ({role}; {})", config.identity()))
+        .or_else(|_| HeaderValue::from_str(&format!("{product} ({role})")))
+        .unwrap_or_else(|_| HeaderValue::from_static("lekiwi-operator"))
 }
 
 /// Every long-lived task reports its name and outcome; the first to end stops the rest.
