@@ -50,6 +50,13 @@
 #!   --bin DIR              use the binaries in DIR instead (implies --no-build; e.g. a quick
 #!                          check of the script itself with debug builds and --robots 200)
 #!   --keep                 keep the work directory (logs, watch log, scrapes)
+#!   --world-nice N         run the simulated robots and HAProxy (the world outside the cluster:
+#!                          in production they are other machines) at this CPU niceness, so on a
+#!                          small host they take CPU from the control plane only when it has some
+#!                          to spare (default 10; 0 = same priority as the control plane)
+#!   --audit                kill: the API server writes an audit log of every Robot request
+#!                          (level Metadata); the results then say who was refused (409), who
+#!                          listed and watched, by client (bench/audit_report.py)
 #!   -h, --help             this text
 #!
 #! Writes the table to bench/results/recovery-<scenario>-<date>.txt and
@@ -77,6 +84,8 @@ RECOVERY_TIMEOUT=180
 AFTER_RESTART=60
 BUILD=1
 KEEP=0
+AUDIT=0
+WORLD_NICE=10
 TLS=0
 GATEWAYS=2
 COMMAND="bash bench/recovery.sh $*"
@@ -107,6 +116,10 @@ while [ $# -gt 0 ]; do
     --no-build) BUILD=0; shift ;;
     --bin) [ -d "${2:-}" ] || die "--bin needs a directory"; BIN="$(cd "$2" && pwd)"; BUILD=0; shift 2 ;;
     --keep) KEEP=1; shift ;;
+    --audit) AUDIT=1; shift ;;
+    --world-nice)
+      [[ "${2:-}" =~ ^([0-9]|1[0-9])$ ]] || die "--world-nice is a niceness from 0 to 19"
+      WORLD_NICE="$2"; shift 2 ;;
     -h|--help) usage; exit 0 ;;
     *) usage >&2; die "unknown option: $1" ;;
   esac
@@ -167,6 +180,7 @@ fact gateways "${GW_NAMES[*]}"
 fact scenario "$SCENARIO"
 fact events_per_minute "$EPM"
 fact interval "$INTERVAL"
+fact world_nice "$WORLD_NICE"
 
 # ---- PostgreSQL: the replicas' shared event store -------------------------------------------
 as_postgres() { if [ "$(id -u)" = 0 ]; then runuser -u postgres -- "$@"; else "$@"; fi; }
@@ -190,6 +204,20 @@ psql_do 'CREATE DATABASE lekiwi' >/dev/null
 STORE_URL="postgres://postgres@127.0.0.1:$PG_PORT/lekiwi"
 
 # ---- control plane and operator --------------------------------------------------------------
+if [ "$AUDIT" = 1 ]; then
+  cat >"$WORK/audit-policy.yaml" <<'EOF'
+apiVersion: audit.k8s.io/v1
+kind: Policy
+omitStages: [RequestReceived]
+rules:
+  - level: Metadata
+    resources:
+      - group: fleet.lekiwi.io
+        resources: [robots, robots/status]
+  - level: None
+EOF
+  export LEKIWI_APISERVER_ARGS="--audit-policy-file=$WORK/audit-policy.yaml --audit-log-path=$WORK/audit.log"
+fi
 start_control_plane
 kubectl create namespace lekiwi-system >/dev/null
 kubectl create namespace bench >/dev/null
@@ -266,7 +294,7 @@ backend gateways
   option httpchk GET /readyz
 ${SERVERS%$'\n'}
 EOF
-  start "haproxy-$i" haproxy -db -f "$WORK/haproxy-$i.cfg"
+  start "haproxy-$i" nice -n "$WORLD_NICE" haproxy -db -f "$WORK/haproxy-$i.cfg"
   LB_PIDS+=("$LAST_PID")
   sleep 1
   alive "$LAST_PID" || die "haproxy exited: $(tail -5 "$WORK/haproxy-$i.log")"
@@ -299,7 +327,7 @@ provisioned_fleet() { # count
   sleep 5
   start_watch "$1"
   log "starting $1 simulated robots through $LB_COUNT HAProxy instance(s) ($EPM events/min each)"
-  start sim "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
+  start sim nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN" --namespace bench \
     --robots "$1" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
     --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json"
@@ -394,6 +422,7 @@ scenario_kill() {
   for g in gw-a gw-b; do
     fact "sessions_after_restart_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
   done
+  AUDIT_TO="$(now)"
 
   # ---- drain and count -------------------------------------------------------------------------
   log "stopping the simulator (it drains its unacknowledged events first, at most 120 s)"
@@ -426,7 +455,7 @@ scenario_first_boot() {
   t0="$(now)"
   fact boot_time "$t0"
   log "first boot: $ROBOTS new robots enroll at once"
-  start sim-new "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
+  start sim-new nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN_ENROLL" --namespace bench --prefix new --robots "$ROBOTS" \
     --heartbeat-interval "$INTERVAL" --connect-rate 1000000 --connect-timeout 300 \
     --token-file "$WORK/new-tokens.json" --report-every 10 --json "$WORK/sim-new.json"
@@ -501,7 +530,7 @@ scenario_steady() {
     for i in "${!chunks[@]}"; do
       n="${chunks[$i]}"
       chunk=$((i + 1))
-      start "sim-$part-$chunk" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
+      start "sim-$part-$chunk" nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
         --namespace bench --prefix "s$part-$chunk" --robots "$n" \
         --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
       sims+=("sim-$part-$chunk:$LAST_PID")
@@ -538,5 +567,8 @@ esac
 mkdir -p "$RESULTS"
 OUT="$RESULTS/recovery-$SCENARIO-$(date +%Y%m%d-%H%M%S).txt"
 python3 "$ROOT/bench/recovery_report.py" "$WORK" | tee "$OUT"
+if [ "$AUDIT" = 1 ] && [ -n "${AUDIT_TO:-}" ]; then
+  { echo; python3 "$ROOT/bench/audit_report.py" "$WORK/audit.log" "$T_KILL" "$AUDIT_TO" "$WORK/robots.log"; } | tee -a "$OUT"
+fi
 cp "$OUT" "$RESULTS/recovery-$SCENARIO-latest.txt"
 log "table written to $OUT"

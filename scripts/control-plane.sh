@@ -25,6 +25,8 @@
 #!   KUBEBUILDER_ASSETS  directory with `etcd` and `kube-apiserver` to use instead of the cached
 #!                       v1.20.2 build (envtest convention)
 #!   LEKIWI_CP_TIMEOUT   seconds `up` waits for /readyz (default 90)
+#!   LEKIWI_APISERVER_ARGS  more kube-apiserver flags, split on spaces (e.g. the benchmarks'
+#!                       --audit-policy-file and --audit-log-path)
 #!
 #! State directory layout: ports.env, kubeconfig (admin, system:masters), kubeconfig-user and
 #! user-token (non-admin user `lekiwi-user`, no RBAC bindings), admin-token, tokens.csv, pki/
@@ -224,6 +226,8 @@ start_etcd() {
 # logs "may not be in the loopback range" every 10s). Nothing runs in-cluster here anyway.
 start_apiserver() {
   port_free "$APISERVER_PORT" || die "apiserver port $APISERVER_PORT is taken by another process"
+  local extra=()
+  read -ra extra <<<"${LEKIWI_APISERVER_ARGS:-}"
   spawn kube-apiserver "$APISERVER_BIN" "$(marker kube-apiserver)" \
     --etcd-servers="http://127.0.0.1:$ETCD_PORT" \
     --secure-port="$APISERVER_PORT" \
@@ -239,7 +243,8 @@ start_apiserver() {
     --service-cluster-ip-range=10.0.0.0/24 \
     --allow-privileged=true \
     --disable-admission-plugins=ServiceAccount \
-    --token-auth-file="$STATE/tokens.csv"
+    --token-auth-file="$STATE/tokens.csv" \
+    "${extra[@]}"
 }
 
 cmd_up() {

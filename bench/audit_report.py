@@ -1,0 +1,149 @@
+#!/usr/bin/env python3
+"""Who asked the API server what about Robots, from its audit log (bench/recovery.sh --audit).
+
+Reads the kube-apiserver's audit log (JSON lines, level Metadata, Robots only) and prints, for
+requests received in [FROM, TO) (unix seconds), a Markdown table of requests by client (the
+User-Agent: the operator names its role and identity in it), verb, subresource and answer code,
+and one of the Robot watches each client began and how long the ended ones lasted. The operator's
+replicas, the controller and the benchmark's own watch (curl) are thus told apart: a 409 is
+charged to whoever was refused, a list of every Robot to whoever asked for it.
+
+It also times the recovery by the API server's own clock: for each robot a gateway other than
+the one that wrote it last before FROM writes after it (a moved robot), when that write was
+answered; and, given the benchmark's watch log, how much later the watch saw that robot on its
+new gateway (the watch's lag, which the watch-based recovery times include).
+
+Usage: audit_report.py AUDIT_LOG FROM TO [WATCH_LOG]"""
+import json
+import sys
+from collections import Counter, defaultdict
+from datetime import datetime
+
+
+def seconds(stamp):
+    """Unix seconds of an RFC 3339 time stamp with microseconds, as the audit log writes them."""
+    return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
+
+
+def client(agent):
+    """A short name for a User-Agent: the part in parentheses for the operator, else the product."""
+    if "(" in agent and agent.endswith(")"):
+        return agent[agent.index("(") + 1:-1]
+    return agent.split(" ")[0] or "(none)"
+
+
+def gateway(agent):
+    """The gateway identity in an operator's User-Agent, or None for other clients."""
+    who = client(agent)
+    return who.split("; ", 1)[1] if who.startswith("gateway; ") else None
+
+
+def read(path, start, end):
+    """Completed requests received in [start, end), the watches begun in it (with their
+    duration if they ended), and the moved robots' first writes after `start`: name ->
+    (new gateway, seconds after `start` it was answered)."""
+    requests = Counter()
+    watches = defaultdict(list)
+    last_writer, moved = {}, {}
+    with open(path) as log:
+        for line in log:
+            try:
+                event = json.loads(line)
+            except ValueError:
+                continue
+            received = seconds(event["requestReceivedTimestamp"])
+            note_write(event, start, last_writer, moved)
+            if not start <= received < end:
+                continue
+            ref = event.get("objectRef") or {}
+            who = client(event.get("userAgent", ""))
+            verb = event.get("verb", "?")
+            if verb == "watch":
+                if event.get("stage") == "ResponseStarted":
+                    watches[who].append(None)
+                elif event.get("stage") == "ResponseComplete":
+                    watches[who].append(seconds(event["stageTimestamp"]) - received)
+                continue
+            if event.get("stage") != "ResponseComplete":
+                continue
+            code = (event.get("responseStatus") or {}).get("code", "?")
+            requests[(who, verb, ref.get("subresource", ""), code)] += 1
+    return requests, watches, moved
+
+
+def note_write(event, start, last_writer, moved):
+    """Follows which gateway wrote each Robot's status last before `start`, and records the
+    first successful write after it by another gateway."""
+    if event.get("verb") != "patch" or event.get("stage") != "ResponseComplete":
+        return
+    if (event.get("responseStatus") or {}).get("code") != 200:
+        return
+    writer = gateway(event.get("userAgent", ""))
+    name = (event.get("objectRef") or {}).get("name")
+    if writer is None or name is None:
+        return
+    answered = seconds(event["stageTimestamp"])
+    if answered < start:
+        last_writer[name] = writer
+    elif name not in moved and last_writer.get(name, writer) != writer:
+        moved[name] = (writer, answered - start)
+
+
+def quantiles(values):
+    """p50 / p99 / max of `values` (sorted), one decimal."""
+    p50, p99 = (values[min(len(values) - 1, int(q * len(values)))] for q in (0.5, 0.99))
+    return f"{p50:.1f} s / {p99:.1f} s / {values[-1]:.1f} s"
+
+
+def watch_lag(path, start, moved):
+    """For each moved robot, seconds from its new gateway's write being answered until the
+    watch log shows it on that gateway."""
+    seen = {}
+    with open(path) as log:
+        for line in log:
+            fields = line.rstrip("\n").split("|")
+            if len(fields) < 6 or fields[2] in seen or fields[2] not in moved:
+                continue
+            arrived = float(fields[0]) - start
+            writer, answered = moved[fields[2]]
+            if fields[4] == writer and arrived >= answered - 1:
+                seen[fields[2]] = arrived - answered
+    return sorted(seen.values())
+
+
+def main():
+    path, start, end = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+    requests, watches, moved = read(path, start, end)
+    print(f"Robot requests received in the {end - start:.0f} s from the kill (audit log):\n")
+    print("| client | verb | subresource | code | requests |")
+    print("|---|---|---|---|---|")
+    for (who, verb, sub, code), n in sorted(requests.items()):
+        print(f"| {who} | {verb} | {sub or '-'} | {code} | {n} |")
+    print("\n| client | Robot watches begun | ended in the window | their length p50 / max |")
+    print("|---|---|---|---|")
+    for who, stages in sorted(watches.items()):
+        ended = sorted(d for d in stages if d is not None)
+        begun = sum(1 for d in stages if d is None)
+        length = f"{ended[len(ended) // 2]:.1f} s / {ended[-1]:.1f} s" if ended else "-"
+        print(f"| {who} | {begun} | {len(ended)} | {length} |")
+    failed = defaultdict(list)
+    for (who, _, _, code), n in requests.items():
+        if isinstance(code, int) and code >= 500:
+            failed[who].append(n)
+    if failed:
+        print("\n5xx answers by client: " + ", ".join(
+            f"{who} {sum(n)}" for who, n in sorted(failed.items()))
+            + " (a client killed mid-request is answered 500 in the API server's books)")
+    if moved:
+        times = sorted(t for _, t in moved.values())
+        print(f"\nRobots moved to another gateway and written there: {len(moved)}; their first "
+              f"write answered after the kill, p50 / p99 / all: {quantiles(times)}")
+    if moved and len(sys.argv) > 4:
+        lags = watch_lag(sys.argv[4], start, moved)
+        if lags:
+            print(f"The benchmark's Robot watch saw {len(lags)} of them on their new gateway "
+                  f"this much after the write, p50 / p99 / max: {quantiles(lags)}")
+
+
+if __name__ == "__main__":
+    main()
