@@ -1,7 +1,9 @@
 //! Claims of live gateways on robots whose status still names a dead one: a gateway lists the
 //! robots that moved to it and are not written yet in its Lease
 //! ([`lekiwi_crds::contract::CLAIMS_ANNOTATION`]); the Robot controller does not mark those
-//! `Unknown` (the claimant's status write, queued first, follows within seconds).
+//! `Unknown` (the claimant's status write, queued first, follows within seconds). A dropped
+//! claim (the write landed) still counts for [`RELEASED_GRACE`]: the Lease watch can be ahead of
+//! the Robot watch that brings the write.
 //!
 //! A write the dead gateway sent before it died can land after its Lease expired (an API server
 //! answering seconds late). The gateway that holds the robot now claims it once its own watch
@@ -64,15 +66,26 @@ pub fn late_write_wait(
 /// The claimed `namespace/name` entries of one Lease version (its resourceVersion).
 type Parsed = (Option<String>, Arc<HashSet<String>>);
 
-/// The claims of each gateway Lease, parsed once per Lease version.
+/// How long after a live gateway dropped its claim on a robot the robot still counts as claimed
+/// by it. A gateway drops a claim once its status write of the robot landed, and the controller's
+/// Lease watch can bring that sooner than its Robot watch brings the write (a kill benchmark's
+/// Robot watch ran up to 36 s late): planning `Unknown` from the older status meanwhile would be
+/// refused (409) at best, once per moved robot.
+pub const RELEASED_GRACE: std::time::Duration = std::time::Duration::from_secs(30);
+
+/// The claims of each gateway Lease, parsed once per Lease version, and the claims dropped
+/// within [`RELEASED_GRACE`].
 #[derive(Default)]
 pub struct ClaimIndex {
     /// Lease name → (resourceVersion, claimed `namespace/name` entries).
     parsed: Mutex<HashMap<String, Parsed>>,
+    /// `namespace/name` → (gateway, when this index saw its Lease drop the claim).
+    released: Mutex<HashMap<String, (String, Timestamp)>>,
 }
 
 impl ClaimIndex {
-    /// The live gateway other than `holder` whose Lease claims robot `namespace/name`, if any.
+    /// The live gateway other than `holder` whose Lease claims robot `namespace/name`, or
+    /// dropped its claim less than [`RELEASED_GRACE`] ago, if any.
     pub fn claimant(
         &self,
         leases: &Store<Lease>,
@@ -82,17 +95,28 @@ impl ClaimIndex {
         now: Timestamp,
     ) -> Option<String> {
         let robot = format!("{namespace}/{name}");
-        leases
+        let live: Vec<Arc<Lease>> = leases
             .state()
-            .iter()
+            .into_iter()
             .filter(|l| l.labels().contains_key(GATEWAY_LEASE_LABEL))
             .filter(|l| l.name_any() != holder && lease_alive(l, now))
-            .find(|l| self.claims_of(l).contains(&robot))
-            .map(|l| l.name_any())
+            .collect();
+        // Every live Lease is read (and its dropped claims noted) before `released` is.
+        if let Some(l) = live
+            .iter()
+            .find(|l| self.claims_of(l, now).contains(&robot))
+        {
+            return Some(l.name_any());
+        }
+        let released = self.released.lock().unwrap_or_else(|p| p.into_inner());
+        let (gateway, at) = released.get(&robot)?;
+        let recent = now.duration_since(*at).unsigned_abs() < RELEASED_GRACE;
+        (recent && live.iter().any(|l| l.name_any() == *gateway)).then(|| gateway.clone())
     }
 
-    /// The entries `lease` claims, parsed again only when its version changed.
-    fn claims_of(&self, lease: &Lease) -> Arc<HashSet<String>> {
+    /// The entries `lease` claims, parsed again only when its version changed; entries the
+    /// new version no longer has are noted as dropped at `now`.
+    fn claims_of(&self, lease: &Lease, now: Timestamp) -> Arc<HashSet<String>> {
         let name = lease.name_any();
         let version = lease.resource_version();
         let mut parsed = self.parsed.lock().unwrap_or_else(|p| p.into_inner());
@@ -108,7 +132,14 @@ impl ClaimIndex {
                 .map(|v| parse_claims(v).collect())
                 .unwrap_or_default(),
         );
-        parsed.insert(name, (version, claims.clone()));
+        let before = parsed.insert(name.clone(), (version, claims.clone()));
+        let mut released = self.released.lock().unwrap_or_else(|p| p.into_inner());
+        released.retain(|robot, (_, at)| {
+            !claims.contains(robot) && now.duration_since(*at).unsigned_abs() < RELEASED_GRACE
+        });
+        for robot in before.iter().flat_map(|(_, old)| old.difference(&claims)) {
+            released.insert(robot.clone(), (name.clone(), now));
+        }
         claims
     }
 }
@@ -168,8 +199,20 @@ mod tests {
             0,
             Some("fleet/kiwi-1"),
         )));
-        assert_eq!(who("kiwi-2"), None);
         assert_eq!(who("kiwi-1").as_deref(), Some("gw-b"));
+        // Its write may reach the Robot watch later than the Lease: held for the grace.
+        assert_eq!(who("kiwi-2").as_deref(), Some("gw-b"), "dropped just now");
+        // A later renewal (valid then) with the same claims; past the grace, kiwi-2 is free.
+        writer.apply_watcher_event(&watcher::Event::Apply(lease(
+            "gw-b",
+            "3",
+            -40,
+            Some("fleet/kiwi-1"),
+        )));
+        let later = now + jiff::SignedDuration::from_secs(31);
+        let at_later = |robot: &str| index.claimant(&store, "gw-a", "fleet", robot, later);
+        assert_eq!(at_later("kiwi-2"), None, "dropped 31 s ago");
+        assert_eq!(at_later("kiwi-1").as_deref(), Some("gw-b"));
     }
 
     /// A connected robot's status written by its gateway after that gateway's Lease expired
