@@ -46,7 +46,8 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_WATCH_NAMESPACE")]
     pub watch_namespace: Option<String>,
 
-    /// This replica's identity in leader election (default: host name and process id).
+    /// This replica's identity in leader election (default: host name and process id); also in
+    /// its API requests' User-Agent: lekiwi-operator/<version> (<role>; <identity>).
     #[arg(long, env = "POD_NAME")]
     pub identity: Option<String>,
 

@@ -25,10 +25,12 @@ use crate::controller::Context;
 pub use crate::error::{Error, Result};
 use crate::metrics::Metrics;
 use axum::http::{HeaderValue, header::USER_AGENT};
+use clap::ValueEnum;
 
 /// Builds a client from `--kubeconfig`/`--context`, `$KUBECONFIG`, `~/.kube/config` or the
-/// in-cluster service account, in that order.
-pub async fn client(config: &Config) -> Result<kube::Client> {
+/// in-cluster service account, in that order; its requests name this process by
+/// [`user_agent`].
+pub async fn client(config: &Config, identity: &str) -> Result<kube::Client> {
     let options = KubeConfigOptions {
         context: config.context.clone(),
         ..KubeConfigOptions::default()
@@ -48,16 +50,19 @@ pub async fn client(config: &Config) -> Result<kube::Client> {
             .await
             .map_err(|e| Error::KubeConfig(e.to_string()))?,
     };
-    kube_config.headers.push((USER_AGENT, user_agent(config)));
+    kube_config
+        .headers
+        .push((USER_AGENT, user_agent(config, identity)));
     kube::Client::try_from(kube_config).map_err(|e| Error::KubeConfig(e.to_string()))
 }
 
 /// `lekiwi-operator/<version> (<role>; <identity>)`: the API server's audit log and request
 /// logs tell the replicas (and the controller from a gateway) apart by it.
-fn user_agent(config: &Config) -> HeaderValue {
-    let role = format!("{:?}", config.role).to_lowercase();
+fn user_agent(config: &Config, identity: &str) -> HeaderValue {
+    let role = config.role.to_possible_value();
+    let role = role.as_ref().map_or("?", |v| v.get_name());
     let product = format!("lekiwi-operator/{}", env!("CARGO_PKG_VERSION"));
-    HeaderValue::from_str(&format!("{product} ({role}; {})", config.identity()))
+    HeaderValue::from_str(&format!("{product} ({role}; {identity})"))
         .or_else(|_| HeaderValue::from_str(&format!("{product} ({role})")))
         .unwrap_or_else(|_| HeaderValue::from_static("lekiwi-operator"))
 }
@@ -77,10 +82,11 @@ struct Shared {
 /// Runs the operator until SIGTERM/SIGINT; returns an error if a long-lived task dies.
 pub async fn run(config: Config) -> Result<()> {
     let config = Arc::new(config);
-    let client = client(&config).await?;
+    let identity = config.identity();
+    let client = client(&config, &identity).await?;
     crd_install::ensure(client.clone(), config.install_crds).await?;
     let shared = Shared {
-        identity: config.identity(),
+        identity,
         metrics: Metrics::new(config.per_robot_metrics),
         cancel: CancellationToken::new(),
         config,
@@ -302,4 +308,27 @@ async fn shutdown_on_signal(cancel: CancellationToken) {
         _ = tokio::signal::ctrl_c() => info!("SIGINT received; shutting down"),
     }
     cancel.cancel();
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    /// The API server sees which process of the operator asks: role and identity, and still
+    /// the product when the identity cannot go in a header.
+    #[test]
+    fn requests_name_the_role_and_identity() {
+        let config = Config::try_parse_from(["lekiwi-operator", "--role", "gateway"]).unwrap();
+        let version = env!("CARGO_PKG_VERSION");
+        assert_eq!(
+            user_agent(&config, "gw-b").to_str().unwrap(),
+            format!("lekiwi-operator/{version} (gateway; gw-b)")
+        );
+        assert_eq!(
+            user_agent(&config, "bad\nname").to_str().unwrap(),
+            format!("lekiwi-operator/{version} (gateway)")
+        );
+    }
 }
