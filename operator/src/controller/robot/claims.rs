@@ -110,8 +110,8 @@ impl ClaimIndex {
         }
         let released = self.released.lock().unwrap_or_else(|p| p.into_inner());
         let (gateway, at) = released.get(&robot)?;
-        let recent = now.duration_since(*at).unsigned_abs() < RELEASED_GRACE;
-        (recent && live.iter().any(|l| l.name_any() == *gateway)).then(|| gateway.clone())
+        (within_grace(*at, now) && live.iter().any(|l| l.name_any() == *gateway))
+            .then(|| gateway.clone())
     }
 
     /// The entries `lease` claims, parsed again only when its version changed; entries the
@@ -134,14 +134,17 @@ impl ClaimIndex {
         );
         let before = parsed.insert(name.clone(), (version, claims.clone()));
         let mut released = self.released.lock().unwrap_or_else(|p| p.into_inner());
-        released.retain(|robot, (_, at)| {
-            !claims.contains(robot) && now.duration_since(*at).unsigned_abs() < RELEASED_GRACE
-        });
+        released.retain(|robot, (_, at)| !claims.contains(robot) && within_grace(*at, now));
         for robot in before.iter().flat_map(|(_, old)| old.difference(&claims)) {
             released.insert(robot.clone(), (name.clone(), now));
         }
         claims
     }
+}
+
+/// Whether a claim dropped at `at` still counts at `now` (see [`RELEASED_GRACE`]).
+fn within_grace(at: Timestamp, now: Timestamp) -> bool {
+    now.duration_since(at).unsigned_abs() < RELEASED_GRACE
 }
 
 #[cfg(test)]

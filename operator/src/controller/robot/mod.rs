@@ -207,7 +207,7 @@ fn hold_unknown(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Duration
 /// How soon a robot whose status write was refused as stale (409) is planned again if its
 /// newer version has not come through the watch by then (it normally has, and was planned on
 /// arrival). Planning sooner reuses the stale version and is refused again: a kill benchmark's
-/// audit log counted 3,231 refusals in 278 s (about 9 per robot) with a 1 s retry, its watch
+/// audit log counted 3,230 refusals in 278 s (about 9 per robot) with a 1 s retry, its watch
 /// running 100 s late.
 const CONFLICT_RECHECK: Duration = Duration::from_secs(60);
 
