@@ -18,6 +18,10 @@ import json
 import sys
 from collections import Counter, defaultdict
 from datetime import datetime
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from recovery_report import percentile  # noqa: E402
 
 
 def seconds(stamp):
@@ -90,9 +94,8 @@ def note_write(event, start, last_writer, moved):
 
 
 def quantiles(values):
-    """p50 / p99 / max of `values` (sorted), one decimal."""
-    p50, p99 = (values[min(len(values) - 1, int(q * len(values)))] for q in (0.5, 0.99))
-    return f"{p50:.1f} s / {p99:.1f} s / {values[-1]:.1f} s"
+    """p50 / p99 / max of `values`, one decimal."""
+    return " / ".join(f"{percentile(values, p):.1f} s" for p in (0.5, 0.99, 1.0))
 
 
 def watch_lag(path, start, moved):
@@ -106,9 +109,10 @@ def watch_lag(path, start, moved):
                 continue
             arrived = float(fields[0]) - start
             writer, answered = moved[fields[2]]
+            # The watch may show the write a moment before the API server finished answering it.
             if fields[4] == writer and arrived >= answered - 1:
                 seen[fields[2]] = arrived - answered
-    return sorted(seen.values())
+    return list(seen.values())
 
 
 def main():
@@ -122,20 +126,18 @@ def main():
     print("\n| client | Robot watches begun | ended in the window | their length p50 / max |")
     print("|---|---|---|---|")
     for who, stages in sorted(watches.items()):
-        ended = sorted(d for d in stages if d is not None)
-        begun = sum(1 for d in stages if d is None)
-        length = f"{ended[len(ended) // 2]:.1f} s / {ended[-1]:.1f} s" if ended else "-"
-        print(f"| {who} | {begun} | {len(ended)} | {length} |")
-    failed = defaultdict(list)
+        ended = [d for d in stages if d is not None]
+        length = " / ".join(f"{percentile(ended, p):.1f} s" for p in (0.5, 1.0)) if ended else "-"
+        print(f"| {who} | {len(stages) - len(ended)} | {len(ended)} | {length} |")
+    failed = Counter()
     for (who, _, _, code), n in requests.items():
         if isinstance(code, int) and code >= 500:
-            failed[who].append(n)
+            failed[who] += n
     if failed:
-        print("\n5xx answers by client: " + ", ".join(
-            f"{who} {sum(n)}" for who, n in sorted(failed.items()))
-            + " (a client killed mid-request is answered 500 in the API server's books)")
+        print("\n5xx answers by client: " + ", ".join(f"{w} {n}" for w, n in sorted(failed.items()))
+              + " (a client killed mid-request is answered 500 in the API server's books)")
     if moved:
-        times = sorted(t for _, t in moved.values())
+        times = [t for _, t in moved.values()]
         print(f"\nRobots moved to another gateway and written there: {len(moved)}; their first "
               f"write answered after the kill, p50 / p99 / all: {quantiles(times)}")
     if moved and len(sys.argv) > 4:

@@ -136,6 +136,7 @@ take_bench_lock
 
 [ "$SCENARIO" != steady ] || ROBOTS="${STEADY_SIZES##*,}"
 [ "$SCENARIO" = steady ] || [ "$GATEWAYS" = 2 ] || die "--gateways is for --scenario steady (kill and first-boot run two)"
+[ "$AUDIT" = 0 ] || [ "$SCENARIO" = kill ] || die "--audit is for --scenario kill"
 # The replicas' names: gw-a, gw-b, ...
 GW_NAMES=()
 for ((i = 0; i < GATEWAYS; i++)); do GW_NAMES+=("gw-$(printf "\\$(printf %o $((97 + i)))")"); done
