@@ -8,6 +8,10 @@ and one of the Robot watches each client began and how long the ended ones laste
 replicas, the controller and the benchmark's own watch (curl) are thus told apart: a 409 is
 charged to whoever was refused, a list of every Robot to whoever asked for it.
 
+It splits the Robot status writes received in the window into those to the moved robots (per
+moved robot, by gateways and by the controller; the issue's "at most one status write per robot
+moving") and those to the others (mostly routine refreshes).
+
 It also times the recovery by the API server's own clock: for each robot a gateway other than
 the one that wrote it last before FROM writes after it (a moved robot), when that write was
 answered; and, given the benchmark's watch log, how much later the watch saw that robot on its
@@ -44,9 +48,11 @@ def gateway(agent):
 
 def read(path, start, end):
     """Completed requests received in [start, end), the watches begun in it (with their
-    duration if they ended), and the moved robots' first writes after `start`: name ->
-    (new gateway, seconds after `start` it was answered)."""
+    duration if they ended), the moved robots' first writes after `start`: name ->
+    (new gateway, seconds after `start` it was answered), and the status writes received in
+    the window: (name, "gateway" or the client) -> count."""
     requests = Counter()
+    status_writes = Counter()
     watches = defaultdict(list)
     last_writer, moved = {}, {}
     with open(path) as log:
@@ -72,7 +78,10 @@ def read(path, start, end):
                 continue
             code = (event.get("responseStatus") or {}).get("code", "?")
             requests[(who, verb, ref.get("subresource", ""), code)] += 1
-    return requests, watches, moved
+            if verb == "patch" and ref.get("subresource") == "status":
+                kind = "gateway" if who.startswith("gateway; ") else who.split(";")[0]
+                status_writes[(ref.get("name"), kind)] += 1
+    return requests, watches, moved, status_writes
 
 
 def note_write(event, start, last_writer, moved):
@@ -115,9 +124,20 @@ def watch_lag(path, start, moved):
     return list(seen.values())
 
 
+def print_status_writes(status_writes, moved):
+    """The window's Robot status writes (any answer), to moved robots and to the others."""
+    to_moved, to_others = Counter(), Counter()
+    for (name, kind), n in status_writes.items():
+        (to_moved if name in moved else to_others)[kind] += n
+    by_kind = ", ".join(f"{k} {n}" for k, n in to_moved.most_common())
+    print(f"Robot status writes received in the window (any answer): to the {len(moved)} moved "
+          f"robots {sum(to_moved.values())}, {sum(to_moved.values()) / len(moved):.2f} per robot "
+          f"({by_kind}); to the other robots {sum(to_others.values())}")
+
+
 def main():
     path, start, end = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
-    requests, watches, moved = read(path, start, end)
+    requests, watches, moved, status_writes = read(path, start, end)
     print(f"Robot requests received in the {end - start:.0f} s from the kill (audit log):\n")
     print("| client | verb | subresource | code | requests |")
     print("|---|---|---|---|---|")
@@ -140,6 +160,8 @@ def main():
         times = [t for _, t in moved.values()]
         print(f"\nRobots moved to another gateway and written there: {len(moved)}; their first "
               f"write answered after the kill, p50 / p99 / all: {quantiles(times)}")
+    if moved:
+        print_status_writes(status_writes, moved)
     if moved and len(sys.argv) > 4:
         lags = watch_lag(sys.argv[4], start, moved)
         if lags:

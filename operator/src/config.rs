@@ -262,8 +262,9 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_STATUS_QPS_MAX", default_value_t = 200.0)]
     pub status_qps_max: f64,
 
-    /// A status write answered slower than this (milliseconds) cuts the rate by a quarter (a
-    /// 429, a 5xx or a timeout halves it).
+    /// A status write answered slower than this (milliseconds) is slow: a second in which more
+    /// than a quarter of the answers were slow cuts the rate by a quarter (a 429, a 5xx or a
+    /// timeout halves it).
     #[arg(long, env = "LEKIWI_STATUS_SLOW_MS", default_value_t = 1000)]
     pub status_slow_ms: u64,
 
