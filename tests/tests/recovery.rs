@@ -4,7 +4,9 @@
 //! are still unwritten when the dead gateway's Lease expires. Its Lease claims them meanwhile
 //! (`fleet.lekiwi.io/claimed-robots`): none shows `Unknown`, each costs about one write; its
 //! moved robots are written before the robots that are simply new to it; a robot that does not
-//! come back still turns `Unknown`. And a write the dead gateway sent before it died, landing
+//! come back still turns `Unknown`; one that comes back and leaves again before its write (its
+//! claim dropped unwritten) ends `Offline` through the survivor without showing `Unknown`. And a
+//! write the dead gateway sent before it died, landing
 //! only after its Lease expired and after the robot's session on the survivor opened, shows the
 //! robot `Unknown` neither.
 //!
@@ -15,10 +17,12 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use futures::StreamExt;
+use k8s_openapi::api::coordination::v1::Lease;
 use kube::Api;
 use kube::api::{Patch, PatchParams};
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
+use lekiwi_crds::contract::CLAIMS_ANNOTATION;
 use lekiwi_crds::{Robot, RobotPhase};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
@@ -168,6 +172,24 @@ impl Fleet {
         Ok(sockets)
     }
 
+    /// Waits until gateway B's Lease claims robot `name`.
+    async fn claimed_by_b(&self, name: &str) -> anyhow::Result<()> {
+        let leases: Api<Lease> = Api::namespaced(self.client.clone(), &self.ns);
+        wait_for(
+            &format!("gw-b's Lease claiming {name}"),
+            Duration::from_secs(10),
+            || async {
+                let lease = leases.get("gw-b").await.ok()?;
+                let claims = lease.metadata.annotations?.remove(CLAIMS_ANNOTATION)?;
+                claims
+                    .split(',')
+                    .any(|c| c.rsplit('/').next() == Some(name))
+                    .then_some(())
+            },
+        )
+        .await
+    }
+
     /// Waits until every robot of `names` is Online through `gateway`.
     async fn all_online_via(&self, names: &[&str], gateway: &str) -> anyhow::Result<()> {
         wait_for(
@@ -196,8 +218,14 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
     let history = Histories::watch(&f.client, &f.ns);
     let on_a = f.robots("kiwi", ON_A).await?;
     let fresh = f.robots("new", FRESH).await?;
+    let leaver = f.robots("leaver", 1).await?;
     let sockets_a = f.connect(&f.a, &on_a).await?;
-    let names: Vec<&str> = on_a.iter().map(|(n, _)| n.as_str()).collect();
+    let leaver_a = f.connect(&f.a, &leaver).await?;
+    let names: Vec<&str> = on_a
+        .iter()
+        .chain(&leaver)
+        .map(|(n, _)| n.as_str())
+        .collect();
     f.all_online_via(&names, "gw-a").await?;
     // B's Robot watch has seen them on A.
     tokio::time::sleep(Duration::from_secs(1)).await;
@@ -205,12 +233,17 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
     let before = robot_and_event_writes(&f.cp)?;
     f.a.kill();
     let killed = Instant::now();
-    drop(sockets_a);
+    drop((sockets_a, leaver_a));
     // The new robots connect first, then the moved ones: B writes the moved ones first anyway.
     let _fresh_b = f.connect(&f.b, &fresh).await?;
     let (moved, lost) = on_a.split_at(ON_A - 1);
     let _moved_b = f.connect(&f.b, moved).await?;
     println!("reconnected {:?} after the kill", killed.elapsed());
+    // The leaver comes back last (written last) and leaves once B's Lease claims it.
+    let leaver_b = f.connect(&f.b, &leaver).await?;
+    let leaver = leaver[0].0.as_str();
+    f.claimed_by_b(leaver).await?;
+    drop(leaver_b);
 
     let moved_names: Vec<&str> = moved.iter().map(|(n, _)| n.as_str()).collect();
     f.all_online_via(&moved_names, "gw-b").await?;
@@ -220,12 +253,13 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
     lekiwi_tests::wait_phase(&f.client, &f.ns, lost, RobotPhase::Unknown, within).await?;
     let fresh_names: Vec<&str> = fresh.iter().map(|(n, _)| n.as_str()).collect();
     f.all_online_via(&fresh_names, "gw-b").await?;
+    lekiwi_tests::wait_phase(&f.client, &f.ns, leaver, RobotPhase::Offline, within).await?;
     // Room for any late controller write before counting.
     tokio::time::sleep(Duration::from_secs(2 * GATEWAY_LEASE_SECS)).await;
-    // The new robots and the lost one may cost a status write and an Event each; the rest is
-    // what the moved robots cost.
+    // The new robots, the lost one and the leaver may cost a status write and an Event each;
+    // the rest is what the moved robots cost.
     let writes = robot_and_event_writes(&f.cp)? - before;
-    let others = 2.0 * (FRESH + 1) as f64;
+    let others = 2.0 * (FRESH + 2) as f64;
     let per_moved = (writes - others).max(0.0) / moved.len() as f64;
     println!(
         "all {} moved robots Online via gw-b {recovered:?} after the kill; {writes} Robot/Event \
@@ -262,6 +296,17 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
         })
         .count();
     println!("{fresh_before} of {FRESH} new robots were written before the last moved one");
+    // The leaver's claim was dropped before B wrote it: the controller still counts it as
+    // claimed, so it goes from Online through A to Offline through B, nothing in between.
+    let left: Vec<_> = history
+        .of(leaver)
+        .into_iter()
+        .filter(|(_, _, t)| *t >= killed)
+        .map(|(p, g, _)| (p, g))
+        .collect();
+    println!("{leaver} showed {left:?} after the kill");
+    let offline_b = (Some(RobotPhase::Offline), Some("gw-b".to_owned()));
+    assert_eq!(left, [offline_b], "{leaver} after the kill");
     assert!(wrong.is_empty(), "{wrong:?} left Online after the kill");
     assert!(fresh_before <= 3, "{fresh_before} new robots went first");
     assert!(

@@ -84,6 +84,16 @@ pub struct ClaimIndex {
 }
 
 impl ClaimIndex {
+    /// Notes the claims of a gateway Lease version the Lease watch brought. Without it only the
+    /// versions read when a robot was looked at would be compared, and a claim made and
+    /// dropped between two such looks (a robot that came back and left again before its
+    /// write) would never count as dropped.
+    pub fn observe(&self, lease: &Lease, now: Timestamp) {
+        if lease.labels().contains_key(GATEWAY_LEASE_LABEL) {
+            self.claims_of(lease, now);
+        }
+    }
+
     /// The live gateway other than `holder` whose Lease claims robot `namespace/name`, or
     /// dropped its claim less than [`RELEASED_GRACE`] ago, if any.
     pub fn claimant(
@@ -216,6 +226,29 @@ mod tests {
         let at_later = |robot: &str| index.claimant(&store, "gw-a", "fleet", robot, later);
         assert_eq!(at_later("kiwi-2"), None, "dropped 31 s ago");
         assert_eq!(at_later("kiwi-1").as_deref(), Some("gw-b"));
+    }
+
+    /// A claim made and dropped while no robot was looked at still counts for the grace, if
+    /// the Lease watch brought the version that had it.
+    #[test]
+    fn a_claim_the_watch_saw_counts_though_dropped_before_a_look() {
+        let (store, mut writer) = reflector::store::<Lease>();
+        let index = ClaimIndex::default();
+        let now = Timestamp::now();
+        for (version, claims) in [("1", None), ("2", Some("fleet/kiwi-1")), ("3", None)] {
+            let l = lease("gw-b", version, 0, claims);
+            index.observe(&l, now);
+            writer.apply_watcher_event(&watcher::Event::Apply(l));
+        }
+        let who = |at: Timestamp| index.claimant(&store, "gw-a", "fleet", "kiwi-1", at);
+        assert_eq!(who(now).as_deref(), Some("gw-b"));
+        assert_eq!(who(now + jiff::SignedDuration::from_secs(31)), None);
+        let unwatched = ClaimIndex::default();
+        assert_eq!(
+            unwatched.claimant(&store, "gw-a", "fleet", "kiwi-1", now),
+            None,
+            "a look alone sees only the latest version"
+        );
     }
 
     /// A connected robot's status written by its gateway after that gateway's Lease expired
