@@ -10,7 +10,10 @@ charged to whoever was refused, a list of every Robot to whoever asked for it.
 
 It splits the Robot status writes received in the window into those to the moved robots (per
 moved robot, by gateways and by the controller; the issue's "at most one status write per robot
-moving") and those to the others (mostly routine refreshes).
+moving") and those to the others (mostly routine refreshes), and tabulates the gateways' status
+writes per 20 s: how many a second, how fast they were answered, and how many were in flight on
+average (the writer's cap is --status-concurrency): answers slowing while fewer than the cap
+are in flight say the API server, not the writer, sets the pace.
 
 It also times the recovery by the API server's own clock: for each robot a gateway other than
 the one that wrote it last before FROM writes after it (a moved robot), when that write was
@@ -26,6 +29,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from recovery_report import percentile  # noqa: E402
+
+
+PACE_BUCKET = 20
+"""Seconds per row of the status-write pace table."""
 
 
 def seconds(stamp):
@@ -53,6 +60,7 @@ def read(path, start, end):
     the window: (name, "gateway" or the client) -> count."""
     requests = Counter()
     status_writes = Counter()
+    answers = defaultdict(list)
     watches = defaultdict(list)
     last_writer, moved = {}, {}
     with open(path) as log:
@@ -81,7 +89,10 @@ def read(path, start, end):
             if verb == "patch" and ref.get("subresource") == "status":
                 kind = "gateway" if who.startswith("gateway; ") else who.split(";")[0]
                 status_writes[(ref.get("name"), kind)] += 1
-    return requests, watches, moved, status_writes
+                if kind == "gateway":
+                    took = seconds(event["stageTimestamp"]) - received
+                    answers[int((received - start) // PACE_BUCKET)].append(took)
+    return requests, watches, moved, status_writes, answers
 
 
 def note_write(event, start, last_writer, moved):
@@ -124,6 +135,18 @@ def watch_lag(path, start, moved):
     return list(seen.values())
 
 
+def print_pace(answers):
+    """The gateways' status writes per PACE_BUCKET seconds: rate, answer times, in flight."""
+    print(f"\nGateways' Robot status writes per {PACE_BUCKET} s from the kill (audit log):\n")
+    print("| from | writes/s | answered p50 / p90 / max | in flight, mean |")
+    print("|---|---|---|---|")
+    for bucket in sorted(answers):
+        took = answers[bucket]
+        times = " / ".join(f"{percentile(took, p):.2f}" for p in (0.5, 0.9, 1.0))
+        print(f"| {bucket * PACE_BUCKET} s | {len(took) / PACE_BUCKET:.1f} | {times} s | "
+              f"{sum(took) / PACE_BUCKET:.1f} |")
+
+
 def print_status_writes(status_writes, moved):
     """The window's Robot status writes (any answer), to moved robots and to the others."""
     to_moved, to_others = Counter(), Counter()
@@ -137,7 +160,7 @@ def print_status_writes(status_writes, moved):
 
 def main():
     path, start, end = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
-    requests, watches, moved, status_writes = read(path, start, end)
+    requests, watches, moved, status_writes, answers = read(path, start, end)
     print(f"Robot requests received in the {end - start:.0f} s from the kill (audit log):\n")
     print("| client | verb | subresource | code | requests |")
     print("|---|---|---|---|---|")
@@ -162,6 +185,8 @@ def main():
               f"write answered after the kill, p50 / p99 / all: {quantiles(times)}")
     if moved:
         print_status_writes(status_writes, moved)
+    if answers:
+        print_pace(answers)
     if moved and len(sys.argv) > 4:
         lags = watch_lag(sys.argv[4], start, moved)
         if lags:
