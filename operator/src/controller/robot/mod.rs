@@ -193,8 +193,10 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
 }
 
 /// How long to look again instead of calling `robot`, whose gateway is gone, `Unknown`: while a
-/// live gateway claims it, or while its status may be a write that outlived its gateway (see
-/// [`claims::late_write_wait`]); `None` when nothing holds it back.
+/// live gateway claims it, while a live gateway has not renewed its Lease (and claims) since
+/// that gateway's expired (see [`claims::renewal_wait`]), or while its status may be a write
+/// that outlived its gateway (see [`claims::late_write_wait`]); `None` when nothing holds it
+/// back.
 fn hold_unknown(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Duration> {
     if let Some(claimant) = claimed_elsewhere(ctx, robot, now) {
         // Its session is on a live gateway whose write is on its way: no Unknown meanwhile.
@@ -202,6 +204,15 @@ fn hold_unknown(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Duration
         return Some(CLAIM_RECHECK);
     }
     let leases = ctx.gateway_leases.as_ref()?;
+    let gateway = (robot.status.as_ref())
+        .filter(|s| s.connected == Some(true))
+        .and_then(|s| s.gateway.as_deref());
+    if let Some(wait) =
+        gateway.and_then(|gw| claims::renewal_wait(leases, &ctx.config.namespace, gw, now))
+    {
+        debug!("waiting for the live gateways to renew their Leases (and claims) once more");
+        return Some(wait);
+    }
     let wait = claims::late_write_wait(leases, &ctx.config.namespace, robot, now)?;
     // The gateway that holds the robot now claims it once it sees that write.
     debug!(
@@ -242,7 +253,9 @@ fn claimed_elsewhere(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Str
 /// per-robot Events is spent.
 async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &plan::Plan) {
     let namespace = robot.namespace().unwrap_or_default();
-    let gateway = robot.status.as_ref().and_then(|s| s.gateway.as_deref());
+    let gateway = (robot.status.as_ref())
+        .filter(|s| s.connected == Some(true))
+        .and_then(|s| s.gateway.as_deref());
     if ctx.robot_events.admit(&namespace, gateway, plan.phase) == events::Publish::Summarised {
         return;
     }
