@@ -253,9 +253,7 @@ fn claimed_elsewhere(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Str
 /// per-robot Events is spent.
 async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &plan::Plan) {
     let namespace = robot.namespace().unwrap_or_default();
-    let gateway = (robot.status.as_ref())
-        .filter(|s| s.connected == Some(true))
-        .and_then(|s| s.gateway.as_deref());
+    let gateway = robot.status.as_ref().and_then(|s| s.gateway.as_deref());
     if ctx.robot_events.admit(&namespace, gateway, plan.phase) == events::Publish::Summarised {
         return;
     }
