@@ -39,12 +39,7 @@ pub fn late_write_wait(
     robot: &Robot,
     now: Timestamp,
 ) -> Option<std::time::Duration> {
-    let status = robot.status.as_ref()?;
-    if status.connected != Some(true) {
-        return None;
-    }
-    let lease = leases.get(&ObjectRef::new(status.gateway.as_deref()?).within(namespace))?;
-    let expired = valid_until(&lease)?;
+    let (_, expired) = connected_through_expired(leases, namespace, robot)?;
     let written = robot
         .metadata
         .managed_fields
@@ -66,10 +61,10 @@ pub fn late_write_wait(
 /// How soon a robot of a dead gateway is looked at again while [`renewal_wait`] holds it.
 const RENEWAL_RECHECK: std::time::Duration = std::time::Duration::from_secs(1);
 
-/// How long to wait before calling a connected robot of gateway `dead` (whose Lease, in
-/// `leases`, namespace `namespace`, expired) `Unknown`: `Some` while another live gateway's Lease
-/// was last renewed before `dead`'s expired. A gateway lists every robot that moved to it and is
-/// not written yet in each renewal, so one renewed after the expiry claims every robot that
+/// How long to wait before calling connected robot `robot`, whose gateway's Lease (in
+/// `leases`, namespace `namespace`) expired, `Unknown`: `Some` while another live gateway's Lease
+/// was last renewed before that expiry. A gateway lists every robot that moved to it and is not
+/// written yet in each renewal, so one renewed after the expiry claims every robot that
 /// reconnected before it; without this wait a robot that reconnected in the last seconds before
 /// the expiry turned `Unknown` when the renewal claiming it was still on its way (64 of 5,000 in
 /// a kill benchmark). Bounded: a live gateway renews every third of its Lease, and one that
@@ -77,21 +72,46 @@ const RENEWAL_RECHECK: std::time::Duration = std::time::Duration::from_secs(1);
 pub fn renewal_wait(
     leases: &Store<Lease>,
     namespace: &str,
-    dead: &str,
+    robot: &Robot,
     now: Timestamp,
 ) -> Option<std::time::Duration> {
-    let dead_lease = leases.get(&ObjectRef::new(dead).within(namespace))?;
-    let expired = valid_until(&dead_lease)?;
-    leases
-        .state()
-        .iter()
-        .filter(|l| l.labels().contains_key(GATEWAY_LEASE_LABEL))
-        .filter(|l| l.name_any() != dead && lease_alive(l, now))
+    let (dead, expired) = connected_through_expired(leases, namespace, robot)?;
+    live_others(leases, dead, now)
         .any(|l| {
             let renewed = l.spec.as_ref().and_then(|s| s.renew_time.as_ref());
             renewed.is_none_or(|t| t.0 < expired)
         })
         .then_some(RENEWAL_RECHECK)
+}
+
+/// The gateway a connected `robot`'s status names and when its Lease (in `leases`, namespace
+/// `namespace`) stops or stopped being valid; `None` for a disconnected robot or a gateway
+/// without a Lease.
+fn connected_through_expired<'r>(
+    leases: &Store<Lease>,
+    namespace: &str,
+    robot: &'r Robot,
+) -> Option<(&'r str, Timestamp)> {
+    let status = robot
+        .status
+        .as_ref()
+        .filter(|s| s.connected == Some(true))?;
+    let gateway = status.gateway.as_deref()?;
+    let lease = leases.get(&ObjectRef::new(gateway).within(namespace))?;
+    Some((gateway, valid_until(&lease)?))
+}
+
+/// The live gateway Leases of `leases` other than `holder`'s.
+fn live_others<'a>(
+    leases: &Store<Lease>,
+    holder: &'a str,
+    now: Timestamp,
+) -> impl Iterator<Item = Arc<Lease>> + 'a {
+    leases
+        .state()
+        .into_iter()
+        .filter(|l| l.labels().contains_key(GATEWAY_LEASE_LABEL))
+        .filter(move |l| l.name_any() != holder && lease_alive(l, now))
 }
 
 /// The claimed `namespace/name` entries of one Lease version (its resourceVersion).
@@ -136,12 +156,7 @@ impl ClaimIndex {
         now: Timestamp,
     ) -> Option<String> {
         let robot = format!("{namespace}/{name}");
-        let live: Vec<Arc<Lease>> = leases
-            .state()
-            .into_iter()
-            .filter(|l| l.labels().contains_key(GATEWAY_LEASE_LABEL))
-            .filter(|l| l.name_any() != holder && lease_alive(l, now))
-            .collect();
+        let live: Vec<Arc<Lease>> = live_others(leases, holder, now).collect();
         // Every live Lease is read (and its dropped claims noted) before `released` is.
         if let Some(l) = live
             .iter()
@@ -293,15 +308,24 @@ mod tests {
             writer.apply_watcher_event(&watcher::Event::Apply(lease(name, "1", ago, None)));
         }
         let now = Timestamp::now();
-        let wait = |dead: &str| renewal_wait(&store, "ops", dead, now);
+        let wait = |gateway: &str, connected: bool| {
+            let mut r = Robot::new("kiwi-1", lekiwi_crds::RobotSpec::default());
+            r.status = Some(lekiwi_crds::RobotStatus {
+                connected: Some(connected),
+                gateway: Some(gateway.into()),
+                ..lekiwi_crds::RobotStatus::default()
+            });
+            renewal_wait(&store, "ops", &r, now)
+        };
         assert_eq!(
-            wait("gw-a"),
+            wait("gw-a", true),
             Some(RENEWAL_RECHECK),
             "gw-b not renewed since"
         );
+        assert_eq!(wait("gw-a", false), None, "a disconnected robot");
         writer.apply_watcher_event(&watcher::Event::Apply(lease("gw-b", "2", 0, None)));
-        assert_eq!(wait("gw-a"), None, "every live gateway renewed since");
-        assert_eq!(wait("gw-x"), None, "no Lease: no expiry to wait past");
+        assert_eq!(wait("gw-a", true), None, "every live gateway renewed since");
+        assert_eq!(wait("gw-x", true), None, "no Lease: no expiry to wait past");
     }
 
     /// A connected robot's status written by its gateway after that gateway's Lease expired

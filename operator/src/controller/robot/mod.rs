@@ -204,12 +204,7 @@ fn hold_unknown(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Duration
         return Some(CLAIM_RECHECK);
     }
     let leases = ctx.gateway_leases.as_ref()?;
-    let gateway = (robot.status.as_ref())
-        .filter(|s| s.connected == Some(true))
-        .and_then(|s| s.gateway.as_deref());
-    if let Some(wait) =
-        gateway.and_then(|gw| claims::renewal_wait(leases, &ctx.config.namespace, gw, now))
-    {
+    if let Some(wait) = claims::renewal_wait(leases, &ctx.config.namespace, robot, now) {
         debug!("waiting for the live gateways to renew their Leases (and claims) once more");
         return Some(wait);
     }
