@@ -90,10 +90,10 @@ impl Dispatch {
     fn applied(&self, old: Option<&Robot>, robot: &Robot) {
         let key = RobotKey::new(robot.namespace().unwrap_or_default(), robot.name_any());
         let holder = Holder::of(robot);
-        if let (Some(epoch), Some(other)) = (holder.epoch, holder.gateway.as_deref())
-            && other != self.gateway
-        {
-            if self.registry.moved(&key, epoch) {
+        if let (Some(epoch), Some(other)) = (holder.epoch, holder.gateway.as_deref()) {
+            if other == self.gateway {
+                self.presence.write_seen(&key, epoch);
+            } else if self.registry.moved(&key, epoch) {
                 info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
             } else if self.presence.moved_later(&key, epoch) {
                 debug!(robot = %key, gateway = other, "the robot's status names an earlier session on another gateway; claiming it");

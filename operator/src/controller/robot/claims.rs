@@ -2,8 +2,8 @@
 //! robots that moved to it and are not written yet in its Lease
 //! ([`lekiwi_crds::contract::CLAIMS_ANNOTATION`]); the Robot controller does not mark those
 //! `Unknown` (the claimant's status write, queued first, follows within seconds). A dropped
-//! claim (the write landed) still counts for [`RELEASED_GRACE`]: the Lease watch can be ahead of
-//! the Robot watch that brings the write.
+//! claim (the claimant's own Robot watch showed the write) still counts for [`RELEASED_GRACE`]:
+//! this controller's Robot watch can be behind the claimant's.
 //!
 //! A write the dead gateway sent before it died can land after its Lease expired (an API server
 //! answering seconds late). The gateway that holds the robot now claims it once its own watch
@@ -118,9 +118,9 @@ fn live_others<'a>(
 type Parsed = (Option<String>, Arc<HashSet<String>>);
 
 /// How long after a live gateway dropped its claim on a robot the robot still counts as claimed
-/// by it. A gateway drops a claim once its status write of the robot landed, and the controller's
-/// Lease watch can bring that sooner than its Robot watch brings the write (a kill benchmark's
-/// Robot watch ran up to 36 s late): planning `Unknown` from the older status meanwhile would be
+/// by it. A gateway drops a claim once its own Robot watch shows its status write of the robot;
+/// this controller's Robot watch can be behind that one (and a robot that leaves before its
+/// write drops its claim at once): planning `Unknown` from the older status meanwhile would be
 /// refused (409) at best, once per moved robot.
 pub const RELEASED_GRACE: std::time::Duration = std::time::Duration::from_secs(30);
 

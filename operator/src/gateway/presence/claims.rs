@@ -1,25 +1,47 @@
 //! The robots this gateway claims: sessions of robots whose status still names another gateway
-//! because their first write here has not landed. The gateway's Lease lists them
+//! because their first write here has not landed, or landed but this gateway's Robot watch has
+//! not shown it yet. The gateway's Lease lists them
 //! ([`lekiwi_crds::contract::CLAIMS_ANNOTATION`]), so the Robot controller does not mark them
 //! `Unknown` when that other gateway's Lease expires (one write per moved robot, not two).
+//!
+//! A claim is dropped when this gateway's own watch shows the write, not when the write is
+//! answered: a saturated API server sends watch events a minute or more late, to the Robot
+//! controller as to this gateway, and a claim dropped at the answer would reach the controller
+//! (through the Lease) long before the write does; it would plan `Unknown` from the status it
+//! still has, and be refused (409) once per moved robot.
 //!
 //! A session learns at its start, from the gateway's Robot cache, whether its robot moved. The
 //! cache can be behind: the old gateway's last write may land, or reach this gateway's watch,
 //! only after the session here opened (an API server answering seconds late). Such a write,
 //! older than the session, makes the robot claimed then ([`Presence::moved_later`]).
 
+use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
 
-use super::{Presence, Priority};
+use super::{Entry, Presence, Priority};
 use crate::gateway::event_store::RobotKey;
+
+/// How long a claim outlives its robot's last write when this gateway's Robot watch does not
+/// show that write (a watch that is listing again, say): the write landed, so the claim is
+/// not needed for the robot's sake, and it would take room in the Lease annotation.
+pub const CLAIM_AFTER_WRITE: SignedDuration = SignedDuration::from_secs(120);
+
+/// Whether `e` is claimed at `now`.
+fn claimed(e: &Entry, now: Timestamp) -> bool {
+    e.moved
+        && e.connected
+        && e.written_at
+            .is_none_or(|at| now.duration_since(at) < CLAIM_AFTER_WRITE)
+}
 
 impl Presence {
     /// The robots claimed now, oldest session first (those the writer takes first).
     pub fn claims(&self) -> Vec<RobotKey> {
+        let now = Timestamp::now();
         let mut claimed: Vec<(u64, RobotKey)> = self.with_state(|s| {
             s.robots
                 .iter()
-                .filter(|(_, e)| e.moved && e.connected)
+                .filter(|(_, e)| claimed(e, now))
                 .map(|(k, e)| (e.session, k.clone()))
                 .collect()
         });
@@ -43,6 +65,19 @@ impl Presence {
     /// Returns once a robot moved here since the last call (or at once if one did meanwhile).
     pub async fn claims_changed(&self) {
         self.claims_changed.notified().await;
+    }
+
+    /// The Robot cache shows `key`'s status written by this gateway's session with epoch
+    /// `epoch`: a claim on the robot has done its job and is dropped (with the Lease's next
+    /// renewal). Epochs are unique to a session, so only that session's write shows it.
+    pub fn write_seen(&self, key: &RobotKey, epoch: i64) {
+        self.with_state(|s| {
+            if let Some(e) = s.robots.get_mut(key)
+                && e.epoch == epoch
+            {
+                e.moved = false;
+            }
+        });
     }
 
     /// The Robot cache shows `key`'s status naming another gateway with session epoch

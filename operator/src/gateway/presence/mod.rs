@@ -156,8 +156,9 @@ struct Entry {
     /// A session of a robot last written as disconnected, not written yet: its first write
     /// waits until it has lasted [`SETTLE`] (or something else must be written).
     settling: bool,
-    /// The robot's status named another gateway when this session opened, and no write of this
-    /// session has landed yet: the gateway claims it in its Lease (see [`claims`]).
+    /// The robot's status named another gateway when this session opened, and this gateway's
+    /// Robot watch has not shown a write of this session yet: the gateway claims it in its
+    /// Lease (see [`claims`]).
     moved: bool,
 }
 

@@ -503,7 +503,8 @@ fn a_moved_session_is_forgotten_without_a_write() {
 }
 
 /// A robot that moved here is written before every transition and refresh, and claimed (in
-/// the Lease annotation) until its write lands or its session ends.
+/// the Lease annotation) until the Robot watch shows its write (or long after the write, if the
+/// watch never does) or its session ends.
 #[test]
 fn moved_robots_go_first_and_are_claimed_until_written() {
     let p = presence();
@@ -525,7 +526,22 @@ fn moved_robots_go_first_and_are_claimed_until_written() {
         s.take_for_write(&key("m1")).unwrap()
     });
     p.written(&key("m1"), &m1);
-    assert_eq!(p.claims(), [key("m2")], "written: no claim any more");
+    assert_eq!(p.claims(), [key("m1"), key("m2")], "written, not yet seen");
+    p.write_seen(&key("m1"), 999);
+    assert_eq!(
+        p.claims(),
+        [key("m1"), key("m2")],
+        "another session's write"
+    );
+    p.write_seen(&key("m1"), 1_000);
+    assert_eq!(p.claims(), [key("m2")], "its write seen: no claim any more");
+    let m2 = p.with_state(|s| s.take_for_write(&key("m2")).unwrap());
+    p.written(&key("m2"), &m2);
+    let long_ago = Timestamp::now() - super::claims::CLAIM_AFTER_WRITE;
+    p.with_state(|s| s.robots.get_mut(&key("m2")).unwrap().written_at = Some(long_ago));
+    assert!(p.claims().is_empty(), "written long ago and never seen");
+    p.with_state(|s| s.robots.get_mut(&key("m2")).unwrap().written_at = None);
+    assert_eq!(p.claims(), [key("m2")]);
     p.disconnect(&key("m2"), 3);
     assert!(p.claims().is_empty(), "a session that ended claims nothing");
     assert_eq!(p.claims_annotation(), None);

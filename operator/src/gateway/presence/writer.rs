@@ -226,8 +226,8 @@ impl Presence {
                 if e.session == entry.session {
                     e.written_heartbeat = Some(entry.last_heartbeat);
                     e.written_at = Some(Timestamp::now());
-                    // The status names this gateway now: no claim needed any more.
-                    e.moved &= !entry.connected;
+                    // A claim stays until this gateway's Robot watch shows the write
+                    // (`Presence::write_seen`): the Robot controller's watch is seldom ahead of it.
                 }
                 // A disconnected robot written as such needs no memory any more, except that
                 // the status says so.
