@@ -234,7 +234,7 @@ where
 }
 
 /// Registers the session (replacing an older one) with an epoch above the one the robot's
-/// status shows, records the connection and tells presence (whether the robot moved here).
+/// status shows, tells presence (whether the robot moved here), then records the connection.
 async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
     let holder = shared.desired.as_ref().and_then(|d| d.holder(key));
     let seen = holder.as_ref().and_then(|h| h.epoch);
@@ -252,6 +252,11 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
         disconnected_at_ms: None,
         reason: None,
     };
+    // Presence first, and with it the claim of a moved robot: in a reconnect storm the event
+    // store can take seconds to answer, and the Robot controller marks a dead gateway's robots
+    // `Unknown` once the live gateways' Leases renewed after its expiry (the claims they list).
+    // A claim that waited for the store missed that renewal (42 of 5,000 in a kill benchmark).
+    shared.presence.connect_moved(key, id, epoch, hello, moved);
     let start = Box::pin(shared.store.open_session(key, &record)).await;
     let record_id = start
         .record_id
@@ -265,7 +270,6 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
         })
         // Stored before seqs were bounded: not a number to tell an agent; say nothing.
         .filter(|s| *s <= MAX_SEQ);
-    shared.presence.connect_moved(key, id, epoch, hello, moved);
     shared.metrics.gateway.connections.inc();
     info!(session = id, epoch, ?stored_seq, "agent connected");
     Opened {
