@@ -34,6 +34,11 @@ from recovery_report import percentile  # noqa: E402
 PACE_BUCKET = 20
 """Seconds per row of the status-write pace table."""
 
+REFRESH_PERIOD = 300
+"""The gateways' routine refresh period (--status-refresh-seconds, which the benchmark leaves at
+its default): a robot written on its new gateway gets (window end - then) / period routine
+refreshes in the window on average."""
+
 
 def seconds(stamp):
     """Unix seconds of an RFC 3339 time stamp with microseconds, as the audit log writes them."""
@@ -57,9 +62,9 @@ def read(path, start, end):
     """Completed requests received in [start, end), the watches begun in it (with their
     duration if they ended), the moved robots' first writes after `start`: name ->
     (new gateway, seconds after `start` it was answered), and the status writes received in
-    the window: (name, "gateway" or the client) -> count."""
+    the window: (name, "gateway" or the client) -> seconds after `start` each was received."""
     requests = Counter()
-    status_writes = Counter()
+    status_writes = defaultdict(list)
     answers = defaultdict(list)
     watches = defaultdict(list)
     last_writer, moved = {}, {}
@@ -88,7 +93,7 @@ def read(path, start, end):
             requests[(who, verb, ref.get("subresource", ""), code)] += 1
             if verb == "patch" and ref.get("subresource") == "status":
                 kind = "gateway" if who.startswith("gateway; ") else who.split(";")[0]
-                status_writes[(ref.get("name"), kind)] += 1
+                status_writes[(ref.get("name"), kind)].append(received - start)
                 if kind == "gateway":
                     took = seconds(event["stageTimestamp"]) - received
                     answers[int((received - start) // PACE_BUCKET)].append(took)
@@ -147,15 +152,30 @@ def print_pace(answers):
               f"{sum(took) / PACE_BUCKET:.1f} |")
 
 
-def print_status_writes(status_writes, moved):
-    """The window's Robot status writes (any answer), to moved robots and to the others."""
+def print_status_writes(status_writes, moved, window):
+    """The window's Robot status writes (any answer), to moved robots and to the others; those
+    to moved robots split at each one's first write on its new gateway."""
     to_moved, to_others = Counter(), Counter()
-    for (name, kind), n in status_writes.items():
-        (to_moved if name in moved else to_others)[kind] += n
-    by_kind = ", ".join(f"{k} {n}" for k, n in to_moved.most_common())
-    print(f"Robot status writes received in the window (any answer): to the {len(moved)} moved "
-          f"robots {sum(to_moved.values())}, {sum(to_moved.values()) / len(moved):.2f} per robot "
+    upto, after = 0, 0
+    for (name, kind), times in status_writes.items():
+        (to_moved if name in moved else to_others)[kind] += len(times)
+        if name in moved:
+            written = moved[name][1]
+            # Received after the move write was answered: a later write, not one of the move's.
+            late = sum(1 for t in times if t > written)
+            after += late
+            upto += len(times) - late
+    n = len(moved)
+    expected = sum(max(window - t, 0) for _, t in moved.values()) / REFRESH_PERIOD
+    by_kind = ", ".join(f"{k} {v}" for k, v in to_moved.most_common())
+    print(f"Robot status writes received in the window (any answer): to the {n} moved "
+          f"robots {sum(to_moved.values())}, {sum(to_moved.values()) / n:.2f} per robot "
           f"({by_kind}); to the other robots {sum(to_others.values())}")
+    print(f"  to moved robots up to each one's first write on its new gateway (the move itself, "
+          f"refused tries and the controller's writes before it): {upto}, {upto / n:.2f} per robot; "
+          f"after it, to the window's end: {after}, {after / n:.2f} per robot (routine refreshes "
+          f"at each robot's point of the {REFRESH_PERIOD} s period, expected "
+          f"{expected:.0f} = {expected / n:.2f} per robot; transitions; the controller's)")
 
 
 def main():
@@ -184,7 +204,7 @@ def main():
         print(f"\nRobots moved to another gateway and written there: {len(moved)}; their first "
               f"write answered after the kill, p50 / p99 / all: {quantiles(times)}")
     if moved:
-        print_status_writes(status_writes, moved)
+        print_status_writes(status_writes, moved, end - start)
     if answers:
         print_pace(answers)
     if moved and len(sys.argv) > 4:

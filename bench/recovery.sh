@@ -54,9 +54,16 @@
 #!                          in production they are other machines) at this CPU niceness, so on a
 #!                          small host they take CPU from the control plane only when it has some
 #!                          to spare (default 10; 0 = same priority as the control plane)
+#!   --control-plane-nice N etcd and the API server at this CPU niceness (-20 to 19, default 0;
+#!                          e.g. -5 gives them the CPU first, as a cluster's own control-plane
+#!                          nodes would: the control plane this benchmark measures stays at 0)
 #!   --audit                kill: the API server writes an audit log of every Robot request
 #!                          (level Metadata); the results then say who was refused (409), who
 #!                          listed and watched, by client (bench/audit_report.py)
+#!   --profile S            kill: a CPU profile of the API server over the S seconds from the kill
+#!                          (its /debug/pprof), summed by what the API server did (bench/
+#!                          apiserver_profile.py; needs `go`, which scripts/setup.sh installs to
+#!                          build the API server); the profile is kept with --keep
 #!   -h, --help             this text
 #!
 #! Writes the table to bench/results/recovery-<scenario>-<date>.txt and
@@ -85,6 +92,8 @@ AFTER_RESTART=60
 BUILD=1
 KEEP=0
 AUDIT=0
+PROFILE=0
+CP_NICE=0
 WORLD_NICE=10
 TLS=0
 GATEWAYS=2
@@ -117,6 +126,10 @@ while [ $# -gt 0 ]; do
     --bin) [ -d "${2:-}" ] || die "--bin needs a directory"; BIN="$(cd "$2" && pwd)"; BUILD=0; shift 2 ;;
     --keep) KEEP=1; shift ;;
     --audit) AUDIT=1; shift ;;
+    --control-plane-nice)
+      [[ "${2:-}" =~ ^-?([0-9]|1[0-9]|20)$ ]] && [ "$2" -le 19 ] || die "--control-plane-nice is a niceness from -20 to 19"
+      CP_NICE="$2"; shift 2 ;;
+    --profile) positive_int "$1" "${2:-}"; PROFILE="$2"; shift 2 ;;
     --world-nice)
       [[ "${2:-}" =~ ^([0-9]|1[0-9])$ ]] || die "--world-nice is a niceness from 0 to 19"
       WORLD_NICE="$2"; shift 2 ;;
@@ -137,6 +150,8 @@ take_bench_lock
 [ "$SCENARIO" != steady ] || ROBOTS="${STEADY_SIZES##*,}"
 [ "$SCENARIO" = steady ] || [ "$GATEWAYS" = 2 ] || die "--gateways is for --scenario steady (kill and first-boot run two)"
 [ "$AUDIT" = 0 ] || [ "$SCENARIO" = kill ] || die "--audit is for --scenario kill"
+[ "$PROFILE" = 0 ] || [ "$SCENARIO" = kill ] || die "--profile is for --scenario kill"
+[ "$PROFILE" = 0 ] || command -v go >/dev/null || die "--profile needs go (apt-get install golang-go)"
 # The replicas' names: gw-a, gw-b, ...
 GW_NAMES=()
 for ((i = 0; i < GATEWAYS; i++)); do GW_NAMES+=("gw-$(printf "\\$(printf %o $((97 + i)))")"); done
@@ -220,6 +235,14 @@ EOF
   export LEKIWI_APISERVER_ARGS="--audit-policy-file=$WORK/audit-policy.yaml --audit-log-path=$WORK/audit.log"
 fi
 start_control_plane
+if [ "$CP_NICE" != 0 ]; then
+  # Every thread: renice changes one thread only, and threads started later take their
+  # creator's niceness.
+  for pid in "$(cat "$CP_DIR/etcd.pid")" "$(cat "$CP_DIR/kube-apiserver.pid")"; do
+    for task in /proc/"$pid"/task/*; do renice -n "$CP_NICE" -p "${task##*/}" >/dev/null; done
+  done
+fi
+fact control_plane_nice "$CP_NICE"
 kubectl create namespace lekiwi-system >/dev/null
 kubectl create namespace bench >/dev/null
 TOKEN="lke_$(openssl rand -hex 32)"
@@ -360,6 +383,12 @@ scenario_kill() {
   fact kill_time "$T_KILL"
   log "SIGKILL gw-a (pid ${GW_PID[gw-a]})"
   kill -KILL "${GW_PID[gw-a]}"
+  if [ "$PROFILE" != 0 ]; then
+    start apiserver-profile curl -fsS --max-time $((PROFILE + 60)) --cacert "$CP_DIR/pki/ca.crt" \
+      -H "Authorization: Bearer $(cat "$CP_DIR/admin-token")" -o "$WORK/apiserver.pprof" \
+      "https://127.0.0.1:$APISERVER_PORT/debug/pprof/profile?seconds=$PROFILE"
+    PROFILE_PID=$LAST_PID
+  fi
   wait "${GW_PID[gw-a]}" 2>/dev/null || true
   forget "${GW_PID[gw-a]}"
   # Where the machine's CPU goes while the survivor takes over (reported over the window below).
@@ -571,6 +600,15 @@ OUT="$RESULTS/recovery-$SCENARIO-$(date +%Y%m%d-%H%M%S).txt"
 python3 "$ROOT/bench/recovery_report.py" "$WORK" | tee "$OUT"
 if [ "$AUDIT" = 1 ] && [ -n "${AUDIT_TO:-}" ]; then
   { echo; python3 "$ROOT/bench/audit_report.py" "$WORK/audit.log" "$T_KILL" "$AUDIT_TO" "$WORK/robots.log"; } | tee -a "$OUT"
+fi
+if [ "$PROFILE" != 0 ] && [ -n "${PROFILE_PID:-}" ]; then
+  wait "$PROFILE_PID" 2>/dev/null || true
+  forget "$PROFILE_PID"
+  if [ -s "$WORK/apiserver.pprof" ]; then
+    { echo; python3 "$ROOT/bench/apiserver_profile.py" "$WORK/apiserver.pprof"; } | tee -a "$OUT"
+  else
+    log "no API server profile: $(tail -2 "$WORK/apiserver-profile.log")"
+  fi
 fi
 cp "$OUT" "$RESULTS/recovery-$SCENARIO-latest.txt"
 log "table written to $OUT"

@@ -126,6 +126,9 @@ def header(f, what):
     nice = f.get("world_nice", "0")
     print(f"- simulated robots and HAProxy at CPU niceness {nice}"
           + (" (the control plane first)" if nice != "0" else " (as the control plane)"))
+    cp_nice = f.get("control_plane_nice", "0")
+    if cp_nice != "0":
+        print(f"- etcd and the API server at CPU niceness {cp_nice} (the operator, PostgreSQL at 0)")
 
 
 def report_first_boot(work, f):
