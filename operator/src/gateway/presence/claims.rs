@@ -21,17 +21,21 @@ use lekiwi_crds::contract::encode_claims;
 use super::{Entry, Presence, Priority};
 use crate::gateway::event_store::RobotKey;
 
-/// How long a claim outlives its robot's last write when this gateway's Robot watch does not
-/// show that write (a watch that is listing again, say): the write landed, so the claim is
-/// not needed for the robot's sake, and it would take room in the Lease annotation.
+/// How long a claim outlives its robot's last landed write when this gateway's Robot watch
+/// does not show that write (a watch that is listing again, say): the write landed, so the
+/// claim is not needed for the robot's sake, and it would take room in the Lease annotation.
+/// Then the claim ends for good (a later write does not bring it back).
 pub const CLAIM_AFTER_WRITE: SignedDuration = SignedDuration::from_secs(120);
 
-/// Whether `e` is claimed at `now`.
-fn claimed(e: &Entry, now: Timestamp) -> bool {
-    e.moved
-        && e.connected
+/// Whether `e` is claimed at `now`; a claim past [`CLAIM_AFTER_WRITE`] is ended here.
+fn still_claimed(e: &mut Entry, now: Timestamp) -> bool {
+    if e.moved
         && e.written_at
-            .is_none_or(|at| now.duration_since(at) < CLAIM_AFTER_WRITE)
+            .is_some_and(|at| now.duration_since(at) >= CLAIM_AFTER_WRITE)
+    {
+        e.moved = false;
+    }
+    e.moved && e.connected
 }
 
 impl Presence {
@@ -40,9 +44,8 @@ impl Presence {
         let now = Timestamp::now();
         let mut claimed: Vec<(u64, RobotKey)> = self.with_state(|s| {
             s.robots
-                .iter()
-                .filter(|(_, e)| claimed(e, now))
-                .map(|(k, e)| (e.session, k.clone()))
+                .iter_mut()
+                .filter_map(|(k, e)| still_claimed(e, now).then(|| (e.session, k.clone())))
                 .collect()
         });
         claimed.sort_unstable_by_key(|(session, _)| *session);
