@@ -315,7 +315,11 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
         moved.len()
     );
     let claimed = f.b.metric("lekiwi_gateway_claimed_robots").await;
-    assert_eq!(claimed, Some(0.0), "B claims nothing once all are written");
+    assert_eq!(
+        claimed,
+        Some(0.0),
+        "B claims nothing once its watch shows every write"
+    );
     Ok(())
 }
 

@@ -27,25 +27,25 @@ use crate::gateway::event_store::RobotKey;
 /// Then the claim ends for good (a later write does not bring it back).
 pub const CLAIM_AFTER_WRITE: SignedDuration = SignedDuration::from_secs(120);
 
-/// Whether `e` is claimed at `now`; a claim past [`CLAIM_AFTER_WRITE`] is ended here.
-fn still_claimed(e: &mut Entry, now: Timestamp) -> bool {
+/// Ends `e`'s claim once it is [`CLAIM_AFTER_WRITE`] past its last landed write; called by
+/// [`Presence::tick`] with the rest of the per-robot housekeeping.
+pub(super) fn end_stale_claim(e: &mut Entry, now: Timestamp) {
     if e.moved
         && e.written_at
             .is_some_and(|at| now.duration_since(at) >= CLAIM_AFTER_WRITE)
     {
         e.moved = false;
     }
-    e.moved && e.connected
 }
 
 impl Presence {
     /// The robots claimed now, oldest session first (those the writer takes first).
     pub fn claims(&self) -> Vec<RobotKey> {
-        let now = Timestamp::now();
         let mut claimed: Vec<(u64, RobotKey)> = self.with_state(|s| {
             s.robots
-                .iter_mut()
-                .filter_map(|(k, e)| still_claimed(e, now).then(|| (e.session, k.clone())))
+                .iter()
+                .filter(|(_, e)| e.moved && e.connected)
+                .map(|(k, e)| (e.session, k.clone()))
                 .collect()
         });
         claimed.sort_unstable_by_key(|(session, _)| *session);

@@ -439,7 +439,8 @@ impl Presence {
         self.with_state(|s| s.robots.values().filter(|e| e.connected).count())
     }
 
-    /// Queues routine refreshes and ends silent polling sessions; call every second.
+    /// Queues routine refreshes, ends silent polling sessions and stale claims; call every
+    /// second.
     pub fn tick(&self) {
         let now = Timestamp::now();
         let refresh =
@@ -449,6 +450,7 @@ impl Presence {
         let queued = self.with_state(|s| {
             let mut due = Vec::new();
             for (key, e) in s.robots.iter_mut() {
+                claims::end_stale_claim(e, now);
                 if !e.connected {
                     continue;
                 }

@@ -539,6 +539,8 @@ fn moved_robots_go_first_and_are_claimed_until_written() {
     p.written(&key("m2"), &m2);
     let long_ago = Timestamp::now() - super::claims::CLAIM_AFTER_WRITE;
     p.with_state(|s| s.robots.get_mut(&key("m2")).unwrap().written_at = Some(long_ago));
+    assert_eq!(p.claims(), [key("m2")], "until the next tick");
+    p.tick();
     assert!(p.claims().is_empty(), "written long ago and never seen");
     p.with_state(|s| s.robots.get_mut(&key("m2")).unwrap().written_at = Some(Timestamp::now()));
     assert!(
