@@ -12,6 +12,8 @@
 #!   - API-server write requests during the recovery (until the watch shows every robot Online
 #!     through the survivor, and 30 s more), by resource, per robot moved;
 #!   - API-server 429s and 5xx, and the watches and lists of Robots it served;
+#!   - the survivor's status writes per 20 s by queue (moves, other transitions, routine
+#!     refreshes), from its own metrics;
 #! then restarts the killed gateway and measures the writes and sessions after it (does the fleet
 #! rebalance?), and finally drains the simulator and compares events sent with events stored.
 #!
@@ -35,6 +37,10 @@
 #!   --scenario kill|first-boot|steady  see above (default kill)
 #!   --steady-sizes A,B,... steady: fleet sizes to measure, ascending (default 10000,50000)
 #!   --window S             steady: measurement window per size, seconds (default 60)
+#!   --connect-rate R       steady: new connections per second while a size ramps up, over all
+#!                          its simulators together (default 1000; 50,000 robots on this machine
+#!                          need less: at 1,000 per simulator the starved simulators missed
+#!                          their handshakes and heartbeats and the gateways closed them)
 #!   --gateways G           steady: gateway replicas (default 2, at most 26; the other
 #!                          scenarios always run two)
 #!   --incumbents M         first-boot: robots Online before the new fleet comes (default 1000)
@@ -84,6 +90,7 @@ SCENARIO=kill
 INCUMBENTS=1000
 STEADY_SIZES=10000,50000
 WINDOW=60
+CONNECT_RATE=1000
 EPM=6
 INTERVAL=5
 SETTLE=30
@@ -113,6 +120,7 @@ while [ $# -gt 0 ]; do
       [[ "${2:-}" =~ ^[1-9][0-9]*(,[1-9][0-9]*)*$ ]] || die "--steady-sizes is a comma-separated list of counts"
       STEADY_SIZES="$2"; shift 2 ;;
     --window) positive_int "$1" "${2:-}"; WINDOW="$2"; shift 2 ;;
+    --connect-rate) positive_int "$1" "${2:-}"; CONNECT_RATE="$2"; shift 2 ;;
     --gateways)
       [[ "${2:-}" =~ ^([2-9]|1[0-9]|2[0-6])$ ]] || die "--gateways is a number from 2 to 26"
       GATEWAYS="$2"; shift 2 ;;
@@ -391,6 +399,13 @@ scenario_kill() {
   fi
   wait "${GW_PID[gw-a]}" 2>/dev/null || true
   forget "${GW_PID[gw-a]}"
+  # The survivor's own counts (its status writes by queue and result) every 10 s from the kill,
+  # for the report's timeline of what it wrote and why.
+  mkdir -p "$WORK/survivor-metrics"
+  start survivor-metrics bash -c 'while :; do
+      curl -fsS --max-time 5 "$1" -o "$2/$(date +%s.%N).txt" 2>/dev/null; sleep 10; done' \
+    sampler "http://127.0.0.1:${GW_HTTP[gw-b]}/metrics" "$WORK/survivor-metrics"
+  SAMPLER_PID=$LAST_PID
   # Where the machine's CPU goes while the survivor takes over (reported over the window below).
   local lbs=() i
   for i in "${!LB_PIDS[@]}"; do lbs+=("haproxy-$i:${LB_PIDS[$i]}"); done
@@ -454,6 +469,7 @@ scenario_kill() {
     fact "sessions_after_restart_$g" "$(current "http://127.0.0.1:${GW_HTTP[$g]}/metrics" lekiwi_gateway_connections)"
   done
   AUDIT_TO="$(now)"
+  stop "$SAMPLER_PID"
 
   # ---- drain and count -------------------------------------------------------------------------
   log "stopping the simulator (it drains its unacknowledged events first, at most 120 s)"
@@ -533,7 +549,7 @@ window_watch() {
 }
 
 scenario_steady() {
-  local size have=0 part=0 t0 gw_urls="" g i chunk left n gws=() sims=() chunks
+  local size have=0 part=0 t0 gw_urls="" g i chunk left n rate gws=() sims=() chunks
   for g in "${GW_NAMES[@]}"; do
     gw_urls+="${gw_urls:+,}$SCHEME://127.0.0.1:${GW_PORT[$g]}/v1/agent"
     gws+=("$g:${GW_PID[$g]}")
@@ -557,13 +573,15 @@ scenario_steady() {
       provision_robots bench "$n" "$TOKEN_HASH" "s$part-${#chunks[@]}"
     done
     fact "steady_${size}_provision_seconds" "$(elapsed "$t0")"
-    log "  provisioned in $(elapsed "$t0") s; starting ${#chunks[@]} simulator(s)"
+    # The ramp's rate is shared by the step's simulators (at least one connection/s each).
+    rate=$((CONNECT_RATE / ${#chunks[@]} > 0 ? CONNECT_RATE / ${#chunks[@]} : 1))
+    log "  provisioned in $(elapsed "$t0") s; starting ${#chunks[@]} simulator(s), $rate new connections/s each"
     for i in "${!chunks[@]}"; do
       n="${chunks[$i]}"
       chunk=$((i + 1))
       start "sim-$part-$chunk" nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
         --namespace bench --prefix "s$part-$chunk" --robots "$n" \
-        --heartbeat-interval "$INTERVAL" --connect-rate 1000 --report-every 30
+        --heartbeat-interval "$INTERVAL" --connect-rate "$rate" --report-every 30
       sims+=("sim-$part-$chunk:$LAST_PID")
     done
     have=$size

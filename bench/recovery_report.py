@@ -3,8 +3,9 @@
 
 Inputs (all in WORK): facts.env, robots.log (every Robot change, stamped on arrival by
 recovery_watch.py), the API server's /metrics before the kill, after the recovery window and after
-the restart window, sim.json (the simulator's summary), stored.txt and gaps.txt (what PostgreSQL
-holds). Standard library only; the metric parsing is bench/report.py's.
+the restart window, survivor-metrics/ (the survivor's /metrics every 10 s from the kill), sim.json
+(the simulator's summary), stored.txt and gaps.txt (what PostgreSQL holds). Standard library
+only; the metric parsing is bench/report.py's.
 """
 
 import json
@@ -111,6 +112,45 @@ def robot_watches(a, b):
             elif d.get("verb") in ("LIST", "GET"):
                 read += value - a.get((name, labels), 0.0)
     return f"{int(begun)} / {int(read)}"
+
+
+def survivor_writes(work, t_kill):
+    """The survivor's own status-write counts sampled every ~10 s from the kill: a table of its
+    writes per 20 s by queue (move, high = other transitions, low = routine refreshes), and the
+    totals by queue and result; nothing when the samples are missing."""
+    samples = []
+    for path in sorted((work / "survivor-metrics").glob("*.txt"), key=lambda p: float(p.stem)):
+        counts = Counter()
+        for (name, labels), value in parse_metrics(path).items():
+            if name == "lekiwi_gateway_status_writes_total":
+                labels = dict(labels)
+                counts[(labels.get("priority", "?"), labels.get("result", "?"))] = value
+        samples.append((float(path.stem) - t_kill, counts))
+    if len(samples) < 2:
+        return
+    queues = ("move", "high", "low")
+    print()
+    print("The survivor's status writes by queue (its own metrics, sampled every 10 s from the kill; "
+          "high = other transitions, low = routine refreshes):")
+    print()
+    print("| from | move | high | low | not written (any queue) |")
+    print("|---|---|---|---|---|")
+    base = samples[0]
+    for t, counts in samples[1:]:
+        if t - base[0] < 19.5 and (t, counts) != samples[-1]:
+            continue
+        delta = {k: counts[k] - base[1].get(k, 0.0) for k in counts}
+        by_queue = [sum(v for (q, r), v in delta.items() if q == queue and r == "ok")
+                    for queue in queues]
+        failed = sum(v for (q, r), v in delta.items() if r != "ok")
+        print(f"| {base[0]:.0f}–{t:.0f} s | " + " | ".join(f"{int(v)}" for v in by_queue)
+              + f" | {int(failed)} |")
+        base = (t, counts)
+    first, last = samples[0][1], samples[-1][1]
+    total = Counter({k: last[k] - first.get(k, 0.0) for k in last})
+    print()
+    print(f"Totals from {samples[0][0]:.0f} s to {samples[-1][0]:.0f} s after the kill: "
+          + ", ".join(f"{q}/{r} {int(v)}" for (q, r), v in sorted(total.items()) if v > 0))
 
 
 def row(what, value, goal=""):
@@ -300,6 +340,7 @@ def report_kill(work, f):
                   if k.startswith("cpu_recovery_window_")), key=lambda kv: -kv[1])
     row(f"CPU in the {float(f['recovery_window_seconds']):.0f} s after the kill (cores; "
         f"{os.cpu_count()} in the machine)", ", ".join(f"{k} {v:.2f}" for k, v in cpu) or "-")
+    survivor_writes(work, t_kill)
 
 
 if __name__ == "__main__":
