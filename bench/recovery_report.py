@@ -116,7 +116,8 @@ def robot_watches(a, b):
 
 def survivor_writes(work, t_kill):
     """The survivor's own status-write counts sampled every ~10 s from the kill: a table of its
-    writes per 20 s by queue (move, high = other transitions, low = routine refreshes), and the
+    writes per 20 s by queue (gone = moved robots shown Unknown/Offline, move, high = other
+    transitions, low = routine refreshes), and the
     totals by queue and result; nothing when the samples are missing."""
     samples = []
     for path in sorted((work / "survivor-metrics").glob("*.txt"), key=lambda p: float(p.stem)):
@@ -128,13 +129,14 @@ def survivor_writes(work, t_kill):
         samples.append((float(path.stem) - t_kill, counts))
     if len(samples) < 2:
         return
-    queues = ("move", "high", "low")
+    queues = ("gone", "move", "high", "low")
     print()
     print("The survivor's status writes by queue (its own metrics, sampled every 10 s from the kill; "
-          "high = other transitions, low = routine refreshes):")
+          "gone = moved robots shown Unknown or Offline, high = other transitions, low = routine "
+          "refreshes):")
     print()
-    print("| from | move | high | low | not written (any queue) |")
-    print("|---|---|---|---|---|")
+    print("| from | gone | move | high | low | not written (any queue) |")
+    print("|---|---|---|---|---|---|")
     base = samples[0]
     for t, counts in samples[1:]:
         if t - base[0] < 19.5 and (t, counts) != samples[-1]:

@@ -8,7 +8,8 @@
 //! claim dropped unwritten) ends `Offline` through the survivor without showing `Unknown`. And a
 //! write the dead gateway sent before it died, landing
 //! only after its Lease expired and after the robot's session on the survivor opened, shows the
-//! robot `Unknown` neither.
+//! robot `Unknown` neither. A robot that reconnects only after the Lease expired (shown
+//! `Unknown` meanwhile) is written before the moves queued ahead of it.
 //!
 //! On a private control plane with this tree's CRDs (the gateways write `status.sessionEpoch`).
 
@@ -384,5 +385,63 @@ async fn a_late_write_of_a_dead_gateway_turns_no_robot_unknown() -> anyhow::Resu
         .filter(|(n, _)| history.online_via(n, "gw-b").is_none_or(|t| t > online_b))
         .count();
     println!("{queued_after} of {FRESH} robots queued ahead were written after the late one");
+    Ok(())
+}
+
+/// A robot of the dead gateway that reconnects only after its Lease expired is `Unknown`
+/// meanwhile (rightly), and once back through B it is written before the moves queued ahead of
+/// it, which still show `Online`: it is the one robot shown wrong. B writes 3 a second, so the
+/// 60 moves take 20 s, longer than A's Lease and the controller take to mark it.
+#[tokio::test]
+async fn a_robot_shown_unknown_goes_before_the_moves() -> anyhow::Result<()> {
+    let mut f = Fleet::start().await?;
+    let history = Histories::watch(&f.client, &f.ns);
+    let on_a = f.robots("kiwi", 2 * ON_A).await?;
+    let late = f.robots("late", 1).await?;
+    let sockets_a = f.connect(&f.a, &on_a).await?;
+    let late_a = f.connect(&f.a, &late).await?;
+    let name = late[0].0.clone();
+    let moved: Vec<&str> = on_a.iter().map(|(n, _)| n.as_str()).collect();
+    f.all_online_via(&[&moved[..], &[name.as_str()]].concat(), "gw-a")
+        .await?;
+    tokio::time::sleep(Duration::from_secs(1)).await;
+
+    f.a.kill();
+    drop((sockets_a, late_a));
+    let _moved_b = f.connect(&f.b, &on_a).await?;
+    let within = Duration::from_secs(20);
+    lekiwi_tests::wait_phase(&f.client, &f.ns, &name, RobotPhase::Unknown, within).await?;
+    let unwritten = |since: Option<Instant>| {
+        moved
+            .iter()
+            .filter(|n| {
+                history
+                    .online_via(n, "gw-b")
+                    .is_none_or(|t| since.is_some_and(|s| t > s))
+            })
+            .count()
+    };
+    let waiting = unwritten(None);
+    let _late_b = f.connect(&f.b, &late).await?;
+    f.all_online_via(&[name.as_str()], "gw-b").await?;
+    let online_b = history.online_via(&name, "gw-b");
+    f.all_online_via(&moved, "gw-b").await?;
+    let after = unwritten(online_b);
+    println!("{name} reconnected with {waiting} moves unwritten; {after} were written after it");
+    let shown: Vec<_> = history
+        .of(&name)
+        .into_iter()
+        .map(|(p, g, _)| (p, g))
+        .collect();
+    println!("{name} showed {shown:?}");
+    assert!(
+        waiting >= 10,
+        "only {waiting} moves left to overtake: no test"
+    );
+    // At most the writes in flight or being taken when it connected go before it.
+    assert!(
+        after + 4 >= waiting,
+        "{name} waited behind the moves: {after} of the {waiting} waiting were written after it"
+    );
     Ok(())
 }

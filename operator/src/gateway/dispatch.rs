@@ -4,7 +4,8 @@
 //! command, PROTOCOL.md §12) or when another gateway's later session took the robot over (the
 //! session closes, see [`super::holder`]); and presence when another gateway's earlier session
 //! shows up only now in a robot whose session is here (the robot moved here: see
-//! [`super::presence::claims`]).
+//! [`super::presence::claims`]), or shows such a robot `Unknown` or `Offline` (its write then
+//! goes first).
 
 use std::sync::Arc;
 
@@ -18,7 +19,7 @@ use tracing::{debug, info, warn};
 use super::api::cache::{Cache, Change};
 use super::desired::DesiredReleases;
 use super::holder::Holder;
-use super::presence::Presence;
+use super::presence::{Presence, claims};
 use super::registry::Registry;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::RobotKey;
@@ -95,8 +96,13 @@ impl Dispatch {
                 self.presence.write_seen(&key, epoch);
             } else if self.registry.moved(&key, epoch) {
                 info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
-            } else if self.presence.moved_later(&key, epoch) {
-                debug!(robot = %key, gateway = other, "the robot's status names an earlier session on another gateway; claiming it");
+            } else {
+                if self.presence.moved_later(&key, epoch) {
+                    debug!(robot = %key, gateway = other, "the robot's status names an earlier session on another gateway; claiming it");
+                }
+                if claims::is_shown_gone(robot) && self.presence.shown_gone(&key, epoch) {
+                    debug!(robot = %key, gateway = other, "the robot is shown gone while its session here is live; writing it first");
+                }
             }
         }
         let agent = &robot.spec.agent;

@@ -18,14 +18,14 @@ use crate::metrics::{KindLabels, Registrar};
 /// Labels of gateway status-queue series.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct PriorityLabels {
-    /// `move`, `high` or `low`.
+    /// `gone`, `move`, `high` or `low`.
     pub priority: &'static str,
 }
 
 /// Labels of gateway status writes.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct WriteLabels {
-    /// `move`, `high` or `low`.
+    /// `gone`, `move`, `high` or `low`.
     pub priority: &'static str,
     /// `ok`, `error` (retried), `conflict` (the Robot kept changing while writing; retried),
     /// `gone`, `superseded` (a later session of another gateway holds the robot; not retried)

@@ -17,6 +17,7 @@
 
 use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
+use lekiwi_crds::{Robot, RobotPhase};
 
 use super::{Entry, Presence, Priority};
 use crate::gateway::event_store::RobotKey;
@@ -26,6 +27,16 @@ use crate::gateway::event_store::RobotKey;
 /// claim is not needed for the robot's sake, and it would take room in the Lease annotation.
 /// Then the claim ends for good (a later write does not bring it back).
 pub const CLAIM_AFTER_WRITE: SignedDuration = SignedDuration::from_secs(120);
+
+/// Whether `robot`'s status shows it `Unknown` or `Offline`: a moved robot shown so while its
+/// session here is live is written before every other ([`Presence::shown_gone`]).
+pub fn is_shown_gone(robot: &Robot) -> bool {
+    robot
+        .status
+        .as_ref()
+        .and_then(|s| s.phase.as_ref())
+        .is_some_and(|p| matches!(p, RobotPhase::Unknown | RobotPhase::Offline))
+}
 
 /// Ends `e`'s claim once it is [`CLAIM_AFTER_WRITE`] past its last landed write; called by
 /// [`Presence::tick`] with the rest of the per-robot housekeeping.
@@ -81,6 +92,34 @@ impl Presence {
                 e.moved = false;
             }
         });
+    }
+
+    /// The Robot cache shows `key` `Unknown` or `Offline` under another gateway's session with
+    /// epoch `epoch` while its later session here is live and not written yet: the robot is
+    /// shown gone although it is connected (the Robot controller marked it `Unknown` before
+    /// it reconnected here, say), so its write goes before every other waiting one, moves
+    /// included (those still show `Online`): [`Priority::Gone`]. Not while its write is in
+    /// flight, nor while a new session settles. `true` if it was put first.
+    pub fn shown_gone(&self, key: &RobotKey, epoch: i64) -> bool {
+        let first = self.with_state(|s| {
+            let Some(e) = s.robots.get(key) else {
+                return false;
+            };
+            if !e.connected
+                || e.settling
+                || e.epoch <= epoch
+                || e.written_at.is_some()
+                || s.writing.contains_key(key)
+            {
+                return false;
+            }
+            s.enqueue(key, Priority::Gone);
+            true
+        });
+        if first {
+            self.wake();
+        }
+        first
     }
 
     /// The Robot cache shows `key`'s status naming another gateway with session epoch

@@ -37,45 +37,11 @@ pub use self::agent::AgentUpdateOutcome;
 pub use self::analysis::window_open as analysis_window_open;
 pub use self::lag::status_lag_annotation;
 pub use self::phase::PhasePlanner;
+pub use self::queue::Priority;
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::next_epoch;
 use crate::metrics::Metrics;
-
-/// Which queue a robot waits in for its status write: moves overtake other transitions, which
-/// overtake routine refreshes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum Priority {
-    /// A new session of a robot whose status names another gateway (it moved here, e.g. after
-    /// its gateway died): until written, the old gateway's death could turn it `Unknown`.
-    Move,
-    /// Connects, disconnects and other transitions.
-    High,
-    /// Routine `lastHeartbeatTime` refreshes.
-    Low,
-}
-
-impl Priority {
-    /// Every priority, the one written first first.
-    const ALL: [Priority; 3] = [Priority::Move, Priority::High, Priority::Low];
-
-    /// Its queue's place in `State::queues` and in [`Priority::ALL`]: lower goes first.
-    fn index(self) -> usize {
-        match self {
-            Priority::Move => 0,
-            Priority::High => 1,
-            Priority::Low => 2,
-        }
-    }
-
-    fn label(self) -> &'static str {
-        match self {
-            Priority::Move => "move",
-            Priority::High => "high",
-            Priority::Low => "low",
-        }
-    }
-}
 
 /// What a robot told us at connect time.
 #[derive(Clone, Debug, Default)]
@@ -237,7 +203,8 @@ impl Presence {
     }
 
     /// A session of `key` started; `moved` when the robot's status names another gateway: its
-    /// write then goes before every other, and the gateway's Lease claims the robot until then.
+    /// write then goes before every other transition (first of all when the status shows the
+    /// robot `Unknown` or `Offline`), and the gateway's Lease claims the robot until then.
     pub fn connect_moved(
         &self,
         key: &RobotKey,
@@ -255,6 +222,8 @@ impl Presence {
             let last_update = old.and_then(|e| e.last_update.clone());
             let agent_update = old.and_then(|e| e.agent_update.clone());
             let cached = self.cached_robot(key);
+            // Shown gone although it connected: its write goes first (see `shown_gone`).
+            let gone = moved && cached.as_ref().is_some_and(|r| claims::is_shown_gone(r));
             let analysis = analysis::Tracker::at_connect(
                 old.map(|e| (&e.analysis, e.info.release.as_ref())),
                 cached.as_ref().and_then(|r| r.status.as_ref()),
@@ -284,7 +253,9 @@ impl Presence {
                     moved,
                 }),
             );
-            if moved {
+            if gone {
+                s.enqueue(key, Priority::Gone);
+            } else if moved {
                 s.enqueue(key, Priority::Move);
             } else if !s.known_offline.contains(key) {
                 s.enqueue(key, Priority::High);

@@ -1,11 +1,57 @@
-//! The presence state behind one lock: what each robot last said, and the three write queues
-//! (moves, transitions, refreshes) that hold each robot at most once.
+//! The presence state behind one lock: what each robot last said, and the four write queues
+//! (robots shown gone, moves, transitions, refreshes) that hold each robot at most once.
 
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
-use super::{Entry, Priority};
+use super::Entry;
 use crate::gateway::event_store::RobotKey;
+
+/// Which queue a robot waits in for its status write: robots shown gone while connected here
+/// overtake moves, which overtake other transitions, which overtake routine refreshes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Priority {
+    /// A robot that moved here and whose status shows it `Unknown` or `Offline` (the Robot
+    /// controller marked it before it reconnected): the one robot shown wrong, not just
+    /// through a gateway that is gone (see [`super::claims::is_shown_gone`]).
+    Gone,
+    /// A new session of a robot whose status names another gateway (it moved here, e.g. after
+    /// its gateway died): until written, the old gateway's death could turn it `Unknown`.
+    Move,
+    /// Connects, disconnects and other transitions.
+    High,
+    /// Routine `lastHeartbeatTime` refreshes.
+    Low,
+}
+
+impl Priority {
+    /// Every priority, the one written first first.
+    pub(super) const ALL: [Priority; 4] = [
+        Priority::Gone,
+        Priority::Move,
+        Priority::High,
+        Priority::Low,
+    ];
+
+    /// Its queue's place in `State::queues` and in [`Priority::ALL`]: lower goes first.
+    pub(super) fn index(self) -> usize {
+        match self {
+            Priority::Gone => 0,
+            Priority::Move => 1,
+            Priority::High => 2,
+            Priority::Low => 3,
+        }
+    }
+
+    pub(super) fn label(self) -> &'static str {
+        match self {
+            Priority::Gone => "gone",
+            Priority::Move => "move",
+            Priority::High => "high",
+            Priority::Low => "low",
+        }
+    }
+}
 
 #[derive(Default)]
 pub(super) struct State {
@@ -18,7 +64,7 @@ pub(super) struct State {
     /// Each waiting robot's priority and since when it waits (kept when it is promoted).
     pub(super) queued: HashMap<RobotKey, (Priority, Instant)>,
     /// The queue of each priority, in [`Priority::ALL`]'s order (see [`Priority::index`]).
-    pub(super) queues: [VecDeque<RobotKey>; 3],
+    pub(super) queues: [VecDeque<RobotKey>; 4],
     /// Robots whose status write is in flight, each with the priority it was queued at again
     /// meanwhile: one write per robot at a time, so an older snapshot never lands after a newer.
     pub(super) writing: HashMap<RobotKey, Option<Priority>>,

@@ -582,6 +582,59 @@ fn a_move_the_cache_shows_late_is_claimed_then() {
     });
 }
 
+/// A moved robot the Robot cache shows `Unknown` (marked before it reconnected here) goes
+/// before the moves that still show `Online`: when the cache shows it so at its connect, or
+/// later; not when the other session is later, nor while its write is in flight, nor once its
+/// own write landed.
+#[test]
+fn a_robot_shown_gone_while_connected_here_is_written_first() {
+    let p = presence();
+    let gone: lekiwi_crds::Robot = serde_json::from_value(json!({
+        "apiVersion": "fleet.lekiwi.io/v1alpha1",
+        "kind": "Robot",
+        "metadata": { "name": "gone", "namespace": "lab" },
+        "spec": {},
+        "status": { "phase": "Unknown", "gateway": "dead", "sessionEpoch": 500 },
+    }))
+    .unwrap();
+    let cache = crate::gateway::api::cache::Cache::listed([gone]);
+    let robots = crate::gateway::desired::DesiredReleases(std::sync::Arc::new(cache));
+    p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
+    for (n, name) in ["m1", "m2", "m3", "busy", "written"].iter().enumerate() {
+        p.connect_moved(
+            &key(name),
+            n as u64 + 1,
+            1_000,
+            ConnectInfo::default(),
+            true,
+        );
+    }
+    assert!(
+        !p.shown_gone(&key("m3"), 2_000),
+        "the other session is later"
+    );
+    assert!(!p.shown_gone(&key("absent"), 500), "no session here");
+    let written = p.with_state(|s| {
+        assert!(s.begin_write(&key("busy"), Priority::Move));
+        s.take_for_write(&key("written")).unwrap()
+    });
+    p.written(&key("written"), &written);
+    assert!(!p.shown_gone(&key("busy"), 500), "its write is in flight");
+    assert!(!p.shown_gone(&key("written"), 500), "its own write landed");
+    assert!(p.shown_gone(&key("m3"), 500));
+    p.connect_moved(&key("gone"), 9, 1_000, ConnectInfo::default(), true);
+    p.with_state(|s| {
+        let order: Vec<_> = std::iter::from_fn(|| s.pop())
+            .map(|(k, _)| k.name)
+            .collect();
+        assert_eq!(
+            order,
+            ["m3", "gone", "m1", "m2", "busy", "written"],
+            "the robots shown gone first, in their order, each once"
+        );
+    });
+}
+
 /// A change while the robot's write is in flight is written after it, never beside it: two
 /// writes of one robot at once could land in the wrong order and leave the older snapshot (the
 /// race that once left an agent update `Started` after it had `Succeeded`).
