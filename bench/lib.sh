@@ -240,13 +240,28 @@ for part in range(parts):
     with open(f"{prefix}-{part}.json", "w") as out:
         json.dump({"apiVersion": "v1", "kind": "List", "items": items}, out)
 PY
+  # A loaded API server can refuse some creates (a 50,000-robot run met "resource quota
+  # evaluation timed out"): up to three tries, the later ones refused only AlreadyExists for
+  # what the earlier created.
   for part in 0 1 2 3; do
-    kubectl -n "$ns" create -f "$WORK/provision-$part.json" >"$WORK/provision-$part.log" 2>&1 &
+    (
+      : >"$WORK/provision-$part.log"
+      for _ in 1 2 3; do
+        out="$(kubectl -n "$ns" create -f "$WORK/provision-$part.json" 2>&1)" && exit 0
+        errors="$(printf '%s\n' "$out" | grep -v ' created$' || true)"
+        printf '%s\n' "$errors" >>"$WORK/provision-$part.log"
+        # Done when every error is an AlreadyExists (no grep -q: with pipefail, its early
+        # exit would fail the pipe).
+        printf '%s\n' "$errors" | grep -v AlreadyExists >/dev/null || exit 0
+        sleep 5
+      done
+      exit 1
+    ) &
     pids+=($!)
     PIDS+=($!)
   done
   for pid in "${pids[@]}"; do
-    wait "$pid" || die "provisioning failed: $(tail -3 "$WORK"/provision-*.log)"
+    wait "$pid" || die "provisioning failed: $(tail -qn 3 "$WORK"/provision-*.log)"
     forget "$pid"
   done
 }
