@@ -12,8 +12,8 @@
 #!   - API-server write requests during the recovery (until the watch shows every robot Online
 #!     through the survivor, and 30 s more), by resource, per robot moved;
 #!   - API-server 429s and 5xx, and the watches and lists of Robots it served;
-#!   - the survivor's status writes per 20 s by queue (moves, other transitions, routine
-#!     refreshes), from its own metrics;
+#!   - the survivor's status writes per 20 s by queue (moved robots shown Unknown/Offline,
+#!     moves, other transitions, routine refreshes), from its own metrics;
 #! then restarts the killed gateway and measures the writes and sessions after it (does the fleet
 #! rebalance?), and finally drains the simulator and compares events sent with events stored.
 #!

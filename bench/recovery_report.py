@@ -117,8 +117,8 @@ def robot_watches(a, b):
 def survivor_writes(work, t_kill):
     """The survivor's own status-write counts sampled every ~10 s from the kill: a table of its
     writes per 20 s by queue (gone = moved robots shown Unknown/Offline, move, high = other
-    transitions, low = routine refreshes), and the
-    totals by queue and result; nothing when the samples are missing."""
+    transitions, low = routine refreshes), and the totals by queue and result; nothing when the
+    samples are missing."""
     samples = []
     for path in sorted((work / "survivor-metrics").glob("*.txt"), key=lambda p: float(p.stem)):
         counts = Counter()
@@ -138,8 +138,8 @@ def survivor_writes(work, t_kill):
     print("| from | gone | move | high | low | not written (any queue) |")
     print("|---|---|---|---|---|---|")
     base = samples[0]
-    for t, counts in samples[1:]:
-        if t - base[0] < 19.5 and (t, counts) != samples[-1]:
+    for i, (t, counts) in enumerate(samples[1:], start=1):
+        if t - base[0] < 19.5 and i < len(samples) - 1:
             continue
         delta = {k: counts[k] - base[1].get(k, 0.0) for k in counts}
         by_queue = [sum(v for (q, r), v in delta.items() if q == queue and r == "ok")

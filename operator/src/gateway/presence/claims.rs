@@ -99,14 +99,15 @@ impl Presence {
     /// shown gone although it is connected (the Robot controller marked it `Unknown` before
     /// it reconnected here, say), so its write goes before every other waiting one, moves
     /// included (those still show `Online`): [`Priority::Gone`]. Not while its write is in
-    /// flight, nor while a new session settles. `true` if it was put first.
+    /// flight. `true` if it was put first.
     pub fn shown_gone(&self, key: &RobotKey, epoch: i64) -> bool {
         let first = self.with_state(|s| {
             let Some(e) = s.robots.get(key) else {
                 return false;
             };
+            // No settling check: a session whose status names another gateway never settles
+            // (`connect_moved`, `moved_later`).
             if !e.connected
-                || e.settling
                 || e.epoch <= epoch
                 || e.written_at.is_some()
                 || s.writing.contains_key(key)
