@@ -142,7 +142,7 @@ def watch_lag(path, start, moved):
 
 def print_pace(answers):
     """The gateways' status writes per PACE_BUCKET seconds: rate, answer times, in flight."""
-    print(f"\nGateways' Robot status writes per {PACE_BUCKET} s from the kill (audit log):\n")
+    print(f"\nGateways' Robot status writes per {PACE_BUCKET} s from the kill or first boot (audit log):\n")
     print("| from | writes/s | answered p50 / p90 / max | in flight, mean |")
     print("|---|---|---|---|")
     for bucket in sorted(answers):
@@ -181,7 +181,7 @@ def print_status_writes(status_writes, moved, window):
 def main():
     path, start, end = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
     requests, watches, moved, status_writes, answers = read(path, start, end)
-    print(f"Robot requests received in the {end - start:.0f} s from the kill (audit log):\n")
+    print(f"Robot requests received in the {end - start:.0f} s from the kill or first boot (audit log):\n")
     print("| client | verb | subresource | code | requests |")
     print("|---|---|---|---|---|")
     for (who, verb, sub, code), n in sorted(requests.items()):

@@ -63,7 +63,8 @@
 #!   --control-plane-nice N etcd and the API server at this CPU niceness (-20 to 19, default 0;
 #!                          e.g. -5 gives them the CPU first, as a cluster's own control-plane
 #!                          nodes would: the control plane this benchmark measures stays at 0)
-#!   --audit                kill: the API server writes an audit log of every Robot request
+#!   --audit                kill, first-boot: the API server writes an audit log of every Robot
+#!                          request
 #!                          (level Metadata); the results then say who was refused (409), who
 #!                          listed and watched, by client (bench/audit_report.py)
 #!   --profile S            kill: a CPU profile of the API server over the S seconds from the kill
@@ -157,7 +158,7 @@ take_bench_lock
 
 [ "$SCENARIO" != steady ] || ROBOTS="${STEADY_SIZES##*,}"
 [ "$SCENARIO" = steady ] || [ "$GATEWAYS" = 2 ] || die "--gateways is for --scenario steady (kill and first-boot run two)"
-[ "$AUDIT" = 0 ] || [ "$SCENARIO" = kill ] || die "--audit is for --scenario kill"
+[ "$AUDIT" = 0 ] || [ "$SCENARIO" != steady ] || die "--audit is for --scenario kill or first-boot"
 [ "$PROFILE" = 0 ] || [ "$SCENARIO" = kill ] || die "--profile is for --scenario kill"
 [ "$PROFILE" = 0 ] || command -v go >/dev/null || die "--profile needs go (apt-get install golang-go)"
 # The replicas' names: gw-a, gw-b, ...
@@ -388,6 +389,7 @@ scenario_kill() {
   # ---- the kill --------------------------------------------------------------------------------
   scrape_apiserver "$WORK/apiserver-before-kill.txt"
   T_KILL="$(now)"
+  AUDIT_FROM="$T_KILL"
   fact kill_time "$T_KILL"
   log "SIGKILL gw-a (pid ${GW_PID[gw-a]})"
   kill -KILL "${GW_PID[gw-a]}"
@@ -500,6 +502,7 @@ scenario_first_boot() {
   scrape_apiserver "$WORK/apiserver-before-boot.txt"
   local t0 total=$((INCUMBENTS + ROBOTS)) last=$SECONDS max_a=0 max_b=0 f
   t0="$(now)"
+  AUDIT_FROM="$t0"
   fact boot_time "$t0"
   log "first boot: $ROBOTS new robots enroll at once"
   start sim-new nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
@@ -519,6 +522,7 @@ scenario_first_boot() {
     sleep 1
   done
   fact all_enrolled_online_seconds "$(elapsed "$t0")"
+  AUDIT_TO="$(now)"
   fact gateway_fds_max "$max_a / $max_b"
   for g in gw-a gw-b; do
     scrape "http://127.0.0.1:${GW_HTTP[$g]}/metrics" "$WORK/$g-after-boot.txt"
@@ -617,7 +621,7 @@ mkdir -p "$RESULTS"
 OUT="$RESULTS/recovery-$SCENARIO-$(date +%Y%m%d-%H%M%S).txt"
 python3 "$ROOT/bench/recovery_report.py" "$WORK" | tee "$OUT"
 if [ "$AUDIT" = 1 ] && [ -n "${AUDIT_TO:-}" ]; then
-  { echo; python3 "$ROOT/bench/audit_report.py" "$WORK/audit.log" "$T_KILL" "$AUDIT_TO" "$WORK/robots.log"; } | tee -a "$OUT"
+  { echo; python3 "$ROOT/bench/audit_report.py" "$WORK/audit.log" "$AUDIT_FROM" "$AUDIT_TO" "$WORK/robots.log"; } | tee -a "$OUT"
 fi
 if [ "$PROFILE" != 0 ] && [ -n "${PROFILE_PID:-}" ]; then
   wait "$PROFILE_PID" 2>/dev/null || true

@@ -27,6 +27,10 @@ pub const REENROLL_ANNOTATION: &str = "fleet.lekiwi.io/reenroll-until";
 /// Longest robot name that can have a token: the name is the value of [`ROBOT_LABEL`] on its
 /// token Secret, and label values are at most 63 characters.
 pub const MAX_ROBOT_NAME_LEN: usize = 63;
+/// Label (value `true`) on a `Robot` the gateway created for an enrolling robot. Its session
+/// opens in the same connection and the gateway writes its first status then; until that write
+/// (at most a couple of minutes), the Robot controller leaves its status empty.
+pub const ENROLLED_LABEL: &str = "fleet.lekiwi.io/enrolled";
 /// Name of the fleet enrollment token Secret `kubectl lekiwi enroll-token` makes.
 pub const ENROLLMENT_SECRET: &str = "fleet-enrollment";
 /// Label on the Lease each gateway renews (value `true`; the Lease's name is the gateway's):

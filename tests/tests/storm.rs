@@ -94,10 +94,21 @@ async fn fleet_coming_online_costs_one_write_per_robot() -> anyhow::Result<()> {
     enrollment_token_file(&client, &ns, &token_file).await?;
     let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
 
-    // Enroll the fleet, then crash it: every robot is Offline.
+    // Enroll the fleet: each robot costs its Robot's creation and one status write (the
+    // gateway's, as its session opens; the Robot controller does not write `Pending` first).
+    let before = writes(&cp, "robots")?;
     let url = gateway_url(&op);
     let mut fleet = start_fleet(&url, &token_file, &ns, ROBOTS, dir.path())?;
     wait_online(&client, &ns, ROBOTS, Duration::from_secs(120)).await?;
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let enrolled = writes(&cp, "robots")? - before;
+    eprintln!("Robot writes while {ROBOTS} robots enrolled and came Online: {enrolled}");
+    assert!(
+        enrolled <= 2.1 * ROBOTS as f64,
+        "{enrolled} Robot writes for {ROBOTS} robots enrolling (a create and a status write each)"
+    );
+
+    // Then crash it: every robot is Offline.
     fleet.kill();
     wait_for("every robot Offline", Duration::from_secs(60), || async {
         (count_phase(&robots, RobotPhase::Offline).await == ROBOTS).then_some(())

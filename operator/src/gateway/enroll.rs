@@ -9,7 +9,7 @@ use kube::api::{ObjectMeta, Patch, PatchParams, PostParams};
 use kube::{Api, Resource};
 use lekiwi_crds::Robot;
 use lekiwi_crds::contract::{
-    REENROLL_ANNOTATION, managers, new_token, robot_secret_name, robot_token_secret,
+    ENROLLED_LABEL, REENROLL_ANNOTATION, managers, new_token, robot_secret_name, robot_token_secret,
 };
 
 use crate::gateway::event_store::RobotKey;
@@ -105,16 +105,15 @@ pub async fn check(
 }
 
 /// Registers an enrolling robot and mints its token, stored only as a hash: creates the `Robot`
-/// unless it exists (never twice), then creates its token Secret, which fails for a robot that
+/// (or reads it, if it exists: never two), then creates its token Secret, which fails for a robot that
 /// has one. Such a robot is re-enrolled only while its Robot carries a valid permission, which
 /// is removed first under a resourceVersion precondition, so two racing enrollments cannot both
 /// use it.
 pub async fn register(client: &kube::Client, robot: &RobotKey) -> Result<String, Error> {
     let robots: Api<Robot> = Api::namespaced(client.clone(), &robot.namespace);
-    let existing = match robots.get_opt(&robot.name).await? {
-        Some(r) => r,
-        None => create_robot(&robots, &robot.name).await?,
-    };
+    // Created first, read only if it exists: a fleet's first boot is mostly new robots, and a
+    // read before every create was one more request each while the API server is busiest.
+    let existing = create_robot(&robots, &robot.name).await?;
     let token = new_token("lkr_");
     let secret = robot_token_secret(&robot.name, &token, existing.controller_owner_ref(&()));
     let secrets: Api<Secret> = Api::namespaced(client.clone(), &robot.namespace);
@@ -172,13 +171,14 @@ async fn consume_permission(robots: &Api<Robot>, mut robot: Robot) -> Result<(),
     }
 }
 
-/// Creates the Robot of an enrolling robot; another connection creating it first is fine.
+/// Creates the Robot of an enrolling robot, or reads it if it exists (provisioned by a person,
+/// enrolled before, or created by another connection first).
 async fn create_robot(robots: &Api<Robot>, name: &str) -> Result<Robot, kube::Error> {
     let new = Robot {
         metadata: ObjectMeta {
             name: Some(name.to_owned()),
             labels: Some(BTreeMap::from([(
-                "fleet.lekiwi.io/enrolled".to_owned(),
+                ENROLLED_LABEL.to_owned(),
                 "true".to_owned(),
             )])),
             ..ObjectMeta::default()
@@ -188,6 +188,12 @@ async fn create_robot(robots: &Api<Robot>, name: &str) -> Result<Robot, kube::Er
     match robots.create(&PostParams::default(), &new).await {
         Ok(r) => Ok(r),
         Err(kube::Error::Api(s)) if s.code == 409 => robots.get(name).await,
+        // A full quota refuses the create even of a Robot that exists (admission comes
+        // before the name is looked up): such a robot may still enroll again.
+        Err(kube::Error::Api(s)) if s.code == 403 => match robots.get_opt(name).await? {
+            Some(existing) => Ok(existing),
+            None => Err(kube::Error::Api(s)),
+        },
         Err(e) => Err(e),
     }
 }

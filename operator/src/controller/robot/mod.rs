@@ -139,9 +139,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
                 Some(store) => gateway_state(store, &ctx.config.namespace, gw, now),
                 None => GatewayState::Gone,
             });
-        if gateway == Some(GatewayState::Gone)
-            && let Some(wait) = hold_unknown(&ctx, robot, now)
-        {
+        if let Some(wait) = hold(&ctx, robot, gateway, now) {
             return Ok(Action::requeue(wait));
         }
         let facts = Facts {
@@ -190,6 +188,27 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     }
     .instrument(span)
     .await
+}
+
+/// How long to look again instead of planning `robot` now: a robot just enrolled is left to its
+/// gateway (see [`plan::ENROLLED_GRACE`]), and one whose `gateway` is gone is held back from
+/// `Unknown` for the reasons of [`hold_unknown`].
+fn hold(
+    ctx: &Context,
+    robot: &Robot,
+    gateway: Option<GatewayState>,
+    now: Timestamp,
+) -> Option<Duration> {
+    if let Some(wait) = plan::enrolled_wait(robot, now) {
+        debug!(
+            ?wait,
+            "a robot just enrolled; leaving its first status to its gateway"
+        );
+        return Some(wait);
+    }
+    (gateway == Some(GatewayState::Gone))
+        .then(|| hold_unknown(ctx, robot, now))
+        .flatten()
 }
 
 /// How long to look again instead of calling `robot`, whose gateway is gone, `Unknown`: while a
