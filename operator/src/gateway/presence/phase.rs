@@ -39,14 +39,29 @@ impl PhasePlanner {
     }
 
     /// Adds to `status` (what the gateway writes) the phase, conditions and
-    /// `observedGeneration` the controller would derive from it; leaves it alone when the robot
-    /// is not in the cache (the controller then writes them, as before).
-    fn plan_into(&self, key: &RobotKey, status: &mut RobotStatus, now: Timestamp) {
-        let Some(cached) = self.robots.robot(key) else {
-            return;
+    /// `observedGeneration` the controller would derive from it, planned from `fresh` (the
+    /// Robot just read from the API server, when the write needed it) or else from the cache;
+    /// leaves it alone when the robot is in neither (the controller then writes them).
+    fn plan_into(
+        &self,
+        key: &RobotKey,
+        status: &mut RobotStatus,
+        now: Timestamp,
+        fresh: Option<&Robot>,
+    ) {
+        let cached;
+        let known = match fresh {
+            Some(robot) => robot,
+            None => match self.robots.robot(key) {
+                Some(robot) => {
+                    cached = robot;
+                    &*cached
+                }
+                None => return,
+            },
         };
-        let stored = cached.status.as_ref();
-        let robot = robot_as_written(&cached, status, stored);
+        let stored = known.status.as_ref();
+        let robot = robot_as_written(known, status, stored);
         let facts = Facts {
             now,
             heartbeat_grace: self.heartbeat_grace,
@@ -93,17 +108,20 @@ impl Presence {
         let _ = self.planner.set(Arc::new(planner));
     }
 
-    /// The apply patch of `e`: the gateway's facts plus, when the Robot is in the cache, the
-    /// phase and conditions they imply.
+    /// The apply patch of `e`: the gateway's facts plus, when the Robot is known (`fresh`, just
+    /// read, or in the cache), the phase and conditions they imply. A robot that enrolled a
+    /// moment ago is often not in the cache yet; planned from the Robot its write read, its
+    /// first status write is the only one (without, the controller wrote the phase after it).
     pub(super) fn patch(
         &self,
         key: &RobotKey,
         e: &Entry,
         precondition: Option<Precondition>,
+        fresh: Option<&Robot>,
     ) -> Value {
         planned_status_patch(&self.config.gateway, e, precondition, |status| {
             if let Some(planner) = self.planner.get() {
-                planner.plan_into(key, status, Timestamp::now());
+                planner.plan_into(key, status, Timestamp::now(), fresh);
             }
         })
     }
@@ -167,7 +185,7 @@ status:
         p.connect(&cached, 1, 1_000, info.clone());
         p.connect(&stranger, 1, 1_000, info);
         let entry = |k: &RobotKey| p.with_state(|s| s.robots[k].clone());
-        let status = |k: &RobotKey| p.patch(k, &entry(k), None)["status"].clone();
+        let status = |k: &RobotKey| p.patch(k, &entry(k), None, None)["status"].clone();
         assert_eq!(status(&cached).get("phase"), None, "no cache yet");
 
         p.plan_phases(PhasePlanner::new(store, Duration::from_secs(60)));
@@ -194,5 +212,19 @@ status:
             json!("2026-01-01T00:00:00Z")
         );
         assert_eq!(status(&stranger).get("phase"), None, "not in the cache");
+
+        // The write read the Robot from the API server (a robot enrolled a moment ago, not in
+        // the cache yet): planned from what it read.
+        let mut read: Robot = serde_yaml::from_str(CACHED).unwrap();
+        read.metadata.name = Some("kiwi-2".into());
+        read.metadata.generation = Some(1);
+        read.status = None;
+        let s = p.patch(&stranger, &entry(&stranger), None, Some(&read))["status"].clone();
+        assert_eq!(s["phase"], json!("Online"));
+        assert_eq!(s["observedGeneration"], json!(1));
+        // What was read is newer than the cache: it wins.
+        read.metadata.name = Some("kiwi-1".into());
+        let s = p.patch(&cached, &entry(&cached), None, Some(&read))["status"].clone();
+        assert_eq!(s["observedGeneration"], json!(1));
     }
 }

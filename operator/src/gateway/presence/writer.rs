@@ -319,18 +319,21 @@ impl Presence {
     ) -> Result<(), WriteError> {
         let api: Api<Robot> = Api::namespaced(client.clone(), &key.namespace);
         if let Some(cached) = holders.and_then(|h| h.holder(key)) {
-            match self.apply(&api, key, e, &cached).await {
+            match self.apply(&api, key, e, &cached, None).await {
                 Err(WriteError::Conflict) => {}
                 done => return done,
             }
         }
         for _ in 0..FRESH_ATTEMPTS {
             let fresh = match api.get_opt(&key.name).await {
-                Ok(Some(r)) => Holder::of(&r),
+                Ok(Some(r)) => r,
                 Ok(None) => return Err(WriteError::Gone),
                 Err(err) => return Err(WriteError::Api(err)),
             };
-            match self.apply(&api, key, e, &fresh).await {
+            match self
+                .apply(&api, key, e, &Holder::of(&fresh), Some(&fresh))
+                .await
+            {
                 Err(WriteError::Conflict) => {}
                 done => return done,
             }
@@ -338,14 +341,16 @@ impl Presence {
         Err(WriteError::Conflict)
     }
 
-    /// Applies the status of `e` against the Robot as `holder` shows it: `Superseded` without a
-    /// request when a later session holds it, `Conflict` when it changed since.
+    /// Applies the status of `e` against the Robot as `holder` shows it (read from `fresh`,
+    /// when the Robot was just read, which the phase is then planned from too): `Superseded`
+    /// without a request when a later session holds it, `Conflict` when it changed since.
     async fn apply(
         &self,
         api: &Api<Robot>,
         key: &RobotKey,
         e: &Entry,
         holder: &Holder,
+        fresh: Option<&Robot>,
     ) -> Result<(), WriteError> {
         if holder.supersedes(&self.config.gateway, e.epoch, e.connected) {
             debug!(robot = %key.name, holder = ?holder.gateway, "a later session holds the robot; not writing");
@@ -354,7 +359,7 @@ impl Presence {
         let precondition = Precondition {
             resource_version: holder.resource_version.clone(),
         };
-        let patch = self.patch(key, e, Some(precondition));
+        let patch = self.patch(key, e, Some(precondition), fresh);
         match api
             .patch_status(
                 &key.name,
