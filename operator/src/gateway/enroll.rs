@@ -105,10 +105,10 @@ pub async fn check(
 }
 
 /// Registers an enrolling robot and mints its token, stored only as a hash: creates the `Robot`
-/// (or reads it, if it exists: never two), then creates its token Secret, which fails for a robot that
-/// has one. Such a robot is re-enrolled only while its Robot carries a valid permission, which
-/// is removed first under a resourceVersion precondition, so two racing enrollments cannot both
-/// use it.
+/// (or reads it, if it exists: never two), then creates its token Secret, which fails for a
+/// robot that has one. Such a robot is re-enrolled only while its Robot carries a valid
+/// permission, which is removed first under a resourceVersion precondition, so two racing
+/// enrollments cannot both use it.
 pub async fn register(client: &kube::Client, robot: &RobotKey) -> Result<String, Error> {
     let robots: Api<Robot> = Api::namespaced(client.clone(), &robot.namespace);
     // Created first, read only if it exists: a fleet's first boot is mostly new robots, and a
