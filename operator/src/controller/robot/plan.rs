@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use jiff::Timestamp;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use kube::ResourceExt;
 use lekiwi_crds::condition::merge_conditions;
 use lekiwi_crds::contract::ENROLLED_LABEL;
 use lekiwi_crds::robot::{
@@ -299,10 +300,8 @@ pub fn enrolled_wait(robot: &Robot, now: Timestamp) -> Option<Duration> {
         .as_ref()
         .is_none_or(|s| s.phase.is_none() && s.gateway.is_none());
     let enrolled = robot
-        .metadata
-        .labels
-        .as_ref()
-        .and_then(|l| l.get(ENROLLED_LABEL))
+        .labels()
+        .get(ENROLLED_LABEL)
         .is_some_and(|v| v == "true");
     if !unwritten || !enrolled {
         return None;

@@ -39,27 +39,9 @@ impl PhasePlanner {
     }
 
     /// Adds to `status` (what the gateway writes) the phase, conditions and
-    /// `observedGeneration` the controller would derive from it, planned from `fresh` (the
-    /// Robot just read from the API server, when the write needed it) or else from the cache;
-    /// leaves it alone when the robot is in neither (the controller then writes them).
-    fn plan_into(
-        &self,
-        key: &RobotKey,
-        status: &mut RobotStatus,
-        now: Timestamp,
-        fresh: Option<&Robot>,
-    ) {
-        let cached;
-        let known = match fresh {
-            Some(robot) => robot,
-            None => match self.robots.robot(key) {
-                Some(robot) => {
-                    cached = robot;
-                    &*cached
-                }
-                None => return,
-            },
-        };
+    /// `observedGeneration` the controller would derive from it for `known` (the Robot as the
+    /// gateway knows it: just read, or in its cache).
+    fn plan_into(&self, known: &Robot, status: &mut RobotStatus, now: Timestamp) {
         let stored = known.status.as_ref();
         let robot = robot_as_written(known, status, stored);
         let facts = Facts {
@@ -119,9 +101,12 @@ impl Presence {
         precondition: Option<Precondition>,
         fresh: Option<&Robot>,
     ) -> Value {
+        // What was just read is newer than the cache; without either, the controller plans.
+        let cached = fresh.is_none().then(|| self.cached_robot(key)).flatten();
         planned_status_patch(&self.config.gateway, e, precondition, |status| {
-            if let Some(planner) = self.planner.get() {
-                planner.plan_into(key, status, Timestamp::now(), fresh);
+            if let (Some(planner), Some(known)) = (self.planner.get(), fresh.or(cached.as_deref()))
+            {
+                planner.plan_into(known, status, Timestamp::now());
             }
         })
     }
