@@ -6,7 +6,7 @@
 
 pub mod claims;
 pub mod events;
-mod gateways;
+pub(crate) mod gateways;
 pub mod plan;
 pub mod status;
 
