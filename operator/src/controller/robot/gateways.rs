@@ -33,7 +33,7 @@ pub(super) fn valid_until(lease: &Lease) -> Option<Timestamp> {
 }
 
 /// Whether a Lease has a holder and was renewed within its duration.
-pub(crate) fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
+pub(super) fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
     lease
         .spec
         .as_ref()
@@ -237,49 +237,38 @@ fn recheck_changed_gateways(
     current
 }
 
-/// A gateway's Lease in namespace `ops` for tests: held by `name`, 15 s long, renewed
-/// `renewed_ago_s` seconds ago, resourceVersion `1`.
-#[cfg(test)]
-pub(crate) fn test_lease(name: &str, renewed_ago_s: i64) -> Lease {
-    use k8s_openapi::api::coordination::v1::LeaseSpec;
-    use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
-    Lease {
-        metadata: kube::api::ObjectMeta {
-            name: Some(name.into()),
-            namespace: Some("ops".into()),
-            resource_version: Some("1".into()),
-            labels: Some(
-                [(
-                    lekiwi_crds::contract::GATEWAY_LEASE_LABEL.to_owned(),
-                    "true".to_owned(),
-                )]
-                .into(),
-            ),
-            ..kube::api::ObjectMeta::default()
-        },
-        spec: Some(LeaseSpec {
-            holder_identity: Some(name.into()),
-            lease_duration_seconds: Some(15),
-            renew_time: Some(MicroTime(
-                Timestamp::now() - jiff::SignedDuration::from_secs(renewed_ago_s),
-            )),
-            ..LeaseSpec::default()
-        }),
-    }
-}
-
 #[cfg(test)]
 mod tests {
-    use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+    use k8s_openapi::api::coordination::v1::LeaseSpec;
+    use k8s_openapi::apimachinery::pkg::apis::meta::v1::{MicroTime, Time};
+    use kube::api::ObjectMeta;
 
     use super::*;
 
     fn lease(name: &str, gateway: bool, renewed_ago_s: i64) -> Arc<Lease> {
-        let mut lease = test_lease(name, renewed_ago_s);
-        if !gateway {
-            lease.metadata.labels = None;
-        }
-        Arc::new(lease)
+        let now = Timestamp::now();
+        Arc::new(Lease {
+            metadata: ObjectMeta {
+                name: Some(name.into()),
+                resource_version: Some("7".into()),
+                labels: gateway.then(|| {
+                    [(
+                        lekiwi_crds::contract::GATEWAY_LEASE_LABEL.to_owned(),
+                        "true".to_owned(),
+                    )]
+                    .into()
+                }),
+                ..ObjectMeta::default()
+            },
+            spec: Some(LeaseSpec {
+                holder_identity: Some(name.into()),
+                lease_duration_seconds: Some(15),
+                renew_time: Some(MicroTime(
+                    now - jiff::SignedDuration::from_secs(renewed_ago_s),
+                )),
+                ..LeaseSpec::default()
+            }),
+        })
     }
 
     /// Only gateway Leases expired for longer than the limit and named by no robot go.
@@ -316,8 +305,8 @@ mod tests {
         assert_eq!(
             stale,
             vec![
-                ("gw-never-renewed".to_owned(), Some("1".to_owned())),
-                ("gw-old".to_owned(), Some("1".to_owned()))
+                ("gw-never-renewed".to_owned(), Some("7".to_owned())),
+                ("gw-old".to_owned(), Some("7".to_owned()))
             ]
         );
     }

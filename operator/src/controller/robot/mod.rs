@@ -6,7 +6,7 @@
 
 pub mod claims;
 pub mod events;
-pub(crate) mod gateways;
+mod gateways;
 pub mod plan;
 pub mod status;
 

@@ -14,12 +14,6 @@
 //! cache can be behind: the old gateway's last write may land, or reach this gateway's watch,
 //! only after the session here opened (an API server answering seconds late). Such a write,
 //! older than the session, makes the robot claimed then ([`Presence::moved_later`]).
-//!
-//! A robot whose session here opens after its old gateway's Lease expired is claimed too late:
-//! the Robot controller marks it `Unknown` (rightly: it was connected nowhere), and this
-//! gateway's Robot watch may show that write a minute late. Its write goes before the moves
-//! that still show `Online` ([`Priority::Gone`]) as soon as it connects, from the gateways'
-//! Leases ([`crate::gateway::peers`]) rather than the late watch.
 
 use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
@@ -27,7 +21,6 @@ use lekiwi_crds::{Robot, RobotPhase};
 
 use super::{Entry, Presence, Priority};
 use crate::gateway::event_store::RobotKey;
-use crate::gateway::peers::Peers;
 
 /// How long a claim outlives its robot's last landed write when this gateway's Robot watch
 /// does not show that write (a watch that is listing again, say): the write landed, so the
@@ -57,30 +50,6 @@ pub(super) fn end_stale_claim(e: &mut Entry, now: Timestamp) {
 }
 
 impl Presence {
-    /// Reads the gateways' Leases from now on (see the module docs).
-    pub fn watch_peers(&self, peers: Peers) {
-        let _ = self.peers.set(peers);
-    }
-
-    /// Whether moved robot `robot` (as the Robot cache shows it) is shown gone, or soon will
-    /// be, at `now`: its status shows it `Unknown` or `Offline`, or names a gateway whose Lease
-    /// has expired. The Robot controller marks that gateway's robots `Unknown` once every live
-    /// gateway renewed its Lease after the expiry, unless one claims them; a session opening
-    /// now is claimed in time only if this gateway's next renewal comes before that (within a
-    /// second, in a reconnect storm). Putting such a robot first adds no write: a write planned
-    /// from a cache that does not show the `Unknown` yet is refused and read again (the
-    /// writer's conflict path), as it would be in the queue of moves.
-    pub(super) fn gone_or_going(&self, robot: &Robot, now: Timestamp) -> bool {
-        is_shown_gone(robot)
-            || self.peers.get().is_some_and(|peers| {
-                robot
-                    .status
-                    .as_ref()
-                    .and_then(|s| s.gateway.as_ref())
-                    .is_some_and(|g| g.as_str() != self.config.gateway && peers.dead(g, now))
-            })
-    }
-
     /// The robots claimed now, oldest session first (those the writer takes first).
     pub fn claims(&self) -> Vec<RobotKey> {
         let mut claimed: Vec<(u64, RobotKey)> = self.with_state(|s| {

@@ -41,7 +41,6 @@ pub use self::queue::Priority;
 use self::queue::State;
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::next_epoch;
-use crate::gateway::peers::Peers;
 use crate::metrics::Metrics;
 
 /// What a robot told us at connect time.
@@ -163,9 +162,6 @@ pub struct Presence {
     metrics: Metrics,
     /// Set once the gateway's Robot cache is ready: status writes then carry the phase too.
     planner: Arc<std::sync::OnceLock<Arc<PhasePlanner>>>,
-    /// Set once the gateways' Leases are listed: a robot moving here from a dead gateway is
-    /// written first (see [`claims`]).
-    peers: Arc<std::sync::OnceLock<Peers>>,
 }
 
 impl Presence {
@@ -178,7 +174,6 @@ impl Presence {
             config: Arc::new(config),
             metrics,
             planner: Arc::default(),
-            peers: Arc::default(),
         }
     }
 
@@ -227,8 +222,8 @@ impl Presence {
             let last_update = old.and_then(|e| e.last_update.clone());
             let agent_update = old.and_then(|e| e.agent_update.clone());
             let cached = self.cached_robot(key);
-            // Shown gone although it connected, or soon: its write goes first (see `claims`).
-            let gone = moved && cached.as_ref().is_some_and(|r| self.gone_or_going(r, now));
+            // Shown gone although it connected: its write goes first (see `shown_gone`).
+            let gone = moved && cached.as_ref().is_some_and(|r| claims::is_shown_gone(r));
             let analysis = analysis::Tracker::at_connect(
                 old.map(|e| (&e.analysis, e.info.release.as_ref())),
                 cached.as_ref().and_then(|r| r.status.as_ref()),

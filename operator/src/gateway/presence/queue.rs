@@ -12,9 +12,8 @@ use crate::gateway::event_store::RobotKey;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Priority {
     /// A robot that moved here and whose status shows it `Unknown` or `Offline` (the Robot
-    /// controller marked it before it reconnected), or soon will (its session here opened
-    /// after its old gateway's Lease expired): the one robot shown wrong, not just through a
-    /// gateway that is gone (see [`super::claims`]).
+    /// controller marked it before it reconnected): the one robot shown wrong, not just
+    /// through a gateway that is gone (see [`super::claims::is_shown_gone`]).
     Gone,
     /// A new session of a robot whose status names another gateway (it moved here, e.g. after
     /// its gateway died): until written, the old gateway's death could turn it `Unknown`.
