@@ -18,7 +18,9 @@ are in flight say the API server, not the writer, sets the pace.
 It also times the recovery by the API server's own clock: for each robot a gateway other than
 the one that wrote it last before FROM writes after it (a moved robot), when that write was
 answered; and, given the benchmark's watch log, how much later the watch saw that robot on its
-new gateway (the watch's lag, which the watch-based recovery times include).
+new gateway (the watch's lag, which the watch-based recovery times include). Moved robots the
+controller wrote before their new gateway did (marked `Unknown`) are timed the same way: how
+long each showed that.
 
 Usage: audit_report.py AUDIT_LOG FROM TO [WATCH_LOG]"""
 import json
@@ -62,12 +64,13 @@ def read(path, start, end):
     """Completed requests received in [start, end), the watches begun in it (with their
     duration if they ended), the moved robots' first writes after `start`: name ->
     (new gateway, seconds after `start` it was answered), and the status writes received in
-    the window: (name, "gateway" or the client) -> seconds after `start` each was received."""
+    the window: (name, "gateway" or the client) -> seconds after `start` each was received; and
+    the controller's first status write after `start` of each robot it wrote."""
     requests = Counter()
     status_writes = defaultdict(list)
     answers = defaultdict(list)
     watches = defaultdict(list)
-    last_writer, moved = {}, {}
+    last_writer, moved, marked = {}, {}, {}
     with open(path) as log:
         for line in log:
             try:
@@ -75,7 +78,7 @@ def read(path, start, end):
             except ValueError:
                 continue
             received = seconds(event["requestReceivedTimestamp"])
-            note_write(event, start, last_writer, moved)
+            note_write(event, start, last_writer, moved, marked)
             if not start <= received < end:
                 continue
             ref = event.get("objectRef") or {}
@@ -97,21 +100,26 @@ def read(path, start, end):
                 if kind == "gateway":
                     took = seconds(event["stageTimestamp"]) - received
                     answers[int((received - start) // PACE_BUCKET)].append(took)
-    return requests, watches, moved, status_writes, answers
+    return requests, watches, moved, status_writes, answers, marked
 
 
-def note_write(event, start, last_writer, moved):
+def note_write(event, start, last_writer, moved, marked):
     """Follows which gateway wrote each Robot's status last before `start`, and records the
-    first successful write after it by another gateway."""
+    first successful write after it by another gateway, and the controller's first successful
+    status write after it (`marked`: name -> seconds after `start`)."""
     if event.get("verb") != "patch" or event.get("stage") != "ResponseComplete":
         return
     if (event.get("responseStatus") or {}).get("code") != 200:
         return
     writer = gateway(event.get("userAgent", ""))
     name = (event.get("objectRef") or {}).get("name")
-    if writer is None or name is None:
+    if name is None:
         return
     answered = seconds(event["stageTimestamp"])
+    if writer is None:
+        if client(event.get("userAgent", "")).startswith("controller") and answered >= start:
+            marked.setdefault(name, answered - start)
+        return
     if answered < start:
         last_writer[name] = writer
     elif name not in moved and last_writer.get(name, writer) != writer:
@@ -178,9 +186,23 @@ def print_status_writes(status_writes, moved, window):
           f"{expected:.0f} = {expected / n:.2f} per robot; transitions; the controller's)")
 
 
+def print_shown_gone(moved, marked):
+    """Moved robots the controller wrote after the kill before their new gateway did (it marks a
+    dead gateway's unclaimed robots `Unknown`): how long each showed that, by the API server's
+    clock (a watch's times include its lag)."""
+    shown = [(marked[n], t) for n, (_, t) in moved.items() if n in marked and marked[n] < t]
+    if not shown:
+        return
+    print(f"Moved robots the controller wrote before their new gateway did (shown Unknown): "
+          f"{len(shown)}; shown so for p50 / max {percentile([t - m for m, t in shown], 0.5):.1f} / "
+          f"{max(t - m for m, t in shown):.1f} s (controller's writes answered "
+          f"{min(m for m, _ in shown):.1f}-{max(m for m, _ in shown):.1f} s after the kill, the new "
+          f"gateway's {min(t for _, t in shown):.1f}-{max(t for _, t in shown):.1f} s)")
+
+
 def main():
     path, start, end = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
-    requests, watches, moved, status_writes, answers = read(path, start, end)
+    requests, watches, moved, status_writes, answers, marked = read(path, start, end)
     print(f"Robot requests received in the {end - start:.0f} s from the kill or first boot (audit log):\n")
     print("| client | verb | subresource | code | requests |")
     print("|---|---|---|---|---|")
@@ -204,6 +226,7 @@ def main():
         print(f"\nRobots moved to another gateway and written there: {len(moved)}; their first "
               f"write answered after the kill, p50 / p99 / all: {quantiles(times)}")
     if moved:
+        print_shown_gone(moved, marked)
         print_status_writes(status_writes, moved, end - start)
     if answers:
         print_pace(answers)
