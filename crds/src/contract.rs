@@ -48,15 +48,36 @@ pub const CLAIMS_ANNOTATION: &str = "fleet.lekiwi.io/claimed-robots";
 /// the Robot controller extends their heartbeat grace by this much (at most its
 /// `--max-status-lag-seconds`) instead of showing them `Offline`.
 pub const STATUS_LAG_ANNOTATION: &str = "fleet.lekiwi.io/status-lag-seconds";
+/// Annotation on a dead gateway's Lease, written by the Robot controller
+/// ([`managers::ROBOT_CONTROLLER`]): the robots it marked `Unknown` because that gateway died and
+/// no live gateway claimed them, whose status still names that gateway, in the order marked; the
+/// format of [`CLAIMS_ANNOTATION`], at most [`MAX_MARKED_BYTES`] long (later marks are left
+/// out). A gateway holding a session of one of them writes it before every other waiting robot:
+/// it is shown `Unknown` although connected, and the gateway's Robot watch may show that write
+/// a minute late on a saturated API server, its Lease watch seconds late. Removed once the
+/// gateway's Lease is alive again.
+pub const MARKED_ANNOTATION: &str = "fleet.lekiwi.io/marked-unknown";
 
 /// Longest [`CLAIMS_ANNOTATION`] value in bytes: an API server takes at most 256 KiB of
 /// annotations per object; robots beyond this are left out (and may show `Unknown` briefly).
 pub const MAX_CLAIMS_BYTES: usize = 128 * 1024;
+/// Longest [`MARKED_ANNOTATION`] value in bytes: with [`MAX_CLAIMS_BYTES`] and the rest of a
+/// Lease's annotations, within the API server's 256 KiB.
+pub const MAX_MARKED_BYTES: usize = 96 * 1024;
 
 /// The [`CLAIMS_ANNOTATION`] value of `robots` (`(namespace, name)`), in their order, cut at
-/// whole entries to at most [`MAX_CLAIMS_BYTES`]; also how many robots it lists. A robot of the
-/// same namespace as the one before it is written as its bare name.
+/// whole entries to at most [`MAX_CLAIMS_BYTES`]; also how many robots it lists.
 pub fn encode_claims<'a>(robots: impl IntoIterator<Item = (&'a str, &'a str)>) -> (String, usize) {
+    encode_robot_list(robots, MAX_CLAIMS_BYTES)
+}
+
+/// A list of robots (`(namespace, name)`) in the format of [`CLAIMS_ANNOTATION`], in their
+/// order, cut at whole entries to at most `max_bytes`; also how many robots it lists. A robot of
+/// the same namespace as the one before it is written as its bare name.
+pub fn encode_robot_list<'a>(
+    robots: impl IntoIterator<Item = (&'a str, &'a str)>,
+    max_bytes: usize,
+) -> (String, usize) {
     let mut out = String::new();
     let mut listed = 0;
     let mut previous: Option<&str> = None;
@@ -64,7 +85,7 @@ pub fn encode_claims<'a>(robots: impl IntoIterator<Item = (&'a str, &'a str)>) -
         let same = previous == Some(namespace);
         let prefix = if same { 0 } else { namespace.len() + 1 };
         let extra = usize::from(!out.is_empty()) + prefix + name.len();
-        if out.len() + extra > MAX_CLAIMS_BYTES {
+        if out.len() + extra > max_bytes {
             break;
         }
         if !out.is_empty() {
@@ -81,8 +102,9 @@ pub fn encode_claims<'a>(robots: impl IntoIterator<Item = (&'a str, &'a str)>) -
     (out, listed)
 }
 
-/// The `namespace/name` of every entry of a [`CLAIMS_ANNOTATION`] value (bare names take the
-/// namespace of the entry before them; a bare name with none before it is skipped).
+/// The `namespace/name` of every entry of a [`CLAIMS_ANNOTATION`] (or [`MARKED_ANNOTATION`])
+/// value (bare names take the namespace of the entry before them; a bare name with none before
+/// it is skipped).
 pub fn parse_claims(value: &str) -> impl Iterator<Item = String> + '_ {
     let mut namespace: Option<&str> = None;
     value
@@ -230,5 +252,17 @@ mod tests {
         assert!(value.len() <= MAX_CLAIMS_BYTES);
         assert!(n < 20_000 && n > 10_000, "{n}");
         assert_eq!(parse_claims(&value).count(), n);
+        // The marks' shorter bound cuts the same list sooner, still at an entry.
+        let (value, n) = encode_robot_list(names.iter().map(|n| (ns, n.as_str())), 1_000);
+        assert!(
+            value.len() <= 1_000 && value.len() > 1_000 - 12,
+            "{}",
+            value.len()
+        );
+        assert_eq!(parse_claims(&value).count(), n);
+        assert_eq!(
+            parse_claims(&value).last(),
+            Some(format!("{ns}/robot-{:05}", n - 1))
+        );
     }
 }

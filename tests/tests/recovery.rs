@@ -9,7 +9,9 @@
 //! write the dead gateway sent before it died, landing
 //! only after its Lease expired and after the robot's session on the survivor opened, shows the
 //! robot `Unknown` neither. A robot that reconnects only after the Lease expired (shown
-//! `Unknown` meanwhile) is written before the moves queued ahead of it.
+//! `Unknown` meanwhile) is written before the moves queued ahead of it; the controller lists it
+//! on the dead gateway's Lease (`fleet.lekiwi.io/marked-unknown`) until the survivor wrote it,
+//! and that list alone, with no Robot watch showing the `Unknown`, puts it first.
 //!
 //! On a private control plane with this tree's CRDs (the gateways write `status.sessionEpoch`).
 
@@ -23,7 +25,7 @@ use kube::Api;
 use kube::api::{Patch, PatchParams};
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
-use lekiwi_crds::contract::CLAIMS_ANNOTATION;
+use lekiwi_crds::contract::{CLAIMS_ANNOTATION, MARKED_ANNOTATION, managers, parse_claims};
 use lekiwi_crds::{Robot, RobotPhase};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
@@ -111,7 +113,7 @@ struct Fleet {
     ns: String,
     a: OperatorProcess,
     b: OperatorProcess,
-    _controller: OperatorProcess,
+    controller: OperatorProcess,
     _pg: Postgres,
     cp: ControlPlane,
 }
@@ -138,7 +140,7 @@ impl Fleet {
             ns,
             a,
             b,
-            _controller: controller,
+            controller,
             _pg: pg,
             cp,
         })
@@ -189,6 +191,46 @@ impl Fleet {
             },
         )
         .await
+    }
+
+    /// Waits until gateway `gateway`'s Lease lists exactly `names` as marked `Unknown` (none:
+    /// has no such list).
+    async fn marked_on(&self, gateway: &str, names: &[&str]) -> anyhow::Result<()> {
+        let leases: Api<Lease> = Api::namespaced(self.client.clone(), &self.ns);
+        let want: Vec<String> = names.iter().map(|n| format!("{}/{n}", self.ns)).collect();
+        let listed = || async {
+            let lease = leases.get(gateway).await.ok()?;
+            let mut annotations = lease.metadata.annotations.unwrap_or_default();
+            Some(annotations.remove(MARKED_ANNOTATION))
+        };
+        let what = format!("{gateway}'s Lease listing {names:?} as marked Unknown");
+        let found = wait_for(&what, Duration::from_secs(20), || async {
+            let value = listed().await?;
+            let robots: Vec<String> = value.iter().flat_map(|v| parse_claims(v)).collect();
+            (robots == want).then_some(())
+        })
+        .await;
+        match found {
+            Ok(()) => Ok(()),
+            Err(e) => anyhow::bail!("{e}; it lists {:?}", listed().await),
+        }
+    }
+
+    /// Lists robot `name` on gateway `gateway`'s Lease as marked `Unknown`, as the Robot
+    /// controller does.
+    async fn mark(&self, gateway: &str, name: &str) -> anyhow::Result<()> {
+        let leases: Api<Lease> = Api::namespaced(self.client.clone(), &self.ns);
+        let value = format!("{}/{name}", self.ns);
+        let patch =
+            serde_json::json!({ "metadata": { "annotations": { MARKED_ANNOTATION: value } } });
+        let params = PatchParams {
+            field_manager: Some(managers::ROBOT_CONTROLLER.to_owned()),
+            ..PatchParams::default()
+        };
+        leases
+            .patch(gateway, &params, &Patch::Merge(&patch))
+            .await?;
+        Ok(())
     }
 
     /// Waits until every robot of `names` is Online through `gateway`.
@@ -391,9 +433,35 @@ async fn a_late_write_of_a_dead_gateway_turns_no_robot_unknown() -> anyhow::Resu
 /// A robot of the dead gateway that reconnects only after its Lease expired is `Unknown`
 /// meanwhile (rightly), and once back through B it is written before the moves queued ahead of
 /// it, which still show `Online`: it is the one robot shown wrong. B writes 3 a second, so the
-/// 60 moves take 20 s, longer than A's Lease and the controller take to mark it.
+/// 60 moves take 20 s, longer than A's Lease and the controller take to mark it. The controller
+/// lists it on A's Lease as marked `Unknown` (not the moves, which B claims) until B wrote it.
 #[tokio::test]
 async fn a_robot_shown_unknown_goes_before_the_moves() -> anyhow::Result<()> {
+    late_robot_goes_before_the_moves(Late::ShownUnknown).await
+}
+
+/// The same robot goes first when nothing but A's Lease tells B it is marked `Unknown`: the
+/// controller is stopped before the kill, and the test lists the robot on A's Lease as the
+/// controller would, after its session on B opened and without writing it `Unknown` (as when
+/// B's Robot watch runs a minute late, which a saturated API server does).
+#[tokio::test]
+async fn a_robot_listed_as_marked_on_the_dead_gateways_lease_goes_before_the_moves()
+-> anyhow::Result<()> {
+    late_robot_goes_before_the_moves(Late::Listed).await
+}
+
+/// What tells gateway B that the late robot is shown `Unknown`.
+#[derive(PartialEq)]
+enum Late {
+    /// The controller marked it `Unknown`: B's Robot watch shows that, and A's Lease lists it.
+    ShownUnknown,
+    /// A's Lease alone lists it (no controller runs).
+    Listed,
+}
+
+/// 60 robots move from A (killed) to B, which writes 3 a second; one more reconnects late, as
+/// `late_is` says: it is written before the moves still waiting.
+async fn late_robot_goes_before_the_moves(late_is: Late) -> anyhow::Result<()> {
     let mut f = Fleet::start().await?;
     let history = Histories::watch(&f.client, &f.ns);
     let on_a = f.robots("kiwi", 2 * ON_A).await?;
@@ -406,11 +474,20 @@ async fn a_robot_shown_unknown_goes_before_the_moves() -> anyhow::Result<()> {
         .await?;
     tokio::time::sleep(Duration::from_secs(1)).await;
 
+    if late_is == Late::Listed {
+        f.controller.kill();
+    }
     f.a.kill();
     drop((sockets_a, late_a));
     let _moved_b = f.connect(&f.b, &on_a).await?;
-    let within = Duration::from_secs(20);
-    lekiwi_tests::wait_phase(&f.client, &f.ns, &name, RobotPhase::Unknown, within).await?;
+    if late_is == Late::ShownUnknown {
+        let within = Duration::from_secs(20);
+        lekiwi_tests::wait_phase(&f.client, &f.ns, &name, RobotPhase::Unknown, within).await?;
+        f.marked_on("gw-a", &[name.as_str()]).await?;
+    } else {
+        // A's last renewal was before the kill.
+        tokio::time::sleep(Duration::from_secs(GATEWAY_LEASE_SECS + 2)).await;
+    }
     let unwritten = |since: Option<Instant>| {
         moved
             .iter()
@@ -423,6 +500,11 @@ async fn a_robot_shown_unknown_goes_before_the_moves() -> anyhow::Result<()> {
     };
     let waiting = unwritten(None);
     let _late_b = f.connect(&f.b, &late).await?;
+    if late_is == Late::Listed {
+        // Its session on B is open (connect returns after the welcome): it waits behind the
+        // moves until the list reaches B.
+        f.mark("gw-a", &name).await?;
+    }
     f.all_online_via(&[name.as_str()], "gw-b").await?;
     let online_b = history.online_via(&name, "gw-b");
     f.all_online_via(&moved, "gw-b").await?;
@@ -443,5 +525,18 @@ async fn a_robot_shown_unknown_goes_before_the_moves() -> anyhow::Result<()> {
         after + 4 >= waiting,
         "{name} waited behind the moves: {after} of the {waiting} waiting were written after it"
     );
+    match late_is {
+        // Written through B, it names B: the controller's list on A's Lease drops it.
+        Late::ShownUnknown => f.marked_on("gw-a", &[]).await?,
+        Late::Listed => {
+            let gone = |p: &Option<RobotPhase>| {
+                matches!(p, Some(RobotPhase::Unknown | RobotPhase::Offline))
+            };
+            assert!(
+                !shown.iter().any(|(p, _)| gone(p)),
+                "with no controller {name} never shows Unknown: {shown:?}"
+            );
+        }
+    }
     Ok(())
 }

@@ -44,6 +44,8 @@ pub struct Context {
     pub gateway_leases: Option<Store<Lease>>,
     /// The robots live gateways claim in their Leases (see [`robot::claims`]).
     pub gateway_claims: Arc<robot::claims::ClaimIndex>,
+    /// The robots the Robot controller marked `Unknown` per dead gateway (see [`robot::marks`]).
+    pub gateway_marks: Arc<robot::marks::Marks>,
     /// The phase each robot was last seen in and the budget of per-robot phase Events.
     pub robot_events: Arc<robot::events::PhaseEvents>,
     /// Consecutive failures per object, for exponential backoff.
@@ -65,6 +67,7 @@ impl Context {
             config,
             gateway_leases: None,
             gateway_claims: Arc::default(),
+            gateway_marks: Arc::default(),
             robot_events: Arc::default(),
             failures: Arc::default(),
         }

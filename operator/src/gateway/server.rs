@@ -310,7 +310,8 @@ struct Background {
 }
 
 /// Starts the status writer (which reads who holds each robot from the Robot watch's cache),
-/// the presence ticker, the Lease of gateway `name` and the event store's retention.
+/// the presence ticker, the Lease of gateway `name`, the watch of the other gateways' Leases
+/// (see [`super::peers`]) and the event store's retention.
 fn start_background(
     config: &Config,
     name: &str,
@@ -334,6 +335,13 @@ fn start_background(
         Some(presence.clone()),
         cancel.clone(),
     ));
+    let peers = super::peers::watch(
+        client.clone(),
+        config.namespace.clone(),
+        name.to_owned(),
+        presence.clone(),
+        cancel.clone(),
+    );
     let retention = store.spawn_retention(
         Duration::from_secs(config.retention_days.saturating_mul(86_400)),
         Duration::from_secs(3600),
@@ -342,7 +350,7 @@ fn start_background(
     Background {
         writer_cancel,
         writer_task,
-        aborted: vec![ticker, lease_task, retention],
+        aborted: vec![ticker, lease_task, peers, retention],
     }
 }
 

@@ -205,32 +205,16 @@ fn within_grace(at: Timestamp, now: Timestamp) -> bool {
 
 #[cfg(test)]
 mod tests {
-    use k8s_openapi::api::coordination::v1::LeaseSpec;
-    use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
-    use kube::api::ObjectMeta;
     use kube::runtime::{reflector, watcher};
 
     use super::*;
 
     fn lease(name: &str, version: &str, renewed_ago_s: i64, claims: Option<&str>) -> Lease {
-        Lease {
-            metadata: ObjectMeta {
-                name: Some(name.into()),
-                namespace: Some("ops".into()),
-                resource_version: Some(version.into()),
-                labels: Some([(GATEWAY_LEASE_LABEL.to_owned(), "true".to_owned())].into()),
-                annotations: claims.map(|c| [(CLAIMS_ANNOTATION.to_owned(), c.to_owned())].into()),
-                ..ObjectMeta::default()
-            },
-            spec: Some(LeaseSpec {
-                holder_identity: Some(name.into()),
-                lease_duration_seconds: Some(15),
-                renew_time: Some(MicroTime(
-                    Timestamp::now() - jiff::SignedDuration::from_secs(renewed_ago_s),
-                )),
-                ..LeaseSpec::default()
-            }),
-        }
+        let mut lease = super::super::gateways::test_lease(name, renewed_ago_s);
+        lease.metadata.resource_version = Some(version.into());
+        lease.metadata.annotations =
+            claims.map(|c| [(CLAIMS_ANNOTATION.to_owned(), c.to_owned())].into());
+        lease
     }
 
     /// Only a live Lease of another gateway claims, and a new version of it is read again.

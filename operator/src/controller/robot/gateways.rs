@@ -1,6 +1,7 @@
 //! Gateway liveness for the Robot controller: a gateway's Lease says whether the robots it
 //! holds can be trusted; a tick re-checks those robots when it changes, refreshes the fleet
-//! gauges and deletes the Leases of gateways gone for good.
+//! gauges, publishes the robots marked `Unknown` (see [`super::marks`]) and deletes the Leases
+//! of gateways gone for good.
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -33,7 +34,7 @@ pub(super) fn valid_until(lease: &Lease) -> Option<Timestamp> {
 }
 
 /// Whether a Lease has a holder and was renewed within its duration.
-pub(super) fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
+pub(crate) fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
     lease
         .spec
         .as_ref()
@@ -133,8 +134,8 @@ async fn remove_stale_gateway_leases(
 }
 
 /// Once a second: when a gateway's Lease expires (or comes back), re-reconciles the robots it
-/// held; also refreshes the robots-by-phase gauges. Every minute, deletes the Leases of gateways
-/// gone for good.
+/// held; also refreshes the robots-by-phase gauges and publishes the robots marked `Unknown`.
+/// Every minute, deletes the Leases of gateways gone for good.
 pub(super) async fn watch_gateways(
     ctx: Arc<Context>,
     robots: Store<DeserializeGuard<Robot>>,
@@ -161,6 +162,9 @@ pub(super) async fn watch_gateways(
             remove_stale_gateway_leases(&ctx, &leases, held, now).await;
             last_gc = Some(std::time::Instant::now());
         }
+        ctx.gateway_marks
+            .publish(&ctx, &leases, &census.by_gateway, now)
+            .await;
         last = recheck_changed_gateways(&ctx, &leases, census.by_gateway, &last, &wake, now);
     }
 }
@@ -237,38 +241,49 @@ fn recheck_changed_gateways(
     current
 }
 
+/// A gateway's Lease in namespace `ops` for tests: held by `name`, 15 s long, renewed
+/// `renewed_ago_s` seconds ago, resourceVersion `1`.
+#[cfg(test)]
+pub(crate) fn test_lease(name: &str, renewed_ago_s: i64) -> Lease {
+    use k8s_openapi::api::coordination::v1::LeaseSpec;
+    use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
+    Lease {
+        metadata: kube::api::ObjectMeta {
+            name: Some(name.into()),
+            namespace: Some("ops".into()),
+            resource_version: Some("1".into()),
+            labels: Some(
+                [(
+                    lekiwi_crds::contract::GATEWAY_LEASE_LABEL.to_owned(),
+                    "true".to_owned(),
+                )]
+                .into(),
+            ),
+            ..kube::api::ObjectMeta::default()
+        },
+        spec: Some(LeaseSpec {
+            holder_identity: Some(name.into()),
+            lease_duration_seconds: Some(15),
+            renew_time: Some(MicroTime(
+                Timestamp::now() - jiff::SignedDuration::from_secs(renewed_ago_s),
+            )),
+            ..LeaseSpec::default()
+        }),
+    }
+}
+
 #[cfg(test)]
 mod tests {
-    use k8s_openapi::api::coordination::v1::LeaseSpec;
-    use k8s_openapi::apimachinery::pkg::apis::meta::v1::{MicroTime, Time};
-    use kube::api::ObjectMeta;
+    use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 
     use super::*;
 
     fn lease(name: &str, gateway: bool, renewed_ago_s: i64) -> Arc<Lease> {
-        let now = Timestamp::now();
-        Arc::new(Lease {
-            metadata: ObjectMeta {
-                name: Some(name.into()),
-                resource_version: Some("7".into()),
-                labels: gateway.then(|| {
-                    [(
-                        lekiwi_crds::contract::GATEWAY_LEASE_LABEL.to_owned(),
-                        "true".to_owned(),
-                    )]
-                    .into()
-                }),
-                ..ObjectMeta::default()
-            },
-            spec: Some(LeaseSpec {
-                holder_identity: Some(name.into()),
-                lease_duration_seconds: Some(15),
-                renew_time: Some(MicroTime(
-                    now - jiff::SignedDuration::from_secs(renewed_ago_s),
-                )),
-                ..LeaseSpec::default()
-            }),
-        })
+        let mut lease = test_lease(name, renewed_ago_s);
+        if !gateway {
+            lease.metadata.labels = None;
+        }
+        Arc::new(lease)
     }
 
     /// Only gateway Leases expired for longer than the limit and named by no robot go.
@@ -305,8 +320,8 @@ mod tests {
         assert_eq!(
             stale,
             vec![
-                ("gw-never-renewed".to_owned(), Some("7".to_owned())),
-                ("gw-old".to_owned(), Some("7".to_owned()))
+                ("gw-never-renewed".to_owned(), Some("1".to_owned())),
+                ("gw-old".to_owned(), Some("1".to_owned()))
             ]
         );
     }

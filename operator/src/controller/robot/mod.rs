@@ -6,7 +6,8 @@
 
 pub mod claims;
 pub mod events;
-mod gateways;
+pub(crate) mod gateways;
+pub mod marks;
 pub mod plan;
 pub mod status;
 
@@ -163,6 +164,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
                 debug!("the robot changed under the plan; waiting for the newer version");
                 return Ok(Action::requeue(CONFLICT_RECHECK));
             }
+            note_marked(&ctx, robot, &plan, gateway);
         }
         // A gateway may have written the new phase itself: compare with the last look too.
         let stored = robot.status.as_ref().and_then(|s| s.phase);
@@ -188,6 +190,18 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     }
     .instrument(span)
     .await
+}
+
+/// Notes `robot` in the list of robots marked `Unknown` (see [`marks`]) when this reconcile
+/// just wrote `plan`, `Unknown` because its gateway is gone.
+fn note_marked(ctx: &Context, robot: &Robot, plan: &plan::Plan, gateway: Option<GatewayState>) {
+    if plan.phase != RobotPhase::Unknown || gateway != Some(GatewayState::Gone) {
+        return;
+    }
+    let namespace = robot.namespace().unwrap_or_default();
+    if let Some(gw) = robot.status.as_ref().and_then(|s| s.gateway.as_deref()) {
+        ctx.gateway_marks.record(gw, &namespace, &robot.name_any());
+    }
 }
 
 /// How long to look again instead of planning `robot` now: a robot just enrolled is left to its

@@ -14,6 +14,13 @@
 //! cache can be behind: the old gateway's last write may land, or reach this gateway's watch,
 //! only after the session here opened (an API server answering seconds late). Such a write,
 //! older than the session, makes the robot claimed then ([`Presence::moved_later`]).
+//!
+//! A robot that reconnects here only after the Robot controller marked it `Unknown` (its old
+//! gateway's Lease expired before this gateway's claim reached the controller) is the one robot
+//! shown wrong: its write goes before every other waiting one ([`Priority::Gone`]). This gateway
+//! learns that from its Robot watch ([`Presence::shown_gone`]) or, seconds sooner on a
+//! saturated API server, from the list of marked robots on the old gateway's Lease
+//! ([`crate::gateway::peers`], [`Presence::marked`]).
 
 use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
@@ -21,6 +28,7 @@ use lekiwi_crds::{Robot, RobotPhase};
 
 use super::{Entry, Presence, Priority};
 use crate::gateway::event_store::RobotKey;
+use crate::gateway::peers::Peers;
 
 /// How long a claim outlives its robot's last landed write when this gateway's Robot watch
 /// does not show that write (a watch that is listing again, say): the write landed, so the
@@ -38,6 +46,11 @@ pub fn is_shown_gone(robot: &Robot) -> bool {
         .is_some_and(|p| matches!(p, RobotPhase::Unknown | RobotPhase::Offline))
 }
 
+/// The gateway `robot`'s status names.
+fn holder_gateway(robot: &Robot) -> Option<&str> {
+    robot.status.as_ref()?.gateway.as_deref()
+}
+
 /// Ends `e`'s claim once it is [`CLAIM_AFTER_WRITE`] past its last landed write; called by
 /// [`Presence::tick`] with the rest of the per-robot housekeeping.
 pub(super) fn end_stale_claim(e: &mut Entry, now: Timestamp) {
@@ -50,6 +63,54 @@ pub(super) fn end_stale_claim(e: &mut Entry, now: Timestamp) {
 }
 
 impl Presence {
+    /// Reads the other gateways' lists of robots marked `Unknown` from `peers` from now on.
+    pub fn watch_peers(&self, peers: Peers) {
+        let _ = self.peers.set(peers);
+    }
+
+    /// Whether robot `key`, as the Robot cache shows it (`cached`), is shown gone: by its
+    /// status, or by the list of robots marked `Unknown` on the Lease of the gateway that
+    /// status names.
+    pub(super) fn gone_or_marked(&self, key: &RobotKey, cached: &Robot) -> bool {
+        is_shown_gone(cached)
+            || self.peers.get().is_some_and(|peers| {
+                holder_gateway(cached).is_some_and(|gw| peers.is_marked(gw, key))
+            })
+    }
+
+    /// The Lease of gateway `gateway` lists robot `key` as marked `Unknown` by the Robot
+    /// controller: if the robot's session here is live, moved here (its status named another
+    /// gateway) and not written yet, and the Robot cache shows its status naming `gateway`
+    /// still, it is shown `Unknown` although connected, and its write goes before every other
+    /// waiting one, as for [`Presence::shown_gone`]. `true` if it was put first.
+    pub fn marked(&self, key: &RobotKey, gateway: &str) -> bool {
+        let named = self
+            .cached_robot(key)
+            .is_some_and(|r| holder_gateway(&r) == Some(gateway));
+        named && self.put_first(key, |e| e.moved)
+    }
+
+    /// Puts `key` before every other waiting robot ([`Priority::Gone`]) if its session here is
+    /// live, `also` holds for it, and it has no write landed or in flight; `true` if it did.
+    fn put_first(&self, key: &RobotKey, also: impl Fn(&Entry) -> bool) -> bool {
+        let first = self.with_state(|s| {
+            let Some(e) = s.robots.get(key) else {
+                return false;
+            };
+            // No settling check: a session whose status names another gateway never settles
+            // (`connect_moved`, `moved_later`).
+            if !e.connected || !also(e) || e.written_at.is_some() || s.writing.contains_key(key) {
+                return false;
+            }
+            s.enqueue(key, Priority::Gone);
+            true
+        });
+        if first {
+            self.wake();
+        }
+        first
+    }
+
     /// The robots claimed now, oldest session first (those the writer takes first).
     pub fn claims(&self) -> Vec<RobotKey> {
         let mut claimed: Vec<(u64, RobotKey)> = self.with_state(|s| {
@@ -101,26 +162,7 @@ impl Presence {
     /// included (those still show `Online`): [`Priority::Gone`]. Not while its write is in
     /// flight. `true` if it was put first.
     pub fn shown_gone(&self, key: &RobotKey, epoch: i64) -> bool {
-        let first = self.with_state(|s| {
-            let Some(e) = s.robots.get(key) else {
-                return false;
-            };
-            // No settling check: a session whose status names another gateway never settles
-            // (`connect_moved`, `moved_later`).
-            if !e.connected
-                || e.epoch <= epoch
-                || e.written_at.is_some()
-                || s.writing.contains_key(key)
-            {
-                return false;
-            }
-            s.enqueue(key, Priority::Gone);
-            true
-        });
-        if first {
-            self.wake();
-        }
-        first
+        self.put_first(key, |e| e.epoch > epoch)
     }
 
     /// The Robot cache shows `key`'s status naming another gateway with session epoch

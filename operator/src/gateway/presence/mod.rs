@@ -162,6 +162,9 @@ pub struct Presence {
     metrics: Metrics,
     /// Set once the gateway's Robot cache is ready: status writes then carry the phase too.
     planner: Arc<std::sync::OnceLock<Arc<PhasePlanner>>>,
+    /// The robots other gateways' Leases list as marked `Unknown` (see [`claims`]), once their
+    /// watch started.
+    peers: Arc<std::sync::OnceLock<crate::gateway::peers::Peers>>,
 }
 
 impl Presence {
@@ -174,6 +177,7 @@ impl Presence {
             config: Arc::new(config),
             metrics,
             planner: Arc::default(),
+            peers: Arc::default(),
         }
     }
 
@@ -223,7 +227,7 @@ impl Presence {
             let agent_update = old.and_then(|e| e.agent_update.clone());
             let cached = self.cached_robot(key);
             // Shown gone although it connected: its write goes first (see `shown_gone`).
-            let gone = moved && cached.as_ref().is_some_and(|r| claims::is_shown_gone(r));
+            let gone = moved && cached.as_ref().is_some_and(|r| self.gone_or_marked(key, r));
             let analysis = analysis::Tracker::at_connect(
                 old.map(|e| (&e.analysis, e.info.release.as_ref())),
                 cached.as_ref().and_then(|r| r.status.as_ref()),

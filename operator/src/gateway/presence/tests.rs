@@ -635,6 +635,77 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
     });
 }
 
+/// A moved robot the Robot controller listed on its old gateway's Lease as marked `Unknown`
+/// goes before the moves, whether the list came before its session here or after, as long as
+/// the cache shows its status naming that gateway; a robot listed there whose status names
+/// another gateway stays a move.
+#[test]
+fn a_robot_marked_on_its_old_gateways_lease_is_written_first() {
+    let robot = |name: &str, gateway: &str| -> lekiwi_crds::Robot {
+        serde_json::from_value(json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "metadata": { "name": name, "namespace": "lab" },
+            "spec": {},
+            "status": { "phase": "Online", "gateway": gateway, "sessionEpoch": 500 },
+        }))
+        .unwrap()
+    };
+    let p = presence();
+    let cache = crate::gateway::api::cache::Cache::listed([
+        robot("m1", "dead"),
+        robot("m2", "dead"),
+        robot("early", "dead"),
+        robot("late", "dead"),
+        robot("other", "alive"),
+    ]);
+    let robots = crate::gateway::desired::DesiredReleases(std::sync::Arc::new(cache));
+    p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
+    let peers = crate::gateway::peers::Peers::default();
+    p.watch_peers(peers.clone());
+    let mut lease = crate::controller::robot::gateways::test_lease("dead", 60);
+    let mut list = |value: &str| {
+        lease.metadata.annotations = Some(
+            [(
+                lekiwi_crds::contract::MARKED_ANNOTATION.to_owned(),
+                value.to_owned(),
+            )]
+            .into(),
+        );
+        peers.update(&lease)
+    };
+    let connect = |name: &str, session: u64| {
+        p.connect_moved(&key(name), session, 1_000, ConnectInfo::default(), true);
+    };
+    connect("m1", 1);
+    connect("m2", 2);
+    list("lab/early,other");
+    connect("early", 3);
+    connect("late", 4);
+    connect("other", 5);
+    assert_eq!(list("lab/early,other,late"), [key("late")]);
+    assert!(
+        !p.marked(&key("other"), "dead"),
+        "its status names another gateway"
+    );
+    assert!(!p.marked(&key("absent"), "dead"), "no session here");
+    assert!(p.marked(&key("late"), "dead"));
+    assert_eq!(
+        write_order(&p),
+        ["early", "late", "m1", "m2", "other"],
+        "the marked robots first, in their order, then the moves"
+    );
+}
+
+/// The robots waiting for a write, in the order the writer takes them (the queues emptied).
+fn write_order(p: &Presence) -> Vec<String> {
+    p.with_state(|s| {
+        std::iter::from_fn(|| s.pop())
+            .map(|(k, _)| k.name)
+            .collect()
+    })
+}
+
 /// A change while the robot's write is in flight is written after it, never beside it: two
 /// writes of one robot at once could land in the wrong order and leave the older snapshot (the
 /// race that once left an agent update `Started` after it had `Succeeded`).
