@@ -48,6 +48,11 @@
 #!   --events-per-minute E  durable events per robot per minute (default 6)
 #!   --interval S           heartbeat interval, seconds (default 5)
 #!   --settle S             steady state before the kill, seconds (default 30)
+#!   --late-share F         kill: this share (0 to 1) of the robots waits --late-delay seconds more
+#!                          before reconnecting after the kill, as robots on a poor network would
+#!                          (default 0): they come back after the dead gateway's Lease expired, so
+#!                          the controller marks them Unknown first
+#!   --late-delay S         kill: that extra wait, seconds (default 30)
 #!   --recovery-timeout S   give up waiting for recovery after S seconds (default 180)
 #!   --after-restart S      observation window after the killed gateway restarts (default 60)
 #!   --tls                  the gateways serve wss:// (a CA and certificate made here with openssl;
@@ -98,6 +103,8 @@ SETTLE=30
 RECOVERY_TIMEOUT=180
 AFTER_RESTART=60
 BUILD=1
+LATE_SHARE=0
+LATE_DELAY=30
 KEEP=0
 AUDIT=0
 PROFILE=0
@@ -128,6 +135,10 @@ while [ $# -gt 0 ]; do
     --events-per-minute) positive_int "$1" "${2:-}"; EPM="$2"; shift 2 ;;
     --interval) positive_int "$1" "${2:-}"; INTERVAL="$2"; shift 2 ;;
     --settle) positive_int "$1" "${2:-}"; SETTLE="$2"; shift 2 ;;
+    --late-share)
+      [[ "${2:-}" =~ ^(0(\.[0-9]+)?|1(\.0+)?)$ ]] || die "--late-share is a number from 0 to 1"
+      LATE_SHARE="$2"; shift 2 ;;
+    --late-delay) positive_int "$1" "${2:-}"; LATE_DELAY="$2"; shift 2 ;;
     --recovery-timeout) positive_int "$1" "${2:-}"; RECOVERY_TIMEOUT="$2"; shift 2 ;;
     --after-restart) positive_int "$1" "${2:-}"; AFTER_RESTART="$2"; shift 2 ;;
     --tls) TLS=1; shift ;;
@@ -363,7 +374,8 @@ provisioned_fleet() { # count
   start sim nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN" --namespace bench \
     --robots "$1" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
-    --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json"
+    --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json" \
+    --late-share "$LATE_SHARE" --late-delay "$LATE_DELAY"
   SIM_PID=$LAST_PID
   online() {
     alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"

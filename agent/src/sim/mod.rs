@@ -82,6 +82,30 @@ pub struct Args {
     /// unacknowledged ones to be acknowledged before exiting.
     #[arg(long, default_value_t = 0.0)]
     pub drain_seconds: f64,
+    /// Share (0 to 1) of the robots that, after losing a session, wait `--late-delay` seconds
+    /// more before connecting again, as robots on a poor network would; the same robots every
+    /// run (chosen by a hash of the name).
+    #[arg(long, default_value_t = 0.0)]
+    pub late_share: f64,
+    /// Extra wait, seconds, of the robots of `--late-share` before they reconnect.
+    #[arg(long, default_value_t = 30.0)]
+    pub late_delay: f64,
+}
+
+impl Args {
+    /// The extra wait of robot `name` before it reconnects after losing a session (see
+    /// `--late-share`).
+    pub(crate) fn late_delay_of(&self, name: &str) -> Duration {
+        use std::hash::{Hash, Hasher};
+        let mut hasher = std::hash::DefaultHasher::new();
+        name.hash(&mut hasher);
+        let point = (hasher.finish() % 1_000_000) as f64 / 1_000_000.0;
+        if point < self.late_share.clamp(0.0, 1.0) {
+            Duration::from_secs_f64(self.late_delay.max(0.0))
+        } else {
+            Duration::ZERO
+        }
+    }
 }
 
 type Tokens = Arc<Mutex<std::collections::BTreeMap<String, String>>>;

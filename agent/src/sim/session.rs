@@ -119,41 +119,42 @@ pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
     let timeout = Duration::from_secs_f64(args.connect_timeout);
     loop {
         let hello = hello(&name, &fleet.release, outbox.last_acked());
-        let mut floor = Duration::ZERO;
-        match connect_with_ca(&url, &creds, &hello, timeout, args.ca_file.as_deref()).await {
-            Ok((ws, welcome)) => {
-                backoff.reset();
-                if let Some(token) = welcome.robot_token.clone() {
-                    lock(&fleet.tokens).insert(name.clone(), token.clone());
-                    creds.token = token;
+        let floor =
+            match connect_with_ca(&url, &creds, &hello, timeout, args.ca_file.as_deref()).await {
+                Ok((ws, welcome)) => {
+                    backoff.reset();
+                    if let Some(token) = welcome.robot_token.clone() {
+                        lock(&fleet.tokens).insert(name.clone(), token.clone());
+                        creds.token = token;
+                    }
+                    creds.robot = welcome.robot.clone();
+                    outbox.stored_through(welcome.stored_seq, &fleet.stats);
+                    fleet.count_session(std::mem::take(&mut first));
+                    let interval = args
+                        .heartbeat_interval
+                        .map(Duration::from_secs_f64)
+                        .unwrap_or(welcome.heartbeat_interval);
+                    Session {
+                        fleet: &fleet,
+                        name: &name,
+                        interval,
+                        outbox: &mut outbox,
+                    }
+                    .run(ws)
+                    .await;
+                    fleet.stats.connected.fetch_sub(1, Ordering::Relaxed);
+                    args.late_delay_of(&name)
                 }
-                creds.robot = welcome.robot.clone();
-                outbox.stored_through(welcome.stored_seq, &fleet.stats);
-                fleet.count_session(std::mem::take(&mut first));
-                let interval = args
-                    .heartbeat_interval
-                    .map(Duration::from_secs_f64)
-                    .unwrap_or(welcome.heartbeat_interval);
-                Session {
-                    fleet: &fleet,
-                    name: &name,
-                    interval,
-                    outbox: &mut outbox,
+                Err(e) => {
+                    fleet.stats.connect_errors.fetch_add(1, Ordering::Relaxed);
+                    if matches!(e, ConnectError::Unauthorized(_)) {
+                        eprintln!("{name}: {e}");
+                        // A stale token (rotated elsewhere): enroll again.
+                        creds.token = args.enrollment_token.clone();
+                    }
+                    e.retry_after().unwrap_or_default()
                 }
-                .run(ws)
-                .await;
-                fleet.stats.connected.fetch_sub(1, Ordering::Relaxed);
-            }
-            Err(e) => {
-                fleet.stats.connect_errors.fetch_add(1, Ordering::Relaxed);
-                floor = e.retry_after().unwrap_or_default();
-                if matches!(e, ConnectError::Unauthorized(_)) {
-                    eprintln!("{name}: {e}");
-                    // A stale token (rotated elsewhere): enroll again.
-                    creds.token = args.enrollment_token.clone();
-                }
-            }
-        }
+            };
         // A server's Retry-After first, then full jitter, so a fleet does not come back in
         // lockstep (PROTOCOL.md §11).
         tokio::time::sleep(floor + backoff.next_delay()).await;
@@ -264,6 +265,30 @@ fn heartbeat(sent_at_ms: i64, rtt_ms: Option<f64>) -> Message {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::Parser;
+
+    /// `--late-share` picks about that share of the robots, the same ones each time; none by
+    /// default.
+    #[test]
+    fn late_robots_are_a_stable_share() {
+        let args = |extra: &[&str]| {
+            let base = ["lekiwi-sim", "--enrollment-token", "t"];
+            super::super::Args::parse_from(base.iter().chain(extra))
+        };
+        let names: Vec<String> = (1..=10_000).map(|i| format!("bench-{i:05}")).collect();
+        let late = |a: &super::super::Args| -> Vec<&String> {
+            names
+                .iter()
+                .filter(|n| !a.late_delay_of(n).is_zero())
+                .collect()
+        };
+        assert!(late(&args(&[])).is_empty());
+        let some = args(&["--late-share", "0.01", "--late-delay", "25"]);
+        let picked = late(&some);
+        assert!((70..=130).contains(&picked.len()), "{}", picked.len());
+        assert_eq!(picked, late(&some), "the same robots again");
+        assert_eq!(some.late_delay_of(picked[0]), Duration::from_secs(25));
+    }
 
     #[test]
     fn the_outbox_keeps_what_is_not_acknowledged_and_counts_each_event_once() {
