@@ -143,19 +143,20 @@ impl Marks {
             let inner = self.0.lock().unwrap_or_else(|p| p.into_inner());
             inner.marked.keys().cloned().collect()
         };
+        // The robots naming each gateway marked so far (none: no robot names it any more).
         let held: HashMap<&str, HashSet<(&str, &str)>> = marked
             .iter()
-            .filter_map(|gw| Some((gw.as_str(), by_gateway.get(gw)?)))
-            .map(|(gw, refs)| {
-                let ids = refs
-                    .iter()
-                    .map(|r| (r.namespace.as_deref().unwrap_or_default(), r.name.as_str()));
-                (gw, ids.collect())
+            .map(|gw| {
+                let refs = by_gateway.get(gw).into_iter().flatten();
+                let ids =
+                    refs.map(|r| (r.namespace.as_deref().unwrap_or_default(), r.name.as_str()));
+                (gw.as_str(), ids.collect())
             })
             .collect();
+        // A gateway marked since `marked` was read keeps its robots until the next call.
         let holds = |gateway: &str, (ns, name): &RobotId| {
             held.get(gateway)
-                .is_some_and(|ids| ids.contains(&(ns.as_str(), name.as_str())))
+                .is_none_or(|ids| ids.contains(&(ns.as_str(), name.as_str())))
         };
         let due = self.due(&leases.state(), holds, now);
         let api: Api<Lease> = Api::namespaced(ctx.client.clone(), &ctx.config.namespace);
