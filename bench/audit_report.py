@@ -193,11 +193,12 @@ def print_shown_gone(moved, marked):
     shown = [(marked[n], t) for n, (_, t) in moved.items() if n in marked and marked[n] < t]
     if not shown:
         return
+    marks, writes = [m for m, _ in shown], [t for _, t in shown]
+    spans = [t - m for m, t in shown]
     print(f"Moved robots the controller wrote before their new gateway did (shown Unknown): "
-          f"{len(shown)}; shown so for p50 / max {percentile([t - m for m, t in shown], 0.5):.1f} / "
-          f"{max(t - m for m, t in shown):.1f} s (controller's writes answered "
-          f"{min(m for m, _ in shown):.1f}-{max(m for m, _ in shown):.1f} s after the kill, the new "
-          f"gateway's {min(t for _, t in shown):.1f}-{max(t for _, t in shown):.1f} s)")
+          f"{len(shown)}; shown so for p50 / max {percentile(spans, 0.5):.1f} / {max(spans):.1f} s "
+          f"(controller's writes answered {min(marks):.1f}-{max(marks):.1f} s after the kill, the "
+          f"new gateway's {min(writes):.1f}-{max(writes):.1f} s)")
 
 
 def main():

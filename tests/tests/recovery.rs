@@ -177,42 +177,44 @@ impl Fleet {
 
     /// Waits until gateway B's Lease claims robot `name`.
     async fn claimed_by_b(&self, name: &str) -> anyhow::Result<()> {
-        let leases: Api<Lease> = Api::namespaced(self.client.clone(), &self.ns);
+        let robot = format!("{}/{name}", self.ns);
         wait_for(
             &format!("gw-b's Lease claiming {name}"),
             Duration::from_secs(10),
             || async {
-                let lease = leases.get("gw-b").await.ok()?;
-                let claims = lease.metadata.annotations?.remove(CLAIMS_ANNOTATION)?;
-                claims
-                    .split(',')
-                    .any(|c| c.rsplit('/').next() == Some(name))
-                    .then_some(())
+                let claims = self.listed("gw-b", CLAIMS_ANNOTATION).await?;
+                claims.contains(&robot).then_some(())
             },
         )
         .await
     }
 
+    /// The robots (`namespace/name`) gateway `gateway`'s Lease lists in `annotation` (none
+    /// without it); `None` if the Lease cannot be read.
+    async fn listed(&self, gateway: &str, annotation: &str) -> Option<Vec<String>> {
+        let leases: Api<Lease> = Api::namespaced(self.client.clone(), &self.ns);
+        let lease = leases.get(gateway).await.ok()?;
+        let mut annotations = lease.metadata.annotations.unwrap_or_default();
+        let value = annotations.remove(annotation).unwrap_or_default();
+        Some(parse_claims(&value).collect())
+    }
+
     /// Waits until gateway `gateway`'s Lease lists exactly `names` as marked `Unknown` (none:
     /// has no such list).
     async fn marked_on(&self, gateway: &str, names: &[&str]) -> anyhow::Result<()> {
-        let leases: Api<Lease> = Api::namespaced(self.client.clone(), &self.ns);
         let want: Vec<String> = names.iter().map(|n| format!("{}/{n}", self.ns)).collect();
-        let listed = || async {
-            let lease = leases.get(gateway).await.ok()?;
-            let mut annotations = lease.metadata.annotations.unwrap_or_default();
-            Some(annotations.remove(MARKED_ANNOTATION))
-        };
         let what = format!("{gateway}'s Lease listing {names:?} as marked Unknown");
         let found = wait_for(&what, Duration::from_secs(20), || async {
-            let value = listed().await?;
-            let robots: Vec<String> = value.iter().flat_map(|v| parse_claims(v)).collect();
+            let robots = self.listed(gateway, MARKED_ANNOTATION).await?;
             (robots == want).then_some(())
         })
         .await;
         match found {
             Ok(()) => Ok(()),
-            Err(e) => anyhow::bail!("{e}; it lists {:?}", listed().await),
+            Err(e) => anyhow::bail!(
+                "{e}; it lists {:?}",
+                self.listed(gateway, MARKED_ANNOTATION).await
+            ),
         }
     }
 

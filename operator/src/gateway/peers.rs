@@ -79,8 +79,7 @@ pub fn watch(
     presence: Presence,
     cancel: CancellationToken,
 ) -> JoinHandle<()> {
-    let peers = Peers::default();
-    presence.watch_peers(peers.clone());
+    let peers = presence.peers().clone();
     tokio::spawn(async move {
         let api: Api<Lease> = Api::namespaced(client, &namespace);
         let config = watcher::Config::default().labels(GATEWAY_LEASE_LABEL);
@@ -118,10 +117,10 @@ pub fn watch(
                     continue;
                 }
             };
-            if lease.name_any() == own {
+            let gateway = lease.name_any();
+            if gateway == own {
                 continue;
             }
-            let gateway = lease.name_any();
             for key in peers.update(&lease) {
                 if presence.marked(&key, &gateway) {
                     debug!(robot = %key, %gateway, "the robot is marked Unknown while its session here is live; writing it first");

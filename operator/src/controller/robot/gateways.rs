@@ -169,10 +169,13 @@ pub(super) async fn watch_gateways(
     }
 }
 
+/// The robots whose status names each gateway.
+pub(super) type ByGateway = HashMap<String, Vec<ObjectRef<DeserializeGuard<Robot>>>>;
+
 /// One pass over the robots: who each gateway holds, and the counts the gauges show.
 struct Census {
     /// The robots whose status names each gateway.
-    by_gateway: HashMap<String, Vec<ObjectRef<DeserializeGuard<Robot>>>>,
+    by_gateway: ByGateway,
     /// Robots per phase, every phase present (0 when none).
     phases: HashMap<&'static str, i64>,
     /// Robots reporting active teleoperation.
@@ -222,7 +225,7 @@ impl Census {
 fn recheck_changed_gateways(
     ctx: &Context,
     leases: &Store<Lease>,
-    by_gateway: HashMap<String, Vec<ObjectRef<DeserializeGuard<Robot>>>>,
+    by_gateway: ByGateway,
     last: &HashMap<String, GatewayState>,
     wake: &Trigger<DeserializeGuard<Robot>>,
     now: Timestamp,

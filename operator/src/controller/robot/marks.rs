@@ -15,12 +15,12 @@ use std::sync::Mutex;
 use jiff::Timestamp;
 use k8s_openapi::api::coordination::v1::Lease;
 use kube::api::{Patch, PatchParams};
-use kube::runtime::reflector::{ObjectRef, Store};
+use kube::runtime::reflector::Store;
 use kube::{Api, ResourceExt};
 use lekiwi_crds::contract::{MARKED_ANNOTATION, MAX_MARKED_BYTES, encode_robot_list, managers};
 use tracing::{debug, warn};
 
-use super::gateways::lease_alive;
+use super::gateways::{ByGateway, lease_alive};
 use crate::controller::Context;
 
 /// A robot: `(namespace, name)`.
@@ -133,10 +133,7 @@ impl Marks {
         &self,
         ctx: &Context,
         leases: &Store<Lease>,
-        by_gateway: &HashMap<
-            String,
-            Vec<ObjectRef<kube::core::DeserializeGuard<lekiwi_crds::Robot>>>,
-        >,
+        by_gateway: &ByGateway,
         now: Timestamp,
     ) {
         let marked: Vec<String> = {
@@ -262,8 +259,7 @@ mod tests {
             marks.due(&leases, all, now),
             [publish("dead", Some("lab/r4"))]
         );
-        let mut alive = test_lease("dead", 1);
-        alive.metadata.annotations = dead.metadata.annotations.clone();
+        let alive = test_lease("dead", 1);
         assert!(
             marks.due(&[Arc::new(alive)], all, now).is_empty(),
             "no annotation seen on it"

@@ -63,9 +63,9 @@ pub(super) fn end_stale_claim(e: &mut Entry, now: Timestamp) {
 }
 
 impl Presence {
-    /// Reads the other gateways' lists of robots marked `Unknown` from `peers` from now on.
-    pub fn watch_peers(&self, peers: Peers) {
-        let _ = self.peers.set(peers);
+    /// The other gateways' lists of robots marked `Unknown`, which their watch keeps.
+    pub fn peers(&self) -> &Peers {
+        &self.peers
     }
 
     /// Whether robot `key`, as the Robot cache shows it (`cached`), is shown gone: by its
@@ -73,9 +73,7 @@ impl Presence {
     /// status names.
     pub(super) fn gone_or_marked(&self, key: &RobotKey, cached: &Robot) -> bool {
         is_shown_gone(cached)
-            || self.peers.get().is_some_and(|peers| {
-                holder_gateway(cached).is_some_and(|gw| peers.is_marked(gw, key))
-            })
+            || holder_gateway(cached).is_some_and(|gw| self.peers.is_marked(gw, key))
     }
 
     /// The Lease of gateway `gateway` lists robot `key` as marked `Unknown` by the Robot

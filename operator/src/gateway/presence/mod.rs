@@ -162,9 +162,9 @@ pub struct Presence {
     metrics: Metrics,
     /// Set once the gateway's Robot cache is ready: status writes then carry the phase too.
     planner: Arc<std::sync::OnceLock<Arc<PhasePlanner>>>,
-    /// The robots other gateways' Leases list as marked `Unknown` (see [`claims`]), once their
-    /// watch started.
-    peers: Arc<std::sync::OnceLock<crate::gateway::peers::Peers>>,
+    /// The robots other gateways' Leases list as marked `Unknown` (see [`claims`]); empty until
+    /// their watch ([`crate::gateway::peers::watch`]) fills it.
+    peers: crate::gateway::peers::Peers,
 }
 
 impl Presence {
@@ -177,7 +177,7 @@ impl Presence {
             config: Arc::new(config),
             metrics,
             planner: Arc::default(),
-            peers: Arc::default(),
+            peers: crate::gateway::peers::Peers::default(),
         }
     }
 
