@@ -249,7 +249,8 @@ pub struct Config {
     pub max_unauthenticated_connections: usize,
 
     /// Robot status writes per second from this gateway at start; the rate then adapts to the
-    /// API server's answers within `--status-qps-min`..`--status-qps-max`.
+    /// API server's answers within `--status-qps-min`..`--status-qps-max`, and returns to at
+    /// least this once the API server has not slowed it for 30 s and nothing waits.
     #[arg(long, env = "LEKIWI_STATUS_QPS", default_value_t = 50.0)]
     pub status_qps: f64,
 

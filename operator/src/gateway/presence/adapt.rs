@@ -2,7 +2,10 @@
 //! writes are answered fast and more wait, halves on a 429, a 5xx or a timeout, and drops by a
 //! quarter after a second in which more than a quarter of the answers were slow, within
 //! `[min, max]`. So a survivor writes its moved robots as fast as the API server allows, and
-//! backs off before it overloads it.
+//! backs off before it overloads it. A rate the API server has not objected to for
+//! [`CALM`] rises fast (half a write per second more per answer) and, once nothing waits, is
+//! back at the starting rate at least: a cut during a busy minute does not leave the next
+//! storm to start from the minimum.
 
 use std::time::{Duration, Instant};
 
@@ -30,8 +33,17 @@ pub(super) enum Answer {
 }
 
 /// Each fast answer while writes wait raises the rate by this fraction of a write per second
-/// (at 50 writes/s: +5/s each second, i.e. +10 % per second).
+/// (at 50 writes/s: +5/s each second, i.e. +10 % per second) when the rate was cut less than
+/// [`CALM`] ago: it probes gently near a limit the API server showed lately.
 const INCREASE_PER_ANSWER: f64 = 0.1;
+/// The same with no cut for [`CALM`]: +50 % per second, from 50 to 200 writes/s in about 3 s.
+/// A survivor's storm of moved robots begins at once, and the writes in flight (at most
+/// `--status-concurrency`) bound what the API server gets meanwhile.
+const CALM_INCREASE_PER_ANSWER: f64 = 0.5;
+/// How long after its last cut the rate counts as calm. The kill benchmark found a survivor
+/// starting its recovery at the minimum: its rate had been cut while the fleet came up, and
+/// without a backlog it never rose again (`bench/README.md`, session 34).
+const CALM: Duration = Duration::from_secs(30);
 /// A 429, a 5xx or no answer halves the rate.
 const THROTTLED_FACTOR: f64 = 0.5;
 /// A second with too many slow answers cuts it by a quarter: latency also grows with the
@@ -59,6 +71,7 @@ struct Window {
 #[derive(Debug)]
 pub(super) struct AdaptiveRate {
     rate: f64,
+    start: f64,
     bounds: RateBounds,
     last_cut: Option<Instant>,
     window: Window,
@@ -74,8 +87,10 @@ impl AdaptiveRate {
             max,
             ..bounds
         };
+        let start = start.clamp(bounds.min, bounds.max);
         Self {
-            rate: start.clamp(bounds.min, bounds.max),
+            rate: start,
+            start,
             bounds,
             last_cut: None,
             window: Window::default(),
@@ -103,10 +118,17 @@ impl AdaptiveRate {
     pub(super) fn observe(&mut self, answer: Answer, backlog: bool, now: Instant) -> f64 {
         self.close_window(now);
         self.window.answers += 1;
+        let calm = self.last_cut.is_none_or(|t| now.duration_since(t) >= CALM);
         match answer {
             Answer::Fast if backlog => {
-                self.rate = (self.rate + INCREASE_PER_ANSWER).min(self.bounds.max);
+                let step = if calm {
+                    CALM_INCREASE_PER_ANSWER
+                } else {
+                    INCREASE_PER_ANSWER
+                };
+                self.rate = (self.rate + step).min(self.bounds.max);
             }
+            Answer::Fast if calm => self.rate = self.rate.max(self.start),
             Answer::Fast => {}
             Answer::Slow => self.window.slow += 1,
             Answer::Throttled => self.cut(THROTTLED_FACTOR, now),
@@ -157,24 +179,38 @@ mod tests {
         let mut r = AdaptiveRate::new(50.0, bounds());
         let t0 = Instant::now();
         assert_eq!(r.observe(Answer::Fast, false, t0), 50.0, "idle: no rise");
-        for _ in 0..100 {
+        for _ in 0..20 {
             r.observe(Answer::Fast, true, t0);
         }
-        assert!((r.rate() - 60.0).abs() < 1e-9, "{}", r.rate());
+        assert!(
+            (r.rate() - 60.0).abs() < 1e-9,
+            "calm: +0.5 each, {}",
+            r.rate()
+        );
+        r.observe(Answer::Throttled, true, t0);
+        assert_eq!(r.rate(), 30.0);
+        for _ in 0..300 {
+            r.observe(Answer::Fast, true, t0);
+        }
+        assert!(
+            (r.rate() - 60.0).abs() < 1e-9,
+            "cut lately: +0.1 each, {}",
+            r.rate()
+        );
         for _ in 0..1000 {
             r.observe(Answer::Fast, true, t0);
         }
         assert_eq!(r.rate(), 100.0, "capped at max");
-        assert_eq!(r.observe(Answer::Throttled, true, t0), 50.0);
+        let t1 = t0 + WINDOW;
+        assert_eq!(r.observe(Answer::Throttled, true, t1), 50.0);
         assert_eq!(
-            r.observe(Answer::Throttled, true, t0),
+            r.observe(Answer::Throttled, true, t1),
             50.0,
             "one cut per second"
         );
-        let later = t0 + WINDOW;
-        assert_eq!(r.observe(Answer::Throttled, true, later), 25.0);
+        assert_eq!(r.observe(Answer::Throttled, true, t1 + WINDOW), 25.0);
         for i in 2..10 {
-            r.observe(Answer::Throttled, true, t0 + WINDOW * i);
+            r.observe(Answer::Throttled, true, t1 + WINDOW * i);
         }
         assert_eq!(r.rate(), 5.0, "floored at min");
         assert_eq!(AdaptiveRate::new(500.0, bounds()).rate(), 100.0);
@@ -185,6 +221,27 @@ mod tests {
         let mut r = AdaptiveRate::new(3.0, fixed);
         r.observe(Answer::Throttled, true, t0);
         assert_eq!(r.rate(), 3.0, "a maximum below the minimum fixes the rate");
+    }
+
+    #[test]
+    fn a_calm_rate_is_back_at_the_start_once_nothing_waits() {
+        let mut r = AdaptiveRate::new(50.0, bounds());
+        let t0 = Instant::now();
+        for i in 0..3 {
+            r.observe(Answer::Throttled, true, t0 + WINDOW * i);
+        }
+        assert_eq!(r.rate(), 6.25, "cut three times");
+        let calm = t0 + WINDOW * 2 + CALM;
+        r.observe(Answer::Fast, false, calm - WINDOW);
+        assert_eq!(r.rate(), 6.25, "not calm yet: stays");
+        r.observe(Answer::Fast, false, calm);
+        assert_eq!(r.rate(), 50.0, "calm and idle: the starting rate again");
+        for _ in 0..40 {
+            r.observe(Answer::Fast, true, calm);
+        }
+        assert_eq!(r.rate(), 70.0, "and a backlog rises fast from there");
+        r.observe(Answer::Fast, false, calm);
+        assert_eq!(r.rate(), 70.0, "idle keeps a rate above the start");
     }
 
     /// Feeds one window's answers at `at`: `slow` slow ones among `answers`.
