@@ -174,32 +174,31 @@ mod tests {
         }
     }
 
+    /// Feeds `answers` fast answers at `at` while writes wait.
+    fn busy(r: &mut AdaptiveRate, answers: u32, at: Instant) {
+        for _ in 0..answers {
+            r.observe(Answer::Fast, true, at);
+        }
+    }
+
+    /// The rate is `want`, but for the rounding of many small steps.
+    #[track_caller]
+    fn assert_rate(r: &AdaptiveRate, want: f64, why: &str) {
+        assert!((r.rate() - want).abs() < 1e-9, "{why}: {}", r.rate());
+    }
+
     #[test]
     fn rises_while_fast_and_busy_halves_on_trouble_within_bounds() {
         let mut r = AdaptiveRate::new(50.0, bounds());
         let t0 = Instant::now();
         assert_eq!(r.observe(Answer::Fast, false, t0), 50.0, "idle: no rise");
-        for _ in 0..20 {
-            r.observe(Answer::Fast, true, t0);
-        }
-        assert!(
-            (r.rate() - 60.0).abs() < 1e-9,
-            "calm: +0.5 each, {}",
-            r.rate()
-        );
+        busy(&mut r, 20, t0);
+        assert_rate(&r, 60.0, "calm: +0.5 each");
         r.observe(Answer::Throttled, true, t0);
         assert_eq!(r.rate(), 30.0);
-        for _ in 0..300 {
-            r.observe(Answer::Fast, true, t0);
-        }
-        assert!(
-            (r.rate() - 60.0).abs() < 1e-9,
-            "cut lately: +0.1 each, {}",
-            r.rate()
-        );
-        for _ in 0..1000 {
-            r.observe(Answer::Fast, true, t0);
-        }
+        busy(&mut r, 300, t0);
+        assert_rate(&r, 60.0, "cut lately: +0.1 each");
+        busy(&mut r, 1000, t0);
         assert_eq!(r.rate(), 100.0, "capped at max");
         let t1 = t0 + WINDOW;
         assert_eq!(r.observe(Answer::Throttled, true, t1), 50.0);
@@ -236,9 +235,7 @@ mod tests {
         assert_eq!(r.rate(), 6.25, "not calm yet: stays");
         r.observe(Answer::Fast, false, calm);
         assert_eq!(r.rate(), 50.0, "calm and idle: the starting rate again");
-        for _ in 0..40 {
-            r.observe(Answer::Fast, true, calm);
-        }
+        busy(&mut r, 40, calm);
         assert_eq!(r.rate(), 70.0, "and a backlog rises fast from there");
         r.observe(Answer::Fast, false, calm);
         assert_eq!(r.rate(), 70.0, "idle keeps a rate above the start");
