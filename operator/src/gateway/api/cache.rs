@@ -4,13 +4,15 @@
 //! namespace is one range of the map; an index by label `key=value` lets a list with such a
 //! selector read only the objects that carry the label. Each object's JSON is made when a list
 //! first asks for it and kept until the object changes, so a list is answered by joining ready
-//! bytes, and objects nobody lists cost no JSON (about 1.6 KB per Robot). Like
-//! `kube::runtime::reflector`, a relist replaces the whole map at once when it is complete.
+//! bytes, and objects nobody lists cost no JSON (about 1.6 KB per Robot). A relist (after the
+//! watch broke off) updates each object as it arrives and, once complete, drops those it no
+//! longer holds (sent as deletions): the map never shows an object older than a change already
+//! sent, which readers that act on both (the gateway's dispatch and its sessions) count on.
 //! Every change the watch delivers is also sent once on the cache's broadcast
 //! ([`Cache::subscribe`]): the GraphQL subscriptions all share it, none opens a watch of its
 //! own.
 
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap, HashSet};
 use std::ops::Bound;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock, RwLock};
@@ -127,10 +129,11 @@ impl<K: Resource> Objects<K> {
         old.map(|o| o.object)
     }
 
-    fn remove(&mut self, k: &Key) {
-        if let Some(old) = self.map.remove(k) {
-            self.index(k, &old.object, false);
-        }
+    /// Drops the object at `k`; the object it was, if any.
+    fn remove(&mut self, k: &Key) -> Option<Arc<K>> {
+        let old = self.map.remove(k)?;
+        self.index(k, &old.object, false);
+        Some(old.object)
     }
 }
 
@@ -277,39 +280,49 @@ impl<K: Resource + Serialize> Cache<K> {
         cache
     }
 
-    fn apply(&self, event: watcher::Event<K>, relist: &mut Option<Objects<K>>) {
-        let item = Item::new;
+    /// Takes one event of the watch; `relist` holds the keys a relist in progress delivered.
+    fn apply(&self, event: watcher::Event<K>, relist: &mut Option<HashSet<Key>>) {
         match event {
-            watcher::Event::Apply(o) => {
-                let new = item(o);
-                let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
-                let old = objects.insert(new.clone());
-                let _ = self.changes.send(Change::Applied(old, new.object));
-            }
+            watcher::Event::Apply(o) => self.applied(o),
             watcher::Event::Delete(o) => {
                 let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
                 objects.remove(&key(&o));
                 let _ = self.changes.send(Change::Deleted(Arc::new(o)));
             }
-            watcher::Event::Init => *relist = Some(Objects::default()),
+            watcher::Event::Init => *relist = Some(HashSet::new()),
             watcher::Event::InitApply(o) => {
-                let new = item(o);
-                let old = self.get(
-                    &new.object.namespace().unwrap_or_default(),
-                    &new.object.name_any(),
-                );
-                if let Some(fresh) = relist.as_mut() {
-                    fresh.insert(new.clone());
+                if let Some(seen) = relist.as_mut() {
+                    seen.insert(key(&o));
                 }
-                let _ = self.changes.send(Change::Applied(old, new.object));
+                self.applied(o);
             }
             watcher::Event::InitDone => {
-                if let Some(fresh) = relist.take() {
-                    *self.objects.write().unwrap_or_else(|p| p.into_inner()) = fresh;
+                if let Some(seen) = relist.take() {
+                    let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
+                    let gone: Vec<Key> = objects
+                        .map
+                        .keys()
+                        .filter(|k| !seen.contains(*k))
+                        .cloned()
+                        .collect();
+                    for k in gone {
+                        if let Some(old) = objects.remove(&k) {
+                            let _ = self.changes.send(Change::Deleted(old));
+                        }
+                    }
                 }
                 self.ready.store(true, Ordering::Release);
             }
         }
+    }
+
+    /// Keeps `o` and then sends the change, under the map's lock: whoever reads the change
+    /// finds the map as new as it.
+    fn applied(&self, o: K) {
+        let new = Item::new(o);
+        let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
+        let old = objects.insert(new.clone());
+        let _ = self.changes.send(Change::Applied(old, new.object));
     }
 }
 
@@ -391,6 +404,43 @@ mod tests {
         assert_eq!(all.len(), 4);
         cache.apply(watcher::Event::Delete(robot("b", "r1")), &mut relist);
         assert!(cache.get("b", "r1").is_none());
+    }
+
+    /// While a relist is in progress, each object it delivers is in the map by the time its
+    /// change is sent (a reader told of the change finds it there); once the relist is
+    /// complete, the objects it did not hold are dropped and sent as deleted.
+    #[test]
+    fn a_relist_shows_each_change_at_once_and_drops_the_rest_at_its_end() {
+        let cache = Cache::listed([labelled("b", "r1", "x1"), labelled("b", "r2", "x1")]);
+        let mut changes = cache.subscribe();
+        let mut relist = None;
+        cache.apply(watcher::Event::Init, &mut relist);
+        cache.apply(
+            watcher::Event::InitApply(labelled("b", "r1", "x2")),
+            &mut relist,
+        );
+        let Ok(Change::Applied(Some(old), new)) = changes.try_recv() else {
+            panic!("the relisted object is sent with the one it replaces");
+        };
+        assert_eq!(old.labels()["room"], "x1");
+        assert_eq!(new.labels()["room"], "x2");
+        let now = cache.get("b", "r1").expect("in the map");
+        assert_eq!(
+            now.labels()["room"],
+            "x2",
+            "the map is as new as the change"
+        );
+        let x2 = cache.page_objects((Some("b"), None, Some(("room", "x2"))), 10, |_| true);
+        assert_eq!(x2.items.len(), 1, "the label index follows too");
+        assert!(cache.get("b", "r2").is_some(), "kept until the relist ends");
+        cache.apply(watcher::Event::InitDone, &mut relist);
+        assert!(cache.get("b", "r2").is_none(), "not in the new list");
+        let Ok(Change::Deleted(gone)) = changes.try_recv() else {
+            panic!("an object the relist no longer holds is sent as deleted");
+        };
+        assert_eq!(gone.name_any(), "r2");
+        assert!(changes.try_recv().is_err(), "nothing else changed");
+        assert_eq!(cache.page(None, None, 10, |_| true).0.len(), 1);
     }
 
     fn labelled(ns: &str, name: &str, room: &str) -> Robot {
