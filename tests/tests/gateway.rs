@@ -375,6 +375,63 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
     Ok(())
 }
 
+/// An `agent_update_succeeded` event stored by a session that ended before it could tell
+/// presence (its robot reconnected meanwhile, or the store answered an error after it had
+/// committed) is sent again by the agent, which never got its ack: the resend is a duplicate
+/// for the store, and still the step reaches `status.agentUpdate` (in CI a robot's update
+/// stayed `Started` for good in such a case).
+#[tokio::test]
+async fn an_agent_update_step_stored_before_reaches_the_status_when_sent_again()
+-> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "gwstep").await?;
+    let op = gateway_operator(cp, &ns, "gw-step", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let (mut ws, _) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
+    wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, secs(20)).await?;
+    let succeeded = lekiwi_operator::gateway::event_store::StoredEvent {
+        seq: 7,
+        ts_ms: 1_763_800_000_000,
+        kind: "agent_update_succeeded".into(),
+        severity: "info".into(),
+        message: "now running 9.9.9".into(),
+        data: json!({"version": "9.9.9"}),
+    };
+    let store = op.event_store().await?;
+    let key = lekiwi_operator::gateway::event_store::RobotKey::new(ns.clone(), "kiwi-1");
+    assert!(store.insert_event(&key, &succeeded).await?, "stored first");
+    send(
+        &mut ws,
+        &AgentMessage::Event {
+            seq: 7,
+            ts_ms: succeeded.ts_ms,
+            kind: succeeded.kind.clone(),
+            severity: Severity::Info,
+            message: succeeded.message.clone(),
+            data: succeeded.data.clone(),
+        },
+    )
+    .await;
+    assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq: 7 }));
+    let report = wait_for("status.agentUpdate Succeeded", secs(20), || async {
+        let status = get_robot(&client, &ns, "kiwi-1").await.ok()?.status?;
+        let report = status.agent_update?;
+        (report.phase.as_deref() == Some("Succeeded")).then_some(report)
+    })
+    .await?;
+    assert_eq!(report.version.as_deref(), Some("9.9.9"));
+    assert_eq!(report.message.as_deref(), Some("now running 9.9.9"));
+    let kinds: Vec<String> = store
+        .events(&key, None, 100)
+        .await?
+        .into_iter()
+        .map(|e| e.kind)
+        .collect();
+    assert_eq!(kinds, ["agent_update_succeeded"], "stored once");
+    Ok(())
+}
+
 #[tokio::test]
 async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -> anyhow::Result<()>
 {

@@ -26,8 +26,8 @@ pub struct AgentUpdateOutcome {
 
 impl Presence {
     /// A step of the agent update of `key` in session `session`; written at once if it differs
-    /// from the last one (time aside).
-    pub fn agent_update(&self, key: &RobotKey, session: u64, outcome: AgentUpdateOutcome) {
+    /// from the last one (time aside). `true` if it did.
+    pub fn agent_update(&self, key: &RobotKey, session: u64, outcome: AgentUpdateOutcome) -> bool {
         let changed = self.with_state(|s| {
             let Some(e) = s.robots.get_mut(key).filter(|e| e.session == session) else {
                 return false;
@@ -47,6 +47,7 @@ impl Presence {
         if changed {
             self.wake();
         }
+        changed
     }
 }
 

@@ -176,46 +176,54 @@ where
                 (phase, why)
             }
         };
-        self.agent_step(version, phase, own_kind(phase), message);
+        self.agent_step(version, phase, own_kind(phase), message, true);
         Ok(())
     }
 
-    /// A newly stored event of the agent: an `agent_update_*` one is a step of its update.
-    pub(super) fn agent_event(&self, ev: &StoredEvent) {
+    /// An event of the agent now in the store (newly, or stored before and sent again): an
+    /// `agent_update_*` one is a step of its update.
+    /// `newly`: the store had not held it before (a resend is counted only if its step is new
+    /// to presence).
+    pub(super) fn agent_event(&self, ev: &StoredEvent, newly: bool) {
         let Some((phase, kind)) = event_phase(&ev.kind) else {
             return;
         };
         let version = ev.data["version"].as_str().unwrap_or_default().to_owned();
-        self.agent_step(version, phase, kind, ev.message.clone());
+        self.agent_step(version, phase, kind, ev.message.clone(), newly);
     }
 
-    /// Counts a step and writes it to `status.agentUpdate`.
+    /// Writes a step to `status.agentUpdate` and counts it (when `always`, else only if it is
+    /// new to presence).
     fn agent_step(
         &self,
         version: String,
         phase: &'static str,
         kind: &'static str,
         message: String,
+        always: bool,
     ) {
         let labels = AgentUpdateLabels {
             kind,
             version: metric_version(&version, self.agent.desired_version()),
         };
-        self.shared
-            .metrics
-            .gateway
-            .agent_updates
-            .get_or_create(&labels)
-            .inc();
         let outcome = AgentUpdateOutcome {
             version,
             phase,
             message,
             time: Timestamp::now(),
         };
-        self.shared
+        let changed = self
+            .shared
             .presence
             .agent_update(self.key, self.id, outcome);
+        if always || changed {
+            self.shared
+                .metrics
+                .gateway
+                .agent_updates
+                .get_or_create(&labels)
+                .inc();
+        }
     }
 }
 

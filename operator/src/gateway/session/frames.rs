@@ -69,8 +69,11 @@ where
                     data,
                 };
                 let stored = Box::pin(self.shared.store.insert_event(self.key, &ev)).await;
-                if matches!(stored, Ok(true)) {
-                    self.agent_event(&ev);
+                // Stored before too (`Ok(false)`): a resend of an event whose first session
+                // ended, or whose store answer failed, before presence was told; an update step
+                // it carries counts now (presence ignores a step it has already).
+                if let Ok(newly) = stored {
+                    self.agent_event(&ev, newly);
                 }
                 self.durable(ev.seq, stored)
             }
