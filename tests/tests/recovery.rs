@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 use futures::StreamExt;
 use k8s_openapi::api::coordination::v1::Lease;
 use kube::Api;
-use kube::api::{Patch, PatchParams};
+use kube::api::{ListParams, Patch, PatchParams};
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
 use lekiwi_crds::contract::{CLAIMS_ANNOTATION, MARKED_ANNOTATION, managers, parse_claims};
@@ -42,8 +42,9 @@ const FRESH: usize = 8;
 /// The survivor's fixed status rate (writes per second).
 const SLOW_QPS: &str = "3";
 
-/// What a Robot showed, in order, with when the watch delivered it.
-type Seen = Vec<(Option<RobotPhase>, Option<String>, Instant)>;
+/// What a Robot showed, in order, with when the watch delivered it and the resourceVersion
+/// that showed it first.
+type Seen = Vec<(Option<RobotPhase>, Option<String>, Instant, u64)>;
 
 /// Every change of phase or named gateway of each Robot of a namespace.
 #[derive(Clone, Default)]
@@ -66,8 +67,9 @@ impl Histories {
                 let mut all = histories.0.lock().unwrap();
                 let seen = all.entry(name).or_default();
                 let now = (status.phase, status.gateway.map(String::from));
-                if seen.last().map(|(p, g, _)| (*p, g.clone())) != Some(now.clone()) {
-                    seen.push((now.0, now.1, Instant::now()));
+                if seen.last().map(|(p, g, _, _)| (*p, g.clone())) != Some(now.clone()) {
+                    let version = revision(robot.metadata.resource_version.as_deref());
+                    seen.push((now.0, now.1, Instant::now(), version));
                 }
             }
         });
@@ -87,9 +89,31 @@ impl Histories {
     fn online_via(&self, name: &str, gateway: &str) -> Option<Instant> {
         self.of(name)
             .into_iter()
-            .find(|(p, g, _)| *p == Some(RobotPhase::Online) && g.as_deref() == Some(gateway))
-            .map(|(_, _, t)| t)
+            .find(|(p, g, _, _)| *p == Some(RobotPhase::Online) && g.as_deref() == Some(gateway))
+            .map(|(_, _, t, _)| t)
     }
+
+    /// The resourceVersion that first showed `name` Online through `gateway`: the API
+    /// server's order of writes, whatever this watch's delay.
+    fn online_version(&self, name: &str, gateway: &str) -> Option<u64> {
+        self.of(name)
+            .into_iter()
+            .find(|(p, g, _, _)| *p == Some(RobotPhase::Online) && g.as_deref() == Some(gateway))
+            .map(|(_, _, _, v)| v)
+    }
+}
+
+/// A resourceVersion as a number. Opaque to clients in general; this API server's are etcd
+/// revisions, which rise with every write, so they order writes (test code only).
+fn revision(version: Option<&str>) -> u64 {
+    version.and_then(|v| v.parse().ok()).unwrap_or_default()
+}
+
+/// The API server's revision now: that of a list read from etcd (no resourceVersion given).
+async fn revision_now(client: &kube::Client, ns: &str) -> anyhow::Result<u64> {
+    let robots: Api<Robot> = Api::namespaced(client.clone(), ns);
+    let list = robots.list(&ListParams::default().limit(1)).await?;
+    Ok(revision(list.metadata.resource_version.as_deref()))
 }
 
 /// Robot and Event writes (create, update, patch, apply, delete) the API server has served.
@@ -105,6 +129,23 @@ fn robot_and_event_writes(cp: &ControlPlane) -> anyhow::Result<f64> {
         .filter(|l| writes.iter().any(|v| l.contains(&format!("verb=\"{v}\""))))
         .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
         .sum())
+}
+
+/// The lines of `op`'s log about robot `name`, and its watch errors: what decided when it was
+/// written.
+fn log_of(op: &OperatorProcess, name: &str) -> String {
+    let robot = format!("robot={name} ");
+    op.log_text()
+        .lines()
+        .filter(|l| {
+            l.contains(&robot)
+                || l.contains(&format!("/{name} "))
+                || l.contains("watch")
+                || l.contains("lagged")
+        })
+        .filter(|l| !l.contains("desired"))
+        .collect::<Vec<_>>()
+        .join("\n")
 }
 
 /// The controller, gateway A (default status rate), gateway B (slow, fixed) and their store.
@@ -317,8 +358,8 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
         .iter()
         .filter(|name| {
             let seen = history.of(name);
-            let mut after = seen.iter().filter(|(_, _, t)| *t >= killed);
-            after.any(|(p, _, _)| *p != Some(RobotPhase::Online))
+            let mut after = seen.iter().filter(|(_, _, t, _)| *t >= killed);
+            after.any(|(p, _, _, _)| *p != Some(RobotPhase::Online))
         })
         .collect();
     println!(
@@ -346,8 +387,8 @@ async fn moved_robots_skip_unknown_and_go_first() -> anyhow::Result<()> {
     let left: Vec<_> = history
         .of(leaver)
         .into_iter()
-        .filter(|(_, _, t)| *t >= killed)
-        .map(|(p, g, _)| (p, g))
+        .filter(|(_, _, t, _)| *t >= killed)
+        .map(|(p, g, _, _)| (p, g))
         .collect();
     println!("{leaver} showed {left:?} after the kill");
     let offline_b = (Some(RobotPhase::Offline), Some("gw-b".to_owned()));
@@ -416,8 +457,8 @@ async fn a_late_write_of_a_dead_gateway_turns_no_robot_unknown() -> anyhow::Resu
     let shown: Vec<_> = history
         .of(&name)
         .into_iter()
-        .filter(|(_, _, t)| *t >= landed)
-        .map(|(p, g, _)| (p, g))
+        .filter(|(_, _, t, _)| *t >= landed)
+        .map(|(p, g, _, _)| (p, g))
         .collect();
     println!("{name} showed {shown:?} after the late write");
     let unknown = shown
@@ -490,17 +531,9 @@ async fn late_robot_goes_before_the_moves(late_is: Late) -> anyhow::Result<()> {
         // A's last renewal was before the kill.
         tokio::time::sleep(Duration::from_secs(GATEWAY_LEASE_SECS + 2)).await;
     }
-    let unwritten = |since: Option<Instant>| {
-        moved
-            .iter()
-            .filter(|n| {
-                history
-                    .online_via(n, "gw-b")
-                    .is_none_or(|t| since.is_some_and(|s| t > s))
-            })
-            .count()
-    };
-    let waiting = unwritten(None);
+    // Counted by the API server's order of writes (resourceVersions), not by when the test's
+    // watch delivered them: a watch seconds behind makes a robot written first look last.
+    let connected = revision_now(&f.client, &f.ns).await?;
     let _late_b = f.connect(&f.b, &late).await?;
     if late_is == Late::Listed {
         // Its session on B is open (connect returns after the welcome): it waits behind the
@@ -508,14 +541,28 @@ async fn late_robot_goes_before_the_moves(late_is: Late) -> anyhow::Result<()> {
         f.mark("gw-a", &name).await?;
     }
     f.all_online_via(&[name.as_str()], "gw-b").await?;
-    let online_b = history.online_via(&name, "gw-b");
     f.all_online_via(&moved, "gw-b").await?;
-    let after = unwritten(online_b);
+    let names = [&moved[..], &[name.as_str()]].concat();
+    let versions = wait_for(
+        "the test's watch to show them",
+        Duration::from_secs(20),
+        || {
+            let versions: Option<Vec<u64>> = names
+                .iter()
+                .map(|n| history.online_version(n, "gw-b"))
+                .collect();
+            async move { versions }
+        },
+    )
+    .await?;
+    let (late_version, moves) = versions.split_last().expect("the late robot");
+    let waiting = moves.iter().filter(|v| **v > connected).count();
+    let after = moves.iter().filter(|v| *v > late_version).count();
     println!("{name} reconnected with {waiting} moves unwritten; {after} were written after it");
     let shown: Vec<_> = history
         .of(&name)
         .into_iter()
-        .map(|(p, g, _)| (p, g))
+        .map(|(p, g, _, _)| (p, g))
         .collect();
     println!("{name} showed {shown:?}");
     assert!(
@@ -525,7 +572,9 @@ async fn late_robot_goes_before_the_moves(late_is: Late) -> anyhow::Result<()> {
     // At most the writes in flight or being taken when it connected go before it.
     assert!(
         after + 4 >= waiting,
-        "{name} waited behind the moves: {after} of the {waiting} waiting were written after it"
+        "{name} waited behind the moves: {after} of the {waiting} waiting were written after \
+         it; gw-b's log of it:\n{}",
+        log_of(&f.b, &name)
     );
     match late_is {
         // Written through B, it names B: the controller's list on A's Lease drops it.

@@ -218,7 +218,7 @@ impl Presence {
         moved: bool,
     ) {
         let now = Timestamp::now();
-        self.with_state(|s| {
+        let queue = self.with_state(|s| {
             let teleoperation_since = info.teleoperation.as_ref().map(|_| now);
             // Keep the last update's outcome: rollouts read it, and a manager that stops
             // sending a field makes server-side apply drop it.
@@ -257,15 +257,22 @@ impl Presence {
                     moved,
                 }),
             );
-            if gone {
-                s.enqueue(key, Priority::Gone);
+            let queue = if gone {
+                Some(Priority::Gone)
             } else if moved {
-                s.enqueue(key, Priority::Move);
-            } else if !s.known_offline.contains(key) {
-                s.enqueue(key, Priority::High);
+                Some(Priority::Move)
+            } else {
+                (!s.known_offline.contains(key)).then_some(Priority::High)
+            };
+            if let Some(priority) = queue {
+                s.enqueue(key, priority);
             }
+            queue
         });
         if moved {
+            // Which queue a moved robot starts in is what decides how soon it is written.
+            let queue = queue.map(Priority::label);
+            tracing::debug!(robot = %key, ?queue, "the robot moved here; claiming it");
             self.claims_changed.notify_one();
         }
         self.wake();
