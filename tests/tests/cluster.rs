@@ -597,23 +597,17 @@ async fn upgrade_keeps_robots_and_events(site: &Install, image: &str) -> anyhow:
 async fn uninstall_keeps_crds_and_robots(site: &Install) -> anyhow::Result<()> {
     site.cluster
         .helm(&["uninstall", &site.ns, "-n", &site.ns])?;
-    let pods = site.kubectl(&["get", "deployments,pods", "-o", "name"]);
+    let left = || site.kubectl(&["get", "deployments,pods", "-o", "name"]);
+    let pods = left();
     // The 1.20 kubelet deletes a stopped Pod's object only once its sandbox is removed, which
     // its container GC may leave to its next round, once a minute: a cold run here saw the
     // operator Pod's sandbox stopped at once and removed 59 s later (another, 46 s). So the
     // bound is two GC rounds, not one.
-    let left = std::sync::Mutex::new(String::new());
     wait_for("the operator gone", Duration::from_secs(150), || async {
-        let now = site.kubectl(&["get", "deployments,pods", "-o", "name"]);
-        let gone = now.trim().is_empty();
-        *left.lock().unwrap() = now;
-        gone.then_some(())
+        left().trim().is_empty().then_some(())
     })
     .await
-    .map_err(|e| {
-        let left = left.lock().unwrap();
-        anyhow::anyhow!("{e}: before {pods}; left {left}")
-    })?;
+    .map_err(|e| anyhow::anyhow!("{e}: before {pods}; left {}", left()))?;
     for crd in ["robots.fleet.lekiwi.io", "robotdeployments.fleet.lekiwi.io"] {
         site.cluster.kubectl(&["get", "crd", crd])?;
     }

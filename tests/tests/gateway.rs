@@ -401,18 +401,15 @@ async fn an_agent_update_step_stored_before_reaches_the_status_when_sent_again()
     let store = op.event_store().await?;
     let key = lekiwi_operator::gateway::event_store::RobotKey::new(ns.clone(), "kiwi-1");
     assert!(store.insert_event(&key, &succeeded).await?, "stored first");
-    send(
-        &mut ws,
-        &AgentMessage::Event {
-            seq: 7,
-            ts_ms: succeeded.ts_ms,
-            kind: succeeded.kind.clone(),
-            severity: Severity::Info,
-            message: succeeded.message.clone(),
-            data: succeeded.data.clone(),
-        },
-    )
-    .await;
+    let resend = AgentMessage::Event {
+        seq: 7,
+        ts_ms: succeeded.ts_ms,
+        kind: succeeded.kind.clone(),
+        severity: Severity::Info,
+        message: succeeded.message.clone(),
+        data: succeeded.data.clone(),
+    };
+    send(&mut ws, &resend).await;
     assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq: 7 }));
     let report = wait_for("status.agentUpdate Succeeded", secs(20), || async {
         let status = get_robot(&client, &ns, "kiwi-1").await.ok()?.status?;
@@ -422,6 +419,17 @@ async fn an_agent_update_step_stored_before_reaches_the_status_when_sent_again()
     .await?;
     assert_eq!(report.version.as_deref(), Some("9.9.9"));
     assert_eq!(report.message.as_deref(), Some("now running 9.9.9"));
+    // Counted once (no Robot names 9.9.9 in `spec.agent`: version `other`), and a step
+    // presence has already is acked again but not counted again.
+    let series = r#"lekiwi_gateway_agent_updates_total{kind="succeeded",version="other"}"#;
+    assert_eq!(op.metric(series).await, Some(1.0), "counted once");
+    send(&mut ws, &resend).await;
+    assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq: 7 }));
+    assert_eq!(
+        op.metric(series).await,
+        Some(1.0),
+        "a resend of a known step"
+    );
     let kinds: Vec<String> = store
         .events(&key, None, 100)
         .await?

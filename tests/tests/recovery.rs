@@ -87,19 +87,21 @@ impl Histories {
 
     /// When `name` was first shown Online through `gateway`.
     fn online_via(&self, name: &str, gateway: &str) -> Option<Instant> {
-        self.of(name)
-            .into_iter()
-            .find(|(p, g, _, _)| *p == Some(RobotPhase::Online) && g.as_deref() == Some(gateway))
-            .map(|(_, _, t, _)| t)
+        self.first_online(name, gateway).map(|(t, _)| t)
     }
 
     /// The resourceVersion that first showed `name` Online through `gateway`: the API
     /// server's order of writes, whatever this watch's delay.
     fn online_version(&self, name: &str, gateway: &str) -> Option<u64> {
+        self.first_online(name, gateway).map(|(_, v)| v)
+    }
+
+    /// When and in which resourceVersion `name` was first shown Online through `gateway`.
+    fn first_online(&self, name: &str, gateway: &str) -> Option<(Instant, u64)> {
         self.of(name)
             .into_iter()
             .find(|(p, g, _, _)| *p == Some(RobotPhase::Online) && g.as_deref() == Some(gateway))
-            .map(|(_, _, _, v)| v)
+            .map(|(_, _, t, v)| (t, v))
     }
 }
 

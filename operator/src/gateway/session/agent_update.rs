@@ -180,10 +180,9 @@ where
         Ok(())
     }
 
-    /// An event of the agent now in the store (newly, or stored before and sent again): an
-    /// `agent_update_*` one is a step of its update.
-    /// `newly`: the store had not held it before (a resend is counted only if its step is new
-    /// to presence).
+    /// An event of the agent now in the store: an `agent_update_*` one is a step of its
+    /// update. `newly` when the store did not hold it before; a resend (its first session ended
+    /// before presence was told) is counted only if its step is new to presence.
     pub(super) fn agent_event(&self, ev: &StoredEvent, newly: bool) {
         let Some((phase, kind)) = event_phase(&ev.kind) else {
             return;
