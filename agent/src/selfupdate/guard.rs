@@ -32,8 +32,14 @@ pub fn run(slots: &Slots, mode: Mode, now_ms: i64) -> Result<Option<FallenBack>,
     };
     // An empty slot is a switch back to the package binary: no `current`.
     if slots.current().unwrap_or_default() != pending.slot {
-        // Written, but the switch never happened (or was undone): nothing runs the new build.
-        slots.clear_pending()?;
+        // Written, but not switched to: before a start the switch never happened (or was
+        // undone), and nothing runs the new build. A periodic check can run while the agent
+        // is between writing the record and switching (it writes the record first, so a
+        // crash between leaves no unguarded build): dropping it then left the new build
+        // without its guard, and it never reported its update as succeeded.
+        if mode == Mode::Start {
+            slots.clear_pending()?;
+        }
         return Ok(None);
     }
     // The package binary is this guard's own: it runs here.
@@ -148,6 +154,26 @@ mod tests {
             })
             .unwrap();
         slots
+    }
+
+    #[test]
+    fn a_record_not_switched_to_yet_is_kept_while_the_agent_runs() {
+        let dir = tempfile::tempdir().unwrap();
+        let slots = installed(dir.path(), b"#!/bin/sh\n", 1_000);
+        // The agent wrote the record for slot `a` and has not switched yet.
+        slots.switch(None).unwrap();
+        assert_eq!(run(&slots, Mode::Check, 10).unwrap(), None);
+        assert!(
+            slots.pending().is_some(),
+            "kept for the switch that follows"
+        );
+        slots.switch(Some("a")).unwrap();
+        assert_eq!(run(&slots, Mode::Start, 10).unwrap(), None);
+        assert_eq!(slots.pending().unwrap().starts, 1, "guarded once switched");
+        // Before a start, a record whose switch never happened is dropped.
+        slots.switch(None).unwrap();
+        assert_eq!(run(&slots, Mode::Start, 10).unwrap(), None);
+        assert_eq!(slots.pending(), None);
     }
 
     #[test]
