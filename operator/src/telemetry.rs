@@ -43,25 +43,31 @@ fn env_set(name: &str) -> bool {
     std::env::var(name).is_ok_and(|v| !v.trim().is_empty())
 }
 
+/// The values of `OTEL_EXPORTER_OTLP_PROTOCOL` the exporter takes (empty: the default,
+/// `http/protobuf`). The chart's schema accepts exactly these (a test compares the two).
+pub const OTLP_PROTOCOLS: [&str; 3] = ["", "http/protobuf", "http/json"];
+
+/// The exporter protocol `value` names, or why it is refused.
+fn otlp_protocol(value: &str) -> Result<Protocol, String> {
+    match value.trim() {
+        "" | "http/protobuf" => Ok(Protocol::HttpBinary),
+        "http/json" => Ok(Protocol::HttpJson),
+        other => Err(format!(
+            "OTEL_EXPORTER_OTLP_PROTOCOL={other:?} is not supported: use http/protobuf or http/json"
+        )),
+    }
+}
+
 /// The OTLP span exporter and its provider, when the environment asks for one.
 fn otlp() -> Result<Option<SdkTracerProvider>, Box<dyn std::error::Error + Send + Sync>> {
     if !env_set("OTEL_EXPORTER_OTLP_ENDPOINT") && !env_set("OTEL_EXPORTER_OTLP_TRACES_ENDPOINT") {
         return Ok(None);
     }
-    let protocol = match std::env::var("OTEL_EXPORTER_OTLP_TRACES_PROTOCOL")
-        .or_else(|_| std::env::var("OTEL_EXPORTER_OTLP_PROTOCOL"))
-        .unwrap_or_default()
-        .trim()
-    {
-        "" | "http/protobuf" => Protocol::HttpBinary,
-        "http/json" => Protocol::HttpJson,
-        other => {
-            return Err(format!(
-                "OTEL_EXPORTER_OTLP_PROTOCOL={other:?} is not supported: use http/protobuf or http/json"
-            )
-            .into());
-        }
-    };
+    let protocol = otlp_protocol(
+        &std::env::var("OTEL_EXPORTER_OTLP_TRACES_PROTOCOL")
+            .or_else(|_| std::env::var("OTEL_EXPORTER_OTLP_PROTOCOL"))
+            .unwrap_or_default(),
+    )?;
     // The endpoint and headers come from the standard variables, read by the exporter.
     let exporter = opentelemetry_otlp::SpanExporter::builder()
         .with_http()
@@ -117,4 +123,32 @@ pub fn init(
         tracing::info!("exporting spans over OTLP");
     }
     Ok(Telemetry { provider })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What the chart's schema lets a user set as `otel.protocol` is exactly what the operator
+    /// starts with: a value the schema passes never crash-loops the Pod.
+    #[test]
+    fn the_charts_otel_protocols_are_the_ones_the_exporter_takes() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../charts/lekiwi-operator/values.schema.json"
+        );
+        let schema: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap();
+        let allowed: Vec<&str> = schema["properties"]["otel"]["properties"]["protocol"]["enum"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_str().unwrap())
+            .collect();
+        assert_eq!(allowed, OTLP_PROTOCOLS);
+        for p in OTLP_PROTOCOLS {
+            assert!(otlp_protocol(p).is_ok(), "{p:?}");
+        }
+        assert!(otlp_protocol("grpc").unwrap_err().contains("grpc"));
+    }
 }

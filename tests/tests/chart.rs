@@ -443,6 +443,7 @@ fn chart_schema_refuses_bad_values_naming_the_field() {
         (&["--set", "image.tag=bad tag!"], "/image/tag"),
         (&["--set", "operator.role=boss"], "/operator/role"),
         (&["--set", "operator.logFormat=xml"], "/operator/logFormat"),
+        (&["--set", "otel.protocol=grpc"], "/otel/protocol"),
         (
             &["--set", "resources.requests.memory=lots"],
             "/resources/requests/memory",
