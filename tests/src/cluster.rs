@@ -1,6 +1,6 @@
 //! The single-node cluster whose Pods really run (`scripts/cluster.sh`): started once per test
 //! process and reused across runs, images built with `scripts/oci.py` and imported into its
-//! containerd, and plain HTTP to the in-machine addresses (Pod IPs, ClusterIPs, NodePorts).
+//! containerd, and plain HTTP to the addresses of its network namespace (ClusterIPs, NodePorts).
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -20,8 +20,11 @@ pub struct Cluster {
     pub dir: PathBuf,
     /// Admin kubeconfig.
     pub kubeconfig: PathBuf,
-    /// The node's IP: the API server, the kubelet and NodePorts listen there.
+    /// The node's IP, in its network namespace: the API server, the kubelet and NodePorts
+    /// listen there.
     pub node_ip: String,
+    /// The host's end of the veth pair to the node: Pods reach the host at this address.
+    pub host_ip: String,
     /// containerd's socket, for `ctr images import`.
     pub containerd: PathBuf,
 }
@@ -51,6 +54,7 @@ impl Cluster {
                 dir: var("LEKIWI_CLUSTER_DIR").into(),
                 kubeconfig: var("KUBECONFIG").into(),
                 node_ip: var("LEKIWI_NODE_IP"),
+                host_ip: var("LEKIWI_HOST_IP"),
                 containerd: var("CONTAINERD_ADDRESS").into(),
             }
         })
@@ -216,9 +220,9 @@ pub async fn http_get_at(addr: SocketAddr, path: &str) -> Result<(u16, String)> 
     Ok((code, body.to_owned()))
 }
 
-/// Forwards TCP connections to a new port on `listen_ip` (e.g. the node IP, which Pods reach)
-/// to `to` (e.g. a server on the host's loopback), for as long as the caller's Tokio runtime
-/// runs. Returns the listening address.
+/// Forwards TCP connections to a new port on `listen_ip` (e.g. the host's end of the veth pair,
+/// [`Cluster::host_ip`], which Pods reach) to `to` (e.g. a server on the host's loopback), for as
+/// long as the caller's Tokio runtime runs. Returns the listening address.
 pub async fn forward(listen_ip: &str, to: SocketAddr) -> Result<SocketAddr> {
     let listener = tokio::net::TcpListener::bind((listen_ip, 0)).await?;
     let addr = listener.local_addr()?;
