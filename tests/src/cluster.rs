@@ -2,16 +2,18 @@
 //! process and reused across runs, images built with `scripts/oci.py` and imported into its
 //! containerd, and plain HTTP to the addresses of its network namespace (ClusterIPs, NodePorts).
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 
 use anyhow::{Context as _, Result, bail};
+use ipnet::IpNet;
 use kube::Client;
 use kube::config::{KubeConfigOptions, Kubeconfig};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
+use crate::netns::NetView;
 use crate::{repo_root, tool};
 
 /// A running cluster managed by `scripts/cluster.sh`, described by its `env` output.
@@ -25,6 +27,14 @@ pub struct Cluster {
     pub node_ip: String,
     /// The host's end of the veth pair to the node: Pods reach the host at this address.
     pub host_ip: String,
+    /// The node's network namespace (`ip netns` name).
+    pub netns: String,
+    /// The CNI bridge in the node's namespace.
+    pub bridge: String,
+    /// The Pod range.
+    pub pod_cidr: IpNet,
+    /// The Service (ClusterIP) range.
+    pub service_cidr: IpNet,
     /// containerd's socket, for `ctr images import`.
     pub containerd: PathBuf,
 }
@@ -50,11 +60,20 @@ impl Cluster {
                     .map(|v| v.trim_matches(['\'', '"']).to_owned())
                     .unwrap_or_else(|| panic!("cluster.sh env prints no {name}:\n{env}"))
             };
+            let net = |name: &str| {
+                var(name)
+                    .parse()
+                    .unwrap_or_else(|e| panic!("{name} from cluster.sh env: {e}"))
+            };
             Cluster {
                 dir: var("LEKIWI_CLUSTER_DIR").into(),
                 kubeconfig: var("KUBECONFIG").into(),
                 node_ip: var("LEKIWI_NODE_IP"),
                 host_ip: var("LEKIWI_HOST_IP"),
+                netns: var("LEKIWI_NODE_NETNS"),
+                bridge: var("LEKIWI_NODE_BRIDGE"),
+                pod_cidr: net("LEKIWI_POD_CIDR"),
+                service_cidr: net("LEKIWI_SERVICE_CIDR"),
                 containerd: var("CONTAINERD_ADDRESS").into(),
             }
         })
@@ -146,6 +165,36 @@ impl Cluster {
                 (f.next() == Some(id)).then(|| f.next()?.parse().ok())?
             })
             .with_context(|| format!("no task {id} in:\n{list}"))
+    }
+
+    /// What of this node `view` shows: its bridge, an address that is the node IP or in the Pod
+    /// or Service range, a route into the Pod range, an iptables chain named `KUBE-*` (kube-proxy,
+    /// the kubelet) or `CNI-*` (the CNI plugins). Empty for the host's own namespace: the node
+    /// keeps all of these in its own.
+    pub fn traces_in(&self, view: &NetView) -> Vec<String> {
+        let node_ip: Option<IpAddr> = self.node_ip.parse().ok();
+        let ours = |addr: IpAddr| {
+            Some(addr) == node_ip
+                || self.pod_cidr.contains(&addr)
+                || self.service_cidr.contains(&addr)
+        };
+        let bridges = view.bridges.iter().filter(|b| **b == self.bridge);
+        let addresses = view.addresses.iter().filter(|(a, _)| ours(a.addr()));
+        let routes = view
+            .routes
+            .iter()
+            .filter(|(r, _)| self.pod_cidr.contains(r));
+        let chains = view.chains.iter();
+        bridges
+            .map(|b| format!("bridge {b}"))
+            .chain(addresses.map(|(a, link)| format!("address {a} on {link}")))
+            .chain(routes.map(|(r, link)| format!("route to {r} on {link}")))
+            .chain(
+                chains
+                    .filter(|c| c.starts_with("KUBE-") || c.starts_with("CNI-"))
+                    .map(|c| format!("iptables chain {c}")),
+            )
+            .collect()
     }
 
     /// Imports an OCI archive into the node's containerd (namespace `k8s.io`, where the kubelet
