@@ -2,32 +2,43 @@
 #! Runs a local single-node Kubernetes v1.20.2 cluster whose Pods really run: etcd, kube-apiserver,
 #! kube-controller-manager, kube-scheduler, containerd (+ runc, CNI bridge), kubelet and kube-proxy
 #! as background processes owned by this script, for tests of the LeKiwi fleet control plane.
-#! Needs root (bridge, iptables, mounts, cgroups). Nothing can be pulled: images are imported with
-#! `ctr -n k8s.io images import` (the pause image from scripts/image.sh is imported by `up`).
+#! Needs root (network namespace, iptables, mounts, cgroups). Nothing can be pulled: images are
+#! imported with `ctr -n k8s.io images import` (the pause image from scripts/image.sh is imported
+#! by `up`).
 #!
 #! Usage: scripts/cluster.sh <command>
 #!   up            start everything, wait until the node is Ready and the basics work (idempotent: a
 #!                 healthy cluster is left alone, Released PVs are made Available again)
 #!   down          delete every Pod, stop every process, unmount every mount under the directory,
-#!                 delete the bridge, remove the KUBE-*/CNI-* iptables chains and rules, restore the
-#!                 sysctls `up` changed; keeps certificates, etcd data and imported images
+#!                 delete the node's network namespace (its bridge, addresses, routes, iptables
+#!                 rules and network sysctls go with it) and the host's end of the veth pair,
+#!                 restore the kernel-wide sysctls the kubelet changed; keeps certificates, etcd
+#!                 data and imported images
 #!   down --purge  the same, then delete the directory (alias: clean)
 #!   status        print state, addresses and pids; exit 0 if healthy, 1 otherwise
 #!   env           print export lines for eval "$(scripts/cluster.sh env)": KUBECONFIG, PATH,
-#!                 LEKIWI_NODE_IP (NodePorts listen there), CONTAINERD_ADDRESS (for
-#!                 `ctr -n k8s.io images import`), LEKIWI_CLUSTER_DIR
+#!                 LEKIWI_NODE_IP (the API server and NodePorts listen there), LEKIWI_HOST_IP (the
+#!                 host as Pods reach it), LEKIWI_NODE_NETNS, LEKIWI_NODE_BRIDGE, LEKIWI_POD_CIDR,
+#!                 LEKIWI_SERVICE_CIDR, CONTAINERD_ADDRESS (for `ctr -n k8s.io images import`),
+#!                 LEKIWI_CLUSTER_DIR
 #!   help          this text
 #!
 #! Environment:
 #!   LEKIWI_CLUSTER_DIR      state directory (default ~/.cache/lekiwi/test-cluster)
 #!   LEKIWI_CLUSTER_TIMEOUT  seconds `up` waits for each readiness step (default 120)
 #!
-#! Network (private, inside this machine): bridge `lekiwi0` = 10.244.213.1/24 is the node IP (the
-#! API server, the kubelet and NodePorts listen there and nowhere else), Pods get addresses from
-#! 10.244.213.0/24, Services from 10.97.213.0/24. etcd and the components' other ports are free
-#! 127.0.0.1 ports. StorageClass `standard` (default) has four pre-made 1Gi hostPath PVs under
-#! the directory. One such cluster per machine: the bridge, the addresses and the KUBE-*/CNI-*
-#! iptables chains `down` removes are machine-wide.
+#! Network: every process of the cluster runs in the network namespace `lekiwi-node`, linked to
+#! the host by a veth pair: `lekiwi-veth` = 198.18.213.1/30 on the host, `eth0` = 198.18.213.2/30
+#! in the namespace, which is the node IP (the API server, the kubelet and NodePorts listen there
+#! and nowhere else). Inside the namespace only: the bridge `lekiwi0` = 10.244.213.1/24, Pods from
+#! 10.244.213.0/24, Services from 198.19.213.0/24, kube-proxy's and the CNI's iptables rules, and
+#! the network sysctls they set. The host gains its end of the veth pair and one route, to the
+#! Service range through the node IP; Pods reach the host at 198.18.213.1, masqueraded as the node
+#! IP. The addresses the host sees are in 198.18.0.0/15 (RFC 2544: reserved for benchmarking, not
+#! a private range a real network uses). etcd and the components' other ports are on the
+#! namespace's loopback. StorageClass `standard` (default) has four pre-made 1Gi hostPath PVs under
+#! the directory. One such cluster per machine: the namespace's and links' names, the kubelet's
+#! cgroups and /var/log/pods are machine-wide.
 set -euo pipefail
 
 SCRIPT_DIR="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -38,17 +49,26 @@ K8S_DIR="$CACHE/k8s/v1.20.2"
 BIN_DIR="$CACHE/bin"
 PAUSE_TAR="$CACHE/images/pause.oci.tar"
 PAUSE_REF="lekiwi.local/pause:3.2"
+# The node's network namespace and its veth pair to the host (see the help above for the plan).
+NETNS=lekiwi-node
+NETNS_PATH="/run/netns/$NETNS"
+HOST_LINK=lekiwi-veth
+NODE_LINK=eth0
+HOST_IP=198.18.213.1
+NODE_IP=198.18.213.2
 BRIDGE=lekiwi0
-NODE_IP=10.244.213.1
+BRIDGE_IP=10.244.213.1
 POD_CIDR=10.244.213.0/24
-SERVICE_CIDR=10.97.213.0/24
+SERVICE_CIDR=198.19.213.0/24
+# What `up` writes to $STATE/network: state made for another plan (certificates, kubeconfigs,
+# Service IPs in etcd) is not reused.
+LAYOUT="netns=$NETNS node=$NODE_IP pods=$POD_CIDR services=$SERVICE_CIDR"
 NODE_NAME=lekiwi-node
 SOCK="$STATE/containerd/containerd.sock"
-# Kernel settings `up` may change (kubelet and kube-proxy write several themselves); `down` puts
-# back the values saved before the first `up`.
-SYSCTLS=(net.ipv4.ip_forward net.ipv4.conf.all.route_localnet net.bridge.bridge-nf-call-iptables
-  net.bridge.bridge-nf-call-ip6tables vm.overcommit_memory vm.panic_on_oom kernel.panic
-  kernel.panic_on_oops kernel.keys.root_maxkeys kernel.keys.root_maxbytes)
+# Kernel-wide settings the kubelet changes (the network ones it and kube-proxy write belong to the
+# node's namespace and go with it); `down` puts back the values saved before the first `up`.
+SYSCTLS=(vm.overcommit_memory vm.panic_on_oom kernel.panic kernel.panic_on_oops
+  kernel.keys.root_maxkeys kernel.keys.root_maxbytes)
 PROCS=(etcd kube-apiserver containerd kubelet kube-controller-manager kube-scheduler kube-proxy)
 
 log() { printf '[cluster] %s\n' "$*" >&2; }
@@ -177,6 +197,7 @@ init_tokens() {
 init_state() {
   mkdir -p "$STATE" "$STATE/kubelet" "$STATE/cni/net.d" "$STATE/containerd"
   mkdir -p -m 700 "$STATE/etcd"
+  printf '%s\n' "$LAYOUT" >"$STATE/network"
   if [ ! -s "$STATE/ports.env" ]; then
     mapfile -t p < <(python3 "$SCRIPT_DIR/free-ports.py" 9)
     printf 'ETCD_PORT=%d\nETCD_PEER_PORT=%d\nAPISERVER_PORT=%d\nKUBELET_PORT=%d\nKUBELET_HEALTHZ_PORT=%d\nPROXY_HEALTHZ_PORT=%d\nPROXY_METRICS_PORT=%d\nCM_PORT=%d\nSCHED_PORT=%d\n' \
@@ -203,22 +224,43 @@ restore_sysctls() {
 }
 
 # ---- network --------------------------------------------------------------------------------
-# The bridge exists before anything starts: its address is the node IP the API server binds.
-# br_netfilter's bridge-nf-call-iptables makes bridged Pod-to-Service traffic see kube-proxy's rules.
+# Runs "$@" in the node's network namespace. nsenter, not `ip netns exec`: that one also gives the
+# command a mount namespace of its own with a fresh /sys (no cgroup hierarchy for the kubelet and
+# runc, and mounts the host's `down` could not see).
+innet() { nsenter --net="$NETNS_PATH" -- "$@"; }
+
+# The namespace, its veth pair and its bridge exist before anything starts: the node IP is the
+# address the API server binds. br_netfilter's bridge-nf-call-iptables (a setting of each network
+# namespace) makes bridged Pod-to-Service traffic see kube-proxy's rules.
 setup_network() {
   # Kernels with loadable modules (CI runners) may not have loaded these yet; this one has them
   # built in and no /lib/modules, hence the `|| true`.
   [ -e /proc/sys/net/bridge ] || modprobe br_netfilter 2>/dev/null || true
   grep -qw overlay /proc/filesystems || modprobe overlay 2>/dev/null || true
-  if ! ip link show "$BRIDGE" >/dev/null 2>&1; then
-    ip link add "$BRIDGE" type bridge
+  if [ ! -e "$NETNS_PATH" ]; then
+    [ -e /run/netns ] || touch "$STATE/run-netns.created"
+    ip netns add "$NETNS"
   fi
-  ip addr show dev "$BRIDGE" | grep -qF " $NODE_IP/24 " || ip addr add "$NODE_IP/24" dev "$BRIDGE"
-  ip link set "$BRIDGE" up
-  sysctl -qw net.ipv4.ip_forward=1
-  bind_pod_logs
-  sysctl -qw net.bridge.bridge-nf-call-iptables=1 2>/dev/null \
+  if ! ip -n "$NETNS" link show "$NODE_LINK" >/dev/null 2>&1; then
+    ip link del "$HOST_LINK" 2>/dev/null || true
+    ip link add "$HOST_LINK" type veth peer name "$NODE_LINK" netns "$NETNS"
+  fi
+  ip addr replace "$HOST_IP/30" dev "$HOST_LINK"
+  ip link set "$HOST_LINK" up
+  ip -n "$NETNS" addr replace "$NODE_IP/30" dev "$NODE_LINK"
+  ip -n "$NETNS" link set "$NODE_LINK" up
+  ip -n "$NETNS" link set lo up
+  ip route replace "$SERVICE_CIDR" via "$NODE_IP" dev "$HOST_LINK"
+  ip -n "$NETNS" link show "$BRIDGE" >/dev/null 2>&1 || ip -n "$NETNS" link add "$BRIDGE" type bridge
+  ip -n "$NETNS" addr replace "$BRIDGE_IP/24" dev "$BRIDGE"
+  ip -n "$NETNS" link set "$BRIDGE" up
+  innet sysctl -qw net.ipv4.ip_forward=1
+  innet sysctl -qw net.bridge.bridge-nf-call-iptables=1 2>/dev/null \
     || log "no br_netfilter: Pod-to-Service traffic between Pods on the bridge will not be NATed"
+  # Pods reach the host as the node IP: the host has no route to the Pod range.
+  local masq=(POSTROUTING -s "$POD_CIDR" -o "$NODE_LINK" -j MASQUERADE)
+  innet iptables -w -t nat -C "${masq[@]}" 2>/dev/null || innet iptables -w -t nat -A "${masq[@]}"
+  bind_pod_logs
   cat >"$STATE/cni/net.d/10-lekiwi.conflist" <<EOF
 {
   "cniVersion": "0.4.0",
@@ -229,7 +271,7 @@ setup_network() {
       "hairpinMode": true,
       "ipam": {
         "type": "host-local", "dataDir": "$STATE/cni/ipam",
-        "ranges": [[{"subnet": "$POD_CIDR", "gateway": "$NODE_IP"}]],
+        "ranges": [[{"subnet": "$POD_CIDR", "gateway": "$BRIDGE_IP"}]],
         "routes": [{"dst": "0.0.0.0/0"}]
       }
     },
@@ -237,6 +279,20 @@ setup_network() {
   ]
 }
 EOF
+}
+
+# Deleting the namespace deletes everything in it (bridge, addresses, routes, iptables rules,
+# sysctls) and the veth pair, whose host end carries the host's address and route.
+teardown_network() {
+  [ ! -e "$NETNS_PATH" ] || ip netns del "$NETNS"
+  ip link del "$HOST_LINK" 2>/dev/null || true
+  if [ -e "$STATE/run-netns.created" ]; then
+    if [ -z "$(ls -A /run/netns 2>/dev/null)" ]; then
+      ! mountpoint -q /run/netns || umount /run/netns
+      rmdir /run/netns 2>/dev/null || true
+    fi
+    rm -f "$STATE/run-netns.created"
+  fi
 }
 
 # The kubelet v1.20 writes container logs to /var/log/pods and links them from /var/log/containers
@@ -273,8 +329,10 @@ unbind_pod_logs() {
   rm -rf "$STATE/var-log"
 }
 
-# Deletes every iptables/ip6tables rule that jumps to a KUBE-* or CNI-* chain, then those chains.
-clean_iptables() {
+# A cluster made by this script before the node had a network namespace of its own ran in the
+# host's: this deletes every iptables/ip6tables rule there that jumps to a KUBE-* or CNI-* chain,
+# then those chains, as that version's `down` did.
+clean_legacy_iptables() {
   local cmd
   for cmd in iptables ip6tables; do
     command -v "$cmd-save" >/dev/null || continue
@@ -397,8 +455,16 @@ EOF
 }
 
 # ---- starting -------------------------------------------------------------------------------
+# Every process of the cluster runs in the node's network namespace (nsenter execs it: the pid
+# file names the process itself).
+spawn_node() {
+  local name="$1"
+  shift
+  spawn "$name" nsenter --net="$NETNS_PATH" -- "$@"
+}
+
 start_etcd() {
-  spawn etcd "$K8S_DIR/etcd" --name=default "$(marker etcd)" \
+  spawn_node etcd "$K8S_DIR/etcd" --name=default "$(marker etcd)" \
     --listen-client-urls="http://127.0.0.1:$ETCD_PORT" \
     --advertise-client-urls="http://127.0.0.1:$ETCD_PORT" \
     --listen-peer-urls="http://127.0.0.1:$ETCD_PEER_PORT" \
@@ -409,7 +475,7 @@ start_etcd() {
 }
 
 start_apiserver() {
-  spawn kube-apiserver "$K8S_DIR/kube-apiserver" "$(marker kube-apiserver)" \
+  spawn_node kube-apiserver "$K8S_DIR/kube-apiserver" "$(marker kube-apiserver)" \
     --etcd-servers="http://127.0.0.1:$ETCD_PORT" \
     --secure-port="$APISERVER_PORT" --bind-address="$NODE_IP" --advertise-address="$NODE_IP" \
     --tls-cert-file="$STATE/pki/apiserver.crt" --tls-private-key-file="$STATE/pki/apiserver.key" \
@@ -427,30 +493,30 @@ start_apiserver() {
 }
 
 start_controllers() {
-  spawn kube-controller-manager "$K8S_DIR/kube-controller-manager" \
+  spawn_node kube-controller-manager "$K8S_DIR/kube-controller-manager" \
     "$(marker kube-controller-manager)" --controllers='*' --leader-elect=false \
     --use-service-account-credentials=true \
     --service-account-private-key-file="$STATE/sa.key" --root-ca-file="$STATE/pki/ca.crt" \
     --cluster-signing-cert-file="$STATE/pki/ca.crt" --cluster-signing-key-file="$STATE/pki/ca.key" \
     --port=0 --bind-address=127.0.0.1 --secure-port="$CM_PORT"
-  spawn kube-scheduler "$K8S_DIR/kube-scheduler" "$(marker kube-scheduler)" \
+  spawn_node kube-scheduler "$K8S_DIR/kube-scheduler" "$(marker kube-scheduler)" \
     --leader-elect=false --port=0 --bind-address=127.0.0.1 --secure-port="$SCHED_PORT"
 }
 
 start_node() {
   write_containerd_config
-  spawn containerd /usr/bin/containerd "$(marker containerd)"
+  spawn_node containerd /usr/bin/containerd "$(marker containerd)"
   wait_for "containerd at $SOCK" containerd ctr --address "$SOCK" version
   [ -s "$PAUSE_TAR" ] || "$SCRIPT_DIR/image.sh" pause >&2 || die "no pause image at $PAUSE_TAR"
   # containerd answers `version` before every plugin (content store, snapshotter) is loaded.
   wait_for "pause image imported into containerd" containerd \
     ctr --address "$SOCK" -n k8s.io images import "$PAUSE_TAR"
   write_kubelet_config
-  spawn kubelet "$K8S_DIR/kubelet" "$(marker kubelet)" --config="$STATE/kubelet.yaml" \
+  spawn_node kubelet "$K8S_DIR/kubelet" "$(marker kubelet)" --config="$STATE/kubelet.yaml" \
     --kubeconfig="$STATE/kubeconfigs/kubelet" --container-runtime=remote \
     --container-runtime-endpoint="unix://$SOCK" --hostname-override="$NODE_NAME" \
     --node-ip="$NODE_IP"
-  spawn kube-proxy "$K8S_DIR/kube-proxy" "$(marker kube-proxy)"
+  spawn_node kube-proxy "$K8S_DIR/kube-proxy" "$(marker kube-proxy)"
 }
 
 # ---- storage: StorageClass `standard` (default) with pre-made hostPath PVs ------------------
@@ -513,13 +579,20 @@ node_ready() {
 # kube-proxy synced its rules, the StorageClass exists.
 basics_ready() {
   [ -n "$(kc -n default get serviceaccount default -o jsonpath='{.secrets[0].name}' 2>/dev/null)" ] \
-    && curl -fsS --max-time 2 "http://127.0.0.1:$PROXY_HEALTHZ_PORT/healthz" >/dev/null \
+    && innet curl -fsS --max-time 2 "http://127.0.0.1:$PROXY_HEALTHZ_PORT/healthz" >/dev/null \
     && kc get storageclass standard >/dev/null 2>&1
+}
+
+# Whether process $1 of this directory is live and runs in the node's network namespace.
+in_node() {
+  local pid
+  pid="$(live_pid "$1")" || return 1
+  [ "$(stat -Lc %d:%i "/proc/$pid/ns/net" 2>/dev/null)" = "$(stat -Lc %d:%i "$NETNS_PATH" 2>/dev/null)" ]
 }
 
 all_live() {
   local name
-  for name in "${PROCS[@]}"; do live_pid "$name" >/dev/null || return 1; done
+  for name in "${PROCS[@]}"; do in_node "$name" || return 1; done
 }
 
 # Healthy = what `up` waits for, all of it: a cluster an interrupted `up` left half ready (the node
@@ -554,17 +627,47 @@ resolve_binaries() {
   done
 }
 
+# State made for another network plan is not reused (its certificates name other addresses, its
+# etcd holds Service IPs of another range): what runs of it is stopped, what an older version of
+# this script put in the host's namespace is removed, and the directory emptied (images are
+# imported again when needed).
+forget_other_layout() {
+  [ -s "$STATE/ports.env" ] && [ "$(cat "$STATE/network" 2>/dev/null)" != "$LAYOUT" ] || return 0
+  log "$STATE was made for another network plan: stopping it and starting afresh"
+  load_ports
+  stop_node
+  teardown_network
+  clean_legacy_host
+  restore_sysctls
+  find "$STATE" -mindepth 1 -maxdepth 1 ! -name .lock -exec rm -rf {} +
+}
+
+# A process that runs but not in the node's namespace (the namespace was deleted under it) has
+# an address nobody reaches: the whole node starts again.
+stop_strays() {
+  local name
+  for name in "${PROCS[@]}"; do
+    if live_pid "$name" >/dev/null && ! in_node "$name"; then
+      log "$name runs outside the namespace $NETNS: stopping every process of the node"
+      stop_node
+      return 0
+    fi
+  done
+}
+
 cmd_up() {
-  [ "$(id -u)" = 0 ] || die "the node needs root (bridge, iptables, mounts, cgroups)"
+  [ "$(id -u)" = 0 ] || die "the node needs root (network namespace, iptables, mounts, cgroups)"
   if healthy; then recycle_pvs; return 0; fi
   take_lock
   if healthy; then recycle_pvs; return 0; fi
   local t0=$SECONDS
   resolve_binaries
+  forget_other_layout
   init_state
+  stop_strays
   setup_network
   live_pid etcd >/dev/null || { log "starting etcd on 127.0.0.1:$ETCD_PORT"; start_etcd; }
-  wait_for "etcd healthy" etcd curl -fsS --max-time 2 "http://127.0.0.1:$ETCD_PORT/health"
+  wait_for "etcd healthy" etcd innet curl -fsS --max-time 2 "http://127.0.0.1:$ETCD_PORT/health"
   live_pid kube-apiserver >/dev/null || { log "starting kube-apiserver on https://$NODE_IP:$APISERVER_PORT"; start_apiserver; }
   wait_for "kube-apiserver ready" kube-apiserver apiserver_ready
   live_pid kube-controller-manager >/dev/null && live_pid kube-scheduler >/dev/null \
@@ -650,17 +753,8 @@ unmount_all() {
     || die "mounts left under $STATE: $(awk -v d="$STATE/" 'index($5, d) == 1 { print $5 }' /proc/self/mountinfo)"
 }
 
-cmd_down() {
-  local purge=0
-  case "${1:-}" in
-    --purge) purge=1 ;;
-    "") ;;
-    *) die "unknown option for down: $1" ;;
-  esac
-  [ -d "$STATE" ] || return 0
-  take_lock
-  load_ports || true
-  local t0=$SECONDS
+# Stops every process of the node and removes what they leave behind but the network.
+stop_node() {
   drain_pods
   stop_all_named kube-proxy kubelet kube-scheduler kube-controller-manager
   local t
@@ -674,11 +768,33 @@ cmd_down() {
   unbind_pod_logs
   unmount_all
   rm -rf "$STATE/kubelet/pods" "$STATE/containerd/state" "$STATE/cni/ipam"
-  ip link del "$BRIDGE" 2>/dev/null || true
-  clean_iptables
-  restore_sysctls
   stop_all_named kube-apiserver etcd
   for t in "${PROCS[@]}"; do rm -f "$STATE/$t.pid"; done
+}
+
+# What a version of this script from before the node's namespace left in the host's namespace
+# (state without $STATE/network): its bridge and its KUBE-*/CNI-* chains.
+clean_legacy_host() {
+  [ -s "$STATE/ports.env" ] && [ ! -e "$STATE/network" ] || return 0
+  ip link del "$BRIDGE" 2>/dev/null || true
+  clean_legacy_iptables
+}
+
+cmd_down() {
+  local purge=0
+  case "${1:-}" in
+    --purge) purge=1 ;;
+    "") ;;
+    *) die "unknown option for down: $1" ;;
+  esac
+  [ -d "$STATE" ] || return 0
+  take_lock
+  load_ports || true
+  local t0=$SECONDS
+  stop_node
+  teardown_network
+  clean_legacy_host
+  restore_sysctls
   if [ $purge = 1 ]; then
     rm -rf "$STATE"
     log "stopped and removed $STATE in $((SECONDS - t0))s"
@@ -698,7 +814,9 @@ cmd_status() {
   echo "$state"
   echo "state dir:  $STATE"
   echo "apiserver:  https://$NODE_IP:$APISERVER_PORT"
-  echo "node:       $NODE_NAME, $NODE_IP (bridge $BRIDGE), Pods $POD_CIDR, Services $SERVICE_CIDR"
+  echo "node:       $NODE_NAME, $NODE_IP in the network namespace $NETNS"
+  echo "            (bridge $BRIDGE $BRIDGE_IP, Pods $POD_CIDR, Services $SERVICE_CIDR)"
+  echo "host:       $HOST_IP on $HOST_LINK, a route to $SERVICE_CIDR via $NODE_IP"
   echo "containerd: $SOCK"
   for name in "${PROCS[@]}"; do
     printf '%-24s pid %s\n' "$name:" "$(live_pid "$name" || echo -)"
@@ -710,6 +828,11 @@ cmd_env() {
   printf 'export KUBECONFIG=%q\n' "$STATE/kubeconfig"
   printf 'export PATH=%q:"$PATH"\n' "$BIN_DIR"
   printf 'export LEKIWI_NODE_IP=%q\n' "$NODE_IP"
+  printf 'export LEKIWI_HOST_IP=%q\n' "$HOST_IP"
+  printf 'export LEKIWI_NODE_NETNS=%q\n' "$NETNS"
+  printf 'export LEKIWI_NODE_BRIDGE=%q\n' "$BRIDGE"
+  printf 'export LEKIWI_POD_CIDR=%q\n' "$POD_CIDR"
+  printf 'export LEKIWI_SERVICE_CIDR=%q\n' "$SERVICE_CIDR"
   printf 'export CONTAINERD_ADDRESS=%q\n' "$SOCK"
   printf 'export LEKIWI_CLUSTER_DIR=%q\n' "$STATE"
 }

@@ -1,17 +1,19 @@
 //! The single-node cluster whose Pods really run (`scripts/cluster.sh`): started once per test
 //! process and reused across runs, images built with `scripts/oci.py` and imported into its
-//! containerd, and plain HTTP to the in-machine addresses (Pod IPs, ClusterIPs, NodePorts).
+//! containerd, and plain HTTP to the addresses of its network namespace (ClusterIPs, NodePorts).
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::sync::OnceLock;
 
 use anyhow::{Context as _, Result, bail};
+use ipnet::IpNet;
 use kube::Client;
 use kube::config::{KubeConfigOptions, Kubeconfig};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
+use crate::netns::NetView;
 use crate::{repo_root, tool};
 
 /// A running cluster managed by `scripts/cluster.sh`, described by its `env` output.
@@ -20,8 +22,19 @@ pub struct Cluster {
     pub dir: PathBuf,
     /// Admin kubeconfig.
     pub kubeconfig: PathBuf,
-    /// The node's IP: the API server, the kubelet and NodePorts listen there.
+    /// The node's IP, in its network namespace: the API server, the kubelet and NodePorts
+    /// listen there.
     pub node_ip: String,
+    /// The host's end of the veth pair to the node: Pods reach the host at this address.
+    pub host_ip: String,
+    /// The node's network namespace (`ip netns` name).
+    pub netns: String,
+    /// The CNI bridge in the node's namespace.
+    pub bridge: String,
+    /// The Pod range.
+    pub pod_cidr: IpNet,
+    /// The Service (ClusterIP) range.
+    pub service_cidr: IpNet,
     /// containerd's socket, for `ctr images import`.
     pub containerd: PathBuf,
 }
@@ -47,10 +60,20 @@ impl Cluster {
                     .map(|v| v.trim_matches(['\'', '"']).to_owned())
                     .unwrap_or_else(|| panic!("cluster.sh env prints no {name}:\n{env}"))
             };
+            let net = |name: &str| {
+                var(name)
+                    .parse()
+                    .unwrap_or_else(|e| panic!("{name} from cluster.sh env: {e}"))
+            };
             Cluster {
                 dir: var("LEKIWI_CLUSTER_DIR").into(),
                 kubeconfig: var("KUBECONFIG").into(),
                 node_ip: var("LEKIWI_NODE_IP"),
+                host_ip: var("LEKIWI_HOST_IP"),
+                netns: var("LEKIWI_NODE_NETNS"),
+                bridge: var("LEKIWI_NODE_BRIDGE"),
+                pod_cidr: net("LEKIWI_POD_CIDR"),
+                service_cidr: net("LEKIWI_SERVICE_CIDR"),
                 containerd: var("CONTAINERD_ADDRESS").into(),
             }
         })
@@ -144,6 +167,36 @@ impl Cluster {
             .with_context(|| format!("no task {id} in:\n{list}"))
     }
 
+    /// What of this node `view` shows: its bridge, an address that is the node IP or in the Pod
+    /// or Service range, a route into the Pod range, an iptables chain named `KUBE-*` (kube-proxy,
+    /// the kubelet) or `CNI-*` (the CNI plugins). Empty for the host's own namespace: the node
+    /// keeps all of these in its own.
+    pub fn traces_in(&self, view: &NetView) -> Vec<String> {
+        let node_ip: Option<IpAddr> = self.node_ip.parse().ok();
+        let ours = |addr: IpAddr| {
+            Some(addr) == node_ip
+                || self.pod_cidr.contains(&addr)
+                || self.service_cidr.contains(&addr)
+        };
+        let bridges = view.bridges.iter().filter(|b| **b == self.bridge);
+        let addresses = view.addresses.iter().filter(|(a, _)| ours(a.addr()));
+        let routes = view
+            .routes
+            .iter()
+            .filter(|(r, _)| self.pod_cidr.contains(r));
+        let chains = view.chains.iter();
+        bridges
+            .map(|b| format!("bridge {b}"))
+            .chain(addresses.map(|(a, link)| format!("address {a} on {link}")))
+            .chain(routes.map(|(r, link)| format!("route to {r} on {link}")))
+            .chain(
+                chains
+                    .filter(|c| c.starts_with("KUBE-") || c.starts_with("CNI-"))
+                    .map(|c| format!("iptables chain {c}")),
+            )
+            .collect()
+    }
+
     /// Imports an OCI archive into the node's containerd (namespace `k8s.io`, where the kubelet
     /// looks), so Pods can use it with `imagePullPolicy: Never`.
     pub fn import_image(&self, archive: &Path) -> Result<()> {
@@ -216,9 +269,9 @@ pub async fn http_get_at(addr: SocketAddr, path: &str) -> Result<(u16, String)> 
     Ok((code, body.to_owned()))
 }
 
-/// Forwards TCP connections to a new port on `listen_ip` (e.g. the node IP, which Pods reach)
-/// to `to` (e.g. a server on the host's loopback), for as long as the caller's Tokio runtime
-/// runs. Returns the listening address.
+/// Forwards TCP connections to a new port on `listen_ip` (e.g. the host's end of the veth pair,
+/// [`Cluster::host_ip`], which Pods reach) to `to` (e.g. a server on the host's loopback), for as
+/// long as the caller's Tokio runtime runs. Returns the listening address.
 pub async fn forward(listen_ip: &str, to: SocketAddr) -> Result<SocketAddr> {
     let listener = tokio::net::TcpListener::bind((listen_ip, 0)).await?;
     let addr = listener.local_addr()?;

@@ -1,12 +1,15 @@
 //! Robots on other hosts, made of network namespaces: each namespace is linked by a veth pair
 //! to a bridge in the root namespace (`10.<net>.0.1/24`), has the address `10.<net>.0.<10 + i>`
 //! and can run a real `lekiwi-agent` serving `/status` there. Used by the `discover` tests and
-//! the discovery benchmark; everything is removed when the [`Lab`] is dropped. Needs root.
+//! the discovery benchmark; everything is removed when the [`Lab`] is dropped. Needs root. Also
+//! [`NetView`]: what a network namespace holds (addresses, routes, bridges, iptables chains).
 
+use std::net::IpAddr;
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
 use anyhow::{Context as _, Result, bail};
+use ipnet::IpNet;
 use serde_json::Value;
 use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
 
@@ -205,4 +208,89 @@ pub async fn status(addr: &str) -> Option<Value> {
     stream.read_to_end(&mut buf).await.ok()?;
     let text = String::from_utf8_lossy(&buf);
     serde_json::from_str(text.split_once("\r\n\r\n")?.1).ok()
+}
+
+/// What a network namespace holds, as `ip` and `iptables-save` list it.
+#[derive(Debug)]
+pub struct NetView {
+    /// Every address with its prefix, and its link.
+    pub addresses: Vec<(IpNet, String)>,
+    /// The destination of every route in every table, IPv4 and IPv6, and its link (`default`
+    /// is left out: it says nothing of where a range is).
+    pub routes: Vec<(IpNet, String)>,
+    /// The bridges' names.
+    pub bridges: Vec<String>,
+    /// The names of the iptables and ip6tables chains, in every table.
+    pub chains: Vec<String>,
+}
+
+impl NetView {
+    /// The view of the network namespace `netns` (an `ip netns` name), or of the caller's own
+    /// with `None`.
+    pub fn of(netns: Option<&str>) -> Result<NetView> {
+        let run = |program: &str, args: &[&str]| -> Result<String> {
+            let mut cmd = match netns {
+                Some(ns) => {
+                    let mut cmd = Command::new("ip");
+                    cmd.args(["netns", "exec", ns, program]);
+                    cmd
+                }
+                None => Command::new(program),
+            };
+            let out = cmd
+                .args(args)
+                .output()
+                .with_context(|| format!("run {program}"))?;
+            if !out.status.success() {
+                bail!(
+                    "{program} {}: {}",
+                    args.join(" "),
+                    String::from_utf8_lossy(&out.stderr).trim()
+                );
+            }
+            Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+        };
+        let json =
+            |args: &[&str]| -> Result<Vec<Value>> { Ok(serde_json::from_str(&run("ip", args)?)?) };
+        let mut addresses = Vec::new();
+        for link in json(&["-j", "addr", "show"])? {
+            let name = link["ifname"].as_str().unwrap_or_default();
+            for info in link["addr_info"].as_array().into_iter().flatten() {
+                let addr: IpAddr = info["local"].as_str().unwrap_or_default().parse()?;
+                let prefix = info["prefixlen"].as_u64().unwrap_or_default();
+                addresses.push((IpNet::new(addr, u8::try_from(prefix)?)?, name.to_owned()));
+            }
+        }
+        let mut routes = Vec::new();
+        for family in ["-4", "-6"] {
+            for route in json(&["-j", family, "route", "show", "table", "all"])? {
+                let dst = route["dst"].as_str().unwrap_or_default();
+                let dst = match dst.parse::<IpNet>() {
+                    Ok(net) => net,
+                    Err(_) => match dst.parse::<IpAddr>() {
+                        Ok(addr) => IpNet::from(addr),
+                        Err(_) => continue,
+                    },
+                };
+                let dev = route["dev"].as_str().unwrap_or_default().to_owned();
+                routes.push((dst, dev));
+            }
+        }
+        let bridges = json(&["-j", "link", "show", "type", "bridge"])?
+            .iter()
+            .filter_map(|link| Some(link["ifname"].as_str()?.to_owned()))
+            .collect();
+        let mut chains = Vec::new();
+        for save in ["iptables-save", "ip6tables-save"] {
+            let rules = run(save, &[])?;
+            let names = rules.lines().filter_map(|l| l.strip_prefix(':'));
+            chains.extend(names.filter_map(|l| Some(l.split_whitespace().next()?.to_owned())));
+        }
+        Ok(NetView {
+            addresses,
+            routes,
+            bridges,
+            chains,
+        })
+    }
 }

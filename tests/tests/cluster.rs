@@ -675,7 +675,7 @@ async fn leader(site: &Install) -> Option<String> {
 }
 
 /// Point 3: two replicas on PostgreSQL (the host's, reached by the Pods through a forwarder on
-/// the node IP) and a ReadWriteMany blob volume. The leader Pod is deleted mid-rollout: the
+/// the host's end of the veth pair to the node) and a ReadWriteMany blob volume. The leader Pod is deleted mid-rollout: the
 /// other replica takes the Lease within its duration, the rollout completes, and no robot is
 /// deployed twice.
 #[tokio::test(flavor = "multi_thread")]
@@ -685,7 +685,7 @@ async fn two_replicas_hand_leadership_over_mid_rollout() -> anyhow::Result<()> {
     let pg = Postgres::start()?;
     pg.create_database("lekiwi")?;
     let to = format!("127.0.0.1:{}", pg.port()).parse()?;
-    let addr = forward(&cluster.node_ip, to).await?;
+    let addr = forward(&cluster.host_ip, to).await?;
     let client = cluster.client().await?;
     let ns = namespace(&client, "ha").await?;
     let url = format!("postgres://postgres@{addr}/lekiwi");

@@ -2,7 +2,9 @@
 //! Pod IP under a locked-down securityContext that is enforced (non-root user, read-only root
 //! filesystem, no capabilities, seccomp filter; a root container is refused), its PVC binds to
 //! the default StorageClass and the Pod writes to it, a Service reaches it through kube-proxy by
-//! ClusterIP and by NodePort from the host, and `kubectl logs` reads its output.
+//! ClusterIP and by NodePort from the host, and `kubectl logs` reads its output. The node lives in
+//! a network namespace of its own: the host's holds none of its bridge, addresses or iptables
+//! chains.
 
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -13,6 +15,7 @@ use k8s_openapi::api::core::v1::{
 use kube::Api;
 use kube::api::PostParams;
 use lekiwi_tests::cluster::{Cluster, busybox_image, http_get_at};
+use lekiwi_tests::netns::NetView;
 use lekiwi_tests::{namespace, wait_for};
 use serde_json::json;
 
@@ -230,4 +233,32 @@ async fn pods_run_serve_store_and_log_on_a_real_node() {
     )
     .await;
     assert!(reason.is_ok(), "{reason:?}");
+}
+
+/// While the node is up, the host's network namespace holds no bridge of the node, no node IP,
+/// Pod- or Service-range address, no route into the Pod range and no `KUBE-*`/`CNI-*` iptables
+/// chain: all of them are in the node's namespace (checked too, so the check looks for things
+/// that exist).
+#[test]
+fn the_hosts_network_namespace_holds_nothing_of_the_node() {
+    let cluster = Cluster::shared();
+    let host = NetView::of(None).expect("the host's network namespace");
+    let traces = cluster.traces_in(&host);
+    assert!(
+        traces.is_empty(),
+        "the host's network namespace holds the node's {traces:#?}"
+    );
+    let node = NetView::of(Some(&cluster.netns)).expect("the node's network namespace");
+    let traces = cluster.traces_in(&node);
+    for wanted in [
+        format!("bridge {}", cluster.bridge),
+        format!("address {}/", cluster.node_ip),
+        format!("route to {} on {}", cluster.pod_cidr, cluster.bridge),
+        "iptables chain KUBE-SERVICES".to_owned(),
+    ] {
+        assert!(
+            traces.iter().any(|t| t.starts_with(&wanted)),
+            "no `{wanted}` in the node's network namespace: {traces:#?}"
+        );
+    }
 }
