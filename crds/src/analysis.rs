@@ -8,9 +8,16 @@ use serde::{Deserialize, Serialize};
 
 use crate::release::ReleaseRef;
 
-/// Longest analysis window, seconds: the gateway keeps refreshing a robot's window summary
-/// often for this long after its switch.
+/// Longest analysis window, seconds (the most `windowSeconds` allows): a gateway that takes a
+/// robot over goes on from the window summary in its status for this long after its switch.
 pub const MAX_WINDOW_SECONDS: i64 = 600;
+
+/// Annotation on a Robot: the `windowSeconds` of the `spec.analysis` of the RobotDeployment that
+/// set its `spec.release` (written by the rollout together with `spec.release`, removed by a
+/// write without analysis). The gateway holding the robot writes its status once more when the
+/// window of its switch to that release has spanned this long: the write the rollout judges. A
+/// switch without it costs no status write beyond the switch's own.
+pub const WINDOW_ANNOTATION: &str = "fleet.lekiwi.io/analysis-window-seconds";
 
 /// Most telemetry metrics a window keeps the highest reading of (the first ones seen).
 pub const MAX_TELEMETRY_METRICS: usize = 16;

@@ -88,7 +88,8 @@ pub struct RobotDeploymentSpec {
 
     /// Watches each robot for a while after its switch and fails it when its telemetry got
     /// worse than before by more than the given ratios. Unset: a robot counts as updated as
-    /// soon as it runs the release and reports healthy.
+    /// soon as it runs the release and reports healthy. Costs each started robot one Robot
+    /// status write more, when its window ends.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub analysis: Option<crate::analysis::AnalysisSpec>,
     /// Which deployment owns a robot that several deployments of the namespace select: the one

@@ -155,7 +155,9 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_MISSED_HEARTBEATS", default_value_t = 3)]
     pub missed_heartbeats: u32,
 
-    /// Refresh `lastHeartbeatTime` in Robot status at most this often when nothing changes.
+    /// Refresh `lastHeartbeatTime` in Robot status at most this often when nothing changes: N
+    /// robots cost N / period status writes a second. A robot switched by a rollout with
+    /// `spec.analysis` is written once more, when its analysis window ends.
     #[arg(long, env = "LEKIWI_STATUS_REFRESH_SECONDS", default_value_t = 300)]
     pub status_refresh_seconds: u64,
 

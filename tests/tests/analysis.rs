@@ -6,20 +6,29 @@
 //! the summary in the Robot's status); a release whose process grows past the ratio fails its robots, with the
 //! metric, value and baseline in the message, so the batch of three fails and the fleet rolls back. Real operator, a
 //! control plane of the test's own (as `health.rs`, so its CRDs cannot race other worktrees').
+//!
+//! And what analysis costs the API server (issue 47), counted on a Robot watch of the shared
+//! control plane with a fleet of real agents (`lekiwi-fleet`) and the default routine refresh:
+//! a rollout without analysis leaves the fleet at the routine rate once it completes; one with
+//! analysis costs each robot one status write more, which is what the rollout judges.
 
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::process::{Child, Command};
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use futures::StreamExt;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
-use kube::Api;
 use kube::api::{Patch, PatchParams, PostParams};
-use lekiwi_crds::analysis::AnalysisSpec;
+use kube::runtime::{WatchStreamExt, watcher};
+use kube::{Api, ResourceExt};
+use lekiwi_crds::analysis::{AnalysisSpec, WINDOW_ANNOTATION};
 use lekiwi_crds::deployment::{RobotRolloutState, RolloutPhase};
 use lekiwi_crds::{Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, enrollment_token_file, gateway_url, namespace, push_release,
-    rollout_finished, test_strategy, wait_for, wait_online,
+    ControlPlane, FleetProcess, FleetSpec, OperatorProcess, enrollment_token_file, gateway_url,
+    namespace, push_release, rollout_finished, test_strategy, wait_for, wait_online,
 };
 use serde_json::json;
 
@@ -280,5 +289,303 @@ async fn a_host_process_that_doubles_its_memory_rolls_the_fleet_back() -> anyhow
         drop(agent);
     }
     op.terminate()?;
+    Ok(())
+}
+
+/// Robots of the write-counting tests: enough that a per-robot figure is not one robot's luck,
+/// few enough for a loaded 2-core machine.
+const FLEET: usize = 8;
+
+/// How long the fleet is watched once a rollout completed.
+const QUIET: Duration = Duration::from_secs(40);
+
+/// The gateway's routine refresh period (its default, which these tests keep).
+const ROUTINE_REFRESH: Duration = Duration::from_secs(300);
+
+/// An operator of the shared control plane with its default routine refresh and a 1 s
+/// heartbeat (a window fills fast, and every heartbeat could be written), and [`FLEET`] real
+/// agents, `Online`.
+struct CostSite {
+    client: kube::Client,
+    ns: String,
+    kubeconfig: std::path::PathBuf,
+    server: String,
+    dir: tempfile::TempDir,
+    op: OperatorProcess,
+    _fleet: FleetProcess,
+}
+
+impl CostSite {
+    async fn start(prefix: &str) -> anyhow::Result<Self> {
+        let cp = ControlPlane::shared();
+        let client = cp.client().await?;
+        let ns = namespace(&client, prefix).await?;
+        let dir = tempfile::tempdir()?;
+        let blobs = dir.path().join("blobs");
+        std::fs::create_dir_all(&blobs)?;
+        let flags = [
+            "--blob-dir",
+            blobs.to_str().unwrap(),
+            "--heartbeat-interval-seconds",
+            "1",
+        ];
+        let mut op = OperatorProcess::start(cp, &ns, prefix, &flags)?;
+        op.wait_ready().await?;
+        let token_file = dir.path().join("enroll");
+        enrollment_token_file(&client, &ns, &token_file).await?;
+        let fleet = FleetProcess::start(FleetSpec {
+            gateway: &gateway_url(&op),
+            token_file: &token_file,
+            namespace: &ns,
+            robots: FLEET,
+            state_root: &dir.path().join("robots"),
+            health_command: "true",
+            report_every: "5",
+            rust_log: "warn",
+            extra: &[],
+        })?;
+        wait_online(&client, &ns, FLEET, Duration::from_secs(120)).await?;
+        Ok(Self {
+            client,
+            ns,
+            kubeconfig: cp.kubeconfig(),
+            server: format!("http://127.0.0.1:{}", op.gateway_port),
+            dir,
+            op,
+            _fleet: fleet,
+        })
+    }
+
+    /// Pushes a one-file release `version`.
+    fn push(&self, version: &str) -> anyhow::Result<lekiwi_crds::ReleaseRef> {
+        let dir = self.dir.path().join(format!("release-{version}"));
+        std::fs::create_dir_all(&dir)?;
+        std::fs::write(dir.join("VERSION"), version)?;
+        push_release(
+            &self.kubeconfig,
+            &self.ns,
+            &self.server,
+            None,
+            &dir,
+            version,
+        )
+    }
+
+    /// Rolls `release` out to the whole fleet in one batch, with `analysis` if given, and
+    /// waits for the rollout to end.
+    async fn roll_out(
+        &self,
+        release: &lekiwi_crds::ReleaseRef,
+        analysis: Option<AnalysisSpec>,
+    ) -> anyhow::Result<RobotDeployment> {
+        let d = RobotDeployment::new(
+            "fleet",
+            RobotDeploymentSpec {
+                selector: LabelSelector::default(),
+                release: Some(release.clone()),
+                agent: None,
+                strategy: test_strategy(FLEET as i32, 0),
+                paused: false,
+                analysis,
+                priority: 0,
+            },
+        );
+        self.deployments()
+            .create(&PostParams::default(), &d)
+            .await?;
+        rollout_finished(&self.deployments(), "fleet", Duration::from_secs(120))
+            .await
+            .map_err(|e| anyhow::anyhow!("{e}\noperator log:\n{}", self.op.log_text()))
+    }
+
+    fn deployments(&self) -> Api<RobotDeployment> {
+        Api::namespaced(self.client.clone(), &self.ns)
+    }
+
+    async fn robots(&self) -> anyhow::Result<Vec<Robot>> {
+        Ok(Api::<Robot>::namespaced(self.client.clone(), &self.ns)
+            .list(&Default::default())
+            .await?
+            .items)
+    }
+}
+
+/// Status changes per robot of a namespace as a Robot watch delivers them, from its start: each
+/// one a write that changed the status (a write that changes nothing makes no event, and one of
+/// the spec or annotations alone is not counted).
+struct StatusWrites {
+    counts: Arc<Mutex<BTreeMap<String, usize>>>,
+    task: tokio::task::JoinHandle<()>,
+}
+
+impl StatusWrites {
+    async fn start(client: &kube::Client, ns: &str) -> anyhow::Result<Self> {
+        let api: Api<Robot> = Api::namespaced(client.clone(), ns);
+        let counts: Arc<Mutex<BTreeMap<String, usize>>> = Arc::default();
+        let (listed, ready) = tokio::sync::oneshot::channel();
+        let task = tokio::spawn(count_status_changes(api, Arc::clone(&counts), listed));
+        tokio::time::timeout(Duration::from_secs(30), ready).await??;
+        Ok(Self { counts, task })
+    }
+
+    /// The changes counted since the last call, per robot, and their sum.
+    fn take(&self) -> (BTreeMap<String, usize>, usize) {
+        let counts = std::mem::take(&mut *self.counts.lock().unwrap());
+        let sum = counts.values().sum();
+        (counts, sum)
+    }
+}
+
+impl Drop for StatusWrites {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
+
+/// Counts into `counts` each event of `api`'s watch whose status differs from the robot's
+/// last; `listed` is told once the first list is in.
+async fn count_status_changes(
+    api: Api<Robot>,
+    counts: Arc<Mutex<BTreeMap<String, usize>>>,
+    listed: tokio::sync::oneshot::Sender<()>,
+) {
+    let mut last: BTreeMap<String, serde_json::Value> = BTreeMap::new();
+    let mut listed = Some(listed);
+    let mut events = std::pin::pin!(watcher(api, watcher::Config::default()).default_backoff());
+    while let Some(event) = events.next().await {
+        match event {
+            Ok(watcher::Event::InitApply(r)) => {
+                last.insert(r.name_any(), json!(r.status));
+            }
+            Ok(watcher::Event::InitDone) => {
+                if let Some(tx) = listed.take() {
+                    let _ = tx.send(());
+                }
+            }
+            Ok(watcher::Event::Apply(r)) => {
+                let (name, status) = (r.name_any(), json!(r.status));
+                if last.get(&name) != Some(&status) {
+                    *counts.lock().unwrap().entry(name.clone()).or_default() += 1;
+                }
+                last.insert(name, status);
+            }
+            _ => {}
+        }
+    }
+}
+
+/// Issue 47: once a rollout without analysis completed, the fleet's status writes are back at
+/// the routine rate at once (they were one every few seconds per robot for ten minutes, an
+/// analysis window nobody asked for), and no robot carries an analysis window.
+#[tokio::test]
+async fn after_a_rollout_without_analysis_the_fleet_is_back_at_the_routine_rate()
+-> anyhow::Result<()> {
+    let site = CostSite::start("quiet").await?;
+    let writes = StatusWrites::start(&site.client, &site.ns).await?;
+    let v1 = site.push("1.0.0")?;
+    let d = site.roll_out(&v1, None).await?;
+    assert_eq!(
+        d.status.as_ref().and_then(|s| s.phase),
+        Some(RolloutPhase::Completed),
+        "{:?}",
+        d.status
+    );
+    let (during, rollout) = writes.take();
+    for r in site.robots().await? {
+        assert_eq!(r.annotations().get(WINDOW_ANNOTATION), None, "{r:?}");
+    }
+    tokio::time::sleep(QUIET).await;
+    let (after, quiet) = writes.take();
+    // About FLEET x 40 / 300 routine refreshes; a refresh at every 5 s would be FLEET x 8.
+    let routine = FLEET as f64 * QUIET.as_secs_f64() / ROUTINE_REFRESH.as_secs_f64();
+    eprintln!("status writes: rollout {rollout} {during:?}; {QUIET:?} after it {quiet} {after:?}");
+    assert!(
+        quiet <= FLEET,
+        "{quiet} status writes in the {QUIET:?} after the rollout completed ({after:?}); the \
+         routine refresh makes about {routine:.1}; the rollout itself made {rollout} ({during:?})"
+    );
+    Ok(())
+}
+
+/// Issue 47: with analysis, a robot's switch costs one status write more (the one that
+/// completes its window, which the rollout judges), however long the window and however
+/// often the robot sends heartbeats; the rollout completes without any routine refresh (the
+/// window is far shorter than the refresh period). A window that fails is judged too, and the
+/// rollback switch asks for no window.
+#[tokio::test]
+async fn with_analysis_a_switch_costs_one_status_write_more_and_is_judged() -> anyhow::Result<()> {
+    const WINDOW: i64 = 20;
+    let site = CostSite::start("judged").await?;
+    let writes = StatusWrites::start(&site.client, &site.ns).await?;
+    let v1 = site.push("1.0.0")?;
+    let spec = AnalysisSpec {
+        window_seconds: WINDOW,
+        ..AnalysisSpec::default()
+    };
+    let d = site.roll_out(&v1, Some(spec)).await?;
+    let st = d.status.unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "{st:?}");
+    let (during, rollout) = writes.take();
+    eprintln!("status writes of the rollout with analysis: {rollout} {during:?}");
+    // Three each: the controller's of the new spec's condition, the switch's, the window's end
+    // (a robot's routine refresh may fall in the rollout too). A refresh every 5 s in the
+    // window made about seven.
+    assert!(
+        rollout <= 4 * FLEET,
+        "{rollout} status writes for {FLEET} switches with a {WINDOW} s window ({during:?})"
+    );
+    for r in site.robots().await? {
+        let window = r.annotations().get(WINDOW_ANNOTATION).cloned();
+        assert_eq!(window, Some(WINDOW.to_string()), "{r:?}");
+        let report = r.status.and_then(|s| s.analysis).expect("a window");
+        assert_eq!(report.release.as_ref(), Some(&v1));
+        let span = report
+            .window_end
+            .unwrap()
+            .0
+            .duration_since(report.window_start.unwrap().0);
+        assert!(span.as_secs() >= WINDOW, "{span:?}");
+    }
+
+    // A window whose round-trip times are more than 0 times the baseline's fails every robot.
+    let v2 = site.push("2.0.0")?;
+    let patch = json!({ "spec": { "release": v2, "analysis": { "windowSeconds": 5, "maxRttRatio": 0.0 } } });
+    site.deployments()
+        .patch("fleet", &PatchParams::default(), &Patch::Merge(patch))
+        .await?;
+    let d = wait_for(
+        "the rollout of 2.0.0 to roll back",
+        Duration::from_secs(120),
+        || async {
+            let d = site.deployments().get("fleet").await.ok()?;
+            (d.status.as_ref()?.phase == Some(RolloutPhase::RolledBack)).then_some(d)
+        },
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\noperator log:\n{}", site.op.log_text()))?;
+    let st = d.status.unwrap();
+    let judged = st.robots.iter().filter_map(|r| r.message.as_deref());
+    let judged: Vec<&str> = judged.filter(|m| m.contains("rttMs mean")).collect();
+    assert!(!judged.is_empty(), "{st:?}");
+    assert!(
+        judged.iter().all(|m| m.contains("maxRttRatio 0")),
+        "{judged:?}"
+    );
+    // Back on 1.0.0: a rollback is not judged, and its write removed the window.
+    wait_for(
+        "every robot back on 1.0.0",
+        Duration::from_secs(60),
+        || async {
+            let robots = site.robots().await.ok()?;
+            robots
+                .iter()
+                .all(|r| {
+                    let back = r.status.as_ref().and_then(|s| s.current_release.as_ref());
+                    back == Some(&v1) && r.annotations().get(WINDOW_ANNOTATION).is_none()
+                })
+                .then_some(())
+        },
+    )
+    .await?;
     Ok(())
 }

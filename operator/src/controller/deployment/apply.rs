@@ -1,6 +1,7 @@
 //! Client steps of the RobotDeployment controller: write the planned robots (mark plus
 //! `spec.release`, or `spec.agent` for agent rollouts, by server-side apply under the rollout
-//! kind's own field manager), apply the status, and publish the planned Events.
+//! kind's own field manager; with `spec.analysis`, the window it asks for), apply the status,
+//! and publish the planned Events.
 
 use std::collections::BTreeMap;
 
@@ -8,6 +9,7 @@ use futures::StreamExt;
 use kube::api::{Patch, PatchParams};
 use kube::runtime::events::{Event, EventType, Recorder};
 use kube::{Api, Resource};
+use lekiwi_crds::analysis::WINDOW_ANNOTATION;
 use lekiwi_crds::contract::managers;
 use lekiwi_crds::deployment::RolloutKind;
 use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, ReleaseRef, Robot, RobotDeployment};
@@ -42,22 +44,29 @@ pub(super) async fn write_robots(
     let kind = deployment.spec.kind();
     let views: BTreeMap<&str, &RobotView> =
         facts.robots.iter().map(|r| (r.name.as_str(), r)).collect();
-    let jobs: Vec<(String, Mark, Option<serde_json::Value>)> = plan
+    let jobs: Vec<(String, Mark, Option<serde_json::Value>, Option<i64>)> = plan
         .writes
         .iter()
         .map(|w| {
             let view = views.get(w.robot.as_str()).copied();
-            let spec = match kind {
-                RolloutKind::Release => release_spec(w.release.as_ref(), view),
-                RolloutKind::Agent => agent_spec(w.release.as_ref(), view, facts, deployment),
+            let (spec, window) = match kind {
+                RolloutKind::Release => {
+                    let release = w.release.as_ref().or_else(|| view?.desired.as_ref());
+                    let window = analysis_window(deployment, facts, release);
+                    (release_spec(release), window)
+                }
+                RolloutKind::Agent => (
+                    agent_spec(w.release.as_ref(), view, facts, deployment),
+                    None,
+                ),
             };
-            (w.robot.clone(), w.mark.clone(), spec)
+            (w.robot.clone(), w.mark.clone(), spec, window)
         })
         .collect();
     let results: Vec<Result<Written>> = futures::stream::iter(jobs)
-        .map(|(robot, mark, spec)| {
+        .map(|(robot, mark, spec, window)| {
             let robots = robots.clone();
-            async move { write_robot(&robots, kind, &robot, &mark, spec).await }
+            async move { write_robot(&robots, kind, &robot, &mark, spec, window).await }
         })
         .buffer_unordered(WRITE_CONCURRENCY)
         .collect()
@@ -69,15 +78,25 @@ pub(super) async fn write_robots(
     results.into_iter().collect()
 }
 
-/// The Robot `spec` of a release rollout's write: the planned release, else (a mark-only
-/// write) the one it has, so that server-side apply keeps this manager owning `spec.release`
-/// instead of dropping it.
-fn release_spec(
-    planned: Option<&ReleaseRef>,
-    view: Option<&RobotView>,
-) -> Option<serde_json::Value> {
-    let release = planned.or_else(|| view.and_then(|v| v.desired.as_ref()))?;
-    Some(json!({ "release": release }))
+/// The Robot `spec` of a release rollout's write: `release`, the planned release, else (a
+/// mark-only write) the one it has, so that server-side apply keeps this manager owning
+/// `spec.release` instead of dropping it.
+fn release_spec(release: Option<&ReleaseRef>) -> Option<serde_json::Value> {
+    Some(json!({ "release": release? }))
+}
+
+/// The analysis window (`windowSeconds`) a write that leaves the robot's `spec.release` at
+/// `release` asks of its switch, written as [`WINDOW_ANNOTATION`]: the deployment's when it
+/// has `spec.analysis` and `release` is its target (a rollback is not judged, so it asks for
+/// nothing). A write without it removes the annotation (server-side apply drops a field its
+/// manager stops sending), so a later switch no analysis asked for costs no write.
+fn analysis_window(
+    deployment: &RobotDeployment,
+    facts: &Facts,
+    release: Option<&ReleaseRef>,
+) -> Option<i64> {
+    let analysis = deployment.spec.analysis.as_ref()?;
+    (release == Some(&facts.target)).then_some(analysis.window_seconds)
 }
 
 /// The Robot `spec` of an agent rollout's write: the deployment's `spec.agent` when the robot
@@ -121,6 +140,7 @@ async fn write_robot(
     name: &str,
     mark: &Mark,
     spec: Option<serde_json::Value>,
+    window: Option<i64>,
 ) -> Result<Written> {
     let text = serde_json::to_string(mark).unwrap_or_default();
     let key = kind.mark_annotation();
@@ -129,6 +149,9 @@ async fn write_robot(
         "kind": "Robot",
         "metadata": { "annotations": { key: &text } },
     });
+    if let Some(seconds) = window {
+        patch["metadata"]["annotations"][WINDOW_ANNOTATION] = json!(seconds.to_string());
+    }
     if let Some(spec) = &spec {
         patch["spec"] = spec.clone();
     }
@@ -143,7 +166,7 @@ async fn write_robot(
             object: name.to_owned(),
             source,
         })?;
-    debug!(robot = %name, state = ?mark.state, batch = mark.batch, ?spec, "robot written");
+    debug!(robot = %name, state = ?mark.state, batch = mark.batch, ?spec, ?window, "robot written");
     Ok(Written {
         robot: name.to_owned(),
         key,

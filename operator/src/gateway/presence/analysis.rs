@@ -2,19 +2,53 @@
 //! gateway folds every heartbeat into a baseline (since the switch before, or since it first saw
 //! the robot) and, once the agent reports a switch `done`, into that switch's window too. A few
 //! numbers per metric, whatever the number of heartbeats: memory is bounded per robot.
+//!
+//! The summary goes out with the robot's status writes. A switch that a rollout with analysis
+//! asked for (the Robot's [`WINDOW_ANNOTATION`]) costs one write more: the one after its window
+//! has spanned what the rollout asked ([`Tracker::outcome_due`]), which the rollout judges. Any
+//! other switch costs nothing beyond its own write.
 
 use jiff::{SignedDuration, Timestamp};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use kube::ResourceExt;
 use lekiwi_crds::analysis::{
     AnalysisReport, EventCounts, MAX_TELEMETRY_METRICS, MAX_WINDOW_SECONDS, MetricSummary,
-    MetricWindow, TelemetryCeiling,
+    MetricWindow, TelemetryCeiling, WINDOW_ANNOTATION,
 };
-use lekiwi_crds::{ReleaseRef, RobotStatus};
+use lekiwi_crds::{ReleaseRef, Robot, RobotStatus};
 use lekiwi_protocol::{Release, Sample, Vitals, rules};
 
-/// A robot whose switch is younger than [`MAX_WINDOW_SECONDS`] has its status refreshed at
-/// least this often, so that rollouts see its window without waiting for the routine refresh.
-pub const WINDOW_REFRESH: std::time::Duration = std::time::Duration::from_secs(5);
+/// The analysis window a rollout asked for a robot's switch to `release`: read from the Robot
+/// the rollout wrote (its `spec.release` and [`WINDOW_ANNOTATION`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Asked {
+    release: Release,
+    window: SignedDuration,
+}
+
+impl Asked {
+    /// What `robot` asks of a switch to its `spec.release`; `None` without the annotation (no
+    /// rollout with analysis set that release) or with one that is not a number of seconds.
+    /// The window is cut to [`MAX_WINDOW_SECONDS`], as the deployment's schema cuts it.
+    pub fn of(robot: &Robot) -> Option<Self> {
+        let release = robot.spec.release.as_ref()?;
+        let seconds: i64 = robot
+            .annotations()
+            .get(WINDOW_ANNOTATION)?
+            .trim()
+            .parse()
+            .ok()?;
+        Some(Self {
+            release: Release::from(release),
+            window: SignedDuration::from_secs(seconds.clamp(1, MAX_WINDOW_SECONDS)),
+        })
+    }
+
+    /// The window asked for a switch to `release`, if this is it.
+    fn window_of(asked: Option<&Self>, release: &Release) -> Option<SignedDuration> {
+        asked.filter(|a| a.release == *release).map(|a| a.window)
+    }
+}
 
 /// Count, sum and highest of one metric's readings.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -142,6 +176,20 @@ struct Window {
     baseline_start: Option<Timestamp>,
     baseline: Metrics,
     observed: Metrics,
+    /// How long the rollout that asked for the switch watches it; `None`: none asked.
+    asked: Option<SignedDuration>,
+    /// A status write holding the window as long as `asked` landed: its outcome is written.
+    reported: bool,
+}
+
+impl Window {
+    /// Whether the readings span the window the rollout asked for (never, if none asked).
+    fn complete(&self) -> bool {
+        match (self.asked, self.end) {
+            (Some(asked), Some(end)) => end.duration_since(self.start) >= asked,
+            _ => false,
+        }
+    }
 }
 
 /// What the gateway keeps of one robot for analysis.
@@ -185,40 +233,67 @@ impl Tracker {
 
     /// The robot switched to `release` at `at` (the agent's `done`, or a heartbeat or hello
     /// that first shows it): a new window opens, with the readings since the previous switch
-    /// as its baseline. Nothing changes when the last window is already of `release` (the
-    /// heartbeat and the `done` of one switch).
-    pub fn switched(&mut self, release: Release, at: Timestamp) {
+    /// as its baseline, watched as long as `asked` says if it asks for this switch. Nothing
+    /// changes when the last window is already of `release` (the heartbeat and the `done` of
+    /// one switch).
+    pub fn switched(&mut self, release: Release, at: Timestamp, asked: Option<&Asked>) {
         if self.last.as_ref().is_some_and(|w| w.release == release) {
             return;
         }
         self.last = Some(Box::new(Window {
+            asked: Asked::window_of(asked, &release),
             release,
             start: at,
             end: None,
             baseline_start: self.since_switch_start.take(),
             baseline: std::mem::take(&mut self.since_switch),
             observed: Metrics::default(),
+            reported: false,
         }));
     }
 
     /// The tracker another gateway (or this one before a restart) left in `report`: the window
-    /// goes on from its summary, and its readings are the next baseline so far. `None` when the
-    /// report lacks its release or start.
-    pub fn resume(report: &AnalysisReport) -> Option<Self> {
-        let release = report.release.as_ref()?;
+    /// goes on from its summary, and its readings are the next baseline so far; watched as
+    /// long as `asked` says, its outcome already written if the summary spans that. `None`
+    /// when the report lacks its release or start.
+    pub fn resume(report: &AnalysisReport, asked: Option<&Asked>) -> Option<Self> {
+        let release = Release::from(report.release.as_ref()?);
         let observed = Metrics::resume(&report.window);
+        let mut window = Window {
+            asked: Asked::window_of(asked, &release),
+            release,
+            start: report.window_start.as_ref()?.0,
+            end: report.window_end.as_ref().map(|t| t.0),
+            baseline_start: report.baseline_start.as_ref().map(|t| t.0),
+            baseline: Metrics::resume(&report.baseline),
+            observed: observed.clone(),
+            reported: false,
+        };
+        window.reported = window.complete();
         Some(Self {
-            since_switch: observed.clone(),
+            since_switch: observed,
             since_switch_start: report.window_start.as_ref().map(|t| t.0),
-            last: Some(Box::new(Window {
-                release: Release::from(release),
-                start: report.window_start.as_ref()?.0,
-                end: report.window_end.as_ref().map(|t| t.0),
-                baseline_start: report.baseline_start.as_ref().map(|t| t.0),
-                baseline: Metrics::resume(&report.baseline),
-                observed,
-            })),
+            last: Some(Box::new(window)),
         })
+    }
+
+    /// Whether the window's outcome is due to be written: a rollout asked for it, its readings
+    /// span what it asked, and no status write holding that has landed yet.
+    pub fn outcome_due(&self) -> bool {
+        self.last
+            .as_ref()
+            .is_some_and(|w| w.complete() && !w.reported)
+    }
+
+    /// A status write of `sent` (this tracker as it was when the write was made) landed: if it
+    /// held the complete window of the same switch, that window's outcome is written.
+    pub fn written(&mut self, sent: &Tracker) {
+        let (Some(w), Some(sent)) = (self.last.as_mut(), sent.last.as_ref()) else {
+            return;
+        };
+        if sent.release == w.release && sent.start == w.start && sent.complete() {
+            w.reported = true;
+        }
     }
 
     /// The tracker a new session of a robot that runs `running` starts from: this gateway's
@@ -226,12 +301,13 @@ impl Tracker {
     /// holds. If the robot runs another release than this gateway and its status (when a
     /// gateway wrote it: it has a heartbeat time; the controller alone writes only a phase)
     /// last saw, it switched while no gateway saw its `done` (a restart, a move), and that
-    /// switch's window opens `now`. A robot's first connection is no switch: opening a window
-    /// there would refresh every new robot's status every few seconds for ten minutes.
+    /// switch's window opens `now`. A robot's first connection is no switch. `asked` is what
+    /// the Robot asks of a switch (see [`Asked::of`]).
     pub fn at_connect(
         ours: Option<(&Tracker, Option<&Release>)>,
         stored: Option<&RobotStatus>,
         running: Option<&Release>,
+        asked: Option<&Asked>,
         now: Timestamp,
     ) -> Self {
         let mut tracker = match ours {
@@ -240,7 +316,7 @@ impl Tracker {
                 .and_then(|s| s.analysis.as_deref())
                 // A window that closed is not resumed: the status then drops it.
                 .filter(|a| window_open(a))
-                .and_then(Self::resume)
+                .and_then(|a| Self::resume(a, asked))
                 .unwrap_or_default(),
         };
         let seen_here = ours.and_then(|(_, r)| r);
@@ -251,16 +327,9 @@ impl Tracker {
             && (ours.is_none() || seen_here != Some(release))
             && seen_stored.is_some_and(|r| r.as_ref() != Some(release))
         {
-            tracker.switched(release.clone(), now);
+            tracker.switched(release.clone(), now, asked);
         }
         tracker
-    }
-
-    /// Whether the last switch is recent enough for its window to matter to a rollout.
-    pub fn window_open(&self, now: Timestamp) -> bool {
-        self.last.as_ref().is_some_and(|w| {
-            now.duration_since(w.start) <= SignedDuration::from_secs(MAX_WINDOW_SECONDS)
-        })
     }
 
     /// The summary written to `status.analysis`; `None` before any switch.
@@ -278,6 +347,11 @@ impl Tracker {
 }
 
 impl super::Presence {
+    /// What the Robot of `key`, as the gateway's cache holds it, asks of a switch.
+    pub(super) fn asked(&self, key: &crate::gateway::event_store::RobotKey) -> Option<Asked> {
+        self.cached_robot(key).as_deref().and_then(Asked::of)
+    }
+
     /// The session `session` of `key` sent an event (`error` if of that severity): counted for
     /// analysis, written with the next status write.
     pub fn event(&self, key: &crate::gateway::event_store::RobotKey, session: u64, error: bool) {
@@ -304,7 +378,8 @@ impl super::Presence {
     }
 }
 
-/// Whether `report`'s window is recent enough to matter to a rollout (see [`Tracker::window_open`]).
+/// Whether `report`'s window is recent enough to matter to a rollout: its switch is at most
+/// [`MAX_WINDOW_SECONDS`] old.
 pub fn window_open(report: &AnalysisReport) -> bool {
     report.window_start.as_ref().is_some_and(|t| {
         Timestamp::now().duration_since(t.0) <= SignedDuration::from_secs(MAX_WINDOW_SECONDS)
@@ -338,7 +413,7 @@ mod tests {
             version: v.into(),
             digest: format!("sha256:{v}"),
         };
-        t.switched(rel("2"), t0);
+        t.switched(rel("2"), t0, None);
         t.record(
             &vitals(400, 4.0),
             Some(-1.0),
@@ -359,11 +434,11 @@ mod tests {
         };
         assert_eq!(r.window.telemetry, vec![ceiling]);
         // Another gateway resumes from the written summary and writes the same one.
-        let resumed = Tracker::resume(&r).unwrap();
+        let resumed = Tracker::resume(&r, None).unwrap();
         assert_eq!(resumed.report(), Some(r.clone()));
         // A second sign of the same switch (the heartbeat, then the `done`) changes nothing.
         let mut again = t.clone();
-        again.switched(rel("2"), t0 + SignedDuration::from_secs(5));
+        again.switched(rel("2"), t0 + SignedDuration::from_secs(5), None);
         assert_eq!(again.report(), Some(r.clone()));
 
         let base = r.baseline.host_memory_bytes.unwrap();
@@ -378,10 +453,9 @@ mod tests {
         assert_eq!(r.baseline_start, Some(Time(t0)));
         assert_eq!(r.window.host_memory_bytes.unwrap().max, 400.0);
         assert_eq!(r.window_end, Some(Time(t0 + SignedDuration::from_secs(1))));
-        assert!(t.window_open(t0 + SignedDuration::from_secs(MAX_WINDOW_SECONDS)));
-        assert!(!t.window_open(t0 + SignedDuration::from_secs(MAX_WINDOW_SECONDS + 1)));
+        assert!(!t.outcome_due(), "no rollout asked for this window");
 
-        t.switched(rel("3"), t0 + SignedDuration::from_secs(2));
+        t.switched(rel("3"), t0 + SignedDuration::from_secs(2), None);
         let r = t.report().unwrap();
         assert_eq!(r.baseline.host_memory_bytes.unwrap().mean, 400.0);
         assert_eq!(r.window, MetricWindow::default());

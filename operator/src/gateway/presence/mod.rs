@@ -3,7 +3,8 @@
 //!
 //! Every robot has at most one entry in one of two queues: transitions (connect, disconnect,
 //! release, health or teleoperation change) go to the high-priority queue, routine heartbeat
-//! refreshes (at most every `status_refresh`) to the low one. The writer takes high before low,
+//! refreshes (at most every `status_refresh`) and the outcome of an analysis window a rollout
+//! asked for (once per switch) to the low one. The writer takes high before low,
 //! writes the *latest* state of the robot when its turn comes (so bursts coalesce), respects a
 //! rate limit, and retries failures with backoff; nothing is dropped and memory is bounded by
 //! the number of robots. A status the API server refuses as invalid is not retried: the writer
@@ -232,6 +233,7 @@ impl Presence {
                 old.map(|e| (&e.analysis, e.info.release.as_ref())),
                 cached.as_ref().and_then(|r| r.status.as_ref()),
                 info.release.as_ref(),
+                cached.as_deref().and_then(analysis::Asked::of).as_ref(),
                 now,
             );
             s.robots.insert(
@@ -294,7 +296,8 @@ impl Presence {
                 // A switch within the session: its window opens now unless the `done` of a
                 // command opened it already (a command of an earlier session, or none).
                 if let (Some(_), Some(release)) = (&e.info.release, &hb.release) {
-                    e.analysis.switched(release.clone(), now);
+                    let asked = self.asked(key);
+                    e.analysis.switched(release.clone(), now, asked.as_ref());
                 }
                 e.info.release = hb.release;
                 changed = true;
@@ -335,7 +338,9 @@ impl Presence {
             };
             if outcome.phase == lekiwi_protocol::ProgressPhase::Done.as_str() {
                 e.info.release = Some(outcome.release.clone());
-                e.analysis.switched(outcome.release.clone(), outcome.time);
+                let asked = self.asked(key);
+                e.analysis
+                    .switched(outcome.release.clone(), outcome.time, asked.as_ref());
             }
             e.last_update = Some(Box::new(outcome));
             s.enqueue(key, Priority::High);
@@ -421,8 +426,8 @@ impl Presence {
         self.with_state(|s| s.robots.values().filter(|e| e.connected).count())
     }
 
-    /// Queues routine refreshes, ends silent polling sessions and stale claims; call every
-    /// second.
+    /// Queues routine refreshes and the outcomes of analysis windows, ends silent polling
+    /// sessions and stale claims; call every second.
     pub fn tick(&self) {
         let now = Timestamp::now();
         let refresh =
@@ -449,6 +454,13 @@ impl Presence {
                         .is_some_and(|at| refresh_due(e, at, now, refresh))
                 {
                     due.push((key.clone(), Priority::Low));
+                } else if e.analysis.outcome_due()
+                    && !s.queued.contains_key(key)
+                    && !s.writing.contains_key(key)
+                {
+                    // The write a rollout judges; one in flight or waiting may hold it already
+                    // (`Presence::written` tells).
+                    due.push((key.clone(), Priority::Low));
                 }
             }
             for (key, p) in &due {
@@ -470,19 +482,14 @@ impl Presence {
 /// at most N/period writes per second at any time, instead of in the same one-minute wave every
 /// period; a transition's write does not move the robot's point. So `lastHeartbeatTime` is
 /// never more than a period old (the Robot controller's `--heartbeat-grace-seconds` counts on
-/// that), and a robot's first refresh after a transition may come sooner than a period. While
-/// its last switch's analysis window is open, every [`analysis::WINDOW_REFRESH`] since the
-/// last write instead.
+/// that), and a robot's first refresh after a transition may come sooner than a period. An
+/// analysis window does not make it sooner (see [`analysis`]).
 fn refresh_due(
     e: &Entry,
     written: Timestamp,
     now: Timestamp,
     refresh: jiff::SignedDuration,
 ) -> bool {
-    if e.analysis.window_open(now) {
-        let window = jiff::SignedDuration::try_from(analysis::WINDOW_REFRESH).unwrap_or_default();
-        return now.duration_since(written) >= refresh.min(window);
-    }
     let period = refresh.as_micros().clamp(1, i64::MAX.into()) as i64;
     // `period` is positive, so the remainder fits in i64.
     let phase = (e.refresh_hash % period.unsigned_abs()) as i64;

@@ -791,6 +791,84 @@ fn a_robot_just_written_is_not_due_again() {
     assert_eq!(p.with_state(|s| s.pop()), None);
 }
 
+/// A switch that a rollout with analysis asked to watch is written once more, at low priority,
+/// once its window spans what was asked; a switch no rollout asked to watch is written no more
+/// than any robot until its routine refresh.
+#[test]
+fn only_a_switch_a_rollout_asked_to_watch_is_written_when_its_window_ends() {
+    let p = Presence::new(
+        PresenceConfig {
+            status_refresh: Duration::from_secs(3_600),
+            ..(*presence().config).clone()
+        },
+        Metrics::default(),
+    );
+    let robot = |name: &str, annotations: Value| -> lekiwi_crds::Robot {
+        serde_json::from_value(json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "metadata": { "name": name, "namespace": "lab", "annotations": annotations },
+            "spec": { "release": release_json("2") },
+        }))
+        .unwrap()
+    };
+    let window = json!({ lekiwi_crds::analysis::WINDOW_ANNOTATION: "1" });
+    let cache = crate::gateway::api::cache::Cache::listed([
+        robot("asked", window),
+        robot("plain", json!({})),
+    ]);
+    let robots = crate::gateway::desired::DesiredReleases(std::sync::Arc::new(cache));
+    p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
+    let write_all = |p: &Presence| {
+        let mut order = Vec::new();
+        while let Some((k, prio)) = p.with_state(|s| s.pop()) {
+            let sent = p.with_state(|s| s.take_for_write(&k)).unwrap();
+            p.written(&k, &sent);
+            order.push((k.name, prio));
+        }
+        order
+    };
+    let names = ["asked", "plain"];
+    for (session, name) in names.iter().enumerate() {
+        let info = ConnectInfo {
+            protocol: "websocket",
+            release: Some(release("1")),
+            ..ConnectInfo::default()
+        };
+        p.connect(&key(name), session as u64, 1_000, info);
+    }
+    write_all(&p);
+    let secs = jiff::SignedDuration::from_secs;
+    for (session, name) in names.iter().enumerate() {
+        let done = UpdateOutcome {
+            release: release("2"),
+            phase: "done".into(),
+            message: None,
+            time: Timestamp::now() - secs(2),
+        };
+        p.update_finished(&key(name), session as u64, done);
+    }
+    assert_eq!(write_all(&p).len(), 2, "each switch is written");
+    // Both switches were written 10 s ago by the books; a heartbeat 2 s after the switch
+    // completes the asked window.
+    p.with_state(|s| {
+        for e in s.robots.values_mut() {
+            e.written_at = Some(Timestamp::now() - secs(10));
+        }
+    });
+    for (session, name) in names.iter().enumerate() {
+        p.heartbeat(&key(name), session as u64, HeartbeatInfo::default());
+    }
+    p.tick();
+    p.tick();
+    assert_eq!(write_all(&p), [("asked".into(), Priority::Low)]);
+    for (session, name) in names.iter().enumerate() {
+        p.heartbeat(&key(name), session as u64, HeartbeatInfo::default());
+    }
+    p.tick();
+    assert_eq!(write_all(&p), [], "once per switch");
+}
+
 /// Every connected robot holds an entry for its whole session: what most robots never have (a
 /// switch's analysis window, an update's outcome, an agent update) is boxed, not inline.
 #[test]

@@ -226,6 +226,7 @@ impl Presence {
                 if e.session == entry.session {
                     e.written_heartbeat = Some(entry.last_heartbeat);
                     e.written_at = Some(Timestamp::now());
+                    e.analysis.written(&entry.analysis);
                     // A claim stays until this gateway's Robot watch shows the write
                     // (`Presence::write_seen`): the Robot controller's watch is seldom ahead of it.
                 }
