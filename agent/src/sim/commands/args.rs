@@ -1,6 +1,6 @@
 //! The flags of the simulated robots' command handling: the hooks they pretend to run, the
-//! share of robots that fail (chosen by name, the same ones every run), and the bound on the
-//! fleet's downloads.
+//! shares of robots that fail, and for which releases (chosen by name, the same ones every
+//! run), and the bound on the fleet's downloads.
 
 use std::hash::{Hash, Hasher};
 use std::time::Duration;
@@ -32,22 +32,28 @@ pub struct CommandArgs {
     /// to the release before and report `rolled_back`.
     #[arg(long, default_value_t = 0.0)]
     pub fail_health_share: f64,
+    /// Release versions whose health check those robots fail, comma-separated (default: every
+    /// release), so that a first release rolls out cleanly and a later one fails.
+    #[arg(long, value_delimiter = ',')]
+    pub fail_health_versions: Vec<String>,
     /// Share (0 to 1) of the robots whose download stalls and never ends (a link that stopped
     /// moving): the rollout's robot timeout sees them, and a `cancel` stops them.
     #[arg(long, default_value_t = 0.0)]
     pub timeout_share: f64,
+    /// Release versions whose download stalls on those robots (default: every release).
+    #[arg(long, value_delimiter = ',')]
+    pub timeout_versions: Vec<String>,
     /// Share (0 to 1) of the robots that go offline halfway through a download: the session
     /// drops, the deploy fails, and after `--offline-seconds` the robot connects again and the
     /// gateway's new `deploy` resumes the partial download (`Range`).
     #[arg(long, default_value_t = 0.0)]
     pub offline_mid_download_share: f64,
+    /// Release versions whose download those robots break off (default: every release).
+    #[arg(long, value_delimiter = ',')]
+    pub offline_mid_download_versions: Vec<String>,
     /// Seconds a robot of `--offline-mid-download-share` stays offline.
     #[arg(long, default_value_t = 30.0)]
     pub offline_seconds: f64,
-    /// Release versions the three shares apply to, comma-separated (default: every release), so
-    /// that a first release rolls out cleanly and a later one fails.
-    #[arg(long, value_delimiter = ',')]
-    pub fault_versions: Vec<String>,
 }
 
 /// The duration of a simulated hook command, or none configured (`off`).
@@ -84,7 +90,7 @@ pub enum Fault {
 }
 
 impl CommandArgs {
-    /// Refuses shares outside 0..1 or adding up to more than 1, and a zero download bound.
+    /// Refuses shares outside 0..1 and a zero download bound.
     pub fn validate(&self) -> Result<(), String> {
         let shares = [
             ("--fail-health-share", self.fail_health_share),
@@ -99,31 +105,30 @@ impl CommandArgs {
                 return Err(format!("{flag} {share} is not between 0 and 1"));
             }
         }
-        if shares.iter().map(|(_, s)| s).sum::<f64>() > 1.0 + 1e-9 {
-            return Err("the fault shares add up to more than 1".into());
-        }
         if self.max_downloads == 0 {
             return Err("--max-downloads must be at least 1".into());
         }
         Ok(())
     }
 
-    /// How robot `name` fails a deploy of release `version`: the three shares are disjoint
-    /// slices of one point per robot, drawn from a hash of its name, so a rerun picks the same
-    /// robots.
+    /// How robot `name` fails a deploy of release `version`. Each fault picks its share of the
+    /// robots by its own hash of the name (so a rerun picks the same robots, and the faults
+    /// pick independently of each other), for the versions it names; a robot picked by several
+    /// for the same version gets the first of health, timeout, offline.
     pub fn fault_of(&self, name: &str, version: &str) -> Fault {
-        if !self.fault_versions.is_empty() && !self.fault_versions.iter().any(|v| v == version) {
-            return Fault::None;
-        }
-        let point = point_of(name);
-        let health = self.fail_health_share;
-        let timeout = health + self.timeout_share;
-        let offline = timeout + self.offline_mid_download_share;
-        if point < health {
+        let picks = |fault: &str, share: f64, versions: &[String]| {
+            (versions.is_empty() || versions.iter().any(|v| v == version))
+                && point_of(fault, name) < share
+        };
+        if picks("health", self.fail_health_share, &self.fail_health_versions) {
             Fault::FailHealth
-        } else if point < timeout {
+        } else if picks("timeout", self.timeout_share, &self.timeout_versions) {
             Fault::Timeout
-        } else if point < offline {
+        } else if picks(
+            "offline",
+            self.offline_mid_download_share,
+            &self.offline_mid_download_versions,
+        ) {
             Fault::Offline
         } else {
             Fault::None
@@ -141,10 +146,11 @@ impl CommandArgs {
     }
 }
 
-/// A stable point in [0, 1) for robot `name`, independent of the one `--late-share` uses.
-fn point_of(name: &str) -> f64 {
+/// A stable point in [0, 1) for robot `name` and `fault`, independent of the one
+/// `--late-share` uses.
+fn point_of(fault: &str, name: &str) -> f64 {
     let mut hasher = std::hash::DefaultHasher::new();
-    ("commands", name).hash(&mut hasher);
+    ("commands", fault, name).hash(&mut hasher);
     (hasher.finish() % 1_000_000) as f64 / 1_000_000.0
 }
 
@@ -173,40 +179,46 @@ mod tests {
         assert!("soon".parse::<Hook>().is_err());
     }
 
-    /// Each share picks about its part of the robots, disjoint from the others, the same robots
-    /// every time, and only for the versions named.
+    /// Each share picks about its part of the robots, independently of the others, the same
+    /// robots every time, and only for the versions it names.
     #[test]
-    fn faults_are_stable_disjoint_shares() {
+    fn faults_are_stable_shares_for_their_versions() {
         let a = parse(&[
             "--fail-health-share",
             "0.1",
+            "--fail-health-versions",
+            "2.0.0,3.0.0",
             "--timeout-share",
             "0.05",
+            "--timeout-versions",
+            "3.0.0",
             "--offline-mid-download-share",
             "0.2",
-            "--fault-versions",
-            "2.0.0,3.0.0",
         ]);
         assert_eq!(a.validate(), Ok(()));
         let names: Vec<String> = (1..=10_000).map(|i| format!("sim-{i:05}")).collect();
-        let count = |f: Fault| names.iter().filter(|n| a.fault_of(n, "2.0.0") == f).count();
-        let (health, timeout, offline) = (
-            count(Fault::FailHealth),
-            count(Fault::Timeout),
-            count(Fault::Offline),
-        );
+        let count = |v: &str, f: Fault| names.iter().filter(|n| a.fault_of(n, v) == f).count();
+        let health = count("2.0.0", Fault::FailHealth);
         assert!((900..=1100).contains(&health), "{health}");
-        assert!((400..=600).contains(&timeout), "{timeout}");
+        assert_eq!(count("2.0.0", Fault::Timeout), 0, "not a timeout version");
+        let timeout = count("3.0.0", Fault::Timeout);
+        // Those also picked for the health check fail that first.
+        assert!((400..=550).contains(&timeout), "{timeout}");
+        let offline = count("1.0.0", Fault::Offline);
         assert!((1800..=2200).contains(&offline), "{offline}");
         for n in &names {
-            assert_eq!(a.fault_of(n, "3.0.0"), a.fault_of(n, "2.0.0"), "{n}");
             assert_eq!(
+                a.fault_of(n, "3.0.0") == Fault::FailHealth,
+                a.fault_of(n, "2.0.0") == Fault::FailHealth,
+                "{n}"
+            );
+            assert_ne!(
                 a.fault_of(n, "1.0.0"),
-                Fault::None,
-                "{n}: not a fault version"
+                Fault::FailHealth,
+                "{n}: not a health version"
             );
         }
-        let all = parse(&["--fail-health-share", "1"]);
+        let all = parse(&["--fail-health-share", "1", "--timeout-share", "1"]);
         assert!(
             names
                 .iter()
@@ -220,10 +232,9 @@ mod tests {
     }
 
     #[test]
-    fn shares_must_fit_in_one() {
+    fn shares_are_fractions() {
         assert!(parse(&["--timeout-share", "1.5"]).validate().is_err());
-        let two = parse(&["--timeout-share", "0.6", "--fail-health-share", "0.6"]);
-        assert!(two.validate().is_err());
+        assert!(parse(&["--fail-health-share=-0.1"]).validate().is_err());
         assert!(parse(&["--max-downloads", "0"]).validate().is_err());
     }
 }

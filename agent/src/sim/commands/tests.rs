@@ -282,7 +282,7 @@ async fn a_failing_health_check_rolls_back_and_a_rollback_downloads_nothing() {
     let flags = [
         "--fail-health-share",
         "1",
-        "--fault-versions",
+        "--fail-health-versions",
         "2.0.0",
         "--health-timeout-seconds",
         "0.2",
