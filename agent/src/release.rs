@@ -47,10 +47,13 @@ use error::io;
 pub use error::{Error, Result};
 use fetch::Client;
 pub use fetch::GatewayAccess;
+/// The blob client, which the fleet simulator shares among its robots.
+pub(crate) use fetch::{Caller, Client as BlobClient};
 use hooks::Hooks;
 use prepare::Wanted;
 pub use progress::{Outcome, Phase, Progress};
 use progress::{Reporter, Tally};
+pub(crate) use store::sha256_digest;
 use store::{Active, Finished, Journal, JournalPhase, Layout};
 
 /// Runs blocking file system work off the (single-threaded) runtime.
@@ -405,7 +408,7 @@ impl Releases {
 
 /// Runs `work` unless `stop` turns true first (`None` then, and `work` is dropped where it
 /// stands). A dropped sender never cancels.
-async fn cancellable<T>(
+pub(crate) async fn cancellable<T>(
     stop: &mut tokio::sync::watch::Receiver<bool>,
     work: impl Future<Output = T>,
 ) -> Option<T> {

@@ -1,6 +1,6 @@
 //! Test harness: the shared local control plane and private ones for disruptive tests
 //! ([`control_plane`]), the single-node cluster whose Pods really run ([`cluster`]), our operator, agent and `lekiwi-fleet` processes ([`operator`],
-//! [`agent`], [`fleet_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
+//! [`agent`], [`fleet_process`], [`sim_process`]), a stand-in for the gateway's cluster writes ([`stand_in`]),
 //! fleet fixtures and waits ([`fleet`]), RBAC'd users ([`users`]) and bare HTTP helpers
 //! ([`http`]), re-exported here so tests import them from the crate root; robots on other hosts
 //! made of network namespaces are in [`netns`]; a GraphQL WebSocket client is [`graphql`]; a stand-in for systemd is [`supervisor`];
@@ -21,6 +21,7 @@ pub mod operator;
 pub mod pi;
 pub mod postgres;
 mod process;
+pub mod sim_process;
 mod site;
 pub mod stand_in;
 pub mod supervisor;
@@ -43,6 +44,7 @@ pub use fleet::{
 pub use fleet_process::{FleetProcess, FleetSpec};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::{OperatorProcess, gateway_operator};
+pub use sim_process::{SimProcess, SimSpec};
 pub use site::OperatorSite;
 pub use stand_in::{GATEWAY_FIELD_MANAGER, GatewayStandIn};
 pub use users::{account, chart_roles, chart_roles_named};

@@ -30,6 +30,7 @@ const POOL_SIZE: usize = 4;
 
 mod blob;
 mod pace;
+mod stream;
 
 pub(super) use pace::Pace;
 
@@ -114,18 +115,31 @@ struct Target {
 /// Marker of a blob that landed in the store.
 pub(super) struct Fetched;
 
+/// Whom a request speaks for: a robot's token and its `namespace/name`. The agent's own
+/// requests use its [`GatewayAccess`]; the fleet simulator shares one client among its robots
+/// and names the robot per request.
+#[derive(Clone, Copy)]
+pub(crate) struct Caller<'a> {
+    /// The robot's token, sent as `Authorization: Bearer`.
+    pub(crate) token: &'a str,
+    /// The robot, `namespace/name`.
+    pub(crate) robot: &'a str,
+}
+
 /// The client: gateway access, TLS settings and a few idle connections.
-pub(super) struct Client {
+pub(crate) struct Client {
     access: GatewayAccess,
     target: Target,
     tls: Option<tokio_rustls::TlsConnector>,
     idle: Mutex<Vec<Sender>>,
+    /// Idle connections kept at most.
+    pool: usize,
     /// The download rate cap, shared with the client that replaces this one.
     pub(super) pace: Option<Arc<Pace>>,
 }
 
 impl Client {
-    pub(super) fn new(access: GatewayAccess) -> Result<Self> {
+    pub(crate) fn new(access: GatewayAccess) -> Result<Self> {
         let uri: Uri = access
             .base_url
             .parse()
@@ -164,8 +178,24 @@ impl Client {
             target,
             tls: connector,
             idle: Mutex::new(Vec::new()),
+            pool: POOL_SIZE,
             pace: None,
         })
+    }
+
+    /// Keeps up to `pool` idle connections instead of [`POOL_SIZE`] (a client shared by many
+    /// robots keeps as many as it runs requests at once).
+    pub(crate) fn with_pool(mut self, pool: usize) -> Self {
+        self.pool = pool.max(1);
+        self
+    }
+
+    /// The caller named by this client's own access.
+    fn own(&self) -> Caller<'_> {
+        Caller {
+            token: &self.access.token,
+            robot: &self.access.robot,
+        }
     }
 
     pub(super) fn set_token(&mut self, token: String) {
@@ -235,19 +265,30 @@ impl Client {
             return;
         }
         if let Ok(mut idle) = self.idle.lock()
-            && idle.len() < POOL_SIZE
+            && idle.len() < self.pool
         {
             idle.push(sender);
         }
     }
 
-    /// Sends a GET; a reused connection that the gateway closed meanwhile is replaced once.
+    /// Sends a GET as this client's own caller.
     async fn get(&self, path: &str, range_from: u64) -> Result<(Response<Incoming>, Sender)> {
+        self.get_as(path, range_from, self.own()).await
+    }
+
+    /// Sends a GET for `caller`; a reused connection that the gateway closed meanwhile is
+    /// replaced once.
+    async fn get_as(
+        &self,
+        path: &str,
+        range_from: u64,
+        caller: Caller<'_>,
+    ) -> Result<(Response<Incoming>, Sender)> {
         let url = self.url(path);
         let mut request = Request::get(path)
             .header(HOST, &self.target.authority)
-            .header(AUTHORIZATION, format!("Bearer {}", self.access.token))
-            .header(ROBOT_HEADER, &self.access.robot);
+            .header(AUTHORIZATION, format!("Bearer {}", caller.token))
+            .header(ROBOT_HEADER, caller.robot);
         if range_from > 0 {
             request = request.header(RANGE, format!("bytes={range_from}-"));
         }
@@ -284,13 +325,23 @@ impl Client {
 
     /// A small resource (the manifest) in memory, at most `limit` bytes.
     pub(super) async fn get_small(&self, path: &str, limit: usize) -> Result<Vec<u8>> {
+        self.get_small_as(path, limit, self.own()).await
+    }
+
+    /// [`Client::get_small`] for `caller`.
+    pub(crate) async fn get_small_as(
+        &self,
+        path: &str,
+        limit: usize,
+        caller: Caller<'_>,
+    ) -> Result<Vec<u8>> {
         if !path.starts_with('/') {
             return Err(Error::Invalid(format!(
                 "manifest URL {path:?} is not a path on the gateway"
             )));
         }
         let url = self.url(path);
-        let (response, sender) = self.get(path, 0).boxed().await?;
+        let (response, sender) = self.get_as(path, 0, caller).boxed().await?;
         let status = response.status();
         let mut body = response.into_body();
         if status != StatusCode::OK {

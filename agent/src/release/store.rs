@@ -19,7 +19,7 @@ pub(super) use journal::{Active, Finished, Journal, JournalPhase};
 /// Directory inside each release that holds the agent's own files.
 pub(super) const META_DIR: &str = ".lekiwi";
 /// `sha256:<hex>` of `bytes`.
-pub(super) fn sha256_digest(bytes: &[u8]) -> String {
+pub(crate) fn sha256_digest(bytes: &[u8]) -> String {
     let mut h = Hasher::new();
     h.update(bytes);
     h.finish()

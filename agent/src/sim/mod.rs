@@ -1,7 +1,9 @@
 //! The fleet simulator: N real agent connections from one process, each with a heartbeat loop,
 //! reporting connect time, heartbeat round-trip percentiles, errors and reconnects; optionally
 //! each robot also sends durable events, counted so a benchmark can compare sent with stored.
+//! Every robot carries out the gateway's commands as the agent does ([`commands`]).
 
+pub mod commands;
 mod session;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -9,7 +11,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use clap::Parser;
-use lekiwi_protocol::Release;
+
+pub use commands::{CommandArgs, CommandSummary, Fault, Hook};
 
 /// Simulates a fleet of LeKiwi agents against a gateway.
 #[derive(Clone, Debug, Parser)]
@@ -56,7 +59,8 @@ pub struct Args {
     /// Write the final summary as JSON to this file.
     #[arg(long)]
     pub json: Option<std::path::PathBuf>,
-    /// Release the robots report (version:sha256hex).
+    /// Release every robot runs at start (with a made-up digest, and no files: a rollback to
+    /// it downloads nothing); empty: none, as a robot fresh from enrollment.
     #[arg(long, default_value = "1.0.0")]
     pub release_version: String,
     /// Keep the robots' own tokens in this JSON file (name → token), as real agents keep theirs
@@ -90,6 +94,9 @@ pub struct Args {
     /// Extra wait, seconds, of the robots of `--late-share` before they reconnect.
     #[arg(long, default_value_t = 30.0)]
     pub late_delay: f64,
+    /// How the robots carry out commands.
+    #[command(flatten)]
+    pub commands: CommandArgs,
 }
 
 impl Args {
@@ -166,12 +173,16 @@ pub struct Summary {
     pub reconnects: u64,
     /// Error frames the gateway sent (rate limits, refusals, replacements).
     pub error_frames: u64,
-    /// Durable events the robots made.
+    /// Durable messages the robots made: events, and their commands' progress reports and
+    /// agent update events (the gateway stores each as an event).
     pub events_generated: u64,
     /// Of those, acknowledged by the gateway (an `ack`, or covered by `welcome.stored_seq`).
     pub events_acked: u64,
-    /// Event frames sent again after a reconnect because they were not acknowledged.
+    /// Durable frames sent again after a reconnect because they were not acknowledged.
     pub events_resent: u64,
+    /// What the robots did with the gateway's commands.
+    #[serde(flatten)]
+    pub commands: CommandSummary,
 }
 
 fn percentile(sorted: &[u32], p: f64) -> f64 {
@@ -186,14 +197,17 @@ fn percentile(sorted: &[u32], p: f64) -> f64 {
 pub async fn run(args: Args) -> anyhow::Result<Summary> {
     anyhow::ensure!(!args.gateway.is_empty(), "--gateway needs at least one URL");
     let _ = rlimit::increase_nofile_limit(u64::MAX);
+    let commands = commands::Shared::new(
+        args.commands.clone(),
+        &args.gateway,
+        args.ca_file.as_deref(),
+        &args.release_version,
+    )?;
     let fleet = Fleet {
         stats: Arc::new(Stats::default()),
         tokens: load_tokens(&args)?,
         start: Instant::now(),
-        release: Release {
-            version: args.release_version.clone(),
-            digest: format!("sha256:{}", "0".repeat(64)),
-        },
+        commands: Arc::new(commands),
         args,
     };
     let tasks = fleet.spawn_robots().await;
@@ -220,14 +234,14 @@ fn load_tokens(args: &Args) -> anyhow::Result<Tokens> {
 }
 
 /// What every simulated robot shares: the arguments, the counters, the token store, the start
-/// time and the release they all report.
+/// time and what their commands share.
 #[derive(Clone)]
 struct Fleet {
     args: Args,
     stats: Arc<Stats>,
     tokens: Tokens,
     start: Instant,
-    release: Release,
+    commands: Arc<commands::Shared>,
 }
 
 impl Fleet {
@@ -237,8 +251,8 @@ impl Fleet {
         let gap = Duration::from_secs_f64(1.0 / self.args.connect_rate.max(1.0));
         for i in 0..self.args.robots {
             let name = format!("{}-{:05}", self.args.prefix, i + 1);
-            let url = self.args.gateway[i % self.args.gateway.len().max(1)].clone();
-            tasks.push(tokio::spawn(session::robot(self.clone(), name, url)));
+            let gateway = i % self.args.gateway.len().max(1);
+            tasks.push(tokio::spawn(session::robot(self.clone(), name, gateway)));
             tokio::time::sleep(gap).await;
         }
         tasks
@@ -310,7 +324,7 @@ impl Fleet {
         let stats = &self.stats;
         let rtts = take_sorted_rtts(stats);
         println!(
-            "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}  events {} unacked {}",
+            "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}  events {} unacked {}  {}",
             self.start.elapsed().as_secs_f64(),
             stats.connected.load(Ordering::Relaxed),
             self.args.robots,
@@ -323,6 +337,7 @@ impl Fleet {
             stats.error_frames.load(Ordering::Relaxed),
             stats.events_generated.load(Ordering::Relaxed),
             self.unacked(),
+            self.commands.counters.summary(),
         );
         // Keep them for the final summary too.
         lock(&stats.rtts_us).extend(rtts);
@@ -345,6 +360,7 @@ impl Fleet {
             events_generated: stats.events_generated.load(Ordering::Relaxed),
             events_acked: stats.events_acked.load(Ordering::Relaxed),
             events_resent: stats.events_resent.load(Ordering::Relaxed),
+            commands: self.commands.counters.summary(),
         }
     }
 

@@ -1,28 +1,43 @@
 //! One simulated robot: connects (enrolling the first time), heartbeats, sends durable events
 //! at `--events-per-minute` from an in-memory outbox (resent after a reconnect until
-//! acknowledged, exactly like the agent's durable outbox), and reconnects with backoff.
+//! acknowledged, exactly like the agent's durable outbox), carries out the gateway's commands
+//! ([`super::commands`]) and reconnects with backoff.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
+use futures::stream::SplitSink;
 use futures::{SinkExt, StreamExt};
 use lekiwi_protocol::{
-    AgentMessage, ErrorCode, Health, PROTOCOL_VERSION, Release, ServerMessage, Severity,
-    SystemFacts, Teleoperation, Vitals, decode, encode,
+    AgentMessage, ErrorCode, FEATURE_UPDATE_AGENT, Health, PROTOCOL_VERSION, ServerMessage,
+    Severity, SystemFacts, Teleoperation, Vitals, decode, encode,
 };
 use rand::Rng;
 use tokio_tungstenite::tungstenite::Message;
 
+use super::commands::{Commands, Handled, RobotId};
 use super::{Fleet, Stats, lock};
-use crate::connection::{ConnectError, Credentials, connect_with_ca};
+use crate::connection::{ConnectError, Credentials, Socket, connect_with_ca};
 
-/// The durable events of one robot not yet acknowledged, by `seq`, and the next `seq` to use.
+/// How long a robot whose agent restarts (`update_agent`) stays away, at most: the service
+/// manager's restart delay.
+const RESTART_DELAY: Duration = Duration::from_millis(500);
+
+/// The durable messages of one robot not yet acknowledged, by `seq`, and the next `seq` to use.
 /// It lives as long as the robot's task, across sessions, as the agent's outbox does on disk.
 #[derive(Default)]
 pub(super) struct Outbox {
     next_seq: u64,
-    unacked: BTreeMap<u64, i64>,
+    unacked: BTreeMap<u64, Pending>,
+}
+
+/// A durable message kept until acknowledged.
+enum Pending {
+    /// A generated event, made again from its time when resent.
+    Tick(i64),
+    /// A message of the robot's commands, kept as sent.
+    Frame(Box<str>),
 }
 
 impl Outbox {
@@ -30,9 +45,21 @@ impl Outbox {
     fn push(&mut self, stats: &Stats) -> (u64, i64) {
         self.next_seq += 1;
         let ts_ms = lekiwi_protocol::now_ms();
-        self.unacked.insert(self.next_seq, ts_ms);
+        self.unacked.insert(self.next_seq, Pending::Tick(ts_ms));
         stats.events_generated.fetch_add(1, Ordering::Relaxed);
         (self.next_seq, ts_ms)
+    }
+
+    /// A new durable message made by `make` from its `seq`, kept until acknowledged; its frame.
+    fn push_message(&mut self, make: impl FnOnce(u64) -> AgentMessage, stats: &Stats) -> Message {
+        self.next_seq += 1;
+        let frame = encode(&make(self.next_seq));
+        self.unacked.insert(
+            self.next_seq,
+            Pending::Frame(frame.clone().into_boxed_str()),
+        );
+        stats.events_generated.fetch_add(1, Ordering::Relaxed);
+        Message::text(frame)
     }
 
     /// The gateway stored `seq`.
@@ -61,6 +88,14 @@ impl Outbox {
             .map_or(self.next_seq, |first| first - 1);
         (below > 0).then_some(below)
     }
+
+    /// The frame of the unacknowledged message `seq` of robot `name`, to send again.
+    fn frame(name: &str, seq: u64, pending: &Pending) -> Message {
+        match pending {
+            Pending::Tick(ts_ms) => event(name, seq, *ts_ms),
+            Pending::Frame(frame) => Message::text(&**frame),
+        }
+    }
 }
 
 /// The event frame for `seq`.
@@ -75,12 +110,14 @@ fn event(name: &str, seq: u64, ts_ms: i64) -> Message {
     }))
 }
 
-/// The `hello` of a simulated robot: a Raspberry Pi running the fleet's release.
-fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMessage {
+/// The `hello` of a simulated robot: a Raspberry Pi running the release and agent build its
+/// commands left it on.
+fn hello(name: &str, commands: &Commands, last_acked_seq: Option<u64>) -> AgentMessage {
+    let (agent_version, agent_digest) = commands.agent();
     AgentMessage::Hello {
         protocol_version: PROTOCOL_VERSION,
-        agent_version: concat!("sim-", env!("CARGO_PKG_VERSION")).to_owned(),
-        agent_digest: None,
+        agent_version: agent_version.to_owned(),
+        agent_digest: Some(agent_digest.to_owned()),
         system: SystemFacts {
             hostname: Some(name.to_owned()),
             os: Some("Debian GNU/Linux 12 (bookworm)".into()),
@@ -89,7 +126,7 @@ fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMes
             memory_bytes: Some(8 << 30),
             kernel: None,
         },
-        current_release: Some(release.clone()),
+        current_release: commands.current().cloned(),
         last_acked_seq,
         health: Some(Health {
             healthy: true,
@@ -100,27 +137,46 @@ fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMes
             active: false,
             score: Some(0.0),
         }),
-        features: Vec::new(),
+        features: vec![FEATURE_UPDATE_AGENT.to_owned()],
     }
 }
 
+/// How a session ended, which says when to connect again.
+enum Ended {
+    /// Lost or closed: after the backoff (and the robot's `--late-delay`).
+    Lost,
+    /// The robot went offline for this long.
+    Offline(Duration),
+    /// The agent restarts as another build.
+    Restart,
+}
+
 /// One simulated robot, forever: connect, run the session, back off, again.
-pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
+pub(super) async fn robot(fleet: Fleet, name: String, gateway: usize) {
     let args = &fleet.args;
+    let url = &args.gateway[gateway % args.gateway.len()];
     let own = lock(&fleet.tokens).get(&name).cloned();
     let mut creds = Credentials {
         token: own.unwrap_or_else(|| args.enrollment_token.clone()),
         robot: format!("{}/{}", args.namespace, name),
     };
     let mut outbox = Outbox::default();
+    let mut commands = Commands::new(fleet.commands.clone());
     let mut first = true;
     let mut backoff =
         crate::backoff::Backoff::new(Duration::from_millis(500), Duration::from_secs(30));
     let timeout = Duration::from_secs_f64(args.connect_timeout);
     loop {
-        let hello = hello(&name, &fleet.release, outbox.last_acked());
+        let id = RobotId {
+            name: name.clone(),
+            robot: creds.robot.clone(),
+            token: creds.token.clone(),
+            gateway,
+        };
+        settle_offline(&mut commands, &id, &mut outbox, &fleet.stats);
+        let hello = hello(&name, &commands, outbox.last_acked());
         let floor =
-            match connect_with_ca(&url, &creds, &hello, timeout, args.ca_file.as_deref()).await {
+            match connect_with_ca(url, &creds, &hello, timeout, args.ca_file.as_deref()).await {
                 Ok((ws, welcome)) => {
                     backoff.reset();
                     if let Some(token) = welcome.robot_token.clone() {
@@ -134,16 +190,29 @@ pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
                         .heartbeat_interval
                         .map(Duration::from_secs_f64)
                         .unwrap_or(welcome.heartbeat_interval);
-                    Session {
+                    let robot = RobotId {
+                        robot: creds.robot.clone(),
+                        token: creds.token.clone(),
+                        ..id
+                    };
+                    let ended = Session {
                         fleet: &fleet,
                         name: &name,
                         interval,
                         outbox: &mut outbox,
+                        commands: &mut commands,
+                        robot,
+                        pending: None,
+                        last_rtt: None,
                     }
                     .run(ws)
                     .await;
                     fleet.stats.connected.fetch_sub(1, Ordering::Relaxed);
-                    args.late_delay_of(&name)
+                    match ended {
+                        Ended::Lost => args.late_delay_of(&name),
+                        Ended::Offline(d) => d,
+                        Ended::Restart => RESTART_DELAY,
+                    }
                 }
                 Err(e) => {
                     fleet.stats.connect_errors.fetch_add(1, Ordering::Relaxed);
@@ -161,81 +230,171 @@ pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
     }
 }
 
+/// Takes in what the robot's commands reported while it had no session: durable messages
+/// into the outbox (sent when it connects), ended tasks (so `hello` names the release now
+/// current).
+fn settle_offline(commands: &mut Commands, robot: &RobotId, outbox: &mut Outbox, stats: &Stats) {
+    while let Some(report) = commands.try_next() {
+        if let Handled::Durable(d) = commands.handle(robot, report) {
+            outbox.push_message(|seq| d.message(seq), stats);
+        }
+    }
+}
+
+type Tx = SplitSink<Socket, Message>;
+
+/// What woke a session.
+enum Wake {
+    Heartbeat,
+    Event,
+    Report(super::commands::Report),
+    Frame(Option<Result<Message, tokio_tungstenite::tungstenite::Error>>),
+}
+
+/// What a session does after a wake-up.
+enum Step {
+    Go,
+    /// Send a heartbeat now (a deploy ended: the gateway hears the release at once).
+    Heartbeat,
+    End(Ended),
+}
+
 /// One established session of a simulated robot.
 struct Session<'a> {
     fleet: &'a Fleet,
     name: &'a str,
     interval: Duration,
     outbox: &'a mut Outbox,
+    commands: &'a mut Commands,
+    robot: RobotId,
+    /// The heartbeat awaiting its ack: its `sent_at_ms` and when it left.
+    pending: Option<(i64, Instant)>,
+    last_rtt: Option<f64>,
 }
 
 impl Session<'_> {
-    /// Resends the unacknowledged events, then heartbeats and sends new events until the session
-    /// ends.
-    async fn run(self, ws: crate::connection::Socket) {
-        let Session {
-            fleet,
-            name,
-            interval,
-            outbox,
-        } = self;
-        let stats = &*fleet.stats;
+    /// Resends the unacknowledged messages, then heartbeats, sends new events and carries out
+    /// commands until the session ends.
+    async fn run(mut self, ws: Socket) -> Ended {
         let (mut tx, mut rx) = ws.split();
-        for (&seq, &ts_ms) in &outbox.unacked {
+        self.commands.welcomed();
+        let stats = &*self.fleet.stats;
+        for (&seq, pending) in &self.outbox.unacked {
             stats.events_resent.fetch_add(1, Ordering::Relaxed);
-            if tx.send(event(name, seq, ts_ms)).await.is_err() {
-                return;
+            if tx
+                .send(Outbox::frame(self.name, seq, pending))
+                .await
+                .is_err()
+            {
+                return Ended::Lost;
             }
         }
         // Spread the first heartbeat and the first event over one period each.
-        let mut tick = spread_interval(interval);
-        let event_period = fleet
+        let mut tick = spread_interval(self.interval);
+        let event_period = self
+            .fleet
             .args
             .events_per_minute
             .filter(|r| *r > 0.0)
             .map(|r| Duration::from_secs_f64(60.0 / r));
         let mut events = spread_interval(event_period.unwrap_or(Duration::from_secs(3600)));
-        let mut pending: Option<(i64, Instant)> = None;
-        let mut last_rtt: Option<f64> = None;
         loop {
-            tokio::select! {
-                _ = tick.tick() => {
-                    let sent_at_ms = lekiwi_protocol::now_ms();
-                    pending = Some((sent_at_ms, Instant::now()));
-                    if tx.send(heartbeat(sent_at_ms, last_rtt)).await.is_err() {
-                        return;
+            let wake = tokio::select! {
+                _ = tick.tick() => Wake::Heartbeat,
+                _ = events.tick(), if event_period.is_some() && self.fleet.generating() => Wake::Event,
+                report = self.commands.next() => Wake::Report(report),
+                frame = rx.next() => Wake::Frame(frame),
+            };
+            let step = match wake {
+                Wake::Heartbeat => Step::Heartbeat,
+                Wake::Event => {
+                    let (seq, ts_ms) = self.outbox.push(stats);
+                    match tx.send(event(self.name, seq, ts_ms)).await {
+                        Ok(()) => Step::Go,
+                        Err(_) => Step::End(Ended::Lost),
                     }
                 }
-                _ = events.tick(), if event_period.is_some() && fleet.generating() => {
-                    let (seq, ts_ms) = outbox.push(stats);
-                    if tx.send(event(name, seq, ts_ms)).await.is_err() {
-                        return;
+                Wake::Report(report) => self.on_report(report, &mut tx).await,
+                Wake::Frame(frame) => self.on_frame(frame),
+            };
+            match step {
+                Step::Go => {}
+                Step::Heartbeat => {
+                    if !self.heartbeat(&mut tx).await {
+                        return Ended::Lost;
                     }
                 }
-                frame = rx.next() => {
-                    let Some(Ok(frame)) = frame else { return };
-                    let Message::Text(text) = frame else {
-                        if matches!(frame, Message::Close(_)) { return; }
-                        continue;
-                    };
-                    match decode::<ServerMessage>(text.as_str(), usize::MAX) {
-                        Ok(ServerMessage::HeartbeatAck { sent_at_ms, .. }) => {
-                            if let Some((_, at)) = pending.take_if(|(s, _)| *s == sent_at_ms) {
-                                last_rtt = Some(stats.record_rtt(at.elapsed()));
-                            }
-                        }
-                        Ok(ServerMessage::Ack { seq }) => outbox.ack(seq, stats),
-                        Ok(ServerMessage::Error { code, fatal, .. }) => {
-                            stats.error_frames.fetch_add(1, Ordering::Relaxed);
-                            if fatal || code == ErrorCode::Replaced {
-                                return;
-                            }
-                        }
-                        _ => {}
-                    }
-                }
+                Step::End(ended) => return ended,
             }
         }
+    }
+
+    /// Sends a heartbeat; false if the connection failed.
+    async fn heartbeat(&mut self, tx: &mut Tx) -> bool {
+        let sent_at_ms = lekiwi_protocol::now_ms();
+        self.pending = Some((sent_at_ms, Instant::now()));
+        let current = self.commands.current().cloned();
+        tx.send(heartbeat(sent_at_ms, self.last_rtt, current))
+            .await
+            .is_ok()
+    }
+
+    /// Something the robot's commands have for the gateway.
+    async fn on_report(&mut self, report: super::commands::Report, tx: &mut Tx) -> Step {
+        match self.commands.handle(&self.robot, report) {
+            Handled::Durable(d) => {
+                let stats = &*self.fleet.stats;
+                let frame = self.outbox.push_message(|seq| d.message(seq), stats);
+                match tx.send(frame).await {
+                    Ok(()) => Step::Go,
+                    Err(_) => Step::End(Ended::Lost),
+                }
+            }
+            Handled::Finished => Step::Heartbeat,
+            // Gone without a word, as a robot that lost its network.
+            Handled::Offline(d) => Step::End(Ended::Offline(d)),
+            Handled::Restart => {
+                let _ = tx.send(Message::Close(None)).await;
+                Step::End(Ended::Restart)
+            }
+        }
+    }
+
+    /// A frame from the gateway, or the end of the connection.
+    fn on_frame(
+        &mut self,
+        frame: Option<Result<Message, tokio_tungstenite::tungstenite::Error>>,
+    ) -> Step {
+        let stats = &*self.fleet.stats;
+        let Some(Ok(frame)) = frame else {
+            return Step::End(Ended::Lost);
+        };
+        let Message::Text(text) = frame else {
+            if matches!(frame, Message::Close(_)) {
+                return Step::End(Ended::Lost);
+            }
+            return Step::Go;
+        };
+        match decode::<ServerMessage>(text.as_str(), usize::MAX) {
+            Ok(ServerMessage::HeartbeatAck { sent_at_ms, .. }) => {
+                if let Some((_, at)) = self.pending.take_if(|(s, _)| *s == sent_at_ms) {
+                    self.last_rtt = Some(stats.record_rtt(at.elapsed()));
+                }
+            }
+            Ok(ServerMessage::Ack { seq }) => self.outbox.ack(seq, stats),
+            Ok(ServerMessage::Error { code, fatal, .. }) => {
+                stats.error_frames.fetch_add(1, Ordering::Relaxed);
+                if fatal || code == ErrorCode::Replaced {
+                    return Step::End(Ended::Lost);
+                }
+            }
+            Ok(ServerMessage::Command {
+                command_id,
+                command,
+            }) => self.commands.on_command(&self.robot, command_id, command),
+            _ => {}
+        }
+        Step::Go
     }
 }
 
@@ -245,8 +404,12 @@ fn spread_interval(period: Duration) -> tokio::time::Interval {
     tokio::time::interval_at(tokio::time::Instant::now() + offset, period)
 }
 
-/// A heartbeat with fixed vitals.
-fn heartbeat(sent_at_ms: i64, rtt_ms: Option<f64>) -> Message {
+/// A heartbeat with fixed vitals and the release the robot runs.
+fn heartbeat(
+    sent_at_ms: i64,
+    rtt_ms: Option<f64>,
+    current_release: Option<lekiwi_protocol::Release>,
+) -> Message {
     Message::text(encode(&AgentMessage::Heartbeat {
         sent_at_ms,
         rtt_ms,
@@ -256,7 +419,7 @@ fn heartbeat(sent_at_ms: i64, rtt_ms: Option<f64>) -> Message {
             temperature_c: Some(50.0),
             ..Vitals::default()
         },
-        current_release: None,
+        current_release,
         health: None,
         teleoperation: None,
     }))

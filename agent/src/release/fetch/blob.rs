@@ -228,7 +228,7 @@ impl Client {
 }
 
 /// The first byte of `Content-Range: bytes <first>-<last>/<len>`.
-fn content_range_start(v: &str) -> Option<u64> {
+pub(super) fn content_range_start(v: &str) -> Option<u64> {
     v.strip_prefix("bytes ")?
         .split('-')
         .next()?
