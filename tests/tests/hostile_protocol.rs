@@ -1,7 +1,8 @@
 //! Hostile and odd protocol input against a real operator process (issue 12, points 7, 10 and
-//! 13; issue 40, point 2): bounded sequence numbers, short error frames, a future version's
-//! `hello`, what the document says about whitespace, `null`, severities and out-of-range
-//! numbers, and a real agent that keeps working after someone forged a huge `seq` for its robot.
+//! 13; issue 40, points 2 and 3): bounded sequence numbers, short error frames, a future
+//! version's `hello`, what the document says about whitespace, `null`, severities and
+//! out-of-range numbers, an agent's Close frame, and a real agent that keeps working after
+//! someone forged a huge `seq` for its robot.
 
 use std::time::Duration;
 
@@ -13,8 +14,10 @@ use lekiwi_tests::{
     gateway_operator, gateway_url, namespace, recv, wait_for,
 };
 use serde_json::json;
-use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::protocol::CloseFrame;
+use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
+use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 
 const TIMEOUT: Duration = Duration::from_secs(10);
 
@@ -212,6 +215,59 @@ async fn null_optional_fields_count_as_omitted() -> anyhow::Result<()> {
         (stored[0].message.as_str(), &stored[0].data),
         ("", &serde_json::Value::Null)
     );
+    Ok(())
+}
+
+/// The gateway's answer to our Close frame: its Close, then the end of the stream. Without the
+/// answer the client reads a reset (`ResetWithoutClosingHandshake`, which agents see as 1006).
+async fn close_answer(ws: &mut Socket, code: CloseCode, reason: &str) -> Option<CloseFrame> {
+    let ours = CloseFrame {
+        code,
+        reason: reason.into(),
+    };
+    ws.close(Some(ours)).await.expect("our Close frame sent");
+    let answer = match tokio::time::timeout(TIMEOUT, ws.next()).await {
+        Ok(Some(Ok(Message::Close(frame)))) => frame,
+        other => panic!("expected the gateway's Close frame, got {other:?}"),
+    };
+    match tokio::time::timeout(TIMEOUT, ws.next()).await {
+        Ok(None | Some(Err(WsError::ConnectionClosed))) => {}
+        other => panic!("expected the end of the stream, got {other:?}"),
+    }
+    answer
+}
+
+/// An agent that closes its session cleanly, during the handshake or after it, gets the
+/// gateway's Close frame echoing its code (RFC 6455 §5.5.1) before the connection ends; the
+/// robot is disconnected as after any close.
+#[tokio::test]
+async fn an_agents_close_frame_is_answered_with_a_close_frame() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hpclose").await?;
+    let op = gateway_operator(cp, &ns, "hp-close", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let robot = format!("{ns}/kiwi-c");
+    let (mut ws, welcome) = connect_agent(&op, &enroll, &robot).await?;
+    let answer = close_answer(&mut ws, CloseCode::Normal, "agent stopping").await;
+    let answer = answer.expect("a close code");
+    assert_eq!(
+        (answer.code, answer.reason.as_str()),
+        (CloseCode::Normal, "agent stopping")
+    );
+    let token = welcome.robot_token.expect("a robot token");
+    let (mut ws, _) = connect_agent(&op, &token, &robot).await?;
+    let answer = close_answer(&mut ws, CloseCode::Away, "").await;
+    assert_eq!(answer.map(|f| f.code), Some(CloseCode::Away));
+    // Before its hello, too.
+    let mut ws = upgrade(&op, &token, &robot).await?;
+    let answer = close_answer(&mut ws, CloseCode::Away, "restarting").await;
+    assert_eq!(answer.map(|f| f.code), Some(CloseCode::Away));
+    let closed = r#"lekiwi_gateway_sessions_ended_total{kind="closed"}"#;
+    wait_for("both sessions counted as closed", TIMEOUT, || async {
+        (op.metric(closed).await == Some(2.0)).then_some(())
+    })
+    .await?;
     Ok(())
 }
 
