@@ -627,6 +627,71 @@ async fn migration_claims_the_seqs_stored_before(db: Db) -> Result<()> {
     Ok(())
 }
 
+/// Times beyond what RFC 3339 writes (a robot sending 2^63-1 or -2^63) are stored as the nearest
+/// bound, by new inserts and, for rows stored before, by the migration; events are listed by
+/// when the gateway received them, so each of these is in the last hour's range, and samples
+/// are in the widest range a query can name.
+async fn extreme_times_are_clamped_into_reach(db: Db) -> Result<()> {
+    use lekiwi_operator::gateway::event_store::{MAX_TIME_MS, MIN_TIME_MS, TimeRange};
+
+    let now = jiff::Timestamp::now().as_millisecond();
+    old_schema(
+        &db,
+        3,
+        &[&format!(
+            "INSERT INTO events \
+             (namespace, robot, seq, ts_ms, kind, severity, message, data, received_ms, bytes) \
+             VALUES ('fleet-a', 'kiwi-1', 1, {}, 'k', 'info', 'm', '{{}}', {now}, 8), \
+             ('fleet-a', 'kiwi-1', 2, {}, 'k', 'info', 'm', '{{}}', {now}, 8)",
+            i64::MAX,
+            i64::MIN
+        )],
+    )
+    .await?;
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    for (seq, ts) in [(3, i64::MAX), (4, i64::MIN), (5, now - 365 * 86_400_000)] {
+        ensure!(store.insert_event(&r, &event(seq, ts)).await?);
+    }
+    let samples = [
+        sample("cpu_percent", i64::MIN, 1.0),
+        sample("cpu_percent", i64::MAX, 2.0),
+    ];
+    ensure!(store.insert_telemetry(&r, 6, &samples).await?);
+    let last_hour = TimeRange {
+        since_ms: now - 3_600_000,
+        until_ms: i64::MAX,
+    };
+    let listed: Vec<(u64, i64)> = store
+        .events_in_range(&r, None, last_hour, 100)
+        .await?
+        .iter()
+        .map(|e| (e.seq, e.ts_ms))
+        .collect();
+    assert_eq!(
+        listed,
+        [
+            (1, MAX_TIME_MS),
+            (2, MIN_TIME_MS),
+            (3, MAX_TIME_MS),
+            (4, MIN_TIME_MS),
+            (5, now - 365 * 86_400_000)
+        ]
+    );
+    let widest = TimeRange {
+        since_ms: MIN_TIME_MS,
+        until_ms: i64::MAX,
+    };
+    let taken: Vec<i64> = store
+        .samples_in_range(&r, None, widest, None, 10)
+        .await?
+        .iter()
+        .map(|s| s.sample.ts_ms)
+        .collect();
+    assert_eq!(taken, [MIN_TIME_MS, MAX_TIME_MS]);
+    Ok(())
+}
+
 /// One sequence per robot (PROTOCOL.md §6 rule 1): a seq stored as an event is a replay for
 /// telemetry and the reverse, also when an event and a telemetry batch of one seq arrive at the
 /// same moment (two sessions of the robot): one is stored, the other is told "already stored".
@@ -874,6 +939,7 @@ on_both_backends!(
     migration_keeps_old_rows_with_a_clamped_receive_time,
     migration_claims_the_seqs_stored_before,
     one_seq_space_for_every_kind,
+    extreme_times_are_clamped_into_reach,
     concurrent_inserts_store_one_row,
     many_sessions_insert_in_batches,
     many_sessions_close_in_batches,

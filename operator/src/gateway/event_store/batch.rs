@@ -15,7 +15,7 @@ use sqlx::QueryBuilder;
 use sqlx::types::Json;
 use tokio::sync::{Mutex, mpsc, oneshot};
 
-use super::{Error, Result, RobotKey, Store, StoredEvent};
+use super::{Error, Result, RobotKey, Store, StoredEvent, storable_ms};
 
 const CLAIM_SEQS: &str = "INSERT INTO seqs (namespace, robot, seq, received_ms) ";
 const INSERT_EVENTS: &str = "INSERT INTO events \
@@ -209,7 +209,7 @@ impl Store {
                     row.push_bind(&p.robot.namespace)
                         .push_bind(&p.robot.name)
                         .push_bind(p.seq)
-                        .push_bind(p.event.ts_ms)
+                        .push_bind(storable_ms(p.event.ts_ms))
                         .push_bind(&p.event.kind)
                         .push_bind(&p.event.severity)
                         .push_bind(&p.event.message)

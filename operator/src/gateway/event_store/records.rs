@@ -7,7 +7,7 @@ use sqlx::{FromRow, QueryBuilder};
 
 use super::{
     ConnectionRecord, Error, Result, RobotKey, Sample, Store, StoredEvent, StoredSample,
-    from_db_seq, to_db_seq,
+    from_db_seq, storable_ms, to_db_seq,
 };
 
 /// Seven parameters a row keeps one statement under SQLite's 32766 and PostgreSQL's 65535.
@@ -143,7 +143,7 @@ impl Store {
                 .bind(&robot.namespace)
                 .bind(&robot.name)
                 .bind(seq)
-                .bind(ev.ts_ms)
+                .bind(storable_ms(ev.ts_ms))
                 .bind(&ev.kind)
                 .bind(&ev.severity)
                 .bind(&ev.message)
@@ -221,7 +221,11 @@ impl Store {
         self.check_quota_unless_stored(robot, seq, rows, bytes)
             .await?;
         // An empty batch still claims its seq; retention drops it like any other.
-        let max_ts_ms = samples.iter().map(|s| s.ts_ms).max().unwrap_or(0);
+        let max_ts_ms = samples
+            .iter()
+            .map(|s| storable_ms(s.ts_ms))
+            .max()
+            .unwrap_or(0);
         let inserted = with_pool!(self, pool, begin => async {
             let mut tx = pool.begin_with(begin).await?;
             let claimed = sqlx::query(CLAIM_SEQ)
@@ -260,7 +264,7 @@ impl Store {
                         .push_bind(&robot.name)
                         .push_bind(seq)
                         .push_bind(&s.metric)
-                        .push_bind(s.ts_ms)
+                        .push_bind(storable_ms(s.ts_ms))
                         .push_bind(s.value)
                         .push_bind(received_ms);
                 });
