@@ -1,8 +1,19 @@
 //! The messages themselves: agent to gateway, gateway to agent, commands and error codes.
 
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
 
 use crate::types::{Health, Release, Sample, Severity, SystemFacts, Teleoperation, Vitals};
+
+/// Reads an optional field whose `null` means the same as its absence (PROTOCOL.md §2): the
+/// type's default. For fields that are no `Option` (a list, an object, a string, a flag), which
+/// serde's `default` alone fills only when the field is missing.
+fn null_as_default<'de, D, T>(deserializer: D) -> Result<T, D::Error>
+where
+    D: Deserializer<'de>,
+    T: Default + Deserialize<'de>,
+{
+    Ok(Option::<T>::deserialize(deserializer)?.unwrap_or_default())
+}
 
 /// Machine-readable error codes carried by [`ServerMessage::Error`] and by close frames.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq, Hash)]
@@ -86,8 +97,8 @@ pub enum AgentMessage {
         /// names it, and the robot switches back to it from its own disk.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         agent_digest: Option<String>,
-        /// Facts about the computer.
-        #[serde(default)]
+        /// Facts about the computer; `null` like omitted.
+        #[serde(default, deserialize_with = "null_as_default")]
         system: SystemFacts,
         /// Release running now.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -103,7 +114,12 @@ pub enum AgentMessage {
         teleoperation: Option<Teleoperation>,
         /// Optional protocol features this agent implements, e.g.
         /// [`FEATURE_UPDATE_AGENT`](crate::FEATURE_UPDATE_AGENT); unknown names are ignored.
-        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        /// `null` (an empty list as Go encodes it) like omitted.
+        #[serde(
+            default,
+            deserialize_with = "null_as_default",
+            skip_serializing_if = "Vec::is_empty"
+        )]
         features: Vec<String>,
     },
     /// Liveness and current state, every `heartbeat_interval_s`.
@@ -113,8 +129,8 @@ pub enum AgentMessage {
         /// Round-trip time of the previous heartbeat, milliseconds.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         rtt_ms: Option<f64>,
-        /// Readings taken for this heartbeat.
-        #[serde(default)]
+        /// Readings taken for this heartbeat; `null` like omitted.
+        #[serde(default, deserialize_with = "null_as_default")]
         vitals: Vitals,
         /// Release running now.
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -137,8 +153,8 @@ pub enum AgentMessage {
         kind: String,
         /// How much it matters; an unknown one is stored as `unknown`.
         severity: Severity,
-        /// Human-readable text.
-        #[serde(default)]
+        /// Human-readable text; `null` like omitted.
+        #[serde(default, deserialize_with = "null_as_default")]
         message: String,
         /// Free-form details.
         #[serde(default, skip_serializing_if = "serde_json::Value::is_null")]
@@ -163,8 +179,8 @@ pub enum AgentMessage {
         /// Percent done, 0 to 100.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         percent: Option<f64>,
-        /// Human-readable details of this step (e.g. what failed).
-        #[serde(default)]
+        /// Human-readable details of this step (e.g. what failed); `null` like omitted.
+        #[serde(default, deserialize_with = "null_as_default")]
         message: String,
     },
 }
@@ -231,12 +247,155 @@ pub enum ServerMessage {
         code: ErrorCode,
         /// Human-readable text.
         message: String,
-        /// Whether the gateway closes the connection after this frame.
-        #[serde(default)]
+        /// Whether the gateway closes the connection after this frame; `null` like omitted.
+        #[serde(default, deserialize_with = "null_as_default")]
         fatal: bool,
         /// The sequence number of the durable message this refuses, if it was one; the agent
         /// keeps that message and resends it later.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         seq: Option<u64>,
     },
+}
+
+#[cfg(test)]
+mod tests {
+    use serde::de::DeserializeOwned;
+    use serde_json::{Value, json};
+
+    use super::*;
+
+    /// Every optional field named by `paths` (dotted, into nested objects) decodes the same
+    /// whether it is `null` or omitted (PROTOCOL.md §2), and the frame with all of them `null`
+    /// decodes like the one with none of them.
+    fn null_is_omitted<T: DeserializeOwned + PartialEq + std::fmt::Debug>(
+        full: Value,
+        paths: &[&str],
+    ) {
+        let edit = |mut frame: Value, path: &str, null: bool| {
+            let (parent, field) = path.rsplit_once('.').unwrap_or(("", path));
+            let mut object = &mut frame;
+            for part in parent.split('.').filter(|p| !p.is_empty()) {
+                object = &mut object[part];
+            }
+            let object = object.as_object_mut().expect("an object");
+            assert!(object.contains_key(field), "{path} not in the sample");
+            if null {
+                object.insert(field.to_owned(), Value::Null);
+            } else {
+                object.remove(field);
+            }
+            frame
+        };
+        let decode = |frame: &Value| -> T {
+            serde_json::from_value(frame.clone()).unwrap_or_else(|e| panic!("{frame}: {e}"))
+        };
+        for path in paths {
+            let nulled = edit(full.clone(), path, true);
+            let omitted = edit(full.clone(), path, false);
+            assert_eq!(decode(&nulled), decode(&omitted), "{path}");
+        }
+        // Top-level fields at once (a nested path's parent may be among them).
+        let top: Vec<&str> = paths.iter().copied().filter(|p| !p.contains('.')).collect();
+        let (mut nulled, mut omitted) = (full.clone(), full);
+        for path in top {
+            nulled = edit(nulled, path, true);
+            omitted = edit(omitted, path, false);
+        }
+        assert_eq!(decode(&nulled), decode(&omitted), "all at once");
+    }
+
+    fn release() -> Value {
+        json!({"version": "1.1.0", "digest": format!("sha256:{}", "1".repeat(64))})
+    }
+
+    #[test]
+    fn hello_takes_null_like_omitted() {
+        let hello = json!({
+            "type": "hello", "protocol_version": 1, "agent_version": "0.1.0",
+            "agent_digest": format!("sha256:{}", "a".repeat(64)),
+            "system": {"hostname": "kiwi-1", "os": "Debian", "kernel": "6.6", "arch": "aarch64",
+                       "cpus": 4, "memory_bytes": 8},
+            "current_release": release(), "last_acked_seq": 41,
+            "health": {"healthy": false, "message": "no arm", "reason": "SerialDeviceMissing"},
+            "teleoperation": {"active": true, "score": 0.5},
+            "features": ["update_agent"],
+        });
+        null_is_omitted::<AgentMessage>(
+            hello,
+            &[
+                "agent_digest",
+                "system",
+                "system.hostname",
+                "system.os",
+                "system.kernel",
+                "system.arch",
+                "system.cpus",
+                "system.memory_bytes",
+                "current_release",
+                "last_acked_seq",
+                "health",
+                "health.message",
+                "health.reason",
+                "teleoperation",
+                "teleoperation.score",
+                "features",
+            ],
+        );
+    }
+
+    #[test]
+    fn heartbeat_takes_null_like_omitted() {
+        let vitals = json!({
+            "uptime_s": 1, "cpu_percent": 2.0, "memory_percent": 3.0, "load1": 0.5,
+            "disk_percent": 4.0, "temperature_c": 50.0, "battery_percent": 90.0,
+            "host_rss_bytes": 1000, "host_cpu_percent": 1.5,
+        });
+        let heartbeat = json!({
+            "type": "heartbeat", "sent_at_ms": 7, "rtt_ms": 3.2, "vitals": vitals,
+            "current_release": release(), "health": {"healthy": true},
+            "teleoperation": {"active": false},
+        });
+        let mut paths = vec![
+            "rtt_ms".to_owned(),
+            "vitals".into(),
+            "current_release".into(),
+            "health".into(),
+            "teleoperation".into(),
+        ];
+        for field in vitals.as_object().expect("an object").keys() {
+            paths.push(format!("vitals.{field}"));
+        }
+        let paths: Vec<&str> = paths.iter().map(String::as_str).collect();
+        null_is_omitted::<AgentMessage>(heartbeat, &paths);
+    }
+
+    #[test]
+    fn durable_messages_take_null_like_omitted() {
+        let event = json!({
+            "type": "event", "seq": 42, "ts_ms": 1, "kind": "k", "severity": "info",
+            "message": "m", "data": {"a": 1},
+        });
+        null_is_omitted::<AgentMessage>(event, &["message", "data"]);
+        let progress = json!({
+            "type": "progress", "seq": 44, "command_id": "c1", "phase": "downloading",
+            "percent": 35.0, "message": "3 of 8",
+        });
+        null_is_omitted::<AgentMessage>(progress, &["percent", "message"]);
+        // Telemetry has no optional field; its samples none either.
+    }
+
+    #[test]
+    fn gateway_messages_take_null_like_omitted() {
+        let welcome = json!({
+            "type": "welcome", "protocol_version": 1, "robot": "lab/kiwi-1",
+            "heartbeat_interval_s": 30, "max_frame_bytes": 262144,
+            "max_messages_per_second": 20, "stored_seq": 41, "robot_token": "lkr_x",
+        });
+        null_is_omitted::<ServerMessage>(welcome, &["stored_seq", "robot_token"]);
+        let error = json!({
+            "type": "error", "code": "store_unavailable", "message": "m", "fatal": true,
+            "seq": 42,
+        });
+        null_is_omitted::<ServerMessage>(error, &["fatal", "seq"]);
+    }
 }

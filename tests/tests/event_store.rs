@@ -500,56 +500,56 @@ async fn data_survives_reconnects_and_restarts(mut db: Db) -> Result<()> {
     Ok(())
 }
 
-/// A store as the first schema left it, rows included, gets a receive time (the robot's claim
-/// clamped to now) and a size for each row when the gateway opens it.
-async fn migration_keeps_old_rows_with_a_clamped_receive_time(db: Db) -> Result<()> {
+/// Brings `db` to the state the first `migrations` schema versions left, then runs `rows`
+/// (plain SQL, the same text on both backends) in it.
+async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {
     use sqlx::migrate::Migrator;
     use std::borrow::Cow;
 
-    const INSERT: &str = "INSERT INTO events \
-        (namespace, robot, seq, ts_ms, kind, severity, message, data) \
-        VALUES ('fleet-a', 'kiwi-1', $1, $2, 'k', 'info', 'héllo', '{\"a\":1}')";
-    let rows = [(1_i64, 1_000_i64), (2, 4_000_000_000_000)];
-    match &db {
+    let first = |all: Migrator| Migrator {
+        migrations: Cow::Owned(all.migrations[..migrations].to_vec()),
+        ..Migrator::DEFAULT
+    };
+    match db {
         Db::Sqlite(_) => {
-            let url = db.url();
             let options =
-                <sqlx::sqlite::SqliteConnectOptions as std::str::FromStr>::from_str(&url)?
+                <sqlx::sqlite::SqliteConnectOptions as std::str::FromStr>::from_str(&db.url())?
                     .create_if_missing(true);
             let pool = sqlx::SqlitePool::connect_with(options).await?;
-            let all = sqlx::migrate!("../operator/src/gateway/event_store/migrations/sqlite");
-            let first = Migrator {
-                migrations: Cow::Owned(all.migrations[..1].to_vec()),
-                ..Migrator::DEFAULT
-            };
-            first.run(&pool).await?;
-            for (seq, ts) in rows {
-                sqlx::query(INSERT)
-                    .bind(seq)
-                    .bind(ts)
-                    .execute(&pool)
-                    .await?;
+            first(sqlx::migrate!(
+                "../operator/src/gateway/event_store/migrations/sqlite"
+            ))
+            .run(&pool)
+            .await?;
+            for row in rows {
+                sqlx::query(row).execute(&pool).await?;
             }
             pool.close().await;
         }
         Db::Postgres(_) => {
             let pool = sqlx::PgPool::connect(&db.url()).await?;
-            let all = sqlx::migrate!("../operator/src/gateway/event_store/migrations/postgres");
-            let first = Migrator {
-                migrations: Cow::Owned(all.migrations[..1].to_vec()),
-                ..Migrator::DEFAULT
-            };
-            first.run(&pool).await?;
-            for (seq, ts) in rows {
-                sqlx::query(INSERT)
-                    .bind(seq)
-                    .bind(ts)
-                    .execute(&pool)
-                    .await?;
+            first(sqlx::migrate!(
+                "../operator/src/gateway/event_store/migrations/postgres"
+            ))
+            .run(&pool)
+            .await?;
+            for row in rows {
+                sqlx::query(row).execute(&pool).await?;
             }
             pool.close().await;
         }
     }
+    Ok(())
+}
+
+/// A store as the first schema left it, rows included, gets a receive time (the robot's claim
+/// clamped to now) and a size for each row when the gateway opens it.
+async fn migration_keeps_old_rows_with_a_clamped_receive_time(db: Db) -> Result<()> {
+    const INSERT: &str = "INSERT INTO events \
+        (namespace, robot, seq, ts_ms, kind, severity, message, data) \
+        VALUES ('fleet-a', 'kiwi-1', 1, 1000, 'k', 'info', 'héllo', '{\"a\":1}'), \
+        ('fleet-a', 'kiwi-1', 2, 4000000000000, 'k', 'info', 'héllo', '{\"a\":1}')";
+    old_schema(&db, 1, &[INSERT]).await?;
     let store = db.store().await?;
     let r = robot("kiwi-1");
     // The robot's claims are untouched.
@@ -578,6 +578,195 @@ async fn migration_keeps_old_rows_with_a_clamped_receive_time(db: Db) -> Result<
     let room = db.store().await?.with_quota(quota(size + 19));
     ensure!(room.insert_event(&r, &new).await?, "room left");
     assert_eq!(store.prune(now + 60_000).await?.events, 2);
+    Ok(())
+}
+
+/// A store the second schema left, with a seq stored both as an event and as telemetry (as
+/// gateways did before one seq space), keeps every record when the gateway opens it; from then
+/// on a seq stored under any kind is a replay for every kind.
+async fn migration_claims_the_seqs_stored_before(db: Db) -> Result<()> {
+    old_schema(
+        &db,
+        2,
+        &[
+            "INSERT INTO events \
+             (namespace, robot, seq, ts_ms, kind, severity, message, data, received_ms, bytes) \
+             VALUES ('fleet-a', 'kiwi-1', 5, 1000, 'k', 'info', 'm', '{}', 1000, 8), \
+             ('fleet-a', 'kiwi-1', 6, 1000, 'k', 'info', 'm', '{}', 1000, 8)",
+            "INSERT INTO telemetry_batches (namespace, robot, seq, max_ts_ms, received_ms, bytes) \
+             VALUES ('fleet-a', 'kiwi-1', 5, 1000, 2000, 27), ('fleet-a', 'kiwi-1', 7, 1000, 2000, 27)",
+            "INSERT INTO samples (namespace, robot, seq, metric, ts_ms, value, received_ms) \
+             VALUES ('fleet-a', 'kiwi-1', 5, 'cpu_percent', 1000, 1.0, 2000), \
+             ('fleet-a', 'kiwi-1', 7, 'cpu_percent', 1000, 2.0, 2000)",
+        ],
+    )
+    .await?;
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    let seqs = |evs: Vec<StoredEvent>| evs.iter().map(|e| e.seq).collect::<Vec<_>>();
+    assert_eq!(seqs(store.events(&r, None, 10).await?), [5, 6]);
+    assert_eq!(store.samples(&r, None, 0, 10).await?.len(), 2);
+    let cpu = [sample("cpu_percent", 1_000, 3.0)];
+    for seq in [5, 6, 7] {
+        ensure!(
+            !store.insert_event(&r, &event(seq, 1_000)).await?,
+            "event {seq} stored again"
+        );
+        ensure!(
+            !store.insert_telemetry(&r, seq, &cpu).await?,
+            "telemetry {seq} stored again"
+        );
+    }
+    ensure!(store.insert_event(&r, &event(8, 1_000)).await?);
+    assert_eq!(store.last_seq(&r).await?, Some(8));
+    // The seq stored twice counts until its later record goes.
+    store.prune(1_500).await?;
+    ensure!(!store.insert_event(&r, &event(5, 1_000)).await?);
+    store.prune(2_500).await?;
+    ensure!(store.insert_event(&r, &event(5, 1_000)).await?);
+    Ok(())
+}
+
+/// Times beyond what RFC 3339 writes (a robot sending 2^63-1 or -2^63) are stored as the nearest
+/// bound, by new inserts and, for rows stored before, by the migration; events are listed by
+/// when the gateway received them, so each of these is in the last hour's range, and samples
+/// are in the widest range a query can name.
+async fn extreme_times_are_clamped_into_reach(db: Db) -> Result<()> {
+    use lekiwi_operator::gateway::event_store::{MAX_TIME_MS, MIN_TIME_MS, TimeRange};
+
+    let now = jiff::Timestamp::now().as_millisecond();
+    old_schema(
+        &db,
+        3,
+        &[&format!(
+            "INSERT INTO events \
+             (namespace, robot, seq, ts_ms, kind, severity, message, data, received_ms, bytes) \
+             VALUES ('fleet-a', 'kiwi-1', 1, {}, 'k', 'info', 'm', '{{}}', {now}, 8), \
+             ('fleet-a', 'kiwi-1', 2, {}, 'k', 'info', 'm', '{{}}', {now}, 8)",
+            i64::MAX,
+            i64::MIN
+        )],
+    )
+    .await?;
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    for (seq, ts) in [(3, i64::MAX), (4, i64::MIN), (5, now - 365 * 86_400_000)] {
+        ensure!(store.insert_event(&r, &event(seq, ts)).await?);
+    }
+    let samples = [
+        sample("cpu_percent", i64::MIN, 1.0),
+        sample("cpu_percent", i64::MAX, 2.0),
+    ];
+    ensure!(store.insert_telemetry(&r, 6, &samples).await?);
+    let last_hour = TimeRange {
+        since_ms: now - 3_600_000,
+        until_ms: i64::MAX,
+    };
+    let listed: Vec<(u64, i64)> = store
+        .events_in_range(&r, None, last_hour, 100)
+        .await?
+        .iter()
+        .map(|e| (e.seq, e.ts_ms))
+        .collect();
+    assert_eq!(
+        listed,
+        [
+            (1, MAX_TIME_MS),
+            (2, MIN_TIME_MS),
+            (3, MAX_TIME_MS),
+            (4, MIN_TIME_MS),
+            (5, now - 365 * 86_400_000)
+        ]
+    );
+    let widest = TimeRange {
+        since_ms: MIN_TIME_MS,
+        until_ms: i64::MAX,
+    };
+    let taken: Vec<i64> = store
+        .samples_in_range(&r, None, widest, None, 10)
+        .await?
+        .iter()
+        .map(|s| s.sample.ts_ms)
+        .collect();
+    assert_eq!(taken, [MIN_TIME_MS, MAX_TIME_MS]);
+    Ok(())
+}
+
+/// One sequence per robot (PROTOCOL.md §6 rule 1): a seq stored as an event is a replay for
+/// telemetry and the reverse, also when an event and a telemetry batch of one seq arrive at the
+/// same moment (two sessions of the robot): one is stored, the other is told "already stored".
+/// Another robot's seqs are its own.
+async fn one_seq_space_for_every_kind(db: Db) -> Result<()> {
+    const SEQS: u64 = 40;
+    let store = db.store().await?;
+    let r = robot("kiwi-1");
+    let cpu = [sample("cpu_percent", 1_000, 1.0)];
+    ensure!(store.insert_event(&r, &event(1, 1_000)).await?);
+    ensure!(
+        !store.insert_telemetry(&r, 1, &cpu).await?,
+        "telemetry stored under an event's seq"
+    );
+    ensure!(store.insert_telemetry(&r, 2, &cpu).await?);
+    ensure!(
+        !store.insert_event(&r, &event(2, 1_000)).await?,
+        "an event stored under a telemetry batch's seq"
+    );
+    ensure!(store.insert_telemetry(&robot("kiwi-2"), 1, &cpu).await?);
+
+    let barrier = Arc::new(Barrier::new(2 * SEQS as usize));
+    let mut tasks = tokio::task::JoinSet::new();
+    for seq in 3..3 + SEQS {
+        for telemetry in [false, true] {
+            let (store, r, barrier) = (store.clone(), r.clone(), barrier.clone());
+            tasks.spawn(async move {
+                barrier.wait().await;
+                let stored = if telemetry {
+                    let samples = [sample("cpu_percent", 1_000, seq as f64)];
+                    store.insert_telemetry(&r, seq, &samples).await?
+                } else {
+                    store.insert_event(&r, &event(seq, 1_000)).await?
+                };
+                anyhow::Ok((seq, telemetry, stored))
+            });
+        }
+    }
+    let (mut events, mut batches) = (vec![1], vec![2]);
+    while let Some(joined) = tasks.join_next().await {
+        match joined?? {
+            (seq, false, true) => events.push(seq),
+            (seq, true, true) => batches.push(seq),
+            _ => {}
+        }
+    }
+    events.sort_unstable();
+    batches.sort_unstable();
+    let mut all: Vec<u64> = events.iter().chain(&batches).copied().collect();
+    all.sort_unstable();
+    assert_eq!(
+        all,
+        (1..3 + SEQS).collect::<Vec<_>>(),
+        "each seq stored once"
+    );
+    let stored: Vec<u64> = store
+        .events(&r, None, 1_000)
+        .await?
+        .iter()
+        .map(|e| e.seq)
+        .collect();
+    assert_eq!(stored, events);
+    let mut sampled: Vec<u64> = store
+        .samples(&r, None, 0, 1_000)
+        .await?
+        .iter()
+        .map(|s| s.seq)
+        .collect();
+    sampled.sort_unstable();
+    assert_eq!(sampled, batches);
+    println!(
+        "{} seqs stored as events, {} as telemetry",
+        events.len(),
+        batches.len()
+    );
     Ok(())
 }
 
@@ -748,6 +937,9 @@ on_both_backends!(
     prune_deletes_old_records_only,
     quota_is_kept_per_robot,
     migration_keeps_old_rows_with_a_clamped_receive_time,
+    migration_claims_the_seqs_stored_before,
+    one_seq_space_for_every_kind,
+    extreme_times_are_clamped_into_reach,
     concurrent_inserts_store_one_row,
     many_sessions_insert_in_batches,
     many_sessions_close_in_batches,

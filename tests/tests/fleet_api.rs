@@ -11,16 +11,23 @@
 use std::collections::BTreeSet;
 
 use anyhow::{Context as _, Result, ensure};
+use futures::SinkExt;
 use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
 use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::{Robot, RobotDeployment};
-use lekiwi_operator::gateway::event_store::{Sample, Store, StoredEvent};
+use lekiwi_operator::gateway::event_store::{MAX_TIME_MS, MIN_TIME_MS, Sample, Store, StoredEvent};
+use lekiwi_protocol::{AgentMessage, ServerMessage, Severity, encode};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
-    ControlPlane, OperatorProcess, account, chart_roles, create_robot, http_request, namespace,
+    ControlPlane, OperatorProcess, account, chart_roles, connect_agent, create_robot,
+    enrollment_token, http_request, namespace, recv, wait_for,
 };
 use serde_json::{Value, json};
+use tokio_tungstenite::tungstenite::Message;
+
+/// How long a listing may take to show what was just stored.
+const WAIT: std::time::Duration = std::time::Duration::from_secs(10);
 
 const DIGEST_A: &str = "sha256:aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaa";
 
@@ -253,7 +260,8 @@ async fn history(op: &OperatorProcess, store: &Store, ns: &str, viewer: &str) ->
             message: format!("event {seq}"),
             data: json!({"n": seq}),
         };
-        store.insert_event(&robot, &ev).await?;
+        // Received when it happened: event ranges go by the gateway's receive time.
+        store.insert_event_at(&robot, &ev, ts).await?;
     }
     let sample = |metric: &str, ts_ms, value| Sample {
         metric: metric.into(),
@@ -558,6 +566,82 @@ async fn history_reads_come_from_postgresql_too() -> Result<()> {
     let store = Store::connect(&url).await?;
     ensure!(store.backend() == "postgres");
     history(&op, &store, &ns, &viewer).await?;
+    for role in [&viewer_role, &user_role] {
+        Api::<ClusterRole>::all(client.clone())
+            .delete(role, &DeleteParams::default())
+            .await?;
+    }
+    Ok(())
+}
+
+/// A robot whose clock is off (by ten minutes, by a year), or that sends times no clock shows
+/// (2^63-1, -2^63), has the events it just sent in the default listing (the last hour by the
+/// gateway's clock), each with the time it sent (the extremes clamped to what RFC 3339 writes).
+#[tokio::test]
+async fn fresh_events_are_listed_whatever_the_robots_clock() -> Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "fleetapiclock").await?;
+    let [viewer_role, user_role] = chart_roles(cp, &client, &ns).await?;
+    let viewer = account(cp, &client, &ns, "viewer", Some(&viewer_role)).await?;
+    let args = ["--role", "gateway"];
+    let op = lekiwi_tests::gateway_operator(cp, &ns, "fleetapiclock", &args).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let (mut ws, _) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-clock")).await?;
+    let now = jiff::Timestamp::now().as_millisecond();
+    let (minutes, year) = (60_000, 365 * 86_400_000);
+    let claims = [
+        now + 10 * minutes,
+        now - 10 * minutes,
+        now + year,
+        now - year,
+        i64::MAX,
+        i64::MIN,
+    ];
+    for (seq, ts_ms) in (1..).zip(claims) {
+        let event = AgentMessage::Event {
+            seq,
+            ts_ms,
+            kind: "note".into(),
+            severity: Severity::Info,
+            message: format!("sent at {ts_ms}"),
+            data: Value::Null,
+        };
+        ws.send(Message::text(encode(&event))).await?;
+        ensure!(
+            recv(&mut ws).await == Some(ServerMessage::Ack { seq }),
+            "event {seq} acked"
+        );
+    }
+    drop(ws);
+    let stored = [
+        claims[0],
+        claims[1],
+        claims[2],
+        claims[3],
+        MAX_TIME_MS,
+        MIN_TIME_MS,
+    ];
+    let want: Vec<(u64, i64)> = (1..).zip(stored).collect();
+    let path = format!("/api/v1/namespaces/{ns}/robots/kiwi-clock/events");
+    let listing = wait_for("every event in the default listing", WAIT, || async {
+        let (code, _, body) = call(&op, "GET", &path, Some(&viewer)).await.ok()?;
+        let listed: Vec<(u64, i64)> = body["items"]
+            .as_array()?
+            .iter()
+            .filter_map(|e| Some((e["seq"].as_u64()?, e["ts_ms"].as_i64()?)))
+            .collect();
+        (code == 200 && listed == want).then_some(body)
+    })
+    .await;
+    let listed = match listing {
+        Ok(body) => body,
+        Err(e) => {
+            let (code, _, body) = call(&op, "GET", &path, Some(&viewer)).await?;
+            anyhow::bail!("{e}; the listing answers {code} {body}")
+        }
+    };
+    ensure!(listed["continue"].is_null(), "{listed}");
     for role in [&viewer_role, &user_role] {
         Api::<ClusterRole>::all(client.clone())
             .delete(role, &DeleteParams::default())

@@ -351,6 +351,32 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
     )
     .await;
     assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq: 4 }));
+    // One sequence for all three kinds: a seq stored as one kind, sent again as another, is a
+    // replay (acked, not stored).
+    let samples = |seq| AgentMessage::Telemetry {
+        seq,
+        samples: vec![lekiwi_protocol::Sample {
+            metric: "temperature_c".into(),
+            ts_ms: 2,
+            value: 50.0,
+        }],
+    };
+    let progress = |seq| AgentMessage::Progress {
+        seq,
+        command_id: "c1".into(),
+        phase: "downloading".into(),
+        percent: None,
+        message: String::new(),
+    };
+    for (seq, msg) in [
+        (2, samples(2)),
+        (4, event(4)),
+        (4, progress(4)),
+        (3, progress(3)),
+    ] {
+        send(&mut ws, &msg).await;
+        assert_eq!(recv(&mut ws).await, Some(ServerMessage::Ack { seq }));
+    }
     drop(ws);
 
     let store = op.event_store().await?;
@@ -362,6 +388,19 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
         "each seq stored exactly once"
     );
     assert_eq!(events[0].data["port"], 5555);
+    assert_eq!(
+        (events[2].kind.as_str(), events[2].message.as_str()),
+        ("teleoperation_started", "event 3"),
+        "the first copy of seq 3 kept"
+    );
+    let samples = store.samples(&key, None, 0, 100).await?;
+    assert_eq!(
+        samples
+            .iter()
+            .map(|s| (s.seq, s.metric.as_str()))
+            .collect::<Vec<_>>(),
+        [(4, "cpu_percent")]
+    );
     assert_eq!(store.last_seq(&key).await?, Some(4));
 
     // A reconnecting agent learns what is stored already.

@@ -1,7 +1,8 @@
 //! Hostile and odd protocol input against a real operator process (issue 12, points 7, 10 and
-//! 13): bounded sequence numbers, short error frames, a future version's `hello`, what the
-//! document says about whitespace, severities and out-of-range numbers, and a real agent that
-//! keeps working after someone forged a huge `seq` for its robot.
+//! 13; issue 40, points 2 and 3): bounded sequence numbers, short error frames, a future
+//! version's `hello`, what the document says about whitespace, `null`, severities and
+//! out-of-range numbers, an agent's Close frame, and a real agent that keeps working after
+//! someone forged a huge `seq` for its robot.
 
 use std::time::Duration;
 
@@ -13,8 +14,10 @@ use lekiwi_tests::{
     gateway_operator, gateway_url, namespace, recv, wait_for,
 };
 use serde_json::json;
-use tokio_tungstenite::tungstenite::Message;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
+use tokio_tungstenite::tungstenite::protocol::CloseFrame;
+use tokio_tungstenite::tungstenite::protocol::frame::coding::CloseCode;
+use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 
 const TIMEOUT: Duration = Duration::from_secs(10);
 
@@ -136,6 +139,138 @@ async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::R
     Ok(())
 }
 
+/// A WebSocket upgraded by the gateway for `robot` with `token`, before any frame.
+async fn upgrade(
+    op: &lekiwi_tests::OperatorProcess,
+    token: &str,
+    robot: &str,
+) -> anyhow::Result<Socket> {
+    let mut request = gateway_url(op).into_client_request()?;
+    let headers = request.headers_mut();
+    headers.insert("authorization", format!("Bearer {token}").parse()?);
+    // With its namespace: a token created a moment ago is then looked up if the gateway's
+    // watch has not delivered it yet (a bare name is only matched against the watch).
+    headers.insert("x-lekiwi-robot", robot.parse()?);
+    Ok(tokio_tungstenite::connect_async(request).await?.0)
+}
+
+/// An agent that writes every optional field it has no value for as `null` (as Go writes a nil
+/// slice or pointer) enrolls and is served exactly like one that omits them (PROTOCOL.md §2).
+#[tokio::test]
+async fn null_optional_fields_count_as_omitted() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hpnull").await?;
+    let op = gateway_operator(cp, &ns, "hp-null", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let mut ws = upgrade(&op, &enroll, &format!("{ns}/kiwi-go")).await?;
+    let hello = json!({
+        "type": "hello", "protocol_version": 1, "agent_version": "0.1.0-go",
+        "agent_digest": null, "system": null, "current_release": null, "last_acked_seq": null,
+        "health": null, "teleoperation": null, "features": null,
+    });
+    match ask(&mut ws, hello.to_string()).await {
+        ServerMessage::Welcome { robot, .. } => assert_eq!(robot, format!("{ns}/kiwi-go")),
+        other => panic!("expected welcome, got {other:?}"),
+    }
+    let heartbeat = json!({
+        "type": "heartbeat", "sent_at_ms": 9, "rtt_ms": null, "vitals": null,
+        "current_release": null, "health": {"healthy": true, "message": null, "reason": null},
+        "teleoperation": {"active": false, "score": null},
+    });
+    let answer = ask(&mut ws, heartbeat.to_string()).await;
+    assert!(
+        matches!(answer, ServerMessage::HeartbeatAck { sent_at_ms: 9, .. }),
+        "{answer:?}"
+    );
+    let event = json!({
+        "type": "event", "seq": 1, "ts_ms": 1_763_800_000_000_i64, "kind": "note",
+        "severity": "info", "message": null, "data": null,
+    });
+    assert_eq!(
+        ask(&mut ws, event.to_string()).await,
+        ServerMessage::Ack { seq: 1 }
+    );
+    let progress = json!({
+        "type": "progress", "seq": 2, "command_id": "c1", "phase": "downloading",
+        "percent": null, "message": null,
+    });
+    assert_eq!(
+        ask(&mut ws, progress.to_string()).await,
+        ServerMessage::Ack { seq: 2 }
+    );
+    // A required field is another matter: `null` is a wrong type.
+    let no_seq = json!({"type": "event", "seq": null, "ts_ms": 1, "kind": "k", "severity": "info"});
+    assert_refused(
+        &ask(&mut ws, no_seq.to_string()).await,
+        ErrorCode::UnknownMessage,
+        None,
+    );
+    drop(ws);
+    let store = op.event_store().await?;
+    let key = lekiwi_operator::gateway::event_store::RobotKey::new(ns.clone(), "kiwi-go");
+    let stored = store.events(&key, None, 10).await?;
+    assert_eq!(stored.len(), 2, "{stored:?}");
+    assert_eq!(
+        (stored[0].message.as_str(), &stored[0].data),
+        ("", &serde_json::Value::Null)
+    );
+    Ok(())
+}
+
+/// The gateway's answer to our Close frame: its Close, then the end of the stream. Without the
+/// answer the client reads a reset (`ResetWithoutClosingHandshake`, which agents see as 1006).
+async fn close_answer(ws: &mut Socket, code: CloseCode, reason: &str) -> Option<CloseFrame> {
+    let ours = CloseFrame {
+        code,
+        reason: reason.into(),
+    };
+    ws.close(Some(ours)).await.expect("our Close frame sent");
+    let answer = match tokio::time::timeout(TIMEOUT, ws.next()).await {
+        Ok(Some(Ok(Message::Close(frame)))) => frame,
+        other => panic!("expected the gateway's Close frame, got {other:?}"),
+    };
+    match tokio::time::timeout(TIMEOUT, ws.next()).await {
+        Ok(None | Some(Err(WsError::ConnectionClosed))) => {}
+        other => panic!("expected the end of the stream, got {other:?}"),
+    }
+    answer
+}
+
+/// An agent that closes its session cleanly, during the handshake or after it, gets the
+/// gateway's Close frame echoing its code (RFC 6455 §5.5.1) before the connection ends; the
+/// robot is disconnected as after any close.
+#[tokio::test]
+async fn an_agents_close_frame_is_answered_with_a_close_frame() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "hpclose").await?;
+    let op = gateway_operator(cp, &ns, "hp-close", &[]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let robot = format!("{ns}/kiwi-c");
+    let (mut ws, welcome) = connect_agent(&op, &enroll, &robot).await?;
+    let answer = close_answer(&mut ws, CloseCode::Normal, "agent stopping").await;
+    let answer = answer.expect("a close code");
+    assert_eq!(
+        (answer.code, answer.reason.as_str()),
+        (CloseCode::Normal, "agent stopping")
+    );
+    let token = welcome.robot_token.expect("a robot token");
+    let (mut ws, _) = connect_agent(&op, &token, &robot).await?;
+    let answer = close_answer(&mut ws, CloseCode::Away, "").await;
+    assert_eq!(answer.map(|f| f.code), Some(CloseCode::Away));
+    // Before its hello, too.
+    let mut ws = upgrade(&op, &token, &robot).await?;
+    let answer = close_answer(&mut ws, CloseCode::Away, "restarting").await;
+    assert_eq!(answer.map(|f| f.code), Some(CloseCode::Away));
+    let closed = r#"lekiwi_gateway_sessions_ended_total{kind="closed"}"#;
+    wait_for("both sessions counted as closed", TIMEOUT, || async {
+        (op.metric(closed).await == Some(2.0)).then_some(())
+    })
+    .await?;
+    Ok(())
+}
+
 #[tokio::test]
 async fn a_future_hello_with_other_field_types_gets_unsupported_version() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
@@ -143,13 +278,7 @@ async fn a_future_hello_with_other_field_types_gets_unsupported_version() -> any
     let ns = namespace(&client, "hpver").await?;
     let op = gateway_operator(cp, &ns, "hp-ver", &[]).await?;
     let enroll = enrollment_token(&client, &ns).await?;
-    let mut request = gateway_url(&op).into_client_request()?;
-    let headers = request.headers_mut();
-    headers.insert("authorization", format!("Bearer {enroll}").parse()?);
-    // With its namespace: a token created a moment ago is then looked up if the gateway's
-    // watch has not delivered it yet (a bare name is only matched against the watch).
-    headers.insert("x-lekiwi-robot", format!("{ns}/kiwi-v2").parse()?);
-    let (mut ws, _) = tokio_tungstenite::connect_async(request).await?;
+    let mut ws = upgrade(&op, &enroll, &format!("{ns}/kiwi-v2")).await?;
     let v2 = json!({
         "type": "hello", "protocol_version": 2, "agent_version": "2.0.0",
         "system": "a v2 string", "current_release": ["v2", "list"]

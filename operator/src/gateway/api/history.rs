@@ -82,8 +82,8 @@ async fn allowed_robot(
     Ok(RobotKey::new(namespace, name))
 }
 
-/// `GET .../robots/{name}/events?since=&until=&limit=&continue=`: events in ascending sequence
-/// order.
+/// `GET .../robots/{name}/events?since=&until=&limit=&continue=`: events the gateway received
+/// within the range (its clock, whatever the robot's said), in ascending sequence order.
 pub async fn events(
     State(state): State<AppState>,
     Path(path): Path<(String, String)>,

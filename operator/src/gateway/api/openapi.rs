@@ -149,7 +149,7 @@ fn history_params(metric: bool) -> Vec<Value> {
         param(
             "since",
             "query",
-            "Start of the range, RFC 3339, included (default: one hour before `until`, or before now).",
+            "Start of the range, RFC 3339, included (default: one hour before `until`, or before now). Events are selected by when the gateway received them, samples by their `ts_ms`.",
             json!({"type": "string", "format": "date-time"}),
         ),
         param(

@@ -1,10 +1,11 @@
 //! Batched event inserts: events the sessions hand in while the database is busy are written
-//! together, one multi-row `INSERT ... ON CONFLICT (namespace, robot, seq) DO NOTHING RETURNING`
-//! per flush (SQLite and PostgreSQL alike), instead of one statement and one pooled connection
-//! each. A session still waits for its own event: it learns "stored" or "already stored" only
-//! once the statement has committed, so an ack still means durable, and `(robot, seq)` is
-//! still stored once. A batch the database refuses is retried row by row, so one bad row fails
-//! only its own insert.
+//! together, one transaction of two multi-row `INSERT ... ON CONFLICT (namespace, robot, seq)
+//! DO NOTHING RETURNING` per flush (the seqs' claims, then the events that got theirs; SQLite
+//! and PostgreSQL alike), instead of statements and a pooled connection for each. A session
+//! still waits for its own event: it learns "stored" or "already stored" only once the
+//! transaction has committed, so an ack still means durable, and `(robot, seq)` is still stored
+//! once. A batch the database refuses is retried row by row, so one bad row fails only its own
+//! insert.
 
 use std::collections::HashSet;
 use std::sync::Arc;
@@ -14,13 +15,17 @@ use sqlx::QueryBuilder;
 use sqlx::types::Json;
 use tokio::sync::{Mutex, mpsc, oneshot};
 
-use super::{Error, Result, RobotKey, Store, StoredEvent};
+use super::{Error, Result, RobotKey, Store, StoredEvent, storable_ms};
 
+const CLAIM_SEQS: &str = "INSERT INTO seqs (namespace, robot, seq, received_ms) ";
 const INSERT_EVENTS: &str = "INSERT INTO events \
      (namespace, robot, seq, ts_ms, kind, severity, message, data, received_ms, bytes) ";
-/// Rows already stored are skipped; those stored now are returned.
+/// Rows already there are skipped; those written now are returned.
 const RETURN_STORED: &str =
     " ON CONFLICT (namespace, robot, seq) DO NOTHING RETURNING namespace, robot, seq";
+
+/// A stored row's `(namespace, robot, seq)`.
+type RowKey = (String, String, i64);
 
 /// Rows per statement: ten parameters each keeps it under SQLite's 32,766 parameters.
 const EVENTS_PER_STATEMENT: usize = 500;
@@ -145,17 +150,16 @@ impl Store {
     /// second of two equal `(robot, seq)` in one batch is a replay); row by row if it fails.
     async fn flush(&self, batch: Vec<Pending>) {
         let mut seen = HashSet::new();
-        let (first, repeats): (Vec<Pending>, Vec<Pending>) = batch
+        let (mut first, repeats): (Vec<Pending>, Vec<Pending>) = batch
             .into_iter()
             .partition(|p| seen.insert((p.robot.clone(), p.seq)));
+        // Every flusher claims seqs in the same order: two claiming some of the same (each
+        // waits for the other's transaction) wait in a line, never in a circle (a deadlock).
+        first.sort_unstable_by(|a, b| (&a.robot, a.seq).cmp(&(&b.robot, b.seq)));
         match self.insert_event_rows(&first).await {
             Ok(inserted) => {
                 for p in first {
-                    let new = inserted.contains(&(
-                        p.robot.namespace.clone(),
-                        p.robot.name.clone(),
-                        p.seq,
-                    ));
+                    let new = inserted.contains(&row_key(&p));
                     let _ = p.reply.send(Ok(new));
                 }
             }
@@ -174,19 +178,38 @@ impl Store {
         }
     }
 
-    /// One multi-row insert of `rows`; the `(namespace, robot, seq)` it stored (not those
-    /// already there).
-    async fn insert_event_rows(&self, rows: &[Pending]) -> Result<HashSet<(String, String, i64)>> {
+    /// Multi-row inserts of `rows`, a statement's worth at a time: their seqs' claims, then the
+    /// events whose seq no message of any kind held yet, in one transaction. The
+    /// `(namespace, robot, seq)` it stored (not those already there).
+    async fn insert_event_rows(&self, rows: &[Pending]) -> Result<HashSet<RowKey>> {
         let mut stored = HashSet::new();
         for chunk in rows.chunks(EVENTS_PER_STATEMENT) {
             // Built per backend: a query builder is typed by its database.
-            let new: Vec<(String, String, i64)> = with_pool!(self, pool => {
-                let mut insert = QueryBuilder::new(INSERT_EVENTS);
-                insert.push_values(chunk, |mut row, p| {
+            let new: Vec<RowKey> = with_pool!(self, pool, begin => async {
+                let mut tx = pool.begin_with(begin).await?;
+                let mut claim = QueryBuilder::new(CLAIM_SEQS);
+                claim.push_values(chunk, |mut row, p| {
                     row.push_bind(&p.robot.namespace)
                         .push_bind(&p.robot.name)
                         .push_bind(p.seq)
-                        .push_bind(p.event.ts_ms)
+                        .push_bind(p.received_ms);
+                });
+                claim.push(RETURN_STORED);
+                let claimed: HashSet<RowKey> =
+                    claim.build_query_as().fetch_all(&mut *tx).await?.into_iter().collect();
+                let fresh: Vec<&Pending> = chunk
+                    .iter()
+                    .filter(|p| claimed.contains(&row_key(p)))
+                    .collect();
+                if fresh.is_empty() {
+                    return Ok(Vec::new());
+                }
+                let mut insert = QueryBuilder::new(INSERT_EVENTS);
+                insert.push_values(fresh, |mut row, p| {
+                    row.push_bind(&p.robot.namespace)
+                        .push_bind(&p.robot.name)
+                        .push_bind(p.seq)
+                        .push_bind(storable_ms(p.event.ts_ms))
                         .push_bind(&p.event.kind)
                         .push_bind(&p.event.severity)
                         .push_bind(&p.event.message)
@@ -195,8 +218,11 @@ impl Store {
                         .push_bind(i64::try_from(p.bytes).unwrap_or(i64::MAX));
                 });
                 insert.push(RETURN_STORED);
-                insert.build_query_as().fetch_all(pool).await
-            })
+                let new = insert.build_query_as().fetch_all(&mut *tx).await?;
+                tx.commit().await?;
+                Ok::<_, sqlx::Error>(new)
+            }
+            .await)
             .map_err(|source| Error::Insert {
                 what: "events",
                 robot: format!("{} robots", rows.len()),
@@ -206,6 +232,10 @@ impl Store {
         }
         Ok(stored)
     }
+}
+
+fn row_key(p: &Pending) -> RowKey {
+    (p.robot.namespace.clone(), p.robot.name.clone(), p.seq)
 }
 
 /// Takes whatever events wait (at least one, at most a statement's worth) and flushes them,

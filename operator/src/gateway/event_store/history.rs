@@ -1,5 +1,6 @@
-//! Paged reads of a robot's history for the Fleet API: events by sequence number and telemetry
-//! samples by time, each within a time range, resumed from a cursor the previous page ended on.
+//! Paged reads of a robot's history for the Fleet API: events by sequence number within a range
+//! of times the gateway received them, telemetry samples by the time they were taken within a
+//! range of those, resumed from a cursor the previous page ended on.
 
 use sqlx::FromRow;
 
@@ -51,8 +52,10 @@ struct SampleRow {
     value: f64,
 }
 
+// By receive time, the gateway's clock: a robot whose clock is wrong (or sends extreme times)
+// still has its fresh events in "the last hour".
 const EVENTS_IN_RANGE: &str = "SELECT seq, ts_ms, kind, severity, message, data FROM events \
-     WHERE namespace = $1 AND robot = $2 AND seq > $3 AND ts_ms >= $4 AND ts_ms < $5 \
+     WHERE namespace = $1 AND robot = $2 AND seq > $3 AND received_ms >= $4 AND received_ms < $5 \
      ORDER BY seq LIMIT $6";
 // `$7` is the metric or NULL for all: one statement for both, the same text in each backend.
 const SAMPLES_IN_RANGE: &str = "SELECT id, seq, metric, ts_ms, value FROM samples \
@@ -61,8 +64,8 @@ const SAMPLES_IN_RANGE: &str = "SELECT id, seq, metric, ts_ms, value FROM sample
      ORDER BY ts_ms, id LIMIT $8";
 
 impl Store {
-    /// Up to `limit` events with seq above `after_seq` (all if `None`) taken within `range`,
-    /// in ascending seq.
+    /// Up to `limit` events with seq above `after_seq` (all if `None`) that the gateway received
+    /// within `range` (its clock, not the robot's `ts_ms`), in ascending seq.
     pub async fn events_in_range(
         &self,
         robot: &RobotKey,
@@ -153,7 +156,7 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gateway::event_store::Sample;
+    use crate::gateway::event_store::{MAX_TIME_MS, MIN_TIME_MS, Sample};
 
     fn event(seq: u64, ts_ms: i64) -> StoredEvent {
         StoredEvent {
@@ -172,9 +175,12 @@ mod tests {
         let url = format!("sqlite://{}", dir.path().join("h.db").display());
         let store = Store::connect(&url).await.unwrap();
         let r = RobotKey::new("ns", "kiwi");
-        for seq in 1..=6 {
+        // Events go by when the gateway received them, whatever the robot's clock said:
+        // here a clock running backwards, and the extremes an `i64` holds.
+        let claims = [-100, 900, i64::MAX, i64::MIN, 5, 0];
+        for (seq, ts_ms) in (1..=6).zip(claims) {
             store
-                .insert_event(&r, &event(seq, seq as i64 * 100))
+                .insert_event_at(&r, &event(seq, ts_ms), seq as i64 * 100)
                 .await
                 .unwrap();
         }
@@ -186,6 +192,9 @@ mod tests {
         assert_eq!(first.iter().map(|e| e.seq).collect::<Vec<_>>(), [2, 3]);
         let rest = store.events_in_range(&r, Some(3), range, 9).await.unwrap();
         assert_eq!(rest.iter().map(|e| e.seq).collect::<Vec<_>>(), [4, 5]);
+        // The extremes are kept as the nearest times RFC 3339 can write.
+        let times: Vec<i64> = first.iter().chain(&rest).map(|e| e.ts_ms).collect();
+        assert_eq!(times, [900, MAX_TIME_MS, MIN_TIME_MS, 5]);
 
         let at = |metric: &str, ts_ms| Sample {
             metric: metric.into(),
@@ -219,5 +228,40 @@ mod tests {
             .await
             .unwrap();
         assert_eq!(cpu.len(), 2);
+    }
+
+    #[tokio::test]
+    async fn extreme_sample_times_are_kept_within_reach_of_a_range() {
+        let store = Store::connect("sqlite::memory:").await.unwrap();
+        let r = RobotKey::new("ns", "kiwi");
+        let at = |ts_ms| Sample {
+            metric: "cpu".into(),
+            ts_ms,
+            value: 1.0,
+        };
+        store
+            .insert_telemetry(&r, 1, &[at(i64::MIN), at(i64::MAX)])
+            .await
+            .unwrap();
+        // The widest range the Fleet API asks for: the first RFC 3339 time, no end.
+        let range = TimeRange {
+            since_ms: jiff::Timestamp::MIN.as_millisecond(),
+            until_ms: i64::MAX,
+        };
+        let all = store
+            .samples_in_range(&r, None, range, None, 9)
+            .await
+            .unwrap();
+        let ts: Vec<_> = all.iter().map(|s| s.sample.ts_ms).collect();
+        assert_eq!(ts, [MIN_TIME_MS, MAX_TIME_MS]);
+    }
+
+    #[test]
+    fn the_time_bounds_are_those_rfc_3339_writes() {
+        let text = |ms| jiff::Timestamp::from_millisecond(ms).map(|t| t.to_string());
+        assert_eq!(text(MIN_TIME_MS).unwrap(), "-009999-01-02T01:59:59Z");
+        assert_eq!(text(MAX_TIME_MS).unwrap(), "9999-12-30T22:00:00Z");
+        assert!(text(MIN_TIME_MS - 1).is_err() && text(MAX_TIME_MS + 1).is_err());
+        assert!(MAX_TIME_MS.unsigned_abs().max(MIN_TIME_MS.unsigned_abs()) < 1 << 53);
     }
 }

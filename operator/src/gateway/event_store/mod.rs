@@ -179,6 +179,21 @@ impl Store {
     }
 }
 
+/// The earliest time the store keeps, Unix milliseconds: `-009999-01-02T01:59:59Z`, the first
+/// that RFC 3339 (and [`jiff::Timestamp`]) can write.
+pub const MIN_TIME_MS: i64 = -377_705_023_201_000;
+/// The latest time the store keeps, Unix milliseconds: `9999-12-30T22:00:00Z`, the last that
+/// RFC 3339 (and [`jiff::Timestamp`]) can write.
+pub const MAX_TIME_MS: i64 = 253_402_207_200_000;
+
+/// A robot's time (`ts_ms`) as the store keeps it: clamped to [`MIN_TIME_MS`]..=[`MAX_TIME_MS`],
+/// so that every stored time can be written as RFC 3339, held exactly by a JSON double and
+/// selected by a range of RFC 3339 times. Agents send any `i64`; beyond these bounds a clock
+/// says nothing anyway.
+pub fn storable_ms(ts_ms: i64) -> i64 {
+    ts_ms.clamp(MIN_TIME_MS, MAX_TIME_MS)
+}
+
 /// Sequence numbers are `u64` on the wire but signed 64-bit in both databases.
 fn to_db_seq(seq: u64) -> Result<i64> {
     i64::try_from(seq).map_err(|_| Error::SeqOutOfRange(seq))

@@ -1,12 +1,13 @@
 //! Writing and reading the store's records: events, telemetry batches and connections, each
-//! stored once per `(robot, seq)` or connection id.
+//! stored once per `(robot, seq)` (one seq space for every kind, claimed in table `seqs`) or
+//! connection id.
 
 use sqlx::types::Json;
 use sqlx::{FromRow, QueryBuilder};
 
 use super::{
     ConnectionRecord, Error, Result, RobotKey, Sample, Store, StoredEvent, StoredSample,
-    from_db_seq, to_db_seq,
+    from_db_seq, storable_ms, to_db_seq,
 };
 
 /// Seven parameters a row keeps one statement under SQLite's 32766 and PostgreSQL's 65535.
@@ -60,9 +61,12 @@ const INSERT_EVENT: &str = "INSERT INTO events \
 const INSERT_BATCH: &str = "INSERT INTO telemetry_batches \
      (namespace, robot, seq, max_ts_ms, received_ms, bytes) \
      VALUES ($1, $2, $3, $4, $5, $6) ON CONFLICT (namespace, robot, seq) DO NOTHING";
-const IS_STORED: &str = "SELECT \
-     (SELECT COUNT(*) FROM events WHERE namespace = $1 AND robot = $2 AND seq = $3) \
-     + (SELECT COUNT(*) FROM telemetry_batches WHERE namespace = $1 AND robot = $2 AND seq = $3)";
+/// Claims a seq for one durable message of any kind (PROTOCOL.md §6 rule 1: one sequence per
+/// robot); no row affected means another message, of this kind or another, holds it.
+pub(super) const CLAIM_SEQ: &str = "INSERT INTO seqs (namespace, robot, seq, received_ms) \
+     VALUES ($1, $2, $3, $4) ON CONFLICT (namespace, robot, seq) DO NOTHING";
+const IS_STORED: &str =
+    "SELECT COUNT(*) FROM seqs WHERE namespace = $1 AND robot = $2 AND seq = $3";
 const LAST_SEQ: &str = "SELECT MAX(seq) FROM (\
      SELECT MAX(seq) AS seq FROM events WHERE namespace = $1 AND robot = $2 \
      UNION ALL \
@@ -88,7 +92,7 @@ const SELECT_CONNECTIONS: &str = "SELECT gateway, protocol, address, connected_a
 
 impl Store {
     /// Stores an event received now; `Ok(true)` if newly stored, `Ok(false)` if `(robot, seq)`
-    /// was already stored (a replay, never a second row). Once this returns `Ok`, the event is
+    /// was already stored, by an event, telemetry or progress (a replay, never a second row). Once this returns `Ok`, the event is
     /// durable. `Err(QuotaExceeded)`: not stored, the robot is over its quota.
     pub async fn insert_event(&self, robot: &RobotKey, ev: &StoredEvent) -> Result<bool> {
         self.insert_event_at(robot, ev, jiff::Timestamp::now().as_millisecond())
@@ -113,7 +117,7 @@ impl Store {
         Ok(inserted)
     }
 
-    /// Inserts one event row by itself; `Ok(true)` if newly stored.
+    /// Inserts one event row by itself, with its seq's claim; `Ok(true)` if newly stored.
     pub(super) async fn insert_event_row(
         &self,
         robot: &RobotKey,
@@ -122,22 +126,37 @@ impl Store {
         bytes: u64,
         received_ms: i64,
     ) -> Result<bool> {
-        let inserted = with_pool!(self, pool => {
-            sqlx::query(INSERT_EVENT)
+        let inserted = with_pool!(self, pool, begin => async {
+            let mut tx = pool.begin_with(begin).await?;
+            let claimed = sqlx::query(CLAIM_SEQ)
                 .bind(&robot.namespace)
                 .bind(&robot.name)
                 .bind(seq)
-                .bind(ev.ts_ms)
+                .bind(received_ms)
+                .execute(&mut *tx)
+                .await?
+                .rows_affected();
+            if claimed == 0 {
+                return Ok(0);
+            }
+            let inserted = sqlx::query(INSERT_EVENT)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(seq)
+                .bind(storable_ms(ev.ts_ms))
                 .bind(&ev.kind)
                 .bind(&ev.severity)
                 .bind(&ev.message)
                 .bind(Json(&ev.data))
                 .bind(received_ms)
                 .bind(i64::try_from(bytes).unwrap_or(i64::MAX))
-                .execute(pool)
-                .await
-                .map(|r| r.rows_affected())
-        })
+                .execute(&mut *tx)
+                .await?
+                .rows_affected();
+            tx.commit().await?;
+            Ok::<_, sqlx::Error>(inserted)
+        }
+        .await)
         .map_err(|source| Error::Insert {
             what: "event",
             robot: robot.to_string(),
@@ -174,7 +193,8 @@ impl Store {
     }
 
     /// Stores one telemetry batch received now under its `seq`, all samples or none;
-    /// `Ok(false)` if that seq was already stored (a replay: nothing is inserted twice).
+    /// `Ok(false)` if that seq was already stored, by any kind of durable message (a replay:
+    /// nothing is inserted twice).
     /// `Err(QuotaExceeded)`: not stored, the robot is over its quota.
     pub async fn insert_telemetry(
         &self,
@@ -201,9 +221,26 @@ impl Store {
         self.check_quota_unless_stored(robot, seq, rows, bytes)
             .await?;
         // An empty batch still claims its seq; retention drops it like any other.
-        let max_ts_ms = samples.iter().map(|s| s.ts_ms).max().unwrap_or(0);
+        let max_ts_ms = samples
+            .iter()
+            .map(|s| storable_ms(s.ts_ms))
+            .max()
+            .unwrap_or(0);
         let inserted = with_pool!(self, pool, begin => async {
             let mut tx = pool.begin_with(begin).await?;
+            let claimed = sqlx::query(CLAIM_SEQ)
+                .bind(&robot.namespace)
+                .bind(&robot.name)
+                .bind(seq)
+                .bind(received_ms)
+                .execute(&mut *tx)
+                .await?
+                .rows_affected();
+            if claimed == 0 {
+                // Held by an earlier message of any kind: a replay. Dropping the transaction
+                // rolls it back; nothing was written anyway.
+                return Ok(false);
+            }
             let claimed = sqlx::query(INSERT_BATCH)
                 .bind(&robot.namespace)
                 .bind(&robot.name)
@@ -227,7 +264,7 @@ impl Store {
                         .push_bind(&robot.name)
                         .push_bind(seq)
                         .push_bind(&s.metric)
-                        .push_bind(s.ts_ms)
+                        .push_bind(storable_ms(s.ts_ms))
                         .push_bind(s.value)
                         .push_bind(received_ms);
                 });
@@ -415,7 +452,7 @@ impl Store {
 }
 
 /// What an event counts against the byte quota: its kind, severity, message and data as JSON.
-fn event_bytes(ev: &StoredEvent) -> u64 {
+pub(super) fn event_bytes(ev: &StoredEvent) -> u64 {
     let data = serde_json::to_string(&ev.data).map_or(0, |d| d.len());
     (ev.kind.len() + ev.severity.len() + ev.message.len() + data) as u64
 }

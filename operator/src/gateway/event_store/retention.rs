@@ -14,6 +14,8 @@ use super::{Error, PruneCounts, Result, Store};
 const PRUNE_EVENTS: &str = "DELETE FROM events WHERE received_ms < $1";
 const PRUNE_SAMPLES: &str = "DELETE FROM samples WHERE received_ms < $1";
 const PRUNE_BATCHES: &str = "DELETE FROM telemetry_batches WHERE received_ms < $1";
+// A seq's claim goes with its record: the seq counts as stored exactly as long as that does.
+const PRUNE_SEQS: &str = "DELETE FROM seqs WHERE received_ms < $1";
 const PRUNE_CONNECTIONS: &str =
     "DELETE FROM connections WHERE disconnected_at_ms IS NOT NULL AND disconnected_at_ms < $1";
 
@@ -29,6 +31,7 @@ impl Store {
                 (PRUNE_EVENTS, Some(&mut counts.events)),
                 (PRUNE_SAMPLES, Some(&mut counts.samples)),
                 (PRUNE_BATCHES, None),
+                (PRUNE_SEQS, None),
                 (PRUNE_CONNECTIONS, Some(&mut counts.connections)),
             ] {
                 let deleted = sqlx::query(sql)

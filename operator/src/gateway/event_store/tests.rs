@@ -99,6 +99,41 @@ async fn replayed_telemetry_is_stored_once() {
     assert_eq!(store.last_seq(&r).await.unwrap(), Some(7));
 }
 
+/// One sequence per robot (PROTOCOL.md §6 rule 1): a seq stored by one kind of durable message
+/// is a replay for every other, through the batched inserts and the row-by-row ones alike, and
+/// counts as stored for as long as its record is kept.
+#[tokio::test]
+async fn a_seq_is_stored_once_whatever_its_kind() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = open(&dir).await;
+    let r = robot("kiwi-1");
+    let cpu = [sample("cpu_percent", 1_000, 12.5)];
+    assert!(store.insert_event(&r, &event(1, 1_000)).await.unwrap());
+    assert!(!store.insert_telemetry(&r, 1, &cpu).await.unwrap());
+    assert!(store.insert_telemetry(&r, 2, &cpu).await.unwrap());
+    assert!(!store.insert_event(&r, &event(2, 1_000)).await.unwrap());
+    let bytes = records::event_bytes(&event(2, 1_000));
+    assert!(
+        !store
+            .insert_event_row(&r, 2, &event(2, 1_000), bytes, 1_000)
+            .await
+            .unwrap()
+    );
+    assert_eq!(count(&store, "events").await, 1);
+    assert_eq!(count(&store, "samples").await, 1);
+    // Another robot's seqs are its own.
+    assert!(
+        store
+            .insert_telemetry(&robot("kiwi-2"), 1, &cpu)
+            .await
+            .unwrap()
+    );
+    // Once retention deleted a record, its seq is free again, as it was for its own kind.
+    store.insert_event_at(&r, &event(3, 0), 10).await.unwrap();
+    store.prune(100).await.unwrap();
+    assert!(store.insert_telemetry(&r, 3, &cpu).await.unwrap());
+}
+
 #[tokio::test]
 async fn last_seq_spans_events_and_telemetry() {
     let dir = tempfile::tempdir().unwrap();

@@ -197,6 +197,16 @@ impl<W: Sink<Message> + Unpin> Conn<W> {
         }
     }
 
+    /// Answers the agent's Close frame with one of ours (RFC 6455 §5.5.1) and closes the sink,
+    /// within the send timeout. The WebSocket layer queued the answer, echoing the agent's code
+    /// and reason, when it read the agent's Close; closing the sink writes it out. Dropped
+    /// unsent, the agent would see its clean close end as an abnormal one (1006).
+    pub(super) async fn answer_close(&mut self) {
+        if !self.stuck {
+            let _ = tokio::time::timeout(self.send_timeout, self.sink.close()).await;
+        }
+    }
+
     fn count_error(&self, kind: &'static str) {
         self.errors.get_or_create(&KindLabels { kind }).inc();
     }

@@ -121,8 +121,12 @@ where
 {
     let timeout = shared.limits.handshake_timeout;
     match tokio::time::timeout(timeout, next_text(stream)).await {
-        Ok(Some(text)) => Ok(text),
-        Ok(None) => Err(Refused),
+        Ok(Ok(text)) => Ok(text),
+        Ok(Err(NoText::Close)) => {
+            conn.answer_close().await;
+            Err(Refused)
+        }
+        Ok(Err(NoText::Gone)) => Err(Refused),
         Err(_) => {
             conn.fail(
                 ErrorCode::HandshakeTimeout,
@@ -143,17 +147,26 @@ where
     }
 }
 
-/// The next text frame; pings and pongs are skipped, anything else ends the wait.
-async fn next_text<R, E>(stream: &mut R) -> Option<String>
+/// What ended the wait for a text frame instead of one.
+enum NoText {
+    /// The agent's Close frame, to be answered.
+    Close,
+    /// The socket ended or failed.
+    Gone,
+}
+
+/// The next text frame (a binary one reads as empty text); pings and pongs are skipped.
+async fn next_text<R, E>(stream: &mut R) -> Result<String, NoText>
 where
     R: Stream<Item = Result<Message, E>> + Unpin,
 {
     loop {
-        match stream.next().await? {
-            Ok(Message::Text(t)) => return Some(t.as_str().to_owned()),
-            Ok(Message::Ping(_) | Message::Pong(_)) => continue,
-            Ok(Message::Binary(_)) => return Some(String::new()),
-            Ok(Message::Close(_)) | Err(_) => return None,
+        match stream.next().await {
+            Some(Ok(Message::Text(t))) => return Ok(t.as_str().to_owned()),
+            Some(Ok(Message::Ping(_) | Message::Pong(_))) => continue,
+            Some(Ok(Message::Binary(_))) => return Ok(String::new()),
+            Some(Ok(Message::Close(_))) => return Err(NoText::Close),
+            Some(Err(_)) | None => return Err(NoText::Gone),
         }
     }
 }

@@ -200,7 +200,11 @@ where
         pace: &mut Pace,
     ) -> Flow {
         let text = match frame {
-            None | Some(Ok(Message::Close(_))) => return Err(End::Closed),
+            None => return Err(End::Closed),
+            Some(Ok(Message::Close(_))) => {
+                self.conn.answer_close().await;
+                return Err(End::Closed);
+            }
             Some(Err(e)) => {
                 debug!(error = %e, "socket error");
                 return Err(End::Closed);

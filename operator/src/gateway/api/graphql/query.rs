@@ -98,8 +98,8 @@ impl RobotObject {
     async fn status(&self) -> Json<Value> {
         Json(serde_json::to_value(&self.0.status).unwrap_or_default())
     }
-    /// Stored events within a time range (RFC 3339; default the last hour), oldest first;
-    /// needs `get robots/events`.
+    /// Stored events the gateway received within a time range (RFC 3339, its clock, not
+    /// `tsMs`; default the last hour), oldest first; needs `get robots/events`.
     #[graphql(complexity = "page_cost(limit, child_complexity)")]
     async fn events(
         &self,
