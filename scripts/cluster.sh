@@ -30,12 +30,12 @@
 #! Network: every process of the cluster runs in the network namespace `lekiwi-node`, linked to
 #! the host by a veth pair: `lekiwi-veth` = 198.18.213.1/30 on the host, `eth0` = 198.18.213.2/30
 #! in the namespace, which is the node IP (the API server, the kubelet and NodePorts listen there
-#! and nowhere else). Inside the namespace only: the bridge `lekiwi0` = 10.244.213.1/24, Pods from
-#! 10.244.213.0/24, Services from 198.19.213.0/24, kube-proxy's and the CNI's iptables rules, and
-#! the network sysctls they set. The host gains its end of the veth pair and one route, to the
-#! Service range through the node IP; Pods reach the host at 198.18.213.1, masqueraded as the node
-#! IP. The addresses the host sees are in 198.18.0.0/15 (RFC 2544: reserved for benchmarking, not
-#! a private range a real network uses). etcd and the components' other ports are on the
+#! and nowhere else). Inside the namespace only: the bridge `lekiwi0` = 198.19.213.1/25, Pods from
+#! 198.19.213.0/25, Services from 198.19.213.128/25, kube-proxy's, the kubelet's and the CNI's
+#! iptables rules, and the network sysctls they set. The host gains its end of the veth pair and
+#! one route, 198.19.213.0/24 (Pods and Services) through the node IP; Pods reach the host at
+#! 198.18.213.1. Every address is in 198.18.0.0/15 (RFC 2544: reserved for benchmarking, not a
+#! private range a real network uses). etcd and the components' other ports are on the
 #! namespace's loopback. StorageClass `standard` (default) has four pre-made 1Gi hostPath PVs under
 #! the directory. One such cluster per machine: the namespace's and links' names, the kubelet's
 #! cgroups and /var/log/pods are machine-wide.
@@ -57,9 +57,12 @@ NODE_LINK=eth0
 HOST_IP=198.18.213.1
 NODE_IP=198.18.213.2
 BRIDGE=lekiwi0
-BRIDGE_IP=10.244.213.1
-POD_CIDR=10.244.213.0/24
-SERVICE_CIDR=198.19.213.0/24
+# The node's ranges, the host's one route to the node: Pods in its lower half, Services above.
+NODE_NET=198.19.213.0/24
+BRIDGE_IP=198.19.213.1
+POD_CIDR=198.19.213.0/25
+SERVICE_CIDR=198.19.213.128/25
+KUBERNETES_IP=198.19.213.129 # the `kubernetes` Service: the first address of the Service range
 # What `up` writes to $STATE/network: state made for another plan (certificates, kubeconfigs,
 # Service IPs in etcd) is not reused.
 LAYOUT="netns=$NETNS node=$NODE_IP pods=$POD_CIDR services=$SERVICE_CIDR"
@@ -137,7 +140,7 @@ init_pki() {
     -keyout "$pki/ca.key" -out "$pki/ca.crt" -addext "basicConstraints=critical,CA:TRUE" \
     -addext "keyUsage=critical,keyCertSign,cRLSign" 2>/dev/null
   gen_cert apiserver /CN=kube-apiserver "extendedKeyUsage=serverAuth
-subjectAltName=IP:$NODE_IP,IP:127.0.0.1,IP:${SERVICE_CIDR%.0/24}.1,DNS:localhost,DNS:kubernetes,DNS:kubernetes.default,DNS:kubernetes.default.svc,DNS:kubernetes.default.svc.cluster.local"
+subjectAltName=IP:$NODE_IP,IP:127.0.0.1,IP:$KUBERNETES_IP,DNS:localhost,DNS:kubernetes,DNS:kubernetes.default,DNS:kubernetes.default.svc,DNS:kubernetes.default.svc.cluster.local"
   gen_cert apiserver-kubelet-client "/O=system:masters/CN=kube-apiserver-kubelet-client" \
     "extendedKeyUsage=clientAuth"
   gen_cert kubelet "/CN=$NODE_NAME" "extendedKeyUsage=serverAuth
@@ -250,16 +253,13 @@ setup_network() {
   ip -n "$NETNS" addr replace "$NODE_IP/30" dev "$NODE_LINK"
   ip -n "$NETNS" link set "$NODE_LINK" up
   ip -n "$NETNS" link set lo up
-  ip route replace "$SERVICE_CIDR" via "$NODE_IP" dev "$HOST_LINK"
+  ip route replace "$NODE_NET" via "$NODE_IP" dev "$HOST_LINK"
   ip -n "$NETNS" link show "$BRIDGE" >/dev/null 2>&1 || ip -n "$NETNS" link add "$BRIDGE" type bridge
-  ip -n "$NETNS" addr replace "$BRIDGE_IP/24" dev "$BRIDGE"
+  ip -n "$NETNS" addr replace "$BRIDGE_IP/${POD_CIDR#*/}" dev "$BRIDGE"
   ip -n "$NETNS" link set "$BRIDGE" up
   innet sysctl -qw net.ipv4.ip_forward=1
   innet sysctl -qw net.bridge.bridge-nf-call-iptables=1 2>/dev/null \
     || log "no br_netfilter: Pod-to-Service traffic between Pods on the bridge will not be NATed"
-  # Pods reach the host as the node IP: the host has no route to the Pod range.
-  local masq=(POSTROUTING -s "$POD_CIDR" -o "$NODE_LINK" -j MASQUERADE)
-  innet iptables -w -t nat -C "${masq[@]}" 2>/dev/null || innet iptables -w -t nat -A "${masq[@]}"
   bind_pod_logs
   cat >"$STATE/cni/net.d/10-lekiwi.conflist" <<EOF
 {
@@ -599,7 +599,7 @@ all_live() {
 # Ready, the basics not yet) is finished by the next `up`, never taken as done.
 healthy() {
   load_ports 2>/dev/null || return 1
-  all_live && apiserver_ready && node_ready && basics_ready
+  [ "$(cat "$STATE/network" 2>/dev/null)" = "$LAYOUT" ] && all_live && apiserver_ready && node_ready && basics_ready
 }
 
 # ---- up -------------------------------------------------------------------------------------
@@ -816,7 +816,7 @@ cmd_status() {
   echo "apiserver:  https://$NODE_IP:$APISERVER_PORT"
   echo "node:       $NODE_NAME, $NODE_IP in the network namespace $NETNS"
   echo "            (bridge $BRIDGE $BRIDGE_IP, Pods $POD_CIDR, Services $SERVICE_CIDR)"
-  echo "host:       $HOST_IP on $HOST_LINK, a route to $SERVICE_CIDR via $NODE_IP"
+  echo "host:       $HOST_IP on $HOST_LINK, a route to $NODE_NET via $NODE_IP"
   echo "containerd: $SOCK"
   for name in "${PROCS[@]}"; do
     printf '%-24s pid %s\n' "$name:" "$(live_pid "$name" || echo -)"

@@ -168,27 +168,26 @@ impl Cluster {
     }
 
     /// What of this node `view` shows: its bridge, an address that is the node IP or in the Pod
-    /// or Service range, a route into the Pod range, an iptables chain named `KUBE-*` (kube-proxy,
-    /// the kubelet) or `CNI-*` (the CNI plugins). Empty for the host's own namespace: the node
-    /// keeps all of these in its own.
+    /// or Service range, a route into those ranges other than through the node IP, an iptables
+    /// chain named `KUBE-*` (kube-proxy, the kubelet) or `CNI-*` (the CNI plugins). Empty for the
+    /// host's own namespace: the node keeps all of these in its own.
     pub fn traces_in(&self, view: &NetView) -> Vec<String> {
         let node_ip: Option<IpAddr> = self.node_ip.parse().ok();
-        let ours = |addr: IpAddr| {
-            Some(addr) == node_ip
-                || self.pod_cidr.contains(&addr)
-                || self.service_cidr.contains(&addr)
-        };
+        let ranges = [self.pod_cidr, self.service_cidr];
+        let ours = |addr: IpAddr| Some(addr) == node_ip || ranges.iter().any(|r| r.contains(&addr));
+        let overlaps = |net: &IpNet| ranges.iter().any(|r| r.contains(net) || net.contains(r));
         let bridges = view.bridges.iter().filter(|b| **b == self.bridge);
         let addresses = view.addresses.iter().filter(|(a, _)| ours(a.addr()));
-        let routes = view
-            .routes
-            .iter()
-            .filter(|(r, _)| self.pod_cidr.contains(r));
+        let routes = view.routes.iter();
         let chains = view.chains.iter();
         bridges
             .map(|b| format!("bridge {b}"))
             .chain(addresses.map(|(a, link)| format!("address {a} on {link}")))
-            .chain(routes.map(|(r, link)| format!("route to {r} on {link}")))
+            .chain(
+                routes
+                    .filter(|r| overlaps(&r.dst) && r.via != node_ip)
+                    .map(|r| format!("route to {} on {}", r.dst, r.dev)),
+            )
             .chain(
                 chains
                     .filter(|c| c.starts_with("KUBE-") || c.starts_with("CNI-"))

@@ -215,13 +215,24 @@ pub async fn status(addr: &str) -> Option<Value> {
 pub struct NetView {
     /// Every address with its prefix, and its link.
     pub addresses: Vec<(IpNet, String)>,
-    /// The destination of every route in every table, IPv4 and IPv6, and its link (`default`
-    /// is left out: it says nothing of where a range is).
-    pub routes: Vec<(IpNet, String)>,
+    /// Every route in every table, IPv4 and IPv6, but `default` (it says nothing of where a
+    /// range is).
+    pub routes: Vec<Route>,
     /// The bridges' names.
     pub bridges: Vec<String>,
     /// The names of the iptables and ip6tables chains, in every table.
     pub chains: Vec<String>,
+}
+
+/// A route of a [`NetView`].
+#[derive(Debug)]
+pub struct Route {
+    /// Where it leads.
+    pub dst: IpNet,
+    /// Its link.
+    pub dev: String,
+    /// Its gateway, if any.
+    pub via: Option<IpAddr>,
 }
 
 impl NetView {
@@ -272,8 +283,11 @@ impl NetView {
                         Err(_) => continue,
                     },
                 };
-                let dev = route["dev"].as_str().unwrap_or_default().to_owned();
-                routes.push((dst, dev));
+                routes.push(Route {
+                    dst,
+                    dev: route["dev"].as_str().unwrap_or_default().to_owned(),
+                    via: route["gateway"].as_str().and_then(|g| g.parse().ok()),
+                });
             }
         }
         let bridges = json(&["-j", "link", "show", "type", "bridge"])?
