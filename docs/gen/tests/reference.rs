@@ -59,7 +59,7 @@ fn the_pages_name_only_metrics_that_exist() {
                 .chars()
                 .take_while(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || *c == '_')
                 .collect();
-            let exists = known.iter().any(|k| *k == name)
+            let exists = known.contains(&name)
                 || other.contains(&name.as_str())
                 || known
                     .iter()
