@@ -21,7 +21,7 @@
 #!   --duration S          steady-state measurement window, seconds, per phase (default 60)
 #!   --connect-rate R      new robots per second while ramping up against the gateway (default
 #!                         1000 with --mode provision; 25 with --mode enroll, where each new robot
-#!                         costs the API server a Robot and a Secret: see bench/README.md)
+#!                         costs the API server a Robot and a Secret: see docs/src/benchmarks/gateway.md)
 #!   --echo-connect-rate R the same against the echo floor, which does no enrollment (default 1000)
 #!   --status-qps Q        gateway --status-qps (default 500)
 #!   --status-burst B      gateway --status-burst (default 1000)
@@ -41,7 +41,7 @@
 #! Environment: LEKIWI_BENCH_GATEWAY_ENV="K=V ..." adds environment variables to the gateway process
 #! only (e.g. MALLOC_ARENA_MAX=2, to see how much of its memory is allocator overhead).
 #!
-#! Writes the table to bench/results/gateway-<date>.txt and bench/results/latest.txt. Bounded in
+#! Writes the table to bench/results/gateway-<date>.txt and bench/results/gateway-latest.txt. Bounded in
 #! time (about 5 minutes for 10,000 robots once built; at most ~15), cleans up on exit and Ctrl-C.
 set -euo pipefail
 
@@ -386,8 +386,8 @@ mkdir -p "$RESULTS"
 STAMP="$(date +%Y%m%d-%H%M%S)"
 python3 "$ROOT/bench/report.py" "$WORK" >"$WORK/table.txt"
 cp "$WORK/table.txt" "$RESULTS/gateway-$STAMP.txt"
-cp "$WORK/table.txt" "$RESULTS/latest.txt"
+cp "$WORK/table.txt" "$RESULTS/gateway-latest.txt"
 echo
 cat "$WORK/table.txt"
 echo
-log "written to bench/results/gateway-$STAMP.txt and bench/results/latest.txt"
+log "written to bench/results/gateway-$STAMP.txt and bench/results/gateway-latest.txt"

@@ -501,7 +501,7 @@ scenario_kill() {
 }
 
 # ---- scenario first-boot ---------------------------------------------------------------------
-# The gateways' open files, sampled while the new fleet enrolls (the record in bench/README.md:
+# The gateways' open files, sampled while the new fleet enrolls (docs/src/benchmarks/gateway.md:
 # enrollment beyond what the API server sustains once exhausted them).
 fds() { find "/proc/$1/fd" -mindepth 1 -maxdepth 1 2>/dev/null | wc -l; }
 scenario_first_boot() {

@@ -24,7 +24,7 @@
 #!
 #! The build is the release profile, not the size-optimised `agent` profile: the aarch64 release
 #! build is the one scripts/pi.sh and the tests already make (warm), while the `agent` profile's
-#! fat LTO would add a second cold aarch64 build of several minutes to CI (see the README).
+#! fat LTO would add a second cold aarch64 build of several minutes to the test suite.
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

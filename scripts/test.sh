@@ -1,13 +1,17 @@
 #!/usr/bin/env bash
-#! Runs the whole test suite: installs what is missing, checks formatting and lints, builds,
-#! starts the shared local control plane and runs every unit and integration test with nextest.
+#! Runs the whole test suite: installs what is missing (scripts/setup.sh test), checks formatting
+#! and lints, builds, starts the shared local control plane and runs every unit and integration
+#! test with nextest. Among them: the book under docs/ is built with mdBook and its internal links
+#! checked, the generated reference pages compared with the code, and the tour run against a
+#! quickstart of its own.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 log() { printf '\033[1;34m[test]\033[0m %s\n' "$*" >&2; }
 start=$(date +%s)
 
-bash scripts/setup.sh
+bash scripts/setup.sh test
+# cargo-nextest and mdbook, built by setup.sh from crates.io.
 export PATH="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}/cargo-tools/bin:$PATH"
 log "cargo fmt --check"
 cargo fmt --all -- --check

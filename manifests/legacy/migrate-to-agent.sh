@@ -2,8 +2,8 @@
 # Moves a robot that polls the legacy endpoint (GET /v1/poll) to the LeKiwi agent, keeping its
 # identity (its Robot, its token, its history): put this script and the agent in a release,
 # point the robot's spec.release at it, and have the legacy poller run it, as root, from the
-# directory it downloaded the release into. README: "Moving robots off the legacy polling
-# endpoint".
+# directory it downloaded the release into. The book: Robots, "Moving off
+# legacy polling" (docs/src/robots/legacy-polling.md).
 #
 # Environment (what the poller knows; the first three are required):
 #   LEKIWI_ROBOT           namespace/name, as in the poll's robot= parameter

@@ -5,7 +5,7 @@
 use std::sync::Arc;
 
 use prometheus_client::encoding::EncodeLabelSet;
-use prometheus_client::registry::{Metric, Registry};
+use prometheus_client::registry::Metric;
 
 pub use crate::controller::deployment::metrics::{
     DeploymentLabels, DeploymentPhaseLabels, OutcomeLabels, RolloutMetrics,
@@ -23,6 +23,44 @@ pub use crate::leader::LeaderMetrics;
 pub struct KindLabels {
     /// The kind (frame type, error code, refusal reason, ...).
     pub kind: &'static str,
+}
+
+/// One registered metric, as the reference documentation lists it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct MetricInfo {
+    /// The name as registered (a counter is exported with `_total` after it).
+    pub name: String,
+    /// `counter`, `gauge`, `histogram`, ...
+    pub kind: String,
+    /// The help text.
+    pub help: String,
+}
+
+/// The operator's registry: prometheus-client's, which encodes only metrics that have series,
+/// plus a catalogue of every metric registered, series or not (the book's metrics reference is
+/// generated from it). Subsystems register through it with the same call as prometheus-client's.
+#[derive(Default)]
+pub struct Registry {
+    inner: prometheus_client::registry::Registry,
+    catalogue: Vec<MetricInfo>,
+}
+
+impl Registry {
+    /// Registers `metric` as `name` and notes it in the catalogue.
+    pub fn register<N: Into<String>, H: Into<String>>(
+        &mut self,
+        name: N,
+        help: H,
+        metric: impl Metric,
+    ) {
+        let (name, help) = (name.into(), help.into());
+        self.catalogue.push(MetricInfo {
+            name: name.clone(),
+            kind: metric.metric_type().as_str().to_owned(),
+            help: help.clone(),
+        });
+        self.inner.register(name, help, metric);
+    }
 }
 
 /// Registers a subsystem's metrics and hands each back, so that its struct names every metric
@@ -45,7 +83,8 @@ impl Registrar<'_> {
 /// All metrics, cheap to clone.
 #[derive(Clone)]
 pub struct Metrics {
-    registry: Arc<Registry>,
+    registry: Arc<prometheus_client::registry::Registry>,
+    catalogue: Arc<Vec<MetricInfo>>,
     /// The controllers' reconciles and the fleet as the leader sees it.
     pub controllers: ControllerMetrics,
     /// Leader election.
@@ -75,13 +114,19 @@ impl Metrics {
         let rollouts = RolloutMetrics::register(&mut registry);
         let per_robot = RobotMetrics::register(&mut registry, per_robot);
         Self {
-            registry: Arc::new(registry),
+            registry: Arc::new(registry.inner),
+            catalogue: Arc::new(registry.catalogue),
             controllers,
             leader,
             gateway,
             rollouts,
             per_robot,
         }
+    }
+
+    /// Every metric registered, in registration order, whether or not it has series yet.
+    pub fn catalogue(&self) -> &[MetricInfo] {
+        &self.catalogue
     }
 
     /// Renders every metric in the OpenMetrics text format.
@@ -115,5 +160,37 @@ mod tests {
         ));
         assert!(text.contains("lekiwi_robots{phase=\"Online\"} 3"));
         assert!(text.ends_with("# EOF\n"));
+    }
+
+    /// The catalogue holds every metric, also those without series (which the encoding
+    /// leaves out), with the type the encoding gives it.
+    #[test]
+    fn the_catalogue_lists_every_metric_with_its_type() {
+        let m = Metrics::new(true);
+        let names: Vec<&str> = m.catalogue().iter().map(|i| i.name.as_str()).collect();
+        for name in [
+            "lekiwi_robots",
+            "lekiwi_gateway_refused",
+            "lekiwi_robot_cpu_percent",
+        ] {
+            assert!(names.contains(&name), "{name} missing from {names:?}");
+        }
+        m.controllers
+            .robots
+            .get_or_create(&PhaseLabels { phase: "Online" })
+            .set(1);
+        let text = m.encode();
+        for info in m.catalogue() {
+            let typed = format!("# TYPE {} {}", info.name, info.kind);
+            assert!(
+                !text.contains(&format!("# TYPE {} ", info.name)) || text.contains(&typed),
+                "{typed}"
+            );
+        }
+        assert!(text.contains("# TYPE lekiwi_robots gauge"), "{text}");
+        let mut unique = names.clone();
+        unique.sort_unstable();
+        unique.dedup();
+        assert_eq!(unique.len(), names.len(), "a name registered twice");
     }
 }

@@ -46,7 +46,7 @@ pub enum Error {
 }
 
 /// The effective configuration. Field names are the config file's keys; each field's flag in
-/// [`Flags`] has the full help text shown by `--help` and the README.
+/// [`Flags`] has the full help text shown by `--help` and the book's generated reference.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "camelCase", deny_unknown_fields, default)]
 pub struct Config {

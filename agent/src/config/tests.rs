@@ -1,4 +1,5 @@
-//! The configuration's precedence, its errors, and the flag/env/README tables kept in step.
+//! The configuration's precedence, its errors, and its flags and environment variables kept in
+//! step with the file keys (the book's reference page is generated from them).
 
 use clap::Parser;
 
@@ -116,50 +117,6 @@ fn every_key_is_a_flag_and_an_env_var() {
         .count();
     // config and print-config (and clap's help/version, which have no long here) aside.
     assert_eq!(flag_count - 2, keys.len(), "a flag without a file key");
-}
-
-/// The README's configuration table has one row per key, with its flag, environment
-/// variable, default and help text as the agent has them.
-#[test]
-fn the_readme_table_matches_the_flags() {
-    let readme =
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../README.md")).unwrap();
-    let rows: Vec<Vec<&str>> = readme
-        .lines()
-        .filter(|l| l.starts_with("| `") && l.contains("` | `--"))
-        .map(|l| l.trim_matches('|').split(" | ").map(str::trim).collect())
-        .collect();
-    let defaults = serde_json::to_value(Config::default()).unwrap();
-    let keys = keys_and_flags();
-    for (key, arg) in &keys {
-        let long = arg.get_long().unwrap();
-        let row = rows
-            .iter()
-            .find(|r| r[0] == format!("`{key}`"))
-            .unwrap_or_else(|| panic!("README: no row for `{key}`"));
-        assert_eq!(row[1], format!("`--{long}`"), "{key}");
-        let env = arg.get_env().unwrap().to_str().unwrap();
-        assert_eq!(row[2], format!("`{env}`"), "{key}");
-        let default = match (key.as_str(), &defaults[key]) {
-            ("gateway", _) => "(required)".to_owned(),
-            ("robotName", _) => "`host name`".to_owned(),
-            (_, serde_json::Value::Null) => "—".to_owned(),
-            (_, serde_json::Value::String(s)) if s.is_empty() => "`(none)`".to_owned(),
-            (_, serde_json::Value::String(s)) => format!("`{s}`"),
-            (_, serde_json::Value::Array(a)) => format!(
-                "`{}`",
-                a.iter()
-                    .map(|v| v.to_string())
-                    .collect::<Vec<_>>()
-                    .join(",")
-            ),
-            (_, v) => format!("`{v}`"),
-        };
-        assert_eq!(row[3], default, "default of {key}");
-        let help = arg.get_help().unwrap().to_string();
-        assert_eq!(row[4], help.trim_end_matches('.'), "help of {key}");
-    }
-    assert_eq!(keys.len(), rows.len(), "README rows without a flag");
 }
 
 /// `ws://` to another host is refused at start unless plain text is allowed by flag, env or

@@ -10,9 +10,9 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
-use prometheus_client::registry::Registry;
 
 use super::plan::Plan;
+use crate::metrics::Registry;
 
 /// Labels of per-deployment series (bounded by the number of RobotDeployments, which people
 /// create by hand).
