@@ -353,10 +353,12 @@ async fn rollout_actions(
         "viewer pausing: {code} {body}"
     );
     let message = body["message"].as_str().unwrap_or_default();
+    // The code is the body's `error`; the message does not repeat it.
     ensure!(
-        message.contains(&format!(
-            "patch robotdeployments.fleet.lekiwi.io v2 in namespace {ns}"
-        )),
+        message.starts_with("this needs ")
+            && message.contains(&format!(
+                "patch robotdeployments.fleet.lekiwi.io v2 in namespace {ns}"
+            )),
         "{message}"
     );
     let api = Api::<RobotDeployment>::namespaced(client.clone(), ns);

@@ -221,8 +221,10 @@ async fn refusals_and_mutations(
         &format!(r#"{{ robots(namespace: "{other}") {{ items {{ name }} }} }}"#),
     )
     .await?;
+    // The code starts the message once ("forbidden: this needs ..."), not twice.
     ensure!(
         code == "forbidden"
+            && message.starts_with("forbidden: this needs ")
             && message.contains(&format!("list robots.fleet.lekiwi.io in namespace {other}")),
         "{message}"
     );

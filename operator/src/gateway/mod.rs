@@ -245,7 +245,8 @@ impl AppState {
             kube_auth::Denied::Unauthenticated => self.refused(Refusal::WrongToken),
             kube_auth::Denied::Forbidden(permission) => {
                 self.count_refusal("forbidden");
-                ApiError::Forbidden(format!("forbidden: this needs {permission}"))
+                // The code (`forbidden`) is the body's `error`; GraphQL puts it before the message.
+                ApiError::Forbidden(format!("this needs {permission}"))
             }
             kube_auth::Denied::Unavailable(detail) => ApiError::Internal(detail),
             kube_auth::Denied::Throttled => self.refused(Refusal::Throttled),
