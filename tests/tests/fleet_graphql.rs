@@ -145,6 +145,11 @@ async fn queries(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
     );
     let q = format!(r#"{{ robots(namespace: "{ns}", limit: 2) {{ items {{ name }} continue }} }}"#);
     let d = data(op, viewer, &q).await?;
+    // An empty `after` is the first page, as an empty `continue=` is for REST.
+    let blank = format!(
+        r#"{{ robots(namespace: "{ns}", limit: 2, after: "") {{ items {{ name }} continue }} }}"#
+    );
+    ensure!(data(op, viewer, &blank).await? == d, "{d}");
     let after = d["robots"]["continue"]
         .as_str()
         .context("a continue token")?;

@@ -115,7 +115,7 @@ fn page_params() -> Vec<Value> {
         param(
             "continue",
             "query",
-            "The `continue` token of the previous page (same filters).",
+            "The `continue` token of the previous page (same filters); empty or absent: the first page.",
             json!({"type": "string"}),
         ),
     ]
@@ -233,9 +233,9 @@ fn build() -> Value {
             paths::NAMESPACED_ROBOTS: {"get": op("Robots of a namespace.", "list robots",
                 listed(true, robot_filters()), page_of("Robot"))},
             paths::ROBOT: {"get": op("One robot and its latest vitals.", "get robots", named(vec![]), schema("RobotView"))},
-            paths::ROBOT_EVENTS: {"get": op("A robot's stored events, ascending seq.", "get robots/events",
+            paths::ROBOT_EVENTS: {"get": op("A robot's stored events, ascending seq (404 for a robot the gateway does not hold).", "get robots/events",
                 named([history_params(false), page_params()].concat()), page_of("StoredEvent"))},
-            paths::ROBOT_TELEMETRY: {"get": op("A robot's stored telemetry samples, oldest first.", "get robots/telemetry",
+            paths::ROBOT_TELEMETRY: {"get": op("A robot's stored telemetry samples, oldest first (404 for a robot the gateway does not hold).", "get robots/telemetry",
                 named([history_params(true), page_params()].concat()), page_of("StoredSample"))},
             paths::ROLLOUTS: {"get": op("RobotDeployments of every namespace.", "list robotdeployments in all namespaces",
                 listed(false, vec![]), page_of("RobotDeployment"))},
