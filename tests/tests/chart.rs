@@ -129,7 +129,7 @@ gateway:
   enroll: {rate: 5, burst: 10}
   authLookup: {qps: 2.5, burst: 20}
   apiRateLimit: {perSecond: 5.5, burst: 7}
-  graphql: {maxDepth: 6, maxComplexity: 5000, maxConnections: 300, maxSubscriptionsPerUser: 9, maxConnectionsPerUser: 3, initTimeoutSeconds: 4}
+  graphql: {maxBodyBytes: 131072, maxDepth: 6, maxComplexity: 5000, maxConnections: 300, maxSubscriptionsPerUser: 9, maxConnectionsPerUser: 3, initTimeoutSeconds: 4}
   service:
     type: LoadBalancer
     port: 443
@@ -225,6 +225,7 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--auth-lookup-burst=20",
         "--api-rate=5.5",
         "--api-burst=7",
+        "--graphql-max-body-bytes=131072",
         "--graphql-max-depth=6",
         "--graphql-max-complexity=5000",
         "--graphql-max-connections=300",

@@ -5,7 +5,8 @@
 //! PostgreSQL in the second test), and rollouts with their per-robot progress; it cannot pause a
 //! rollout (403), an operator user can (the RobotDeployment carries what `kubectl lekiwi rollout`
 //! writes); another namespace is refused; no token or a bad one gets 401; malformed parameters
-//! 400; a burst beyond the user's budget 429 with `Retry-After` while another user is served;
+//! 400, empty ones (`continue=`) are absent ones; the history of a robot that does not exist
+//! 404; a burst beyond the user's budget 429 with `Retry-After` while another user is served;
 //! and every route of the OpenAPI document answers.
 
 use std::collections::BTreeSet;
@@ -240,6 +241,57 @@ async fn bad_parameters(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<
     Ok(())
 }
 
+/// An empty parameter counts as absent, as the Kubernetes API server takes `continue=`; the
+/// history of a robot that does not exist is 404 as the document says, even with events stored
+/// under its name.
+async fn empty_parameters_and_unknown_robots(
+    op: &OperatorProcess,
+    store: &Store,
+    ns: &str,
+    viewer: &str,
+) -> Result<()> {
+    let robots = format!("/api/v1/namespaces/{ns}/robots");
+    let all = ok(op, &robots, viewer).await?;
+    let blank = ok(
+        op,
+        &format!("{robots}?continue=&limit=&labelSelector=&phase=&release="),
+        viewer,
+    )
+    .await?;
+    ensure!(names(&blank) == names(&all), "{blank}");
+    for path in [
+        format!("/api/v1/namespaces/{ns}/rollouts?continue=&limit="),
+        format!("/api/v1/namespaces/{ns}/summary?labelSelector=&release="),
+        format!("{robots}/kiwi-1/events?continue=&since=&until=&limit="),
+        format!("{robots}/kiwi-1/telemetry?continue=&metric="),
+    ] {
+        ok(op, &path, viewer).await?;
+    }
+    let gone = lekiwi_operator::gateway::event_store::RobotKey::new(ns, "kiwi-gone");
+    let ev = StoredEvent {
+        seq: 1,
+        ts_ms: jiff::Timestamp::now().as_millisecond(),
+        kind: "note".into(),
+        severity: "info".into(),
+        message: "left behind".into(),
+        data: json!({}),
+    };
+    store.insert_event(&gone, &ev).await?;
+    for what in ["events", "telemetry"] {
+        for name in ["kiwi-gone", "kiwi-never"] {
+            let path = format!("{robots}/{name}/{what}");
+            let (code, _, body) = call(op, "GET", &path, Some(viewer)).await?;
+            ensure!(
+                code == 404
+                    && body["error"] == "not_found"
+                    && body["message"] == format!("robot {ns}/{name} not found"),
+                "{path}: {code} {body}"
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Events and telemetry of `kiwi-1`, stored in `store`, read back by time range and in pages.
 async fn history(op: &OperatorProcess, store: &Store, ns: &str, viewer: &str) -> Result<()> {
     let robot = lekiwi_operator::gateway::event_store::RobotKey::new(ns, "kiwi-1");
@@ -361,10 +413,12 @@ async fn rollout_actions(
         "viewer pausing: {code} {body}"
     );
     let message = body["message"].as_str().unwrap_or_default();
+    // The code is the body's `error`; the message does not repeat it.
     ensure!(
-        message.contains(&format!(
-            "patch robotdeployments.fleet.lekiwi.io v2 in namespace {ns}"
-        )),
+        message.starts_with("this needs ")
+            && message.contains(&format!(
+                "patch robotdeployments.fleet.lekiwi.io v2 in namespace {ns}"
+            )),
         "{message}"
     );
     let api = Api::<RobotDeployment>::namespaced(client.clone(), ns);
@@ -539,6 +593,7 @@ async fn the_fleet_api_serves_what_rbac_allows_each_user() -> Result<()> {
     lists_filter_and_page(&op, &ns, &viewer).await?;
     bad_parameters(&op, &ns, &viewer).await?;
     history(&op, &store, &ns, &viewer).await?;
+    empty_parameters_and_unknown_robots(&op, &store, &ns, &viewer).await?;
     rollout_actions(&op, &client, &ns, &viewer, &user).await?;
     refusals(&op, &ns, &other, &viewer, &nobody).await?;
     openapi_routes_answer(&op, &ns, &viewer, &user).await?;
@@ -565,6 +620,17 @@ async fn history_reads_come_from_postgresql_too() -> Result<()> {
     let op = lekiwi_tests::gateway_operator(cp, &ns, "fleetapipg", &args).await?;
     let store = Store::connect(&url).await?;
     ensure!(store.backend() == "postgres");
+    // The history of a robot the gateway does not hold is 404.
+    create_robot(&client, &ns, "kiwi-1", &[]).await?;
+    lekiwi_tests::wait_for(
+        "kiwi-1 in the gateway's cache",
+        std::time::Duration::from_secs(20),
+        || async {
+            let path = format!("/api/v1/namespaces/{ns}/robots/kiwi-1");
+            ok(&op, &path, &viewer).await.ok()
+        },
+    )
+    .await?;
     history(&op, &store, &ns, &viewer).await?;
     for role in [&viewer_role, &user_role] {
         Api::<ClusterRole>::all(client.clone())

@@ -6,8 +6,10 @@
 //! in `connection_init`) sees a simulated robot go Online, then Offline, another a rollout's
 //! progress, and a third is over the user's cap; a user's third WebSocket is over their cap of
 //! two until one of theirs closes; a too-deep query is
-//! refused before it runs; no token or a bad one gets 401 (a WebSocket is closed); a burst
-//! beyond the user's budget gets 429 with `Retry-After`.
+//! refused before it runs; no token or a bad one gets 401 (a WebSocket is closed); a `POST`
+//! without a body and a `GET` without an upgrade get the JSON error body, answers the media type
+//! the client accepts, as the OpenAPI document says; a burst beyond the user's budget gets 429
+//! with `Retry-After`.
 
 use std::time::Duration;
 
@@ -145,6 +147,11 @@ async fn queries(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
     );
     let q = format!(r#"{{ robots(namespace: "{ns}", limit: 2) {{ items {{ name }} continue }} }}"#);
     let d = data(op, viewer, &q).await?;
+    // An empty `after` is the first page, as an empty `continue=` is for REST.
+    let blank = format!(
+        r#"{{ robots(namespace: "{ns}", limit: 2, after: "") {{ items {{ name }} continue }} }}"#
+    );
+    ensure!(data(op, viewer, &blank).await? == d, "{d}");
     let after = d["robots"]["continue"]
         .as_str()
         .context("a continue token")?;
@@ -221,8 +228,10 @@ async fn refusals_and_mutations(
         &format!(r#"{{ robots(namespace: "{other}") {{ items {{ name }} }} }}"#),
     )
     .await?;
+    // The code starts the message once ("forbidden: this needs ..."), not twice.
     ensure!(
         code == "forbidden"
+            && message.starts_with("forbidden: this needs ")
             && message.contains(&format!("list robots.fleet.lekiwi.io in namespace {other}")),
         "{message}"
     );
@@ -494,6 +503,79 @@ async fn connection_cap(op: &OperatorProcess, token: &str) -> Result<()> {
     Ok(())
 }
 
+/// What the HTTP side answers besides a query: a `POST` without a body and a `GET` that is no
+/// WebSocket upgrade get the Fleet API's JSON error; an answer's media type is one the OpenAPI
+/// document lists, `application/graphql-response+json` when the client's `Accept` names it.
+async fn http_answers(op: &OperatorProcess, viewer: &str) -> Result<()> {
+    let auth = format!("Bearer {viewer}");
+    let media = |hdrs: &[(String, String)]| {
+        hdrs.iter()
+            .find(|(k, _)| k == "content-type")
+            .map(|(_, v)| v.clone())
+            .unwrap_or_default()
+    };
+    let path = "/api/v1/graphql";
+    for (method, body) in [("POST", Some(&b""[..])), ("POST", None), ("GET", None)] {
+        let headers = [("authorization", auth.as_str())];
+        let (code, hdrs, raw) = http_request(op.gateway_port, method, path, &headers, body).await?;
+        let json: Value = serde_json::from_slice(&raw).unwrap_or(Value::Null);
+        ensure!(
+            code == 400
+                && media(&hdrs) == "application/json"
+                && json["error"] == "bad_request"
+                && json["message"].as_str().is_some_and(|m| !m.is_empty()),
+            "{method} {body:?}: {code} {hdrs:?} {}",
+            String::from_utf8_lossy(&raw)
+        );
+    }
+    let doc = openapi(op, viewer).await?;
+    let documented = doc["paths"][path]["post"]["responses"]["200"]["content"]
+        .as_object()
+        .map(|c| c.keys().cloned().collect::<Vec<_>>())
+        .unwrap_or_default();
+    let body = serde_json::to_vec(&json!({"query": "{ __typename }"}))?;
+    for (accept, want) in [
+        (None, "application/json"),
+        (Some("application/json"), "application/json"),
+        (
+            Some("application/graphql-response+json, application/json;q=0.9"),
+            "application/graphql-response+json",
+        ),
+    ] {
+        let mut headers = vec![("authorization", auth.as_str())];
+        headers.extend(accept.map(|a| ("accept", a)));
+        let (code, hdrs, raw) =
+            http_request(op.gateway_port, "POST", path, &headers, Some(&body)).await?;
+        let answer: Value = serde_json::from_slice(&raw)?;
+        ensure!(
+            code == 200 && answer["data"]["__typename"] == "QueryRoot",
+            "{code} {answer}"
+        );
+        ensure!(
+            media(&hdrs) == want && documented.iter().any(|d| d == want),
+            "Accept {accept:?}: answered {}, documented {documented:?}",
+            media(&hdrs)
+        );
+    }
+    Ok(())
+}
+
+/// The OpenAPI document.
+async fn openapi(op: &OperatorProcess, token: &str) -> Result<Value> {
+    let auth = format!("Bearer {token}");
+    let headers = [("authorization", auth.as_str())];
+    let (code, _, raw) = http_request(
+        op.gateway_port,
+        "GET",
+        "/api/v1/openapi.json",
+        &headers,
+        None,
+    )
+    .await?;
+    ensure!(code == 200, "{code}");
+    Ok(serde_json::from_slice(&raw)?)
+}
+
 /// A burst beyond the viewer's budget: 429 with `Retry-After`.
 async fn rate_limited(op: &OperatorProcess, viewer: &str) -> Result<()> {
     for i in 0..200 {
@@ -540,6 +622,7 @@ async fn graphql_serves_what_rbac_allows_and_streams_changes() -> Result<()> {
     queries(&op, &ns, &viewer).await?;
     refusals_and_mutations(&op, &client, (&ns, &other), (&viewer, &user, &nobody)).await?;
     limits(&op, &ns, &viewer).await?;
+    http_answers(&op, &viewer).await?;
     init_timeout(&op, &viewer).await?;
     subscription(&op, &client, &ns, &user).await?;
     connection_cap(&op, &nobody).await?;

@@ -63,6 +63,8 @@ pub enum ApiError {
     BadRequest(String),
     /// The robot does not exist.
     NotFound(String),
+    /// A request body beyond its route's limit: 413.
+    TooLarge(String),
     /// The gateway is at its connection limit.
     Unavailable(&'static str),
     /// The gateway's budget of API reads for unauthenticated requests is spent: 503 with
@@ -100,6 +102,7 @@ impl IntoResponse for ApiError {
             ApiError::Forbidden(m) => (StatusCode::FORBIDDEN, "forbidden", m),
             ApiError::BadRequest(m) => (StatusCode::BAD_REQUEST, "bad_request", m),
             ApiError::NotFound(m) => (StatusCode::NOT_FOUND, "not_found", m),
+            ApiError::TooLarge(m) => (StatusCode::PAYLOAD_TOO_LARGE, "too_large", m),
             ApiError::Unavailable(m) => {
                 (StatusCode::SERVICE_UNAVAILABLE, "unavailable", m.to_owned())
             }
@@ -245,7 +248,8 @@ impl AppState {
             kube_auth::Denied::Unauthenticated => self.refused(Refusal::WrongToken),
             kube_auth::Denied::Forbidden(permission) => {
                 self.count_refusal("forbidden");
-                ApiError::Forbidden(format!("forbidden: this needs {permission}"))
+                // The code (`forbidden`) is the body's `error`; GraphQL puts it before the message.
+                ApiError::Forbidden(format!("this needs {permission}"))
             }
             kube_auth::Denied::Unavailable(detail) => ApiError::Internal(detail),
             kube_auth::Denied::Throttled => self.refused(Refusal::Throttled),

@@ -11,7 +11,7 @@ use jiff::{SignedDuration, Timestamp};
 use serde::Deserialize;
 
 use super::robots::Page;
-use super::{authorize, bad_query, check_names, page_size};
+use super::{authorize, bad_query, check_names, page_size, ready};
 use crate::gateway::event_store::{RobotKey, SampleCursor, StoredEvent, StoredSample, TimeRange};
 use crate::gateway::kube_auth::Access;
 use crate::gateway::{ApiError, AppState};
@@ -24,18 +24,28 @@ const DEFAULT_SPAN: SignedDuration = SignedDuration::from_hours(1);
 #[serde(deny_unknown_fields)]
 pub struct HistoryQuery {
     /// Start of the range (RFC 3339, included); default one hour before `until` or now.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) since: Option<String>,
     /// End of the range (RFC 3339, excluded); default: no end.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) until: Option<String>,
     /// Only samples of this metric (telemetry only).
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) metric: Option<String>,
     /// Page size.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) limit: Option<u32>,
     /// Token of the page to resume after.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) r#continue: Option<String>,
 }
 
 impl HistoryQuery {
+    /// The `continue` token, if any: an empty one asks for the first page.
+    fn resume(&self) -> Option<&str> {
+        self.r#continue.as_deref().filter(|t| !t.is_empty())
+    }
+
     fn range(&self) -> Result<TimeRange, ApiError> {
         let until = self
             .until
@@ -65,7 +75,9 @@ fn timestamp(param: &str, text: &str) -> Result<Timestamp, ApiError> {
     })
 }
 
-/// The robot named by the path, once the caller may `get` its `subresource`.
+/// The robot named by the path, once the caller may `get` its `subresource`; 404 when the
+/// gateway holds no such Robot (checked after the permission, so a 404 tells nothing to someone
+/// who may not read it), whatever the store still keeps of it.
 async fn allowed_robot(
     state: &AppState,
     headers: &HeaderMap,
@@ -79,6 +91,12 @@ async fn allowed_robot(
         ..Access::new("get", "robots", &namespace)
     };
     authorize(state, headers, Some(access)).await?;
+    ready(&state.fleet.robots)?;
+    if state.fleet.robots.get(&namespace, &name).is_none() {
+        return Err(ApiError::NotFound(format!(
+            "robot {namespace}/{name} not found"
+        )));
+    }
     Ok(RobotKey::new(namespace, name))
 }
 
@@ -107,7 +125,7 @@ pub(crate) async fn read_events(
         ));
     }
     let (range, limit) = (query.range()?, page_size(query.limit)?);
-    let after = match query.r#continue.as_deref() {
+    let after = match query.resume() {
         None => None,
         Some(t) => Some(t.parse::<u64>().map_err(|_| invalid_continue())?),
     };
@@ -147,7 +165,7 @@ pub(crate) async fn read_telemetry(
     query: &HistoryQuery,
 ) -> Result<Page<StoredSample>, ApiError> {
     let (range, limit) = (query.range()?, page_size(query.limit)?);
-    let after = query.r#continue.as_deref().map(sample_cursor).transpose()?;
+    let after = query.resume().map(sample_cursor).transpose()?;
     let mut rows = state
         .shared
         .store

@@ -157,6 +157,20 @@ pub(crate) async fn authorize(
     Ok(name)
 }
 
+/// An optional query parameter that counts as absent when empty (`continue=`), as the
+/// Kubernetes API server takes its list parameters.
+pub(crate) fn blank_is_none<'de, D, T>(d: D) -> Result<Option<T>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+    T: std::str::FromStr,
+    T::Err: std::fmt::Display,
+{
+    match <Option<String> as serde::Deserialize>::deserialize(d)? {
+        Some(text) if !text.is_empty() => text.parse().map(Some).map_err(serde::de::Error::custom),
+        _ => Ok(None),
+    }
+}
+
 /// A malformed query string, as a 400 that says what is wrong.
 pub(crate) fn bad_query(rejection: QueryRejection) -> ApiError {
     ApiError::BadRequest(rejection.body_text())
@@ -203,9 +217,12 @@ pub(crate) fn continue_after(key: &cache::Key) -> String {
     hex::encode(format!("{}/{}", key.0, key.1))
 }
 
-/// The key a `continue` token resumes after; 400 for a token we did not make.
+/// The key a `continue` token resumes after (none for an empty one, the first page); 400 for a
+/// token we did not make.
 pub(crate) fn resume_key(token: Option<&str>) -> Result<Option<cache::Key>, ApiError> {
-    let Some(token) = token else { return Ok(None) };
+    let Some(token) = token.filter(|t| !t.is_empty()) else {
+        return Ok(None);
+    };
     hex::decode(token)
         .ok()
         .and_then(|b| String::from_utf8(b).ok())

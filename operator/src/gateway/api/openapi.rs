@@ -115,7 +115,7 @@ fn page_params() -> Vec<Value> {
         param(
             "continue",
             "query",
-            "The `continue` token of the previous page (same filters).",
+            "The `continue` token of the previous page (same filters); empty or absent: the first page.",
             json!({"type": "string"}),
         ),
     ]
@@ -233,9 +233,9 @@ fn build() -> Value {
             paths::NAMESPACED_ROBOTS: {"get": op("Robots of a namespace.", "list robots",
                 listed(true, robot_filters()), page_of("Robot"))},
             paths::ROBOT: {"get": op("One robot and its latest vitals.", "get robots", named(vec![]), schema("RobotView"))},
-            paths::ROBOT_EVENTS: {"get": op("A robot's stored events, ascending seq.", "get robots/events",
+            paths::ROBOT_EVENTS: {"get": op("A robot's stored events, ascending seq (404 for a robot the gateway does not hold).", "get robots/events",
                 named([history_params(false), page_params()].concat()), page_of("StoredEvent"))},
-            paths::ROBOT_TELEMETRY: {"get": op("A robot's stored telemetry samples, oldest first.", "get robots/telemetry",
+            paths::ROBOT_TELEMETRY: {"get": op("A robot's stored telemetry samples, oldest first (404 for a robot the gateway does not hold).", "get robots/telemetry",
                 named([history_params(true), page_params()].concat()), page_of("StoredSample"))},
             paths::ROLLOUTS: {"get": op("RobotDeployments of every namespace.", "list robotdeployments in all namespaces",
                 listed(false, vec![]), page_of("RobotDeployment"))},
@@ -262,10 +262,20 @@ fn graphql() -> Value {
         vec![],
         json!({"type": "object", "properties": {"data": {"type": "object", "nullable": true}, "errors": {"type": "array", "items": {"type": "object"}}}}),
     );
-    post["requestBody"] = json!({"required": true, "content": {"application/json": {"schema": {
+    post["requestBody"] = json!({"required": true,
+        "description": "At most --graphql-max-body-bytes (default 65536) bytes; beyond, 413.",
+        "content": {"application/json": {"schema": {
         "type": "object", "required": ["query"], "properties": {
             "query": {"type": "string"}, "variables": {"type": "object", "nullable": true},
             "operationName": {"type": "string", "nullable": true}}}}}});
+    // The same answer under either media type: `application/graphql-response+json` when the
+    // request's Accept names it (GraphQL over HTTP), `application/json` otherwise.
+    let ok = post["responses"]["200"]["content"]["application/json"].clone();
+    post["responses"]["200"] = json!({
+        "description": "GraphQL's answer, errors of fields and of the query included.",
+        "content": {"application/json": ok.clone(), (super::graphql::GRAPHQL_RESPONSE): ok}});
+    post["responses"]["413"] = json!({"description": "The body is longer than --graphql-max-body-bytes.",
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}});
     let mut get = op(
         "Subscriptions (robotChanges, rolloutProgress): a WebSocket with subprotocol `graphql-transport-ws`, the token as `{\"authorization\": \"Bearer TOKEN\"}` in the `connection_init` payload (closed with 4408 when none comes in time, 1002 when refused).",
         "an authenticated user, and per subscription the permission of its REST route",
@@ -278,6 +288,8 @@ fn graphql() -> Value {
         "101".into(),
         json!({"description": "Switching to the WebSocket protocol graphql-transport-ws."}),
     );
+    responses["400"]["description"] =
+        "No WebSocket upgrade, or a subprotocol other than graphql-transport-ws.".into();
     json!({"post": post, "get": get})
 }
 
@@ -287,7 +299,7 @@ fn components() -> Value {
             "description": "Any token the Kubernetes API server accepts (kubectl create token, a kubeconfig's token, OIDC)."}},
         "schemas": {
             "Error": {"type": "object", "required": ["error", "message"], "properties": {
-                "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, method_not_allowed, rate_limited, unavailable, internal."},
+                "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, method_not_allowed, too_large, rate_limited, unavailable, internal."},
                 "message": {"type": "string"}}},
             "Access": {"type": "object", "required": ["user", "namespace", "allowed"], "properties": {
                 "user": {"type": "string", "description": "The username the API server gave the token."},

@@ -25,14 +25,19 @@ static NO_LABELS: std::collections::BTreeMap<String, String> = std::collections:
 #[serde(deny_unknown_fields, rename_all = "camelCase")]
 pub struct ListQuery {
     /// Label selector, as `kubectl get -l` takes it.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) label_selector: Option<String>,
     /// Only robots in this phase.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) phase: Option<String>,
     /// Only robots reporting that they run this release version.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) release: Option<String>,
     /// Page size.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) limit: Option<u32>,
     /// Token of the page to resume after.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) r#continue: Option<String>,
 }
 

@@ -31,8 +31,10 @@ const FIELD_MANAGER: &str = "lekiwi-fleet-api";
 #[serde(deny_unknown_fields)]
 pub struct ListQuery {
     /// Page size.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) limit: Option<u32>,
     /// Token of the page to resume after.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     pub(crate) r#continue: Option<String>,
 }
 

@@ -31,8 +31,10 @@ pub const NONE: &str = "(none)";
 #[serde(deny_unknown_fields, rename_all = "camelCase")]
 pub struct SummaryQuery {
     /// Label selector, as `kubectl get -l` takes it.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     label_selector: Option<String>,
     /// Only robots reporting that they run this release version.
+    #[serde(default, deserialize_with = "super::blank_is_none")]
     release: Option<String>,
 }
 

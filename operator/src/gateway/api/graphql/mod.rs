@@ -8,8 +8,11 @@
 //! run; introspection is open to authenticated callers only (there is no unauthenticated
 //! request). Subscriptions ([`subscribe`]) share the caches' broadcasts.
 
+mod http;
 mod query;
 mod subscribe;
+
+pub use self::http::{GRAPHQL_RESPONSE, post};
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -17,12 +20,12 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use async_graphql::{Data, ErrorExtensions, Schema};
-use async_graphql_axum::rejection::GraphQLRejection;
-use async_graphql_axum::{GraphQLProtocol, GraphQLRequest, GraphQLResponse, GraphQLWebSocket};
+use async_graphql_axum::{GraphQLProtocol, GraphQLWebSocket};
 use axum::extract::State;
+use axum::extract::ws::rejection::WebSocketUpgradeRejection;
 use axum::extract::ws::{CloseFrame, Message, WebSocketUpgrade};
-use axum::http::HeaderMap;
-use axum::response::{IntoResponse, Response};
+use axum::http::{HeaderMap, StatusCode};
+use axum::response::Response;
 use futures::{SinkExt, StreamExt};
 use tokio::sync::Semaphore;
 
@@ -39,6 +42,12 @@ pub struct GraphQlConfig {
     /// before they run.
     #[arg(long, env = "LEKIWI_GRAPHQL_MAX_DEPTH", default_value_t = 10)]
     pub graphql_max_depth: usize,
+
+    /// Largest GraphQL request, in bytes: a `POST` body (beyond, 413 with a JSON error) or a
+    /// WebSocket message (beyond, the socket is closed). Parsing a query takes time in
+    /// proportion to its length; this bounds what one request can cost.
+    #[arg(long, env = "LEKIWI_GRAPHQL_MAX_BODY_BYTES", default_value_t = 65_536)]
+    pub graphql_max_body_bytes: usize,
 
     /// Highest GraphQL query complexity allowed: each field counts 1, a list counts its `limit`
     /// times its items' fields.
@@ -76,13 +85,14 @@ pub struct GraphQlConfig {
     pub graphql_init_timeout_seconds: u64,
 }
 
-/// The schema and what bounds its WebSockets.
+/// The schema and what bounds its requests and WebSockets.
 pub struct GraphQl {
     schema: Schema<QueryRoot, MutationRoot, SubscriptionRoot>,
     connections: Arc<Semaphore>,
     subscriptions: Arc<subscribe::PerUser>,
     sockets: Arc<subscribe::PerUser>,
     init_timeout: Duration,
+    max_body_bytes: usize,
 }
 
 impl GraphQl {
@@ -106,6 +116,7 @@ impl GraphQl {
                 held: Mutex::new(HashMap::new()),
             }),
             init_timeout: Duration::from_secs(config.graphql_init_timeout_seconds.max(1)),
+            max_body_bytes: config.graphql_max_body_bytes.max(1),
         }
     }
 
@@ -122,46 +133,39 @@ pub(crate) struct Caller {
     user: String,
 }
 
-/// `POST /api/v1/graphql`: a query or mutation, once the token is accepted and its user within
-/// budget (401, 429 as for every Fleet API route); a malformed body is 400 after that.
-pub async fn post(
-    State(state): State<AppState>,
-    headers: HeaderMap,
-    request: Result<GraphQLRequest, GraphQLRejection>,
-) -> Result<GraphQLResponse, Response> {
-    let user = authorize(&state, &headers, None)
-        .await
-        .map_err(IntoResponse::into_response)?;
-    let request = request.map_err(IntoResponse::into_response)?.into_inner();
-    let token = crate::gateway::bearer(&headers)
-        .unwrap_or_default()
-        .to_owned();
-    let gql = state.fleet.graphql.clone();
-    let request = request.data(Caller { token, user }).data(state);
-    Ok(gql.schema.execute(request).await.into())
-}
-
-/// `GET /api/v1/graphql`: the `graphql-transport-ws` WebSocket (400 for another subprotocol,
-/// 503 at the connection limit). The token comes in `connection_init`; a refused one closes the
-/// socket with code 1002 and the reason (`unauthorized: ...`, `forbidden: ...`,
-/// `rate_limited: ...`).
+/// `GET /api/v1/graphql`: the `graphql-transport-ws` WebSocket (400 for a request that is no
+/// WebSocket upgrade or offers another subprotocol, 503 at the connection limit). The token
+/// comes in `connection_init`; a refused one closes the socket with code 1002 and the reason
+/// (`unauthorized: ...`, `forbidden: ...`, `rate_limited: ...`). A message longer than
+/// `--graphql-max-body-bytes` ends the connection.
 pub async fn websocket(
     State(state): State<AppState>,
     headers: HeaderMap,
-    protocol: GraphQLProtocol,
-    upgrade: WebSocketUpgrade,
+    protocol: Result<GraphQLProtocol, StatusCode>,
+    upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
 ) -> Result<Response, ApiError> {
-    if !transport_ws(&headers) {
+    let Ok(upgrade) = upgrade else {
         return Err(ApiError::BadRequest(
-            "the only WebSocket subprotocol is graphql-transport-ws".into(),
+            "GET /api/v1/graphql is the subscriptions' WebSocket (subprotocol \
+             graphql-transport-ws); POST queries and mutations"
+                .into(),
         ));
-    }
+    };
+    let protocol = match protocol {
+        Ok(p) if transport_ws(&headers) => p,
+        _ => {
+            return Err(ApiError::BadRequest(
+                "the only WebSocket subprotocol is graphql-transport-ws".into(),
+            ));
+        }
+    };
     let gql = state.fleet.graphql.clone();
     let permit = gql.connections.clone().try_acquire_owned().map_err(|_| {
         ApiError::Unavailable("the gateway is at its GraphQL connection limit; retry later")
     })?;
     let schema = gql.schema.clone();
     let init_timeout = gql.init_timeout;
+    let max_message = gql.max_body_bytes;
     // The user's WebSocket slot, taken at `connection_init`, given back when the socket ends.
     let slot = Arc::new(Mutex::new(None));
     let held = slot.clone();
@@ -169,6 +173,8 @@ pub async fn websocket(
     data.insert(state.clone());
     Ok(upgrade
         .protocols(["graphql-transport-ws"])
+        .max_message_size(max_message)
+        .max_frame_size(max_message)
         .on_upgrade(move |socket| async move {
             let (mut sink, stream) = socket.split();
             let initialised = Arc::new(AtomicBool::new(false));
@@ -254,6 +260,7 @@ pub(crate) fn refusal(e: ApiError) -> async_graphql::Error {
         ApiError::Forbidden(m) => ("forbidden", m),
         ApiError::BadRequest(m) => ("bad_request", m),
         ApiError::NotFound(m) => ("not_found", m),
+        ApiError::TooLarge(m) => ("too_large", m),
         ApiError::Unavailable(m) | ApiError::Throttled(m) => ("unavailable", m.to_owned()),
         ApiError::RateLimited(s)
         | ApiError::TooManySessions(s)
