@@ -31,7 +31,7 @@ pub async fn post(
     let user = authorize(&state, &headers, None).await?;
     let gql = state.fleet.graphql.clone();
     let bytes = read(&headers, body, gql.max_body_bytes).await?;
-    let request = decode(&bytes)?;
+    let request = gql.guard.run(|| decode(&bytes)).await?;
     let token = bearer(&headers).unwrap_or_default().to_owned();
     let request = request.data(Caller { token, user }).data(state);
     let response = gql.schema.execute(request).await;

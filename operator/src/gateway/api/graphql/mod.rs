@@ -4,10 +4,13 @@
 //! `connection_init` payload `{"authorization": "Bearer <token>"}` (browsers cannot set headers
 //! on WebSockets). Every request, and every WebSocket, costs its user one request of the
 //! per-user budget; each field checks the caller's RBAC (a cached `SubjectAccessReview`) for its
-//! namespace and verb. Queries deeper or more complex than configured are refused before they
-//! run; introspection is open to authenticated callers only (there is no unauthenticated
-//! request). Subscriptions ([`subscribe`]) share the caches' broadcasts.
+//! namespace and verb. A request is at most `--graphql-max-body-bytes` long; it is parsed and
+//! validated off the async runtime, and queries deeper or more complex than configured are
+//! refused before they run ([`guard`]); introspection is open to authenticated callers only
+//! (there is no unauthenticated request). Subscriptions ([`subscribe`]) share the caches'
+//! broadcasts.
 
+mod guard;
 mod http;
 mod query;
 mod subscribe;
@@ -38,8 +41,8 @@ use crate::gateway::{ApiError, AppState};
 /// The GraphQL endpoint's limits (`lekiwi-operator --help`).
 #[derive(Clone, Debug, clap::Args)]
 pub struct GraphQlConfig {
-    /// Deepest GraphQL selection allowed (fields nested in fields); deeper queries are refused
-    /// before they run.
+    /// Deepest GraphQL selection allowed (fields nested in fields; introspection's `ofType` does
+    /// not count); deeper queries are refused before they run.
     #[arg(long, env = "LEKIWI_GRAPHQL_MAX_DEPTH", default_value_t = 10)]
     pub graphql_max_depth: usize,
 
@@ -49,8 +52,9 @@ pub struct GraphQlConfig {
     #[arg(long, env = "LEKIWI_GRAPHQL_MAX_BODY_BYTES", default_value_t = 65_536)]
     pub graphql_max_body_bytes: usize,
 
-    /// Highest GraphQL query complexity allowed: each field counts 1, a list counts its `limit`
-    /// times its items' fields.
+    /// Highest GraphQL query complexity allowed: a field counts 1 plus what is selected in it;
+    /// a paged field (robots, rollouts, events, telemetry) 1 plus its `limit` times what is
+    /// selected in it (its items' fields and `continue`).
     #[arg(long, env = "LEKIWI_GRAPHQL_MAX_COMPLEXITY", default_value_t = 20_000)]
     pub graphql_max_complexity: usize,
 
@@ -88,6 +92,7 @@ pub struct GraphQlConfig {
 /// The schema and what bounds its requests and WebSockets.
 pub struct GraphQl {
     schema: Schema<QueryRoot, MutationRoot, SubscriptionRoot>,
+    guard: Arc<guard::Guard>,
     connections: Arc<Semaphore>,
     subscriptions: Arc<subscribe::PerUser>,
     sockets: Arc<subscribe::PerUser>,
@@ -98,12 +103,18 @@ pub struct GraphQl {
 impl GraphQl {
     /// The schema with `config`'s limits.
     pub fn new(config: &GraphQlConfig) -> Self {
+        // The depth limit is the guard's (introspection's `ofType` does not count).
+        let guard = Arc::new(guard::Guard::new(
+            config.graphql_max_depth,
+            config.graphql_max_complexity,
+        ));
         let schema = Schema::build(QueryRoot, MutationRoot, SubscriptionRoot)
-            .limit_depth(config.graphql_max_depth)
             .limit_complexity(config.graphql_max_complexity)
+            .extension(guard::Guarded(guard.clone()))
             .finish();
         Self {
             schema,
+            guard,
             connections: Arc::new(Semaphore::new(config.graphql_max_connections)),
             subscriptions: Arc::new(subscribe::PerUser {
                 what: "subscriptions",
@@ -290,4 +301,96 @@ pub(crate) async fn allowed<'a>(
         .await
         .map_err(|d| refusal(state.denied(d)))?;
     Ok((state, caller))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Instant;
+
+    use super::*;
+
+    /// The query GraphiQL, Apollo and code generators send first.
+    const INTROSPECTION: &str = include_str!(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../tests/fixtures/introspection.graphql"
+    ));
+
+    fn defaults() -> GraphQlConfig {
+        #[derive(clap::Parser)]
+        struct Flags {
+            #[command(flatten)]
+            graphql: GraphQlConfig,
+        }
+        <Flags as clap::Parser>::parse_from(["lekiwi-operator"]).graphql
+    }
+
+    /// The messages of the errors `query` is answered with (no caller: fields that run fail).
+    async fn errors(config: &GraphQlConfig, query: &str) -> Vec<String> {
+        let response = GraphQl::new(config).schema.execute(query).await;
+        response.errors.into_iter().map(|e| e.message).collect()
+    }
+
+    #[tokio::test]
+    async fn the_standard_introspection_query_passes_the_default_limits() {
+        let response = GraphQl::new(&defaults())
+            .schema
+            .execute(INTROSPECTION)
+            .await;
+        assert!(response.errors.is_empty(), "{:?}", response.errors);
+        let data = response.data.into_json().unwrap();
+        let types = data["__schema"]["types"].as_array().unwrap();
+        assert!(types.iter().any(|t| t["name"] == "Robot"), "{data}");
+    }
+
+    #[tokio::test]
+    async fn deeper_queries_are_still_refused() {
+        let too_deep = ["Query is nested too deep.".to_owned()];
+        // Introspection that fans out (types, their fields' types' fields, ...): 11 deep.
+        let fanned = "{ __schema { types { fields { type { fields { type { fields { type { \
+                      fields { type { name } } } } } } } } } } }";
+        assert_eq!(errors(&defaults(), fanned).await, too_deep);
+        let config = GraphQlConfig {
+            graphql_max_depth: 4,
+            ..defaults()
+        };
+        let deep = "{ robots(limit: 1) { items { events(limit: 1) { items { seq } } } } }";
+        assert_eq!(errors(&config, deep).await, too_deep);
+    }
+
+    #[tokio::test]
+    async fn a_paged_field_costs_one_plus_its_limit_times_its_selection() {
+        // The README's example: 1 + 50 × (items 1 + name 1 + phase 1, continue 1) = 201.
+        let query = "{ robots(limit: 50) { items { name phase } continue } }";
+        for (max, refused) in [(201, false), (200, true)] {
+            let config = GraphQlConfig {
+                graphql_max_complexity: max,
+                ..defaults()
+            };
+            let errors = errors(&config, query).await;
+            let too_complex = errors.iter().any(|e| e == "Query is too complex.");
+            assert_eq!(too_complex, refused, "at most {max}: {errors:?}");
+        }
+    }
+
+    #[tokio::test]
+    async fn a_fragment_bomb_is_refused_before_it_is_walked() {
+        // 1.3 KB whose fragments expand to 2^26 fields.
+        let mut bomb = String::from("{ ...F26 } fragment F0 on QueryRoot { __typename }");
+        for i in 1..=26 {
+            let p = i - 1;
+            bomb.push_str(&format!(
+                " fragment F{i} on QueryRoot {{ ...F{p} ...F{p} }}"
+            ));
+        }
+        let started = Instant::now();
+        assert_eq!(
+            errors(&defaults(), &bomb).await,
+            ["Query is too complex.".to_owned()]
+        );
+        assert!(
+            started.elapsed() < Duration::from_secs(5),
+            "{:?}",
+            started.elapsed()
+        );
+    }
 }

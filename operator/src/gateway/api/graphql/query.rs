@@ -19,10 +19,11 @@ use crate::gateway::api::{DEFAULT_LIMIT, check_names, robots, rollouts};
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::kube_auth::Access;
 
-/// A list field's cost: its items' cost times the page size asked for.
+/// A paged field's cost: 1, plus the page size asked for times what is selected in it (its
+/// `items` with their fields, and `continue`), so that a query costs at least 1 per field.
 fn page_cost(limit: Option<i32>, child: usize) -> usize {
     let n = limit.map_or(DEFAULT_LIMIT as usize, |n| n.clamp(1, 1000) as usize);
-    n.saturating_mul(child)
+    n.saturating_mul(child).saturating_add(1)
 }
 
 /// A GraphQL `limit` as the REST routes take it (out of range is refused there).
