@@ -81,7 +81,13 @@ async fn agent_enrolls_keeps_its_token_and_reconnects_with_backoff() -> anyhow::
     })
     .await
     .map_err(|e| anyhow::anyhow!("{e}\nagent log:\n{}", agent.log_text()))?;
+    // The gateway may write Online before the agent has read its `welcome` and saved the
+    // token it enrolled with: wait for the file, then check it.
     let creds = state.join("credentials.json");
+    wait_for("the saved credentials", T, || async {
+        creds.exists().then_some(())
+    })
+    .await?;
     let mode = std::fs::metadata(&creds)?.permissions().mode() & 0o777;
     assert_eq!(mode, 0o600, "the token file is private");
     let saved: Value = serde_json::from_slice(&std::fs::read(&creds)?)?;
