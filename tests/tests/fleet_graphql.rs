@@ -1,7 +1,7 @@
 //! The Fleet API's GraphQL endpoint (`/api/v1/graphql`, issue 15) against the real API server,
 //! with ServiceAccounts bound to the chart's `lekiwi-viewer` and `lekiwi-operator-user`: a viewer
-//! queries robots (filtered, with vitals and events), rollouts with their per-robot progress, and
-//! the schema (introspection); another namespace is refused; a viewer's mutation is refused and
+//! queries robots (filtered, with vitals and events, whose `seq` and `tsMs` are `BigInt`
+//! strings), rollouts with their per-robot progress, and the schema (introspection); another namespace is refused; a viewer's mutation is refused and
 //! an operator user's pauses the rollout; a subscription over `graphql-transport-ws` (the token
 //! in `connection_init`) sees a simulated robot go Online, then Offline, another a rollout's
 //! progress, and a third is over the user's cap; a user's third WebSocket is over their cap of
@@ -19,6 +19,7 @@ use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
 use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::{Robot, RobotDeployment};
+use lekiwi_operator::gateway::event_store::{RobotKey, StoredEvent};
 use lekiwi_tests::graphql::{Ws, connect, next, open, subscribe};
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, account, chart_roles, connect_agent, create_robot,
@@ -171,6 +172,7 @@ async fn queries(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
         d["robot"]["labels"]["room"] == "b1" && d["robot"]["events"]["items"] == json!([]),
         "{d}"
     );
+    big_ints(op, ns, viewer).await?;
     let q = format!(
         r#"{{ rollout(namespace: "{ns}", name: "v2") {{ release agent paused phase targeted updated robots }}
             agentRollout: rollout(namespace: "{ns}", name: "agent-v3") {{ release agent }} }}"#
@@ -211,6 +213,43 @@ async fn queries(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
         d["__schema"]["subscriptionType"]["name"] == "SubscriptionRoot",
         "{d}"
     );
+    Ok(())
+}
+
+/// `seq` and `tsMs` are `BigInt`s, strings of digits, not 32-bit `Int`s a typed client would
+/// overflow on: an event stored with a sequence number and a time beyond 2^31 - 1 reads back
+/// exactly.
+async fn big_ints(op: &OperatorProcess, ns: &str, viewer: &str) -> Result<()> {
+    let now = jiff::Timestamp::now().as_millisecond();
+    let seq = 3_000_000_000_u64;
+    let event = StoredEvent {
+        seq,
+        ts_ms: now,
+        kind: "note".into(),
+        severity: "info".into(),
+        message: "late in life".into(),
+        data: json!({}),
+    };
+    let robot = RobotKey::new(ns, "kiwi-2");
+    op.event_store().await?.insert_event(&robot, &event).await?;
+    let q = format!(
+        r#"{{ robot(namespace: "{ns}", name: "kiwi-2") {{ events {{ items {{ seq tsMs message }} }} }}
+            __type(name: "Event") {{ fields {{ name type {{ ofType {{ name kind }} }} }} }} }}"#
+    );
+    let d = data(op, viewer, &q).await?;
+    let item = &d["robot"]["events"]["items"][0];
+    ensure!(
+        item["seq"] == json!(seq.to_string()) && item["tsMs"] == json!(now.to_string()),
+        "{d}"
+    );
+    let fields = d["__type"]["fields"].as_array().context("Event's fields")?;
+    for name in ["seq", "tsMs"] {
+        let field = fields.iter().find(|f| f["name"] == name).context(name)?;
+        ensure!(
+            field["type"]["ofType"] == json!({"name": "BigInt", "kind": "SCALAR"}),
+            "{field}"
+        );
+    }
     Ok(())
 }
 

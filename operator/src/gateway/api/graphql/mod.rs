@@ -13,6 +13,7 @@
 mod guard;
 mod http;
 mod query;
+mod scalar;
 mod subscribe;
 
 pub use self::http::{GRAPHQL_RESPONSE, post};
@@ -340,6 +341,18 @@ mod tests {
         let data = response.data.into_json().unwrap();
         let types = data["__schema"]["types"].as_array().unwrap();
         assert!(types.iter().any(|t| t["name"] == "Robot"), "{data}");
+    }
+
+    #[test]
+    fn sixty_four_bit_fields_are_big_ints() {
+        let sdl = GraphQl::new(&defaults()).sdl();
+        for field in ["seq: BigInt!", "tsMs: BigInt!", "scalar BigInt"] {
+            assert!(sdl.contains(field), "{field} missing from {sdl}");
+        }
+        assert!(
+            !sdl.contains("tsMs: Int") && !sdl.contains("seq: Int"),
+            "{sdl}"
+        );
     }
 
     #[tokio::test]

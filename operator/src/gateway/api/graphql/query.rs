@@ -13,6 +13,7 @@ use lekiwi_crds::robot::TelemetrySummary;
 use lekiwi_crds::{Robot, RobotDeployment};
 use serde_json::{Value, json};
 
+use super::scalar::BigInt;
 use super::{allowed, refusal};
 use crate::gateway::api::history::{self, HistoryQuery};
 use crate::gateway::api::{DEFAULT_LIMIT, check_names, robots, rollouts};
@@ -126,8 +127,8 @@ impl RobotObject {
                 .items
                 .into_iter()
                 .map(|e| Event {
-                    seq: e.seq,
-                    ts_ms: e.ts_ms,
+                    seq: e.seq.into(),
+                    ts_ms: e.ts_ms.into(),
                     kind: e.kind,
                     severity: e.severity,
                     message: e.message,
@@ -165,9 +166,9 @@ impl RobotObject {
                 .items
                 .into_iter()
                 .map(|s| Sample {
-                    seq: s.seq,
+                    seq: s.seq.into(),
                     metric: s.metric,
-                    ts_ms: s.ts_ms,
+                    ts_ms: s.ts_ms.into(),
                     value: s.value,
                 })
                 .collect(),
@@ -198,9 +199,9 @@ impl RobotObject {
 #[derive(SimpleObject)]
 pub struct Event {
     /// The robot's sequence number, shared with telemetry.
-    seq: u64,
-    /// When it happened on the robot, Unix milliseconds.
-    ts_ms: i64,
+    seq: BigInt,
+    /// When it happened on the robot: Unix time in milliseconds.
+    ts_ms: BigInt,
     kind: String,
     severity: String,
     message: String,
@@ -210,9 +211,11 @@ pub struct Event {
 /// One stored telemetry sample.
 #[derive(SimpleObject)]
 pub struct Sample {
-    seq: u64,
+    /// The sequence number of the robot's telemetry message that carried it.
+    seq: BigInt,
     metric: String,
-    ts_ms: i64,
+    /// When it was measured on the robot: Unix time in milliseconds.
+    ts_ms: BigInt,
     value: f64,
 }
 
