@@ -162,8 +162,8 @@ persistence:
   annotations: {backup: daily}
 podDisruptionBudget: {enabled: true, minAvailable: 2, maxUnavailable: null}
 otel:
-  endpoint: http://otel-collector.observability:4317
-  protocol: grpc
+  endpoint: http://otel-collector.observability:4318
+  protocol: http/json
   serviceName: lekiwi-fleet
   resourceAttributes: {deployment.environment: prod}
 extraEnv: [{name: LEKIWI_AGENT_RATE, value: "10"}]
@@ -259,9 +259,9 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
     );
     assert_eq!(
         var("OTEL_EXPORTER_OTLP_ENDPOINT")["value"],
-        "http://otel-collector.observability:4317"
+        "http://otel-collector.observability:4318"
     );
-    assert_eq!(var("OTEL_EXPORTER_OTLP_PROTOCOL")["value"], "grpc");
+    assert_eq!(var("OTEL_EXPORTER_OTLP_PROTOCOL")["value"], "http/json");
     assert_eq!(var("OTEL_SERVICE_NAME")["value"], "lekiwi-fleet");
     assert!(
         var("OTEL_RESOURCE_ATTRIBUTES")["value"]
