@@ -29,6 +29,10 @@ pub(super) struct Rollout<'a> {
     pub generation: Option<i64>,
     /// When a user asked for `rollout undo`, if they did.
     pub undo_at: Option<Timestamp>,
+    /// When this rollout started, to the millisecond (from its id; `status.startTime` keeps
+    /// whole seconds only, so an undo of the previous rollout in the same second would look
+    /// newer than this one).
+    pub started: Option<Timestamp>,
     /// The status as read (transition times and finish times are kept from it).
     pub previous: RobotDeploymentStatus,
     /// Whether the status as read was of an unfinished rollout (so finishing now is news).
@@ -67,6 +71,10 @@ impl<'a> Rollout<'a> {
         } else {
             previous.rollout_id.clone().unwrap_or_default()
         };
+        let started = id
+            .rsplit_once('-')
+            .and_then(|(_, ms)| i64::from_str_radix(ms, 16).ok())
+            .and_then(|ms| Timestamp::from_millisecond(ms).ok());
         let was_active = matches!(
             previous.phase,
             None | Some(
@@ -85,6 +93,7 @@ impl<'a> Rollout<'a> {
             paused: spec.paused,
             generation: deployment.metadata.generation,
             undo_at: annotation(UNDO_ANNOTATION).and_then(|v| v.parse::<Timestamp>().ok()),
+            started,
             previous,
             was_active,
             now,

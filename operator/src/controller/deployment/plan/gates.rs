@@ -25,10 +25,12 @@ impl<'a> Gates<'a> {
         draft
             .conditions
             .push(conflict_condition(older_overlap, rollout.generation));
-        let started = draft.status.start_time.as_ref();
+        let started = rollout
+            .started
+            .or_else(|| draft.status.start_time.as_ref().map(|t| t.0));
         let undo_requested = rollout
             .undo_at
-            .is_some_and(|at| started.is_none_or(|s| at > s.0));
+            .is_some_and(|at| started.is_none_or(|s| at > s));
         Self {
             release_ok,
             older_overlap,

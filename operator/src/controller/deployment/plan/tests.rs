@@ -105,7 +105,9 @@ impl Sim {
                 r.desired = w.release.clone();
             }
         }
-        self.d.status = Some(plan.status.clone());
+        // As the API server keeps it: times to the whole second.
+        let stored = serde_json::to_value(&plan.status).unwrap();
+        self.d.status = Some(serde_json::from_value(stored).unwrap());
         self.events.extend(plan.events.iter().map(|e| e.reason));
         plan
     }
@@ -524,6 +526,37 @@ fn undo_rolls_back_a_completed_rollout_and_new_robots_join_a_completed_one() {
     sim.run_until_done(10);
     assert_eq!(sim.phase(), RolloutPhase::RolledBack);
     assert!(sim.robots.iter().all(|r| r.current == Some(rel("1"))));
+}
+
+#[test]
+fn an_undo_in_the_second_a_new_rollout_starts_is_of_the_old_rollout() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(5), 0), 3);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    // An undo at .2 s rolls 2 back; a new release at .5 s of the same second (the status
+    // keeps whole seconds) is a new rollout the undo is older than.
+    sim.now += SignedDuration::from_millis(200);
+    let at = sim.now.to_string();
+    sim.d
+        .metadata
+        .annotations
+        .get_or_insert_default()
+        .insert(UNDO_ANNOTATION.into(), at);
+    for _ in 0..10 {
+        sim.step();
+        if sim.phase() == RolloutPhase::RolledBack {
+            break;
+        }
+        sim.agents();
+    }
+    assert_eq!(sim.phase(), RolloutPhase::RolledBack);
+    sim.now += SignedDuration::from_millis(300);
+    sim.d.spec.release = Some(rel("3"));
+    let p = sim.step();
+    assert_ne!(p.status.phase, Some(RolloutPhase::RollingBack), "{p:#?}");
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert!(sim.robots.iter().all(|r| r.current == Some(rel("3"))));
 }
 
 #[test]
