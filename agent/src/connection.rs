@@ -308,3 +308,20 @@ fn answer_to_hello(text: &str) -> Option<Result<Welcome, ConnectError>> {
         _ => None,
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A session's read buffer stays small: it is resident for the connection's life, in each
+    /// of a simulator's 10,000 robots (tungstenite's default is 128 KiB).
+    #[test]
+    fn the_read_buffer_is_sized_for_small_frames() {
+        assert!(websocket_config().read_buffer_size <= 4096);
+        assert_eq!(
+            websocket_config().max_message_size,
+            WebSocketConfig::default().max_message_size,
+            "frames up to the protocol's limit still arrive"
+        );
+    }
+}
