@@ -11,6 +11,7 @@ use tokio::net::TcpStream;
 use tokio_tungstenite::tungstenite::client::IntoClientRequest;
 use tokio_tungstenite::tungstenite::handshake::client::Request;
 use tokio_tungstenite::tungstenite::http::HeaderValue;
+use tokio_tungstenite::tungstenite::protocol::WebSocketConfig;
 use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
@@ -196,7 +197,12 @@ async fn open(
     let request = upgrade_request(url, creds)?;
     match tokio::time::timeout(
         timeout,
-        tokio_tungstenite::connect_async_tls_with_config(request, None, false, connector),
+        tokio_tungstenite::connect_async_tls_with_config(
+            request,
+            Some(websocket_config()),
+            false,
+            connector,
+        ),
     )
     .await
     {
@@ -204,6 +210,17 @@ async fn open(
         Ok(Err(WsError::Http(resp))) => Err(refusal(&resp)),
         Ok(r) => Ok(r?.0),
     }
+}
+
+/// Bytes read from the socket at once. The gateway's frames are small (an ack, a command: a
+/// few hundred bytes) and the read buffer, zero-filled to this size, stays resident for the
+/// life of the connection: tungstenite's default of 128 KiB was most of a simulated robot's
+/// memory. A larger frame grows the buffer as far as it needs.
+const READ_BUFFER_BYTES: usize = 4096;
+
+/// The WebSocket settings of a session.
+fn websocket_config() -> WebSocketConfig {
+    WebSocketConfig::default().read_buffer_size(READ_BUFFER_BYTES)
 }
 
 /// The error for an HTTP answer to the upgrade: 401 is a refused token, 403 a refused
@@ -289,5 +306,22 @@ fn answer_to_hello(text: &str) -> Option<Result<Welcome, ConnectError>> {
             Some(Err(ConnectError::Refused { code, message }))
         }
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A session's read buffer stays small: it is resident for the connection's life, in each
+    /// of a simulator's 10,000 robots (tungstenite's default is 128 KiB).
+    #[test]
+    fn the_read_buffer_is_sized_for_small_frames() {
+        assert!(websocket_config().read_buffer_size <= 4096);
+        assert_eq!(
+            websocket_config().max_message_size,
+            WebSocketConfig::default().max_message_size,
+            "frames up to the protocol's limit still arrive"
+        );
     }
 }
