@@ -1,5 +1,6 @@
 //! `lekiwi-fleet`: N real agents (the agent's own run loop, one state directory each) in one
-//! process, for tests that need a fleet that installs releases.
+//! process, for tests that need a fleet that installs releases; and `lekiwi-sim`, N simulated
+//! robots (the agent's connection code, no releases) in one process.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -97,5 +98,58 @@ impl FleetProcess {
     /// A robot's state directory, e.g. for `state("kiwi-003")`.
     pub fn state(&self, robot: &str) -> PathBuf {
         self.state_root.join(robot)
+    }
+}
+
+/// A running `lekiwi-sim` process; SIGKILLed when dropped. Its log is `sim-<namespace>.log` in
+/// the test log directory.
+pub struct SimProcess {
+    process: ChildProcess,
+}
+
+impl SimProcess {
+    /// Starts `robots` simulated robots (`sim-00001` on) of `namespace` against the gateway
+    /// WebSocket URL `gateway`, enrolling with the fleet enrollment token `token`; `extra` flags
+    /// are appended as they are.
+    pub fn start(
+        gateway: &str,
+        token: &str,
+        namespace: &str,
+        robots: usize,
+        extra: &[&str],
+    ) -> Result<Self> {
+        let log = log_dir().join(format!("sim-{namespace}.log"));
+        std::fs::File::create(&log)?;
+        let mut args: Vec<String> = [
+            "--gateway",
+            gateway,
+            "--namespace",
+            namespace,
+            "--robots",
+            &robots.to_string(),
+            "--report-every",
+            "10",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let process = ChildProcess::spawn(Launch {
+            binary: "lekiwi-sim",
+            what: "sim",
+            rust_log: "warn",
+            args,
+            // Not a flag: the process list shows flags.
+            env: vec![("LEKIWI_ENROLLMENT_TOKEN".into(), token.into())],
+            log,
+            term_deadline: Duration::from_secs(10),
+            term_poll: Duration::from_millis(20),
+        })?;
+        Ok(Self { process })
+    }
+
+    /// SIGKILL: every simulated robot drops its connection at once.
+    pub fn kill(&mut self) {
+        self.process.kill();
     }
 }

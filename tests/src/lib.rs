@@ -40,7 +40,7 @@ pub use fleet::{
     create_robot, enrollment_token, enrollment_token_file, gateway_url, get_robot, robot_token,
     rollout_finished, set_agent, set_release, test_strategy, wait_online, wait_phase,
 };
-pub use fleet_process::{FleetProcess, FleetSpec};
+pub use fleet_process::{FleetProcess, FleetSpec, SimProcess};
 pub use http::{http_get, http_get_with, http_request, sample, test_ca};
 pub use operator::{OperatorProcess, gateway_operator};
 pub use site::OperatorSite;

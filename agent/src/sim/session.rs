@@ -1,6 +1,8 @@
 //! One simulated robot: connects (enrolling the first time), heartbeats, sends durable events
-//! at `--events-per-minute` from an in-memory outbox (resent after a reconnect until
-//! acknowledged, exactly like the agent's durable outbox), and reconnects with backoff.
+//! at `--events-per-minute` and telemetry batches as the agent does (its own collector, reading
+//! a synthetic world: see `Telemetry::synthetic`) from an in-memory outbox (resent after a
+//! reconnect until acknowledged, exactly like the agent's durable outbox), and reconnects with
+//! backoff. Telemetry is sampled while connected only.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
@@ -8,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use futures::{SinkExt, StreamExt};
 use lekiwi_protocol::{
-    AgentMessage, ErrorCode, Health, PROTOCOL_VERSION, Release, ServerMessage, Severity,
+    AgentMessage, ErrorCode, Health, PROTOCOL_VERSION, Release, Sample, ServerMessage, Severity,
     SystemFacts, Teleoperation, Vitals, decode, encode,
 };
 use rand::Rng;
@@ -16,13 +18,23 @@ use tokio_tungstenite::tungstenite::Message;
 
 use super::{Fleet, Stats, lock};
 use crate::connection::{ConnectError, Credentials, connect_with_ca};
+use crate::telemetry::Telemetry;
 
-/// The durable events of one robot not yet acknowledged, by `seq`, and the next `seq` to use.
-/// It lives as long as the robot's task, across sessions, as the agent's outbox does on disk.
+/// A durable message not acknowledged yet: what its frame is made from.
+pub(super) enum Durable {
+    /// An event made at this time (Unix milliseconds).
+    Event(i64),
+    /// A batch of telemetry samples.
+    Telemetry(Vec<Sample>),
+}
+
+/// The durable messages of one robot not yet acknowledged, by `seq` (one sequence for every
+/// kind, PROTOCOL.md §6), and the next `seq` to use. It lives as long as the robot's task,
+/// across sessions, as the agent's outbox does on disk.
 #[derive(Default)]
 pub(super) struct Outbox {
     next_seq: u64,
-    unacked: BTreeMap<u64, i64>,
+    unacked: BTreeMap<u64, Durable>,
 }
 
 impl Outbox {
@@ -30,15 +42,27 @@ impl Outbox {
     fn push(&mut self, stats: &Stats) -> (u64, i64) {
         self.next_seq += 1;
         let ts_ms = lekiwi_protocol::now_ms();
-        self.unacked.insert(self.next_seq, ts_ms);
+        self.unacked.insert(self.next_seq, Durable::Event(ts_ms));
         stats.events_generated.fetch_add(1, Ordering::Relaxed);
         (self.next_seq, ts_ms)
     }
 
+    /// A new telemetry batch: its `seq`, kept until acknowledged.
+    fn push_telemetry(&mut self, samples: Vec<Sample>, stats: &Stats) -> u64 {
+        self.next_seq += 1;
+        stats.telemetry_generated.fetch_add(1, Ordering::Relaxed);
+        stats
+            .samples_generated
+            .fetch_add(samples.len() as u64, Ordering::Relaxed);
+        self.unacked
+            .insert(self.next_seq, Durable::Telemetry(samples));
+        self.next_seq
+    }
+
     /// The gateway stored `seq`.
     fn ack(&mut self, seq: u64, stats: &Stats) {
-        if self.unacked.remove(&seq).is_some() {
-            stats.events_acked.fetch_add(1, Ordering::Relaxed);
+        if let Some(done) = self.unacked.remove(&seq) {
+            count_acked(&done, stats);
         }
     }
 
@@ -46,10 +70,9 @@ impl Outbox {
     fn stored_through(&mut self, stored: Option<u64>, stats: &Stats) {
         let Some(stored) = stored else { return };
         let keep = self.unacked.split_off(&(stored + 1));
-        let dropped = std::mem::replace(&mut self.unacked, keep).len();
-        stats
-            .events_acked
-            .fetch_add(dropped as u64, Ordering::Relaxed);
+        for done in std::mem::replace(&mut self.unacked, keep).values() {
+            count_acked(done, stats);
+        }
     }
 
     /// The highest `seq` acknowledged, for `hello.last_acked_seq`.
@@ -63,15 +86,29 @@ impl Outbox {
     }
 }
 
-/// The event frame for `seq`.
-fn event(name: &str, seq: u64, ts_ms: i64) -> Message {
-    Message::text(encode(&AgentMessage::Event {
-        seq,
-        ts_ms,
-        kind: "sim_tick".into(),
-        severity: Severity::Info,
-        message: format!("{name} event {seq}"),
-        data: serde_json::Value::Null,
+fn count_acked(done: &Durable, stats: &Stats) {
+    let counter = match done {
+        Durable::Event(_) => &stats.events_acked,
+        Durable::Telemetry(_) => &stats.telemetry_acked,
+    };
+    counter.fetch_add(1, Ordering::Relaxed);
+}
+
+/// The frame of the durable message `seq`.
+fn frame(name: &str, seq: u64, durable: &Durable) -> Message {
+    Message::text(encode(&match durable {
+        &Durable::Event(ts_ms) => AgentMessage::Event {
+            seq,
+            ts_ms,
+            kind: "sim_tick".into(),
+            severity: Severity::Info,
+            message: format!("{name} event {seq}"),
+            data: serde_json::Value::Null,
+        },
+        Durable::Telemetry(samples) => AgentMessage::Telemetry {
+            seq,
+            samples: samples.clone(),
+        },
     }))
 }
 
@@ -104,6 +141,30 @@ fn hello(name: &str, release: &Release, last_acked_seq: Option<u64>) -> AgentMes
     }
 }
 
+/// One robot's telemetry: the agent's collector over the robot's synthetic world, and the
+/// samples collected since the last batch.
+pub(super) struct Sampler {
+    telemetry: Telemetry,
+    pending: Vec<Sample>,
+    batch_every: Duration,
+}
+
+impl Sampler {
+    /// The sampler of robot `name` as `--telemetry-interval-s` asks (none for 0).
+    fn new(args: &super::Args, name: &str) -> Option<Self> {
+        if args.telemetry_interval_s == 0 {
+            return None;
+        }
+        let config = crate::config::Config::default()
+            .with_telemetry_every(args.telemetry_interval_s, args.telemetry_batch_interval_s);
+        Some(Self {
+            telemetry: Telemetry::synthetic(&config, name),
+            pending: Vec::new(),
+            batch_every: Duration::from_secs(config.telemetry_batch_interval_s),
+        })
+    }
+}
+
 /// One simulated robot, forever: connect, run the session, back off, again.
 pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
     let args = &fleet.args;
@@ -113,6 +174,7 @@ pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
         robot: format!("{}/{}", args.namespace, name),
     };
     let mut outbox = Outbox::default();
+    let mut sampler = Sampler::new(args, &name);
     let mut first = true;
     let mut backoff =
         crate::backoff::Backoff::new(Duration::from_millis(500), Duration::from_secs(30));
@@ -139,6 +201,9 @@ pub(super) async fn robot(fleet: Fleet, name: String, url: String) {
                         name: &name,
                         interval,
                         outbox: &mut outbox,
+                        sampler: sampler.as_mut(),
+                        pending_rtt: None,
+                        last_rtt: None,
                     }
                     .run(ws)
                     .await;
@@ -167,75 +232,149 @@ struct Session<'a> {
     name: &'a str,
     interval: Duration,
     outbox: &'a mut Outbox,
+    sampler: Option<&'a mut Sampler>,
+    /// The heartbeat awaiting its ack: its `sent_at_ms` and when it was sent.
+    pending_rtt: Option<(i64, Instant)>,
+    /// The round trip of the last acknowledged heartbeat, ms, sent with the next.
+    last_rtt: Option<f64>,
+}
+
+/// A far-off instant, for a timer that must not fire.
+fn far_future() -> tokio::time::Instant {
+    tokio::time::Instant::now() + Duration::from_secs(86_400)
 }
 
 impl Session<'_> {
-    /// Resends the unacknowledged events, then heartbeats and sends new events until the session
-    /// ends.
-    async fn run(self, ws: crate::connection::Socket) {
-        let Session {
-            fleet,
-            name,
-            interval,
-            outbox,
-        } = self;
-        let stats = &*fleet.stats;
+    /// Resends the unacknowledged messages, then heartbeats and sends new events and telemetry
+    /// until the session ends.
+    async fn run(mut self, ws: crate::connection::Socket) {
         let (mut tx, mut rx) = ws.split();
-        for (&seq, &ts_ms) in &outbox.unacked {
-            stats.events_resent.fetch_add(1, Ordering::Relaxed);
-            if tx.send(event(name, seq, ts_ms)).await.is_err() {
+        for (&seq, durable) in self.outbox.unacked.iter() {
+            if let Durable::Event(_) = durable {
+                let resent = &self.fleet.stats.events_resent;
+                resent.fetch_add(1, Ordering::Relaxed);
+            }
+            if tx.send(frame(self.name, seq, durable)).await.is_err() {
                 return;
             }
         }
-        // Spread the first heartbeat and the first event over one period each.
-        let mut tick = spread_interval(interval);
-        let event_period = fleet
+        // Spread the first heartbeat, event and batch over one period each.
+        let mut tick = spread_interval(self.interval);
+        let event_period = self
+            .fleet
             .args
             .events_per_minute
             .filter(|r| *r > 0.0)
             .map(|r| Duration::from_secs_f64(60.0 / r));
         let mut events = spread_interval(event_period.unwrap_or(Duration::from_secs(3600)));
-        let mut pending: Option<(i64, Instant)> = None;
-        let mut last_rtt: Option<f64> = None;
+        let batch_period = self.sampler.as_ref().map(|s| s.batch_every);
+        let mut batches = spread_interval(batch_period.unwrap_or(Duration::from_secs(3600)));
         loop {
-            tokio::select! {
+            let sample_due = self.sampler.as_ref().map(|s| s.telemetry.next_due());
+            let making = self.fleet.generating();
+            let sent = tokio::select! {
                 _ = tick.tick() => {
-                    let sent_at_ms = lekiwi_protocol::now_ms();
-                    pending = Some((sent_at_ms, Instant::now()));
-                    if tx.send(heartbeat(sent_at_ms, last_rtt)).await.is_err() {
-                        return;
-                    }
+                    let heartbeat = self.heartbeat();
+                    tx.send(heartbeat).await
                 }
-                _ = events.tick(), if event_period.is_some() && fleet.generating() => {
-                    let (seq, ts_ms) = outbox.push(stats);
-                    if tx.send(event(name, seq, ts_ms)).await.is_err() {
-                        return;
+                _ = events.tick(), if event_period.is_some() && making => {
+                    let (seq, ts_ms) = self.outbox.push(&self.fleet.stats);
+                    tx.send(frame(self.name, seq, &Durable::Event(ts_ms))).await
+                }
+                _ = tokio::time::sleep_until(sample_due.unwrap_or_else(far_future)),
+                    if sample_due.is_some() => {
+                    self.collect();
+                    Ok(())
+                }
+                _ = batches.tick(), if batch_period.is_some() && making => {
+                    match self.batch() {
+                        Some(message) => tx.send(message).await,
+                        None => Ok(()),
                     }
                 }
                 frame = rx.next() => {
                     let Some(Ok(frame)) = frame else { return };
-                    let Message::Text(text) = frame else {
-                        if matches!(frame, Message::Close(_)) { return; }
-                        continue;
-                    };
-                    match decode::<ServerMessage>(text.as_str(), usize::MAX) {
-                        Ok(ServerMessage::HeartbeatAck { sent_at_ms, .. }) => {
-                            if let Some((_, at)) = pending.take_if(|(s, _)| *s == sent_at_ms) {
-                                last_rtt = Some(stats.record_rtt(at.elapsed()));
-                            }
-                        }
-                        Ok(ServerMessage::Ack { seq }) => outbox.ack(seq, stats),
-                        Ok(ServerMessage::Error { code, fatal, .. }) => {
-                            stats.error_frames.fetch_add(1, Ordering::Relaxed);
-                            if fatal || code == ErrorCode::Replaced {
-                                return;
-                            }
-                        }
-                        _ => {}
+                    if !self.on_frame(frame) {
+                        return;
                     }
+                    Ok(())
                 }
+            };
+            if sent.is_err() {
+                return;
             }
         }
+    }
+
+    /// A heartbeat: the telemetry's latest readings, or fixed vitals without telemetry.
+    fn heartbeat(&mut self) -> Message {
+        let sent_at_ms = lekiwi_protocol::now_ms();
+        self.pending_rtt = Some((sent_at_ms, Instant::now()));
+        let vitals = match self.sampler.as_mut() {
+            Some(s) => s.telemetry.vitals(),
+            None => Vitals {
+                cpu_percent: Some(12.0),
+                memory_percent: Some(30.0),
+                temperature_c: Some(50.0),
+                ..Vitals::default()
+            },
+        };
+        Message::text(encode(&AgentMessage::Heartbeat {
+            sent_at_ms,
+            rtt_ms: self.last_rtt,
+            vitals,
+            current_release: None,
+            health: None,
+            teleoperation: None,
+        }))
+    }
+
+    /// Runs the telemetry samplers that are due; what passes their filters waits for the batch.
+    fn collect(&mut self) {
+        if let Some(s) = self.sampler.as_mut() {
+            let samples = s
+                .telemetry
+                .collect_due(tokio::time::Instant::now(), lekiwi_protocol::now_ms());
+            s.pending.extend(samples);
+        }
+    }
+
+    /// The telemetry batch of the samples collected since the last, if any, kept in the
+    /// outbox until acknowledged.
+    fn batch(&mut self) -> Option<Message> {
+        let s = self.sampler.as_mut()?;
+        if s.pending.is_empty() {
+            return None;
+        }
+        let samples = std::mem::take(&mut s.pending);
+        let seq = self
+            .outbox
+            .push_telemetry(samples.clone(), &self.fleet.stats);
+        Some(frame(self.name, seq, &Durable::Telemetry(samples)))
+    }
+
+    /// Handles a frame from the gateway; false when the session is over.
+    fn on_frame(&mut self, frame: Message) -> bool {
+        let stats = &*self.fleet.stats;
+        let Message::Text(text) = frame else {
+            return !matches!(frame, Message::Close(_));
+        };
+        match decode::<ServerMessage>(text.as_str(), usize::MAX) {
+            Ok(ServerMessage::HeartbeatAck { sent_at_ms, .. }) => {
+                if let Some((_, at)) = self.pending_rtt.take_if(|(s, _)| *s == sent_at_ms) {
+                    self.last_rtt = Some(stats.record_rtt(at.elapsed()));
+                }
+            }
+            Ok(ServerMessage::Ack { seq }) => self.outbox.ack(seq, stats),
+            Ok(ServerMessage::Error { code, fatal, .. }) => {
+                stats.error_frames.fetch_add(1, Ordering::Relaxed);
+                if fatal || code == ErrorCode::Replaced {
+                    return false;
+                }
+            }
+            _ => {}
+        }
+        true
     }
 }
 
@@ -243,23 +382,6 @@ impl Session<'_> {
 fn spread_interval(period: Duration) -> tokio::time::Interval {
     let offset = rand::rng().random_range(Duration::ZERO..=period);
     tokio::time::interval_at(tokio::time::Instant::now() + offset, period)
-}
-
-/// A heartbeat with fixed vitals.
-fn heartbeat(sent_at_ms: i64, rtt_ms: Option<f64>) -> Message {
-    Message::text(encode(&AgentMessage::Heartbeat {
-        sent_at_ms,
-        rtt_ms,
-        vitals: Vitals {
-            cpu_percent: Some(12.0),
-            memory_percent: Some(30.0),
-            temperature_c: Some(50.0),
-            ..Vitals::default()
-        },
-        current_release: None,
-        health: None,
-        teleoperation: None,
-    }))
 }
 
 #[cfg(test)]
@@ -312,5 +434,25 @@ mod tests {
         outbox.ack(5, &stats);
         assert_eq!(outbox.last_acked(), Some(5));
         assert_eq!(stats.events_acked.load(Ordering::Relaxed), 5);
+        // Telemetry batches share the sequence and are counted apart from events.
+        let sample = |v| Sample {
+            metric: "cpu_percent".into(),
+            ts_ms: 1,
+            value: v,
+        };
+        assert_eq!(
+            outbox.push_telemetry(vec![sample(1.0), sample(2.0)], &stats),
+            6
+        );
+        outbox.push(&stats);
+        outbox.push_telemetry(vec![sample(3.0)], &stats);
+        outbox.stored_through(Some(7), &stats);
+        assert_eq!(outbox.unacked.keys().copied().collect::<Vec<_>>(), [8]);
+        outbox.ack(8, &stats);
+        let load = |c: &std::sync::atomic::AtomicU64| c.load(Ordering::Relaxed);
+        assert_eq!(load(&stats.events_acked), 6);
+        assert_eq!(load(&stats.telemetry_generated), 2);
+        assert_eq!(load(&stats.telemetry_acked), 2);
+        assert_eq!(load(&stats.samples_generated), 3);
     }
 }
