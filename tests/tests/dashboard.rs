@@ -81,6 +81,14 @@ async fn log_in(browser: &mut Browser, base: &str, ns: &str, token: &str) -> Res
             LIVE,
         )
         .await?;
+    // Before anyone logs in, the navigation (namespace, log out) is not shown at all.
+    let nav_shown = browser
+        .eval("(n => getComputedStyle(n).display !== 'none' || n.getClientRects().length > 0)(document.getElementById('nav'))")
+        .await?;
+    ensure!(
+        nav_shown == json!(false),
+        "the navigation shows on the login page"
+    );
     let fill = format!(
         "document.getElementById('login-namespace').value = {ns};\
          document.getElementById('login-token').value = {token};\
