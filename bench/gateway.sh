@@ -220,8 +220,9 @@ fact mode "$MODE"
 # ---- helpers of both phases -----------------------------------------------------------------
 # The simulator runs until killed; its RTT figures cover the whole run (ramp included), so the
 # steady-state round trips come from the gateway's histogram of agent-reported RTTs instead.
+# --telemetry-interval-s 0: the figures measure heartbeats and status writes, as they always did.
 SIM_COMMON=(--robots "$ROBOTS" --heartbeat-interval "$INTERVAL" --namespace bench
-  --report-every 5 --duration $((ONLINE_TIMEOUT + WINDOW + 600)))
+  --telemetry-interval-s 0 --report-every 5 --duration $((ONLINE_TIMEOUT + WINDOW + 600)))
 
 # What the progress lines add: for the gateway, its open files, its connections to the API server
 # and its status queues (the first things to look at when the ramp stalls); a scrape is kept too.

@@ -189,7 +189,7 @@ wait_for "gateway" 60 ready "$GW_PID" gateway "http://127.0.0.1:$GW_HTTP/readyz"
 log "$ROBOTS simulated robots connect"
 start sim "$BIN/lekiwi-sim" --gateway "ws://127.0.0.1:$GW_PORT/v1/agent" \
   --enrollment-token "$TOKEN" --namespace bench --robots "$ROBOTS" \
-  --heartbeat-interval "$INTERVAL" --connect-rate 500 --report-every 5
+  --heartbeat-interval "$INTERVAL" --connect-rate 500 --report-every 5 --telemetry-interval-s 0
 SIM_PID=$LAST_PID
 online() {
   alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"

@@ -91,7 +91,7 @@ token="$("$BIN/kubectl-lekiwi" -n "$NS" enroll-token | grep -o 'lke_[A-Za-z0-9_-
 port="$(kubectl -n "$NS" get service "$NS-lekiwi-operator-gateway" -o jsonpath='{.spec.ports[0].nodePort}')"
 : >"$WORK/sim.log"
 "$BIN/lekiwi-sim" --gateway "ws://$LEKIWI_NODE_IP:$port/v1/agent" --enrollment-token "$token" \
-  --namespace "$NS" --robots "$ROBOTS" --connect-rate 100 --report-every 5 \
+  --namespace "$NS" --robots "$ROBOTS" --connect-rate 100 --report-every 5 --telemetry-interval-s 0 \
   >"$WORK/sim.log" 2>&1 </dev/null &
 SIM_PID=$!
 deadline=$((SECONDS + 300))

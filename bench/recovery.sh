@@ -375,7 +375,7 @@ provisioned_fleet() { # count
     --enrollment-token "$TOKEN" --namespace bench \
     --robots "$1" --heartbeat-interval "$INTERVAL" --connect-rate 1000 \
     --events-per-minute "$EPM" --drain-seconds 120 --report-every 10 --json "$WORK/sim.json" \
-    --late-share "$LATE_SHARE" --late-delay "$LATE_DELAY"
+    --late-share "$LATE_SHARE" --late-delay "$LATE_DELAY" --telemetry-interval-s 0
   SIM_PID=$LAST_PID
   online() {
     alive "$SIM_PID" || die "the simulator exited: $(tail -5 "$WORK/sim.log")"
@@ -520,7 +520,8 @@ scenario_first_boot() {
   start sim-new nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$LB_URLS" \
     --enrollment-token "$TOKEN_ENROLL" --namespace bench --prefix new --robots "$ROBOTS" \
     --heartbeat-interval "$INTERVAL" --connect-rate 1000000 --connect-timeout 300 \
-    --token-file "$WORK/new-tokens.json" --report-every 10 --json "$WORK/sim-new.json"
+    --token-file "$WORK/new-tokens.json" --report-every 10 --json "$WORK/sim-new.json" \
+    --telemetry-interval-s 0
   local new_pid=$LAST_PID
   local deadline=$((SECONDS + RECOVERY_TIMEOUT + ROBOTS / 20))
   until [ "$(current "$CTRL_METRICS" 'lekiwi_robots{phase="Online"}')" -ge "$total" ]; do
@@ -597,7 +598,7 @@ scenario_steady() {
       chunk=$((i + 1))
       start "sim-$part-$chunk" nice -n "$WORLD_NICE" "$BIN/lekiwi-sim" "${SIM_TLS[@]}" --gateway "$gw_urls" --enrollment-token "$TOKEN" \
         --namespace bench --prefix "s$part-$chunk" --robots "$n" \
-        --heartbeat-interval "$INTERVAL" --connect-rate "$rate" --report-every 30
+        --heartbeat-interval "$INTERVAL" --connect-rate "$rate" --report-every 30 --telemetry-interval-s 0
       sims+=("sim-$part-$chunk:$LAST_PID")
     done
     have=$size

@@ -194,7 +194,8 @@ T0="$(now)"
 start fleet env RUST_LOG=warn,lekiwi_agent::release=info "$BIN/lekiwi-fleet" \
   --gateway "ws://127.0.0.1:$GW_PORT/v1/agent" --enrollment-token-file "$TOKEN_FILE" \
   --namespace "$NS" --robots "$ROBOTS" --state-root "$WORK/robots" \
-  --health-command "$HEALTH" --health-timeout-s 2 --backoff-max-ms 2000 --report-every 5
+  --health-command "$HEALTH" --health-timeout-s 2 --backoff-max-ms 2000 --report-every 5 \
+  --telemetry-interval-s 0
 FLEET_PID=$LAST_PID
 fact fleet "$ROBOTS robots in one lekiwi-fleet process (real agents, enrolled with the fleet token; backoff max 2 s; health command: $HEALTH, timeout 2 s)"
 python3 "$REPORT" online 300 >"$WORK/online.txt" || die "robots did not come Online: $(tail -3 "$WORK/fleet.log")"

@@ -1,7 +1,9 @@
 //! A fleet of real agents in one process: each runs the agent's own run loop with its own state
 //! directory (token, outbox, content store, releases), for end-to-end tests and benchmarks of
-//! rollouts. Telemetry and teleoperation detection are off (one machine cannot tell robots'
-//! vitals apart); everything else — enrollment, outbox, deploys, hooks — is the real thing.
+//! rollouts. One machine cannot tell robots' vitals apart, so each robot's telemetry reads a
+//! synthetic world of its own ([`Telemetry::synthetic`]) through the agent's own collector, and
+//! teleoperation detection is off; everything else — enrollment, outbox, telemetry batches,
+//! deploys, hooks — is the real thing.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -13,6 +15,7 @@ use tracing::info;
 use crate::config::Config;
 use crate::discovery::StatusSnapshot;
 use crate::run::Agent;
+use crate::telemetry::Telemetry;
 
 /// Runs N real agents in one process.
 #[derive(Clone, Debug, Parser)]
@@ -59,6 +62,14 @@ pub struct Args {
     /// Reconnect backoff cap, milliseconds.
     #[arg(long, default_value_t = 5000)]
     pub backoff_max_ms: u64,
+    /// Seconds between a robot's CPU and network samples (synthetic readings; memory every
+    /// 2×, temperature 6×, disk 12×, as the agent's defaults; sent on a change, as the agent
+    /// does); 0: no telemetry.
+    #[arg(long, default_value_t = 5)]
+    pub telemetry_interval_s: u64,
+    /// Seconds between a robot's telemetry batches (durable `telemetry` messages).
+    #[arg(long, default_value_t = 60)]
+    pub telemetry_batch_interval_s: u64,
 }
 
 /// The robot names of a fleet.
@@ -70,7 +81,7 @@ pub fn names(args: &Args) -> Vec<String> {
 
 /// The configuration of one robot of the fleet.
 pub fn robot_config(args: &Args, name: &str) -> Config {
-    Config {
+    let config = Config {
         gateway: args.gateway.clone(),
         ca_file: args.ca_file.clone(),
         state_dir: args.state_root.join(name),
@@ -86,8 +97,12 @@ pub fn robot_config(args: &Args, name: &str) -> Config {
         release_health_timeout_s: args.health_timeout_s,
         ..Config::default()
     }
-    // One machine, many robots: no per-robot vitals worth sampling.
-    .without_sensors()
+    // One machine, many robots: no per-robot vitals worth sampling here (see `run`).
+    .without_sensors();
+    if args.telemetry_interval_s == 0 {
+        return config;
+    }
+    config.with_telemetry_every(args.telemetry_interval_s, args.telemetry_batch_interval_s)
 }
 
 /// Runs the fleet until `shutdown` completes.
@@ -101,7 +116,10 @@ pub async fn run(
     let mut handles = Vec::new();
     for name in names(&args) {
         let config = robot_config(&args, &name);
-        let agent = Agent::new(config).await?;
+        let mut agent = Agent::new(config.clone()).await?;
+        if args.telemetry_interval_s > 0 {
+            agent = agent.with_telemetry(Telemetry::synthetic(&config, &name));
+        }
         statuses.push((name.clone(), agent.status()));
         let mut stop = stop_rx.clone();
         handles.push(local.spawn_local(async move {

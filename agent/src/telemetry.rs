@@ -46,6 +46,7 @@ use crate::config::Config;
 
 mod delta;
 mod probe;
+mod synthetic;
 mod thermal;
 
 pub use delta::{
@@ -142,6 +143,13 @@ impl Telemetry {
     /// collection is due [`FIRST_SAMPLE_DELAY`] from now.
     pub fn new(config: &Config) -> Telemetry {
         Self::with_probe(config, Box::new(SystemProbe::new()), Instant::now())
+    }
+
+    /// Samplers with the configured intervals and thresholds, reading the synthetic world of
+    /// the simulated robot `name` (see [`synthetic`]) instead of this machine.
+    pub fn synthetic(config: &Config, name: &str) -> Telemetry {
+        let probe = synthetic::SyntheticProbe::new(name);
+        Self::with_probe(config, Box::new(probe), Instant::now())
     }
 
     fn with_probe(config: &Config, probe: Box<dyn Probe>, start: Instant) -> Telemetry {

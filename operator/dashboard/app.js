@@ -106,6 +106,38 @@ function age(time) {
   return Math.floor(s / 86400) + 'd ago';
 }
 
+/** `ms` (Unix milliseconds) as a local date and time, `2026-12-05 14:03:07`. */
+function dateTime(ms) {
+  const d = new Date(ms);
+  const p = (n) => String(n).padStart(2, '0');
+  return d.getFullYear() + '-' + p(d.getMonth() + 1) + '-' + p(d.getDate()) + ' ' + p(d.getHours()) + ':' + p(d.getMinutes()) + ':' + p(d.getSeconds());
+}
+
+/**
+ * When a robot was last heard from: `lastSeen` (its live heartbeat on the gateway that holds
+ * it), else the heartbeat time its status last recorded (refreshed only every few minutes).
+ */
+function heartbeat(lastSeen, status) {
+  const written = status.lastHeartbeatTime;
+  const seen = lastSeen || written;
+  return el('span', {
+    class: 'heartbeat',
+    'data-last-seen': seen,
+    'data-status-time': written,
+    title: seen ? 'heartbeat ' + dateTime(Date.parse(seen)) + (written ? '; status written ' + dateTime(Date.parse(written)) : '') : null,
+    text: age(seen),
+  });
+}
+
+/** A robot's hardware (`spec.hardware`) in one line. */
+function hardware(h) {
+  if (!h) return '—';
+  const cameras = h.cameras && h.cameras.length ? 'cameras: ' + h.cameras.join(', ') : null;
+  const serial = h.serial ? 'serial ' + h.serial : null;
+  const parts = [h.model, h.computer, serial, cameras, h.notes].filter(Boolean);
+  return parts.length ? parts.join(' · ') : '—';
+}
+
 const num = (v, unit) => (v === undefined || v === null ? '—' : v.toFixed(1) + unit);
 const badge = (phase) => el('span', { class: 'badge phase-' + (phase || 'Pending'), text: phase || 'Pending' });
 
@@ -304,7 +336,8 @@ function render() {
 // ---------------------------------------------------------------- fleet
 
 function fleetView() {
-  let cards, tbody, note;
+  let cards, tbody, note, problem;
+  let asked = 0; // the latest read asked for; an older answer arriving later is dropped
   const setup = (root) => {
     const f = S.filters;
     const input = (key, placeholder) =>
@@ -331,27 +364,47 @@ function fleetView() {
     );
     cards = el('div', { class: 'cards', id: 'counts' });
     note = el('p', { class: 'muted', id: 'robots-note' });
+    problem = el('p', { class: 'alert', id: 'filter-error', role: 'alert', hidden: true });
     tbody = el('tbody');
     const head = ['Robot', 'Phase', 'Release', 'Healthy', 'Teleoperated', 'Last heartbeat', 'Battery', 'CPU', 'Gateway'];
     root.append(
       el('h2', { text: 'Fleet' }),
       cards,
       el('div', { class: 'filters' }, input('selector', 'label selector, e.g. lab=north'), phase, input('release', 'release version')),
+      problem,
       note,
       el('table', { id: 'robots' }, el('thead', {}, el('tr', {}, head.map((h) => el('th', { text: h })))), tbody),
     );
     return refresh;
   };
   const refresh = async () => {
+    const ask = ++asked;
     const query = {};
     if (S.filters.selector) query.labelSelector = S.filters.selector;
     if (S.filters.release) query.release = S.filters.release;
-    // Counts from the summary (its size does not grow with the fleet), rows from one page.
-    const summary = await api('/api/v1/namespaces/' + ns() + '/summary?' + new URLSearchParams(query).toString());
     const rowsQuery = new URLSearchParams(query);
     if (S.filters.phase) rowsQuery.set('phase', S.filters.phase);
     rowsQuery.set('limit', String(MAX_ROWS));
-    const page = await api('/api/v1/namespaces/' + ns() + '/robots?' + rowsQuery.toString());
+    let summary, page;
+    try {
+      // Counts from the summary (its size does not grow with the fleet), rows from one page.
+      summary = await api('/api/v1/namespaces/' + ns() + '/summary?' + new URLSearchParams(query).toString());
+      page = await api('/api/v1/namespaces/' + ns() + '/robots?' + rowsQuery.toString());
+    } catch (e) {
+      if (ask !== asked) return;
+      if (!(e instanceof ApiError) || e.status !== 400) throw e;
+      // A filter the API refuses (a malformed selector): nothing matches it, so nothing shows,
+      // least of all the rows of the filter before.
+      cards.replaceChildren();
+      tbody.replaceChildren();
+      note.textContent = '';
+      problem.textContent = 'The filter is not valid: ' + e.message;
+      problem.hidden = false;
+      return;
+    }
+    if (ask !== asked) return;
+    problem.hidden = true;
+    problem.textContent = '';
     cards.replaceChildren(
       el('div', { class: 'card', id: 'count-total' }, el('div', { class: 'n', text: summary.total }), el('div', { class: 'label', text: 'robots' })),
       ...PHASES.map((p) =>
@@ -379,15 +432,16 @@ function robotRow(r) {
   const name = r.metadata.name;
   const t = s.telemetry || {};
   const href = '#/robots/' + encodeURIComponent(r.metadata.namespace) + '/' + encodeURIComponent(name);
+  const display = r.spec && r.spec.displayName;
   return el(
     'tr',
     { 'data-robot': name, 'data-phase': s.phase || 'Pending' },
-    el('td', {}, el('a', { href, text: name })),
+    el('td', {}, el('a', { href, text: name }), display ? el('div', { class: 'muted display-name', text: display }) : null),
     el('td', {}, badge(s.phase)),
     el('td', { text: (s.currentRelease && s.currentRelease.version) || '—' }),
     el('td', { text: s.health ? (s.health.healthy ? 'yes' : 'no') : '—' }),
     el('td', { text: s.teleoperation && s.teleoperation.active ? 'yes' : 'no' }),
-    el('td', { text: age(s.lastHeartbeatTime) }),
+    el('td', {}, heartbeat(r.lastSeen, s)),
     el('td', { text: num(t.batteryPercent, ' %') }),
     el('td', { text: num(t.cpuPercent, ' %') }),
     el('td', { text: s.gateway || '—' }),
@@ -399,14 +453,23 @@ function robotRow(r) {
 function robotView(namespace, name) {
   // Polled: a subscription names no single robot, and this view re-reads charts and events too.
   const base = '/api/v1/namespaces/' + encodeURIComponent(namespace) + '/robots/' + encodeURIComponent(name);
-  let facts, conditions, charts, events;
+  let shownName, content, missing, facts, conditions, charts, events;
   const setup = (root) => {
+    shownName = el('span', { class: 'muted', id: 'robot-display-name' });
     facts = el('dl', { class: 'kv', id: 'robot-facts' });
     conditions = el('tbody');
     charts = el('div', { class: 'charts', id: 'charts' });
     events = el('tbody');
-    root.append(
-      el('h2', {}, el('a', { href: '#/fleet', text: 'Fleet' }), ' / ', name),
+    missing = el(
+      'div',
+      { class: 'alert', id: 'robot-not-found', role: 'alert', hidden: true },
+      el('strong', { text: 'Robot not found: ' + name }),
+      el('p', { text: 'Namespace ' + namespace + ' has no robot named ' + name + '. It may have been deleted, or the link names another namespace.' }),
+      el('a', { href: '#/fleet', text: 'Back to the fleet' }),
+    );
+    content = el(
+      'div',
+      { id: 'robot-content' },
       facts,
       el('h3', { text: 'Conditions' }),
       el('table', { id: 'conditions' }, el('thead', {}, el('tr', {}, ['Type', 'Status', 'Reason', 'Message', 'Since'].map((h) => el('th', { text: h })))), conditions),
@@ -415,15 +478,32 @@ function robotView(namespace, name) {
       el('h3', { text: 'Recent events, last hour (newest first)' }),
       el('table', { id: 'events' }, el('thead', {}, el('tr', {}, ['Time', 'Severity', 'Kind', 'Message'].map((h) => el('th', { text: h })))), events),
     );
+    root.append(el('h2', {}, el('a', { href: '#/fleet', text: 'Fleet' }), ' / ', name, ' ', shownName), missing, content);
     return refresh;
   };
   const refresh = async () => {
-    const view = await api(base);
+    let view;
+    try {
+      view = await api(base);
+    } catch (e) {
+      if (!(e instanceof ApiError) || e.status !== 404) throw e;
+      content.hidden = true;
+      missing.hidden = false;
+      return;
+    }
+    missing.hidden = true;
+    content.hidden = false;
     const r = view.robot;
     const s = r.status || {};
+    const spec = r.spec || {};
     const v = view.vitals || {};
+    const sys = s.system || {};
     const row = (k, value) => [el('dt', { text: k }), el('dd', {}, value)];
+    shownName.textContent = spec.displayName ? '(' + spec.displayName + ')' : '';
     facts.replaceChildren(
+      ...row('Display name', spec.displayName || '—'),
+      ...row('Hardware', hardware(spec.hardware)),
+      ...row('System', [sys.os, sys.arch, sys.cpus ? sys.cpus + ' CPUs' : null, sys.memoryBytes ? (sys.memoryBytes / 2 ** 30).toFixed(1) + ' GiB' : null].filter(Boolean).join(' · ') || '—'),
       ...row('Phase', badge(s.phase)),
       ...row('Release', (s.currentRelease && s.currentRelease.version) || '—'),
       ...row('Agent', s.agentVersion || '—'),
@@ -431,7 +511,7 @@ function robotView(namespace, name) {
       ...row('Address', s.address || '—'),
       ...row('Health', s.health ? (s.health.healthy ? 'healthy' : 'unhealthy') + (s.health.message ? ': ' + s.health.message : '') : '—'),
       ...row('Teleoperated', s.teleoperation && s.teleoperation.active ? 'yes' : 'no'),
-      ...row('Last heartbeat', age(s.lastHeartbeatTime)),
+      ...row('Last heartbeat', heartbeat(view.lastSeen, s)),
       ...row('Vitals', 'CPU ' + num(v.cpuPercent, ' %') + ' · memory ' + num(v.memoryPercent, ' %') + ' · temperature ' + num(v.temperatureCelsius, ' °C') + ' · battery ' + num(v.batteryPercent, ' %')),
     );
     conditions.replaceChildren(
@@ -450,7 +530,7 @@ function robotView(namespace, name) {
       const { items } = await listAll(base + '/events', { since });
       events.replaceChildren(
         ...items.slice(-50).reverse().map((e) =>
-          el('tr', { 'data-seq': e.seq }, el('td', { text: new Date(e.ts_ms).toLocaleTimeString() }), el('td', { class: 'sev-' + e.severity, text: e.severity }), el('td', { text: e.kind }), el('td', { text: e.message })),
+          el('tr', { 'data-seq': e.seq }, el('td', { class: 'time', text: dateTime(e.ts_ms) }), el('td', { class: 'sev-' + e.severity, text: e.severity }), el('td', { text: e.kind }), el('td', { text: e.message })),
         ),
       );
     } else {
@@ -525,7 +605,7 @@ function rolloutCard(d, refresh) {
   const st = d.status || {};
   const allowed = S.access && S.access.allowed.patchRollouts;
   const why = allowed ? null : 'RBAC does not allow you patch robotdeployments in ' + S.ns;
-  const act = (action, label) =>
+  const act = (action, label, confirmation) =>
     el('button', {
       type: 'button',
       'data-action': action,
@@ -533,6 +613,7 @@ function rolloutCard(d, refresh) {
       title: why,
       text: label,
       onclick: async (e) => {
+        if (confirmation && !(await confirmAction(...confirmation))) return;
         e.target.disabled = true;
         try {
           await api('/api/v1/namespaces/' + ns() + '/rollouts/' + encodeURIComponent(name) + '/' + action, 'POST');
@@ -562,9 +643,12 @@ function rolloutCard(d, refresh) {
       { class: 'head' },
       el('strong', { text: name }),
       el('span', { class: 'badge phase-' + rolloutColour(st.phase), text: st.phase || 'Pending' }),
+      // A pause outlives the phase it was set in (a Completed rollout still picks up robots
+      // selected later, and a paused one does not): say so beside the phase.
+      d.spec.paused && st.phase !== 'Paused' ? el('span', { class: 'badge phase-Unknown', 'data-paused': '', text: 'Paused' }) : null,
       el('span', { text: d.spec.agent && !d.spec.release ? 'agent ' + d.spec.agent.version : 'release ' + ((d.spec.release && d.spec.release.version) || '?') }),
       el('span', { class: 'muted', text: (st.progress || '') + (st.totalBatches ? ' · batch ' + (st.currentBatch || 0) + '/' + st.totalBatches : '') }),
-      el('span', { class: 'actions' }, d.spec.paused ? act('resume', 'Resume') : act('pause', 'Pause'), act('undo', 'Undo')),
+      el('span', { class: 'actions' }, d.spec.paused ? act('resume', 'Resume') : act('pause', 'Pause'), act('undo', 'Undo', undoConfirmation(d))),
     ),
     st.message ? el('p', { class: 'muted', text: st.message }) : null,
     bars,
@@ -572,6 +656,30 @@ function rolloutCard(d, refresh) {
       ? el('div', { class: 'failed' }, el('h3', { text: 'Failed or rolled back' }), el('ul', {}, failed.map((r) => el('li', { 'data-failed': r.robot }, el('strong', { text: r.robot }), ' (' + r.state + '): ' + (r.message || 'no message')))))
       : null,
   );
+}
+
+/** What the undo dialog says for rollout `d`: title, text, the confirming button's label. */
+function undoConfirmation(d) {
+  const st = d.status || {};
+  const updated = (st.robots || []).filter((r) => r.state === 'Updated').length;
+  const release = d.spec.agent && !d.spec.release ? 'agent ' + d.spec.agent.version : 'release ' + ((d.spec.release && d.spec.release.version) || '?');
+  return [
+    'Undo rollout ' + d.metadata.name + '?',
+    'Every robot it updated to ' + release + ' (' + updated + ' so far) goes back to the release it ran before, robots still downloading stop, and the rollout ends RolledBack.',
+    'Undo ' + d.metadata.name,
+  ];
+}
+
+/** Asks before an action: a modal dialog; resolves to whether the user confirmed. */
+function confirmAction(title, text, ok) {
+  const dialog = $('confirm');
+  $('confirm-title').textContent = title;
+  $('confirm-text').textContent = text;
+  $('confirm-ok').textContent = ok;
+  dialog.returnValue = '';
+  dialog.showModal();
+  $('confirm-cancel').focus();
+  return new Promise((resolve) => dialog.addEventListener('close', () => resolve(dialog.returnValue === 'ok'), { once: true }));
 }
 
 function rolloutColour(phase) {
@@ -600,6 +708,8 @@ function batchBar(batch, robots, canary) {
 
 window.addEventListener('DOMContentLoaded', () => {
   $('login-form').addEventListener('submit', login);
+  $('confirm-ok').addEventListener('click', () => $('confirm').close('ok'));
+  $('confirm-cancel').addEventListener('click', () => $('confirm').close('cancel'));
   $('logout').addEventListener('click', () => logout('Logged out.'));
   $('namespace').addEventListener('change', changeNamespace);
   window.addEventListener('hashchange', () => S.token && render());

@@ -148,6 +148,13 @@ pub enum Stopped {
 }
 
 impl Agent {
+    /// This agent with `telemetry` as its sampler instead of this machine's (the fleet
+    /// simulator's robots, see [`Telemetry::synthetic`]).
+    pub fn with_telemetry(mut self, telemetry: Telemetry) -> Self {
+        self.telemetry = telemetry;
+        self
+    }
+
     /// Opens the state directory and the outbox and starts the local status endpoint and the
     /// mDNS advertisement.
     pub async fn new(config: Config) -> Result<Self, Error> {

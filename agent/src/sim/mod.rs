@@ -1,7 +1,8 @@
 //! The fleet simulator: N real agent connections from one process, each with a heartbeat loop,
-//! reporting connect time, heartbeat round-trip percentiles, errors and reconnects; optionally
-//! each robot also sends durable events, counted so a benchmark can compare sent with stored.
-//! Every robot carries out the gateway's commands as the agent does ([`commands`]).
+//! reporting connect time, heartbeat round-trip percentiles, errors and reconnects. Each robot
+//! sends telemetry as an agent does (synthetic readings through the agent's own collector) and
+//! optionally durable events, counted so a benchmark can compare sent with stored. Every robot
+//! carries out the gateway's commands as the agent does ([`commands`]).
 
 pub mod commands;
 mod session;
@@ -97,6 +98,16 @@ pub struct Args {
     /// How the robots carry out commands.
     #[command(flatten)]
     pub commands: CommandArgs,
+    /// Seconds between a robot's CPU and network samples (synthetic readings, the agent's
+    /// collector and delta compression; memory every 2×, temperature 6×, disk 12×, as the
+    /// agent's defaults); heartbeats carry the latest readings. 0: no telemetry, and
+    /// heartbeats carry fixed vitals.
+    #[arg(long, default_value_t = 5)]
+    pub telemetry_interval_s: u64,
+    /// Seconds between a robot's telemetry batches (durable `telemetry` messages), as the
+    /// agent's `telemetryBatchIntervalS`.
+    #[arg(long, default_value_t = 60)]
+    pub telemetry_batch_interval_s: u64,
 }
 
 impl Args {
@@ -138,6 +149,9 @@ struct Stats {
     events_generated: AtomicU64,
     events_acked: AtomicU64,
     events_resent: AtomicU64,
+    telemetry_generated: AtomicU64,
+    telemetry_acked: AtomicU64,
+    samples_generated: AtomicU64,
     draining: AtomicBool,
 }
 
@@ -183,6 +197,12 @@ pub struct Summary {
     /// What the robots did with the gateway's commands.
     #[serde(flatten)]
     pub commands: CommandSummary,
+    /// Telemetry batches (durable `telemetry` messages) the robots made.
+    pub telemetry_batches: u64,
+    /// Of those, acknowledged by the gateway.
+    pub telemetry_batches_acked: u64,
+    /// Samples in those batches.
+    pub telemetry_samples: u64,
 }
 
 fn percentile(sorted: &[u32], p: f64) -> f64 {
@@ -298,7 +318,7 @@ impl Fleet {
         }
     }
 
-    /// Whether robots still make new events (not once the run drains).
+    /// Whether robots still make new events and telemetry batches (not once the run drains).
     fn generating(&self) -> bool {
         !self.stats.draining.load(Ordering::Relaxed)
     }
@@ -313,10 +333,14 @@ impl Fleet {
         self.report();
     }
 
-    /// Events made and not acknowledged yet.
+    /// Durable messages (events, telemetry batches) made and not acknowledged yet.
     fn unacked(&self) -> u64 {
         let s = &self.stats;
-        s.events_generated.load(Ordering::Relaxed) - s.events_acked.load(Ordering::Relaxed)
+        let made = s.events_generated.load(Ordering::Relaxed)
+            + s.telemetry_generated.load(Ordering::Relaxed);
+        let acked =
+            s.events_acked.load(Ordering::Relaxed) + s.telemetry_acked.load(Ordering::Relaxed);
+        made.saturating_sub(acked)
     }
 
     /// One progress line on stdout.
@@ -324,7 +348,7 @@ impl Fleet {
         let stats = &self.stats;
         let rtts = take_sorted_rtts(stats);
         println!(
-            "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}  events {} unacked {}  {}",
+            "[{:>6.1}s] connected {}/{}  heartbeats {}  rtt p50 {:.2} ms p99 {:.2} ms max {:.2} ms  connect errors {}  reconnects {}  error frames {}  events {}  telemetry batches {}  unacked {}  {}",
             self.start.elapsed().as_secs_f64(),
             stats.connected.load(Ordering::Relaxed),
             self.args.robots,
@@ -336,6 +360,7 @@ impl Fleet {
             stats.reconnects.load(Ordering::Relaxed),
             stats.error_frames.load(Ordering::Relaxed),
             stats.events_generated.load(Ordering::Relaxed),
+            stats.telemetry_generated.load(Ordering::Relaxed),
             self.unacked(),
             self.commands.counters.summary(),
         );
@@ -361,6 +386,9 @@ impl Fleet {
             events_acked: stats.events_acked.load(Ordering::Relaxed),
             events_resent: stats.events_resent.load(Ordering::Relaxed),
             commands: self.commands.counters.summary(),
+            telemetry_batches: stats.telemetry_generated.load(Ordering::Relaxed),
+            telemetry_batches_acked: stats.telemetry_acked.load(Ordering::Relaxed),
+            telemetry_samples: stats.samples_generated.load(Ordering::Relaxed),
         }
     }
 

@@ -1,7 +1,9 @@
 //! One simulated robot: connects (enrolling the first time), heartbeats, sends durable events
-//! at `--events-per-minute` from an in-memory outbox (resent after a reconnect until
-//! acknowledged, exactly like the agent's durable outbox), carries out the gateway's commands
-//! ([`super::commands`]) and reconnects with backoff.
+//! at `--events-per-minute` and telemetry batches as the agent does (its own collector, reading
+//! a synthetic world: see `Telemetry::synthetic`) from an in-memory outbox (resent after a
+//! reconnect until acknowledged, exactly like the agent's durable outbox), carries out the
+//! gateway's commands ([`super::commands`]) and reconnects with backoff. Telemetry is sampled
+//! while connected only.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
@@ -10,7 +12,7 @@ use std::time::{Duration, Instant};
 use futures::stream::SplitSink;
 use futures::{SinkExt, StreamExt};
 use lekiwi_protocol::{
-    AgentMessage, ErrorCode, FEATURE_UPDATE_AGENT, Health, PROTOCOL_VERSION, ServerMessage,
+    AgentMessage, ErrorCode, FEATURE_UPDATE_AGENT, Health, PROTOCOL_VERSION, Sample, ServerMessage,
     Severity, SystemFacts, Teleoperation, Vitals, decode, encode,
 };
 use rand::Rng;
@@ -19,6 +21,7 @@ use tokio_tungstenite::tungstenite::Message;
 use super::commands::{Commands, Handled, RobotId};
 use super::{Fleet, Stats, lock};
 use crate::connection::{ConnectError, Credentials, Socket, connect_with_ca};
+use crate::telemetry::Telemetry;
 
 /// How long a robot whose agent restarts (`update_agent`) stays away, at most: the service
 /// manager's restart delay.
@@ -38,6 +41,19 @@ enum Pending {
     Tick(i64),
     /// A message of the robot's commands, kept as sent.
     Frame(Box<str>),
+    /// A batch of telemetry samples.
+    Telemetry(Vec<Sample>),
+}
+
+impl Pending {
+    /// Counts `self` as acknowledged.
+    fn count_acked(&self, stats: &Stats) {
+        let counter = match self {
+            Pending::Tick(_) | Pending::Frame(_) => &stats.events_acked,
+            Pending::Telemetry(_) => &stats.telemetry_acked,
+        };
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
 }
 
 impl Outbox {
@@ -62,10 +78,22 @@ impl Outbox {
         Message::text(frame)
     }
 
+    /// A new telemetry batch: its `seq`, kept until acknowledged.
+    fn push_telemetry(&mut self, samples: Vec<Sample>, stats: &Stats) -> u64 {
+        self.next_seq += 1;
+        stats.telemetry_generated.fetch_add(1, Ordering::Relaxed);
+        stats
+            .samples_generated
+            .fetch_add(samples.len() as u64, Ordering::Relaxed);
+        self.unacked
+            .insert(self.next_seq, Pending::Telemetry(samples));
+        self.next_seq
+    }
+
     /// The gateway stored `seq`.
     fn ack(&mut self, seq: u64, stats: &Stats) {
-        if self.unacked.remove(&seq).is_some() {
-            stats.events_acked.fetch_add(1, Ordering::Relaxed);
+        if let Some(done) = self.unacked.remove(&seq) {
+            done.count_acked(stats);
         }
     }
 
@@ -73,10 +101,9 @@ impl Outbox {
     fn stored_through(&mut self, stored: Option<u64>, stats: &Stats) {
         let Some(stored) = stored else { return };
         let keep = self.unacked.split_off(&(stored + 1));
-        let dropped = std::mem::replace(&mut self.unacked, keep).len();
-        stats
-            .events_acked
-            .fetch_add(dropped as u64, Ordering::Relaxed);
+        for done in std::mem::replace(&mut self.unacked, keep).values() {
+            done.count_acked(stats);
+        }
     }
 
     /// The highest `seq` acknowledged, for `hello.last_acked_seq`.
@@ -94,6 +121,10 @@ impl Outbox {
         match pending {
             Pending::Tick(ts_ms) => event(name, seq, *ts_ms),
             Pending::Frame(frame) => Message::text(&**frame),
+            Pending::Telemetry(samples) => Message::text(encode(&AgentMessage::Telemetry {
+                seq,
+                samples: samples.clone(),
+            })),
         }
     }
 }
@@ -151,6 +182,30 @@ enum Ended {
     Restart,
 }
 
+/// One robot's telemetry: the agent's collector over the robot's synthetic world, and the
+/// samples collected since the last batch.
+pub(super) struct Sampler {
+    telemetry: Telemetry,
+    pending: Vec<Sample>,
+    batch_every: Duration,
+}
+
+impl Sampler {
+    /// The sampler of robot `name` as `--telemetry-interval-s` asks (none for 0).
+    fn new(args: &super::Args, name: &str) -> Option<Self> {
+        if args.telemetry_interval_s == 0 {
+            return None;
+        }
+        let config = crate::config::Config::default()
+            .with_telemetry_every(args.telemetry_interval_s, args.telemetry_batch_interval_s);
+        Some(Self {
+            telemetry: Telemetry::synthetic(&config, name),
+            pending: Vec::new(),
+            batch_every: Duration::from_secs(config.telemetry_batch_interval_s),
+        })
+    }
+}
+
 /// One simulated robot, forever: connect, run the session, back off, again.
 pub(super) async fn robot(fleet: Fleet, name: String, gateway: usize) {
     let args = &fleet.args;
@@ -162,6 +217,7 @@ pub(super) async fn robot(fleet: Fleet, name: String, gateway: usize) {
     };
     let mut outbox = Outbox::default();
     let mut commands = Commands::new(fleet.commands.clone());
+    let mut sampler = Sampler::new(args, &name);
     let mut first = true;
     let mut backoff =
         crate::backoff::Backoff::new(Duration::from_millis(500), Duration::from_secs(30));
@@ -202,6 +258,7 @@ pub(super) async fn robot(fleet: Fleet, name: String, gateway: usize) {
                         outbox: &mut outbox,
                         commands: &mut commands,
                         robot,
+                        sampler: sampler.as_mut(),
                         pending: None,
                         last_rtt: None,
                     }
@@ -247,6 +304,8 @@ type Tx = SplitSink<Socket, Message>;
 enum Wake {
     Heartbeat,
     Event,
+    Sample,
+    Batch,
     Report(super::commands::Report),
     Frame(Option<Result<Message, tokio_tungstenite::tungstenite::Error>>),
 }
@@ -267,6 +326,7 @@ struct Session<'a> {
     outbox: &'a mut Outbox,
     commands: &'a mut Commands,
     robot: RobotId,
+    sampler: Option<&'a mut Sampler>,
     /// The heartbeat awaiting its ack: its `sent_at_ms` and when it left.
     pending: Option<(i64, Instant)>,
     last_rtt: Option<f64>,
@@ -280,7 +340,9 @@ impl Session<'_> {
         self.commands.welcomed();
         let stats = &*self.fleet.stats;
         for (&seq, pending) in &self.outbox.unacked {
-            stats.events_resent.fetch_add(1, Ordering::Relaxed);
+            if !matches!(pending, Pending::Telemetry(_)) {
+                stats.events_resent.fetch_add(1, Ordering::Relaxed);
+            }
             if tx
                 .send(Outbox::frame(self.name, seq, pending))
                 .await
@@ -289,7 +351,7 @@ impl Session<'_> {
                 return Ended::Lost;
             }
         }
-        // Spread the first heartbeat and the first event over one period each.
+        // Spread the first heartbeat, event and telemetry batch over one period each.
         let mut tick = spread_interval(self.interval);
         let event_period = self
             .fleet
@@ -298,10 +360,17 @@ impl Session<'_> {
             .filter(|r| *r > 0.0)
             .map(|r| Duration::from_secs_f64(60.0 / r));
         let mut events = spread_interval(event_period.unwrap_or(Duration::from_secs(3600)));
+        let batch_period = self.sampler.as_ref().map(|s| s.batch_every);
+        let mut batches = spread_interval(batch_period.unwrap_or(Duration::from_secs(3600)));
         loop {
+            let sample_due = self.sampler.as_ref().map(|s| s.telemetry.next_due());
+            let making = self.fleet.generating();
             let wake = tokio::select! {
                 _ = tick.tick() => Wake::Heartbeat,
-                _ = events.tick(), if event_period.is_some() && self.fleet.generating() => Wake::Event,
+                _ = events.tick(), if event_period.is_some() && making => Wake::Event,
+                _ = tokio::time::sleep_until(sample_due.unwrap_or_else(far_future)),
+                    if sample_due.is_some() => Wake::Sample,
+                _ = batches.tick(), if batch_period.is_some() && making => Wake::Batch,
                 report = self.commands.next() => Wake::Report(report),
                 frame = rx.next() => Wake::Frame(frame),
             };
@@ -314,6 +383,17 @@ impl Session<'_> {
                         Err(_) => Step::End(Ended::Lost),
                     }
                 }
+                Wake::Sample => {
+                    self.collect();
+                    Step::Go
+                }
+                Wake::Batch => match self.batch() {
+                    Some(frame) => match tx.send(frame).await {
+                        Ok(()) => Step::Go,
+                        Err(_) => Step::End(Ended::Lost),
+                    },
+                    None => Step::Go,
+                },
                 Wake::Report(report) => self.on_report(report, &mut tx).await,
                 Wake::Frame(frame) => self.on_frame(frame),
             };
@@ -334,9 +414,47 @@ impl Session<'_> {
         let sent_at_ms = lekiwi_protocol::now_ms();
         self.pending = Some((sent_at_ms, Instant::now()));
         let current = self.commands.current().cloned();
-        tx.send(heartbeat(sent_at_ms, self.last_rtt, current))
-            .await
-            .is_ok()
+        let vitals = match self.sampler.as_mut() {
+            Some(s) => s.telemetry.vitals(),
+            None => Vitals {
+                cpu_percent: Some(12.0),
+                memory_percent: Some(30.0),
+                temperature_c: Some(50.0),
+                ..Vitals::default()
+            },
+        };
+        let heartbeat = AgentMessage::Heartbeat {
+            sent_at_ms,
+            rtt_ms: self.last_rtt,
+            vitals,
+            current_release: current,
+            health: None,
+            teleoperation: None,
+        };
+        tx.send(Message::text(encode(&heartbeat))).await.is_ok()
+    }
+
+    /// Runs the telemetry samplers that are due; what passes their filters waits for the batch.
+    fn collect(&mut self) {
+        if let Some(s) = self.sampler.as_mut() {
+            let samples = s
+                .telemetry
+                .collect_due(tokio::time::Instant::now(), lekiwi_protocol::now_ms());
+            s.pending.extend(samples);
+        }
+    }
+
+    /// The telemetry batch of the samples collected since the last, if any, kept in the
+    /// outbox until acknowledged.
+    fn batch(&mut self) -> Option<Message> {
+        let s = self.sampler.as_mut()?;
+        if s.pending.is_empty() {
+            return None;
+        }
+        let samples = std::mem::take(&mut s.pending);
+        let seq = self.outbox.push_telemetry(samples, &self.fleet.stats);
+        let pending = &self.outbox.unacked[&seq];
+        Some(Outbox::frame(self.name, seq, pending))
     }
 
     /// Something the robot's commands have for the gateway.
@@ -404,25 +522,9 @@ fn spread_interval(period: Duration) -> tokio::time::Interval {
     tokio::time::interval_at(tokio::time::Instant::now() + offset, period)
 }
 
-/// A heartbeat with fixed vitals and the release the robot runs.
-fn heartbeat(
-    sent_at_ms: i64,
-    rtt_ms: Option<f64>,
-    current_release: Option<lekiwi_protocol::Release>,
-) -> Message {
-    Message::text(encode(&AgentMessage::Heartbeat {
-        sent_at_ms,
-        rtt_ms,
-        vitals: Vitals {
-            cpu_percent: Some(12.0),
-            memory_percent: Some(30.0),
-            temperature_c: Some(50.0),
-            ..Vitals::default()
-        },
-        current_release,
-        health: None,
-        teleoperation: None,
-    }))
+/// A far-off instant, for a timer that must not fire.
+fn far_future() -> tokio::time::Instant {
+    tokio::time::Instant::now() + Duration::from_secs(86_400)
 }
 
 #[cfg(test)]
@@ -475,5 +577,25 @@ mod tests {
         outbox.ack(5, &stats);
         assert_eq!(outbox.last_acked(), Some(5));
         assert_eq!(stats.events_acked.load(Ordering::Relaxed), 5);
+        // Telemetry batches share the sequence and are counted apart from events.
+        let sample = |v| Sample {
+            metric: "cpu_percent".into(),
+            ts_ms: 1,
+            value: v,
+        };
+        assert_eq!(
+            outbox.push_telemetry(vec![sample(1.0), sample(2.0)], &stats),
+            6
+        );
+        outbox.push(&stats);
+        outbox.push_telemetry(vec![sample(3.0)], &stats);
+        outbox.stored_through(Some(7), &stats);
+        assert_eq!(outbox.unacked.keys().copied().collect::<Vec<_>>(), [8]);
+        outbox.ack(8, &stats);
+        let load = |c: &std::sync::atomic::AtomicU64| c.load(Ordering::Relaxed);
+        assert_eq!(load(&stats.events_acked), 6);
+        assert_eq!(load(&stats.telemetry_generated), 2);
+        assert_eq!(load(&stats.telemetry_acked), 2);
+        assert_eq!(load(&stats.samples_generated), 3);
     }
 }

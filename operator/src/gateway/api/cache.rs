@@ -223,6 +223,19 @@ impl<K> Cache<K> {
         self.scan((namespace, after, label), limit, keep, Item::json)
     }
 
+    /// Like [`Cache::page_json`], each JSON with its object (for what a list adds to it).
+    pub fn page_json_objects(
+        &self,
+        place: (Option<&str>, Option<&Key>, Option<(&str, &str)>),
+        limit: usize,
+        keep: impl Fn(&K) -> bool,
+    ) -> Found<(Arc<K>, Arc<str>)>
+    where
+        K: Serialize,
+    {
+        self.scan(place, limit, keep, |i| (i.object.clone(), i.json()))
+    }
+
     fn scan<T>(
         &self,
         (namespace, after, label): (Option<&str>, Option<&Key>, Option<(&str, &str)>),

@@ -200,6 +200,12 @@ fn schema(name: &str) -> Value {
     json!({"$ref": format!("#/components/schemas/{name}")})
 }
 
+/// `lastSeen` of a robot, in lists and the robot view.
+fn last_seen() -> Value {
+    json!({"type": "string", "format": "date-time",
+        "description": "When the robot was last heard from: its latest heartbeat as the gateway that answers knows it, when that gateway holds the robot's session; else status.lastHeartbeatTime (written at least every --status-refresh-seconds). Absent when neither is known."})
+}
+
 fn build() -> Value {
     let named = |mut extra: Vec<Value>| {
         let mut p = path_params(true);
@@ -223,7 +229,7 @@ fn build() -> Value {
             paths::ACCESS: {"get": op("Who the caller is and which actions RBAC allows them in the namespace (each the check its route makes).",
                 "an authenticated user", path_params(false), schema("Access"))},
             paths::ROBOTS: {"get": op("Robots of every namespace.", "list robots in all namespaces",
-                listed(false, robot_filters()), page_of("Robot"))},
+                listed(false, robot_filters()), page_of("RobotItem"))},
             paths::SUMMARY: {"get": op("The robots of a namespace counted by phase and release (the 20 most common; the rest under `(other)`, none reported under `(none)`), teleoperated and unhealthy; the same filters as the list but phase.",
                 "list robots", {
                     let mut p = path_params(false);
@@ -231,7 +237,7 @@ fn build() -> Value {
                     p
                 }, schema("Summary"))},
             paths::NAMESPACED_ROBOTS: {"get": op("Robots of a namespace.", "list robots",
-                listed(true, robot_filters()), page_of("Robot"))},
+                listed(true, robot_filters()), page_of("RobotItem"))},
             paths::ROBOT: {"get": op("One robot and its latest vitals.", "get robots", named(vec![]), schema("RobotView"))},
             paths::ROBOT_EVENTS: {"get": op("A robot's stored events, ascending seq (404 for a robot the gateway does not hold).", "get robots/events",
                 named([history_params(false), page_params()].concat()), page_of("StoredEvent"))},
@@ -317,11 +323,14 @@ fn components() -> Value {
                 "releases": {"type": "object", "additionalProperties": {"type": "integer"}, "description": "Robots per status.currentRelease.version."},
                 "teleoperated": {"type": "integer"}, "unhealthy": {"type": "integer"}}},
             "Robot": {"type": "object", "description": "The Robot resource (fleet.lekiwi.io/v1alpha1) as `kubectl get -o json` shows it, without managedFields."},
+            "RobotItem": {"allOf": [schema("Robot"), {"type": "object", "properties": {"lastSeen": last_seen()}}],
+                "description": "A list's robot: the Robot resource plus lastSeen."},
             "RobotDeployment": {"type": "object", "description": "The RobotDeployment resource (fleet.lekiwi.io/v1alpha1) without managedFields."},
             "RobotView": {"type": "object", "required": ["robot"], "properties": {
                 "robot": schema("Robot"),
                 "vitals": {"type": "object", "nullable": true, "description": "status.telemetry: cpuPercent, memoryPercent, temperatureCelsius, batteryPercent, hostMemoryBytes, hostCpuPercent."},
-                "vitalsTime": {"type": "string", "format": "date-time", "nullable": true, "description": "status.lastHeartbeatTime."}}},
+                "vitalsTime": {"type": "string", "format": "date-time", "nullable": true, "description": "status.lastHeartbeatTime."},
+                "lastSeen": last_seen()}},
             "StoredEvent": {"type": "object", "required": ["seq", "ts_ms", "kind", "severity", "message", "data"], "properties": {
                 "seq": {"type": "integer"}, "ts_ms": {"type": "integer", "description": "Unix milliseconds."},
                 "kind": {"type": "string"}, "severity": {"type": "string"}, "message": {"type": "string"}, "data": {}}},

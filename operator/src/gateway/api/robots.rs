@@ -8,13 +8,15 @@ use axum::extract::rejection::QueryRejection;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
+use jiff::Timestamp;
 use lekiwi_crds::Robot;
 use lekiwi_crds::robot::{RobotPhase, TelemetrySummary};
 use serde::{Deserialize, Serialize};
 
-use super::cache::Key;
+use super::cache::{Found, Key};
 use super::selector::Selector;
 use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
+use crate::gateway::event_store::RobotKey;
 use crate::gateway::kube_auth::Access;
 use crate::gateway::{ApiError, AppState};
 
@@ -61,6 +63,9 @@ pub struct RobotView {
     /// When the gateway last recorded a heartbeat (the vitals are as of then).
     #[serde(rename = "vitalsTime")]
     vitals_time: Option<String>,
+    /// When the robot was last heard from (see [`last_seen`]).
+    #[serde(rename = "lastSeen", skip_serializing_if = "Option::is_none")]
+    last_seen: Option<String>,
 }
 
 /// `GET /api/v1/robots`: robots of every namespace the gateway watches (`list robots` in all
@@ -95,22 +100,38 @@ async fn list(
     authorize(&state, &headers, Some(access)).await?;
     let filter = Filter::parse(&query)?;
     ready(&state.fleet.robots)?;
-    let found =
-        state
-            .fleet
-            .robots
-            .page_json(filter.place(namespace.as_deref()), filter.limit, |r| {
-                filter.keep(r)
-            });
-    // The page as `Page` would serialize, from each robot's JSON kept in the cache.
-    let size = found.items.iter().map(|j| j.len() + 1).sum::<usize>();
+    let found = state.fleet.robots.page_json_objects(
+        filter.place(namespace.as_deref()),
+        filter.limit,
+        |r| filter.keep(r),
+    );
+    let keys: Vec<RobotKey> = found.items.iter().map(|(r, _)| robot_key(r)).collect();
+    let held = state.shared.presence.last_heartbeats(&keys);
+    let body = page_body(&found, held);
+    Ok(([(header::CONTENT_TYPE, "application/json")], body).into_response())
+}
+
+/// The page as [`Page`] would serialize, from each robot's JSON kept in the cache, each with its
+/// `lastSeen` (`held`: the live heartbeats, in the same order), which changes with every
+/// heartbeat and so is not kept in that JSON.
+fn page_body(found: &Found<(Arc<Robot>, Arc<str>)>, held: Vec<Option<Timestamp>>) -> String {
+    let size = found.items.iter().map(|(_, j)| j.len() + 48).sum::<usize>();
     let mut body = String::with_capacity(size + 64);
     body.push_str(r#"{"items":["#);
-    for (i, json) in found.items.iter().enumerate() {
+    for (i, ((robot, json), held)) in found.items.iter().zip(held).enumerate() {
         if i > 0 {
             body.push(',');
         }
-        body.push_str(json);
+        let open = json.strip_suffix('}').filter(|o| o.len() > 1);
+        match (open, last_seen(robot, held)) {
+            (Some(open), Some(seen)) => {
+                body.push_str(open);
+                body.push_str(r#","lastSeen":""#);
+                body.push_str(&rfc3339(seen));
+                body.push_str(r#""}"#);
+            }
+            _ => body.push_str(json),
+        }
     }
     body.push(']');
     if let Some(last) = found.last.as_ref().filter(|_| found.more) {
@@ -119,7 +140,32 @@ async fn list(
         body.push('"');
     }
     body.push('}');
-    Ok(([(header::CONTENT_TYPE, "application/json")], body).into_response())
+    body
+}
+
+/// When the robot was last heard from: the later of its live heartbeat in a session this
+/// gateway holds (`held`) and the `status.lastHeartbeatTime` written last (by whichever gateway
+/// holds it), which a steady robot's status refreshes only once per `--status-refresh-seconds`.
+pub(crate) fn last_seen(robot: &Robot, held: Option<Timestamp>) -> Option<Timestamp> {
+    let written = robot
+        .status
+        .as_ref()
+        .and_then(|s| s.last_heartbeat_time.as_ref());
+    held.max(written.map(|t| t.0))
+}
+
+/// `t` in RFC 3339, to the millisecond.
+fn rfc3339(t: Timestamp) -> String {
+    jiff::fmt::temporal::DateTimePrinter::new()
+        .precision(Some(3))
+        .timestamp_to_string(&t)
+}
+
+fn robot_key(robot: &Robot) -> RobotKey {
+    RobotKey::new(
+        robot.metadata.namespace.as_deref().unwrap_or_default(),
+        robot.metadata.name.as_deref().unwrap_or_default(),
+    )
 }
 
 /// A robot list's parsed query.
@@ -206,7 +252,9 @@ pub async fn one(
         .get(&namespace, &name)
         .ok_or_else(|| ApiError::NotFound(format!("robot {namespace}/{name} not found")))?;
     let status = robot.status.as_ref();
+    let held = state.shared.presence.last_heartbeats([&robot_key(&robot)]);
     Ok(Json(RobotView {
+        last_seen: last_seen(&robot, held.into_iter().next().flatten()).map(rfc3339),
         vitals: status.and_then(|s| s.telemetry.as_deref().cloned()),
         vitals_time: status
             .and_then(|s| s.last_heartbeat_time.as_ref())
@@ -229,4 +277,70 @@ pub(crate) fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
             let all: Vec<_> = RobotPhase::ALL.iter().map(|p| p.as_str()).collect();
             ApiError::BadRequest(format!("unknown phase {text:?}; one of {}", all.join(", ")))
         })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gateway::api::cache::Cache;
+    use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+    use lekiwi_crds::robot::RobotStatus;
+    use lekiwi_crds::{Robot, RobotSpec};
+    use serde_json::Value;
+
+    fn robot(name: &str, written: Option<&str>) -> Robot {
+        let mut r = Robot::new(name, RobotSpec::default());
+        r.metadata.namespace = Some("lab".into());
+        r.status = written.map(|t| RobotStatus {
+            last_heartbeat_time: Some(Time(t.parse().unwrap())),
+            ..RobotStatus::default()
+        });
+        r
+    }
+
+    /// Each item is the Robot plus `lastSeen`: the later of the live heartbeat and the written
+    /// one; none when neither is known. The page stays valid JSON.
+    #[test]
+    fn a_page_adds_last_seen_to_each_robot() {
+        let cache = Cache::listed([
+            robot("held", Some("2026-12-05T08:00:00Z")),
+            robot("elsewhere", Some("2026-12-05T08:01:00Z")),
+            robot("never", None),
+        ]);
+        let found = cache.page_json_objects((Some("lab"), None, None), 10, |_| true);
+        let live: Timestamp = "2026-12-05T08:04:59.123456Z".parse().unwrap();
+        // In key order: elsewhere, held, never.
+        let body = page_body(&found, vec![None, Some(live), None]);
+        let page: Value = serde_json::from_str(&body).expect("valid JSON");
+        let seen: Vec<(&str, Option<&str>)> = page["items"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| {
+                (
+                    r["metadata"]["name"].as_str().unwrap(),
+                    r["lastSeen"].as_str(),
+                )
+            })
+            .collect();
+        assert_eq!(
+            seen,
+            [
+                ("elsewhere", Some("2026-12-05T08:01:00.000Z")),
+                ("held", Some("2026-12-05T08:04:59.123Z")),
+                ("never", None),
+            ]
+        );
+        assert_eq!(
+            page["items"][1]["kind"], "Robot",
+            "the resource is kept whole"
+        );
+        // A live heartbeat older than the written one (another gateway holds it now) loses.
+        let old: Timestamp = "2026-12-05T07:00:00Z".parse().unwrap();
+        let r = robot("held", Some("2026-12-05T08:00:00Z"));
+        assert_eq!(
+            last_seen(&r, Some(old)),
+            Some("2026-12-05T08:00:00Z".parse().unwrap())
+        );
+    }
 }

@@ -421,6 +421,23 @@ impl Presence {
         self.with_state(|s| s.queued.len())
     }
 
+    /// When each of `keys` last sent a heartbeat (or a legacy poll) in a session this gateway
+    /// holds now, in the same order; `None` for a robot it does not hold. Its status carries
+    /// that time only once per refresh period (see [`refresh_due`]); this is the live one. One
+    /// lock for the whole list.
+    pub fn last_heartbeats<'a>(
+        &self,
+        keys: impl IntoIterator<Item = &'a RobotKey>,
+    ) -> Vec<Option<Timestamp>> {
+        let state = self.state.lock().unwrap_or_else(|p| p.into_inner());
+        keys.into_iter()
+            .map(|k| {
+                let e = state.robots.get(k).filter(|e| e.connected)?;
+                Some(e.last_heartbeat)
+            })
+            .collect()
+    }
+
     /// Number of robots connected right now.
     pub fn connected(&self) -> usize {
         self.with_state(|s| s.robots.values().filter(|e| e.connected).count())

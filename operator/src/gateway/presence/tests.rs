@@ -502,6 +502,24 @@ fn a_moved_session_is_forgotten_without_a_write() {
     assert_eq!(p.queued(), 0, "its end writes nothing either");
 }
 
+/// The live heartbeat time is each held robot's latest, whatever was written; robots not held
+/// (never connected, disconnected) have none.
+#[test]
+fn last_heartbeats_are_the_held_sessions_latest() {
+    let p = presence();
+    let (a, b, c) = (key("a"), key("b"), key("c"));
+    p.connect(&a, 1, 1_000, ConnectInfo::default());
+    p.connect(&b, 2, 1_000, ConnectInfo::default());
+    let connected_at = p.last_heartbeats([&a])[0].expect("held");
+    std::thread::sleep(Duration::from_millis(5));
+    p.heartbeat(&a, 1, HeartbeatInfo::default());
+    p.heartbeat(&a, 9, HeartbeatInfo::default());
+    p.disconnect(&b, 2);
+    let seen = p.last_heartbeats([&a, &b, &c]);
+    assert!(seen[0].expect("held") > connected_at, "{seen:?}");
+    assert_eq!(seen[1..], [None, None]);
+}
+
 /// A robot that moved here is written before every transition and refresh, and claimed (in
 /// the Lease annotation) until the Robot watch shows its write (or long after the write, if the
 /// watch never does) or its session ends.
