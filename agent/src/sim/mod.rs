@@ -5,6 +5,7 @@
 //! carries out the gateway's commands as the agent does ([`commands`]).
 
 pub mod commands;
+mod outbox;
 mod session;
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};

@@ -5,7 +5,6 @@
 //! gateway's commands ([`super::commands`]) and reconnects with backoff. Telemetry is sampled
 //! while connected only.
 
-use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
@@ -13,12 +12,13 @@ use futures::stream::SplitSink;
 use futures::{SinkExt, StreamExt};
 use lekiwi_protocol::{
     AgentMessage, ErrorCode, FEATURE_UPDATE_AGENT, Health, PROTOCOL_VERSION, Sample, ServerMessage,
-    Severity, SystemFacts, Teleoperation, Vitals, decode, encode,
+    SystemFacts, Teleoperation, Vitals, decode, encode,
 };
 use rand::Rng;
 use tokio_tungstenite::tungstenite::Message;
 
 use super::commands::{Commands, Handled, RobotId};
+use super::outbox::{Outbox, Pending, event};
 use super::{Fleet, Stats, lock};
 use crate::connection::{ConnectError, Credentials, Socket, connect_with_ca};
 use crate::telemetry::Telemetry;
@@ -26,120 +26,6 @@ use crate::telemetry::Telemetry;
 /// How long a robot whose agent restarts (`update_agent`) stays away, at most: the service
 /// manager's restart delay.
 const RESTART_DELAY: Duration = Duration::from_millis(500);
-
-/// The durable messages of one robot not yet acknowledged, by `seq`, and the next `seq` to use.
-/// It lives as long as the robot's task, across sessions, as the agent's outbox does on disk.
-#[derive(Default)]
-pub(super) struct Outbox {
-    next_seq: u64,
-    unacked: BTreeMap<u64, Pending>,
-}
-
-/// A durable message kept until acknowledged.
-enum Pending {
-    /// A generated event, made again from its time when resent.
-    Tick(i64),
-    /// A message of the robot's commands, kept as sent.
-    Frame(Box<str>),
-    /// A batch of telemetry samples.
-    Telemetry(Vec<Sample>),
-}
-
-impl Pending {
-    /// Counts `self` as acknowledged.
-    fn count_acked(&self, stats: &Stats) {
-        let counter = match self {
-            Pending::Tick(_) | Pending::Frame(_) => &stats.events_acked,
-            Pending::Telemetry(_) => &stats.telemetry_acked,
-        };
-        counter.fetch_add(1, Ordering::Relaxed);
-    }
-}
-
-impl Outbox {
-    /// A new event: its `seq` and time, kept until acknowledged.
-    fn push(&mut self, stats: &Stats) -> (u64, i64) {
-        self.next_seq += 1;
-        let ts_ms = lekiwi_protocol::now_ms();
-        self.unacked.insert(self.next_seq, Pending::Tick(ts_ms));
-        stats.events_generated.fetch_add(1, Ordering::Relaxed);
-        (self.next_seq, ts_ms)
-    }
-
-    /// A new durable message made by `make` from its `seq`, kept until acknowledged; its frame.
-    fn push_message(&mut self, make: impl FnOnce(u64) -> AgentMessage, stats: &Stats) -> Message {
-        self.next_seq += 1;
-        let frame = encode(&make(self.next_seq));
-        self.unacked.insert(
-            self.next_seq,
-            Pending::Frame(frame.clone().into_boxed_str()),
-        );
-        stats.events_generated.fetch_add(1, Ordering::Relaxed);
-        Message::text(frame)
-    }
-
-    /// A new telemetry batch: its `seq`, kept until acknowledged.
-    fn push_telemetry(&mut self, samples: Vec<Sample>, stats: &Stats) -> u64 {
-        self.next_seq += 1;
-        stats.telemetry_generated.fetch_add(1, Ordering::Relaxed);
-        stats
-            .samples_generated
-            .fetch_add(samples.len() as u64, Ordering::Relaxed);
-        self.unacked
-            .insert(self.next_seq, Pending::Telemetry(samples));
-        self.next_seq
-    }
-
-    /// The gateway stored `seq`.
-    fn ack(&mut self, seq: u64, stats: &Stats) {
-        if let Some(done) = self.unacked.remove(&seq) {
-            done.count_acked(stats);
-        }
-    }
-
-    /// `welcome.stored_seq`: everything up to it is stored already.
-    fn stored_through(&mut self, stored: Option<u64>, stats: &Stats) {
-        let Some(stored) = stored else { return };
-        let keep = self.unacked.split_off(&(stored + 1));
-        for done in std::mem::replace(&mut self.unacked, keep).values() {
-            done.count_acked(stats);
-        }
-    }
-
-    /// The highest `seq` acknowledged, for `hello.last_acked_seq`.
-    fn last_acked(&self) -> Option<u64> {
-        let below = self
-            .unacked
-            .keys()
-            .next()
-            .map_or(self.next_seq, |first| first - 1);
-        (below > 0).then_some(below)
-    }
-
-    /// The frame of the unacknowledged message `seq` of robot `name`, to send again.
-    fn frame(name: &str, seq: u64, pending: &Pending) -> Message {
-        match pending {
-            Pending::Tick(ts_ms) => event(name, seq, *ts_ms),
-            Pending::Frame(frame) => Message::text(&**frame),
-            Pending::Telemetry(samples) => Message::text(encode(&AgentMessage::Telemetry {
-                seq,
-                samples: samples.clone(),
-            })),
-        }
-    }
-}
-
-/// The event frame for `seq`.
-fn event(name: &str, seq: u64, ts_ms: i64) -> Message {
-    Message::text(encode(&AgentMessage::Event {
-        seq,
-        ts_ms,
-        kind: "sim_tick".into(),
-        severity: Severity::Info,
-        message: format!("{name} event {seq}"),
-        data: serde_json::Value::Null,
-    }))
-}
 
 /// The `hello` of a simulated robot: a Raspberry Pi running the release and agent build its
 /// commands left it on.
@@ -553,49 +439,5 @@ mod tests {
         assert!((70..=130).contains(&picked.len()), "{}", picked.len());
         assert_eq!(picked, late(&some), "the same robots again");
         assert_eq!(some.late_delay_of(picked[0]), Duration::from_secs(25));
-    }
-
-    #[test]
-    fn the_outbox_keeps_what_is_not_acknowledged_and_counts_each_event_once() {
-        let stats = Stats::default();
-        let mut outbox = Outbox::default();
-        assert_eq!(outbox.last_acked(), None);
-        for _ in 0..5 {
-            outbox.push(&stats);
-        }
-        outbox.ack(2, &stats);
-        outbox.ack(2, &stats);
-        assert_eq!(outbox.last_acked(), None, "seq 1 is still unacknowledged");
-        outbox.ack(1, &stats);
-        assert_eq!(outbox.last_acked(), Some(2));
-        // A new session's welcome says 4 is stored: 3 and 4 count as acknowledged, 5 stays.
-        outbox.stored_through(Some(4), &stats);
-        assert_eq!(outbox.unacked.keys().copied().collect::<Vec<_>>(), [5]);
-        assert_eq!(outbox.last_acked(), Some(4));
-        assert_eq!(stats.events_generated.load(Ordering::Relaxed), 5);
-        assert_eq!(stats.events_acked.load(Ordering::Relaxed), 4);
-        outbox.ack(5, &stats);
-        assert_eq!(outbox.last_acked(), Some(5));
-        assert_eq!(stats.events_acked.load(Ordering::Relaxed), 5);
-        // Telemetry batches share the sequence and are counted apart from events.
-        let sample = |v| Sample {
-            metric: "cpu_percent".into(),
-            ts_ms: 1,
-            value: v,
-        };
-        assert_eq!(
-            outbox.push_telemetry(vec![sample(1.0), sample(2.0)], &stats),
-            6
-        );
-        outbox.push(&stats);
-        outbox.push_telemetry(vec![sample(3.0)], &stats);
-        outbox.stored_through(Some(7), &stats);
-        assert_eq!(outbox.unacked.keys().copied().collect::<Vec<_>>(), [8]);
-        outbox.ack(8, &stats);
-        let load = |c: &std::sync::atomic::AtomicU64| c.load(Ordering::Relaxed);
-        assert_eq!(load(&stats.events_acked), 6);
-        assert_eq!(load(&stats.telemetry_generated), 2);
-        assert_eq!(load(&stats.telemetry_acked), 2);
-        assert_eq!(load(&stats.samples_generated), 3);
     }
 }
