@@ -47,6 +47,16 @@ impl CommandLedger {
 
     /// Records a new desired release (the Robot's `spec.release` changed).
     pub(super) fn set_desired(&mut self, release: Option<Release>) {
+        // A finished command for another release is history: asked for again later (a
+        // rollout restarted after its rollback), that release goes out again.
+        if !self.in_flight
+            && self
+                .sent
+                .as_ref()
+                .is_some_and(|(_, r)| release.as_ref() != Some(r))
+        {
+            self.sent = None;
+        }
         self.desired = release;
     }
 
@@ -241,6 +251,26 @@ mod tests {
             Some(release("2")),
             "the cancelled command's end is still recorded"
         );
+        ledger.set_desired(Some(release("2")));
+        let (again, version) = deployed(ledger.next_commands("gw", 1)).unwrap();
+        assert_eq!(version, "2");
+        assert_ne!(first, again);
+    }
+
+    #[test]
+    fn a_release_that_failed_goes_out_again_when_asked_for_again() {
+        let mut ledger = CommandLedger::new(Some(release("1")), Some(release("2")));
+        let (first, _) = deployed(ledger.next_commands("gw", 1)).unwrap();
+        assert!(ledger.next_commands("gw", 1).is_empty(), "not repeated");
+        // Its health check fails: the agent switches back by itself.
+        ledger.finished(&first, Some(ProgressPhase::RolledBack));
+        assert!(
+            ledger.next_commands("gw", 1).is_empty(),
+            "still wanted, not retried at once"
+        );
+        // The rollout is rolled back, then restarted.
+        ledger.set_desired(Some(release("1")));
+        assert!(ledger.next_commands("gw", 1).is_empty(), "runs 1 already");
         ledger.set_desired(Some(release("2")));
         let (again, version) = deployed(ledger.next_commands("gw", 1)).unwrap();
         assert_eq!(version, "2");
