@@ -96,6 +96,10 @@ pub struct Args {
     /// Extra wait, seconds, of the robots of `--late-share` before they reconnect.
     #[arg(long, default_value_t = 30.0)]
     pub late_delay: f64,
+    /// Seconds every robot's clock is off (negative: behind): the times of its events and
+    /// telemetry samples are shifted by this much, as a robot whose clock drifted would send.
+    #[arg(long, default_value_t = 0, allow_negative_numbers = true)]
+    pub clock_offset_seconds: i64,
     /// How the robots carry out commands.
     #[command(flatten)]
     pub commands: CommandArgs,

@@ -40,10 +40,10 @@ impl Pending {
 }
 
 impl Outbox {
-    /// A new event: its `seq` and time, kept until acknowledged.
-    pub(super) fn push(&mut self, stats: &Stats) -> (u64, i64) {
+    /// A new event made at `ts_ms` by the robot's clock: its `seq` and time, kept until
+    /// acknowledged.
+    pub(super) fn push_at(&mut self, ts_ms: i64, stats: &Stats) -> (u64, i64) {
         self.next_seq += 1;
-        let ts_ms = lekiwi_protocol::now_ms();
         self.unacked.insert(self.next_seq, Pending::Tick(ts_ms));
         stats.events_generated.fetch_add(1, Ordering::Relaxed);
         (self.next_seq, ts_ms)
@@ -138,7 +138,7 @@ mod tests {
         let mut outbox = Outbox::default();
         assert_eq!(outbox.last_acked(), None);
         for _ in 0..5 {
-            outbox.push(&stats);
+            outbox.push_at(1, &stats);
         }
         outbox.ack(2, &stats);
         outbox.ack(2, &stats);
@@ -164,7 +164,7 @@ mod tests {
             outbox.push_telemetry(vec![sample(1.0), sample(2.0)], &stats),
             6
         );
-        outbox.push(&stats);
+        outbox.push_at(1, &stats);
         outbox.push_telemetry(vec![sample(3.0)], &stats);
         outbox.stored_through(Some(7), &stats);
         assert_eq!(outbox.unacked.keys().copied().collect::<Vec<_>>(), [8]);

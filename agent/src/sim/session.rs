@@ -263,7 +263,7 @@ impl Session<'_> {
             let step = match wake {
                 Wake::Heartbeat => Step::Heartbeat,
                 Wake::Event => {
-                    let (seq, ts_ms) = self.outbox.push(stats);
+                    let (seq, ts_ms) = self.outbox.push_at(self.clock_ms(), stats);
                     match tx.send(event(self.name, seq, ts_ms)).await {
                         Ok(()) => Step::Go,
                         Err(_) => Step::End(Ended::Lost),
@@ -320,12 +320,18 @@ impl Session<'_> {
         tx.send(Message::text(encode(&heartbeat))).await.is_ok()
     }
 
+    /// The robot's clock, Unix milliseconds: the real time plus `--clock-offset-seconds`.
+    fn clock_ms(&self) -> i64 {
+        lekiwi_protocol::now_ms() + self.fleet.args.clock_offset_seconds * 1000
+    }
+
     /// Runs the telemetry samplers that are due; what passes their filters waits for the batch.
     fn collect(&mut self) {
+        let clock_ms = self.clock_ms();
         if let Some(s) = self.sampler.as_mut() {
             let samples = s
                 .telemetry
-                .collect_due(tokio::time::Instant::now(), lekiwi_protocol::now_ms());
+                .collect_due(tokio::time::Instant::now(), clock_ms);
             s.pending.extend(samples);
         }
     }
