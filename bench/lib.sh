@@ -221,6 +221,7 @@ enrollment_token() { # namespace file
 # HASH is the sha256 hex), by four parallel kubectl processes: a fleet that is already enrolled.
 provision_robots() { # namespace count hash [prefix]
   local ns="$1" count="$2" hash="$3" part pid pids=()
+  rm -f "$WORK"/provision-*.json
   python3 - "$count" "$hash" "$WORK/provision" 4 "${4:-sim}" <<'PY'
 import base64, json, sys
 robots, digest, prefix, parts = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
@@ -237,6 +238,8 @@ for part in range(parts):
                                    "labels": {"fleet.lekiwi.io/token": "robot",
                                               "fleet.lekiwi.io/robot": name}},
                       "data": {"sha256": data}})
+    if not items:
+        continue
     with open(f"{prefix}-{part}.json", "w") as out:
         json.dump({"apiVersion": "v1", "kind": "List", "items": items}, out)
 PY
@@ -244,6 +247,7 @@ PY
   # evaluation timed out"): up to three tries, the later ones refused only AlreadyExists for
   # what the earlier created.
   for part in 0 1 2 3; do
+    [ -f "$WORK/provision-$part.json" ] || continue  # fewer robots than parts
     (
       : >"$WORK/provision-$part.log"
       for _ in 1 2 3; do

@@ -1,0 +1,772 @@
+#!/usr/bin/env python3
+"""The soak's driver (bench/soak.sh sets up the control plane, PostgreSQL and the Robots, then
+runs this): starts the operator's processes, HAProxy and the fleet, rolls releases out back to
+back, breaks one thing every --fault-every seconds, samples every process and every robot every
+10 s, and writes report.txt (one table, PASS/FAIL) to the work directory.
+
+Standard library, curl and kubectl only. Usage: soak_driver.py CONFIG_JSON."""
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+from soak_report import Samples, report
+
+C = json.load(open(sys.argv[1]))
+WORK = C["work"]
+BIN = C["bin"]
+NS = "soak"
+GRACE_DEAD_GATEWAY = 45  # the gateway Lease (15 s) and the controller's next pass
+GRACE_NOT_ONLINE = 300  # a robot with a live session is Online again within this
+STALL_SECONDS = 120
+DISK_FULL_SECONDS = 120
+LOG = open(os.path.join(WORK, "driver-events.log"), "a", buffering=1)
+
+
+def log(msg):
+    line = f"[soak {time.strftime('%H:%M:%S')}] {msg}"
+    print(line, flush=True)
+    LOG.write(line + "\n")
+
+
+def run(*args, check=True, timeout=120, **kw):
+    env = dict(os.environ, KUBECONFIG=C["kubeconfig"])
+    p = subprocess.run(args, capture_output=True, text=True, timeout=timeout, env=env, **kw)
+    if check and p.returncode != 0:
+        raise RuntimeError(f"{' '.join(args[:4])}... failed: {p.stderr.strip()[-400:]}")
+    return p
+
+
+def free_port():
+    out = run("python3", os.path.join(C["root"], "scripts/free-ports.py"), "1").stdout
+    return int(out.split()[0])
+
+
+def curl(url, timeout=10):
+    try:
+        return subprocess.run(["curl", "-fsS", "--max-time", str(timeout), url],
+                              capture_output=True, text=True, timeout=timeout + 5).stdout
+    except subprocess.TimeoutExpired:
+        return ""
+
+
+def metric(text, name):
+    """The sum of the series of `name` (with this exact label set if given)."""
+    total, found = 0.0, False
+    for line in text.splitlines():
+        if line.startswith(name + " ") or (line.startswith(name + "{") and "{" not in name):
+            try:
+                total += float(line.rsplit(" ", 1)[1])
+                found = True
+            except ValueError:
+                pass
+    return total if found else None
+
+
+class Proc:
+    """A long-running process of the soak, restartable, its log appended across restarts."""
+
+    def __init__(self, name, argv, env=None, nice=0):
+        self.name, self.argv, self.env, self.nice = name, argv, env or {}, nice
+        self.p = None
+        self.restarts = 0
+
+    def start(self):
+        out = open(os.path.join(WORK, f"{self.name}.log"), "a")
+        env = dict(os.environ, **self.env)
+        argv = (["nice", "-n", str(self.nice)] if self.nice else []) + self.argv
+        self.p = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT, env=env,
+                                  stdin=subprocess.DEVNULL, start_new_session=True)
+        return self
+
+    @property
+    def pid(self):
+        return self.p.pid if self.p else None
+
+    def alive(self):
+        return self.p is not None and self.p.poll() is None
+
+    def kill(self, sig=signal.SIGKILL):
+        if self.alive():
+            # The whole group: a process's own children (the watch's curl) go with it.
+            os.killpg(self.p.pid, sig)
+            if sig in (signal.SIGKILL, signal.SIGTERM):
+                try:
+                    self.p.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    os.kill(self.p.pid, signal.SIGKILL)
+                    self.p.wait()
+
+    def restart(self):
+        self.kill()
+        self.restarts += 1
+        return self.start()
+
+
+class Soak:
+    def __init__(self):
+        self.procs = {}
+        self.ports = {}
+        self.samples = Samples()
+        self.rollouts = []  # dicts: version, kind, expected, phase, started, ended, seconds
+        self.faults = []  # dicts: kind, at, healed_s, notes
+        self.stall = None  # (start, end) of the cut-off while it lasts
+        self.robot_state = {}  # name -> (phase, gateway)
+        self.not_online_since = {}
+        self.online_dead_since = {}
+        self.violations = {"online_through_dead_gateway": 0, "not_online_with_session": 0,
+                           "max_online_through_dead_gateway_s": 0.0,
+                           "max_not_online_with_session_s": 0.0}
+        self.release_files = os.path.join(WORK, "releases")
+        self.completed_releases = set()
+        self.unwanted_releases = set()
+        self.current_target = None
+        self.agent_version = 0
+        self.t0 = time.time()
+
+    # ---- processes ------------------------------------------------------------------------
+    def operator_procs(self):
+        common = ["--kubeconfig", C["kubeconfig"], "--namespace", "lekiwi-system",
+                  "--watch-namespace", NS]
+        env = {"RUST_LOG": "warn"}
+        for c in ("ctl-a", "ctl-b"):
+            self.ports[c] = free_port()
+            self.procs[c] = Proc(c, [f"{BIN}/lekiwi-operator", "--role", "controller", *common,
+                                     "--identity", c, "--http-addr",
+                                     f"127.0.0.1:{self.ports[c]}"], env)
+        self.gateways = [f"gw-{chr(97 + i)}" for i in range(C["gateways"])]
+        for g in self.gateways:
+            self.ports[g] = free_port()
+            self.ports[g + "-http"] = free_port()
+            self.procs[g] = Proc(g, [
+                f"{BIN}/lekiwi-operator", "--role", "gateway", *common, "--identity", g,
+                "--gateway-name", g, "--gateway-addr", f"127.0.0.1:{self.ports[g]}",
+                "--http-addr", f"127.0.0.1:{self.ports[g + '-http']}",
+                "--store-url", C["store_url"], "--blob-dir", os.path.join(WORK, "blobs"),
+                "--max-unauthenticated-per-address", "0"], env)
+
+    def haproxy(self):
+        self.ports["lb"] = free_port()
+        servers = "\n".join(
+            f"  server {g} 127.0.0.1:{self.ports[g]} check port {self.ports[g + '-http']} "
+            "inter 1s fall 2 rise 2" for g in self.gateways)
+        cfg = os.path.join(WORK, "haproxy.cfg")
+        with open(cfg, "w") as f:
+            f.write(f"""global
+  maxconn {C['fds'] // 2 - 500}
+defaults
+  mode tcp
+  timeout connect 5s
+  timeout client 1h
+  timeout server 1h
+  timeout tunnel 1h
+frontend agents
+  bind 127.0.0.1:{self.ports['lb']}
+  default_backend gateways
+backend gateways
+  balance roundrobin
+  option httpchk GET /readyz
+{servers}
+""")
+        self.procs["haproxy"] = Proc("haproxy", ["haproxy", "-db", "-f", cfg], nice=10)
+
+    def fleet_procs(self):
+        lb = f"ws://127.0.0.1:{self.ports['lb']}/v1/agent"
+        token = open(os.path.join(WORK, "sim-token")).read().strip()
+        common = ["--gateway", lb, "--namespace", NS, "--report-every", "30",
+                  "--events-per-minute", str(C["events_per_minute"]), "--drain-seconds", "60",
+                  "--fail-health-share", "0.3", "--fail-health-versions", ",".join(self.failing),
+                  "--health-check-seconds", "1", "--pre-switch-seconds", "0.5",
+                  "--restart-seconds", "0.5"]
+        env = {"LEKIWI_ENROLLMENT_TOKEN": token, "RUST_LOG": "warn"}
+        for name, prefix, n, extra in (
+                ("sim", "sim", C["robots"] - C["stalled"], []),
+                ("sim-cut", "cut", C["stalled"], []),
+                ("sim-skew", "skew", 1, ["--clock-offset-seconds", "600"])):
+            self.procs[name] = Proc(name, [
+                f"{BIN}/lekiwi-sim", *common, "--robots", str(n), "--prefix", prefix,
+                "--json", os.path.join(WORK, f"{name}.json"), *extra], env, nice=10)
+        self.procs["fleet"] = Proc("fleet", [
+            f"{BIN}/lekiwi-fleet", "--gateway", lb, "--enrollment-token-file",
+            os.path.join(WORK, "enroll-token"), "--namespace", NS, "--robots",
+            str(C["agents"]), "--state-root", os.path.join(WORK, "agents"),
+            "--health-command", "true", "--health-timeout-s", "5", "--backoff-max-ms", "5000",
+            "--report-every", "30"], {"RUST_LOG": "warn"}, nice=10)
+
+    def total_robots(self):
+        return C["robots"] + 1 + C["agents"]
+
+    # ---- metrics --------------------------------------------------------------------------
+    def leader(self):
+        for c in ("ctl-a", "ctl-b"):
+            if not self.procs[c].alive():
+                continue
+            text = curl(f"http://127.0.0.1:{self.ports[c]}/metrics", 5)
+            if metric(text, "lekiwi_leader_election_is_leader") == 1:
+                return c, text
+        return None, ""
+
+    def phases(self):
+        _, text = self.leader()
+        out = {}
+        for p in ("Online", "Offline", "Unknown", "Pending"):
+            out[p] = metric(text, f'lekiwi_robots{{phase="{p}"}}') or 0
+        return out
+
+    def sessions(self):
+        total = 0
+        for g in self.gateways:
+            if self.procs[g].alive():
+                text = curl(f"http://127.0.0.1:{self.ports[g + '-http']}/metrics", 5)
+                total += metric(text, "lekiwi_gateway_connections") or 0
+        return total
+
+    def apiserver_writes(self):
+        """Write requests the API server has served so far, by resource."""
+        p = subprocess.run(
+            ["curl", "-fsS", "--max-time", "20", "--cacert", f"{C['cp_dir']}/pki/ca.crt",
+             "-H", f"Authorization: Bearer {open(C['cp_dir'] + '/admin-token').read().strip()}",
+             f"https://127.0.0.1:{C['apiserver_port']}/metrics"],
+            capture_output=True, text=True, timeout=30)
+        writes = {}
+        for line in p.stdout.splitlines():
+            if not line.startswith("apiserver_request_total{"):
+                continue
+            labels = dict(kv.split("=", 1) for kv in line[line.index("{") + 1:line.index("}")]
+                          .replace('"', "").split(","))
+            if labels.get("verb") not in ("CREATE", "UPDATE", "PATCH", "DELETE", "APPLY"):
+                continue
+            key = labels.get("resource", "") + (f"/{labels['subresource']}"
+                                                if labels.get("subresource") else "")
+            writes[key] = writes.get(key, 0) + float(line.rsplit(" ", 1)[1])
+        return writes
+
+    def pids(self):
+        out = {n: p.pid for n, p in self.procs.items()
+               if p.alive() and (n.startswith(("gw-", "ctl-")))}
+        for name in ("kube-apiserver", "etcd"):
+            try:
+                out[name] = int(open(f"{C['cp_dir']}/{name}.pid").read())
+            except (OSError, ValueError):
+                pass
+        try:
+            out["postgres"] = int(open(f"{C['pg_dir']}/data/postmaster.pid").readline())
+        except (OSError, ValueError):
+            pass
+        return out
+
+    def sample(self):
+        now = time.time() - self.t0
+        for name, pid in self.pids().items():
+            try:
+                status = open(f"/proc/{pid}/status").read()
+                rss = int(next(l for l in status.splitlines() if l.startswith("VmRSS:")).split()[1])
+                threads = int(next(l for l in status.splitlines()
+                                   if l.startswith("Threads:")).split()[1])
+                fds = len(os.listdir(f"/proc/{pid}/fd"))
+            except (OSError, StopIteration, ValueError):
+                continue
+            sessions = 0
+            if name.startswith("gw-"):
+                text = curl(f"http://127.0.0.1:{self.ports[name + '-http']}/metrics", 5)
+                sessions = int(metric(text, "lekiwi_gateway_connections") or 0)
+            self.samples.add(name, pid, now, rss, fds, threads, sessions)
+        self.check_robots(now)
+
+    # ---- robots as the watch shows them ------------------------------------------------------
+    def read_watch(self):
+        path = os.path.join(WORK, "robots.log")
+        if not os.path.exists(path):
+            return
+        with open(path) as f:
+            f.seek(getattr(self, "watch_offset", 0))
+            for line in f:
+                if not line.endswith("\n"):
+                    break
+                parts = line.rstrip("\n").split("|")
+                if len(parts) >= 6:
+                    self.robot_state[parts[2]] = (parts[3], parts[4])
+            self.watch_offset = f.tell()
+
+    def check_robots(self, now):
+        self.read_watch()
+        dead = {g for g in self.gateways if not self.procs[g].alive()}
+        stalled = self.stall is not None
+        for name, (phase, gateway) in self.robot_state.items():
+            if phase == "Online" and gateway in dead:
+                since = self.online_dead_since.setdefault(name, now)
+                d = now - since
+                self.violations["max_online_through_dead_gateway_s"] = max(
+                    self.violations["max_online_through_dead_gateway_s"], d)
+            else:
+                self.online_dead_since.pop(name, None)
+            expected_online = not (stalled and name.startswith("cut-"))
+            if phase != "Online" and expected_online:
+                since = self.not_online_since.setdefault(name, now)
+                self.violations["max_not_online_with_session_s"] = max(
+                    self.violations["max_not_online_with_session_s"], now - since)
+            else:
+                self.not_online_since.pop(name, None)
+        self.violations["online_through_dead_gateway"] = max(
+            self.violations["online_through_dead_gateway"],
+            sum(1 for n, s in self.online_dead_since.items() if now - s > GRACE_DEAD_GATEWAY))
+        self.violations["not_online_with_session"] = max(
+            self.violations["not_online_with_session"],
+            sum(1 for n, s in self.not_online_since.items() if now - s > GRACE_NOT_ONLINE))
+
+    # ---- releases and rollouts ----------------------------------------------------------------
+    def make_release(self, version):
+        """A release of 20 files of 16 KiB in two directories; each version changes one file."""
+        d = os.path.join(self.release_files, version)
+        base = os.path.join(self.release_files, "base")
+        if not os.path.isdir(base):
+            for i in range(20):
+                path = os.path.join(base, f"dir{i % 2}", f"file{i:02}.bin")
+                os.makedirs(os.path.dirname(path), exist_ok=True)
+                with open(path, "wb") as f:
+                    f.write(random.randbytes(16384))
+        shutil.copytree(base, d)
+        with open(os.path.join(d, "dir0", "version.txt"), "w") as f:
+            f.write(version + "\n")
+        return d
+
+    def live_gateway(self):
+        return next(g for g in self.gateways if self.procs[g].alive())
+
+    def server(self):
+        return f"http://127.0.0.1:{self.ports[self.live_gateway()]}"
+
+    def push(self, version):
+        d = self.make_release(version)
+        for attempt in range(5):
+            p = run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], "release", "push", d,
+                    "--version", version, "--server", self.server(), "-n", NS, check=False,
+                    timeout=300)
+            if p.returncode == 0:
+                return p.stdout.strip().split()[-1]
+            log(f"push {version} failed (attempt {attempt + 1}): {p.stderr.strip()[-200:]}")
+            time.sleep(10)
+        raise RuntimeError(f"could not push {version}")
+
+    def push_agent(self, version):
+        """A stand-in agent build (the simulated robots download and verify it, and restart as
+        that version); one per architecture, as a RobotDeployment's spec.agent names them."""
+        builds = []
+        for arch in ("arm64", "amd64"):
+            path = os.path.join(WORK, f"agent-{version}-{arch}")
+            with open(path, "wb") as f:
+                f.write(b"\x7fELF" + random.randbytes(200_000))
+            p = run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], "agent", "push", path,
+                    "--version", version, "--arch", arch, "--server", self.server(), "-n", NS,
+                    timeout=300)
+            builds.append({"arch": arch, "digest": p.stdout.strip().split()[-1]})
+        return builds
+
+    def apply(self, manifest):
+        path = os.path.join(WORK, "apply.json")
+        with open(path, "w") as f:
+            json.dump(manifest, f)
+        for attempt in range(10):
+            p = run("kubectl", "apply", "--server-side", "--force-conflicts", "--field-manager",
+                    "soak", "-f", path, check=False)
+            if p.returncode == 0:
+                return
+            time.sleep(5)
+        raise RuntimeError(f"apply failed: {p.stderr.strip()[-300:]}")
+
+    def deployment(self, name):
+        p = run("kubectl", "-n", NS, "get", "robotdeployment", name, "-o", "json", check=False,
+                timeout=30)
+        return json.loads(p.stdout) if p.returncode == 0 else None
+
+    def kind_of(self, k):
+        return ("ok", "fail", "undo", "agent")[k % 4]
+
+    def start_rollout(self, k):
+        kind = self.kind_of(k)
+        version = f"{k}.0.0"
+        started = time.time()
+        strategy = {"canary": 1, "batchSize": "10%", "successThreshold": 0.9,
+                    "robotTimeoutSeconds": 180, "waitTimeoutSeconds": 120}
+        if kind == "agent":
+            self.agent_version += 1
+            v = f"0.{self.agent_version + 100}.0"
+            builds = self.push_agent(v)
+            name = "soak-agent"
+            spec = {"selector": {"matchExpressions": [
+                {"key": "fleet.lekiwi.io/sim", "operator": "Exists"}]},
+                "agent": {"version": v, "builds": builds}, "strategy": strategy}
+            expected = "Completed"
+        else:
+            digest = self.push(version)
+            name = "soak"
+            spec = {"selector": {}, "release": {"version": version, "digest": digest},
+                    "strategy": strategy}
+            expected = "Completed" if kind == "ok" else "RolledBack"
+            if kind == "undo":
+                # Slow enough to be undone mid-way whatever the fleet's size.
+                strategy["pauseBetweenBatchesSeconds"] = 60
+            if kind in ("fail", "undo"):
+                self.unwanted_releases.add(version)
+        self.apply({"apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "RobotDeployment",
+                    "metadata": {"name": name, "namespace": NS}, "spec": spec})
+        r = {"n": k, "kind": kind, "version": version if kind != "agent" else v,
+             "deployment": name, "expected": expected, "phase": None, "started": started,
+             "seconds": None, "undone": False, "generation": None}
+        self.rollouts.append(r)
+        log(f"rollout {k} ({kind}): {r['version']} via {name}, expecting {expected}")
+        return r
+
+    def follow_rollout(self, r):
+        """Moves a rollout on (undo once it is under way); true once it ended."""
+        d = self.deployment(r["deployment"])
+        if not d:
+            return False
+        st = d.get("status") or {}
+        if r["generation"] is None:
+            r["generation"] = d["metadata"].get("generation")
+        if st.get("observedGeneration") != d["metadata"].get("generation"):
+            return False
+        phase = st.get("phase")
+        if r["kind"] == "undo" and not r["undone"] and phase == "Progressing" \
+                and st.get("updated", 0) >= 1:
+            run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], "rollout", "undo",
+                r["deployment"], "-n", NS)
+            r["undone"] = True
+            log(f"rollout {r['n']}: undo after {st.get('updated')} robots updated")
+        if phase in ("Completed", "RolledBack", "Failed") and (r["kind"] != "undo" or r["undone"]
+                                                                or phase != "Completed"):
+            r["phase"] = phase
+            r["seconds"] = round(time.time() - r["started"], 1)
+            r["counts"] = {k: st.get(k) for k in ("targeted", "updated", "failed", "skipped")}
+            if phase == "Completed" and r["kind"] != "agent":
+                self.completed_releases.add(r["version"])
+            log(f"rollout {r['n']} ended {phase} after {r['seconds']} s ({r['counts']})")
+            return True
+        return False
+
+    # ---- faults ---------------------------------------------------------------------------------
+    def fault_kinds(self):
+        kinds = ["gateway", "leader", "apiserver", "postgres", "cut"]
+        if C["as_postgres"]:
+            kinds.append("disk")
+        return kinds
+
+    def fault(self, kind):
+        f = {"kind": kind, "at": time.time(), "healed_s": None, "notes": ""}
+        log(f"fault: {kind}")
+        if kind == "gateway":
+            g = self.gateways[len(self.faults) // len(self.fault_kinds()) % len(self.gateways)]
+            f["sessions"] = self.sessions()
+            f["writes_before"] = self.apiserver_writes()
+            self.procs[g].kill()
+            f["notes"] = f"{g} SIGKILLed, restarted 30 s later"
+            f["restart_at"] = time.time() + 30
+            f["restart"] = g
+        elif kind == "leader":
+            leader, _ = self.leader()
+            if leader:
+                self.procs[leader].kill()
+                f["notes"] = f"{leader} (leader) SIGKILLed, restarted at once"
+                self.procs[leader].restart()
+        elif kind == "apiserver":
+            env = dict(os.environ, LEKIWI_CP_DIR=C["cp_dir"])
+            script = os.path.join(C["root"], "scripts/control-plane.sh")
+            subprocess.run(["bash", script, "kill"], env=env, capture_output=True, timeout=60)
+            time.sleep(5)
+            p = subprocess.run(["bash", script, "up"], env=env, capture_output=True, text=True,
+                               timeout=300)
+            f["notes"] = "etcd and kube-apiserver SIGKILLed, up again " + (
+                "at once" if p.returncode == 0 else f"FAILED: {p.stderr[-200:]}")
+        elif kind == "postgres":
+            pg = [os.path.join(C["pg_bin"], "pg_ctl"), "-D", os.path.join(C["pg_dir"], "data"),
+                  "-l", os.path.join(WORK, "postgres.log"), "-w", "-t", "120", "-m",
+                  "immediate", "restart"]
+            if C["as_postgres"]:
+                pg = ["runuser", "-u", "postgres", "--"] + pg
+            # The server's output goes to its log: a pipe here would stay open as long as it runs.
+            p = subprocess.run(pg, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               timeout=180)
+            f["notes"] = "PostgreSQL restarted (immediate)" + (
+                "" if p.returncode == 0 else f" FAILED: {p.stderr[-200:]}")
+        elif kind == "cut":
+            os.kill(self.procs["sim-cut"].pid, signal.SIGSTOP)
+            self.stall = (time.time(), time.time() + STALL_SECONDS)
+            f["notes"] = f"{C['stalled']} robots' connections stalled for {STALL_SECONDS} s"
+        elif kind == "disk":
+            st = os.statvfs(C["pg_dir"])
+            free = st.f_bavail * st.f_frsize
+            ballast = os.path.join(C["pg_dir"], "ballast")
+            keep = 8 << 20
+            subprocess.run(["fallocate", "-l", str(max(0, free - keep)), ballast], check=False)
+            f["ballast"] = ballast
+            f["release_at"] = time.time() + DISK_FULL_SECONDS
+            f["notes"] = (f"event store's filesystem filled to its last 8 MiB for "
+                          f"{DISK_FULL_SECONDS} s ({free >> 20} MiB were free)")
+        self.faults.append(f)
+
+    def follow_faults(self):
+        now = time.time()
+        for f in self.faults:
+            if f.get("restart") and now >= f["restart_at"]:
+                self.procs[f.pop("restart")].restart()
+            if f.get("ballast") and now >= f["release_at"]:
+                os.remove(f.pop("ballast"))
+        if self.stall and now >= self.stall[1]:
+            os.kill(self.procs["sim-cut"].pid, signal.SIGCONT)
+            self.stall = None
+            cut = [f for f in self.faults if f["kind"] == "cut"][-1]
+            cut["ended"] = now
+        # A fault over (its process back, its disk freed, its robots let go) is healed once
+        # every robot is Online and holds a session again.
+        over = [f for f in self.faults if f["healed_s"] is None and not (
+            f.get("restart") or f.get("ballast") or (f["kind"] == "cut" and self.stall))]
+        if not over:
+            return
+        total = self.total_robots()
+        if self.phases()["Online"] >= total and self.sessions() >= total:
+            for f in over:
+                f["healed_s"] = round(now - f.get("ended", f["at"]), 1)
+                if f["kind"] == "gateway":
+                    self.gateway_ratio(f, now)
+                log(f"fault {f['kind']} healed after {f['healed_s']} s")
+
+    def gateway_ratio(self, f, now):
+        """The healing time against the API server's own limit: robots moved times status
+        writes per move, divided by the write rate the API server sustained meanwhile."""
+        after = self.apiserver_writes()
+        before = f["writes_before"]
+        robot_writes = sum(v - before.get(k, 0) for k, v in after.items() if k.startswith("robots"))
+        moved = f["sessions"] / len(self.gateways)
+        secs = max(now - f["at"], 1)
+        rate = robot_writes / secs
+        peak = max([w for t, w in self.samples.write_rates if t >= f["at"] - self.t0] or [rate])
+        per_move = robot_writes / moved if moved else 0
+        ideal = moved * per_move / peak if peak else None
+        f["moved"] = int(moved)
+        f["writes_per_move"] = round(per_move, 2)
+        f["peak_write_rate"] = round(peak, 1)
+        f["ratio"] = round(f["healed_s"] / ideal, 2) if ideal else None
+
+    # ---- the run ----------------------------------------------------------------------------------
+    def wait(self, what, timeout, check):
+        deadline = time.time() + timeout
+        while not check():
+            for p in self.procs.values():
+                if p.p is not None and p.p.poll() is not None and p.name != "driver":
+                    raise RuntimeError(f"{p.name} exited: see {p.name}.log")
+            if time.time() > deadline:
+                raise RuntimeError(f"{what} not reached after {timeout} s")
+            time.sleep(2)
+
+    def ready(self, name, port):
+        return self.procs[name].alive() and curl(f"http://127.0.0.1:{port}/readyz", 2) != ""
+
+    def bring_up(self):
+        self.operator_procs()
+        for c in ("ctl-a", "ctl-b"):
+            self.procs[c].start()
+        for g in self.gateways:
+            self.procs[g].start()
+            self.wait(f"{g} ready", 90, lambda g=g: self.ready(g, self.ports[g + "-http"]))
+        self.wait("a controller leader", 90, lambda: self.leader()[0] is not None)
+        self.haproxy()
+        self.procs["haproxy"].start()
+        self.procs["watch"] = Proc("watch", [
+            "python3", "-u", os.path.join(C["root"], "bench/recovery_watch.py"),
+            f"https://127.0.0.1:{C['apiserver_port']}", f"{C['cp_dir']}/pki/ca.crt",
+            f"{C['cp_dir']}/admin-token", NS, os.path.join(WORK, "robots.log")]).start()
+        schedule = int(C["duration"] / C["release_every"]) + 2
+        self.failing = [f"{k}.0.0" for k in range(1, schedule + 1) if self.kind_of(k) == "fail"]
+        self.fleet_procs()
+        for n in ("sim", "sim-cut", "sim-skew", "fleet"):
+            self.procs[n].start()
+        total = self.total_robots()
+        t = time.time()
+        self.wait(f"all {total} robots Online", total // 20 + 300,
+                  lambda: self.phases()["Online"] >= total)
+        log(f"all {total} robots Online after {time.time() - t:.0f} s")
+        return time.time() - t
+
+    def steady_window(self, label, seconds=120):
+        before, t = self.apiserver_writes(), time.time()
+        end = t + seconds
+        while time.time() < end:
+            time.sleep(10)
+            self.sample()
+        after = self.apiserver_writes()
+        w = sum(v - before.get(k, 0) for k, v in after.items() if k.startswith("robots"))
+        rate = w / (time.time() - t)
+        log(f"steady Robot writes/s ({label}): {rate:.1f}")
+        return label, rate
+
+    def tick(self):
+        self.sample()
+        writes = self.apiserver_writes()
+        robot = sum(v for k, v in writes.items() if k.startswith("robots"))
+        now = time.time() - self.t0
+        if writes and getattr(self, "last_writes", None):
+            t0, w0 = self.last_writes
+            # A restarted API server counts from 0 again.
+            if now > t0 and robot >= w0:
+                self.samples.write_rates.append((now, (robot - w0) / (now - t0)))
+        if writes:
+            self.last_writes = (now, robot)
+        self.follow_faults()
+
+    def soak(self):
+        start = time.time()
+        next_fault = start + C["fault_every"]
+        next_release = start + 10
+        kinds = self.fault_kinds()
+        active, k = None, 0
+        while time.time() < start + C["duration"]:
+            self.tick()
+            now = time.time()
+            if now >= next_fault:
+                self.fault(kinds[len(self.faults) % len(kinds)])
+                next_fault += C["fault_every"]
+            if active and self.follow_rollout(active):
+                active = None
+            elif active and now - active["started"] > 1200:
+                active["phase"], active["seconds"] = "not ended", round(now - active["started"])
+                log(f"rollout {active['n']} not ended after 1200 s")
+                active = None
+            if not active and now >= next_release:
+                k += 1
+                active = self.start_rollout(k)
+                next_release = max(now, next_release) + C["release_every"]
+            time.sleep(max(0.0, 10 - (time.time() - now)))
+        log("duration over: waiting for the last rollout and the last fault to end")
+        deadline = time.time() + 900
+        while time.time() < deadline:
+            self.tick()
+            if active and self.follow_rollout(active):
+                active = None
+            if not active and all(f["healed_s"] is not None for f in self.faults):
+                break
+            time.sleep(10)
+        if active:
+            active["phase"], active["seconds"] = "not ended", round(time.time() - active["started"])
+
+    def unwanted_robots(self):
+        p = run("kubectl", "-n", NS, "get", "robots", "-o", "json", timeout=300)
+        bad = []
+        for r in json.loads(p.stdout)["items"]:
+            cur = ((r.get("status") or {}).get("currentRelease") or {}).get("version")
+            if cur in self.unwanted_releases:
+                bad.append(f"{r['metadata']['name']}={cur}")
+        if bad:
+            log(f"robots on unwanted releases: {bad[:20]}")
+        return len(bad)
+
+    def stop_fleet(self):
+        for n in ("sim", "sim-cut", "sim-skew", "fleet"):
+            if self.procs[n].alive():
+                os.kill(self.procs[n].pid, signal.SIGCONT)
+                os.kill(self.procs[n].pid, signal.SIGTERM)
+        for n in ("sim", "sim-cut", "sim-skew", "fleet"):
+            try:
+                self.procs[n].p.wait(timeout=120)
+            except subprocess.TimeoutExpired:
+                self.procs[n].kill()
+
+    def psql(self, sql):
+        pg = [os.path.join(C["pg_bin"], "psql"), "-X", "-q", "-At", "-h", "127.0.0.1", "-p",
+              str(C["pg_port"]), "-U", "postgres", "-d", "lekiwi", "-c", sql]
+        return subprocess.run(pg, capture_output=True, text=True, timeout=600, check=True).stdout
+
+    def events(self):
+        acked = unacked = 0
+        for n in ("sim", "sim-cut", "sim-skew"):
+            s = json.load(open(os.path.join(WORK, f"{n}.json")))
+            a = s["events_acked"] + s.get("telemetry_batches_acked", 0)
+            g = s["events_generated"] + s.get("telemetry_batches", 0)
+            acked, unacked = acked + a, unacked + g - a
+        rows = self.psql(
+            "SELECT count(*), coalesce(sum(mx - cnt), 0) FROM (SELECT robot, count(*) cnt, "
+            "max(seq) mx FROM seqs WHERE namespace = 'soak' AND robot NOT LIKE 'kiwi-%' "
+            "GROUP BY robot) t").strip().split("|")
+        stored = int(self.psql("SELECT count(*) FROM seqs WHERE namespace = 'soak' AND robot "
+                               "NOT LIKE 'kiwi-%'").strip())
+        gaps_all = int(self.psql(
+            "SELECT coalesce(sum(mx - cnt), 0) FROM (SELECT robot, count(*) cnt, max(seq) mx "
+            "FROM seqs WHERE namespace = 'soak' GROUP BY robot) t").strip())
+        event_dupes = int(self.psql(
+            "SELECT count(*) - count(DISTINCT (robot, seq)) FROM events "
+            "WHERE namespace = 'soak'").strip())
+        sample_dupes = int(self.psql(
+            "SELECT count(*) FROM (SELECT 1 FROM samples WHERE namespace = 'soak' "
+            "GROUP BY robot, seq, metric, ts_ms HAVING count(*) > 1) d").strip())
+        log(f"store: {rows[0]} simulated robots hold {stored} durable messages; acked {acked}")
+        return {"acked": acked, "stored": stored, "lost": max(0, acked - stored),
+                "gaps": gaps_all, "event_dupes": event_dupes, "sample_dupes": sample_dupes,
+                "unacked": unacked}
+
+    def sizes(self, run_seconds):
+        db = int(self.psql("SELECT pg_database_size('lekiwi')").strip()) / 2**20
+        blob = sum(os.path.getsize(os.path.join(d, f))
+                   for d, _, fs in os.walk(os.path.join(WORK, "blobs")) for f in fs) / 2**20
+        per_hour = db / max(run_seconds, 1) * 3600
+        return {"db_mib": db, "db_mib_per_hour": per_hour, "retention_days": 30,
+                "db_at_retention_gib": per_hour * 24 * 30 / 1024, "blob_mib": blob,
+                "releases": sum(1 for r in self.rollouts if r["kind"] != "agent"),
+                "agent_builds": 2 * self.agent_version}
+
+    def stop_all(self):
+        for p in self.procs.values():
+            if p.alive():
+                try:
+                    os.kill(p.pid, signal.SIGCONT)
+                except OSError:
+                    pass
+                p.kill()
+
+
+def main():
+    s = Soak()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    try:
+        online_s = s.bring_up()
+        steady = [s.steady_window("before the first fault")]
+        s.soak()
+        steady.append(s.steady_window("after the last fault healed"))
+        unwanted = s.unwanted_robots()
+        run_seconds = time.time() - s.t0
+        s.stop_fleet()
+        events = s.events()
+        sizes = s.sizes(run_seconds)
+        facts = {
+            "command": C["command"],
+            "fleet": f"{C['robots']} simulated robots (lekiwi-sim; {C['stalled']} of them in the "
+                     f"simulator that is cut off, one with its clock 10 minutes ahead) and "
+                     f"{C['agents']} real agents (lekiwi-fleet)",
+            "control plane": f"2 controller processes (leader election), {C['gateways']} gateways "
+                             "behind HAProxy, PostgreSQL 15 event store, etcd + kube-apiserver",
+            "run": f"{C['duration']} s, a fault every {C['fault_every']} s, a rollout every "
+                   f"{C['release_every']} s; all robots Online {online_s:.0f} s after start",
+            "robots_total": s.total_robots(),
+            "unwanted_robots": unwanted,
+        }
+        for line in open(os.path.join(WORK, "facts.env")):
+            k, _, v = line.strip().partition("=")
+            if k in ("date", "host", "source"):
+                facts[k] = v
+        text = report(facts, s.samples, s.rollouts, s.faults, s.violations, events, steady,
+                      sizes, time.time() - s.t0)
+        with open(os.path.join(WORK, "report.txt"), "w") as f:
+            f.write(text)
+        with open(os.path.join(WORK, "samples.json"), "w") as f:
+            json.dump({"processes": s.samples.by_role, "write_rates": s.samples.write_rates,
+                       "faults": s.faults, "rollouts": s.rollouts}, f)
+        return 0 if "Verdict: PASS" in text else 1
+    finally:
+        s.stop_all()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,116 @@
+"""The soak's samples and its report (bench/soak_driver.py uses it): slopes of memory, open files
+and threads per process, and the table with PASS/FAIL. Standard library only."""
+import statistics
+
+
+class Samples:
+    """Every 10 s: RSS (KiB), open files and threads of each process, by role and pid; and the
+    API server's write rate to Robots."""
+
+    def __init__(self):
+        self.by_role = {}
+        self.write_rates = []  # (t, robot writes per second over the last interval)
+
+    def add(self, role, pid, t, rss, fds, threads, sessions=0):
+        # A gateway's open files less its robots' sessions: what it holds besides them.
+        self.by_role.setdefault(role, []).append((pid, t, rss, fds - sessions, threads))
+
+    def drift(self, role, field, end):
+        """(drift over the last two thirds, noise of the first third, samples used) of `field`
+        (2 rss, 3 fds, 4 threads) for the instance of `role` alive at the end; None when it was
+        restarted too late to say."""
+        rows = self.by_role.get(role, [])
+        if not rows:
+            return None
+        pid = rows[-1][0]
+        first_cut, start_late = end / 3, end / 3
+        late = [(t, r[field]) for r in rows if r[0] == pid for t in [r[1]] if t >= start_late]
+        early = [r[field] for r in rows if r[1] < first_cut and r[1] > min(120, end / 10)]
+        if len(late) < 6 or late[0][0] > start_late + (end - start_late) / 2:
+            return None
+        slope = _slope(late)
+        drift = slope * (late[-1][0] - late[0][0])
+        mean = statistics.fmean(v for _, v in late)
+        noise = 3 * statistics.pstdev(early) if len(early) >= 3 else 0.0
+        return drift, max(noise, 0.02 * mean, 1.0), len(late), mean
+
+
+def _slope(points):
+    n = len(points)
+    mx = sum(t for t, _ in points) / n
+    my = sum(v for _, v in points) / n
+    var = sum((t - mx) ** 2 for t, _ in points)
+    return sum((t - mx) * (v - my) for t, v in points) / var if var else 0.0
+
+
+def report(facts, samples, rollouts, faults, violations, events, steady, sizes, end):
+    """The table, as text."""
+    lines, fails = [], []
+
+    def row(what, measured, goal="", ok=None):
+        verdict = "" if ok is None else ("PASS" if ok else "FAIL")
+        if ok is False:
+            fails.append(what)
+        lines.append(f"| {what} | {measured} | {goal} | {verdict} |")
+
+    lines.append("| check | measured | goal | |")
+    lines.append("|---|---|---|---|")
+    for role in sorted(samples.by_role):
+        files = "open files besides sessions" if role.startswith("gw-") else "open files"
+        for field, name, unit in ((2, "RSS", "MiB"), (3, files, ""), (4, "threads", "")):
+            d = samples.drift(role, field, end)
+            if d is None:
+                row(f"{role} {name} drift, last 2/3 of the run", "restarted late: n/a")
+                continue
+            drift, noise, n, mean = d
+            scale = 1024 if unit == "MiB" else 1
+            row(f"{role} {name} drift, last 2/3 of the run ({n} samples, mean "
+                f"{mean / scale:.1f}{' ' + unit if unit else ''})",
+                f"{drift / scale:+.1f}", f"within ±{noise / scale:.1f} (noise of the first third)",
+                abs(drift) <= noise)
+    row("events lost (acknowledged to a robot, not in the store)", events["lost"], "0",
+        events["lost"] == 0)
+    row("gaps in a robot's stored sequence numbers", events["gaps"], "0", events["gaps"] == 0)
+    row("events stored twice", events["event_dupes"], "0", events["event_dupes"] == 0)
+    row("telemetry samples stored twice", events["sample_dupes"], "0",
+        events["sample_dupes"] == 0)
+    row("durable messages acknowledged / stored", f"{events['acked']} / {events['stored']}")
+    row("durable messages unacknowledged when the robots stopped", events["unacked"], "0",
+        events["unacked"] == 0)
+    for r in rollouts:
+        ok = r["phase"] == r["expected"]
+        row(f"rollout {r['n']} ({r['kind']}, {r['version']})",
+            f"{r['phase']} in {r['seconds']} s, {r.get('counts')}", r["expected"], ok)
+    row("robots on a release no deployment asked for (rolled back or undone)",
+        facts["unwanted_robots"], "0", facts["unwanted_robots"] == 0)
+    row("robots Online through a dead gateway past its Lease + 30 s (most at once)",
+        violations["online_through_dead_gateway"], "0",
+        violations["online_through_dead_gateway"] == 0)
+    row("longest a robot was shown Online through a dead gateway, s",
+        f"{violations['max_online_through_dead_gateway_s']:.0f}")
+    row("robots with a session not Online for over 300 s (most at once)",
+        violations["not_online_with_session"], "0", violations["not_online_with_session"] == 0)
+    row("longest a robot with a session was not Online, s",
+        f"{violations['max_not_online_with_session_s']:.0f}")
+    for f in faults:
+        healed = f["healed_s"]
+        extra = ""
+        if f["kind"] == "gateway" and f.get("ratio") is not None:
+            extra = (f"; {f['moved']} robots moved, {f['writes_per_move']} Robot writes each, "
+                     f"API server at up to {f['peak_write_rate']} writes/s: "
+                     f"{f['ratio']}x its own limit")
+        row(f"fault {f['kind']}: {f['notes']}",
+            f"healed in {healed} s{extra}" if healed is not None else "NOT healed",
+            "healed", healed is not None)
+    for label, w in steady:
+        goal = facts["robots_total"] / 300
+        row(f"steady Robot writes/s, {label}", f"{w:.1f}",
+            f"≈ N/300 = {goal:.1f} (+ transitions)", w <= 2 * goal + 1)
+    row("event store size (PostgreSQL database)", f"{sizes['db_mib']:.0f} MiB, growing "
+        f"{sizes['db_mib_per_hour']:.0f} MiB/h: {sizes['db_at_retention_gib']:.1f} GiB at "
+        f"{sizes['retention_days']} days' retention")
+    row("blob store size", f"{sizes['blob_mib']:.1f} MiB for {sizes['releases']} releases "
+        f"and {sizes['agent_builds']} agent builds")
+    head = [f"- {k}: {v}" for k, v in facts.items() if k != "unwanted_robots"]
+    verdict = "PASS" if not fails else f"FAIL ({len(fails)}): " + "; ".join(fails)
+    return "\n".join(["# Soak", ""] + head + ["", f"Verdict: {verdict}", ""] + lines) + "\n"
