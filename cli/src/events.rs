@@ -79,10 +79,16 @@ async fn fetch(gateway: &Gateway, ns: &str, name: &str) -> anyhow::Result<Vec<St
             StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
                 bail!("reading events of {ns}/{name}: {}", refused(resp, "").await)
             }
-            StatusCode::NOT_FOUND => bail!(
-                "the gateway at {} has no events API (404): is it older than this plugin?",
-                gateway.base
-            ),
+            StatusCode::NOT_FOUND => {
+                let why = message(resp).await;
+                if why.contains("not found") {
+                    bail!("{why}");
+                }
+                bail!(
+                    "the gateway at {} has no events API (404): is it older than this plugin?",
+                    gateway.base
+                )
+            }
             s => bail!(
                 "reading events of {ns}/{name}: {s}: {}",
                 message(resp).await

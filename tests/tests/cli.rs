@@ -315,6 +315,16 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
         ],
     )?;
     assert_eq!(none, "No events found.\n");
+    // A robot that does not exist is said so, not shown as one without events.
+    let missing = plugin(
+        cp,
+        &["-n", &ns, "events", "kiwi-nobody", "--server", &server],
+    )?;
+    let err = String::from_utf8_lossy(&missing.stderr);
+    assert!(
+        !missing.status.success() && err.contains(&format!("robot {ns}/kiwi-nobody not found")),
+        "{err}"
+    );
     // The endpoint wants the API token.
     let (code, _, _) = lekiwi_tests::http_get_with(
         op.gateway_port,

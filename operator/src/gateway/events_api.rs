@@ -34,7 +34,8 @@ struct EventsQuery {
 }
 
 /// `GET /v1/robots/{namespace}/{name}/events?after_seq=&limit=`: the robot's stored events in
-/// ascending sequence order, as a JSON array of [`StoredEvent`].
+/// ascending sequence order, as a JSON array of [`StoredEvent`]; 404 for a robot the gateway
+/// does not hold.
 async fn events(
     State(state): State<AppState>,
     Path((namespace, name)): Path<(String, String)>,
@@ -52,6 +53,14 @@ async fn events(
         ..Access::new("get", "robots", &namespace)
     };
     state.check_user(&headers, Some(access)).await?;
+    // As the Fleet API's history routes: a robot the gateway does not hold is not found, not
+    // an empty history, whatever the store still keeps under its name.
+    crate::gateway::api::ready(&state.fleet.robots)?;
+    if state.fleet.robots.get(&namespace, &name).is_none() {
+        return Err(ApiError::NotFound(format!(
+            "robot {namespace}/{name} not found"
+        )));
+    }
     let limit = query.limit.unwrap_or(DEFAULT_LIMIT).clamp(1, MAX_LIMIT);
     let robot = RobotKey::new(namespace, name);
     let events = state
