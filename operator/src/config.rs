@@ -99,9 +99,19 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_ROLE", value_enum, default_value = "all")]
     pub role: Role,
 
-    /// Address of the agent gateway (WebSocket `/v1/agent`, legacy `/v1/poll`).
+    /// Address of the agent gateway: the robots' WebSocket `/v1/agent`, the release blob API,
+    /// the events API and legacy `/v1/poll`; also the Fleet API and dashboard unless
+    /// --api-addr serves them apart.
     #[arg(long, env = "LEKIWI_GATEWAY_ADDR", default_value = "0.0.0.0:8081")]
     pub gateway_addr: SocketAddr,
+
+    /// Address of a listener of its own for the Fleet API (`/api/v1`, GraphQL) and the
+    /// dashboard, with the same TLS as the gateway; the gateway address then serves neither,
+    /// so the robots' port can be exposed without them. It also serves the release blob and
+    /// events APIs, so people's tools need only this address. Unset: the gateway address
+    /// serves everything.
+    #[arg(long, env = "LEKIWI_API_ADDR")]
+    pub api_addr: Option<SocketAddr>,
 
     /// This gateway's name: written to `Robot.status.gateway` and the name of its Lease
     /// (default: the identity).
@@ -115,6 +125,12 @@ pub struct Config {
     /// PEM private key for --tls-cert.
     #[arg(long, env = "LEKIWI_TLS_KEY", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
+
+    /// Seconds between checks of the --tls-cert and --tls-key files: when they change (a
+    /// Secret volume updated, a certificate renewed) new connections get the new certificate
+    /// and open ones stay; files that do not load keep the old one. 0: never reload.
+    #[arg(long, env = "LEKIWI_TLS_RELOAD_SECONDS", default_value_t = 10)]
+    pub tls_reload_seconds: u64,
 
     /// Event store: `sqlite://FILE` (embedded default) or `postgres://...`.
     #[arg(

@@ -43,6 +43,9 @@ pub async fn chart_roles_named<const N: usize>(
             "charts/lekiwi-operator",
             "--show-only",
             "templates/user-roles.yaml",
+            // Rendered without the cluster: the chart's CA would be refused otherwise.
+            "--set",
+            "gateway.tls.allowNewCaWithoutCluster=true",
         ],
     );
     ensure!(

@@ -57,6 +57,14 @@ fn ok(out: Output, what: &str) -> String {
     String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
+/// What a render without the cluster needs to make the chart's own CA (it refuses otherwise).
+const NEW_CA: [&str; 2] = ["--set", "gateway.tls.allowNewCaWithoutCluster=true"];
+
+/// [`helm`] allowed to make the chart's CA without the cluster.
+fn helm_new_ca(args: &[&str]) -> Output {
+    helm(&[args, &NEW_CA[..]].concat())
+}
+
 /// Helm without a cluster (lint, template with the default capabilities).
 fn helm(args: &[&str]) -> Output {
     Command::new(lekiwi_tests::tool("helm"))
@@ -137,7 +145,20 @@ gateway:
     annotations: {service.beta.kubernetes.io/aws-load-balancer-type: nlb}
     externalTrafficPolicy: Local
     loadBalancerSourceRanges: [10.0.0.0/8]
-  tls: {secretName: gateway-tls}
+  tls: {existingSecret: gateway-tls, caBundle: "-----BEGIN CERTIFICATE-----\nMIIB\n-----END CERTIFICATE-----\n"}
+api:
+  separate: true
+  port: 9444
+  service: {type: LoadBalancer, port: 8443, nodePort: 30444, annotations: {a: b}, loadBalancerSourceRanges: [10.1.0.0/16]}
+networkPolicy:
+  enabled: true
+  gateway: {from: [{ipBlock: {cidr: 10.20.0.0/16}}]}
+  api: {from: [{namespaceSelector: {matchLabels: {team: lab}}}]}
+  metrics: {namespaceSelector: {name: monitoring}, podSelector: {app: prometheus}}
+  egress:
+    apiServerCidrs: [10.96.0.1/32]
+    apiServerPorts: [443]
+    extra: [{to: [{ipBlock: {cidr: 10.30.0.5/32}}], ports: [{port: 5432, protocol: TCP}]}]
 metrics:
   service: {port: 9090, labels: {scrape: "yes"}, annotations: {a: b}}
 serviceMonitor:
@@ -208,6 +229,7 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
         "--tls-cert=/etc/lekiwi/tls/tls.crt",
         "--tls-key=/etc/lekiwi/tls/tls.key",
         "--gateway-addr=0.0.0.0:9443",
+        "--api-addr=0.0.0.0:9444",
         "--http-addr=0.0.0.0:9090",
         "--watch-namespace=robots",
         "--install-crds",
@@ -288,6 +310,22 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
     let gw = find(&docs, "Service", "r-kiwi-gateway");
     assert_eq!(gw["spec"]["type"], "LoadBalancer");
     assert_eq!(gw["spec"]["ports"][0]["nodePort"], 30443);
+    let api = find(&docs, "Service", "r-kiwi-api");
+    assert_eq!(
+        api["metadata"]["labels"]["app.kubernetes.io/component"],
+        "api"
+    );
+    assert_eq!(api["spec"]["ports"][0]["targetPort"], "api");
+    assert_eq!(api["spec"]["ports"][0]["nodePort"], 30444);
+    assert_eq!(api["spec"]["loadBalancerSourceRanges"][0], "10.1.0.0/16");
+    let ca = find(&docs, "ConfigMap", "r-kiwi-gateway-ca");
+    assert!(
+        ca["data"]["ca.crt"]
+            .as_str()
+            .unwrap()
+            .contains("BEGIN CERTIFICATE")
+    );
+    network_policy(find(&docs, "NetworkPolicy", "r-kiwi"));
     // watchNamespace: the fleet permissions only in that namespace; the leases in the
     // release's; the reviews of people's tokens cluster-wide (they are cluster-scoped).
     let binding = find(&docs, "RoleBinding", "r-kiwi");
@@ -378,12 +416,161 @@ fn chart_lints_with_every_option_and_renders_them() -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The NetworkPolicy of ALL_OPTIONS: each port open to its own peers, metrics to the
+/// monitoring namespace's Prometheus, egress to DNS, the API server and the extra rule.
+fn network_policy(np: &Value) {
+    let ingress = np["spec"]["ingress"].as_sequence().unwrap();
+    let rule = |port: &str| {
+        ingress
+            .iter()
+            .find(|r| r["ports"][0]["port"] == port)
+            .unwrap_or_else(|| panic!("no ingress rule for port {port}: {ingress:?}"))
+    };
+    assert_eq!(
+        rule("gateway")["from"][0]["ipBlock"]["cidr"],
+        "10.20.0.0/16"
+    );
+    assert_eq!(
+        rule("api")["from"][0]["namespaceSelector"]["matchLabels"]["team"],
+        "lab"
+    );
+    let metrics = &rule("http")["from"][0];
+    assert_eq!(
+        metrics["namespaceSelector"]["matchLabels"]["name"],
+        "monitoring"
+    );
+    assert_eq!(metrics["podSelector"]["matchLabels"]["app"], "prometheus");
+    let egress = serde_yaml::to_string(&np["spec"]["egress"]).unwrap();
+    for want in [
+        "port: 53",
+        "port: 443",
+        "10.96.0.1/32",
+        "10.30.0.5/32",
+        "port: 5432",
+    ] {
+        assert!(
+            egress.contains(want),
+            "{want} missing from egress: {egress}"
+        );
+    }
+}
+
+/// The three sources of the gateway's certificate: the chart's CA (refused without the
+/// cluster, where it would be made anew on every render, unless asked for), cert-manager (a
+/// `Certificate` with the issuer, its Secret mounted) and a Secret of the user's; each lints.
+#[test]
+fn chart_certificate_sources_render_and_an_offline_ca_is_refused() -> anyhow::Result<()> {
+    // (`helm lint` reports a template's `fail` but passes: the defaults lint.)
+    let install = ["install", "r", CHART, "--dry-run=client"];
+    for cmd in [&["template", "r", CHART][..], &install] {
+        let out = helm(cmd);
+        let text = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "helm {cmd:?} made a CA offline");
+        for names in [
+            "cannot see the cluster",
+            "gateway.tls.certManager",
+            "gateway.tls.existingSecret",
+            "gateway.tls.allowNewCaWithoutCluster=true",
+        ] {
+            assert!(
+                text.contains(names),
+                "helm {cmd:?} must say {names}:\n{text}"
+            );
+        }
+    }
+    let cert_manager = [
+        "--set",
+        "gateway.tls.certManager.enabled=true",
+        "--set",
+        "gateway.tls.certManager.issuerRef.name=lab-ca",
+        "--set",
+        "gateway.tls.certManager.issuerRef.kind=ClusterIssuer",
+        "--set",
+        "gateway.tls.extraDnsNames={robots.lab.example}",
+    ];
+    let existing = ["--set", "gateway.tls.existingSecret=lab-tls"];
+    for values in [&cert_manager[..], &existing] {
+        ok(
+            helm(&[&["lint", "--strict", CHART][..], values].concat()),
+            "helm lint",
+        );
+    }
+    let render = |values: &[&str]| -> anyhow::Result<Vec<Value>> {
+        let all = [&["template", "r", CHART, "-n", "fleet"][..], values].concat();
+        Ok(documents(&ok(helm(&all), "helm template")))
+    };
+    let mounted = |docs: &[Value]| {
+        let deploy = find(docs, "Deployment", "r-lekiwi-operator");
+        deploy["spec"]["template"]["spec"]["volumes"]
+            .as_sequence()
+            .unwrap()
+            .iter()
+            .find(|v| v["name"] == "tls")
+            .map(|v| v["secret"]["secretName"].as_str().unwrap().to_owned())
+    };
+    let docs = render(&cert_manager)?;
+    let cert = find(&docs, "Certificate", "r-lekiwi-operator-gateway");
+    assert_eq!(cert["apiVersion"], "cert-manager.io/v1");
+    assert_eq!(cert["spec"]["issuerRef"]["name"], "lab-ca");
+    assert_eq!(cert["spec"]["issuerRef"]["kind"], "ClusterIssuer");
+    assert_eq!(cert["spec"]["issuerRef"]["group"], "cert-manager.io");
+    let dns = serde_yaml::to_string(&cert["spec"]["dnsNames"])?;
+    for name in [
+        "r-lekiwi-operator-gateway.fleet.svc",
+        "r-lekiwi-operator-api.fleet.svc",
+        "robots.lab.example",
+    ] {
+        assert!(dns.contains(name), "{name} missing: {dns}");
+    }
+    let secret = cert["spec"]["secretName"].as_str().unwrap();
+    assert_eq!(mounted(&docs).as_deref(), Some(secret));
+    assert!(
+        !docs.iter().any(|d| d["kind"] == "Secret"),
+        "no generated Secret"
+    );
+
+    let docs = render(&existing)?;
+    assert_eq!(mounted(&docs).as_deref(), Some("lab-tls"));
+    assert!(
+        !docs
+            .iter()
+            .any(|d| d["kind"] == "Secret" || d["kind"] == "Certificate")
+    );
+
+    let docs = render(&NEW_CA)?;
+    assert_eq!(
+        mounted(&docs).as_deref(),
+        Some("r-lekiwi-operator-gateway-tls")
+    );
+    find(&docs, "Secret", "r-lekiwi-operator-gateway-ca-key");
+
+    // cert-manager without an issuer, or with a Secret too: said, not rendered.
+    for (values, says) in [
+        (&cert_manager[..2], "issuerRef.name"),
+        (
+            &[&cert_manager[..4], &existing[..]].concat()[..],
+            "not both",
+        ),
+    ] {
+        let out = helm(&[&["template", "r", CHART][..], values].concat());
+        let text = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && text.contains(says),
+            "{values:?}: {text}"
+        );
+    }
+    Ok(())
+}
+
 #[test]
 fn chart_servicemonitor_renders_only_when_enabled() -> anyhow::Result<()> {
-    let off = ok(helm(&["template", "r", CHART, "-n", "fleet"]), "template");
+    let off = ok(
+        helm_new_ca(&["template", "r", CHART, "-n", "fleet"]),
+        "template",
+    );
     assert!(!off.contains("ServiceMonitor\n"), "{off}");
     let docs = documents(&ok(
-        helm(&[
+        helm_new_ca(&[
             "template",
             "r",
             CHART,
@@ -454,8 +641,17 @@ fn chart_schema_refuses_bad_values_naming_the_field() {
             "/persistence/accessModes",
         ),
         (
-            &["--set", "gateway.tls.secretName=Not_A_Name"],
-            "/gateway/tls/secretName",
+            &["--set", "gateway.tls.existingSecret=Not_A_Name"],
+            "/gateway/tls/existingSecret",
+        ),
+        (
+            &["--set", "gateway.tls.certManager.issuerRef.kind=Signer"],
+            "/gateway/tls/certManager/issuerRef/kind",
+        ),
+        (&["--set", "api.port=0"], "/api/port"),
+        (
+            &["--set", "networkPolicy.egress.apiServerCidrs={10.0.0.1}"],
+            "/networkPolicy/egress/apiServerCidrs",
         ),
     ];
     for (args, field) in cases {
@@ -509,7 +705,7 @@ fn chart_schema_refuses_bad_values_naming_the_field() {
     for (args, says) in topology {
         let mut all = vec!["template", "r", CHART];
         all.extend_from_slice(args);
-        let out = helm(&all);
+        let out = helm_new_ca(&all);
         let text = String::from_utf8_lossy(&out.stderr).into_owned();
         assert!(!out.status.success(), "helm {all:?} accepted it");
         assert!(text.contains(says), "helm {all:?} must say {says}:\n{text}");
@@ -538,7 +734,7 @@ fn chart_dashboards_match_manifests_and_render_as_configmaps() -> anyhow::Result
     let maps = |args: &[&str]| -> Vec<Value> {
         let mut all = vec!["template", "r", CHART, "-n", "fleet"];
         all.extend_from_slice(args);
-        documents(&ok(helm(&all), "helm template"))
+        documents(&ok(helm_new_ca(&all), "helm template"))
             .into_iter()
             // The gateway's CA ConfigMap is not a dashboard.
             .filter(|d| d["kind"] == "ConfigMap" && d["data"]["ca.crt"].is_null())
@@ -645,11 +841,17 @@ async fn chart_variants_are_accepted_by_the_api_server() -> anyhow::Result<()> {
             "tls",
             &[
                 "--set",
-                "gateway.tls.secretName=gateway-tls",
+                "gateway.tls.existingSecret=gateway-tls",
                 "--set",
                 "gateway.service.type=LoadBalancer",
                 "--set",
                 "otel.endpoint=http://otel:4317",
+                "--set",
+                "networkPolicy.enabled=true",
+                "--set",
+                "networkPolicy.gateway.from[0].ipBlock.cidr=10.20.0.0/16",
+                "--set",
+                "networkPolicy.egress.apiServerCidrs={10.96.0.1/32}",
             ],
         ),
         (
@@ -704,6 +906,11 @@ async fn chart_variants_are_accepted_by_the_api_server() -> anyhow::Result<()> {
         assert_eq!(
             applied.contains("persistentvolumeclaim/"),
             *name != "no-persistence",
+            "{name}: {applied}"
+        );
+        assert_eq!(
+            applied.contains("networkpolicy.networking.k8s.io"),
+            *name == "tls",
             "{name}: {applied}"
         );
     }
@@ -1128,6 +1335,38 @@ async fn chart_tls_is_on_by_default_with_a_generated_ca_kept_across_upgrades() -
     let (crt_after, ca_after) = generated_tls(&documents(&manifest), &full, &ns);
     assert_eq!(crt_after, crt, "the upgrade made a new certificate");
     assert_eq!(ca_after, ca, "the upgrade made a new CA");
+    let docs = documents(&manifest);
+    let api = find(&docs, "Service", &format!("{full}-api"));
+    assert_eq!(
+        api["metadata"]["labels"]["app.kubernetes.io/component"],
+        "api"
+    );
+    find(&docs, "Secret", &format!("{full}-gateway-ca-key"));
+
+    // Names added on upgrade: a new certificate for them, signed by the same CA.
+    let names = [
+        "--wait=false",
+        "--set",
+        "gateway.tls.extraDnsNames={robots.lab.example}",
+        "--set",
+        "gateway.tls.extraIpAddresses={10.9.8.7}",
+    ];
+    ok(
+        cp.tool("helm", &helm_args("upgrade", &ns, &ns, &watch, &names)),
+        "helm upgrade (more names)",
+    );
+    let manifest = ok(
+        cp.tool("helm", &["get", "manifest", &ns, "-n", &ns]),
+        "helm get manifest",
+    );
+    let (crt_named, ca_named) = generated_tls(&documents(&manifest), &full, &ns);
+    assert_eq!(ca_named, ca, "more names made a new CA");
+    assert_ne!(crt_named, crt, "more names kept the old certificate");
+    let sans = shell("openssl x509 -noout -ext subjectAltName", &crt_named);
+    assert!(
+        sans.contains("DNS:robots.lab.example") && sans.contains("IP Address:10.9.8.7"),
+        "{sans}"
+    );
     serves_the_generated_certificate(cp, &ns, &documents(&manifest), &full).await?;
     ok(
         cp.tool("helm", &["uninstall", &ns, "-n", &ns]),

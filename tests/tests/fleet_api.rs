@@ -749,3 +749,43 @@ async fn a_busy_client_outlives_its_cached_review() -> Result<()> {
     ensure!(code == 503 && retry.is_some(), "{code} {body}");
     Ok(())
 }
+
+/// With `--api-addr` the Fleet API and the dashboard have a port of their own: the robots'
+/// port answers 404 for them and still serves agents; the API's port still wants a token and
+/// serves no agent WebSocket.
+#[tokio::test]
+async fn the_api_on_its_own_port_is_not_served_on_the_robots_port() -> Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "apiport").await?;
+    let [viewer_role, _] = chart_roles(cp, &client, &ns).await?;
+    let viewer = account(cp, &client, &ns, "viewer", Some(&viewer_role)).await?;
+    let api_port = lekiwi_tests::free_ports(1)[0];
+    let api_addr = format!("127.0.0.1:{api_port}");
+    let op = lekiwi_tests::gateway_operator(cp, &ns, "apiport", &["--api-addr", &api_addr]).await?;
+    let auth = format!("Bearer {viewer}");
+    let get = |port: u16, path: String, token: bool| {
+        let auth = auth.clone();
+        async move {
+            let headers = [("authorization", auth.as_str())];
+            let headers = if token { &headers[..] } else { &[] };
+            let (code, _, _) = http_request(port, "GET", &path, headers, None).await?;
+            anyhow::Ok(code)
+        }
+    };
+    let robots = format!("/api/v1/namespaces/{ns}/robots");
+    let gateway = op.gateway_port;
+    wait_for("the Fleet API on its port", WAIT, || async {
+        (get(api_port, robots.clone(), true).await.ok() == Some(200)).then_some(())
+    })
+    .await?;
+    assert_eq!(get(api_port, robots.clone(), false).await?, 401);
+    assert_eq!(get(api_port, "/dashboard/".into(), false).await?, 200);
+    assert_eq!(get(api_port, "/v1/agent".into(), true).await?, 404);
+    assert_eq!(get(gateway, robots.clone(), true).await?, 404);
+    assert_eq!(get(gateway, "/dashboard/".into(), false).await?, 404);
+    let enroll = enrollment_token(&client, &ns).await?;
+    let (_ws, welcome) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-port")).await?;
+    assert_eq!(welcome.robot, format!("{ns}/kiwi-port"));
+    Ok(())
+}

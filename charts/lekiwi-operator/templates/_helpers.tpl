@@ -72,18 +72,58 @@ The schema checks each value; these rules relate several.
 {{- end -}}
 {{- end -}}
 
-{{/* The TLS Secret the gateway serves with: the given one, the generated one, or nothing for
-plain text (gateway.tls.enabled=false). */}}
-{{- define "lekiwi.tlsSecret" -}}
-{{- if .Values.gateway.tls.secretName -}}
-{{- .Values.gateway.tls.secretName -}}
-{{- else if include "lekiwi.tlsGenerated" . -}}
-{{- printf "%s-gateway-tls" (include "lekiwi.fullname" .) -}}
+{{/* Where the gateway's certificate comes from: `existing` (a Secret the user made),
+`certManager` (a Certificate the chart renders), `generated` (a CA the chart makes), or nothing
+for plain text (gateway.tls.enabled=false) and for role=controller (no gateway). */}}
+{{- define "lekiwi.tlsMode" -}}
+{{- $tls := .Values.gateway.tls -}}
+{{- if and $tls.enabled (ne .Values.operator.role "controller") -}}
+{{- if or $tls.existingSecret $tls.secretName -}}existing
+{{- else if $tls.certManager.enabled -}}certManager
+{{- else -}}generated
+{{- end -}}
 {{- end -}}
 {{- end -}}
 
-{{/* Whether the chart makes the gateway's CA and certificate itself (TLS on, no Secret given,
-and a gateway runs: not for role=controller). */}}
+{{/* The TLS Secret the gateway serves with, or nothing for plain text. */}}
+{{- define "lekiwi.tlsSecret" -}}
+{{- $mode := include "lekiwi.tlsMode" . -}}
+{{- $fullname := include "lekiwi.fullname" . -}}
+{{- if eq $mode "existing" -}}
+{{- .Values.gateway.tls.existingSecret | default .Values.gateway.tls.secretName -}}
+{{- else if eq $mode "certManager" -}}
+{{- printf "%s-gateway-cert" $fullname -}}
+{{- else if eq $mode "generated" -}}
+{{- printf "%s-gateway-tls" $fullname -}}
+{{- end -}}
+{{- end -}}
+
+{{/* Whether the chart makes the gateway's CA and certificate itself. */}}
 {{- define "lekiwi.tlsGenerated" -}}
-{{- if and .Values.gateway.tls.enabled (not .Values.gateway.tls.secretName) (ne .Values.operator.role "controller") -}}true{{- end -}}
+{{- if eq (include "lekiwi.tlsMode" .) "generated" -}}true{{- end -}}
+{{- end -}}
+
+{{/* The DNS names the gateway's certificate carries: the gateway and API Services' names in
+the cluster, localhost and gateway.tls.extraDnsNames (a JSON list). */}}
+{{- define "lekiwi.tlsDnsNames" -}}
+{{- $fullname := include "lekiwi.fullname" . -}}
+{{- $ns := .Release.Namespace -}}
+{{- $names := list -}}
+{{- range $svc := list (printf "%s-gateway" $fullname) (printf "%s-api" $fullname) -}}
+{{- $names = concat $names (list $svc (printf "%s.%s" $svc $ns) (printf "%s.%s.svc" $svc $ns) (printf "%s.%s.svc.cluster.local" $svc $ns)) -}}
+{{- end -}}
+{{- concat $names (list "localhost") .Values.gateway.tls.extraDnsNames | toJson -}}
+{{- end -}}
+
+{{/* Relations between TLS values the schema cannot express. */}}
+{{- define "lekiwi.validateTls" -}}
+{{- $tls := .Values.gateway.tls -}}
+{{- if and $tls.enabled $tls.certManager.enabled -}}
+{{- if or $tls.existingSecret $tls.secretName -}}
+{{- fail "gateway.tls: set either existingSecret (a Secret you keep) or certManager.enabled (cert-manager issues it), not both" -}}
+{{- end -}}
+{{- if not $tls.certManager.issuerRef.name -}}
+{{- fail "gateway.tls.certManager.enabled needs gateway.tls.certManager.issuerRef.name: the Issuer or ClusterIssuer that signs the gateway's certificate" -}}
+{{- end -}}
+{{- end -}}
 {{- end -}}

@@ -108,6 +108,8 @@ pub struct GatewayMetrics {
     /// (`per_address_limit`, `unauthenticated_limit`, `tls_handshake`, `header_timeout`,
     /// `header_too_large`).
     pub connections_dropped: Family<KindLabels, Counter>,
+    /// Reloads of the TLS certificate files, `reloaded` or `failed` (the old one kept).
+    pub tls_reloads: Family<KindLabels, Counter>,
     /// TokenReviews and SubjectAccessReviews made for the HTTP API, by kind and result.
     pub kube_reviews: Family<ReviewLabels, Counter>,
     /// Reviews answered from the gateway's cache instead, by kind.
@@ -187,6 +189,10 @@ impl GatewayMetrics {
             connections_dropped: r.add(
                 "lekiwi_gateway_connections_dropped",
                 "Gateway connections closed before or without an authenticated request, by why",
+            ),
+            tls_reloads: r.add(
+                "lekiwi_gateway_tls_reloads",
+                "Reloads of the gateway's TLS certificate and key after their files changed, by result (reloaded, failed: the certificate loaded before is kept)",
             ),
             kube_reviews: r.add(
                 "lekiwi_gateway_kube_reviews",

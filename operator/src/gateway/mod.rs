@@ -273,22 +273,49 @@ impl AppState {
     }
 }
 
+/// Which of the gateway's routes a listener serves.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Routes {
+    /// Every route: one address for robots and people (no `--api-addr`).
+    All,
+    /// The robots' port when the API has its own: the WebSocket, legacy polls, the release
+    /// blob and events APIs; no Fleet API, no dashboard.
+    Agents,
+    /// The API's own port: the Fleet API, the dashboard, the release blob and events APIs;
+    /// no agent WebSocket or polls.
+    People,
+}
+
 /// The gateway's routes, separate from serving so tests can call them directly.
 pub fn router(state: AppState) -> Router {
+    routes(state, Routes::All)
+}
+
+/// The routes `which` listener serves.
+pub fn routes(state: AppState, which: Routes) -> Router {
+    let mut authenticated = Router::new();
+    if which != Routes::People {
+        authenticated = authenticated
+            .route(AGENT_PATH, get(agent_ws))
+            .route("/v1/poll", get(poll::poll));
+    }
+    authenticated = authenticated
+        .merge(blob_api::routes())
+        .merge(events_api::routes());
+    if which != Routes::Agents {
+        authenticated = authenticated.merge(api::routes());
+    }
     // Every route but /healthz and the dashboard's static files requires credentials: a
     // success there takes the connection out of the unauthenticated limits.
-    Router::new()
-        .route(AGENT_PATH, get(agent_ws))
-        .route("/v1/poll", get(poll::poll))
-        .merge(blob_api::routes())
-        .merge(events_api::routes())
-        .merge(api::routes())
+    let mut router = authenticated
         .route_layer(axum::middleware::from_fn(
             listener::authenticated_on_success,
         ))
-        .route("/healthz", get(|| async { "ok\n" }))
-        .merge(dashboard::routes())
-        .with_state(state)
+        .route("/healthz", get(|| async { "ok\n" }));
+    if which != Routes::Agents {
+        router = router.merge(dashboard::routes());
+    }
+    router.with_state(state)
 }
 
 async fn agent_ws(

@@ -6,15 +6,12 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
-use axum::Router;
 use futures::StreamExt;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_crds::Robot;
 use lekiwi_crds::contract::TOKEN_LABEL;
-use prometheus_client::metrics::counter::Counter;
-use prometheus_client::metrics::family::Family;
 use tokio::sync::Semaphore;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
@@ -33,12 +30,13 @@ use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, Shared};
+use super::tls::reload;
 use super::tokens::TokenIndex;
-use super::{AppState, blob_api, dispatch, lease, router};
+use super::{AppState, Routes, blob_api, dispatch, lease, routes};
 use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::Store;
-use crate::metrics::{KindLabels, Metrics};
+use crate::metrics::Metrics;
 
 /// At most one quota Warning Event per robot this often.
 const QUOTA_WARNING_INTERVAL: Duration = Duration::from_secs(300);
@@ -159,8 +157,7 @@ pub async fn run(
     tasks.aborted.extend([secret_task, dispatch_task]);
     tasks.aborted.extend(fleet_tasks);
     let addr = config.gateway_addr;
-    let dropped = state.shared.metrics.gateway.connections_dropped.clone();
-    let served = serve(&config, &name, router(state), dropped, listening, &cancel).await?;
+    let served = serve(&config, &name, state, listening, &cancel).await?;
     cancel.cancel();
     drain(&presence, tasks).await;
     served.map_err(|source| Error::Serve { addr, source })
@@ -384,29 +381,32 @@ async fn tick_presence(presence: Presence, cancel: CancellationToken) {
     }
 }
 
-/// Serves `app` with TLS when a certificate and key are configured, else in plain HTTP, until
-/// `cancel` fires; the outer error is a failure to start, the inner one of serving.
+/// Serves the gateway's routes with TLS when a certificate and key are configured, else in
+/// plain HTTP, until `cancel` fires: all on the gateway address, or the Fleet API and dashboard
+/// apart on `--api-addr`. The outer error is a failure to start, the inner one of serving.
 async fn serve(
     config: &Config,
     name: &str,
-    app: Router,
-    dropped: Family<KindLabels, Counter>,
+    state: AppState,
     listening: Arc<AtomicBool>,
     cancel: &CancellationToken,
 ) -> Result<std::io::Result<()>> {
     let addr = config.gateway_addr;
-    let tls = match (&config.tls_cert, &config.tls_key) {
-        (Some(cert), Some(key)) => Some(
-            super::tls::Acceptor::from_pem_files(cert, key)
-                .await
-                .map_err(|source| Error::Serve { addr, source })?,
-        ),
-        _ => None,
+    let metrics = state.shared.metrics.gateway.clone();
+    let tls = reload::acceptor(config, metrics.tls_reloads.clone(), cancel).await?;
+    let bind = |addr| async move {
+        tokio::net::TcpListener::bind(addr)
+            .await
+            .map_err(|source| Error::Serve { addr, source })
     };
-    let listener = tokio::net::TcpListener::bind(addr)
-        .await
-        .map_err(|source| Error::Serve { addr, source })?;
-    info!(addr = %listener.local_addr().map(|a| a.to_string()).unwrap_or_default(), gateway = %name, tls = tls.is_some(), "gateway listening");
+    let gateway = bind(addr).await?;
+    let api = match config.api_addr {
+        Some(api_addr) => Some(bind(api_addr).await?),
+        None => None,
+    };
+    let local =
+        |l: &tokio::net::TcpListener| l.local_addr().map(|a| a.to_string()).unwrap_or_default();
+    info!(addr = %local(&gateway), gateway = %name, tls = tls.is_some(), api = %api.as_ref().map(local).unwrap_or_else(|| "same address".into()), "gateway listening");
     listening.store(true, Ordering::Release);
     let limits = ConnLimits {
         header_timeout: Duration::from_secs(config.header_timeout_seconds.max(1)),
@@ -415,7 +415,25 @@ async fn serve(
         per_address: config.max_unauthenticated_per_address,
         unauthenticated: config.max_unauthenticated_connections.max(1),
     };
-    Ok(listener::serve(listener, app, tls, limits, dropped, cancel.clone()).await)
+    let dropped = metrics.connections_dropped;
+    let Some(api) = api else {
+        let app = routes(state, Routes::All);
+        return Ok(listener::serve(gateway, app, tls, limits, dropped, cancel.clone()).await);
+    };
+    let agents = routes(state.clone(), Routes::Agents);
+    let people = routes(state, Routes::People);
+    let served = tokio::try_join!(
+        listener::serve(
+            gateway,
+            agents,
+            tls.clone(),
+            limits.clone(),
+            dropped.clone(),
+            cancel.clone()
+        ),
+        listener::serve(api, people, tls, limits, dropped, cancel.clone()),
+    );
+    Ok(served.map(|_| ()))
 }
 
 /// Lets the status writer flush the sessions' disconnects (bounded) before the process goes,

@@ -12,10 +12,12 @@ use std::io;
 use std::mem::MaybeUninit;
 use std::path::Path;
 use std::pin::Pin;
-use std::sync::Arc;
+use std::sync::{Arc, RwLock};
 use std::task::{Context, Poll, Waker, ready};
 
 use rustls::ServerConfig;
+use rustls::pki_types::pem::PemObject;
+use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 use rustls::server::UnbufferedServerConnection;
 use rustls::unbuffered::ConnectionState;
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -35,28 +37,46 @@ const MAX_FRAGMENT: usize = 16_384;
 /// Room a record adds to its data (header, content type, tag); a larger need is retried.
 const RECORD_OVERHEAD: usize = 64;
 
-/// Accepts TLS connections with one server configuration.
+/// Accepts TLS connections with the server configuration of the moment: [`reload`] replaces it
+/// when the certificate files change, and each handshake takes the one current when it starts
+/// (open connections keep theirs).
 #[derive(Clone)]
 pub struct Acceptor {
-    config: Arc<ServerConfig>,
+    config: Arc<RwLock<Arc<ServerConfig>>>,
 }
 
 impl Acceptor {
-    /// An acceptor for the PEM certificate chain and key; HTTP/1.1 only (agents speak WebSocket
-    /// over HTTP/1.1; the gateway serves no HTTP/2).
+    /// An acceptor for the PEM certificate chain and key files.
     pub async fn from_pem_files(cert: &Path, key: &Path) -> io::Result<Self> {
-        let _ = rustls::crypto::ring::default_provider().install_default();
-        let pem = axum_server::tls_rustls::RustlsConfig::from_pem_file(cert, key).await?;
-        let mut config = (*pem.get_inner()).clone();
-        config.alpn_protocols = vec![b"http/1.1".to_vec()];
+        let (cert, key) = (tokio::fs::read(cert).await?, tokio::fs::read(key).await?);
+        Self::from_pem(&cert, &key)
+    }
+
+    /// An acceptor for a PEM certificate chain (the gateway's own certificate first) and its key.
+    pub fn from_pem(cert: &[u8], key: &[u8]) -> io::Result<Self> {
         Ok(Self {
-            config: Arc::new(config),
+            config: Arc::new(RwLock::new(Arc::new(server_config(cert, key)?))),
         })
+    }
+
+    /// Serves `cert` and `key` to the handshakes that start from now on; on an error (no
+    /// certificate, a key that is not the certificate's) the configuration stays as it was.
+    pub fn replace(&self, cert: &[u8], key: &[u8]) -> io::Result<()> {
+        let config = Arc::new(server_config(cert, key)?);
+        *self.config.write().unwrap_or_else(|p| p.into_inner()) = config;
+        Ok(())
+    }
+
+    fn current(&self) -> Arc<ServerConfig> {
+        self.config
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .clone()
     }
 
     /// Runs the server side of a handshake on `io`; the caller bounds it in time.
     pub async fn accept(&self, io: TcpStream) -> io::Result<TlsStream> {
-        let conn = UnbufferedServerConnection::new(self.config.clone()).map_err(invalid)?;
+        let conn = UnbufferedServerConnection::new(self.current()).map_err(invalid)?;
         let mut tls = TlsStream {
             io,
             conn,
@@ -424,10 +444,37 @@ impl AsyncWrite for TlsStream {
     }
 }
 
+/// The server configuration for a PEM certificate chain and key: HTTP/1.1 only (agents speak
+/// WebSocket over HTTP/1.1; the gateway serves no HTTP/2). Refuses a key that is not the
+/// certificate's.
+fn server_config(cert: &[u8], key: &[u8]) -> io::Result<ServerConfig> {
+    let _ = rustls::crypto::ring::default_provider().install_default();
+    let bad_pem = |what: &str, e: rustls::pki_types::pem::Error| {
+        io::Error::new(io::ErrorKind::InvalidData, format!("{what}: {e}"))
+    };
+    let chain = CertificateDer::pem_slice_iter(cert)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| bad_pem("the certificate file", e))?;
+    if chain.is_empty() {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidData,
+            "the certificate file holds no PEM certificate",
+        ));
+    }
+    let key = PrivateKeyDer::from_pem_slice(key).map_err(|e| bad_pem("the key file", e))?;
+    let mut config = ServerConfig::builder()
+        .with_no_client_auth()
+        .with_single_cert(chain, key)
+        .map_err(invalid)?;
+    config.alpn_protocols = vec![b"http/1.1".to_vec()];
+    Ok(config)
+}
+
 fn invalid(error: rustls::Error) -> io::Error {
     io::Error::new(io::ErrorKind::InvalidData, error)
 }
 
 mod records;
+pub mod reload;
 #[cfg(test)]
 mod tests;

@@ -14,7 +14,12 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::time::timeout;
 
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+
+use super::reload::{self, CertFiles};
 use super::{Acceptor, TlsStream};
+use crate::metrics::KindLabels;
 
 type Client<S = TcpStream> = tokio_rustls::client::TlsStream<S>;
 
@@ -352,4 +357,99 @@ async fn a_peer_that_stops_reading_holds_the_writer_to_one_record() {
         held <= super::MAX_FRAGMENT + super::RECORD_OVERHEAD,
         "held {held} bytes"
     );
+}
+
+/// Makes a new key and a certificate for 127.0.0.1 from the same CA in `dir` and puts them in
+/// place of `tls.crt` and `tls.key`, each by a rename (as a Secret volume swaps its files).
+fn renew(dir: &Path) {
+    let script = r#"set -e
+openssl ecparam -name prime256v1 -genkey -noout -out new.key
+openssl req -new -key new.key -subj /CN=127.0.0.1 -out new.csr
+openssl x509 -req -in new.csr -CA ca.crt -CAkey ca.key -CAcreateserial -days 1 -extfile ext -out new.crt 2>/dev/null
+mv new.crt tls.crt
+mv new.key tls.key
+"#;
+    let status = std::process::Command::new("sh")
+        .args(["-c", script])
+        .current_dir(dir)
+        .status()
+        .expect("openssl runs");
+    assert!(status.success(), "openssl renewed the certificate");
+}
+
+/// The certificate the server presented to `client`.
+fn presented(client: &Client) -> Vec<u8> {
+    client.get_ref().1.peer_certificates().unwrap()[0].to_vec()
+}
+
+/// The certificate in `dir/tls.crt`, as DER.
+fn on_disk(dir: &Path) -> Vec<u8> {
+    CertificateDer::from_pem_file(dir.join("tls.crt"))
+        .unwrap()
+        .to_vec()
+}
+
+/// Waits (up to 5 s) until `reloads` counts `n` of `kind`.
+async fn counted(reloads: &Family<KindLabels, Counter>, kind: &'static str, n: u64) {
+    let wait = async {
+        while reloads.get_or_create(&KindLabels { kind }).get() < n {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+    };
+    timeout(Duration::from_secs(5), wait)
+        .await
+        .unwrap_or_else(|_| panic!("no {n} {kind} reload(s)"));
+}
+
+#[tokio::test]
+async fn new_files_serve_new_connections_while_open_ones_stay_and_bad_ones_are_not_served() {
+    let mut bed = bed(&[&rustls::version::TLS13]).await;
+    let dir = bed._dir.path().to_owned();
+    let files = CertFiles {
+        cert: dir.join("tls.crt"),
+        key: dir.join("tls.key"),
+    };
+    let (acceptor, loaded) = files.load().await.unwrap();
+    bed.acceptor = acceptor.clone();
+    let reloads = Family::<KindLabels, Counter>::default();
+    let cancel = tokio_util::sync::CancellationToken::new();
+    let every = Duration::from_millis(20);
+    let watch = reload::watch(
+        acceptor,
+        files,
+        loaded,
+        every,
+        reloads.clone(),
+        cancel.clone(),
+    );
+    tokio::spawn(watch);
+    let first = on_disk(&dir);
+    let (old_client, old_server) = bed.pair().await;
+    assert_eq!(presented(&old_client), first);
+
+    renew(&dir);
+    counted(&reloads, "reloaded", 1).await;
+    let second = on_disk(&dir);
+    assert_ne!(second, first, "a new certificate");
+    let (client, _server) = bed.pair().await;
+    assert_eq!(
+        presented(&client),
+        second,
+        "a new connection gets the new one"
+    );
+    // The connection made before carries data as before.
+    exchange(old_client, old_server).await;
+
+    // A key of another certificate: refused, counted, the last good pair still served.
+    std::fs::copy(dir.join("ca.key"), dir.join("tls.key")).unwrap();
+    counted(&reloads, "failed", 1).await;
+    let (client, _server) = bed.pair().await;
+    assert_eq!(presented(&client), second);
+    assert_eq!(
+        reloads
+            .get_or_create(&KindLabels { kind: "reloaded" })
+            .get(),
+        1
+    );
+    cancel.cancel();
 }

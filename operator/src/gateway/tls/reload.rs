@@ -1,0 +1,153 @@
+//! Reloads the gateway's certificate and key when their files change: a Kubernetes Secret
+//! volume updates by swapping its `..data` symlink, cert-manager renews, an administrator
+//! copies new files. The files are read every few seconds and compared with what was loaded;
+//! new handshakes get the new certificate, open connections keep theirs. A pair that does not
+//! load (half-written, a key of another certificate) keeps the old one, counted and logged.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use prometheus_client::metrics::counter::Counter;
+use prometheus_client::metrics::family::Family;
+use rustls::pki_types::CertificateDer;
+use rustls::pki_types::pem::PemObject;
+use sha2::{Digest, Sha256};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use super::Acceptor;
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::metrics::KindLabels;
+
+/// The certificate chain and key files the gateway serves.
+#[derive(Clone, Debug)]
+pub struct CertFiles {
+    /// PEM certificate chain, the gateway's own certificate first.
+    pub cert: PathBuf,
+    /// PEM private key of that certificate.
+    pub key: PathBuf,
+}
+
+/// The bytes of both files, as last read.
+#[derive(PartialEq, Eq)]
+pub struct Loaded {
+    cert: Vec<u8>,
+    key: Vec<u8>,
+}
+
+impl CertFiles {
+    async fn read(&self) -> std::io::Result<Loaded> {
+        Ok(Loaded {
+            cert: tokio::fs::read(&self.cert).await?,
+            key: tokio::fs::read(&self.key).await?,
+        })
+    }
+
+    /// An acceptor for the files as they are now, and what it loaded.
+    pub async fn load(&self) -> std::io::Result<(Acceptor, Loaded)> {
+        let loaded = self.read().await?;
+        let acceptor = Acceptor::from_pem(&loaded.cert, &loaded.key)?;
+        info!(
+            cert = %self.cert.display(),
+            sha256 = %fingerprint(&loaded.cert),
+            "gateway TLS certificate loaded"
+        );
+        Ok((acceptor, loaded))
+    }
+}
+
+/// The SHA-256 of the first certificate in `pem` (its DER), in hex: what the log shows of a
+/// certificate, and what `openssl x509 -fingerprint -sha256` prints.
+fn fingerprint(pem: &[u8]) -> String {
+    match CertificateDer::pem_slice_iter(pem).next() {
+        Some(Ok(der)) => hex::encode(Sha256::digest(der.as_ref())),
+        _ => "none".to_owned(),
+    }
+}
+
+/// Reads `files` every `every` until `cancel` and hands `acceptor` what changed since `loaded`;
+/// `lekiwi_gateway_tls_reloads_total{kind}` counts `reloaded` and `failed`.
+pub async fn watch(
+    acceptor: Acceptor,
+    files: CertFiles,
+    mut loaded: Loaded,
+    every: Duration,
+    reloads: Family<KindLabels, Counter>,
+    cancel: CancellationToken,
+) {
+    let mut tick = tokio::time::interval(every);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // An unreadable file is logged once until it reads again, not every few seconds.
+    let mut unreadable = false;
+    loop {
+        tokio::select! {
+            () = cancel.cancelled() => return,
+            _ = tick.tick() => {}
+        }
+        let now = match files.read().await {
+            Ok(now) => now,
+            Err(e) => {
+                if !unreadable {
+                    warn!(error = %e, cert = %files.cert.display(), key = %files.key.display(), "cannot read the gateway's TLS files; serving the certificate loaded before");
+                    reloads.get_or_create(&KindLabels { kind: "failed" }).inc();
+                }
+                unreadable = true;
+                continue;
+            }
+        };
+        unreadable = false;
+        if now == loaded {
+            continue;
+        }
+        match acceptor.replace(&now.cert, &now.key) {
+            Ok(()) => {
+                info!(sha256 = %fingerprint(&now.cert), "gateway TLS certificate reloaded; new connections get it");
+                reloads
+                    .get_or_create(&KindLabels { kind: "reloaded" })
+                    .inc();
+            }
+            Err(e) => {
+                warn!(error = %e, sha256 = %fingerprint(&now.cert), "the gateway's new TLS files do not load; serving the certificate loaded before");
+                reloads.get_or_create(&KindLabels { kind: "failed" }).inc();
+            }
+        }
+        // Compared with what was read, not what loaded: a pair that failed is not tried again
+        // until it changes.
+        loaded = now;
+    }
+}
+
+/// The TLS acceptor for `--tls-cert` and `--tls-key`, if given, with the task that reloads them
+/// when they change (every `--tls-reload-seconds`, until `cancel`).
+pub async fn acceptor(
+    config: &Config,
+    reloads: Family<KindLabels, Counter>,
+    cancel: &CancellationToken,
+) -> Result<Option<Acceptor>> {
+    let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) else {
+        return Ok(None);
+    };
+    let files = CertFiles {
+        cert: cert.clone(),
+        key: key.clone(),
+    };
+    let addr = config.gateway_addr;
+    let (acceptor, loaded) = files
+        .load()
+        .await
+        .map_err(|source| Error::Serve { addr, source })?;
+    if config.tls_reload_seconds > 0 {
+        let every = Duration::from_secs(config.tls_reload_seconds);
+        let watch = watch(
+            acceptor.clone(),
+            files,
+            loaded,
+            every,
+            reloads,
+            cancel.clone(),
+        );
+        tokio::spawn(watch);
+    }
+    Ok(Some(acceptor))
+}
