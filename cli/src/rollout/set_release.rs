@@ -151,7 +151,7 @@ async fn known(kube: &crate::KubeContext, version: &str) -> anyhow::Result<BTree
         .collect();
     Ok(refs
         .into_iter()
-        .filter(|r| r.version.to_string() == version)
+        .filter(|r| r.version == *version)
         .map(|r| r.digest.to_string())
         .collect())
 }
