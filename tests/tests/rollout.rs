@@ -641,6 +641,36 @@ async fn the_plugin_pauses_resumes_undoes_and_restarts_a_rollout() -> anyhow::Re
     Ok(())
 }
 
+impl Site {
+    /// Starts a plugin command that runs until killed (`-w`) and the lines it prints.
+    fn follow(
+        &self,
+        args: &[&str],
+    ) -> anyhow::Result<(std::process::Child, std::sync::mpsc::Receiver<String>)> {
+        let mut child = Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(self.cp.kubeconfig())
+            .args(["-n", &self.ns])
+            .args(args)
+            .stdout(std::process::Stdio::piped())
+            .spawn()?;
+        let stdout = child.stdout.take().expect("piped");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            use std::io::BufRead as _;
+            for line in std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(Result::ok)
+            {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Ok((child, rx))
+    }
+}
+
 /// The text a command printed, with its error output when it failed.
 fn stdout_of(out: &std::process::Output) -> anyhow::Result<String> {
     let text = String::from_utf8_lossy(&out.stdout).into_owned();
@@ -714,8 +744,22 @@ async fn the_plugin_lists_gets_sets_the_release_of_and_aborts_a_rollout() -> any
     // The phase Aborted is new: test runs from other checkouts re-apply their CRDs to the
     // shared control plane, so ours are applied again right before it is needed.
     site.cp.install_crds()?;
+    let (mut listing, rows) = site.follow(&["rollout", "list", "-w", "--no-headers"])?;
     let out = stdout_of(&site.cli(&["rollout", "abort", "cli"])?)?;
     assert_eq!(out, "robotdeployment/cli aborted\n");
+    // `list -w` prints the rollout again when it changes.
+    let aborted = wait_for(
+        "list -w to show Aborted",
+        Duration::from_secs(20),
+        || async {
+            rows.try_iter()
+                .find(|l| l.starts_with("cli") && l.contains("Aborted"))
+        },
+    )
+    .await;
+    listing.kill()?;
+    listing.wait()?;
+    aborted?;
     let d = wait_for("Aborted", Duration::from_secs(20), || async {
         let d = site.deployment("cli").await.ok()?;
         (d.status.as_ref()?.phase == Some(RolloutPhase::Aborted)).then_some(d)
@@ -752,25 +796,7 @@ async fn the_plugin_lists_gets_sets_the_release_of_and_aborts_a_rollout() -> any
     );
 
     // `get -w` follows a restart live to its end.
-    let mut follow = Command::new(bin("kubectl-lekiwi"))
-        .arg("--kubeconfig")
-        .arg(site.cp.kubeconfig())
-        .args(["-n", &site.ns, "rollout", "get", "cli", "-w"])
-        .stdout(std::process::Stdio::piped())
-        .spawn()?;
-    let stdout = follow.stdout.take().expect("piped");
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        use std::io::BufRead as _;
-        for line in std::io::BufReader::new(stdout)
-            .lines()
-            .map_while(Result::ok)
-        {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
+    let (mut follow, rx) = site.follow(&["rollout", "get", "cli", "-w"])?;
     stdout_of(&site.cli(&["rollout", "restart", "cli"])?)?;
     let seen = wait_for(
         "get -w to show Completed",
