@@ -111,7 +111,8 @@ pub async fn run(
     client: anyhow::Result<kube::Client>,
     namespace: &str,
     only_namespace: Option<&str>,
-    output: Output,
+    output: &Output,
+    no_headers: bool,
     args: DiscoverArgs,
 ) -> anyhow::Result<()> {
     let targets = parse_targets(&args.probe, args.port)?;
@@ -169,7 +170,11 @@ pub async fn run(
         }
         Err(e) => eprintln!("warning: cannot reach the cluster, REGISTERED is unknown: {e:#}"),
     }
-    print!("{}", render(&found, output)?);
+    let text = render(&found, output)?;
+    print!(
+        "{}",
+        crate::list::headers(text, no_headers && output.table())
+    );
     Ok(())
 }
 
@@ -334,7 +339,7 @@ mod tests {
         assert_eq!(got[0].connected, Some(true));
         let unknown = merge("lab", &[found("lab/a", "10.0.0.1")], &[], None);
         assert_eq!(unknown[0].registered, None);
-        let table = render(&unknown, Output::Table).unwrap();
+        let table = render(&unknown, &Output::Table).unwrap();
         assert!(table.lines().nth(1).unwrap().contains("unknown"));
     }
 }

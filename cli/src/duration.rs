@@ -1,30 +1,23 @@
-//! Durations on the command line as kubectl writes them: `500ms`, `1.5s`, `30m`, `1h`, `2d`.
+//! Durations on the command line, one syntax for every flag: jiff's friendly format (`30s`,
+//! `5m`, `1h30m`, `500ms`, `1.5s`, `2d`, also `1 hour 30 minutes` and ISO 8601 `PT1H30M`); a
+//! bare number is seconds.
 
 use std::time::Duration;
 
-/// Parses `<number><unit>` with unit `ms`, `s`, `m`, `h` or `d` (a bare number is seconds).
+use jiff::{Span, SpanRelativeTo};
+
+/// Parses a duration (a day is 24 hours; weeks, months and years are refused).
 pub fn parse(s: &str) -> Result<Duration, String> {
     let s = s.trim();
-    let split = s
-        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
-        .unwrap_or(s.len());
-    let (number, unit) = s.split_at(split);
-    let value: f64 = number
+    let bare = !s.is_empty() && s.chars().all(|c| c.is_ascii_digit() || c == '.');
+    let text = if bare { format!("{s}s") } else { s.to_owned() };
+    let span: Span = text
         .parse()
-        .map_err(|_| format!("{s:?} is not a duration such as 1.5s, 30m or 1h"))?;
-    let seconds = match unit {
-        "ms" => value / 1000.0,
-        "" | "s" => value,
-        "m" => value * 60.0,
-        "h" => value * 3600.0,
-        "d" => value * 86_400.0,
-        _ => {
-            return Err(format!(
-                "{s:?}: unknown unit {unit:?} (use ms, s, m, h or d)"
-            ));
-        }
-    };
-    Duration::try_from_secs_f64(seconds).map_err(|e| format!("{s:?}: {e}"))
+        .map_err(|e| format!("{s:?} is not a duration such as 30s, 5m or 1h30m: {e}"))?;
+    let signed = span
+        .to_duration(SpanRelativeTo::days_are_24_hours())
+        .map_err(|e| format!("{s:?}: use units from ms to days: {e}"))?;
+    Duration::try_from(signed).map_err(|_| format!("{s:?}: a duration cannot be negative"))
 }
 
 #[cfg(test)]
@@ -36,9 +29,13 @@ mod tests {
         assert_eq!(parse("1.5s"), Ok(Duration::from_millis(1500)));
         assert_eq!(parse("250ms"), Ok(Duration::from_millis(250)));
         assert_eq!(parse("1h"), Ok(Duration::from_secs(3600)));
+        assert_eq!(parse("1h30m"), Ok(Duration::from_secs(5400)));
         assert_eq!(parse("2d"), Ok(Duration::from_secs(172_800)));
         assert_eq!(parse("3"), Ok(Duration::from_secs(3)));
+        assert_eq!(parse("0"), Ok(Duration::ZERO));
+        assert_eq!(parse("PT5M"), Ok(Duration::from_secs(300)));
         assert!(parse("1y").is_err());
         assert!(parse("s").is_err());
+        assert!(parse("-5s").is_err());
     }
 }

@@ -41,7 +41,8 @@ pub use lekiwi_protocol::StoredEvent;
 /// Runs `events`.
 pub async fn run(
     kube: &crate::KubeContext,
-    output: Output,
+    output: &Output,
+    no_headers: bool,
     args: EventsArgs,
 ) -> anyhow::Result<()> {
     let (ns, name) = match args.robot.split_once('/') {
@@ -53,7 +54,11 @@ pub async fn run(
     let since_ms = now.as_millisecond() - i64::try_from(args.since.as_millis()).unwrap_or(i64::MAX);
     let events = fetch(&gateway, &ns, &name).await?;
     let shown = select(events, since_ms, &args.kind, args.limit);
-    print!("{}", render(&shown, output, now)?);
+    let text = render(&shown, output, now)?;
+    print!(
+        "{}",
+        crate::list::headers(text, no_headers && output.table())
+    );
     Ok(())
 }
 
@@ -124,11 +129,11 @@ pub fn select(
 }
 
 /// Renders events in the given format; `now` is passed in so ages are testable.
-pub fn render(events: &[StoredEvent], output: Output, now: Timestamp) -> anyhow::Result<String> {
-    Ok(match output.structured(events)? {
+pub fn render(events: &[StoredEvent], output: &Output, now: Timestamp) -> anyhow::Result<String> {
+    Ok(match output.rows(events, |e| e.seq.to_string())? {
         Some(text) => text,
         None => {
-            let wide = output == Output::Wide;
+            let wide = output.wide();
             let mut rows = vec![
                 ["SEQ", "AGE", "SEVERITY", "KIND", "MESSAGE", "DATA"]
                     .iter()
@@ -198,7 +203,7 @@ mod tests {
         let now: Timestamp = "2026-01-01T00:01:00Z".parse().unwrap();
         let out = render(
             &[ev(7, now.as_millisecond() - 30_000, "agent_started")],
-            Output::Table,
+            &Output::Table,
             now,
         )
         .unwrap();
@@ -216,7 +221,7 @@ mod tests {
         let mut e = ev(1, now.as_millisecond(), "note");
         e.message = "\x1b[2Jcleared\nforged row".into();
         e.data = serde_json::json!({ "x": "\x1b]0;title\x07" });
-        let out = render(&[e], Output::Wide, now).unwrap();
+        let out = render(&[e], &Output::Wide, now).unwrap();
         assert!(!out.contains(['\x1b', '\x07']), "{out}");
         assert_eq!(out.lines().count(), 2, "one header, one row: {out}");
         assert!(out.contains(r"\u{1b}[2Jcleared\u{a}forged row"), "{out}");

@@ -5,6 +5,8 @@
 pub mod discover;
 pub mod duration;
 pub mod events;
+pub mod list;
+pub mod output;
 pub mod release;
 pub mod robots;
 pub mod rollout;
@@ -13,38 +15,10 @@ pub mod tokens;
 
 use std::path::PathBuf;
 
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{Parser, Subcommand};
 use kube::config::{KubeConfigOptions, Kubeconfig};
 
-/// Output format, as kubectl's `-o`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
-pub enum Output {
-    /// A table.
-    Table,
-    /// A wider table.
-    Wide,
-    /// JSON.
-    Json,
-    /// YAML.
-    Yaml,
-}
-
-impl Output {
-    /// `value` as pretty JSON or YAML when that is the format asked for (JSON with a final
-    /// newline); `None` for the table formats, which each command draws itself. Neither holds a
-    /// raw control character: JSON escapes them (C0 by serde_json, DEL and C1 by
-    /// [`sanitize::json`]), YAML writes such strings double-quoted with escapes.
-    pub fn structured<T: serde::Serialize + ?Sized>(
-        self,
-        value: &T,
-    ) -> anyhow::Result<Option<String>> {
-        Ok(match self {
-            Output::Json => Some(sanitize::json(serde_json::to_string_pretty(value)?) + "\n"),
-            Output::Yaml => Some(serde_yaml::to_string(value)?),
-            Output::Table | Output::Wide => None,
-        })
-    }
-}
+pub use output::Output;
 
 /// Manage a LeKiwi robot fleet.
 #[derive(Debug, Parser)]
@@ -62,9 +36,14 @@ pub struct Cli {
     /// List across all namespaces.
     #[arg(short = 'A', long, global = true)]
     pub all_namespaces: bool,
-    /// Output format.
-    #[arg(short = 'o', long, global = true, value_enum, default_value = "table")]
+    /// Output format: table, wide, json, yaml (a `List` for lists, as kubectl prints), name
+    /// (`kind.group/name`), or jsonpath=TEMPLATE (kubectl's `{.items[*].metadata.name}`
+    /// syntax; `{range}` loops are not supported).
+    #[arg(short = 'o', long, global = true, default_value = "table")]
     pub output: Output,
+    /// Print tables without their header line.
+    #[arg(long, global = true)]
+    pub no_headers: bool,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -114,10 +93,24 @@ pub enum Command {
         #[command(subcommand)]
         command: release::agent::AgentCommand,
     },
+    /// Print a shell completion script for `kubectl-lekiwi` (bash, zsh, fish, elvish or
+    /// powershell), e.g. `source <(kubectl lekiwi completion bash)`.
+    Completion {
+        /// The shell.
+        shell: clap_complete::Shell,
+    },
 }
 
 /// Runs one command.
 pub async fn run(cli: Cli) -> anyhow::Result<()> {
+    if let Command::Completion { shell } = cli.command {
+        let mut command = <Cli as clap::CommandFactory>::command();
+        let mut script = Vec::new();
+        clap_complete::generate(shell, &mut command, "kubectl-lekiwi", &mut script);
+        // Written at once, so that a closed pipe is an error rather than a panic.
+        std::io::Write::write_all(&mut std::io::stdout(), &script)?;
+        return Ok(());
+    }
     if let Command::Discover(_) = &cli.command {
         // Discovery works without a cluster: it only cannot say what is registered then.
         let (client, default_ns) = match context(&cli).await {
@@ -129,7 +122,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         let Command::Discover(args) = cli.command else {
             unreachable!("matched above")
         };
-        return discover::run(client, &namespace, only, cli.output, args).await;
+        return discover::run(client, &namespace, only, &cli.output, cli.no_headers, args).await;
     }
     let kube = context(&cli).await?;
     let (client, namespace) = (kube.client.clone(), kube.namespace.clone());
@@ -140,14 +133,15 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             } else {
                 Some(namespace.as_str())
             };
-            let out = robots::list(client, ns, cli.output, args.group_by).await?;
-            print!("{out}");
+            robots::run(client, ns, &cli.output, cli.no_headers, args).await?;
         }
         Command::Rollout { command } => {
-            rollout::run(client, &namespace, cli.output, command).await?;
+            let ns = (!cli.all_namespaces).then_some(namespace.as_str());
+            let format = (&cli.output, cli.no_headers);
+            rollout::run(&kube, ns, format, command).await?;
         }
         Command::Release { server, command } => {
-            release::run(&kube, &server, cli.output, command).await?;
+            release::run(&kube, &server, cli.output.clone(), command).await?;
         }
         Command::Agent { server, command } => {
             release::agent::run(&kube, &server, command).await?;
@@ -155,7 +149,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Robot {
             command: tokens::RobotCommand::Add(args),
         } => {
-            tokens::robot_add(client, &namespace, cli.output, args).await?;
+            tokens::robot_add(client, &namespace, cli.output.clone(), args).await?;
         }
         Command::Robot {
             command: tokens::RobotCommand::Reenroll(args),
@@ -163,11 +157,13 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             tokens::robot_reenroll(client, &namespace, args).await?;
         }
         Command::EnrollToken(args) => {
-            tokens::enroll_token(client, &namespace, cli.output, args).await?;
+            tokens::enroll_token(client, &namespace, cli.output.clone(), args).await?;
         }
-        Command::Discover(_) => unreachable!("handled before the client is required"),
+        Command::Discover(_) | Command::Completion { .. } => {
+            unreachable!("handled before the client is required")
+        }
         Command::Events(args) => {
-            events::run(&kube, cli.output, args).await?;
+            events::run(&kube, &cli.output, cli.no_headers, args).await?;
         }
     }
     Ok(())

@@ -4,7 +4,6 @@
 use std::collections::BTreeMap;
 
 use jiff::Timestamp;
-use kube::api::ListParams;
 use kube::{Api, ResourceExt};
 use lekiwi_crds::Robot;
 use lekiwi_crds::robot::CONDITION_TELEOPERATING;
@@ -21,6 +20,9 @@ pub struct RobotsArgs {
     /// Online, and the first few names. A robot without the value counts under `-`.
     #[arg(long, value_enum)]
     pub group_by: Option<GroupBy>,
+    /// Selector and watch.
+    #[command(flatten)]
+    pub list: crate::list::ListArgs,
 }
 
 /// What `--group-by` counts robots by.
@@ -55,34 +57,57 @@ pub struct Group {
 /// How many names a table row shows before `...`.
 const NAMES_SHOWN: usize = 3;
 
-/// Lists robots of one namespace (or all) in the given format, or their groups.
-pub async fn list(
+/// Lists robots of one namespace (or all) in the given format, or their groups; with
+/// `--watch`, then prints each robot again when it changes.
+pub async fn run(
     client: kube::Client,
     namespace: Option<&str>,
-    output: Output,
-    group_by: Option<GroupBy>,
-) -> anyhow::Result<String> {
+    output: &Output,
+    no_headers: bool,
+    args: RobotsArgs,
+) -> anyhow::Result<()> {
     let api: Api<Robot> = match namespace {
         Some(ns) => Api::namespaced(client, ns),
         None => Api::all(client),
     };
-    let mut robots = api.list(&ListParams::default()).await?.items;
+    let selector = args.list.selector.as_deref();
+    let mut robots = api.list(&crate::list::params(selector)).await?.items;
     robots.sort_by_key(|r| (r.namespace(), r.name_any()));
-    if let Some(by) = group_by {
-        let groups = groups(&robots, by, namespace.is_none());
-        return Ok(match output.structured(&groups)? {
-            Some(text) => text,
-            None => group_table(&groups, by),
-        });
+    let text = match args.group_by {
+        Some(by) => {
+            let groups = groups(&robots, by, namespace.is_none());
+            match output.rows(&groups, |g| g.value.clone())? {
+                Some(text) => text,
+                None => group_table(&groups, by),
+            }
+        }
+        None => render(&robots, namespace.is_none(), output)?,
+    };
+    print!(
+        "{}",
+        crate::list::headers(text, no_headers && output.table())
+    );
+    if args.list.watch && args.group_by.is_none() {
+        let seen = crate::list::seen(&robots);
+        let all = namespace.is_none();
+        let row = |r: &Robot| {
+            table(
+                std::slice::from_ref(r),
+                all,
+                output.wide(),
+                Timestamp::now(),
+            )
+        };
+        crate::list::watch(api, selector, seen, output, row).await?;
     }
-    Ok(match output.structured(&robots)? {
+    Ok(())
+}
+
+/// The robots in the given format (`now` for the table's ages).
+pub fn render(robots: &[Robot], with_namespace: bool, output: &Output) -> anyhow::Result<String> {
+    Ok(match output.resources(robots)? {
         Some(text) => text,
-        None => table(
-            &robots,
-            namespace.is_none(),
-            output == Output::Wide,
-            Timestamp::now(),
-        ),
+        None => table(robots, with_namespace, output.wide(), Timestamp::now()),
     })
 }
 
@@ -222,7 +247,7 @@ pub(crate) fn format_table(rows: Vec<Vec<String>>) -> String {
         })
         .collect();
     let widths: Vec<usize> = (0..rows[0].len())
-        .map(|i| rows.iter().map(|r| r[i].len()).max().unwrap_or(0))
+        .map(|i| rows.iter().map(|r| r[i].chars().count()).max().unwrap_or(0))
         .collect();
     let mut out = String::new();
     for row in rows {

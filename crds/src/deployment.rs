@@ -18,6 +18,10 @@ pub const RESTART_ANNOTATION: &str = "fleet.lekiwi.io/restartedAt";
 /// Annotation on a RobotDeployment, an RFC 3339 time, asking to roll every robot it updated back
 /// to the release it ran before (`kubectl lekiwi rollout undo`).
 pub const UNDO_ANNOTATION: &str = "fleet.lekiwi.io/undoRequestedAt";
+/// Annotation on a RobotDeployment, an RFC 3339 time, asking to stop its rollout where it
+/// stands (`kubectl lekiwi rollout abort`): no robot starts, robots not yet switched are told to
+/// stay on the release they run, switched robots keep the new one; the phase ends `Aborted`.
+pub const ABORT_ANNOTATION: &str = "fleet.lekiwi.io/abortRequestedAt";
 /// Annotation on a Robot holding, as JSON, its state in the release rollout that last touched it.
 pub const MARK_ANNOTATION: &str = "fleet.lekiwi.io/rollout";
 /// The same for agent rollouts (deployments with `spec.agent`): a robot's release and agent
@@ -264,6 +268,9 @@ pub enum RolloutPhase {
     RolledBack,
     /// The rollout cannot proceed, for example because its release is invalid.
     Failed,
+    /// A user stopped it (`kubectl lekiwi rollout abort`): switched robots keep the new release,
+    /// the others stay on the one they ran; `rollout restart` goes on, `rollout undo` rolls back.
+    Aborted,
 }
 
 /// Outcome for one robot of the rollout.

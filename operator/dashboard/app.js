@@ -686,7 +686,7 @@ function rolloutColour(phase) {
   if (phase === 'Completed') return 'Online';
   if (phase === 'Progressing') return 'Progressing';
   if (phase === 'Failed' || phase === 'RollingBack' || phase === 'RolledBack') return 'Offline';
-  if (phase === 'Paused') return 'Unknown';
+  if (phase === 'Paused' || phase === 'Aborted') return 'Unknown';
   return 'Pending';
 }
 

@@ -69,7 +69,12 @@ pub async fn rollout_finished(
         (st.observed_generation == d.metadata.generation
             && matches!(
                 st.phase,
-                Some(RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed)
+                Some(
+                    RolloutPhase::Completed
+                        | RolloutPhase::RolledBack
+                        | RolloutPhase::Failed
+                        | RolloutPhase::Aborted
+                )
             ))
         .then_some(d)
     })

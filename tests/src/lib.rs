@@ -64,6 +64,19 @@ pub fn cache_dir() -> PathBuf {
     PathBuf::from(cache)
 }
 
+/// The items of a `List` as `kubectl lekiwi -o json` prints one (as kubectl does), checked
+/// to be a `List`.
+pub fn list_items<T: serde::de::DeserializeOwned>(
+    json: impl AsRef<[u8]>,
+) -> anyhow::Result<Vec<T>> {
+    let mut list: serde_json::Value = serde_json::from_slice(json.as_ref())?;
+    anyhow::ensure!(
+        list["apiVersion"] == "v1" && list["kind"] == "List",
+        "not a List: {list}"
+    );
+    Ok(serde_json::from_value(list["items"].take())?)
+}
+
 /// kubectl and helm as installed by `scripts/setup.sh`.
 pub fn tool(name: &str) -> PathBuf {
     cache_dir().join("bin").join(name)

@@ -124,7 +124,7 @@ fn discover(kubeconfig: &Path, args: &[&str]) -> Result<(Vec<Value>, Duration, S
     let took = start.elapsed();
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     ensure!(out.status.success(), "discover {args:?} failed: {stderr}");
-    let found: Vec<Value> = serde_json::from_slice(&out.stdout)?;
+    let found: Vec<Value> = lekiwi_tests::list_items(&out.stdout)?;
     Ok((found, took, stderr))
 }
 
@@ -270,7 +270,7 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
     ];
     let events: Vec<Value> = wait_for("agent_started in the event store", T, || async {
         let out = ok(cp, &events_args).ok()?;
-        let events: Vec<Value> = serde_json::from_str(&out).ok()?;
+        let events: Vec<Value> = lekiwi_tests::list_items(&out).ok()?;
         events
             .iter()
             .any(|e| e["kind"] == "agent_started")
@@ -556,7 +556,7 @@ async fn robots_group_by_agent_version() -> Result<()> {
             "desired-agent",
         ],
     )?;
-    let groups: Value = serde_json::from_str(&json)?;
+    let groups: Value = lekiwi_tests::list_items::<Value>(&json)?.into();
     ensure!(
         groups
             == serde_json::json!([

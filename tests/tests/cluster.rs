@@ -181,7 +181,7 @@ impl Install {
         let mut last = None;
         for _ in 0..3 {
             match self.cli(&args) {
-                Ok(out) => return Ok(serde_json::from_str(&out)?),
+                Ok(out) => return lekiwi_tests::list_items(&out),
                 Err(e) => {
                     eprintln!("{e:#}; trying again");
                     last = Some(e);

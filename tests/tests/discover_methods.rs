@@ -75,7 +75,7 @@ fn discover(kubeconfig: &Path, wrapper: &[&str], args: &[&str]) -> Result<Run> {
     ensure!(out.status.success(), "discover failed: {stderr}");
     eprintln!("discover {args:?} took {took:?}; stderr: {stderr}");
     Ok(Run {
-        found: serde_json::from_slice(&out.stdout)?,
+        found: lekiwi_tests::list_items(&out.stdout)?,
         stderr,
         took,
     })

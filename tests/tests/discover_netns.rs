@@ -27,7 +27,7 @@ fn discover(kubeconfig: &std::path::Path, args: &[&str]) -> Result<(Vec<Value>, 
     let stderr = String::from_utf8_lossy(&out.stderr);
     ensure!(out.status.success(), "discover failed: {stderr}");
     eprintln!("discover {args:?} took {took:?}; stderr: {stderr}");
-    Ok((serde_json::from_slice(&out.stdout)?, took))
+    Ok((lekiwi_tests::list_items(&out.stdout)?, took))
 }
 
 #[tokio::test]

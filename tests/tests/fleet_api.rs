@@ -436,6 +436,7 @@ async fn rollout_actions(
         "the RobotDeployment is not paused"
     );
     for (a, annotation) in [
+        ("abort", "fleet.lekiwi.io/abortRequestedAt"),
         ("undo", "fleet.lekiwi.io/undoRequestedAt"),
         ("restart", "fleet.lekiwi.io/restartedAt"),
     ] {

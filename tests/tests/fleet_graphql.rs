@@ -302,7 +302,7 @@ async fn refusals_and_mutations(
         api.get("v2").await?.spec.paused,
         "the RobotDeployment is not paused"
     );
-    let d = data(op, user, &format!(r#"mutation {{ undoRollout(namespace: "{ns}", name: "v2") {{ name }} resumeRollout(namespace: "{ns}", name: "v2") {{ paused }} }}"#)).await?;
+    let d = data(op, user, &format!(r#"mutation {{ abortRollout(namespace: "{ns}", name: "v2") {{ name }} undoRollout(namespace: "{ns}", name: "v2") {{ name }} resumeRollout(namespace: "{ns}", name: "v2") {{ paused }} }}"#)).await?;
     ensure!(d["resumeRollout"]["paused"] == false, "{d}");
     let stamped = api
         .get("v2")
@@ -312,6 +312,7 @@ async fn refusals_and_mutations(
         .unwrap_or_default();
     ensure!(
         stamped.contains_key("fleet.lekiwi.io/undoRequestedAt")
+            && stamped.contains_key("fleet.lekiwi.io/abortRequestedAt")
             && !api.get("v2").await?.spec.paused,
         "{stamped:?}"
     );

@@ -293,7 +293,7 @@ async fn robot_text_reaches_the_cli_escaped_and_logs_have_no_colour() -> anyhow:
     let stored: Vec<Value> = wait_for("the hostile event stored", Duration::from_secs(20), || {
         let out = plugin(cp, &ns, &op, &json_args);
         async move {
-            let events: Vec<Value> = serde_json::from_slice(&out).ok()?;
+            let events: Vec<Value> = lekiwi_tests::list_items(&out).ok()?;
             (!events.is_empty()).then_some(events)
         }
     })
@@ -302,7 +302,13 @@ async fn robot_text_reaches_the_cli_escaped_and_logs_have_no_colour() -> anyhow:
         stored[0]["message"], HOSTILE,
         "stored as sent, escaped in JSON"
     );
-    for output in ["table", "wide", "json", "yaml"] {
+    for output in [
+        "table",
+        "wide",
+        "json",
+        "yaml",
+        "jsonpath={.items[*].message}",
+    ] {
         let out = plugin(cp, &ns, &op, &["-o", output, "events", "kiwi-h"]);
         assert!(!out.contains(&0x1b), "-o {output} printed a raw ESC");
         assert!(

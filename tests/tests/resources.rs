@@ -255,7 +255,7 @@ async fn kubectl_plugin_lists_robots() -> anyhow::Result<()> {
         .args(["robots", "-n", &ns, "-o", "json"])
         .env("KUBECONFIG", cp.kubeconfig())
         .output()?;
-    let robots: Vec<lekiwi_crds::Robot> = serde_json::from_slice(&out.stdout)?;
+    let robots: Vec<lekiwi_crds::Robot> = lekiwi_tests::list_items(&out.stdout)?;
     assert_eq!(robots.len(), 3);
 
     let out = std::process::Command::new(bin("kubectl-lekiwi"))

@@ -640,3 +640,198 @@ async fn the_plugin_pauses_resumes_undoes_and_restarts_a_rollout() -> anyhow::Re
     );
     Ok(())
 }
+
+impl Site {
+    /// Starts a plugin command that runs until killed (`-w`) and the lines it prints.
+    fn follow(
+        &self,
+        args: &[&str],
+    ) -> anyhow::Result<(std::process::Child, std::sync::mpsc::Receiver<String>)> {
+        let mut child = Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(self.cp.kubeconfig())
+            .args(["-n", &self.ns])
+            .args(args)
+            .stdout(std::process::Stdio::piped())
+            .spawn()?;
+        let stdout = child.stdout.take().expect("piped");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            use std::io::BufRead as _;
+            for line in std::io::BufReader::new(stdout)
+                .lines()
+                .map_while(Result::ok)
+            {
+                if tx.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Ok((child, rx))
+    }
+}
+
+/// The text a command printed, with its error output when it failed.
+fn stdout_of(out: &std::process::Output) -> anyhow::Result<String> {
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    if !out.status.success() {
+        bail!("{text}{}", String::from_utf8_lossy(&out.stderr));
+    }
+    Ok(text)
+}
+
+/// What an Argo Rollouts user reaches for, against a real operator and agents: `rollout list`
+/// (table, `-o json` as a `List`, `-o name`, `-l`), `set-release` (with `--digest`, and by
+/// version looked up from the releases the namespace knows), `abort` (no robot starts after it,
+/// switched robots keep the new release, the phase says `Aborted`, `status` exits non-zero),
+/// `get` (batches and robots as a tree) and `get -w` following a restart to its end.
+#[tokio::test]
+async fn the_plugin_lists_gets_sets_the_release_of_and_aborts_a_rollout() -> anyhow::Result<()> {
+    let site = Site::new("rollabort").await?;
+    let _fleet = site.fleet(CLI_ROBOTS, &["--restart-command", "sleep 1"])?;
+    site.wait_online(CLI_ROBOTS).await?;
+    let v1 = site.push(&release_dir(site.dir.path(), 5, "1", &[])?, "1.0.0")?;
+    let v2 = site.push(&release_dir(site.dir.path(), 5, "2", &[2])?, "2.0.0")?;
+    site.deploy("cli", &v1, test_strategy(1, 0), LabelSelector::default())
+        .await?;
+    site.finished("cli", Duration::from_secs(120)).await?;
+
+    let table = stdout_of(&site.cli(&["rollout", "list"])?)?;
+    let row: Vec<&str> = table
+        .lines()
+        .nth(1)
+        .unwrap_or_default()
+        .split_whitespace()
+        .collect();
+    assert_eq!(
+        row[..5],
+        ["cli", "Completed", "1.0.0", "6/6", "0"],
+        "{table}"
+    );
+    let json = stdout_of(&site.cli(&["rollout", "list", "-o", "json"])?)?;
+    let items: Vec<RobotDeployment> = lekiwi_tests::list_items(&json)?;
+    assert_eq!(items.len(), 1, "{json}");
+    let names = stdout_of(&site.cli(&["rollout", "list", "-o", "name"])?)?;
+    assert_eq!(names, "robotdeployment.fleet.lekiwi.io/cli\n");
+    let none = stdout_of(&site.cli(&["rollout", "list", "-l", "tier=none", "-o", "json"])?)?;
+    assert!(
+        lekiwi_tests::list_items::<Value>(&none)?.is_empty(),
+        "{none}"
+    );
+
+    // 2.0.0 is named by no robot or rollout yet and this gateway lists no releases: the
+    // lookup says to pass --digest.
+    let out = site.cli(&["rollout", "set-release", "cli", "--version", "2.0.0"])?;
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--digest"), "{err}");
+    let digest = v2.digest.to_string();
+    let set = [
+        "rollout",
+        "set-release",
+        "cli",
+        "--version",
+        "2.0.0",
+        "--digest",
+        &digest,
+    ];
+    assert!(stdout_of(&site.cli(&set)?)?.contains("release set to 2.0.0"));
+    wait_for("the first v2 robot", Duration::from_secs(60), || async {
+        let by = site.releases().await.ok()?;
+        by.contains_key("2.0.0").then_some(())
+    })
+    .await?;
+
+    // The phase Aborted is new: test runs from other checkouts re-apply their CRDs to the
+    // shared control plane, so ours are applied again right before it is needed.
+    site.cp.install_crds()?;
+    let (mut listing, rows) = site.follow(&["rollout", "list", "-w", "--no-headers"])?;
+    let out = stdout_of(&site.cli(&["rollout", "abort", "cli"])?)?;
+    assert_eq!(out, "robotdeployment/cli aborted\n");
+    // `list -w` prints the rollout again when it changes.
+    let aborted = wait_for(
+        "list -w to show Aborted",
+        Duration::from_secs(20),
+        || async {
+            rows.try_iter()
+                .find(|l| l.starts_with("cli") && l.contains("Aborted"))
+        },
+    )
+    .await;
+    listing.kill()?;
+    listing.wait()?;
+    aborted?;
+    let d = wait_for("Aborted", Duration::from_secs(20), || async {
+        let d = site.deployment("cli").await.ok()?;
+        (d.status.as_ref()?.phase == Some(RolloutPhase::Aborted)).then_some(d)
+    })
+    .await?;
+    let message = d.status.and_then(|s| s.message).unwrap_or_default();
+    assert!(message.contains("rollout abort"), "{message}");
+    // A robot switching when the abort came may still finish its switch; then nothing moves.
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let held = site.releases().await?;
+    tokio::time::sleep(Duration::from_secs(6)).await;
+    assert_eq!(
+        site.releases().await?,
+        held,
+        "a robot moved after the abort"
+    );
+    let on_v2 = held.get("2.0.0").copied().unwrap_or_default();
+    assert!(
+        (1..CLI_ROBOTS).contains(&on_v2),
+        "aborted mid-way: {held:?}"
+    );
+
+    let tree = stdout_of(&site.cli(&["rollout", "get", "cli"])?)?;
+    assert!(tree.contains("Phase:     Aborted"), "{tree}");
+    assert!(
+        tree.contains("├──# batch 0") && tree.contains("└──kiwi-000"),
+        "{tree}"
+    );
+    let out = site.cli(&["rollout", "status", "cli", "--timeout", "10s"])?;
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("rollout aborted"),
+        "{err}"
+    );
+
+    // `get -w` follows a restart live to its end.
+    let (mut follow, rx) = site.follow(&["rollout", "get", "cli", "-w"])?;
+    stdout_of(&site.cli(&["rollout", "restart", "cli"])?)?;
+    let seen = wait_for(
+        "get -w to show Completed",
+        Duration::from_secs(120),
+        || async {
+            let lines: Vec<String> = rx.try_iter().collect();
+            lines
+                .iter()
+                .any(|l| l.contains("Phase:     Completed"))
+                .then_some(())
+        },
+    )
+    .await;
+    follow.kill()?;
+    follow.wait()?;
+    seen?;
+    assert_eq!(site.releases().await?.get("2.0.0"), Some(&CLI_ROBOTS));
+
+    // By version: 1.0.0's digest is known from the robots' previous rollout.
+    let gateway = gateway_url(&site.op);
+    let back = [
+        "rollout",
+        "set-release",
+        "cli",
+        "--version",
+        "1.0.0",
+        "--server",
+        &gateway,
+    ];
+    assert!(stdout_of(&site.cli(&back)?)?.contains(&*v1.digest));
+    let d = site.finished("cli", Duration::from_secs(120)).await?;
+    assert_eq!(
+        d.status.and_then(|s| s.phase),
+        Some(RolloutPhase::Completed)
+    );
+    assert_eq!(site.releases().await?.get("1.0.0"), Some(&CLI_ROBOTS));
+    Ok(())
+}

@@ -74,63 +74,64 @@ pub fn merge(
 }
 
 /// Renders the found agents in the given format.
-pub fn render(found: &[Discovered], output: Output) -> anyhow::Result<String> {
-    Ok(match output {
-        Output::Json => serde_json::to_string_pretty(found)? + "\n",
-        Output::Yaml => serde_yaml::to_string(found)?,
-        Output::Table | Output::Wide => {
-            if found.is_empty() {
-                return Ok("No agents found.\n".into());
-            }
-            let wide = output == Output::Wide;
-            let mut header = vec!["NAMESPACE", "NAME", "REGISTERED", "ADDRESS", "VIA"];
-            if wide {
-                header.extend(["AGENT", "RELEASE", "CONNECTED", "GATEWAY"]);
-            }
-            let mut rows = vec![header.iter().map(|s| s.to_string()).collect::<Vec<_>>()];
-            for d in found {
-                let address = if wide {
-                    d.addresses.join(",")
-                } else {
-                    match d.addresses.len() {
-                        0 => "-".to_owned(),
-                        1 => d.addresses[0].clone(),
-                        n => format!("{} (+{})", preferred(&d.addresses), n - 1),
-                    }
-                };
-                let mut row = vec![
-                    d.namespace.clone(),
-                    d.name.clone(),
-                    match d.registered {
-                        Some(true) => "yes".into(),
-                        Some(false) => "no".into(),
-                        None => "unknown".into(),
-                    },
-                    address,
-                    d.via.join(","),
-                ];
+pub fn render(found: &[Discovered], output: &Output) -> anyhow::Result<String> {
+    Ok(
+        match output.rows(found, |d| format!("{}/{}", d.namespace, d.name))? {
+            Some(text) => text,
+            None => {
+                if found.is_empty() {
+                    return Ok("No agents found.\n".into());
+                }
+                let wide = output.wide();
+                let mut header = vec!["NAMESPACE", "NAME", "REGISTERED", "ADDRESS", "VIA"];
                 if wide {
-                    let dash = |s: &str| {
-                        if s.is_empty() {
-                            "-".into()
-                        } else {
-                            s.to_owned()
+                    header.extend(["AGENT", "RELEASE", "CONNECTED", "GATEWAY"]);
+                }
+                let mut rows = vec![header.iter().map(|s| s.to_string()).collect::<Vec<_>>()];
+                for d in found {
+                    let address = if wide {
+                        d.addresses.join(",")
+                    } else {
+                        match d.addresses.len() {
+                            0 => "-".to_owned(),
+                            1 => d.addresses[0].clone(),
+                            n => format!("{} (+{})", preferred(&d.addresses), n - 1),
                         }
                     };
-                    row.push(dash(&d.agent_version));
-                    row.push(dash(d.release.as_deref().unwrap_or_default()));
-                    row.push(match d.connected {
-                        Some(true) => "yes".into(),
-                        Some(false) => "no".into(),
-                        None => "-".into(),
-                    });
-                    row.push(dash(&d.gateway));
+                    let mut row = vec![
+                        d.namespace.clone(),
+                        d.name.clone(),
+                        match d.registered {
+                            Some(true) => "yes".into(),
+                            Some(false) => "no".into(),
+                            None => "unknown".into(),
+                        },
+                        address,
+                        d.via.join(","),
+                    ];
+                    if wide {
+                        let dash = |s: &str| {
+                            if s.is_empty() {
+                                "-".into()
+                            } else {
+                                s.to_owned()
+                            }
+                        };
+                        row.push(dash(&d.agent_version));
+                        row.push(dash(d.release.as_deref().unwrap_or_default()));
+                        row.push(match d.connected {
+                            Some(true) => "yes".into(),
+                            Some(false) => "no".into(),
+                            None => "-".into(),
+                        });
+                        row.push(dash(&d.gateway));
+                    }
+                    rows.push(row);
                 }
-                rows.push(row);
+                crate::robots::format_table(rows)
             }
-            crate::robots::format_table(rows)
-        }
-    })
+        },
+    )
 }
 
 /// The address to show first: IPv4 before IPv6, as people type them.

@@ -27,7 +27,7 @@ pub struct DeploymentLabels {
 /// Labels of rollout outcome series.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
 pub struct OutcomeLabels {
-    /// `completed`, `rolled_back` or `failed` (rollouts); `succeeded` or `failed` (batches).
+    /// `completed`, `rolled_back`, `aborted` or `failed` (rollouts); `succeeded` or `failed` (batches).
     pub outcome: &'static str,
 }
 
@@ -176,6 +176,7 @@ impl RolloutMetrics {
             let outcome = match status.phase {
                 Some(RolloutPhase::Completed) => "completed",
                 Some(RolloutPhase::RolledBack) => "rolled_back",
+                Some(RolloutPhase::Aborted) => "aborted",
                 _ => "failed",
             };
             let labels = OutcomeLabels { outcome };
@@ -189,7 +190,7 @@ impl RolloutMetrics {
 }
 
 /// Every phase, so the gauge of the phases a deployment left drops to 0.
-const PHASES: [RolloutPhase; 7] = [
+const PHASES: [RolloutPhase; 8] = [
     RolloutPhase::Pending,
     RolloutPhase::Progressing,
     RolloutPhase::Paused,
@@ -197,6 +198,7 @@ const PHASES: [RolloutPhase; 7] = [
     RolloutPhase::RollingBack,
     RolloutPhase::RolledBack,
     RolloutPhase::Failed,
+    RolloutPhase::Aborted,
 ];
 
 fn phase_str(p: RolloutPhase) -> &'static str {
@@ -208,5 +210,6 @@ fn phase_str(p: RolloutPhase) -> &'static str {
         RolloutPhase::RollingBack => "RollingBack",
         RolloutPhase::RolledBack => "RolledBack",
         RolloutPhase::Failed => "Failed",
+        RolloutPhase::Aborted => "Aborted",
     }
 }

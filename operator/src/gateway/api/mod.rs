@@ -106,6 +106,7 @@ pub fn routes() -> Router<AppState> {
         .route(p::ROLLOUT, wrong(get(rollouts::one)))
         .route(p::ROLLOUT_PAUSE, wrong(post(rollouts::pause)))
         .route(p::ROLLOUT_RESUME, wrong(post(rollouts::resume)))
+        .route(p::ROLLOUT_ABORT, wrong(post(rollouts::abort)))
         .route(p::ROLLOUT_UNDO, wrong(post(rollouts::undo)))
         .route(p::ROLLOUT_RESTART, wrong(post(rollouts::restart)))
         .route(

@@ -40,6 +40,8 @@ pub mod paths {
     pub const ROLLOUT_PAUSE: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/pause";
     /// Resume a rollout.
     pub const ROLLOUT_RESUME: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/resume";
+    /// Abort a rollout.
+    pub const ROLLOUT_ABORT: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/abort";
     /// Undo a rollout.
     pub const ROLLOUT_UNDO: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/undo";
     /// Restart a rollout.
@@ -49,7 +51,7 @@ pub mod paths {
 }
 
 /// Every route with its method, the list the router and the document are checked against.
-pub const ROUTES: [(&str, &str); 17] = [
+pub const ROUTES: [(&str, &str); 18] = [
     ("get", paths::OPENAPI),
     ("get", paths::ACCESS),
     ("get", paths::ROBOTS),
@@ -63,6 +65,7 @@ pub const ROUTES: [(&str, &str); 17] = [
     ("get", paths::ROLLOUT),
     ("post", paths::ROLLOUT_PAUSE),
     ("post", paths::ROLLOUT_RESUME),
+    ("post", paths::ROLLOUT_ABORT),
     ("post", paths::ROLLOUT_UNDO),
     ("post", paths::ROLLOUT_RESTART),
     ("post", paths::GRAPHQL),
@@ -251,6 +254,7 @@ fn build() -> Value {
                 named(vec![]), schema("RobotDeployment"))},
             paths::ROLLOUT_PAUSE: action("Pause: sets spec.paused to true."),
             paths::ROLLOUT_RESUME: action("Resume: sets spec.paused to false."),
+            paths::ROLLOUT_ABORT: action("Abort: sets annotation fleet.lekiwi.io/abortRequestedAt to now (the rollout stops where it stands and ends Aborted)."),
             paths::ROLLOUT_UNDO: action("Undo: sets annotation fleet.lekiwi.io/undoRequestedAt to now."),
             paths::ROLLOUT_RESTART: action("Restart: sets annotation fleet.lekiwi.io/restartedAt to now."),
             paths::GRAPHQL: graphql(),

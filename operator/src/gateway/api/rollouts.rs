@@ -1,6 +1,6 @@
 //! `GET /api/v1/rollouts`, `/api/v1/namespaces/{namespace}/rollouts[/{name}]`: RobotDeployments
 //! with their per-robot progress (`status.robots`), from the gateway's cache; and the rollout
-//! actions `POST .../rollouts/{name}/pause|resume|undo|restart`, allowed by `patch` on
+//! actions `POST .../rollouts/{name}/pause|resume|abort|undo|restart`, allowed by `patch` on
 //! `robotdeployments`, which write exactly what `kubectl lekiwi rollout ...` writes.
 
 use std::sync::Arc;
@@ -13,7 +13,7 @@ use jiff::Timestamp;
 use kube::Api;
 use kube::api::{Patch, PatchParams};
 use lekiwi_crds::RobotDeployment;
-use lekiwi_crds::deployment::{RESTART_ANNOTATION, UNDO_ANNOTATION};
+use lekiwi_crds::deployment::{ABORT_ANNOTATION, RESTART_ANNOTATION, UNDO_ANNOTATION};
 use serde::Deserialize;
 use serde_json::{Value, json};
 use tracing::info;
@@ -138,6 +138,15 @@ pub async fn resume(
     act(state, path, headers, json!({"spec": {"paused": false}})).await
 }
 
+/// `POST .../rollouts/{name}/abort`: stamps the abort annotation with now.
+pub async fn abort(
+    state: State<AppState>,
+    path: Path<(String, String)>,
+    headers: HeaderMap,
+) -> Result<Json<RobotDeployment>, ApiError> {
+    act(state, path, headers, stamp(ABORT_ANNOTATION)).await
+}
+
 /// `POST .../rollouts/{name}/undo`: stamps the undo annotation with now.
 pub async fn undo(
     state: State<AppState>,
@@ -156,7 +165,7 @@ pub async fn restart(
     act(state, path, headers, stamp(RESTART_ANNOTATION)).await
 }
 
-/// The merge patch `kubectl lekiwi rollout undo|restart` sends: the annotation set to now.
+/// The merge patch `kubectl lekiwi rollout abort|undo|restart` sends: the annotation set to now.
 pub(crate) fn stamp(annotation: &str) -> Value {
     json!({"metadata": {"annotations": {annotation: Timestamp::now().to_string()}}})
 }

@@ -6,8 +6,8 @@ use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{Condition, ReleaseRef, RobotDeployment, RobotDeploymentStatus};
 
 use super::{
-    Facts, Mark, Overlap, PlannedEvent, RESTART_ANNOTATION, ReleaseCheck, RobotView, RobotWrite,
-    UNDO_ANNOTATION, rollout_id, same_rollout, secs, time,
+    ABORT_ANNOTATION, Facts, Mark, Overlap, PlannedEvent, RESTART_ANNOTATION, ReleaseCheck,
+    RobotView, RobotWrite, UNDO_ANNOTATION, rollout_id, same_rollout, secs, time,
 };
 
 /// The facts of one plan that no step changes: the deployment's spec, the rollout it is in,
@@ -29,6 +29,8 @@ pub(super) struct Rollout<'a> {
     pub generation: Option<i64>,
     /// When a user asked for `rollout undo`, if they did.
     pub undo_at: Option<Timestamp>,
+    /// When a user asked for `rollout abort`, if they did.
+    pub abort_at: Option<Timestamp>,
     /// When this rollout started, to the millisecond (from its id; `status.startTime` keeps
     /// whole seconds only, so an undo of the previous rollout in the same second would look
     /// newer than this one).
@@ -93,6 +95,7 @@ impl<'a> Rollout<'a> {
             paused: spec.paused,
             generation: deployment.metadata.generation,
             undo_at: annotation(UNDO_ANNOTATION).and_then(|v| v.parse::<Timestamp>().ok()),
+            abort_at: annotation(ABORT_ANNOTATION).and_then(|v| v.parse::<Timestamp>().ok()),
             started,
             previous,
             was_active,

@@ -1,6 +1,6 @@
 //! Second step of the rollout planner: what may stop or turn the rollout regardless of its
-//! robots (an invalid release, an older overlapping deployment, a user's undo), each reported
-//! as a condition.
+//! robots (an invalid release, an older overlapping deployment, a user's undo or abort), each
+//! reported as a condition.
 
 use lekiwi_crds::{Condition, ConditionStatus};
 
@@ -15,6 +15,8 @@ pub(super) struct Gates<'a> {
     pub older_overlap: Option<&'a Overlap>,
     /// A user asked for `rollout undo` after this rollout started.
     pub undo_requested: bool,
+    /// A user asked for `rollout abort` after this rollout started.
+    pub abort_requested: bool,
 }
 
 impl<'a> Gates<'a> {
@@ -28,13 +30,14 @@ impl<'a> Gates<'a> {
         let started = rollout
             .started
             .or_else(|| draft.status.start_time.as_ref().map(|t| t.0));
-        let undo_requested = rollout
-            .undo_at
-            .is_some_and(|at| started.is_none_or(|s| at > s));
+        // An undo or abort asked for before this rollout started was of an earlier one.
+        let since_start =
+            |at: Option<jiff::Timestamp>| at.is_some_and(|at| started.is_none_or(|s| at > s));
         Self {
             release_ok,
             older_overlap,
-            undo_requested,
+            undo_requested: since_start(rollout.undo_at),
+            abort_requested: since_start(rollout.abort_at),
         }
     }
 }

@@ -7,6 +7,7 @@
 //! release a robot ran before are read back from the marks, so a new leader resumes exactly
 //! where the old one stopped and never redeploys a robot that already finished.
 
+mod abort;
 mod analysis;
 mod classify;
 mod draft;
@@ -28,7 +29,9 @@ use self::classify::Fleet;
 use self::draft::{Draft, Rollout};
 use self::gates::Gates;
 
-pub use lekiwi_crds::deployment::{MARK_ANNOTATION, RESTART_ANNOTATION, UNDO_ANNOTATION};
+pub use lekiwi_crds::deployment::{
+    ABORT_ANNOTATION, MARK_ANNOTATION, RESTART_ANNOTATION, UNDO_ANNOTATION,
+};
 
 /// Condition: the rollout is still moving (True) or has ended (False, with the outcome as reason).
 pub const CONDITION_PROGRESSING: &str = "Progressing";
@@ -192,7 +195,7 @@ pub struct Plan {
     pub requeue_after: Option<Duration>,
     /// Success ratio of a batch that ended in this plan, for metrics: (batch, ratio).
     pub batch_result: Option<(i32, f64)>,
-    /// Whether this plan ends the rollout (Completed, RolledBack or Failed) now.
+    /// Whether this plan ends the rollout (Completed, RolledBack, Failed or Aborted) now.
     pub finished: bool,
 }
 
@@ -242,7 +245,7 @@ fn secs(n: i64) -> SignedDuration {
 }
 
 /// Computes the plan: classify the robots, note new failures, check the gates (release,
-/// overlaps, undo), move the phase on (forming or resolving a batch, or rolling back), and
+/// overlaps, undo, abort), move the phase on (forming or resolving a batch, or rolling back), and
 /// derive the status from where every robot ends up.
 pub fn plan(deployment: &RobotDeployment, facts: &Facts) -> Plan {
     let rollout = Rollout::new(deployment, facts);

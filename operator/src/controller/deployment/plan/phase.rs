@@ -1,6 +1,6 @@
 //! Third step of the rollout planner: moves the rollout's phase on, from the gates and the
-//! robots' states: fail on an invalid release, wait for an older deployment, roll back, or
-//! roll forward (see [`super::progress`]).
+//! robots' states: fail on an invalid release, wait for an older deployment, roll back, stop
+//! (see [`super::abort`]), or roll forward (see [`super::progress`]).
 
 use jiff::SignedDuration;
 use lekiwi_crds::deployment::RolloutPhase;
@@ -8,7 +8,7 @@ use lekiwi_crds::deployment::RolloutPhase;
 use super::classify::{Fleet, RobotState};
 use super::draft::{Draft, Rollout};
 use super::gates::Gates;
-use super::{MarkState, ReleaseCheck, progress, time};
+use super::{MarkState, ReleaseCheck, abort, progress, time};
 
 /// Robots whose failure became known now get a permanent mark (and a Warning).
 pub(super) fn mark_new_failures(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
@@ -62,10 +62,16 @@ pub(super) fn advance(
         start_rollback(rollout, fleet, draft);
     } else {
         resume_recorded_rollback(rollout, fleet, draft);
+        if gates.abort_requested && abort::applies(draft.phase) {
+            abort::stop(rollout, fleet, draft);
+        }
     }
     let phase = draft.phase;
     match phase {
-        RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
+        RolloutPhase::Completed
+        | RolloutPhase::RolledBack
+        | RolloutPhase::Failed
+        | RolloutPhase::Aborted
             if !(phase == RolloutPhase::Failed && gates.release_ok) => {}
         RolloutPhase::RollingBack if undo_now => {
             draft.wake_at(rollout.now + SignedDuration::from_secs(2));

@@ -90,7 +90,10 @@ pub(super) fn finish(rollout: &Rollout<'_>, fleet: &Fleet<'_>, mut draft: Draft)
     let finished = rollout.was_active
         && matches!(
             phase,
-            RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
+            RolloutPhase::Completed
+                | RolloutPhase::RolledBack
+                | RolloutPhase::Failed
+                | RolloutPhase::Aborted
         );
     Plan {
         writes: draft.writes,
@@ -175,6 +178,7 @@ fn outcome_conditions(rollout: &Rollout<'_>, counts: &Counts, targeted: i32, dra
         RolloutPhase::Completed => "RolloutCompleted",
         RolloutPhase::RolledBack => "RolledBack",
         RolloutPhase::Failed => "Failed",
+        RolloutPhase::Aborted => "Aborted",
         _ => "Updating",
     };
     let complete = phase == RolloutPhase::Completed;

@@ -145,7 +145,10 @@ impl Sim {
             self.step();
             if matches!(
                 self.phase(),
-                RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
+                RolloutPhase::Completed
+                    | RolloutPhase::RolledBack
+                    | RolloutPhase::Failed
+                    | RolloutPhase::Aborted
             ) {
                 return i;
             }
@@ -669,4 +672,119 @@ fn a_switch_without_an_analysis_window_times_out_naming_it() {
         why.contains("runs 2 healthy, but no analysis window of its switch"),
         "{st:?}"
     );
+}
+
+impl Sim {
+    /// Sets `annotation` to the current time, as `kubectl lekiwi rollout undo|abort|restart` do.
+    fn stamp(&mut self, annotation: &str) {
+        let at = self.now.to_string();
+        self.d
+            .metadata
+            .annotations
+            .get_or_insert_default()
+            .insert(annotation.into(), at);
+    }
+
+    fn running(&self, release: &str) -> Vec<&str> {
+        self.robots
+            .iter()
+            .filter(|r| r.current == Some(rel(release)))
+            .map(|r| r.name.as_str())
+            .collect()
+    }
+}
+
+/// Batch 0 (kiwi-00, 01) done; batch 1 started: kiwi-02 switched, kiwi-03 still downloading.
+fn aborted_mid_batch() -> Sim {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 6);
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    sim.step();
+    sim.advance(1);
+    let p = sim.step();
+    let started: Vec<_> = p.writes.iter().map(|w| w.robot.as_str()).collect();
+    assert_eq!(started, ["kiwi-02", "kiwi-03"], "{:?}", sim.d.status);
+    sim.robots[2].current = Some(rel("2"));
+    sim.advance(1);
+    sim.stamp(ABORT_ANNOTATION);
+    sim.advance(1);
+    sim
+}
+
+#[test]
+fn an_abort_keeps_switched_robots_cancels_downloads_and_starts_nobody() {
+    let mut sim = aborted_mid_batch();
+    let p = sim.step();
+    let writes: Vec<_> = p
+        .writes
+        .iter()
+        .map(|w| (w.robot.as_str(), w.mark.state, w.release.clone()))
+        .collect();
+    assert_eq!(
+        writes,
+        [("kiwi-03", MarkState::Skipped, Some(rel("1")))],
+        "only the robot not yet switched is told to stay, which cancels its download"
+    );
+    assert!(p.finished);
+    assert_eq!(p.status.phase, Some(RolloutPhase::Aborted));
+    assert!(sim.events.contains(&"RolloutAborted"), "{:?}", sim.events);
+    let progressing = p
+        .status
+        .conditions
+        .iter()
+        .find(|c| c.r#type == "Progressing");
+    assert_eq!(
+        progressing.map(|c| (c.status, c.reason.as_str())),
+        Some((ConditionStatus::False, "Aborted"))
+    );
+    for _ in 0..5 {
+        sim.agents();
+        sim.advance(100);
+        let p = sim.step();
+        assert!(p.writes.is_empty(), "nothing starts after an abort: {p:?}");
+        assert_eq!(sim.phase(), RolloutPhase::Aborted);
+    }
+    assert_eq!(sim.running("2"), ["kiwi-00", "kiwi-01", "kiwi-02"]);
+    assert_eq!(sim.running("1"), ["kiwi-03", "kiwi-04", "kiwi-05"]);
+    let st = sim.d.status.as_ref().unwrap();
+    assert_eq!((st.updated, st.pending), (3, 2), "{st:?}");
+
+    // A restart goes on from where the abort stopped.
+    sim.stamp(RESTART_ANNOTATION);
+    sim.advance(1);
+    sim.run_until_done(20);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert_eq!(sim.running("2").len(), 6);
+}
+
+#[test]
+fn an_undo_after_an_abort_rolls_the_switched_robots_back() {
+    let mut sim = aborted_mid_batch();
+    sim.step();
+    sim.agents();
+    sim.advance(5);
+    sim.stamp(UNDO_ANNOTATION);
+    sim.advance(1);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::RolledBack);
+    assert_eq!(sim.running("1").len(), 6);
+}
+
+#[test]
+fn an_abort_of_a_finished_or_earlier_rollout_changes_nothing() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(5), 0), 3);
+    sim.run_until_done(10);
+    sim.advance(1);
+    sim.stamp(ABORT_ANNOTATION);
+    sim.advance(1);
+    let p = sim.step();
+    assert!(p.writes.is_empty() && p.events.is_empty(), "{p:?}");
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    // The next release is a new rollout the abort is older than.
+    sim.advance(1);
+    sim.d.spec.release = Some(rel("3"));
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert_eq!(sim.running("3").len(), 3);
 }

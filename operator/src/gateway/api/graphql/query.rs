@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use async_graphql::{Context, Json, Object, Result, SimpleObject};
 use kube::ResourceExt;
-use lekiwi_crds::deployment::{RESTART_ANNOTATION, UNDO_ANNOTATION};
+use lekiwi_crds::deployment::{ABORT_ANNOTATION, RESTART_ANNOTATION, UNDO_ANNOTATION};
 use lekiwi_crds::robot::TelemetrySummary;
 use lekiwi_crds::{Robot, RobotDeployment};
 use serde_json::{Value, json};
@@ -403,7 +403,7 @@ impl QueryRoot {
 }
 
 /// The rollout actions: `patch robotdeployments` in the namespace, writing what
-/// `kubectl lekiwi rollout pause|resume|undo|restart` writes.
+/// `kubectl lekiwi rollout pause|resume|abort|undo|restart` writes.
 pub struct MutationRoot;
 
 #[Object]
@@ -425,6 +425,15 @@ impl MutationRoot {
         name: String,
     ) -> Result<RolloutObject> {
         act(ctx, namespace, name, json!({"spec": {"paused": false}})).await
+    }
+    /// Stamps the abort annotation with now: the rollout stops where it stands, ends Aborted.
+    async fn abort_rollout(
+        &self,
+        ctx: &Context<'_>,
+        namespace: String,
+        name: String,
+    ) -> Result<RolloutObject> {
+        act(ctx, namespace, name, rollouts::stamp(ABORT_ANNOTATION)).await
     }
     /// Stamps the undo annotation with now.
     async fn undo_rollout(

@@ -1,122 +1,15 @@
-//! `kubectl lekiwi rollout status|pause|resume|undo|restart NAME`: watch and steer a
-//! RobotDeployment.
+//! `rollout status NAME`: a rollout's progress, once or followed live until it ends.
 
 use std::io::{IsTerminal, Write};
 use std::time::Duration;
 
-use clap::Subcommand;
-use jiff::Timestamp;
-use kube::api::{Patch, PatchParams};
 use kube::{Api, ResourceExt};
 use lekiwi_crds::RobotDeployment;
-use lekiwi_crds::deployment::{
-    RESTART_ANNOTATION, RobotRolloutState, RolloutPhase, UNDO_ANNOTATION,
-};
-use serde_json::json;
+use lekiwi_crds::deployment::{RobotRolloutState, RolloutPhase};
 
 use crate::Output;
 
-/// Rollout subcommands.
-#[derive(Debug, Subcommand)]
-pub enum RolloutCommand {
-    /// Show a rollout's progress; by default follow it live until it completes, rolls back or
-    /// fails (exit status 0 only when it completes).
-    Status {
-        /// The RobotDeployment.
-        name: String,
-        /// Follow until the rollout ends (`--watch=false` prints once).
-        #[arg(short = 'w', long, default_value_t = true, action = clap::ArgAction::Set)]
-        watch: bool,
-        /// Give up following after this many seconds (0: never).
-        #[arg(long, default_value_t = 0)]
-        timeout: u64,
-    },
-    /// Pause: robots updating now finish, no new robot starts.
-    Pause {
-        /// The RobotDeployment.
-        name: String,
-    },
-    /// Resume a paused rollout.
-    Resume {
-        /// The RobotDeployment.
-        name: String,
-    },
-    /// Roll every robot the rollout updated back to the release it ran before.
-    Undo {
-        /// The RobotDeployment.
-        name: String,
-    },
-    /// Start the rollout over from its first batch (failed and skipped robots are tried again).
-    Restart {
-        /// The RobotDeployment.
-        name: String,
-    },
-}
-
-/// Runs a rollout subcommand.
-pub async fn run(
-    client: kube::Client,
-    namespace: &str,
-    output: Output,
-    cmd: RolloutCommand,
-) -> anyhow::Result<()> {
-    let api: Api<RobotDeployment> = Api::namespaced(client, namespace);
-    match cmd {
-        RolloutCommand::Status {
-            name,
-            watch,
-            timeout,
-        } => status(&api, &name, watch, timeout, output).await,
-        RolloutCommand::Pause { name } => {
-            steer(&api, &name, json!({"spec": {"paused": true}}), "paused").await
-        }
-        RolloutCommand::Resume { name } => {
-            steer(&api, &name, json!({"spec": {"paused": false}}), "resumed").await
-        }
-        RolloutCommand::Undo { name } => {
-            steer(&api, &name, stamp(UNDO_ANNOTATION), "rolling back").await
-        }
-        RolloutCommand::Restart { name } => {
-            steer(&api, &name, stamp(RESTART_ANNOTATION), "restarted").await
-        }
-    }
-}
-
-/// A patch setting `annotation` to now: the controller acts on each new value once.
-fn stamp(annotation: &str) -> serde_json::Value {
-    json!({"metadata": {"annotations": {annotation: Timestamp::now().to_string()}}})
-}
-
-/// Merge-patches the RobotDeployment and says what was done, as kubectl does
-/// (`robotdeployment/NAME paused`).
-async fn steer(
-    api: &Api<RobotDeployment>,
-    name: &str,
-    patch: serde_json::Value,
-    done: &str,
-) -> anyhow::Result<()> {
-    merge(api, name, patch).await?;
-    println!("robotdeployment/{name} {done}");
-    Ok(())
-}
-
-async fn merge(
-    api: &Api<RobotDeployment>,
-    name: &str,
-    patch: serde_json::Value,
-) -> anyhow::Result<()> {
-    api.patch(name, &PatchParams::default(), &Patch::Merge(&patch))
-        .await
-        .map_err(|e| match e {
-            kube::Error::Api(s) if s.code == 404 => {
-                anyhow::anyhow!("robotdeployment {name:?} not found in this namespace")
-            }
-            e => e.into(),
-        })?;
-    Ok(())
-}
-
-fn terminal(d: &RobotDeployment) -> Option<RolloutPhase> {
+pub(super) fn terminal(d: &RobotDeployment) -> Option<RolloutPhase> {
     let st = d.status.as_ref()?;
     // A status from before the latest spec change says nothing about it.
     if st.observed_generation != d.metadata.generation {
@@ -125,7 +18,10 @@ fn terminal(d: &RobotDeployment) -> Option<RolloutPhase> {
     st.phase.filter(|p| {
         matches!(
             p,
-            RolloutPhase::Completed | RolloutPhase::RolledBack | RolloutPhase::Failed
+            RolloutPhase::Completed
+                | RolloutPhase::RolledBack
+                | RolloutPhase::Failed
+                | RolloutPhase::Aborted
         )
     })
 }
@@ -213,23 +109,16 @@ pub fn report(d: &RobotDeployment) -> String {
     out
 }
 
-async fn status(
+pub(super) async fn status(
     api: &Api<RobotDeployment>,
     name: &str,
     watch: bool,
-    timeout: u64,
-    output: Output,
+    timeout: Duration,
+    output: &Output,
 ) -> anyhow::Result<()> {
-    let get = || async {
-        api.get(name).await.map_err(|e| match e {
-            kube::Error::Api(s) if s.code == 404 => {
-                anyhow::anyhow!("robotdeployment {name:?} not found in this namespace")
-            }
-            e => e.into(),
-        })
-    };
+    let get = || async { api.get(name).await.map_err(|e| super::not_found(e, name)) };
     let d = get().await?;
-    if !watch || matches!(output, Output::Json | Output::Yaml) {
+    if !watch || !output.table() {
         match output.structured(&d.status)? {
             Some(text) => print!("{text}"),
             None => print!("{}", report(&d)),
@@ -258,11 +147,11 @@ async fn status(
             print!("{}", report(&d));
             return verdict(&d);
         }
-        if timeout > 0 && started.elapsed() > Duration::from_secs(timeout) {
+        if !timeout.is_zero() && started.elapsed() > timeout {
             if tty {
                 eprintln!();
             }
-            anyhow::bail!("rollout of {name} still in progress after {timeout}s");
+            anyhow::bail!("rollout of {name} still in progress after {timeout:?}");
         }
         tokio::time::sleep(Duration::from_millis(500)).await;
         d = get().await?;
@@ -279,6 +168,7 @@ fn verdict(d: &RobotDeployment) -> anyhow::Result<()> {
     match terminal(d) {
         Some(RolloutPhase::RolledBack) => anyhow::bail!("rollout rolled back: {}", message()),
         Some(RolloutPhase::Failed) => anyhow::bail!("rollout failed: {}", message()),
+        Some(RolloutPhase::Aborted) => anyhow::bail!("rollout aborted: {}", message()),
         _ => Ok(()),
     }
 }
