@@ -640,3 +640,111 @@ async fn the_plugin_pauses_resumes_undoes_and_restarts_a_rollout() -> anyhow::Re
     );
     Ok(())
 }
+
+/// Robots of the write-cost guard.
+const COST_ROBOTS: usize = 40;
+
+/// Writes to Robots and RobotDeployments (objects and status) in `by`, as the issue counts a
+/// rollout's cost.
+fn rollout_writes(by: &BTreeMap<String, f64>) -> f64 {
+    let counted = ["robots", "robots/status", "robotdeployments/status"];
+    counted.iter().filter_map(|k| by.get(*k)).sum()
+}
+
+/// The difference `after - before`, by resource, without the zeros.
+fn delta(before: &BTreeMap<String, f64>, after: &BTreeMap<String, f64>) -> BTreeMap<String, f64> {
+    let mut d = BTreeMap::new();
+    for (k, v) in after {
+        let n = v - before.get(k).copied().unwrap_or(0.0);
+        if n > 0.0 {
+            d.insert(k.clone(), n);
+        }
+    }
+    d
+}
+
+/// Issue 44: a rollout over a few dozen real agents (canary 1, batches of 25%) costs the API
+/// server at most 2 writes per robot updated (Robot objects and status, RobotDeployment
+/// status), counted by the API server itself on a control plane of the test's own, less the
+/// steady rate of writes of the same fleet measured just before, so that the cost of a rollout
+/// cannot creep up again unnoticed.
+#[tokio::test]
+async fn a_rollout_costs_at_most_two_api_writes_per_robot() -> anyhow::Result<()> {
+    const QUIET: Duration = Duration::from_secs(15);
+    let cp = lekiwi_tests::ControlPlane::private()?;
+    cp.install_crds()?;
+    let client = cp.client().await?;
+    let ns = lekiwi_tests::namespace(&client, "rollcost").await?;
+    let dir = tempfile::tempdir()?;
+    let blobs = dir.path().join("blobs");
+    std::fs::create_dir_all(&blobs)?;
+    let blob_dir = blobs.to_str().expect("a UTF-8 temp path");
+    let op = lekiwi_tests::gateway_operator(&cp, &ns, "rollcost", &["--blob-dir", blob_dir]).await?;
+    let token_file = dir.path().join("enroll");
+    lekiwi_tests::enrollment_token_file(&client, &ns, &token_file).await?;
+    let _fleet = FleetProcess::start(FleetSpec {
+        gateway: &gateway_url(&op),
+        token_file: &token_file,
+        namespace: &ns,
+        robots: COST_ROBOTS,
+        state_root: &dir.path().join("robots"),
+        health_command: "true",
+        report_every: "2",
+        rust_log: "warn",
+        extra: &[],
+    })?;
+    wait_online(&client, &ns, COST_ROBOTS, Duration::from_secs(120)).await?;
+    let server = format!("http://127.0.0.1:{}", op.gateway_port);
+    let v1_dir = release_dir(dir.path(), 10, "1", &[])?;
+    let v1 = lekiwi_tests::push_release(&cp.kubeconfig(), &ns, &server, None, &v1_dir, "1.0.0")?;
+
+    // The fleet's steady writes (heartbeats, routine refreshes), just before.
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let start = cp.writes()?;
+    tokio::time::sleep(QUIET).await;
+    let quiet = delta(&start, &cp.writes()?);
+    let rate = rollout_writes(&quiet) / QUIET.as_secs_f64();
+
+    let before = cp.writes()?;
+    let t = std::time::Instant::now();
+    let deployments = Api::<RobotDeployment>::namespaced(client.clone(), &ns);
+    let strategy = RolloutStrategy {
+        batch_size: k8s_openapi::apimachinery::pkg::util::intstr::IntOrString::String("25%".into()),
+        ..test_strategy(0, 1)
+    };
+    let d = RobotDeployment::new(
+        "fleet",
+        RobotDeploymentSpec {
+            selector: LabelSelector::default(),
+            release: Some(v1.clone()),
+            agent: None,
+            strategy,
+            paused: false,
+            analysis: None,
+            priority: 0,
+        },
+    );
+    deployments.create(&PostParams::default(), &d).await?;
+    let d = rollout_finished(&deployments, "fleet", Duration::from_secs(180))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\noperator log tail:\n{}", tail(&op.log_text())))?;
+    let st = d.status.unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
+    assert_eq!(st.updated, COST_ROBOTS as i32);
+    // Writes that trail the completion belong to the rollout too.
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let spent = t.elapsed().as_secs_f64();
+    let during = delta(&before, &cp.writes()?);
+    let background = rate * spent;
+    let per_robot = (rollout_writes(&during) - background) / COST_ROBOTS as f64;
+    eprintln!(
+        "rollout of {COST_ROBOTS} robots in {spent:.1} s: {during:?}; background {rate:.2}/s \
+         ({quiet:?} in {QUIET:?}); {per_robot:.2} writes per robot"
+    );
+    assert!(
+        per_robot <= 2.0,
+        "{per_robot:.2} API writes per robot updated (goal <= 2): {during:?} in {spent:.1} s, \
+         less {background:.1} of background ({quiet:?} in {QUIET:?})"
+    );
+    Ok(())
+}
