@@ -5,6 +5,7 @@
 //! notices the change and publishes its Event, within the budget of [`events`].
 
 pub mod claims;
+pub mod deferred;
 pub mod events;
 pub(crate) mod gateways;
 pub mod marks;
@@ -152,7 +153,17 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
             gateway,
         };
         let plan = plan::plan(robot, &facts);
+        let key = (namespace.as_str(), name.as_str());
         if plan.differs_from(robot) {
+            let now = tokio::time::Instant::now();
+            if let Some(wait) = ctx.robot_deferred.wait(key, robot, &plan, gateway, now) {
+                debug!(
+                    ?wait,
+                    "a new spec of an Online robot: its gateway writes it"
+                );
+                let wait = plan.requeue_after.map_or(wait, |after| after.min(wait));
+                return Ok(Action::requeue(wait));
+            }
             let api: Api<Robot> = Api::namespaced(ctx.client.clone(), &namespace);
             let seen = robot.metadata.resource_version.as_deref();
             if let Err(e) = status::apply(&api, &name, &plan, seen).await {
@@ -166,6 +177,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
             }
             note_marked(&ctx, robot, &plan, gateway);
         }
+        ctx.robot_deferred.forget(key);
         // A gateway may have written the new phase itself: compare with the last look too.
         let stored = robot.status.as_ref().and_then(|s| s.phase);
         let old_phase = ctx
