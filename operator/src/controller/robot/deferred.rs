@@ -17,10 +17,13 @@ use super::plan::{GatewayState, Plan};
 /// How long the controller leaves an Online robot's new spec to its gateway's write.
 pub const GATEWAY_WAIT: Duration = Duration::from_secs(60);
 
-/// Since when each robot's plan has differed only by a new spec, by namespace and name.
+/// A robot by namespace and name.
+type Key = (String, String);
+
+/// Since when each robot's plan has differed only by a new spec (of which generation).
 #[derive(Debug, Default)]
 pub struct Deferred {
-    since: Mutex<HashMap<(String, String), (Option<i64>, Instant)>>,
+    since: Mutex<HashMap<Key, (Option<i64>, Instant)>>,
 }
 
 impl Deferred {
