@@ -1,4 +1,4 @@
-# Shared by bench/agent.sh, bench/analysis-writes.sh, bench/gateway.sh, bench/hostile.sh, bench/recovery.sh and bench/rollout.sh (sourced, never run): messages,
+# Shared by bench/agent.sh, bench/analysis-writes.sh, bench/fleet-rollout.sh, bench/gateway.sh, bench/hostile.sh, bench/recovery.sh and bench/rollout.sh (sourced, never run): messages,
 # option checks, the processes a benchmark starts and their cleanup, ports, waiting, the lock that
 # keeps two benchmarks from running at once.
 #

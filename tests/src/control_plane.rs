@@ -195,6 +195,44 @@ impl ControlPlane {
             .expect("run kubectl")
     }
 
+    /// Write requests (POST, PUT, PATCH, APPLY, DELETE) the API server has served since it
+    /// started, from its own `/metrics` (`apiserver_request_total`), by resource and
+    /// subresource (`robots`, `robots/status`): on a private control plane, what a test's
+    /// processes cost it.
+    pub fn writes(&self) -> Result<std::collections::BTreeMap<String, f64>> {
+        const VERBS: [&str; 5] = ["POST", "PUT", "PATCH", "APPLY", "DELETE"];
+        let out = self.kubectl(&["get", "--raw", "/metrics"]);
+        anyhow::ensure!(out.status.success(), "kubectl get --raw /metrics failed");
+        let text = String::from_utf8(out.stdout)?;
+        let mut by = std::collections::BTreeMap::new();
+        for line in text.lines() {
+            let Some(rest) = line.strip_prefix("apiserver_request_total{") else {
+                continue;
+            };
+            let Some((labels, value)) = rest.rsplit_once("} ") else {
+                continue;
+            };
+            let label = |name: &str| {
+                labels
+                    .split(',')
+                    .find_map(|kv| kv.strip_prefix(&format!("{name}=\"")))
+                    .map(|v| v.trim_end_matches('"').to_owned())
+                    .unwrap_or_default()
+            };
+            if !VERBS.contains(&label("verb").as_str()) {
+                continue;
+            }
+            let (resource, sub) = (label("resource"), label("subresource"));
+            let key = if sub.is_empty() {
+                resource
+            } else {
+                format!("{resource}/{sub}")
+            };
+            *by.entry(key).or_default() += value.trim().parse::<f64>().unwrap_or(0.0);
+        }
+        Ok(by)
+    }
+
     /// Server-side applies our CRDs and waits until they are served
     /// (`scripts/control-plane.sh crds`).
     pub fn install_crds(&self) -> Result<()> {

@@ -835,3 +835,126 @@ async fn the_plugin_lists_gets_sets_the_release_of_and_aborts_a_rollout() -> any
     assert_eq!(site.releases().await?.get("1.0.0"), Some(&CLI_ROBOTS));
     Ok(())
 }
+
+/// Robots of the write-cost guard.
+const COST_ROBOTS: usize = 40;
+
+/// Writes of `resources` in `by`.
+fn sum_of(by: &BTreeMap<String, f64>, resources: &[&str]) -> f64 {
+    resources.iter().filter_map(|k| by.get(*k)).sum()
+}
+
+/// The difference `after - before`, by resource, without the zeros.
+fn delta(before: &BTreeMap<String, f64>, after: &BTreeMap<String, f64>) -> BTreeMap<String, f64> {
+    let mut d = BTreeMap::new();
+    for (k, v) in after {
+        let n = v - before.get(k).copied().unwrap_or(0.0);
+        if n > 0.0 {
+            d.insert(k.clone(), n);
+        }
+    }
+    d
+}
+
+/// Issue 44: a rollout over a few dozen real agents (canary 1, batches of 25%) costs the API
+/// server at most 2 Robot writes per robot updated (the rollout's write of its spec and mark,
+/// the gateway's status write of the outcome), and the deployment's status is written at a
+/// bounded rate however many robots move: counted by the API server itself on a control plane
+/// of the test's own, less the steady rate of the same fleet measured just before, so that the
+/// cost of a rollout cannot creep up again unnoticed.
+#[tokio::test]
+async fn a_rollout_costs_at_most_two_api_writes_per_robot() -> anyhow::Result<()> {
+    const QUIET: Duration = Duration::from_secs(15);
+    const ROBOT: [&str; 2] = ["robots", "robots/status"];
+    let cp = lekiwi_tests::ControlPlane::private()?;
+    cp.install_crds()?;
+    let client = cp.client().await?;
+    let ns = lekiwi_tests::namespace(&client, "rollcost").await?;
+    let dir = tempfile::tempdir()?;
+    let blobs = dir.path().join("blobs");
+    std::fs::create_dir_all(&blobs)?;
+    let blob_dir = blobs.to_str().expect("a UTF-8 temp path");
+    // Routine refreshes rarer than the test is long: what is counted is the rollout's.
+    let flags = ["--blob-dir", blob_dir, "--status-refresh-seconds", "600"];
+    let op = lekiwi_tests::gateway_operator(&cp, &ns, "rollcost", &flags).await?;
+    let token_file = dir.path().join("enroll");
+    lekiwi_tests::enrollment_token_file(&client, &ns, &token_file).await?;
+    let _fleet = FleetProcess::start(FleetSpec {
+        gateway: &gateway_url(&op),
+        token_file: &token_file,
+        namespace: &ns,
+        robots: COST_ROBOTS,
+        state_root: &dir.path().join("robots"),
+        health_command: "true",
+        report_every: "2",
+        rust_log: "warn",
+        extra: &[],
+    })?;
+    wait_online(&client, &ns, COST_ROBOTS, Duration::from_secs(120)).await?;
+    let server = format!("http://127.0.0.1:{}", op.gateway_port);
+    let v1_dir = release_dir(dir.path(), 10, "1", &[])?;
+    let v1 = lekiwi_tests::push_release(&cp.kubeconfig(), &ns, &server, None, &v1_dir, "1.0.0")?;
+
+    // The fleet's steady Robot writes, just before.
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let start = cp.writes()?;
+    tokio::time::sleep(QUIET).await;
+    let quiet = delta(&start, &cp.writes()?);
+    let rate = sum_of(&quiet, &ROBOT) / QUIET.as_secs_f64();
+
+    let before = cp.writes()?;
+    let t = std::time::Instant::now();
+    let deployments = Api::<RobotDeployment>::namespaced(client.clone(), &ns);
+    let strategy = RolloutStrategy {
+        batch_size: k8s_openapi::apimachinery::pkg::util::intstr::IntOrString::String("25%".into()),
+        ..test_strategy(0, 1)
+    };
+    let d = RobotDeployment::new(
+        "fleet",
+        RobotDeploymentSpec {
+            selector: LabelSelector::default(),
+            release: Some(v1.clone()),
+            agent: None,
+            strategy,
+            paused: false,
+            analysis: None,
+            priority: 0,
+        },
+    );
+    deployments.create(&PostParams::default(), &d).await?;
+    let d = rollout_finished(&deployments, "fleet", Duration::from_secs(180))
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\noperator log tail:\n{}", tail(&op.log_text())))?;
+    let st = d.status.unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "{:?}", st.message);
+    assert_eq!(st.updated, COST_ROBOTS as i32);
+    let batches = f64::from(st.total_batches.unwrap_or_default());
+    // Writes that trail the completion belong to the rollout too.
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    let spent = t.elapsed().as_secs_f64();
+    let during = delta(&before, &cp.writes()?);
+    let background = rate * spent;
+    let robot = (sum_of(&during, &ROBOT) - background) / COST_ROBOTS as f64;
+    let status = sum_of(&during, &["robotdeployments/status"]);
+    let total = robot + status / COST_ROBOTS as f64;
+    eprintln!(
+        "rollout of {COST_ROBOTS} robots in {batches} batches, {spent:.1} s: {during:?}; \
+         background {rate:.2}/s ({quiet:?} in {QUIET:?}); {robot:.2} Robot writes per robot, \
+         {status} deployment status writes; {total:.2} writes per robot in all"
+    );
+    // Two each; an agent's health report after its switch may land after the outcome's write
+    // and cost one more (a change of health is written), for a few robots in 40.
+    assert!(
+        robot <= 2.05,
+        "{robot:.2} Robot writes per robot updated (goal <= 2): {during:?} in {spent:.1} s, \
+         less {background:.1} of background ({quiet:?} in {QUIET:?})"
+    );
+    // A write per batch start and end, and at most one per 3 s (the status period) between.
+    let bound = 2.0 * batches + spent / 3.0 + 3.0;
+    assert!(
+        status <= bound,
+        "{status} status writes of the deployment (goal <= {bound:.0}: {batches} batches, \
+         {spent:.1} s)"
+    );
+    Ok(())
+}

@@ -48,6 +48,8 @@ pub struct Context {
     pub gateway_marks: Arc<robot::marks::Marks>,
     /// The phase each robot was last seen in and the budget of per-robot phase Events.
     pub robot_events: Arc<robot::events::PhaseEvents>,
+    /// Robots whose new spec waits for their gateway's status write (see [`robot::deferred`]).
+    pub robot_deferred: Arc<robot::deferred::Deferred>,
     /// Consecutive failures per object, for exponential backoff.
     failures: Arc<Mutex<HashMap<(String, String), u32>>>,
 }
@@ -69,6 +71,7 @@ impl Context {
             gateway_claims: Arc::default(),
             gateway_marks: Arc::default(),
             robot_events: Arc::default(),
+            robot_deferred: Arc::default(),
             failures: Arc::default(),
         }
     }

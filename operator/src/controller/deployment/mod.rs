@@ -9,6 +9,7 @@ mod facts;
 mod facts_tests;
 pub mod metrics;
 mod ownership;
+mod pace;
 pub mod plan;
 
 use std::sync::Arc;
@@ -39,6 +40,8 @@ struct State {
     deployments: Store<DeserializeGuard<RobotDeployment>>,
     /// Asks for reconciles of other deployments (see [`ownership::wake_rivals`]).
     wake: Trigger<DeserializeGuard<RobotDeployment>>,
+    /// When each deployment's status was last written (see [`pace`]).
+    pace: pace::Pace,
 }
 
 /// Runs the RobotDeployment controller until `cancel` fires.
@@ -66,6 +69,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         robots: robot_store,
         deployments: deployment_store,
         wake,
+        pace: pace::Pace::default(),
     });
     info!("robot deployment controller started");
     let handlers = (reconcile, error_policy);
@@ -145,7 +149,7 @@ async fn reconcile(
         let plan = plan::plan(deployment, &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
         let written = apply::write_robots(&ctx.client, deployment, &facts, &plan).await?;
-        let status_version = apply::update_status(&ctx.client, deployment, &plan).await?;
+        let (status_version, held) = write_status(&state, deployment, &plan).await?;
         apply::publish_events(&ctx.recorder, deployment, &plan.events).await;
         let own = OwnWrites {
             deployment: key,
@@ -156,13 +160,37 @@ async fn reconcile(
         own.await_in_stores(&state).await;
         ctx.metrics.rollouts.record(deployment, &plan, now);
         ctx.reset_backoff(&name, &namespace);
-        Ok(match plan.requeue_after {
-            Some(after) => Action::requeue(after),
-            None => Action::await_change(),
+        Ok(match (plan.requeue_after, held) {
+            (Some(after), Some(held)) => Action::requeue(after.min(held)),
+            (Some(after), None) | (None, Some(after)) => Action::requeue(after),
+            (None, None) => Action::await_change(),
         })
     }
     .instrument(span)
     .await
+}
+
+/// Writes the planned status unless [`pace`] holds it: its resourceVersion if written, and how
+/// long it is held otherwise (the reconcile looks again then).
+async fn write_status(
+    state: &State,
+    deployment: &RobotDeployment,
+    plan: &plan::Plan,
+) -> Result<(Option<String>, Option<Duration>)> {
+    let (name, namespace) = (
+        deployment.name_any(),
+        deployment.namespace().unwrap_or_default(),
+    );
+    let key = (namespace.as_str(), name.as_str());
+    let now = tokio::time::Instant::now();
+    if let Some(held) = state.pace.wait(key, deployment.status.as_ref(), plan, now) {
+        return Ok((None, Some(held)));
+    }
+    let version = apply::update_status(&state.ctx.client, deployment, plan).await?;
+    if version.is_some() {
+        state.pace.written(key, now);
+    }
+    Ok((version, None))
 }
 
 /// How long a reconcile waits for the shared stores to show its own writes.

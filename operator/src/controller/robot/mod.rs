@@ -5,6 +5,7 @@
 //! notices the change and publishes its Event, within the budget of [`events`].
 
 pub mod claims;
+pub mod deferred;
 pub mod events;
 pub(crate) mod gateways;
 pub mod marks;
@@ -152,19 +153,8 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
             gateway,
         };
         let plan = plan::plan(robot, &facts);
-        if plan.differs_from(robot) {
-            let api: Api<Robot> = Api::namespaced(ctx.client.clone(), &namespace);
-            let seen = robot.metadata.resource_version.as_deref();
-            if let Err(e) = status::apply(&api, &name, &plan, seen).await {
-                if !e.is_conflict() {
-                    return Err(e);
-                }
-                // The Robot changed since this plan was made: the newer version's reconcile,
-                // which its watch event starts, decides (see CONFLICT_RECHECK); nothing written.
-                debug!("the robot changed under the plan; waiting for the newer version");
-                return Ok(Action::requeue(CONFLICT_RECHECK));
-            }
-            note_marked(&ctx, robot, &plan, gateway);
+        if let Some(action) = write_status(&ctx, robot, &plan, gateway).await? {
+            return Ok(action);
         }
         // A gateway may have written the new phase itself: compare with the last look too.
         let stored = robot.status.as_ref().and_then(|s| s.phase);
@@ -190,6 +180,44 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
     }
     .instrument(span)
     .await
+}
+
+/// Writes `plan` where it differs from the stored status, unless the robot's gateway is to
+/// write it (see [`deferred`]); `Some` action when the reconcile ends here (the write waits,
+/// or met a newer version of the Robot).
+async fn write_status(
+    ctx: &Context,
+    robot: &Robot,
+    plan: &plan::Plan,
+    gateway: Option<GatewayState>,
+) -> Result<Option<Action>> {
+    let (name, namespace) = (robot.name_any(), robot.namespace().unwrap_or_default());
+    let key = (namespace.as_str(), name.as_str());
+    if plan.differs_from(robot) {
+        let now = tokio::time::Instant::now();
+        if let Some(wait) = ctx.robot_deferred.wait(key, robot, plan, gateway, now) {
+            debug!(
+                ?wait,
+                "a new spec of an Online robot: its gateway writes it"
+            );
+            let wait = plan.requeue_after.map_or(wait, |after| after.min(wait));
+            return Ok(Some(Action::requeue(wait)));
+        }
+        let api: Api<Robot> = Api::namespaced(ctx.client.clone(), &namespace);
+        let seen = robot.metadata.resource_version.as_deref();
+        if let Err(e) = status::apply(&api, &name, plan, seen).await {
+            if !e.is_conflict() {
+                return Err(e);
+            }
+            // The Robot changed since this plan was made: the newer version's reconcile,
+            // which its watch event starts, decides (see CONFLICT_RECHECK); nothing written.
+            debug!("the robot changed under the plan; waiting for the newer version");
+            return Ok(Some(Action::requeue(CONFLICT_RECHECK)));
+        }
+        note_marked(ctx, robot, plan, gateway);
+    }
+    ctx.robot_deferred.forget(key);
+    Ok(None)
 }
 
 /// Notes `robot` in the list of robots marked `Unknown` (see [`marks`]) when this reconcile

@@ -25,8 +25,11 @@ pub struct AgentUpdateOutcome {
 }
 
 impl Presence {
-    /// A step of the agent update of `key` in session `session`; written at once if it differs
-    /// from the last one (time aside). `true` if it did.
+    /// A step of the agent update of `key` in session `session`, kept if it differs from the
+    /// last one (time aside); `true` if it did. An outcome is written at once; a step in
+    /// progress (`Sent`, `Started`) goes with the robot's next write (the outcome's, or the
+    /// session's end as the agent restarts into the new build), one status write per robot of
+    /// an agent rollout fewer each.
     pub fn agent_update(&self, key: &RobotKey, session: u64, outcome: AgentUpdateOutcome) -> bool {
         let changed = self.with_state(|s| {
             let Some(e) = s.robots.get_mut(key).filter(|e| e.session == session) else {
@@ -40,8 +43,11 @@ impl Presence {
             if same {
                 return false;
             }
+            let in_progress = matches!(outcome.phase, "Sent" | "Started");
             e.agent_update = Some(Box::new(outcome));
-            s.enqueue(key, Priority::High);
+            if !in_progress {
+                s.enqueue(key, Priority::High);
+            }
             true
         });
         if changed {

@@ -895,3 +895,31 @@ fn an_entry_is_small() {
     // 792 bytes; 1,328 with those three inline.
     assert!(size <= 800, "a presence entry is {size} bytes");
 }
+
+/// An agent update's steps in progress are kept for the robot's next write, its outcome is
+/// written at once.
+#[test]
+fn agent_update_steps_in_progress_wait_for_the_next_write_outcomes_do_not() {
+    let p = presence();
+    p.connect(&key("a"), 1, 1_000, ConnectInfo::default());
+    p.with_state(|s| s.pop());
+    let step = |phase: &'static str| AgentUpdateOutcome {
+        version: "0.3.0".into(),
+        phase,
+        message: phase.into(),
+        time: Timestamp::now(),
+    };
+    for phase in ["Sent", "Started"] {
+        assert!(p.agent_update(&key("a"), 1, step(phase)), "{phase} is kept");
+        assert_eq!(
+            p.with_state(|s| s.pop()),
+            None,
+            "{phase} is not written by itself"
+        );
+    }
+    let patch =
+        p.with_state(|s| patch::status_patch(&p.config.gateway, &s.robots[&key("a")], None));
+    assert_eq!(patch["status"]["agentUpdate"]["phase"], json!("Started"));
+    assert!(p.agent_update(&key("a"), 1, step("Succeeded")));
+    assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+}
