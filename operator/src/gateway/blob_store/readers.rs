@@ -1,0 +1,93 @@
+//! The downloads reading each blob now, so that garbage collection never removes a blob in the
+//! middle of one: a download holds a [`ReadGuard`] while it streams, and a blob counts as busy
+//! for [`RECENT`] after its last read ended too, for a robot that resumes a broken download.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+/// How long a blob stays busy after its last download ended: a robot resuming by byte range
+/// comes back within its retry backoff, well inside this.
+pub const RECENT: Duration = Duration::from_secs(300);
+
+#[derive(Default)]
+struct Reads {
+    /// Downloads streaming the blob now.
+    open: usize,
+    /// When the last of them ended.
+    ended: Option<Instant>,
+}
+
+/// Open and recent reads per blob digest; cheap to clone (shared).
+#[derive(Clone, Default)]
+pub struct Readers(Arc<Mutex<HashMap<String, Reads>>>);
+
+impl Readers {
+    fn lock(&self) -> MutexGuard<'_, HashMap<String, Reads>> {
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Marks `digest` as read until the guard drops.
+    pub fn begin(&self, digest: &str) -> ReadGuard {
+        let mut reads = self.lock();
+        // Forget blobs whose last read is long over; the map stays as small as recent reads.
+        reads.retain(|_, r| r.open > 0 || r.ended.is_some_and(|e| e.elapsed() < RECENT));
+        reads.entry(digest.to_owned()).or_default().open += 1;
+        ReadGuard {
+            readers: self.clone(),
+            digest: digest.to_owned(),
+        }
+    }
+
+    /// Whether a download reads `digest` now or ended less than [`RECENT`] ago.
+    pub fn busy(&self, digest: &str) -> bool {
+        Self::busy_in(&self.lock(), digest)
+    }
+
+    fn busy_in(reads: &HashMap<String, Reads>, digest: &str) -> bool {
+        reads
+            .get(digest)
+            .is_some_and(|r| r.open > 0 || r.ended.is_some_and(|e| e.elapsed() < RECENT))
+    }
+
+    /// Runs `remove` for `digest` unless it is busy, with new reads held off meanwhile;
+    /// returns `None` when it was busy.
+    pub fn unless_busy<T>(&self, digest: &str, remove: impl FnOnce() -> T) -> Option<T> {
+        let reads = self.lock();
+        (!Self::busy_in(&reads, digest)).then(remove)
+    }
+}
+
+/// A download in progress; dropping it ends the read.
+pub struct ReadGuard {
+    readers: Readers,
+    digest: String,
+}
+
+impl Drop for ReadGuard {
+    fn drop(&mut self) {
+        let mut reads = self.readers.lock();
+        if let Some(r) = reads.get_mut(&self.digest) {
+            r.open = r.open.saturating_sub(1);
+            r.ended = Some(Instant::now());
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_blob_is_busy_while_read_and_for_a_while_after() {
+        let readers = Readers::default();
+        assert!(!readers.busy("a"));
+        let guard = readers.begin("a");
+        assert!(readers.busy("a"));
+        assert_eq!(readers.unless_busy("a", || ()), None);
+        drop(guard);
+        // Ended just now: a resuming robot is still protected.
+        assert!(readers.busy("a"));
+        assert_eq!(readers.unless_busy("b", || 1), Some(1));
+    }
+}
