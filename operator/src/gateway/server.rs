@@ -15,7 +15,7 @@ use lekiwi_crds::Robot;
 use lekiwi_crds::contract::TOKEN_LABEL;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
-use tokio::sync::Semaphore;
+use tokio::sync::{Semaphore, watch};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
@@ -32,6 +32,7 @@ use super::lookup::{LookupConfig, Lookups};
 use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
+use super::releases::{self, Releases};
 use super::session::{Limits, Shared};
 use super::tokens::TokenIndex;
 use super::{AppState, blob_api, dispatch, lease, router};
@@ -87,13 +88,15 @@ async fn remove_stale_uploads(store: BlobStore, max_age: Duration, cancel: Cance
 }
 
 /// Runs the gateway until `cancel` fires.
-/// `listening` is set once the gateway accepts connections.
+/// `listening` is set once the gateway accepts connections; `leader` says whether this replica
+/// may collect the blob store's garbage (see [`super::releases::task`]).
 pub async fn run(
     config: Arc<Config>,
     client: kube::Client,
     metrics: Metrics,
     store: Store,
     listening: Arc<AtomicBool>,
+    leader: watch::Receiver<bool>,
     cancel: CancellationToken,
 ) -> Result<()> {
     let name = config.gateway_name();
@@ -135,6 +138,20 @@ pub async fn run(
         desired: Some(desired.clone()),
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
+    let blobs = blob_api_state(&config, &client, &metrics, cancel.clone()).await;
+    let releases = Arc::new(Releases::new(
+        blobs.store.clone(),
+        (fleet.robots.clone(), fleet.rollouts.clone()),
+        config.release_retention,
+        metrics.gateway.clone(),
+    ));
+    let care_task = tokio::spawn(releases::task::run(
+        releases.clone(),
+        care(&config, &name, leader),
+        client.clone(),
+        metrics.gateway.clone(),
+        cancel.clone(),
+    ));
     let state = AppState {
         shared: Arc::new(shared),
         client: client.clone(),
@@ -144,8 +161,9 @@ pub async fn run(
             config.enroll_rate,
             config.enroll_burst,
         )),
-        blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
+        blobs: Arc::new(blobs),
         fleet: Arc::new(fleet),
+        releases,
     };
     close_stale_connections(&store, &name).await;
     let mut tasks = start_background(
@@ -156,7 +174,9 @@ pub async fn run(
         &store,
         &cancel,
     );
-    tasks.aborted.extend([secret_task, dispatch_task]);
+    tasks
+        .aborted
+        .extend([secret_task, dispatch_task, care_task]);
     tasks.aborted.extend(fleet_tasks);
     let addr = config.gateway_addr;
     let dropped = state.shared.metrics.gateway.connections_dropped.clone();
@@ -164,6 +184,18 @@ pub async fn run(
     cancel.cancel();
     drain(&presence, tasks).await;
     served.map_err(|source| Error::Serve { addr, source })
+}
+
+/// How the blob store's care runs, from the configuration.
+fn care(config: &Config, name: &str, leader: watch::Receiver<bool>) -> releases::task::Care {
+    releases::task::Care {
+        period: (config.release_gc_seconds > 0)
+            .then(|| Duration::from_secs(config.release_gc_seconds)),
+        warn_percent: config.blob_free_warn_percent,
+        leader,
+        gateway: name.to_owned(),
+        namespace: config.namespace.clone(),
+    }
 }
 
 /// Starts the dispatch of Robot changes to this gateway's sessions and presence once `robots`

@@ -89,8 +89,9 @@ impl ReleaseIndex {
                 }
                 let path = dir.join(&name);
                 let parsed = match tokio::fs::read(&path).await {
-                    Ok(bytes) => serde_json::from_slice::<ReleaseRecord>(&bytes)
-                        .map_err(|e| e.to_string()),
+                    Ok(bytes) => {
+                        serde_json::from_slice::<ReleaseRecord>(&bytes).map_err(|e| e.to_string())
+                    }
                     Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
                     Err(e) => Err(e.to_string()),
                 };
