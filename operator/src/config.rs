@@ -343,6 +343,12 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_RELEASE_GC_SECONDS", default_value_t = 300)]
     pub release_gc_seconds: u64,
 
+    /// Seconds a release stays safe from garbage collection after a download of one of its
+    /// blobs ended (a robot resuming a download or fetching its next file); one being read now
+    /// always is.
+    #[arg(long, env = "LEKIWI_BLOB_READ_GRACE_SECONDS", default_value_t = 300)]
+    pub blob_read_grace_seconds: u64,
+
     /// Free space of the blob store's volume, in percent of its size, under which the gateway
     /// publishes a Warning Event (`BlobStoreNearlyFull`, on its own Lease).
     #[arg(long, env = "LEKIWI_BLOB_FREE_WARN_PERCENT", default_value_t = 10)]

@@ -52,7 +52,8 @@ async fn blob_api_state(
     metrics: &Metrics,
     cancel: CancellationToken,
 ) -> blob_api::BlobApi {
-    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes);
+    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes)
+        .with_read_grace(Duration::from_secs(config.blob_read_grace_seconds));
     match store.ensure_dirs().await {
         Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
         Err(e) => warn!(error = %e, "cannot prepare the release blob store"),

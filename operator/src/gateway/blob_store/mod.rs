@@ -167,6 +167,12 @@ impl BlobStore {
         }
     }
 
+    /// The same store, a blob counting as read for `grace` after its last download ended.
+    pub fn with_read_grace(mut self, grace: std::time::Duration) -> Self {
+        self.readers = Readers::new(grace);
+        self
+    }
+
     /// The per-namespace release records of this store.
     pub fn index(&self) -> ReleaseIndex {
         ReleaseIndex::new(&self.root)

@@ -1,13 +1,14 @@
 //! The downloads reading each blob now, so that garbage collection never removes a blob in the
 //! middle of one: a download holds a [`ReadGuard`] while it streams, and a blob counts as busy
-//! for [`RECENT`] after its last read ended too, for a robot that resumes a broken download.
+//! for a grace period (default [`RECENT`]) after its last read ended too, for a robot that
+//! resumes a broken download or fetches the next file of the same release.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
-/// How long a blob stays busy after its last download ended: a robot resuming by byte range
-/// comes back within its retry backoff, well inside this.
+/// How long a blob stays busy after its last download ended by default: a robot resuming by
+/// byte range comes back within its retry backoff, well inside this.
 pub const RECENT: Duration = Duration::from_secs(300);
 
 #[derive(Default)]
@@ -19,19 +20,37 @@ struct Reads {
 }
 
 /// Open and recent reads per blob digest; cheap to clone (shared).
-#[derive(Clone, Default)]
-pub struct Readers(Arc<Mutex<HashMap<String, Reads>>>);
+#[derive(Clone)]
+pub struct Readers {
+    reads: Arc<Mutex<HashMap<String, Reads>>>,
+    grace: Duration,
+}
+
+impl Default for Readers {
+    fn default() -> Self {
+        Self::new(RECENT)
+    }
+}
 
 impl Readers {
+    /// Reads that keep a blob busy for `grace` after they end.
+    pub fn new(grace: Duration) -> Self {
+        Self {
+            reads: Arc::default(),
+            grace,
+        }
+    }
+
     fn lock(&self) -> MutexGuard<'_, HashMap<String, Reads>> {
-        self.0.lock().unwrap_or_else(|p| p.into_inner())
+        self.reads.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     /// Marks `digest` as read until the guard drops.
     pub fn begin(&self, digest: &str) -> ReadGuard {
         let mut reads = self.lock();
         // Forget blobs whose last read is long over; the map stays as small as recent reads.
-        reads.retain(|_, r| r.open > 0 || r.ended.is_some_and(|e| e.elapsed() < RECENT));
+        let grace = self.grace;
+        reads.retain(|_, r| r.open > 0 || r.ended.is_some_and(|e| e.elapsed() < grace));
         reads.entry(digest.to_owned()).or_default().open += 1;
         ReadGuard {
             readers: self.clone(),
@@ -39,22 +58,22 @@ impl Readers {
         }
     }
 
-    /// Whether a download reads `digest` now or ended less than [`RECENT`] ago.
+    /// Whether a download reads `digest` now or ended less than the grace period ago.
     pub fn busy(&self, digest: &str) -> bool {
-        Self::busy_in(&self.lock(), digest)
+        self.busy_in(&self.lock(), digest)
     }
 
-    fn busy_in(reads: &HashMap<String, Reads>, digest: &str) -> bool {
+    fn busy_in(&self, reads: &HashMap<String, Reads>, digest: &str) -> bool {
         reads
             .get(digest)
-            .is_some_and(|r| r.open > 0 || r.ended.is_some_and(|e| e.elapsed() < RECENT))
+            .is_some_and(|r| r.open > 0 || r.ended.is_some_and(|e| e.elapsed() < self.grace))
     }
 
     /// Runs `remove` for `digest` unless it is busy, with new reads held off meanwhile;
     /// returns `None` when it was busy.
     pub fn unless_busy<T>(&self, digest: &str, remove: impl FnOnce() -> T) -> Option<T> {
         let reads = self.lock();
-        (!Self::busy_in(&reads, digest)).then(remove)
+        (!self.busy_in(&reads, digest)).then(remove)
     }
 }
 
