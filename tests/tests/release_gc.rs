@@ -304,9 +304,17 @@ async fn collection_keeps_what_is_referenced_plus_the_newest_and_rollbacks_work(
 
 #[tokio::test]
 async fn a_download_in_progress_keeps_its_release() -> anyhow::Result<()> {
+    // Every volume has less than 100% free: the gateway warns at once.
     let site = OperatorSite::start_with(
         "reldl-gc",
-        &["--release-retention", "1", "--release-gc-seconds", "1"],
+        &[
+            "--release-retention",
+            "1",
+            "--release-gc-seconds",
+            "1",
+            "--blob-free-warn-percent",
+            "100",
+        ],
     )
     .await?;
     let enroll = std::fs::read_to_string(&site.token_file)?;
@@ -354,5 +362,36 @@ async fn a_download_in_progress_keeps_its_release() -> anyhow::Result<()> {
         "kept while downloaded: {items:?}"
     );
     drop(ws);
+
+    // The store's gauges, and one Warning Event on the gateway's Lease for the crossing.
+    let metrics = site.op.metrics().await?;
+    for series in [
+        "lekiwi_gateway_blob_store_releases 2",
+        "lekiwi_gateway_blob_volume_free_bytes ",
+        "lekiwi_gateway_blob_volume_size_bytes ",
+        "lekiwi_gateway_releases_removed_total{kind=\"gc\"} 1",
+    ] {
+        assert!(metrics.contains(series), "no {series} in\n{metrics}");
+    }
+    let events =
+        Api::<k8s_openapi::api::core::v1::Event>::namespaced(site.client.clone(), &site.ns);
+    let warned = wait_for("the volume warning", Duration::from_secs(20), || async {
+        let list = events.list(&ListParams::default()).await.ok()?;
+        let found: Vec<_> = list
+            .items
+            .into_iter()
+            .filter(|e| e.reason.as_deref() == Some("BlobStoreNearlyFull"))
+            .collect();
+        (!found.is_empty()).then_some(found)
+    })
+    .await?;
+    assert_eq!(warned.len(), 1, "one Event per crossing: {warned:?}");
+    assert_eq!(warned[0].type_.as_deref(), Some("Warning"));
+    assert_eq!(warned[0].involved_object.kind.as_deref(), Some("Lease"));
+    assert_eq!(
+        warned[0].count.unwrap_or(1),
+        1,
+        "published once: {warned:?}"
+    );
     Ok(())
 }
