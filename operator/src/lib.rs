@@ -217,7 +217,7 @@ async fn start_gateway(
     tasks.spawn(async move {
         (
             "gateway",
-            gateway::run(config, client, metrics, store, listening, leader, cancel).await,
+            gateway::run(config, client, metrics, store, (listening, leader), cancel).await,
         )
     });
     Ok(())

@@ -149,7 +149,7 @@ async fn rollout(
         api.patch("fleet", &PatchParams::default(), &Patch::Merge(&patch))
             .await?;
     }
-    Ok(rollout_finished(&api, "fleet", Duration::from_secs(120)).await?)
+    rollout_finished(&api, "fleet", Duration::from_secs(120)).await
 }
 
 #[tokio::test]

@@ -72,6 +72,26 @@ async fn blob_api_state(
     blob_api::BlobApi::new(store, kube_auth)
 }
 
+/// The blob routes' state and the releases of its store (used by the Robots and
+/// RobotDeployments of `fleet`'s caches), with the task that cares for the store.
+async fn blob_state(
+    config: &Config,
+    (client, metrics): (&kube::Client, &Metrics),
+    fleet: &FleetApi,
+    leader: watch::Receiver<bool>,
+    cancel: &CancellationToken,
+) -> (blob_api::BlobApi, Arc<Releases>, JoinHandle<()>) {
+    let blobs = blob_api_state(config, client, metrics, cancel.clone()).await;
+    let releases = Releases::new(
+        blobs.store.clone(),
+        (fleet.robots.clone(), fleet.rollouts.clone()),
+        config.release_retention,
+        metrics.gateway.clone(),
+    );
+    let (releases, task) = releases::task::start(config, releases, (client, leader), cancel);
+    (blobs, releases, task)
+}
+
 /// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
 async fn remove_stale_uploads(store: BlobStore, max_age: Duration, cancel: CancellationToken) {
     let mut every = tokio::time::interval(Duration::from_secs(3600));
@@ -96,8 +116,7 @@ pub async fn run(
     client: kube::Client,
     metrics: Metrics,
     store: Store,
-    listening: Arc<AtomicBool>,
-    leader: watch::Receiver<bool>,
+    (listening, leader): (Arc<AtomicBool>, watch::Receiver<bool>),
     cancel: CancellationToken,
 ) -> Result<()> {
     let name = config.gateway_name();
@@ -139,20 +158,8 @@ pub async fn run(
         desired: Some(desired.clone()),
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
-    let blobs = blob_api_state(&config, &client, &metrics, cancel.clone()).await;
-    let releases = Arc::new(Releases::new(
-        blobs.store.clone(),
-        (fleet.robots.clone(), fleet.rollouts.clone()),
-        config.release_retention,
-        metrics.gateway.clone(),
-    ));
-    let care_task = tokio::spawn(releases::task::run(
-        releases.clone(),
-        care(&config, &name, leader),
-        client.clone(),
-        metrics.gateway.clone(),
-        cancel.clone(),
-    ));
+    let (blobs, releases, care_task) =
+        blob_state(&config, (&client, &metrics), &fleet, leader, &cancel).await;
     let state = AppState {
         shared: Arc::new(shared),
         client: client.clone(),
@@ -175,28 +182,14 @@ pub async fn run(
         &store,
         &cancel,
     );
-    tasks
-        .aborted
-        .extend([secret_task, dispatch_task, care_task]);
-    tasks.aborted.extend(fleet_tasks);
+    let more = [secret_task, dispatch_task, care_task];
+    tasks.aborted.extend(more.into_iter().chain(fleet_tasks));
     let addr = config.gateway_addr;
-    let dropped = state.shared.metrics.gateway.connections_dropped.clone();
+    let dropped = metrics.gateway.connections_dropped.clone();
     let served = serve(&config, &name, router(state), dropped, listening, &cancel).await?;
     cancel.cancel();
     drain(&presence, tasks).await;
     served.map_err(|source| Error::Serve { addr, source })
-}
-
-/// How the blob store's care runs, from the configuration.
-fn care(config: &Config, name: &str, leader: watch::Receiver<bool>) -> releases::task::Care {
-    releases::task::Care {
-        period: (config.release_gc_seconds > 0)
-            .then(|| Duration::from_secs(config.release_gc_seconds)),
-        warn_percent: config.blob_free_warn_percent,
-        leader,
-        gateway: name.to_owned(),
-        namespace: config.namespace.clone(),
-    }
 }
 
 /// Starts the dispatch of Robot changes to this gateway's sessions and presence once `robots`

@@ -165,7 +165,7 @@ pub struct Releases {
     rollouts: Arc<Cache<RobotDeployment>>,
     /// The newest releases of each namespace kept besides those in use.
     pub retention: usize,
-    metrics: GatewayMetrics,
+    pub(crate) metrics: GatewayMetrics,
     /// Wakes the collector (after a push).
     pub pushed: Notify,
     /// Serializes collections and deletions in this process.

@@ -13,10 +13,12 @@ use k8s_openapi::api::coordination::v1::Lease;
 use kube::Api;
 use kube::runtime::events::{Event, EventType, Recorder, Reporter};
 use tokio::sync::watch;
+use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::Releases;
+use crate::config::Config;
 use crate::metrics::GatewayMetrics;
 
 /// Reason of the Warning Event about the volume.
@@ -34,6 +36,34 @@ pub struct Care {
     pub gateway: String,
     /// The operator's namespace.
     pub namespace: String,
+}
+
+/// Starts the care of `releases` as `config` says, collecting while `leader` is true; the
+/// releases (shared with the routes) and the task.
+pub fn start(
+    config: &Config,
+    releases: Releases,
+    (client, leader): (&kube::Client, watch::Receiver<bool>),
+    cancel: &CancellationToken,
+) -> (Arc<Releases>, JoinHandle<()>) {
+    let releases = Arc::new(releases);
+    let care = Care {
+        period: (config.release_gc_seconds > 0)
+            .then(|| Duration::from_secs(config.release_gc_seconds)),
+        warn_percent: config.blob_free_warn_percent,
+        leader,
+        gateway: config.gateway_name(),
+        namespace: config.namespace.clone(),
+    };
+    let metrics = releases.metrics.clone();
+    let task = tokio::spawn(run(
+        releases.clone(),
+        care,
+        client.clone(),
+        metrics,
+        cancel.clone(),
+    ));
+    (releases, task)
 }
 
 /// Runs the care until `cancel`.
