@@ -88,10 +88,11 @@ pub async fn run(
             collect(&releases).await;
         }
         let now_low = measure(&releases, &metrics, care.warn_percent).await;
-        let was_low = std::mem::replace(&mut low, now_low.is_some());
-        if let Some(note) = now_low.filter(|_| !was_low) {
-            warn_event(&client, &care, note).await;
-        }
+        low = match now_low {
+            // Warned once per crossing; an Event that could not be published is tried again.
+            Some(note) if !low => warn_event(&client, &care, note).await,
+            now_low => low && now_low.is_some(),
+        };
     }
 }
 
@@ -149,7 +150,8 @@ fn low_space(free: u64, size: u64, percent: u8) -> Option<String> {
     })
 }
 
-async fn warn_event(client: &kube::Client, care: &Care, note: String) {
+/// Publishes the Warning Event on the gateway's Lease; whether it went out.
+async fn warn_event(client: &kube::Client, care: &Care, note: String) -> bool {
     warn!(%note, "blob store volume nearly full");
     let lease = match Api::<Lease>::namespaced(client.clone(), &care.namespace)
         .get(&care.gateway)
@@ -158,7 +160,7 @@ async fn warn_event(client: &kube::Client, care: &Care, note: String) {
         Ok(l) => l,
         Err(e) => {
             warn!(error = %e, "cannot read the gateway's Lease for the volume warning");
-            return;
+            return false;
         }
     };
     let recorder = Recorder::new(
@@ -176,8 +178,12 @@ async fn warn_event(client: &kube::Client, care: &Care, note: String) {
         secondary: None,
     };
     use kube::Resource as _;
-    if let Err(e) = recorder.publish(&event, &lease.object_ref(&())).await {
-        warn!(error = %e, "cannot publish the volume warning");
+    match recorder.publish(&event, &lease.object_ref(&())).await {
+        Ok(()) => true,
+        Err(e) => {
+            warn!(error = %e, "cannot publish the volume warning");
+            false
+        }
     }
 }
 
