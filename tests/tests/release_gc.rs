@@ -111,8 +111,10 @@ fn newest(n: usize) -> BTreeSet<String> {
     (13 - n..=12).map(|i| format!("{i:02}.0")).collect()
 }
 
-/// Waits until the listed releases are exactly `want`.
+/// Waits until the listed releases are exactly `want`, after the read grace and a collection
+/// period have passed (a release robots read a moment ago is only deferred until then).
 async fn collected(site: &OperatorSite, want: &BTreeSet<String>) -> anyhow::Result<()> {
+    tokio::time::sleep(Duration::from_secs(4)).await;
     let got = wait_for("garbage collection", Duration::from_secs(30), || async {
         let now = versions(&listed(site).ok()?);
         (now == *want).then_some(now)
