@@ -345,6 +345,30 @@ pub struct Config {
     /// Largest release blob the gateway accepts, in bytes.
     #[arg(long, env = "LEKIWI_MAX_BLOB_BYTES", default_value_t = 4 * 1024 * 1024 * 1024)]
     pub max_blob_bytes: u64,
+
+    /// Releases of each namespace kept by garbage collection besides those in use: the newest
+    /// this many pushed there. A release no Robot (desired, current, previous) and no
+    /// RobotDeployment (release, rollback target) references, older than these, is removed
+    /// with the blobs no other release lists.
+    #[arg(long, env = "LEKIWI_RELEASE_RETENTION", default_value_t = 10)]
+    pub release_retention: usize,
+
+    /// Seconds between two garbage collections of the release blob store (one also follows
+    /// each push); 0 turns collection off. With several replicas only the one holding the
+    /// leader Lease collects.
+    #[arg(long, env = "LEKIWI_RELEASE_GC_SECONDS", default_value_t = 300)]
+    pub release_gc_seconds: u64,
+
+    /// Seconds a release stays safe from garbage collection after a download of one of its
+    /// blobs ended (a robot resuming a download or fetching its next file); one being read now
+    /// always is.
+    #[arg(long, env = "LEKIWI_BLOB_READ_GRACE_SECONDS", default_value_t = 300)]
+    pub blob_read_grace_seconds: u64,
+
+    /// Free space of the blob store's volume, in percent of its size, under which the gateway
+    /// publishes a Warning Event (`BlobStoreNearlyFull`, on its own Lease).
+    #[arg(long, env = "LEKIWI_BLOB_FREE_WARN_PERCENT", default_value_t = 10)]
+    pub blob_free_warn_percent: u8,
 }
 
 impl Config {

@@ -107,10 +107,22 @@ pub async fn run(config: Config) -> Result<()> {
     });
     serve_http(&shared, app, &mut tasks).await?;
     if shared.config.runs_controllers() {
-        start_controllers(&shared, leader_tx, leader_rx, &mut tasks);
+        start_controllers(&shared, leader_tx, leader_rx.clone(), &mut tasks);
     }
     if shared.config.runs_gateway() {
-        start_gateway(&shared, gateway_ready.unwrap_or_default(), &mut tasks).await?;
+        // Without leader election (`--role gateway`) the gateway collects blobs on its own.
+        let leader = if shared.config.runs_controllers() {
+            leader_rx.clone()
+        } else {
+            watch::channel(true).1
+        };
+        start_gateway(
+            &shared,
+            gateway_ready.unwrap_or_default(),
+            leader,
+            &mut tasks,
+        )
+        .await?;
     }
     tokio::spawn(shutdown_on_signal(shared.cancel.clone()));
     ready.store(true, Ordering::Release);
@@ -189,6 +201,7 @@ fn start_controllers(
 async fn start_gateway(
     shared: &Shared,
     listening: Arc<AtomicBool>,
+    leader: watch::Receiver<bool>,
     tasks: &mut Tasks,
 ) -> Result<()> {
     let store = gateway::event_store::Store::connect(&shared.config.store_url)
@@ -204,7 +217,7 @@ async fn start_gateway(
     tasks.spawn(async move {
         (
             "gateway",
-            gateway::run(config, client, metrics, store, listening, cancel).await,
+            gateway::run(config, client, metrics, store, (listening, leader), cancel).await,
         )
     });
     Ok(())

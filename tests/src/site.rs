@@ -28,6 +28,11 @@ pub struct OperatorSite {
 impl OperatorSite {
     /// A fresh namespace named after `prefix` and an operator of that name, started and ready.
     pub async fn start(prefix: &str) -> Result<Self> {
+        Self::start_with(prefix, &[]).await
+    }
+
+    /// As [`Self::start`], the operator started with `extra` flags too.
+    pub async fn start_with(prefix: &str, extra: &[&str]) -> Result<Self> {
         let cp = ControlPlane::shared();
         let client = cp.client().await?;
         let ns = namespace(&client, prefix).await?;
@@ -35,7 +40,9 @@ impl OperatorSite {
         let blobs = dir.path().join("blobs");
         std::fs::create_dir_all(&blobs)?;
         let blob_dir = blobs.to_str().expect("a UTF-8 temp path");
-        let mut op = OperatorProcess::start(cp, &ns, prefix, &["--blob-dir", blob_dir])?;
+        let mut args = vec!["--blob-dir", blob_dir];
+        args.extend_from_slice(extra);
+        let mut op = OperatorProcess::start(cp, &ns, prefix, &args)?;
         op.wait_ready().await?;
         let token_file = dir.path().join("enroll");
         enrollment_token_file(&client, &ns, &token_file).await?;

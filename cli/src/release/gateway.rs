@@ -185,6 +185,59 @@ impl Gateway {
         Ok(resp.json().await?)
     }
 
+    /// Sends a small blob whole (`PUT` without a range): for a manifest the gateway stores
+    /// already, this records it as a release of the namespace too. Returns whether this
+    /// request stored it.
+    pub(super) async fn put_whole(&self, digest: &str, bytes: Vec<u8>) -> anyhow::Result<bool> {
+        let mut attempt = 0;
+        loop {
+            let sent = self
+                .request(Method::PUT, &blob_path(digest))
+                .body(bytes.clone())
+                .send()
+                .await;
+            let failure = match sent {
+                Ok(resp) if resp.status() == StatusCode::CREATED => return Ok(true),
+                Ok(resp) if resp.status() == StatusCode::OK => return Ok(false),
+                Ok(resp) if transient(resp.status()) => message(resp).await,
+                Ok(resp) => bail!("uploading the manifest: {}", message(resp).await),
+                Err(e) => crate::http_error(&e),
+            };
+            attempt += 1;
+            if attempt >= ATTEMPTS {
+                bail!("uploading the manifest: {failure}");
+            }
+            tokio::time::sleep(backoff(attempt)).await;
+        }
+    }
+
+    /// The releases of the namespace (`GET /api/v1/namespaces/NS/releases`), as JSON items.
+    pub(super) async fn releases(&self, namespace: &str) -> anyhow::Result<Vec<serde_json::Value>> {
+        let path = format!("/api/v1/namespaces/{namespace}/releases");
+        let resp = self.send(Method::GET, &path, "listing releases").await?;
+        if !resp.status().is_success() {
+            bail!("listing releases: {}", message(resp).await);
+        }
+        let page: serde_json::Value = resp.json().await.context("reading the release list")?;
+        Ok(page["items"].as_array().cloned().unwrap_or_default())
+    }
+
+    /// Deletes a release of the namespace by version or digest; the gateway's answer.
+    pub(super) async fn delete_release(
+        &self,
+        namespace: &str,
+        reference: &str,
+    ) -> anyhow::Result<serde_json::Value> {
+        let path = format!("/api/v1/namespaces/{namespace}/releases/{reference}");
+        let resp = self
+            .send(Method::DELETE, &path, "deleting the release")
+            .await?;
+        if !resp.status().is_success() {
+            bail!("{}", message(resp).await);
+        }
+        Ok(resp.json().await.context("reading the answer")?)
+    }
+
     /// A stored release and the blobs it lacks.
     pub(super) async fn release(&self, digest: &str) -> anyhow::Result<ReleaseInfo> {
         let resp = self

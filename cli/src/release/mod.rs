@@ -1,6 +1,7 @@
-//! `kubectl lekiwi release push DIR --version V` and `release inspect DIGEST`: upload a directory
-//! to the gateway's blob store as content-addressed blobs plus a manifest, and show a stored
-//! release.
+//! `kubectl lekiwi release push DIR --version V`, `release inspect DIGEST`, `release list` and
+//! `release delete VERSION|DIGEST`: upload a directory to the gateway's blob store as
+//! content-addressed blobs plus a manifest, show a stored release, list the namespace's releases
+//! with who uses them, and delete one nothing uses.
 //!
 //! Push hashes every file, asks the gateway which blobs it has (`HEAD /v1/blobs/{digest}`),
 //! uploads the missing ones a few at a time in chunks (`PUT` with `Content-Range`), resuming
@@ -12,6 +13,7 @@
 pub mod agent;
 mod files;
 mod gateway;
+mod list;
 mod push;
 mod upload;
 
@@ -103,6 +105,21 @@ pub enum ReleaseCommand {
         /// The manifest digest, `sha256:<hex>`.
         digest: String,
     },
+    /// List the releases pushed to the namespace, newest first, with their size and how many
+    /// robots and deployments use them (`-o table|wide|json|yaml`).
+    ///
+    /// DESIRED: robots whose spec.release it is; CURRENT: robots running it; PREVIOUS: robots a
+    /// RobotDeployment would roll back to it; DEPLOYMENTS: RobotDeployments rolling it out. The
+    /// gateway removes a release nothing uses once it is older than the newest
+    /// --release-retention (default 10) of the namespace.
+    List,
+    /// Delete a release nothing uses, with the files no other release shares; refused while a
+    /// Robot or RobotDeployment references it.
+    Delete {
+        /// The release's version (when only one release of the namespace has it) or its
+        /// manifest digest.
+        release: String,
+    },
 }
 
 /// Runs a release subcommand.
@@ -124,6 +141,29 @@ pub async fn run(
                 chunk_bytes: chunk_bytes.max(1),
             };
             push_dir(kube, server, &dir, &version, options).await
+        }
+        ReleaseCommand::List => {
+            let gateway = Gateway::connect(kube, server, None)?;
+            let items = gateway.releases(&kube.namespace).await?;
+            let items: Vec<list::ReleaseItem> = items
+                .into_iter()
+                .map(serde_json::from_value)
+                .collect::<Result<_, _>>()
+                .context("reading the release list")?;
+            print!("{}", list::render(&items, output, jiff::Timestamp::now())?);
+            Ok(())
+        }
+        ReleaseCommand::Delete { release } => {
+            let gateway = Gateway::connect(kube, server, None)?;
+            let deleted = gateway.delete_release(&kube.namespace, &release).await?;
+            println!(
+                "release {} ({}) deleted: {} blobs, {} freed",
+                deleted["version"].as_str().unwrap_or_default(),
+                deleted["digest"].as_str().unwrap_or_default(),
+                deleted["blobs"].as_u64().unwrap_or_default(),
+                human(deleted["bytes"].as_u64().unwrap_or_default())
+            );
+            Ok(())
         }
         ReleaseCommand::Inspect { digest } => {
             digest_hex(&digest)?;

@@ -1,5 +1,6 @@
 //! `release push`: upload the blobs the gateway lacks a few at a time with a progress line, then
-//! the manifest, then confirm that the gateway holds the whole release.
+//! the manifest (always: storing it records the release in the namespace, for `release list`
+//! and garbage collection), then confirm that the gateway holds the whole release.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::io::{IsTerminal, Write};
@@ -201,6 +202,8 @@ async fn push_manifest(
     let manifest_bytes = manifest.to_bytes();
     let digest = format!("sha256:{}", hex::encode(Sha256::digest(&manifest_bytes)));
     if gateway.has_blob(&digest).await? {
+        // Sent anyway (it is small): the gateway records it as a release of this namespace.
+        gateway.put_whole(&digest, manifest_bytes).await?;
         return Ok((digest, 0, false));
     }
     let blob = Blob {

@@ -114,9 +114,33 @@ pub struct GatewayMetrics {
     pub kube_reviews: Family<ReviewLabels, Counter>,
     /// Reviews answered from the gateway's cache instead, by kind.
     pub kube_review_cache_hits: Family<KindLabels, Counter>,
+    /// Event store operations that failed, by operation (`write`, `open_session`,
+    /// `close_session`).
+    pub event_store_errors: Family<KindLabels, Counter>,
+    /// Bytes of the blobs in the release blob store.
+    pub blob_store_bytes: Gauge,
+    /// Blobs in the release blob store.
+    pub blob_store_blobs: Gauge,
+    /// Releases recorded in the blob store, all namespaces together.
+    pub blob_store_releases: Gauge,
+    /// Free bytes of the blob store's volume.
+    pub blob_volume_free_bytes: Gauge,
+    /// Size of the blob store's volume in bytes.
+    pub blob_volume_size_bytes: Gauge,
+    /// Releases removed from the blob store, by how (`gc`, `delete`).
+    pub releases_removed: Family<KindLabels, Counter>,
+    /// Blob bytes garbage collection and deletions freed.
+    pub blob_bytes_removed: Counter,
 }
 
 impl GatewayMetrics {
+    /// Counts a failed event store operation.
+    pub fn event_store_error(&self, operation: &'static str) {
+        self.event_store_errors
+            .get_or_create(&KindLabels { kind: operation })
+            .inc();
+    }
+
     // shape: a flat list, one entry per metric, read as the gateway's metrics catalogue.
     pub(crate) fn register(registry: &mut Registry) -> Self {
         let mut r = Registrar(registry);
@@ -201,6 +225,38 @@ impl GatewayMetrics {
             kube_review_cache_hits: r.add(
                 "lekiwi_gateway_kube_review_cache_hits",
                 "API server reviews answered from the gateway's cache, by kind",
+            ),
+            event_store_errors: r.add(
+                "lekiwi_gateway_event_store_errors",
+                "Event store operations that failed, by operation (write, open_session, close_session)",
+            ),
+            blob_store_bytes: r.add(
+                "lekiwi_gateway_blob_store_bytes",
+                "Bytes of the blobs in the release blob store",
+            ),
+            blob_store_blobs: r.add(
+                "lekiwi_gateway_blob_store_blobs",
+                "Blobs in the release blob store",
+            ),
+            blob_store_releases: r.add(
+                "lekiwi_gateway_blob_store_releases",
+                "Releases recorded in the blob store, all namespaces together",
+            ),
+            blob_volume_free_bytes: r.add(
+                "lekiwi_gateway_blob_volume_free_bytes",
+                "Free bytes of the blob store's volume",
+            ),
+            blob_volume_size_bytes: r.add(
+                "lekiwi_gateway_blob_volume_size_bytes",
+                "Size of the blob store's volume in bytes",
+            ),
+            releases_removed: r.add(
+                "lekiwi_gateway_releases_removed",
+                "Releases removed from the blob store, by how (gc, delete)",
+            ),
+            blob_bytes_removed: r.add(
+                "lekiwi_gateway_blob_bytes_removed",
+                "Blob bytes removed by garbage collection and release deletions",
             ),
         }
     }

@@ -26,6 +26,7 @@ pub mod presence;
 pub mod quota_warnings;
 pub mod rate;
 pub mod registry;
+pub mod releases;
 pub mod server;
 pub mod session;
 pub mod tls;
@@ -179,6 +180,8 @@ pub struct AppState {
     pub blobs: Arc<blob_api::BlobApi>,
     /// The Fleet API's caches and per-user budgets.
     pub fleet: Arc<api::FleetApi>,
+    /// The releases of the blob store, who uses them, and their garbage collection.
+    pub releases: Arc<releases::Releases>,
 }
 
 impl AppState {

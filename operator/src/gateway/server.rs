@@ -12,7 +12,7 @@ use kube::Api;
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_crds::Robot;
 use lekiwi_crds::contract::TOKEN_LABEL;
-use tokio::sync::Semaphore;
+use tokio::sync::{Semaphore, watch};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
@@ -29,6 +29,7 @@ use super::lookup::{LookupConfig, Lookups};
 use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
+use super::releases::{self, Releases};
 use super::session::{Limits, Shared};
 use super::tls::reload;
 use super::tokens::TokenIndex;
@@ -49,7 +50,8 @@ async fn blob_api_state(
     metrics: &Metrics,
     cancel: CancellationToken,
 ) -> blob_api::BlobApi {
-    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes);
+    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes)
+        .with_read_grace(Duration::from_secs(config.blob_read_grace_seconds));
     match store.ensure_dirs().await {
         Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
         Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
@@ -66,6 +68,26 @@ async fn blob_api_state(
         config.auth_lookup_burst,
     );
     blob_api::BlobApi::new(store, kube_auth)
+}
+
+/// The blob routes' state and the releases of its store (used by the Robots and
+/// RobotDeployments of `fleet`'s caches), with the task that cares for the store.
+async fn blob_state(
+    config: &Config,
+    (client, metrics): (&kube::Client, &Metrics),
+    fleet: &FleetApi,
+    leader: watch::Receiver<bool>,
+    cancel: &CancellationToken,
+) -> (blob_api::BlobApi, Arc<Releases>, JoinHandle<()>) {
+    let blobs = blob_api_state(config, client, metrics, cancel.clone()).await;
+    let releases = Releases::new(
+        blobs.store.clone(),
+        (fleet.robots.clone(), fleet.rollouts.clone()),
+        config.release_retention,
+        metrics.gateway.clone(),
+    );
+    let (releases, task) = releases::task::start(config, releases, (client, leader), cancel);
+    (blobs, releases, task)
 }
 
 /// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
@@ -85,13 +107,14 @@ async fn remove_stale_uploads(store: BlobStore, max_age: Duration, cancel: Cance
 }
 
 /// Runs the gateway until `cancel` fires.
-/// `listening` is set once the gateway accepts connections.
+/// `listening` is set once the gateway accepts connections; `leader` says whether this replica
+/// may collect the blob store's garbage (see [`super::releases::task`]).
 pub async fn run(
     config: Arc<Config>,
     client: kube::Client,
     metrics: Metrics,
     store: Store,
-    listening: Arc<AtomicBool>,
+    (listening, leader): (Arc<AtomicBool>, watch::Receiver<bool>),
     cancel: CancellationToken,
 ) -> Result<()> {
     let name = config.gateway_name();
@@ -133,6 +156,8 @@ pub async fn run(
         desired: Some(desired.clone()),
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
+    let (blobs, releases, care_task) =
+        blob_state(&config, (&client, &metrics), &fleet, leader, &cancel).await;
     let state = AppState {
         shared: Arc::new(shared),
         client: client.clone(),
@@ -142,8 +167,9 @@ pub async fn run(
             config.enroll_rate,
             config.enroll_burst,
         )),
-        blobs: Arc::new(blob_api_state(&config, &client, &metrics, cancel.clone()).await),
+        blobs: Arc::new(blobs),
         fleet: Arc::new(fleet),
+        releases,
     };
     close_stale_connections(&store, &name).await;
     let mut tasks = start_background(
@@ -154,8 +180,8 @@ pub async fn run(
         &store,
         &cancel,
     );
-    tasks.aborted.extend([secret_task, dispatch_task]);
-    tasks.aborted.extend(fleet_tasks);
+    let more = [secret_task, dispatch_task, care_task];
+    tasks.aborted.extend(more.into_iter().chain(fleet_tasks));
     let addr = config.gateway_addr;
     let served = serve(&config, &name, state, listening, &cancel).await?;
     cancel.cancel();

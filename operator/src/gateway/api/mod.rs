@@ -12,6 +12,7 @@ pub mod graphql;
 mod history;
 pub mod limits;
 pub mod openapi;
+mod releases;
 mod robots;
 mod rollouts;
 pub mod selector;
@@ -22,7 +23,7 @@ use std::sync::Arc;
 use axum::extract::rejection::QueryRejection;
 use axum::http::{HeaderMap, Method, StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{MethodRouter, any, get, post};
+use axum::routing::{MethodRouter, any, delete, get, post};
 use axum::{Json, Router};
 use kube::Api;
 use lekiwi_crds::{Robot, RobotDeployment};
@@ -109,6 +110,8 @@ pub fn routes() -> Router<AppState> {
         .route(p::ROLLOUT_ABORT, wrong(post(rollouts::abort)))
         .route(p::ROLLOUT_UNDO, wrong(post(rollouts::undo)))
         .route(p::ROLLOUT_RESTART, wrong(post(rollouts::restart)))
+        .route(p::RELEASES, wrong(get(releases::list)))
+        .route(p::RELEASE, wrong(delete(releases::delete)))
         .route(
             openapi::paths::GRAPHQL,
             wrong(post(graphql::post).get(graphql::websocket)),

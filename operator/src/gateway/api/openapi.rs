@@ -46,12 +46,16 @@ pub mod paths {
     pub const ROLLOUT_UNDO: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/undo";
     /// Restart a rollout.
     pub const ROLLOUT_RESTART: &str = "/api/v1/namespaces/{namespace}/rollouts/{name}/restart";
+    /// The releases pushed to one namespace.
+    pub const RELEASES: &str = "/api/v1/namespaces/{namespace}/releases";
+    /// One release, by digest or version.
+    pub const RELEASE: &str = "/api/v1/namespaces/{namespace}/releases/{release}";
     /// GraphQL: `POST` for queries and mutations, `GET` for the subscriptions' WebSocket.
     pub const GRAPHQL: &str = "/api/v1/graphql";
 }
 
 /// Every route with its method, the list the router and the document are checked against.
-pub const ROUTES: [(&str, &str); 18] = [
+pub const ROUTES: [(&str, &str); 20] = [
     ("get", paths::OPENAPI),
     ("get", paths::ACCESS),
     ("get", paths::ROBOTS),
@@ -68,6 +72,8 @@ pub const ROUTES: [(&str, &str); 18] = [
     ("post", paths::ROLLOUT_ABORT),
     ("post", paths::ROLLOUT_UNDO),
     ("post", paths::ROLLOUT_RESTART),
+    ("get", paths::RELEASES),
+    ("delete", paths::RELEASE),
     ("post", paths::GRAPHQL),
     ("get", paths::GRAPHQL),
 ];
@@ -257,11 +263,37 @@ fn build() -> Value {
             paths::ROLLOUT_ABORT: action("Abort: sets annotation fleet.lekiwi.io/abortRequestedAt to now (the rollout stops where it stands and ends Aborted)."),
             paths::ROLLOUT_UNDO: action("Undo: sets annotation fleet.lekiwi.io/undoRequestedAt to now."),
             paths::ROLLOUT_RESTART: action("Restart: sets annotation fleet.lekiwi.io/restartedAt to now."),
+            paths::RELEASES: {"get": op("The releases pushed to the namespace (kubectl lekiwi release push), newest first, with their size and who uses them; garbage collection removes those nothing uses beyond the newest --release-retention.",
+                "list releases", path_params(false), json!({"type": "object", "required": ["items"], "properties": {
+                    "items": {"type": "array", "items": schema("Release")}}}))},
+            paths::RELEASE: {"delete": release_delete()},
             paths::GRAPHQL: graphql(),
         },
         "components": components(),
     });
     doc
+}
+
+/// `DELETE` of one release: 409 while it is in use.
+fn release_delete() -> Value {
+    let mut params = path_params(false);
+    params.push(param(
+        "release",
+        "path",
+        "The release's digest (`sha256:...`), or its version when only one release of the namespace has it.",
+        json!({"type": "string"}),
+    ));
+    let mut delete = op(
+        "Delete a release and the blobs no other release lists.",
+        "delete releases",
+        params,
+        json!({"type": "object", "description": "The release deleted (namespace, version, digest, pushed) with the blobs and bytes removed.",
+            "properties": {"namespace": {"type": "string"}, "version": {"type": "string"}, "digest": {"type": "string"},
+                "pushed": {"type": "string", "format": "date-time"}, "blobs": {"type": "integer"}, "bytes": {"type": "integer"}}}),
+    );
+    delete["responses"]["409"] = json!({"description": "A Robot or RobotDeployment references the release, or a robot is downloading it now; the message says which.",
+        "content": {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}});
+    delete
 }
 
 /// The GraphQL endpoint: a query or mutation by `POST`; subscriptions over a WebSocket.
@@ -309,7 +341,7 @@ fn components() -> Value {
             "description": "Any token the Kubernetes API server accepts (kubectl create token, a kubeconfig's token, OIDC)."}},
         "schemas": {
             "Error": {"type": "object", "required": ["error", "message"], "properties": {
-                "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, method_not_allowed, too_large, rate_limited, unavailable, internal."},
+                "error": {"type": "string", "description": "Stable code: bad_request, unauthorized, forbidden, not_found, conflict, method_not_allowed, too_large, rate_limited, unavailable, internal."},
                 "message": {"type": "string"}}},
             "Access": {"type": "object", "required": ["user", "namespace", "allowed"], "properties": {
                 "user": {"type": "string", "description": "The username the API server gave the token."},
@@ -335,6 +367,19 @@ fn components() -> Value {
                 "vitals": {"type": "object", "nullable": true, "description": "status.telemetry: cpuPercent, memoryPercent, temperatureCelsius, batteryPercent, hostMemoryBytes, hostCpuPercent."},
                 "vitalsTime": {"type": "string", "format": "date-time", "nullable": true, "description": "status.lastHeartbeatTime."},
                 "lastSeen": last_seen()}},
+            "Release": {"type": "object", "required": ["namespace", "version", "digest", "pushed", "robots", "deployments"], "properties": {
+                "namespace": {"type": "string"}, "version": {"type": "string"},
+                "digest": {"type": "string", "description": "The manifest's digest."},
+                "size": {"type": "integer", "nullable": true, "description": "Bytes of its files (absent when the manifest cannot be read)."},
+                "files": {"type": "integer", "nullable": true},
+                "pushed": {"type": "string", "format": "date-time", "description": "When it was first pushed to the namespace."},
+                "robots": {"type": "object", "properties": {
+                    "desired": {"type": "integer", "description": "Robots whose spec.release it is."},
+                    "current": {"type": "integer", "description": "Robots whose status.currentRelease it is."},
+                    "previous": {"type": "integer", "description": "Robots a RobotDeployment would roll back to it (status.robots[].previousRelease)."}}},
+                "deployments": {"type": "object", "properties": {
+                    "release": {"type": "integer", "description": "RobotDeployments whose spec.release it is."},
+                    "rollbackTarget": {"type": "integer", "description": "RobotDeployments that would roll some robot back to it."}}}}},
             "StoredEvent": {"type": "object", "required": ["seq", "ts_ms", "kind", "severity", "message", "data"], "properties": {
                 "seq": {"type": "integer"}, "ts_ms": {"type": "integer", "description": "Unix milliseconds."},
                 "kind": {"type": "string"}, "severity": {"type": "string"}, "message": {"type": "string"}, "data": {}}},

@@ -19,6 +19,7 @@ use super::{
     BlobApi, Caller, Failure, InNamespace, access, authorize, check_digest, failure, not_found,
     store_failure,
 };
+use crate::gateway::blob_store::readers::ReadGuard;
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::{ApiError, AppState};
 
@@ -128,10 +129,10 @@ pub(super) async fn get_blob(
         if !access::may_read(&state, &caller, &digest).await {
             return Err(not_found(&digest));
         }
-        let Some((mut file, size)) = state
+        let Some((mut file, size, read)) = state
             .blobs
             .store
-            .open(&digest)
+            .open_read(&digest)
             .await
             .map_err(store_failure)?
         else {
@@ -178,6 +179,7 @@ pub(super) async fn get_blob(
             digest: digest.clone(),
             sent: 0,
             expected: len,
+            _read: read,
         };
         let mut headers = blob_headers(&digest, len);
         if status == StatusCode::PARTIAL_CONTENT
@@ -203,6 +205,8 @@ struct Counted<S> {
     digest: String,
     sent: u64,
     expected: u64,
+    /// Keeps garbage collection off the blob until the download ends.
+    _read: ReadGuard,
 }
 
 impl<S> Stream for Counted<S>

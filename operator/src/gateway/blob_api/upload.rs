@@ -9,12 +9,13 @@ use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, StatusCode, header};
 use axum::response::Response;
 use futures::StreamExt;
-use lekiwi_protocol::release::digest_hex;
+use lekiwi_protocol::release::{MAX_MANIFEST_BYTES, digest_hex};
 use serde_json::json;
-use tracing::{Instrument, debug, info_span};
+use tracing::{Instrument, debug, info, info_span, warn};
 
 use super::{Failure, InNamespace, authorize, json_response, store_failure};
 use crate::gateway::AppState;
+use crate::gateway::auth::valid_name;
 use crate::gateway::blob_store::{Error as StoreError, UploadState};
 use crate::metrics::KindLabels;
 
@@ -72,6 +73,11 @@ pub(super) async fn put_blob(
             }
         }
         let (outcome, received) = answer.map_err(store_failure)?;
+        if let (UploadState::Exists { size } | UploadState::Complete { size }, Some(ns)) =
+            (outcome, ns.namespace.as_deref())
+        {
+            record_release(&state, ns, &digest, size).await;
+        }
         let (status, offset, complete) = match outcome {
             UploadState::Exists { size } => (StatusCode::OK, size, true),
             UploadState::Complete { size } => (StatusCode::CREATED, size, true),
@@ -88,6 +94,30 @@ pub(super) async fn put_blob(
     }
     .instrument(span)
     .await
+}
+
+/// Records a stored blob that is a release manifest as a release of `namespace` (a push of the
+/// manifest, new or again, is what makes it one there) and wakes garbage collection.
+async fn record_release(state: &AppState, namespace: &str, digest: &str, size: u64) {
+    if size > MAX_MANIFEST_BYTES as u64 || !valid_name(namespace) {
+        return;
+    }
+    let store = &state.blobs.store;
+    let Ok(manifest) = store.manifest(digest).await else {
+        return;
+    };
+    match store
+        .index()
+        .register(namespace, &manifest.version, digest)
+        .await
+    {
+        Ok(true) => {
+            info!(%namespace, version = %manifest.version, "release pushed");
+            state.releases.pushed.notify_one();
+        }
+        Ok(false) => {}
+        Err(e) => warn!(%namespace, error = %e, "cannot record a pushed release"),
+    }
 }
 
 /// Checks an upload's headers and writes its body; also returns the bytes received.

@@ -2,12 +2,17 @@
 //! in the chart), with verified, resumable and idempotent uploads.
 //!
 //! Layout under the root: complete blobs at `sha256/<hex>`, uploads in progress at
-//! `uploads/<hex>.partial`. A blob appears under `sha256/` only by an atomic rename after its
+//! `uploads/<hex>.partial`, the releases each namespace pushed at `releases/<ns>/<hex>.json`
+//! ([`index`]); [`gc`] plans and makes their removal, never of a blob a download reads
+//! ([`readers`]). A blob appears under `sha256/` only by an atomic rename after its
 //! content was hashed and found equal to its name, so readers never see a partial or wrong blob.
 //! Uploads of one digest are serialized by an in-process lock; replicas sharing the directory
 //! could interleave bytes of one partial, which the final verification catches (the partial is
 //! deleted and the client starts over), never corrupting a stored blob.
 
+pub mod gc;
+pub mod index;
+pub mod readers;
 #[cfg(test)]
 mod tests;
 mod upload;
@@ -18,6 +23,9 @@ use std::sync::{Arc, Mutex};
 
 use lekiwi_protocol::release::{MAX_MANIFEST_BYTES, ManifestError, ReleaseManifest, digest_hex};
 use serde::Serialize;
+
+use self::index::ReleaseIndex;
+use self::readers::{ReadGuard, Readers};
 
 /// What can go wrong storing or reading blobs.
 #[derive(Debug, thiserror::Error)]
@@ -130,6 +138,21 @@ pub struct BlobStore {
     max_blob_bytes: u64,
     /// One lock per digest with an upload in flight, so two uploads never write one partial.
     locks: Arc<Mutex<HashMap<String, Arc<tokio::sync::Mutex<()>>>>>,
+    /// Downloads reading each blob now (and lately), which garbage collection leaves alone.
+    readers: Readers,
+}
+
+/// The bytes and count of the blobs stored, and the room on their volume.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Usage {
+    /// Complete blobs stored.
+    pub blobs: u64,
+    /// Their bytes.
+    pub bytes: u64,
+    /// Bytes the volume has free for the gateway (`None` when the file system cannot say).
+    pub free: Option<u64>,
+    /// The volume's size in bytes (`None` when the file system cannot say).
+    pub size: Option<u64>,
 }
 
 impl BlobStore {
@@ -140,7 +163,24 @@ impl BlobStore {
             root: root.into(),
             max_blob_bytes,
             locks: Arc::default(),
+            readers: Readers::default(),
         }
+    }
+
+    /// The same store, a blob counting as read for `grace` after its last download ended.
+    pub fn with_read_grace(mut self, grace: std::time::Duration) -> Self {
+        self.readers = Readers::new(grace);
+        self
+    }
+
+    /// The per-namespace release records of this store.
+    pub fn index(&self) -> ReleaseIndex {
+        ReleaseIndex::new(&self.root)
+    }
+
+    /// The downloads reading blobs now.
+    pub fn readers(&self) -> &Readers {
+        &self.readers
     }
 
     /// The directory holding `sha256/` and `uploads/`.
@@ -201,6 +241,61 @@ impl BlobStore {
         };
         let size = file.metadata().await.map_err(io(&path))?.len();
         Ok(Some((file, size)))
+    }
+
+    /// Like [`Self::open`], the blob marked as read (safe from garbage collection) until the
+    /// guard drops.
+    pub async fn open_read(
+        &self,
+        digest: &str,
+    ) -> Result<Option<(tokio::fs::File, u64, ReadGuard)>> {
+        // Marked before it is opened: a collection deciding now sees the read.
+        let guard = self.readers.begin(digest);
+        Ok(self
+            .open(digest)
+            .await?
+            .map(|(file, size)| (file, size, guard)))
+    }
+
+    /// Deletes the blob `digest` unless a download reads it; its size when it was deleted.
+    fn remove_blob(&self, digest: &str) -> Result<Option<u64>> {
+        let hex = digest_hex(digest).map_err(Error::Digest)?;
+        let path = self.blob_path(hex);
+        let removed = self.readers.unless_busy(digest, || {
+            let size = std::fs::metadata(&path).map(|m| m.len()).ok();
+            match std::fs::remove_file(&path) {
+                Ok(()) => Ok(size),
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+                Err(e) => Err(io(&path)(e)),
+            }
+        });
+        removed.unwrap_or(Ok(None))
+    }
+
+    /// The blobs stored, their bytes, and the room on the store's volume.
+    pub async fn usage(&self) -> Result<Usage> {
+        let dir = self.blob_dir();
+        let mut usage = Usage::default();
+        let mut entries = match tokio::fs::read_dir(&dir).await {
+            Ok(e) => Some(e),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => return Err(io(&dir)(e)),
+        };
+        while let Some(entries) = entries.as_mut()
+            && let Some(entry) = entries.next_entry().await.map_err(io(&dir))?
+        {
+            if let Ok(meta) = entry.metadata().await
+                && meta.is_file()
+            {
+                usage.blobs += 1;
+                usage.bytes += meta.len();
+            }
+        }
+        if let Ok(vfs) = rustix::fs::statvfs(&self.root) {
+            usage.free = Some(vfs.f_bavail.saturating_mul(vfs.f_frsize));
+            usage.size = Some(vfs.f_blocks.saturating_mul(vfs.f_frsize));
+        }
+        Ok(usage)
     }
 
     async fn lock(&self, hex: &str) -> tokio::sync::OwnedMutexGuard<()> {

@@ -219,6 +219,7 @@ where
                 self.over_quota(seq, limit, quota)
             }
             Err(e) => {
+                self.shared.metrics.gateway.event_store_error("write");
                 warn!(seq, error = %e, "cannot store a durable message");
                 ServerMessage::Error {
                     code: ErrorCode::StoreUnavailable,

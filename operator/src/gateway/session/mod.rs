@@ -260,7 +260,10 @@ async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
     let start = Box::pin(shared.store.open_session(key, &record)).await;
     let record_id = start
         .record_id
-        .inspect_err(|e| warn!(error = %e, "cannot record the connection in the event store"))
+        .inspect_err(|e| {
+            shared.metrics.gateway.event_store_error("open_session");
+            warn!(error = %e, "cannot record the connection in the event store");
+        })
         .ok();
     let stored_seq = start
         .last_seq
@@ -340,6 +343,7 @@ async fn close(shared: &Shared, key: &RobotKey, opened: &Opened, end: &End) {
         ))
         .await
     {
+        shared.metrics.gateway.event_store_error("close_session");
         warn!(error = %e, "cannot record the disconnect");
     }
     info!(
