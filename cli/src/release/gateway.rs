@@ -235,7 +235,7 @@ impl Gateway {
         if !resp.status().is_success() {
             bail!("{}", message(resp).await);
         }
-        Ok(resp.json().await.context("reading the answer")?)
+        resp.json().await.context("reading the answer")
     }
 
     /// A stored release and the blobs it lacks.
