@@ -9,6 +9,7 @@ mod messages;
 mod phase;
 pub mod release;
 pub mod rules;
+pub mod join;
 pub mod transport;
 mod types;
 

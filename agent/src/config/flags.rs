@@ -22,7 +22,9 @@ use serde::Serialize;
 )]
 #[serde(rename_all = "camelCase")]
 pub struct Flags {
-    /// Config file to read (a missing file is fine; flags and environment suffice).
+    /// Config file to read (a missing file is fine; flags and environment suffice), then the
+    /// `*.yaml` drop-ins of the directory beside it named after it with `.d`
+    /// (`/etc/lekiwi/agent.d/`), in name order, each overriding the files before it.
     #[arg(long, env = "LEKIWI_CONFIG", default_value = "/etc/lekiwi/agent.yaml")]
     #[serde(skip)]
     pub config: PathBuf,
