@@ -116,6 +116,11 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_TLS_KEY", requires = "tls_cert")]
     pub tls_key: Option<PathBuf>,
 
+    /// PEM certificate of the CA that signs --tls-cert, sent after it in every handshake:
+    /// `lekiwi-agent join` takes the CA from there and checks it against its pin.
+    #[arg(long, env = "LEKIWI_TLS_CA", requires = "tls_cert")]
+    pub tls_ca: Option<PathBuf>,
+
     /// Event store: `sqlite://FILE` (embedded default) or `postgres://...`.
     #[arg(
         long,

@@ -41,7 +41,10 @@ pub fn ca_cert_hash(cert_der: &[u8]) -> Result<String, PinError> {
     let der = rustls_pki_types::CertificateDer::from(cert_der);
     let cert = webpki::EndEntityCert::try_from(&der).map_err(PinError::Certificate)?;
     let spki = cert.subject_public_key_info();
-    Ok(format!("{SHA256}{}", hex::encode(Sha256::digest(spki.as_ref()))))
+    Ok(format!(
+        "{SHA256}{}",
+        hex::encode(Sha256::digest(spki.as_ref()))
+    ))
 }
 
 /// A pin as written on the command line, checked and in lower case.
@@ -133,7 +136,12 @@ mod tests {
             parse_pin(&format!("sha256:{hex}")).unwrap(),
             format!("sha256:{}", "ab".repeat(32))
         );
-        for bad in ["", "sha256:", "md5:00", &format!("sha256:{}", "g".repeat(64))] {
+        for bad in [
+            "",
+            "sha256:",
+            "md5:00",
+            &format!("sha256:{}", "g".repeat(64)),
+        ] {
             assert!(parse_pin(bad).is_err(), "{bad}");
         }
     }

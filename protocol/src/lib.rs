@@ -5,11 +5,11 @@
 
 use serde::Serialize;
 
+pub mod join;
 mod messages;
 mod phase;
 pub mod release;
 pub mod rules;
-pub mod join;
 pub mod transport;
 mod types;
 

@@ -397,7 +397,7 @@ async fn serve(
     let addr = config.gateway_addr;
     let tls = match (&config.tls_cert, &config.tls_key) {
         (Some(cert), Some(key)) => Some(
-            super::tls::Acceptor::from_pem_files(cert, key)
+            super::tls::Acceptor::from_pem_files(cert, key, config.tls_ca.as_deref())
                 .await
                 .map_err(|source| Error::Serve { addr, source })?,
         ),

@@ -42,11 +42,20 @@ pub struct Acceptor {
 }
 
 impl Acceptor {
-    /// An acceptor for the PEM certificate chain and key; HTTP/1.1 only (agents speak WebSocket
-    /// over HTTP/1.1; the gateway serves no HTTP/2).
-    pub async fn from_pem_files(cert: &Path, key: &Path) -> io::Result<Self> {
+    /// An acceptor for the PEM certificate chain and key, the CA certificate(s) in `ca` (if any)
+    /// sent after the chain so that `lekiwi-agent join` can pin the CA; HTTP/1.1 only (agents
+    /// speak WebSocket over HTTP/1.1; the gateway serves no HTTP/2).
+    pub async fn from_pem_files(cert: &Path, key: &Path, ca: Option<&Path>) -> io::Result<Self> {
         let _ = rustls::crypto::ring::default_provider().install_default();
-        let pem = axum_server::tls_rustls::RustlsConfig::from_pem_file(cert, key).await?;
+        let mut chain = tokio::fs::read(cert).await?;
+        if let Some(ca) = ca {
+            if !chain.ends_with(b"\n") {
+                chain.push(b'\n');
+            }
+            chain.extend(tokio::fs::read(ca).await?);
+        }
+        let key = tokio::fs::read(key).await?;
+        let pem = axum_server::tls_rustls::RustlsConfig::from_pem(chain, key).await?;
         let mut config = (*pem.get_inner()).clone();
         config.alpn_protocols = vec![b"http/1.1".to_vec()];
         Ok(Self {

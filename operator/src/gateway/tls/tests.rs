@@ -47,10 +47,13 @@ struct Bed {
 async fn bed(versions: &[&'static rustls::SupportedProtocolVersion]) -> Bed {
     let dir = tempfile::tempdir().unwrap();
     certificates(dir.path());
-    let acceptor =
-        Acceptor::from_pem_files(&dir.path().join("tls.crt"), &dir.path().join("tls.key"))
-            .await
-            .unwrap();
+    let acceptor = Acceptor::from_pem_files(
+        &dir.path().join("tls.crt"),
+        &dir.path().join("tls.key"),
+        None,
+    )
+    .await
+    .unwrap();
     let mut roots = rustls::RootCertStore::empty();
     for cert in CertificateDer::pem_file_iter(dir.path().join("ca.crt")).unwrap() {
         roots.add(cert.unwrap()).unwrap();

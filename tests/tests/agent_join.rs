@@ -1,0 +1,266 @@
+//! `lekiwi-agent join` against a real operator serving TLS on the local control plane: a join
+//! with the right pin enrolls and goes Online, writing only its drop-in, the CA and the token
+//! (with their modes) beside the lab's untouched `agent.yaml`; run twice it changes nothing;
+//! another gateway needs --force. A wrong pin, and a man-in-the-middle (another CA presenting
+//! the gateway's name), are refused with both fingerprints.
+
+use std::os::unix::fs::PermissionsExt;
+use std::path::Path;
+use std::process::{Output, Stdio};
+use std::time::Duration;
+
+use anyhow::{Result, bail};
+use lekiwi_crds::RobotPhase;
+use lekiwi_tests::{
+    AgentProcess, ControlPlane, OperatorProcess, bin, enrollment_token, free_port,
+    gateway_operator, get_robot, namespace, test_ca, wait_for,
+};
+
+/// The pin of the CA in `ca` as openssl computes it (an oracle independent of our code).
+fn openssl_pin(ca: &Path) -> Result<String> {
+    let out = std::process::Command::new("bash")
+        .arg("-c")
+        .arg(format!(
+            "openssl x509 -pubkey -noout -in {} | openssl pkey -pubin -outform der | sha256sum",
+            ca.display()
+        ))
+        .output()?;
+    if !out.status.success() {
+        bail!("openssl: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    let text = String::from_utf8(out.stdout)?;
+    Ok(format!(
+        "sha256:{}",
+        text.split_whitespace().next().unwrap_or_default()
+    ))
+}
+
+/// Runs `lekiwi-agent join` with `args` (not starting the service) under `root`.
+async fn join(root: &Path, args: &[&str]) -> Result<Output> {
+    Ok(tokio::process::Command::new(bin("lekiwi-agent"))
+        .arg("join")
+        .args(["--root", root.to_str().unwrap(), "--no-start"])
+        .args(args)
+        .env("RUST_BACKTRACE", "0")
+        .stdin(Stdio::null())
+        .output()
+        .await?)
+}
+
+fn text(out: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+/// An operator serving wss:// with the test CA sent after its certificate, and the CA's dir.
+async fn tls_operator(ns: &str) -> Result<(OperatorProcess, tempfile::TempDir)> {
+    let dir = tempfile::tempdir()?;
+    test_ca(dir.path())?;
+    let file = |name: &str| dir.path().join(name).to_str().unwrap().to_owned();
+    let args = [
+        "--tls-cert",
+        &file("tls.crt"),
+        "--tls-key",
+        &file("tls.key"),
+        "--tls-ca",
+        &file("ca.crt"),
+    ];
+    let op = gateway_operator(ControlPlane::shared(), ns, "gw-join", &args).await?;
+    Ok((op, dir))
+}
+
+fn mode(path: &Path) -> u32 {
+    std::fs::metadata(path).unwrap().permissions().mode() & 0o777
+}
+
+#[tokio::test]
+async fn a_robot_joins_with_one_command_and_a_second_run_changes_nothing() -> Result<()> {
+    let client = ControlPlane::shared().client().await?;
+    let ns = namespace(&client, "join").await?;
+    let (op, ca_dir) = tls_operator(&ns).await?;
+    let pin = openssl_pin(&ca_dir.path().join("ca.crt"))?;
+    let token = enrollment_token(&client, &ns).await?;
+    let gateway = format!("wss://127.0.0.1:{}/v1/agent", op.gateway_port);
+
+    // The lab's own configuration, which join must leave as it is.
+    let root = tempfile::tempdir()?;
+    let status_port = free_port();
+    let lab = format!("statusListen: 127.0.0.1:{status_port}\nteleopIntervalS: 0.5\n");
+    std::fs::create_dir_all(root.path().join("etc/lekiwi"))?;
+    std::fs::write(root.path().join("etc/lekiwi/agent.yaml"), &lab)?;
+
+    let robot = format!("{ns}/kiwi-join");
+    let args = [
+        "--gateway",
+        &gateway,
+        "--ca-cert-hash",
+        &pin,
+        "--token",
+        &token,
+        "--name",
+        &robot,
+        "--wait-s",
+        "30",
+    ];
+    let joining = tokio::spawn({
+        let root = root.path().to_owned();
+        let args: Vec<String> = args.iter().map(|s| s.to_string()).collect();
+        async move {
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            join(&root, &args).await
+        }
+    });
+    let drop_in = root.path().join("etc/lekiwi/agent.d/50-join.yaml");
+    wait_for(
+        "join wrote its drop-in",
+        Duration::from_secs(15),
+        || async { drop_in.exists().then_some(()) },
+    )
+    .await?;
+    // The agent as its unit starts it: the lab's file and the drop-ins beside it.
+    let agent = AgentProcess::from_config(
+        &root.path().join("etc/lekiwi/agent.yaml"),
+        &root.path().join("var/lib/lekiwi"),
+        status_port,
+    )?;
+    let out = joining.await??;
+    let said = text(&out);
+    assert!(
+        out.status.success(),
+        "{said}\nagent log:\n{}",
+        agent.log_text()
+    );
+    assert!(
+        said.contains(&format!("robot {robot} joined: Online")),
+        "{said}"
+    );
+    let phase = get_robot(&client, &ns, "kiwi-join").await?.status;
+    assert_eq!(phase.and_then(|s| s.phase), Some(RobotPhase::Online));
+
+    // Files: the lab's untouched, the CA public, the token private, the drop-in naming them.
+    let etc = root.path().join("etc/lekiwi");
+    assert_eq!(std::fs::read_to_string(etc.join("agent.yaml"))?, lab);
+    assert_eq!(mode(&etc.join("ca.crt")), 0o644);
+    assert_eq!(openssl_pin(&etc.join("ca.crt"))?, pin);
+    assert_eq!(mode(&etc.join("enrollment-token")), 0o600);
+    let written = std::fs::read_to_string(&drop_in)?;
+    assert!(
+        written.contains(&format!("gateway: {gateway}")),
+        "{written}"
+    );
+    assert!(
+        written.contains(&format!("robotName: {robot}")),
+        "{written}"
+    );
+
+    // Twice: nothing written, the agent still connected.
+    let out = join(root.path(), &args).await?;
+    let said = text(&out);
+    assert!(out.status.success(), "{said}");
+    assert!(!said.contains("wrote"), "{said}");
+    assert_eq!(said.matches("unchanged").count(), 3, "{said}");
+    assert!(said.contains("joined: Online"), "{said}");
+
+    // Another gateway (another address of the same one, here): refused, saying what it replaces.
+    let other = format!("wss://localhost:{}/v1/agent", op.gateway_port);
+    let mut moved = args.to_vec();
+    moved[1] = &other;
+    let out = join(root.path(), &moved).await?;
+    let said = text(&out);
+    assert!(!out.status.success(), "{said}");
+    assert!(
+        said.contains(&gateway) && said.contains(&other) && said.contains("--force"),
+        "{said}"
+    );
+    assert!(said.contains("/etc/lekiwi/agent.d/50-join.yaml"), "{said}");
+    assert_eq!(std::fs::read_to_string(&drop_in)?, written);
+    Ok(())
+}
+
+#[tokio::test]
+async fn a_wrong_pin_is_refused_with_both_fingerprints_and_writes_nothing() -> Result<()> {
+    let client = ControlPlane::shared().client().await?;
+    let ns = namespace(&client, "join-pin").await?;
+    let (op, ca_dir) = tls_operator(&ns).await?;
+    let real = openssl_pin(&ca_dir.path().join("ca.crt"))?;
+    let wrong = format!("sha256:{}", "ab".repeat(32));
+    let gateway = format!("wss://127.0.0.1:{}/v1/agent", op.gateway_port);
+    let root = tempfile::tempdir()?;
+    let args = [
+        "--gateway",
+        &gateway,
+        "--ca-cert-hash",
+        &wrong,
+        "--token",
+        "lke_whatever",
+    ];
+    let out = join(root.path(), &args).await?;
+    let said = text(&out);
+    assert!(!out.status.success(), "{said}");
+    assert!(said.contains(&wrong) && said.contains(&real), "{said}");
+    assert!(
+        std::fs::read_dir(root.path())?.next().is_none(),
+        "a refused join wrote files"
+    );
+    Ok(())
+}
+
+/// Someone else at the gateway's address: a certificate for the same name from another CA.
+#[tokio::test]
+async fn a_man_in_the_middle_with_another_ca_is_refused_with_both_fingerprints() -> Result<()> {
+    let real = tempfile::tempdir()?;
+    test_ca(real.path())?;
+    let real_pin = openssl_pin(&real.path().join("ca.crt"))?;
+    let evil = tempfile::tempdir()?;
+    test_ca(evil.path())?;
+    let evil_pin = openssl_pin(&evil.path().join("ca.crt"))?;
+    assert_ne!(real_pin, evil_pin);
+
+    let port = free_port();
+    let f = |name: &str| evil.path().join(name).to_str().unwrap().to_owned();
+    let mut server = tokio::process::Command::new("openssl")
+        .args([
+            "s_server",
+            "-quiet",
+            "-accept",
+            &format!("127.0.0.1:{port}"),
+        ])
+        .args(["-cert", &f("tls.crt"), "-key", &f("tls.key")])
+        .args(["-cert_chain", &f("ca.crt")])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .kill_on_drop(true)
+        .spawn()?;
+    wait_for("the impostor listens", Duration::from_secs(10), || async {
+        tokio::net::TcpStream::connect(("127.0.0.1", port))
+            .await
+            .ok()
+            .map(|_| ())
+    })
+    .await?;
+    let root = tempfile::tempdir()?;
+    let gateway = format!("wss://127.0.0.1:{port}/v1/agent");
+    let args = [
+        "--gateway",
+        &gateway,
+        "--ca-cert-hash",
+        &real_pin,
+        "--token",
+        "lke_whatever",
+    ];
+    let out = join(root.path(), &args).await?;
+    let said = text(&out);
+    server.kill().await?;
+    assert!(!out.status.success(), "{said}");
+    assert!(
+        said.contains(&real_pin) && said.contains(&evil_pin),
+        "{said}"
+    );
+    assert!(said.contains("answers in its place"), "{said}");
+    assert!(std::fs::read_dir(root.path())?.next().is_none());
+    Ok(())
+}
