@@ -5,6 +5,7 @@
 pub mod discover;
 pub mod duration;
 pub mod events;
+pub mod locate;
 pub mod release;
 pub mod robots;
 pub mod rollout;
@@ -65,6 +66,15 @@ pub struct Cli {
     /// Output format.
     #[arg(short = 'o', long, global = true, value_enum, default_value = "table")]
     pub output: Output,
+    /// Namespace the chart installed the gateway in (its Service and CA ConfigMap are found
+    /// there by label).
+    #[arg(
+        long,
+        global = true,
+        env = "LEKIWI_GATEWAY_NAMESPACE",
+        default_value = locate::DEFAULT_GATEWAY_NAMESPACE
+    )]
+    pub gateway_namespace: String,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -155,7 +165,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Robot {
             command: tokens::RobotCommand::Add(args),
         } => {
-            tokens::robot_add(client, &namespace, cli.output, args).await?;
+            tokens::robot_add(client, &namespace, &cli.gateway_namespace, cli.output, args).await?;
         }
         Command::Robot {
             command: tokens::RobotCommand::Reenroll(args),
@@ -163,7 +173,8 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             tokens::robot_reenroll(client, &namespace, args).await?;
         }
         Command::EnrollToken(args) => {
-            tokens::enroll_token(client, &namespace, cli.output, args).await?;
+            tokens::enroll_token(client, &namespace, &cli.gateway_namespace, cli.output, args)
+                .await?;
         }
         Command::Discover(_) => unreachable!("handled before the client is required"),
         Command::Events(args) => {

@@ -264,3 +264,106 @@ async fn a_man_in_the_middle_with_another_ca_is_refused_with_both_fingerprints()
     assert!(std::fs::read_dir(root.path())?.next().is_none());
     Ok(())
 }
+
+/// The chart's gateway objects as the plugin finds them: a Service labelled as the gateway with
+/// a port named `gateway`, and the CA ConfigMap.
+async fn chart_objects(client: &kube::Client, ns: &str, ca: &Path, port: u16) -> Result<()> {
+    use k8s_openapi::api::core::v1::{ConfigMap, Service};
+    use kube::api::PostParams;
+    let labels = serde_json::json!({ "app.kubernetes.io/component": "gateway" });
+    let svc: Service = serde_json::from_value(serde_json::json!({
+        "metadata": { "name": "lekiwi-operator-gateway", "labels": labels },
+        "spec": { "ports": [{ "name": "gateway", "port": port }] }
+    }))?;
+    kube::Api::<Service>::namespaced(client.clone(), ns)
+        .create(&PostParams::default(), &svc)
+        .await?;
+    let map: ConfigMap = serde_json::from_value(serde_json::json!({
+        "metadata": { "name": "lekiwi-operator-gateway-ca", "labels": labels },
+        "data": { "ca.crt": std::fs::read_to_string(ca)? }
+    }))?;
+    kube::Api::<ConfigMap>::namespaced(client.clone(), ns)
+        .create(&PostParams::default(), &map)
+        .await?;
+    Ok(())
+}
+
+/// `kubectl lekiwi robot add` prints the join command (the pin from the cluster's CA
+/// ConfigMap); run on the robot as printed, it adopts the robot's own token and goes Online.
+#[tokio::test]
+async fn the_join_command_robot_add_prints_joins_the_robot() -> Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "join-add").await?;
+    let (op, ca_dir) = tls_operator(&ns).await?;
+    chart_objects(&client, &ns, &ca_dir.path().join("ca.crt"), op.gateway_port).await?;
+    let gateway = format!("wss://127.0.0.1:{}/v1/agent", op.gateway_port);
+    let out = tokio::process::Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args([
+            "-n",
+            &ns,
+            "--gateway-namespace",
+            &ns,
+            "robot",
+            "add",
+            "kiwi-add",
+        ])
+        .args(["--gateway", &gateway])
+        .env_remove("LEKIWI_SERVER")
+        .output()
+        .await?;
+    let said = text(&out);
+    assert!(out.status.success(), "{said}");
+    let line = String::from_utf8(out.stdout)?;
+    assert_eq!(line.lines().count(), 1, "{line}");
+    let pin = openssl_pin(&ca_dir.path().join("ca.crt"))?;
+    assert!(line.contains(&format!("--ca-cert-hash {pin}")), "{line}");
+    let words: Vec<&str> = line.split_whitespace().collect();
+    assert_eq!(words[..3], ["sudo", "lekiwi-agent", "join"], "{line}");
+
+    let root = tempfile::tempdir()?;
+    let status_port = free_port();
+    std::fs::create_dir_all(root.path().join("etc/lekiwi"))?;
+    std::fs::write(
+        root.path().join("etc/lekiwi/agent.yaml"),
+        format!("statusListen: 127.0.0.1:{status_port}\n"),
+    )?;
+    let joining = tokio::spawn({
+        let root = root.path().to_owned();
+        let mut args: Vec<String> = words[3..].iter().map(|s| s.to_string()).collect();
+        args.extend(["--wait-s".to_owned(), "30".to_owned()]);
+        async move {
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            join(&root, &args).await
+        }
+    });
+    let drop_in = root.path().join("etc/lekiwi/agent.d/50-join.yaml");
+    wait_for(
+        "join wrote its drop-in",
+        Duration::from_secs(15),
+        || async { drop_in.exists().then_some(()) },
+    )
+    .await?;
+    let state = root.path().join("var/lib/lekiwi");
+    assert_eq!(mode(&state.join("credentials.json")), 0o600);
+    assert!(!root.path().join("etc/lekiwi/enrollment-token").exists());
+    let agent = AgentProcess::from_config(
+        &root.path().join("etc/lekiwi/agent.yaml"),
+        &state,
+        status_port,
+    )?;
+    let out = joining.await??;
+    let said = text(&out);
+    assert!(
+        out.status.success(),
+        "{said}\nagent log:\n{}",
+        agent.log_text()
+    );
+    assert!(
+        said.contains(&format!("robot {ns}/kiwi-add joined: Online")),
+        "{said}"
+    );
+    Ok(())
+}
