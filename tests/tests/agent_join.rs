@@ -367,3 +367,58 @@ async fn the_join_command_robot_add_prints_joins_the_robot() -> Result<()> {
     );
     Ok(())
 }
+
+/// Every file under /etc/lekiwi that the README, NOTES, the `.deb`'s config, the robot pages of
+/// the book and `--help` name is one the agent reads, by the one name `lekiwi_protocol::join`
+/// gives it.
+#[test]
+fn every_page_names_the_agents_files_by_one_path() -> Result<()> {
+    use lekiwi_protocol::join::{CA_FILE, CONFIG_FILE, DROP_IN_DIR, ENROLLMENT_TOKEN_FILE};
+    let allowed = [
+        CONFIG_FILE.to_owned(),
+        DROP_IN_DIR.to_owned(),
+        format!("{DROP_IN_DIR}/"),
+        format!("{DROP_IN_DIR}/*.yaml"),
+        lekiwi_protocol::join::JOIN_DROP_IN.to_owned(),
+        CA_FILE.to_owned(),
+        ENROLLMENT_TOKEN_FILE.to_owned(),
+    ];
+    let root = lekiwi_tests::repo_root();
+    let mut texts: Vec<(String, String)> = [
+        "README.md",
+        "charts/lekiwi-operator/templates/NOTES.txt",
+        "agent/debian/agent.yaml",
+        "scripts/deb.sh",
+        "docs/src/robots/index.md",
+        "docs/src/robots/install.md",
+        "docs/src/robots/joining.md",
+        "docs/src/robots/agent.md",
+        "docs/src/install/helm.md",
+    ]
+    .iter()
+    .map(|p| Ok((p.to_string(), std::fs::read_to_string(root.join(p))?)))
+    .collect::<Result<_>>()?;
+    for args in [&["--help"][..], &["join", "--help"]] {
+        let out = std::process::Command::new(bin("lekiwi-agent"))
+            .args(args)
+            .output()?;
+        texts.push((
+            format!("lekiwi-agent {args:?}"),
+            String::from_utf8(out.stdout)?,
+        ));
+    }
+    for (name, text) in texts {
+        for (at, _) in text.match_indices("/etc/lekiwi/") {
+            let path: String = text[at..]
+                .chars()
+                .take_while(|c| !c.is_whitespace() && !"`'\"),;:]".contains(*c))
+                .collect();
+            let path = path.trim_end_matches('.');
+            assert!(
+                allowed.iter().any(|a| a == path),
+                "{name} names {path}, not one of {allowed:?}"
+            );
+        }
+    }
+    Ok(())
+}
