@@ -5,6 +5,7 @@
 pub mod discover;
 pub mod duration;
 pub mod events;
+pub mod forward;
 pub mod locate;
 pub mod release;
 pub mod robots;
@@ -192,6 +193,8 @@ pub struct KubeContext {
     pub namespace: String,
     /// The user's bearer token for the gateway, or why the kubeconfig has none.
     pub bearer: Result<String, String>,
+    /// `--gateway-namespace`: where the chart's gateway is found.
+    pub gateway_namespace: String,
 }
 
 async fn context(cli: &Cli) -> anyhow::Result<KubeContext> {
@@ -217,6 +220,7 @@ async fn context(cli: &Cli) -> anyhow::Result<KubeContext> {
         client: kube::Client::try_from(config)?,
         namespace,
         bearer,
+        gateway_namespace: cli.gateway_namespace.clone(),
     })
 }
 

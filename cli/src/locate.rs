@@ -31,6 +31,10 @@ pub struct Located {
     pub ingress: Option<String>,
     /// The CA that signs its certificate (PEM), when the chart made one.
     pub ca_pem: Option<String>,
+    /// The Service's Pod selector.
+    pub selector: std::collections::BTreeMap<String, String>,
+    /// The port in the Pods that the Service port sends to.
+    pub target_port: Option<k8s_openapi::apimachinery::pkg::util::intstr::IntOrString>,
 }
 
 /// Finds the gateway in `namespace`. Services labelled as the gateway's component are taken in
@@ -69,10 +73,12 @@ pub async fn locate(client: &kube::Client, namespace: &str) -> anyhow::Result<Lo
         namespace: namespace.to_owned(),
         service: svc.name_any(),
         port: u16::try_from(port.port).context("the gateway Service's port is out of range")?,
-        service_type: spec.type_.unwrap_or_else(|| "ClusterIP".into()),
+        service_type: spec.type_.clone().unwrap_or_else(|| "ClusterIP".into()),
         node_port: port.node_port.and_then(|p| u16::try_from(p).ok()),
         ingress,
         ca_pem: ca_pem(client, namespace).await?,
+        selector: spec.selector.clone().unwrap_or_default(),
+        target_port: port.target_port.clone(),
     })
 }
 
