@@ -20,7 +20,8 @@
 #!   /usr/share/doc/lekiwi-agent/copyright
 #! and maintainer scripts (agent/debian/postinst, prerm, postrm: systemd's reload, and on purge
 #! the state in /var/lib/lekiwi). The service is neither enabled nor started by the install:
-#! write /etc/lekiwi/agent.yaml, then `systemctl enable --now lekiwi-agent`.
+#! `lekiwi-agent join ...` (printed by `kubectl lekiwi enroll-token --print-join-command`) writes
+#! /etc/lekiwi/agent.d/50-join.yaml, /etc/lekiwi/ca.crt, /etc/lekiwi/enrollment-token and starts it.
 #!
 #! The build is the release profile, not the size-optimised `agent` profile: the aarch64 release
 #! build is the one scripts/pi.sh and the tests already make (warm), while the `agent` profile's

@@ -1,4 +1,4 @@
-//! The LeKiwi robot agent: configuration, the gateway connection (shared with the fleet
+//! The LeKiwi robot agent: configuration, joining a fleet, the gateway connection (shared with the fleet
 //! simulator), the durable outbox, telemetry, teleoperation detection, health checks, discovery
 //! and the run loop.
 
@@ -8,6 +8,7 @@ pub mod connection;
 pub mod discovery;
 pub mod fleet;
 pub mod health;
+pub mod join;
 pub mod outbox;
 pub mod release;
 pub mod run;

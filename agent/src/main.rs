@@ -13,6 +13,7 @@ fn main() -> anyhow::Result<()> {
     match &flags.command {
         Some(Command::Guard { check }) => return run_guard(&flags, *check),
         Some(Command::Adopt { robot, token_file }) => return run_adopt(&flags, robot, token_file),
+        Some(Command::Join(args)) => return run_join(args),
         Some(command) => return queue_event(&flags, command),
         None => {}
     }
@@ -70,6 +71,15 @@ fn run_guard(flags: &Flags, check: bool) -> anyhow::Result<()> {
             std::process::exit(guard::EXIT_FELL_BACK);
         }
     }
+    Ok(())
+}
+
+/// `lekiwi-agent join`: see [`lekiwi_agent::join`].
+fn run_join(args: &lekiwi_agent::join::JoinArgs) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()?;
+    runtime.block_on(lekiwi_agent::join::run(args))?;
     Ok(())
 }
 

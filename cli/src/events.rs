@@ -49,7 +49,7 @@ pub async fn run(
         Some((ns, name)) => (ns.to_owned(), name.to_owned()),
         None => (kube.namespace.clone(), args.robot.clone()),
     };
-    let gateway = Gateway::connect(kube, &args.server, None)?;
+    let gateway = Gateway::connect(kube, &args.server, None).await?;
     let now = Timestamp::now();
     let since_ms = now.as_millisecond() - i64::try_from(args.since.as_millis()).unwrap_or(i64::MAX);
     let events = fetch(&gateway, &ns, &name).await?;

@@ -5,7 +5,9 @@
 pub mod discover;
 pub mod duration;
 pub mod events;
+pub mod forward;
 pub mod list;
+pub mod locate;
 pub mod output;
 pub mod release;
 pub mod robots;
@@ -44,6 +46,15 @@ pub struct Cli {
     /// Print tables without their header line.
     #[arg(long, global = true)]
     pub no_headers: bool,
+    /// Namespace the chart installed the gateway in (its Service and CA ConfigMap are found
+    /// there by label).
+    #[arg(
+        long,
+        global = true,
+        env = "LEKIWI_GATEWAY_NAMESPACE",
+        default_value = locate::DEFAULT_GATEWAY_NAMESPACE
+    )]
+    pub gateway_namespace: String,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -149,7 +160,14 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Robot {
             command: tokens::RobotCommand::Add(args),
         } => {
-            tokens::robot_add(client, &namespace, cli.output.clone(), args).await?;
+            tokens::robot_add(
+                client,
+                &namespace,
+                &cli.gateway_namespace,
+                cli.output.clone(),
+                args,
+            )
+            .await?;
         }
         Command::Robot {
             command: tokens::RobotCommand::Reenroll(args),
@@ -157,7 +175,14 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             tokens::robot_reenroll(client, &namespace, args).await?;
         }
         Command::EnrollToken(args) => {
-            tokens::enroll_token(client, &namespace, cli.output.clone(), args).await?;
+            tokens::enroll_token(
+                client,
+                &namespace,
+                &cli.gateway_namespace,
+                cli.output.clone(),
+                args,
+            )
+            .await?;
         }
         Command::Discover(_) | Command::Completion { .. } => {
             unreachable!("handled before the client is required")
@@ -177,6 +202,8 @@ pub struct KubeContext {
     pub namespace: String,
     /// The user's bearer token for the gateway, or why the kubeconfig has none.
     pub bearer: Result<String, String>,
+    /// `--gateway-namespace`: where the chart's gateway is found.
+    pub gateway_namespace: String,
 }
 
 async fn context(cli: &Cli) -> anyhow::Result<KubeContext> {
@@ -197,38 +224,71 @@ async fn context(cli: &Cli) -> anyhow::Result<KubeContext> {
         .namespace
         .clone()
         .unwrap_or_else(|| config.default_namespace.clone());
-    let bearer = bearer_token(&config.auth_info);
+    let bearer = bearer_token(&config).await;
     Ok(KubeContext {
         client: kube::Client::try_from(config)?,
         namespace,
         bearer,
+        gateway_namespace: cli.gateway_namespace.clone(),
     })
 }
 
-/// The kubeconfig user's bearer token (`token` or `tokenFile`), or why there is none: the
-/// gateway takes only bearer tokens, not client certificates or exec plugins' credentials.
-fn bearer_token(user: &kube::config::AuthInfo) -> Result<String, String> {
-    use secrecy::ExposeSecret as _;
-    if let Some(token) = &user.token {
-        return Ok(token.expose_secret().trim().to_owned());
-    }
-    if let Some(file) = &user.token_file {
-        return std::fs::read_to_string(file)
-            .map(|t| t.trim().to_owned())
-            .map_err(|e| format!("cannot read the kubeconfig user's tokenFile {file}: {e}"));
-    }
-    let how = if user.exec.is_some() || user.auth_provider.is_some() {
-        "an exec or auth-provider plugin"
-    } else if user.client_certificate.is_some() || user.client_certificate_data.is_some() {
+/// The bearer token kube would send to the API server for this kubeconfig user: a `token` or
+/// `tokenFile`, or what its exec plugin or OIDC provider returns (refreshed as kube refreshes
+/// it); or why there is none. The gateway takes only bearer tokens: a user with a client
+/// certificate (or basic auth) needs `--token`.
+async fn bearer_token(config: &kube::Config) -> Result<String, String> {
+    use http::{Request, Response, header::AUTHORIZATION};
+    use kube::client::{Body, ConfigExt as _};
+    use tower::{Layer as _, ServiceExt as _};
+    let hint = "pass --token (or LEKIWI_TOKEN) with a bearer token the API server accepts, e.g. \
+                `kubectl create token SERVICE_ACCOUNT -n NAMESPACE`";
+    let how = if config.auth_info.client_certificate.is_some()
+        || config.auth_info.client_certificate_data.is_some()
+    {
         "a client certificate"
+    } else if config.auth_info.username.is_some() {
+        "a user name and password"
     } else {
-        "no bearer token"
+        "no credentials"
     };
-    Err(format!(
-        "the kubeconfig user authenticates with {how}, which the gateway cannot check: pass \
-         --token (or LEKIWI_TOKEN) with a bearer token the API server accepts, e.g. \
-         `kubectl create token SERVICE_ACCOUNT`"
-    ))
+    let cannot = |how: &str| {
+        Err(format!(
+            "the kubeconfig user authenticates with {how}, which the gateway cannot check (it \
+             takes bearer tokens): {hint}"
+        ))
+    };
+    let layer = match config.auth_layer() {
+        Ok(Some(layer)) => layer,
+        Ok(None) => return cannot(how),
+        Err(e) => return Err(format!("the kubeconfig user's credentials: {e}; or {hint}")),
+    };
+    let seen = std::sync::Arc::new(std::sync::Mutex::new(None));
+    let capture = {
+        let seen = seen.clone();
+        tower::service_fn(move |req: Request<Body>| {
+            let header = req.headers().get(AUTHORIZATION).cloned();
+            *seen.lock().unwrap_or_else(|e| e.into_inner()) = header;
+            async { Ok::<_, tower::BoxError>(Response::new(Body::empty())) }
+        })
+    };
+    if let Err(e) = layer
+        .layer(capture)
+        .oneshot(Request::new(Body::empty()))
+        .await
+    {
+        return Err(format!(
+            "the kubeconfig user's credential plugin failed: {e}; or {hint}"
+        ));
+    }
+    let header = seen.lock().unwrap_or_else(|e| e.into_inner()).take();
+    match header.as_ref().and_then(|h| h.to_str().ok()) {
+        Some(value) => match value.strip_prefix("Bearer ") {
+            Some(token) => Ok(token.trim().to_owned()),
+            None => cannot("a user name and password"),
+        },
+        None => cannot(how),
+    }
 }
 
 /// A reqwest error with its cause chain (where a certificate or a connection failed) and without
@@ -272,30 +332,53 @@ pub(crate) fn tls_refused(e: &reqwest::Error) -> bool {
 #[cfg(test)]
 mod tests {
     use super::bearer_token;
-    use kube::config::AuthInfo;
+    use kube::config::{KubeConfigOptions, Kubeconfig};
 
-    fn user(yaml: &str) -> AuthInfo {
-        serde_yaml::from_str(yaml).unwrap()
+    async fn token_of(user: &str) -> Result<String, String> {
+        let user = user.replace('\n', "\n    ");
+        let yaml = format!(
+            "apiVersion: v1\nkind: Config\ncurrent-context: c\n\
+             clusters: [{{name: k, cluster: {{server: 'https://127.0.0.1:1'}}}}]\n\
+             contexts: [{{name: c, context: {{cluster: k, user: u}}}}]\n\
+             users:\n- name: u\n  user:\n    {user}\n"
+        );
+        let kc: Kubeconfig = serde_yaml::from_str(&yaml).unwrap();
+        let config = kube::Config::from_custom_kubeconfig(kc, &KubeConfigOptions::default())
+            .await
+            .unwrap();
+        bearer_token(&config).await
     }
 
-    #[test]
-    fn the_gateway_gets_the_kubeconfig_users_bearer_token_or_a_hint_to_pass_one() {
-        assert_eq!(bearer_token(&user("token: abc\n")).unwrap(), "abc");
+    #[tokio::test]
+    async fn the_gateway_gets_the_token_kube_would_send_exec_plugins_included() {
+        assert_eq!(token_of("token: abc").await.unwrap(), "abc");
         let file = tempfile::NamedTempFile::new().unwrap();
-        std::fs::write(file.path(), "from-file\n").unwrap();
-        let with_file = format!("tokenFile: {}\n", file.path().display());
-        assert_eq!(bearer_token(&user(&with_file)).unwrap(), "from-file");
-        for (yaml, how) in [
+        std::fs::write(file.path(), "from-file").unwrap();
+        let with_file = format!("tokenFile: {}", file.path().display());
+        assert_eq!(token_of(&with_file).await.unwrap(), "from-file");
+        // An exec plugin (EKS, GKE, AKS, kubelogin, Teleport work this way): its token.
+        let plugin = tempfile::NamedTempFile::new().unwrap();
+        std::fs::write(
+            plugin.path(),
+            r#"{"apiVersion":"client.authentication.k8s.io/v1","kind":"ExecCredential","status":{"token":"from-exec"}}"#,
+        )
+        .unwrap();
+        let exec = format!(
+            "exec: {{apiVersion: client.authentication.k8s.io/v1, command: cat, args: ['{}'], interactiveMode: Never}}",
+            plugin.path().display()
+        );
+        assert_eq!(token_of(&exec).await.unwrap(), "from-exec");
+        for (user, how) in [
             (
-                "client-certificate-data: Zm9v\nclient-key-data: Zm9v\n",
+                "client-certificate-data: Zm9v\nclient-key-data: Zm9v",
                 "a client certificate",
             ),
             (
-                "exec: {apiVersion: client.authentication.k8s.io/v1, command: gcloud}\n",
-                "an exec",
+                "exec: {apiVersion: client.authentication.k8s.io/v1, command: /nonexistent/plugin, interactiveMode: Never}",
+                "credential",
             ),
         ] {
-            let err = bearer_token(&user(yaml)).unwrap_err();
+            let err = token_of(user).await.unwrap_err();
             assert!(err.contains(how) && err.contains("--token"), "{err}");
             assert!(err.contains("kubectl create token"), "{err}");
         }

@@ -1,6 +1,8 @@
 //! `kubectl lekiwi robot add NAME` and `kubectl lekiwi enroll-token`: register a robot with its
-//! own token, or make the namespace's fleet enrollment token. Tokens are printed once and kept
-//! in the cluster only as SHA-256 hashes, in Secrets shaped exactly as the gateway reads them.
+//! own token, or make the namespace's fleet enrollment token, and print the `lekiwi-agent join`
+//! command that joins a robot with it (the gateway's address and the pin of its CA, found in
+//! the cluster). Tokens are printed once and kept in the cluster only as SHA-256 hashes, in
+//! Secrets shaped exactly as the gateway reads them.
 
 use anyhow::{Context as _, bail};
 use clap::{Args, Subcommand};
@@ -12,22 +14,19 @@ use lekiwi_crds::contract::{
     ENROLLMENT_SECRET, MAX_ROBOT_NAME_LEN, REENROLL_ANNOTATION, enrollment_token_secret, managers,
     new_token, robot_token_secret,
 };
+use lekiwi_protocol::join::Join;
 use serde::Serialize;
 
 use crate::Output;
 
-/// The agent's default state directory (agent `stateDir`).
-pub const AGENT_STATE_DIR: &str = "/var/lib/lekiwi";
-/// The agent's default config file.
-pub const AGENT_CONFIG: &str = "/etc/lekiwi/agent.yaml";
-
 /// `robot` subcommands.
 #[derive(Debug, Subcommand)]
 pub enum RobotCommand {
-    /// Register a robot: create the Robot and its own token, print the agent's configuration.
+    /// Register a robot: create the Robot and its own token, print the command that joins it.
     ///
-    /// The agent then connects with that token and needs no enrollment token. The token is
-    /// printed once; the cluster keeps only its SHA-256.
+    /// `lekiwi-agent join` on the robot (printed with the gateway's address, the pin of its CA
+    /// and the token) configures the agent; it connects with that token and needs no enrollment
+    /// token. The token is printed once; the cluster keeps only its SHA-256.
     Add(AddArgs),
     /// Allow an enrolled robot to enroll again, once, with the enrollment token.
     ///
@@ -58,7 +57,8 @@ pub struct AddArgs {
     /// Label of the Robot, `key=value` (repeatable).
     #[arg(long = "label", short = 'l', value_parser = parse_label)]
     pub labels: Vec<(String, String)>,
-    /// WebSocket URL of the gateway for the agent config (default: from LEKIWI_SERVER).
+    /// The gateway's agent URL as robots reach it (default: from the gateway Service's load
+    /// balancer or NodePort, else from LEKIWI_SERVER).
     #[arg(long, env = "LEKIWI_GATEWAY_URL")]
     pub gateway: Option<String>,
     /// If the Robot exists, issue it a new token (the old one stops working) instead of failing.
@@ -72,6 +72,13 @@ pub struct EnrollArgs {
     /// Replace an existing enrollment token (robots already enrolled keep their own tokens).
     #[arg(long)]
     pub rotate: bool,
+    /// Print the `lekiwi-agent join` command on standard output instead of the bare token.
+    #[arg(long)]
+    pub print_join_command: bool,
+    /// The gateway's agent URL as robots reach it (default: from the gateway Service's load
+    /// balancer or NodePort, else from LEKIWI_SERVER).
+    #[arg(long, env = "LEKIWI_GATEWAY_URL")]
+    pub gateway: Option<String>,
 }
 
 fn parse_label(s: &str) -> Result<(String, String), String> {
@@ -103,87 +110,122 @@ pub fn gateway_from_server(server: &str) -> String {
 pub struct AgentSetup {
     /// `namespace/name`.
     pub robot: String,
-    /// Contents of `/etc/lekiwi/agent.yaml`.
-    pub agent_config: AgentConfig,
-    /// Contents of `<stateDir>/credentials.json` (mode 0600).
-    pub credentials: Credentials,
-}
-
-/// The agent config keys `robot add` sets.
-#[derive(Clone, Debug, Serialize)]
-#[serde(rename_all = "camelCase")]
-pub struct AgentConfig {
-    /// Gateway WebSocket URL.
+    /// The gateway's agent URL.
     pub gateway: String,
-    /// `namespace/name`.
-    pub robot_name: String,
-    /// Where the agent keeps its credentials.
-    pub state_dir: String,
-}
-
-/// The agent's `credentials.json`.
-#[derive(Clone, Debug, Serialize)]
-pub struct Credentials {
-    /// `namespace/name`.
-    pub robot: String,
-    /// The per-robot token.
+    /// The pin of the gateway's CA, if the cluster publishes the CA.
+    pub ca_cert_hash: Option<String>,
+    /// The robot's own token.
     pub token: String,
+    /// The command that joins the robot, to run on it as root.
+    pub join_command: String,
 }
 
-impl AgentSetup {
-    /// Shell commands that install the configuration on the robot.
-    pub fn install_script(&self) -> anyhow::Result<String> {
-        let yaml = serde_yaml::to_string(&self.agent_config)?;
-        let creds = serde_json::to_string(&self.credentials)?;
-        let dir = &self.agent_config.state_dir;
-        Ok(format!(
-            "# On the robot, as root:\n\
-             install -d -m 0755 /etc/lekiwi\n\
-             install -d -m 0700 {dir}\n\
-             cat > {AGENT_CONFIG} <<'EOF'\n{yaml}EOF\n\
-             (umask 077 && cat > {dir}/credentials.json <<'EOF'\n{creds}\nEOF\n)\n\
-             chmod 0600 {dir}/credentials.json\n\
-             systemctl restart lekiwi-agent  # or start lekiwi-agent by hand\n"
-        ))
+/// Where robots join: the gateway's agent URL and the pin of its CA.
+#[derive(Clone, Debug)]
+pub struct JoinTarget {
+    /// `wss://HOST:PORT/v1/agent`.
+    pub gateway: String,
+    /// `sha256:...` of the gateway's CA; `None` when the cluster does not publish it.
+    pub ca_cert_hash: Option<String>,
+}
+
+/// Placeholder of a pin the cluster does not publish.
+const PIN_PLACEHOLDER: &str = "sha256:PIN-OF-THE-GATEWAY-CA";
+
+impl JoinTarget {
+    /// The join command for `token` (and the robot's name, with a robot token).
+    pub fn join(&self, token: &str, name: Option<String>) -> Join {
+        Join {
+            gateway: self.gateway.clone(),
+            ca_cert_hash: Some(
+                self.ca_cert_hash
+                    .clone()
+                    .unwrap_or_else(|| PIN_PLACEHOLDER.to_owned()),
+            ),
+            token: token.to_owned(),
+            name,
+        }
     }
+}
+
+/// The gateway robots join, from `--gateway` or the chart's Service, and its CA's pin from the
+/// chart's CA ConfigMap in `gateway_namespace`; what cannot be found is said on standard error
+/// and left as a placeholder for the person to fill in.
+pub async fn join_target(
+    client: &kube::Client,
+    gateway_namespace: &str,
+    gateway: Option<&str>,
+) -> anyhow::Result<JoinTarget> {
+    let located = match crate::locate::locate(client, gateway_namespace).await {
+        Ok(l) => Some(l),
+        Err(e) => {
+            eprintln!("warning: {e:#}");
+            None
+        }
+    };
+    let ca_cert_hash = match &located {
+        Some(l) => l.ca_cert_hash()?,
+        None => None,
+    };
+    let found_url = match (&located, gateway) {
+        (Some(l), None) => l.robot_url(client).await.unwrap_or_else(|e| {
+            eprintln!("warning: {e:#}");
+            None
+        }),
+        _ => None,
+    };
+    let gateway = match (gateway, found_url) {
+        (Some(g), _) => g.to_owned(),
+        (None, Some(u)) => u,
+        (None, None) => match std::env::var("LEKIWI_SERVER") {
+            Ok(server) if !server.is_empty() => gateway_from_server(&server),
+            _ => {
+                eprintln!(
+                    "warning: robots cannot reach the gateway Service (ClusterIP, or none found): \
+                     pass --gateway wss://ADDRESS:PORT/v1/agent, an address robots reach it at \
+                     and its certificate names"
+                );
+                "wss://GATEWAY-ADDRESS:PORT/v1/agent".to_owned()
+            }
+        },
+    };
+    if ca_cert_hash.is_none() {
+        eprintln!(
+            "warning: no CA ConfigMap ({}) in namespace {gateway_namespace}: replace \
+             {PIN_PLACEHOLDER} with the pin of the CA of the gateway's certificate \
+             (`openssl x509 -pubkey -noout -in ca.crt | openssl pkey -pubin -outform der | \
+             sha256sum`)",
+            crate::locate::COMPONENT_SELECTOR
+        );
+    }
+    Ok(JoinTarget {
+        gateway,
+        ca_cert_hash,
+    })
 }
 
 /// Runs `robot add`.
 pub async fn robot_add(
     client: kube::Client,
     namespace: &str,
+    gateway_namespace: &str,
     output: Output,
     args: AddArgs,
 ) -> anyhow::Result<()> {
-    let setup = add(client, namespace, &args).await?;
+    let target = join_target(&client, gateway_namespace, args.gateway.as_deref()).await?;
+    let setup = add(client, namespace, &target, &args).await?;
     match output.structured(&setup)? {
         Some(text) => print!("{text}"),
         None => {
             eprintln!(
-                "robot {} registered; its token is shown once (the cluster keeps only its hash)",
+                "robot {} registered; its token is shown once (the cluster keeps only its hash).\n\
+                 On the robot, with the lekiwi-agent package installed:",
                 setup.robot
             );
-            print!("{}", setup.install_script()?);
+            println!("{}", setup.join_command);
         }
     }
     Ok(())
-}
-
-/// The gateway URL for the agent's config: `--gateway`, else derived from `LEKIWI_SERVER`, else a
-/// placeholder (with a warning) for the person to edit.
-fn agent_gateway(args: &AddArgs) -> String {
-    match &args.gateway {
-        Some(g) => g.clone(),
-        None => match std::env::var("LEKIWI_SERVER") {
-            Ok(server) if !server.is_empty() => gateway_from_server(&server),
-            _ => {
-                eprintln!(
-                    "warning: no --gateway (or LEKIWI_GATEWAY_URL / LEKIWI_SERVER): edit `gateway` in the printed config"
-                );
-                "wss://GATEWAY-HOST/v1/agent".to_owned()
-            }
-        },
-    }
 }
 
 /// Refuses a name no robot with a token can have, before anything is created.
@@ -202,10 +244,10 @@ fn check_name(name: &str) -> anyhow::Result<()> {
 pub async fn add(
     client: kube::Client,
     namespace: &str,
+    target: &JoinTarget,
     args: &AddArgs,
 ) -> anyhow::Result<AgentSetup> {
     check_name(&args.name)?;
-    let gateway = agent_gateway(args);
     let robots: Api<Robot> = Api::namespaced(client.clone(), namespace);
     let robot = Robot {
         metadata: ObjectMeta {
@@ -261,12 +303,10 @@ pub async fn add(
     let full = format!("{namespace}/{}", args.name);
     Ok(AgentSetup {
         robot: full.clone(),
-        agent_config: AgentConfig {
-            gateway,
-            robot_name: full.clone(),
-            state_dir: AGENT_STATE_DIR.to_owned(),
-        },
-        credentials: Credentials { robot: full, token },
+        gateway: target.gateway.clone(),
+        ca_cert_hash: target.ca_cert_hash.clone(),
+        join_command: target.join(&token, Some(full)).command(),
+        token,
     })
 }
 
@@ -314,24 +354,43 @@ pub struct EnrollmentToken {
     pub secret: String,
     /// The token itself, shown this once.
     pub token: String,
+    /// The gateway's agent URL.
+    pub gateway: String,
+    /// The pin of the gateway's CA, if the cluster publishes the CA.
+    pub ca_cert_hash: Option<String>,
+    /// The command that joins a robot (named after its host), to run on it as root.
+    pub join_command: String,
 }
 
 /// Runs `enroll-token`.
 pub async fn enroll_token(
     client: kube::Client,
     namespace: &str,
+    gateway_namespace: &str,
     output: Output,
     args: EnrollArgs,
 ) -> anyhow::Result<()> {
-    let made = make_enrollment_token(client, namespace, args.rotate).await?;
+    let target = join_target(&client, gateway_namespace, args.gateway.as_deref()).await?;
+    let token = make_enrollment_token(client, namespace, args.rotate).await?;
+    let join_command = target.join(&token, None).command();
+    let made = EnrollmentToken {
+        namespace: namespace.to_owned(),
+        secret: ENROLLMENT_SECRET.to_owned(),
+        token,
+        gateway: target.gateway,
+        ca_cert_hash: target.ca_cert_hash,
+        join_command,
+    };
     match output.structured(&made)? {
         Some(text) => print!("{text}"),
+        None if args.print_join_command => println!("{}", made.join_command),
         None => {
             eprintln!(
-                "fleet enrollment token for namespace {namespace} (Secret {}; shown once, the cluster keeps only its hash).\n\
-                 On each robot: write it to a file readable only by root, e.g. /etc/lekiwi/enrollment-token,\n\
-                 and set in {AGENT_CONFIG}:\n  enrollmentTokenFile: /etc/lekiwi/enrollment-token\n  robotName: {namespace}/<name>",
-                made.secret
+                "fleet enrollment token for namespace {namespace} (Secret {}; shown once, the \
+                 cluster keeps only its hash). On each robot, with the lekiwi-agent package \
+                 installed (the robot is named after its host; add --name {namespace}/NAME to \
+                 choose):\n  {}",
+                made.secret, made.join_command
             );
             println!("{}", made.token);
         }
@@ -339,12 +398,13 @@ pub async fn enroll_token(
     Ok(())
 }
 
-/// Creates the namespace's enrollment token Secret, or replaces its hash with `rotate`.
+/// Creates the namespace's enrollment token Secret, or replaces its hash with `rotate`; returns
+/// the token.
 pub async fn make_enrollment_token(
     client: kube::Client,
     namespace: &str,
     rotate: bool,
-) -> anyhow::Result<EnrollmentToken> {
+) -> anyhow::Result<String> {
     let secrets: Api<Secret> = Api::namespaced(client, namespace);
     let token = new_token("lke_");
     let secret = enrollment_token_secret(&token);
@@ -368,11 +428,7 @@ pub async fn make_enrollment_token(
             Err(e) => return Err(e).with_context(what),
         }
     }
-    Ok(EnrollmentToken {
-        namespace: namespace.to_owned(),
-        secret: ENROLLMENT_SECRET.to_owned(),
-        token,
-    })
+    Ok(token)
 }
 
 #[cfg(test)]
@@ -411,22 +467,16 @@ mod tests {
     }
 
     #[test]
-    fn install_script_writes_private_credentials() {
-        let setup = AgentSetup {
-            robot: "lab/kiwi".into(),
-            agent_config: AgentConfig {
-                gateway: "ws://gw/v1/agent".into(),
-                robot_name: "lab/kiwi".into(),
-                state_dir: AGENT_STATE_DIR.into(),
-            },
-            credentials: Credentials {
-                robot: "lab/kiwi".into(),
-                token: "lkr_x".into(),
-            },
+    fn a_robot_token_joins_with_its_name_and_a_missing_pin_is_a_placeholder() {
+        let target = JoinTarget {
+            gateway: "wss://10.0.0.5:30443/v1/agent".into(),
+            ca_cert_hash: None,
         };
-        let script = setup.install_script().unwrap();
-        assert!(script.contains("robotName: lab/kiwi"));
-        assert!(script.contains(r#"{"robot":"lab/kiwi","token":"lkr_x"}"#));
-        assert!(script.contains("chmod 0600 /var/lib/lekiwi/credentials.json"));
+        let line = target.join("lkr_x", Some("lab/kiwi".into())).command();
+        assert_eq!(
+            line,
+            "sudo lekiwi-agent join --gateway wss://10.0.0.5:30443/v1/agent --ca-cert-hash \
+             sha256:PIN-OF-THE-GATEWAY-CA --token lkr_x --name lab/kiwi"
+        );
     }
 }

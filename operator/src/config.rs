@@ -132,6 +132,11 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_TLS_RELOAD_SECONDS", default_value_t = 10)]
     pub tls_reload_seconds: u64,
 
+    /// PEM certificate of the CA that signs --tls-cert, sent after it in every handshake:
+    /// `lekiwi-agent join` takes the CA from there and checks it against its pin.
+    #[arg(long, env = "LEKIWI_TLS_CA", requires = "tls_cert")]
+    pub tls_ca: Option<PathBuf>,
+
     /// Event store: `sqlite://FILE` (embedded default) or `postgres://...`.
     #[arg(
         long,

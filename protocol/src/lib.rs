@@ -5,6 +5,7 @@
 
 use serde::Serialize;
 
+pub mod join;
 mod messages;
 mod phase;
 pub mod release;

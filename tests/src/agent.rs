@@ -102,6 +102,39 @@ impl AgentProcess {
         })
     }
 
+    /// Starts an agent as its service unit does, its settings from `config` and the drop-ins
+    /// beside it (plus the quick test flags); `state_dir` and `status_port` must be what that
+    /// configuration says.
+    pub fn from_config(config: &Path, state_dir: &Path, status_port: u16) -> Result<Self> {
+        let log = log_dir().join(format!(
+            "agent-config-{}.log",
+            state_dir
+                .parent()
+                .and_then(|p| p.file_name())
+                .and_then(|n| n.to_str())
+                .unwrap_or("state")
+        ));
+        std::fs::File::create(&log)?;
+        let mut args = vec!["--config".to_owned(), config.to_str().unwrap().to_owned()];
+        args.extend(QUICK_AGENT_FLAGS.iter().map(|s| s.to_string()));
+        let process = ChildProcess::spawn(Launch {
+            binary: "lekiwi-agent",
+            what: "agent",
+            rust_log: "info,lekiwi_agent=debug",
+            args,
+            env: Vec::new(),
+            log: log.clone(),
+            term_deadline: Duration::from_secs(10),
+            term_poll: Duration::from_millis(20),
+        })?;
+        Ok(Self {
+            process,
+            state_dir: state_dir.to_owned(),
+            status_port,
+            log,
+        })
+    }
+
     /// SIGKILL: a crash or a power cut, nothing is cleaned up.
     pub fn kill(&mut self) {
         self.process.kill();

@@ -192,13 +192,14 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
     )?;
     let setup: Value = serde_json::from_str(&out)?;
     let robot = format!("{ns}/kiwi-r");
-    assert_eq!(setup["agentConfig"]["robotName"], robot.as_str());
-    assert_eq!(setup["agentConfig"]["gateway"], gateway.as_str());
-    assert_eq!(setup["credentials"]["robot"], robot.as_str());
-    let token = setup["credentials"]["token"]
-        .as_str()
-        .context("no token")?
-        .to_owned();
+    assert_eq!(setup["robot"], robot.as_str());
+    assert_eq!(setup["gateway"], gateway.as_str());
+    let token = setup["token"].as_str().context("no token")?.to_owned();
+    let join = setup["joinCommand"].as_str().context("no join command")?;
+    assert!(
+        join.contains(&format!("--token {token}")) && join.contains(&format!("--name {robot}")),
+        "{join}"
+    );
     let created = get_robot(&client, &ns, "kiwi-r").await?;
     assert_eq!(created.spec.display_name.as_deref(), Some("Kiwi R"));
     assert_eq!(
@@ -220,7 +221,7 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
         "{msg}"
     );
 
-    // The table output is the install recipe.
+    // The table output is the join command.
     let out = ok(
         cp,
         &[
@@ -234,14 +235,22 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
             &gateway,
         ],
     )?;
-    assert!(out.contains(&format!("robotName: {robot}")), "{out}");
-    assert!(out.contains("credentials.json"), "{out}");
-    let rotated = out
-        .lines()
-        .find(|l| l.starts_with("{\"robot\""))
-        .context("no credentials.json line")?;
-    let creds: Value = serde_json::from_str(rotated)?;
-    assert_ne!(creds["token"], token.as_str(), "a new token");
+    assert!(
+        out.starts_with("sudo lekiwi-agent join --gateway ") && out.lines().count() == 1,
+        "{out}"
+    );
+    let words: Vec<&str> = out.split_whitespace().collect();
+    let after = |flag: &str| {
+        words
+            .iter()
+            .position(|w| *w == flag)
+            .and_then(|i| words.get(i + 1))
+            .copied()
+    };
+    assert_eq!(after("--name"), Some(robot.as_str()), "{out}");
+    let new_token = after("--token").context("no --token")?;
+    assert_ne!(new_token, token.as_str(), "a new token");
+    let rotated = serde_json::json!({ "robot": robot, "token": new_token }).to_string();
 
     // A real agent with the printed credentials and a wrong enrollment token: only the robot
     // token can get it Online.
@@ -475,6 +484,8 @@ async fn enroll_token_lets_a_real_agent_enroll() -> Result<()> {
     let token2 = rotated["token"].as_str().context("no token")?.to_owned();
     assert_ne!(token, token2);
     assert_eq!(rotated["secret"], "fleet-enrollment");
+    let join = rotated["joinCommand"].as_str().context("no join command")?;
+    assert!(join.contains(&format!("--token {token2}")), "{join}");
 
     let dir = tempfile::tempdir()?;
     let file = dir.path().join("enroll");

@@ -760,3 +760,60 @@ async fn two_replicas_hand_leadership_over_mid_rollout() -> anyhow::Result<()> {
     }
     Ok(())
 }
+
+/// `kubectl lekiwi` from the kubeconfig alone (issue #41): with no --server and no CA file it
+/// finds the chart's gateway in --gateway-namespace, reaches it through a port-forward it opens
+/// itself through the API server, trusts the chart's CA from its ConfigMap and presents the
+/// kubeconfig user's token; `robot add` prints a join command with the gateway's NodePort
+/// address and its CA's pin.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_plugin_reaches_the_gateway_from_the_kubeconfig_alone() -> anyhow::Result<()> {
+    let cluster = Cluster::shared();
+    cluster.operator_image();
+    let site = Install::new(cluster, "plugin", &[]).await?;
+    site.ready_pods(1, Duration::from_secs(120)).await?;
+    let plugin = |args: &[&str]| -> anyhow::Result<String> {
+        let out = Command::new(bin("kubectl-lekiwi"))
+            .arg("--kubeconfig")
+            .arg(&cluster.kubeconfig)
+            .args(["-n", &site.ns, "--gateway-namespace", &site.ns])
+            .args(args)
+            .env_remove("LEKIWI_SERVER")
+            .env_remove("LEKIWI_GATEWAY_URL")
+            .output()?;
+        if !out.status.success() {
+            bail!(
+                "kubectl lekiwi {args:?}: {}\n{}",
+                String::from_utf8_lossy(&out.stderr),
+                site.diagnose()
+            );
+        }
+        Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+    };
+    let rel = release_dir(site.dir.path(), "1.0.0")?;
+    let push = [
+        "release",
+        "push",
+        rel.to_str().unwrap(),
+        "--version",
+        "1.0.0",
+    ];
+    let digest = plugin(&push)?.trim().to_owned();
+    assert!(digest.starts_with("sha256:"), "{digest}");
+    let inspected: Value =
+        serde_json::from_str(&plugin(&["release", "inspect", &digest, "-o", "json"])?)?;
+    assert_eq!(inspected["version"], "1.0.0");
+    assert_eq!(inspected["missing"], json!([]));
+
+    let ca = std::fs::read(&site.ca)?;
+    let der = rustls_pki_types::pem::PemObject::from_pem_slice(&ca)
+        .map(|c: rustls_pki_types::CertificateDer<'static>| c)?;
+    let pin = lekiwi_protocol::join::ca_cert_hash(&der)?;
+    let line = plugin(&["robot", "add", "kiwi-plugin"])?;
+    assert!(
+        line.contains(&format!("--gateway {}", site.ws_url())),
+        "{line}"
+    );
+    assert!(line.contains(&format!("--ca-cert-hash {pin}")), "{line}");
+    Ok(())
+}

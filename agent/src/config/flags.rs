@@ -22,7 +22,9 @@ use serde::Serialize;
 )]
 #[serde(rename_all = "camelCase")]
 pub struct Flags {
-    /// Config file to read (a missing file is fine; flags and environment suffice).
+    /// Config file to read (a missing file is fine; flags and environment suffice), then the
+    /// `*.yaml` drop-ins of the directory beside it named after it with `.d`
+    /// (`/etc/lekiwi/agent.d/`), in name order, each overriding the files before it.
     #[arg(long, env = "LEKIWI_CONFIG", default_value = "/etc/lekiwi/agent.yaml")]
     #[serde(skip)]
     pub config: PathBuf,
@@ -279,6 +281,14 @@ pub struct Flags {
 /// Subcommands.
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {
+    /// Join the fleet with one command (`kubectl lekiwi robot add` and `enroll-token` print
+    /// it): fetches the gateway's CA and checks it against --ca-cert-hash, writes
+    /// /etc/lekiwi/agent.d/50-join.yaml (never /etc/lekiwi/agent.yaml), /etc/lekiwi/ca.crt (0644)
+    /// and /etc/lekiwi/enrollment-token (0600) or the robot's token in
+    /// /var/lib/lekiwi/credentials.json (0600), runs `systemctl enable --now lekiwi-agent` and
+    /// waits until the agent is connected. Run again, it changes nothing; another gateway needs
+    /// --force.
+    Join(crate::join::JoinArgs),
     /// Queue an event for the fleet (e.g. from a lekiwi_host hook); it is stored in the outbox
     /// at once and sent by the running agent, also if the gateway is unreachable right now.
     Event {

@@ -1,4 +1,9 @@
-//! Agent configuration: a YAML file, overridden by flags and `LEKIWI_*` environment variables.
+//! Agent configuration: a YAML file and its drop-ins, overridden by flags and `LEKIWI_*`
+//! environment variables.
+//!
+//! The lab's file (`/etc/lekiwi/agent.yaml`) comes first, then every `*.yaml` of the drop-in
+//! directory beside it (`/etc/lekiwi/agent.d/`) in name order, a later file's keys replacing an
+//! earlier one's: `lekiwi-agent join` writes its own drop-in and never the lab's file.
 //!
 //! Every key of the file is also a flag (`--kebab-case`) and an environment variable
 //! (`LEKIWI_SCREAMING_CASE`); a test keeps the three in step. The file is flat on purpose, so
@@ -245,10 +250,10 @@ impl Config {
         Ok(config)
     }
 
-    /// File, environment and flags merged, without checking that the gateway is set (for
-    /// subcommands that work on the state directory only).
+    /// File, drop-ins, environment and flags merged, without checking that the gateway is set
+    /// (for subcommands that work on the state directory only).
     pub fn merge(flags: &Flags) -> Result<Self, Error> {
-        let mut merged = read_file(&flags.config)?;
+        let mut merged = read_files(&flags.config)?;
         let overrides = serde_json::to_value(flags).map_err(|e| Error::Invalid(e.to_string()))?;
         if let serde_json::Value::Object(overrides) = overrides {
             merged.extend(overrides);
@@ -436,6 +441,39 @@ fn health_bounds(c: &Config) -> Result<(), Error> {
         )));
     }
     Ok(())
+}
+
+/// The drop-in directory of a config file: beside it, named after it with `.d`
+/// (`/etc/lekiwi/agent.yaml` has `/etc/lekiwi/agent.d`).
+pub fn drop_in_dir(config: &Path) -> PathBuf {
+    let stem = config
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    config
+        .parent()
+        .unwrap_or(Path::new("/"))
+        .join(format!("{stem}.d"))
+}
+
+/// The config file's keys, then each drop-in's (`*.yaml`, in name order) over them.
+fn read_files(config: &Path) -> Result<serde_json::Map<String, serde_json::Value>, Error> {
+    let mut merged = read_file(config)?;
+    let dir = drop_in_dir(config);
+    let entries = match std::fs::read_dir(&dir) {
+        Ok(entries) => entries,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(merged),
+        Err(source) => return Err(Error::ReadConfig { path: dir, source }),
+    };
+    let mut files: Vec<PathBuf> = entries
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "yaml") && p.is_file())
+        .collect();
+    files.sort();
+    for file in files {
+        merged.extend(read_file(&file)?);
+    }
+    Ok(merged)
 }
 
 fn read_file(path: &Path) -> Result<serde_json::Map<String, serde_json::Value>, Error> {

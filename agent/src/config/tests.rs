@@ -37,6 +37,43 @@ fn flags_override_file_and_file_overrides_defaults() {
 }
 
 #[test]
+fn drop_ins_override_the_file_in_name_order_and_flags_override_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("agent.yaml");
+    std::fs::write(
+        &path,
+        "gateway: wss://lab/agent\nrobotName: from-file\nhealthCommand: lab-check\n",
+    )
+    .unwrap();
+    let drop_ins = dir.path().join("agent.d");
+    assert_eq!(drop_in_dir(&path), drop_ins);
+    std::fs::create_dir(&drop_ins).unwrap();
+    std::fs::write(
+        drop_ins.join("50-join.yaml"),
+        "gateway: wss://joined/agent\nrobotName: joined\n",
+    )
+    .unwrap();
+    std::fs::write(drop_ins.join("90-local.yaml"), "robotName: local\n").unwrap();
+    std::fs::write(drop_ins.join("README"), "not yaml: [").unwrap();
+    let flags = Flags::parse_from(["lekiwi-agent", "--config", path.to_str().unwrap()]);
+    let cfg = Config::load(&flags, "host").unwrap();
+    assert_eq!(cfg.gateway, "wss://joined/agent");
+    assert_eq!(cfg.robot_name, "local");
+    assert_eq!(cfg.health_command, "lab-check", "the lab's keys stay");
+    let flags = Flags::parse_from([
+        "lekiwi-agent",
+        "--config",
+        path.to_str().unwrap(),
+        "--robot-name",
+        "flag",
+    ]);
+    assert_eq!(Config::load(&flags, "host").unwrap().robot_name, "flag");
+    std::fs::write(drop_ins.join("60-bad.yaml"), "gatewy: typo\n").unwrap();
+    let err = Config::load(&flags, "host").unwrap_err().to_string();
+    assert!(err.contains("gatewy"), "{err}");
+}
+
+#[test]
 fn bad_file_and_missing_gateway_are_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("agent.yaml");

@@ -57,7 +57,7 @@ pub async fn run(
         bail!("--version {version:?}: use 1 to 128 letters, digits, `.`, `_`, `+` or `-`");
     }
     let (digest, size) = hash(&binary)?;
-    let gateway = Gateway::connect(kube, server, Some(&kube.namespace))?;
+    let gateway = Gateway::connect(kube, server, Some(&kube.namespace)).await?;
     let blob = Blob {
         digest: digest.clone(),
         size,

@@ -18,6 +18,27 @@ pub(crate) struct Gateway {
     token: String,
     /// The namespace requests act in (`?namespace=`), when the routes want it.
     namespace: Option<String>,
+    /// The port-forward to the chart's gateway, open while this lives (without `--server`).
+    _forward: Option<crate::forward::Forward>,
+}
+
+/// The chart's gateway in `--gateway-namespace` through a port-forward: its base URL (by the
+/// Service's DNS name, which its certificate carries), the forward, and the chart's CA.
+async fn through_api_server(
+    kube: &crate::KubeContext,
+) -> anyhow::Result<(String, crate::forward::Forward, Option<String>)> {
+    let gw = crate::locate::locate(&kube.client, &kube.gateway_namespace)
+        .await
+        .context("no --server given, and the chart's gateway cannot be found")?;
+    let forward = crate::forward::open(&kube.client, &gw).await?;
+    let scheme = if forward.tls { "https" } else { "http" };
+    let base = format!(
+        "{scheme}://{}.{}.svc:{}",
+        gw.service,
+        gw.namespace,
+        forward.local.port()
+    );
+    Ok((base, forward, gw.ca_pem))
 }
 
 /// An error answer of the gateway.
@@ -77,8 +98,9 @@ pub(crate) async fn message(resp: reqwest::Response) -> String {
 impl Gateway {
     /// Builds the HTTP client (trusting `--certificate-authority`) with `--token` or the
     /// kubeconfig user's token, its requests naming `namespace`; refuses plain `http://` to
-    /// another host first (see [`ServerArgs::check_transport`]).
-    pub(crate) fn connect(
+    /// another host first (see [`ServerArgs::check_transport`]). Without `--server`, the chart's
+    /// gateway through a port-forward the plugin opens (see [`crate::forward`]).
+    pub(crate) async fn connect(
         kube: &crate::KubeContext,
         server: &ServerArgs,
         namespace: Option<&str>,
@@ -93,18 +115,35 @@ impl Gateway {
         let mut http = reqwest::Client::builder()
             .connect_timeout(Duration::from_secs(10))
             .read_timeout(Duration::from_secs(120));
-        if let Some(ca) = &server.certificate_authority {
-            let pem = std::fs::read(ca).with_context(|| format!("cannot read {}", ca.display()))?;
+        let mut ca_pem = match &server.certificate_authority {
+            Some(ca) => {
+                Some(std::fs::read(ca).with_context(|| format!("cannot read {}", ca.display()))?)
+            }
+            None => None,
+        };
+        let (base, forward) = match &server.server {
+            Some(url) => (url.trim_end_matches('/').to_owned(), None),
+            None => {
+                let (base, forward, chart_ca) = through_api_server(kube).await?;
+                // The name the gateway's certificate carries, at the forwarded port.
+                let host = base.split("://").nth(1).and_then(|h| h.split(':').next());
+                http = http.resolve(host.unwrap_or_default(), forward.local);
+                ca_pem = ca_pem.or(chart_ca.map(String::into_bytes));
+                (base, Some(forward))
+            }
+        };
+        if let Some(pem) = ca_pem {
             http = http.add_root_certificate(
                 reqwest::Certificate::from_pem(&pem)
-                    .with_context(|| format!("{} is not a PEM certificate", ca.display()))?,
+                    .context("--certificate-authority is not a PEM certificate")?,
             );
         }
         Ok(Self {
             http: http.build()?,
-            base: server.server.trim_end_matches('/').to_owned(),
+            base,
             token,
             namespace: namespace.map(str::to_owned),
+            _forward: forward,
         })
     }
 

@@ -145,7 +145,7 @@ mod tests {
             "deployments": {"release": 1, "rollbackTarget": 0}
         }))
         .unwrap();
-        let text = render(&[item.clone()], Output::Table, now).unwrap();
+        let text = render(std::slice::from_ref(&item), Output::Table, now).unwrap();
         let line = text.lines().nth(1).unwrap();
         let cells: Vec<&str> = line.split_whitespace().collect();
         assert_eq!(

@@ -34,14 +34,11 @@ pub use push::{Pushed, human};
 /// Where the gateway is and which Kubernetes token to present to it.
 #[derive(Debug, Args)]
 pub struct ServerArgs {
-    /// Base URL of the gateway (the agents' address, over HTTP).
-    #[arg(
-        long,
-        global = true,
-        env = "LEKIWI_SERVER",
-        default_value = "http://127.0.0.1:8081"
-    )]
-    pub server: String,
+    /// Base URL of the gateway (the agents' address, over HTTP). Default: the chart's gateway
+    /// in --gateway-namespace, reached through the API server (a port-forward the plugin opens
+    /// to a Pod of its Service) and trusted by the CA in the chart's ConfigMap.
+    #[arg(long, global = true, env = "LEKIWI_SERVER")]
+    pub server: Option<String>,
     /// Kubernetes bearer token to present to the gateway (e.g. from `kubectl create token SA`);
     /// default: the kubeconfig user's token. The gateway checks it with the API server and
     /// asks RBAC whether its user may do what the command does.
@@ -60,13 +57,16 @@ impl ServerArgs {
     /// Refuses a plain `http://` server on another host unless `--insecure-allow-plaintext`:
     /// the token would cross the network readable by anyone on the path.
     pub fn check_transport(&self) -> anyhow::Result<()> {
-        match lekiwi_protocol::transport::plaintext_remote_host(&self.server) {
+        let Some(server) = &self.server else {
+            // Through the API server's port-forward: the tunnel is the API server's TLS.
+            return Ok(());
+        };
+        match lekiwi_protocol::transport::plaintext_remote_host(server) {
             Some(host) if !self.insecure_allow_plaintext => anyhow::bail!(
-                "refusing to send your Kubernetes token over plain http:// to {host} (--server {}): \
+                "refusing to send your Kubernetes token over plain http:// to {host} (--server {server}): \
                  anyone on the path could read it and act as you in the cluster. Use https:// (with \
                  --certificate-authority for the gateway's CA), or on a network you trust pass \
-                 --insecure-allow-plaintext",
-                self.server
+                 --insecure-allow-plaintext"
             ),
             Some(host) => {
                 eprintln!(
@@ -143,7 +143,7 @@ pub async fn run(
             push_dir(kube, server, &dir, &version, options).await
         }
         ReleaseCommand::List => {
-            let gateway = Gateway::connect(kube, server, None)?;
+            let gateway = Gateway::connect(kube, server, None).await?;
             let items = gateway.releases(&kube.namespace).await?;
             let items: Vec<list::ReleaseItem> = items
                 .into_iter()
@@ -154,7 +154,7 @@ pub async fn run(
             Ok(())
         }
         ReleaseCommand::Delete { release } => {
-            let gateway = Gateway::connect(kube, server, None)?;
+            let gateway = Gateway::connect(kube, server, None).await?;
             let deleted = gateway.delete_release(&kube.namespace, &release).await?;
             println!(
                 "release {} ({}) deleted: {} blobs, {} freed",
@@ -167,7 +167,7 @@ pub async fn run(
         }
         ReleaseCommand::Inspect { digest } => {
             digest_hex(&digest)?;
-            let gateway = Gateway::connect(kube, server, Some(&kube.namespace))?;
+            let gateway = Gateway::connect(kube, server, Some(&kube.namespace)).await?;
             let info = gateway.release(&digest).await?;
             print!("{}", render(&info, output)?);
             Ok(())
@@ -194,7 +194,7 @@ async fn push_dir(
     manifest
         .validate()
         .with_context(|| format!("cannot make a release of {}", dir.display()))?;
-    let gateway = Gateway::connect(kube, server, Some(&kube.namespace))?;
+    let gateway = Gateway::connect(kube, server, Some(&kube.namespace)).await?;
     let pushed = push::push(&gateway, &manifest, &hashed, options).await?;
     eprintln!("{}", pushed.summary(version));
     eprintln!(

@@ -99,7 +99,7 @@ fn tables_show_modes_and_short_digests() {
 #[test]
 fn the_token_goes_in_plain_text_only_to_loopback_or_when_allowed() {
     let args = |server: &str, insecure: bool| ServerArgs {
-        server: server.to_owned(),
+        server: Some(server.to_owned()),
         token: None,
         certificate_authority: None,
         insecure_allow_plaintext: insecure,

@@ -46,10 +46,15 @@ pub struct Acceptor {
 }
 
 impl Acceptor {
-    /// An acceptor for the PEM certificate chain and key files.
-    pub async fn from_pem_files(cert: &Path, key: &Path) -> io::Result<Self> {
-        let (cert, key) = (tokio::fs::read(cert).await?, tokio::fs::read(key).await?);
-        Self::from_pem(&cert, &key)
+    /// An acceptor for the PEM certificate chain and key files, the CA certificate(s) in `ca`
+    /// (if any) sent after the chain so that `lekiwi-agent join` can pin the CA.
+    pub async fn from_pem_files(cert: &Path, key: &Path, ca: Option<&Path>) -> io::Result<Self> {
+        let mut chain = tokio::fs::read(cert).await?;
+        if let Some(ca) = ca {
+            append_pem(&mut chain, &tokio::fs::read(ca).await?);
+        }
+        let key = tokio::fs::read(key).await?;
+        Self::from_pem(&chain, &key)
     }
 
     /// An acceptor for a PEM certificate chain (the gateway's own certificate first) and its key.
@@ -468,6 +473,14 @@ fn server_config(cert: &[u8], key: &[u8]) -> io::Result<ServerConfig> {
         .map_err(invalid)?;
     config.alpn_protocols = vec![b"http/1.1".to_vec()];
     Ok(config)
+}
+
+/// Appends the PEM text `more` to `chain`, on a line of its own.
+pub(crate) fn append_pem(chain: &mut Vec<u8>, more: &[u8]) {
+    if !chain.is_empty() && !chain.ends_with(b"\n") {
+        chain.push(b'\n');
+    }
+    chain.extend_from_slice(more);
 }
 
 fn invalid(error: rustls::Error) -> io::Error {

@@ -27,6 +27,9 @@ pub struct CertFiles {
     pub cert: PathBuf,
     /// PEM private key of that certificate.
     pub key: PathBuf,
+    /// PEM certificate of the CA that signs it (`--tls-ca`), sent after the chain so that
+    /// `lekiwi-agent join` can pin it; reloaded with the others.
+    pub ca: Option<PathBuf>,
 }
 
 /// The bytes of both files, as last read.
@@ -38,8 +41,12 @@ pub struct Loaded {
 
 impl CertFiles {
     async fn read(&self) -> std::io::Result<Loaded> {
+        let mut cert = tokio::fs::read(&self.cert).await?;
+        if let Some(ca) = &self.ca {
+            super::append_pem(&mut cert, &tokio::fs::read(ca).await?);
+        }
         Ok(Loaded {
-            cert: tokio::fs::read(&self.cert).await?,
+            cert,
             key: tokio::fs::read(&self.key).await?,
         })
     }
@@ -131,6 +138,7 @@ pub async fn acceptor(
     let files = CertFiles {
         cert: cert.clone(),
         key: key.clone(),
+        ca: config.tls_ca.clone(),
     };
     let addr = config.gateway_addr;
     let (acceptor, loaded) = files

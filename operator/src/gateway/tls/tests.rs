@@ -52,10 +52,13 @@ struct Bed {
 async fn bed(versions: &[&'static rustls::SupportedProtocolVersion]) -> Bed {
     let dir = tempfile::tempdir().unwrap();
     certificates(dir.path());
-    let acceptor =
-        Acceptor::from_pem_files(&dir.path().join("tls.crt"), &dir.path().join("tls.key"))
-            .await
-            .unwrap();
+    let acceptor = Acceptor::from_pem_files(
+        &dir.path().join("tls.crt"),
+        &dir.path().join("tls.key"),
+        None,
+    )
+    .await
+    .unwrap();
     let mut roots = rustls::RootCertStore::empty();
     for cert in CertificateDer::pem_file_iter(dir.path().join("ca.crt")).unwrap() {
         roots.add(cert.unwrap()).unwrap();
@@ -408,6 +411,7 @@ async fn new_files_serve_new_connections_while_open_ones_stay_and_bad_ones_are_n
     let files = CertFiles {
         cert: dir.join("tls.crt"),
         key: dir.join("tls.key"),
+        ca: None,
     };
     let (acceptor, loaded) = files.load().await.unwrap();
     bed.acceptor = acceptor.clone();
