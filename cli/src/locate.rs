@@ -41,7 +41,40 @@ pub struct Located {
 /// name order, the first with a port named `gateway` (a chart may add other Services with the
 /// label, e.g. for the API).
 pub async fn locate(client: &kube::Client, namespace: &str) -> anyhow::Result<Located> {
-    let by_label = ListParams::default().labels(COMPONENT_SELECTOR);
+    match find(client, namespace, COMPONENT_SELECTOR, GATEWAY_PORT_NAME).await? {
+        Some(found) => Ok(found),
+        None => bail!(
+            "no gateway Service (label {COMPONENT_SELECTOR}, port `{GATEWAY_PORT_NAME}`) in \
+             namespace {namespace}: pass --gateway-namespace (or LEKIWI_GATEWAY_NAMESPACE) with \
+             the namespace the chart is installed in"
+        ),
+    }
+}
+
+/// Finds the Fleet API in `namespace`: the chart's API Service (label
+/// `app.kubernetes.io/component=api`, port `api`) when it serves the API apart, else the
+/// gateway, which then serves it too.
+pub async fn locate_api(client: &kube::Client, namespace: &str) -> anyhow::Result<Located> {
+    match find(client, namespace, API_SELECTOR, API_PORT_NAME).await? {
+        Some(found) => Ok(found),
+        None => locate(client, namespace).await,
+    }
+}
+
+/// The label the chart puts on the Fleet API's own Service.
+pub const API_SELECTOR: &str = "app.kubernetes.io/component=api";
+/// Name of the Service port of the Fleet API.
+pub const API_PORT_NAME: &str = "api";
+
+/// The first Service labelled `selector` (in name order) with a port named `port_name` (or a
+/// single port), with the gateway's CA.
+async fn find(
+    client: &kube::Client,
+    namespace: &str,
+    selector: &str,
+    port_name: &str,
+) -> anyhow::Result<Option<Located>> {
+    let by_label = ListParams::default().labels(selector);
     let services: Api<Service> = Api::namespaced(client.clone(), namespace);
     let mut found = services.list(&by_label).await.with_context(|| {
         format!("cannot list Services in namespace {namespace} (the gateway's namespace)")
@@ -51,15 +84,11 @@ pub async fn locate(client: &kube::Client, namespace: &str) -> anyhow::Result<Lo
         let ports = s.spec.as_ref()?.ports.as_ref()?;
         let port = ports
             .iter()
-            .find(|p| p.name.as_deref() == Some(GATEWAY_PORT_NAME))
+            .find(|p| p.name.as_deref() == Some(port_name))
             .or_else(|| (ports.len() == 1).then(|| &ports[0]))?;
         Some((s, port.clone()))
     }) else {
-        bail!(
-            "no gateway Service (label {COMPONENT_SELECTOR}, port `{GATEWAY_PORT_NAME}`) in \
-             namespace {namespace}: pass --gateway-namespace (or LEKIWI_GATEWAY_NAMESPACE) with \
-             the namespace the chart is installed in"
-        );
+        return Ok(None);
     };
     let spec = svc.spec.clone().unwrap_or_default();
     let ingress = svc
@@ -69,7 +98,7 @@ pub async fn locate(client: &kube::Client, namespace: &str) -> anyhow::Result<Lo
         .and_then(|lb| lb.ingress.as_ref())
         .and_then(|i| i.first())
         .and_then(|i| i.ip.clone().or_else(|| i.hostname.clone()));
-    Ok(Located {
+    Ok(Some(Located {
         namespace: namespace.to_owned(),
         service: svc.name_any(),
         port: u16::try_from(port.port).context("the gateway Service's port is out of range")?,
@@ -79,7 +108,7 @@ pub async fn locate(client: &kube::Client, namespace: &str) -> anyhow::Result<Lo
         ca_pem: ca_pem(client, namespace).await?,
         selector: spec.selector.clone().unwrap_or_default(),
         target_port: port.target_port.clone(),
-    })
+    }))
 }
 
 /// The `ca.crt` of the gateway's CA ConfigMap, if the chart made one.

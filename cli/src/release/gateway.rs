@@ -26,10 +26,14 @@ pub(crate) struct Gateway {
 /// Service's DNS name, which its certificate carries), the forward, and the chart's CA.
 async fn through_api_server(
     kube: &crate::KubeContext,
+    api: bool,
 ) -> anyhow::Result<(String, crate::forward::Forward, Option<String>)> {
-    let gw = crate::locate::locate(&kube.client, &kube.gateway_namespace)
-        .await
-        .context("no --server given, and the chart's gateway cannot be found")?;
+    let gw = if api {
+        crate::locate::locate_api(&kube.client, &kube.gateway_namespace).await
+    } else {
+        crate::locate::locate(&kube.client, &kube.gateway_namespace).await
+    }
+    .context("no --server given, and the chart's gateway cannot be found")?;
     let forward = crate::forward::open(&kube.client, &gw).await?;
     let scheme = if forward.tls { "https" } else { "http" };
     let base = format!(
@@ -105,6 +109,24 @@ impl Gateway {
         server: &ServerArgs,
         namespace: Option<&str>,
     ) -> anyhow::Result<Self> {
+        Self::connect_to(kube, server, namespace, false).await
+    }
+
+    /// As [`Self::connect`], for the Fleet API's routes (`/api/v1/...`): without `--server`,
+    /// the chart's API Service when it serves the API on a port of its own.
+    pub(crate) async fn connect_api(
+        kube: &crate::KubeContext,
+        server: &ServerArgs,
+    ) -> anyhow::Result<Self> {
+        Self::connect_to(kube, server, None, true).await
+    }
+
+    async fn connect_to(
+        kube: &crate::KubeContext,
+        server: &ServerArgs,
+        namespace: Option<&str>,
+        api: bool,
+    ) -> anyhow::Result<Self> {
         // Before anything is sent: the token must not cross the network in clear.
         server.check_transport()?;
         let token = match (&server.token, &kube.bearer) {
@@ -124,7 +146,7 @@ impl Gateway {
         let (base, forward) = match &server.server {
             Some(url) => (url.trim_end_matches('/').to_owned(), None),
             None => {
-                let (base, forward, chart_ca) = through_api_server(kube).await?;
+                let (base, forward, chart_ca) = through_api_server(kube, api).await?;
                 // The name the gateway's certificate carries, at the forwarded port.
                 let host = base.split("://").nth(1).and_then(|h| h.split(':').next());
                 http = http.resolve(host.unwrap_or_default(), forward.local);

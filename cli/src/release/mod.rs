@@ -143,7 +143,7 @@ pub async fn run(
             push_dir(kube, server, &dir, &version, options).await
         }
         ReleaseCommand::List => {
-            let gateway = Gateway::connect(kube, server, None).await?;
+            let gateway = Gateway::connect_api(kube, server).await?;
             let items = gateway.releases(&kube.namespace).await?;
             let items: Vec<list::ReleaseItem> = items
                 .into_iter()
@@ -154,7 +154,7 @@ pub async fn run(
             Ok(())
         }
         ReleaseCommand::Delete { release } => {
-            let gateway = Gateway::connect(kube, server, None).await?;
+            let gateway = Gateway::connect_api(kube, server).await?;
             let deleted = gateway.delete_release(&kube.namespace, &release).await?;
             println!(
                 "release {} ({}) deleted: {} blobs, {} freed",

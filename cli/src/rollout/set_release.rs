@@ -90,7 +90,7 @@ async fn pushed(
     server: &ServerArgs,
     version: &str,
 ) -> anyhow::Result<Option<BTreeSet<String>>> {
-    let gateway = Gateway::connect(kube, server, None).await?;
+    let gateway = Gateway::connect_api(kube, server).await?;
     let path = format!("/api/v1/namespaces/{}/releases", kube.namespace);
     let resp = gateway
         .request(Method::GET, &path)
