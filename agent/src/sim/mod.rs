@@ -197,7 +197,8 @@ pub struct Summary {
     pub events_generated: u64,
     /// Of those, acknowledged by the gateway (an `ack`, or covered by `welcome.stored_seq`).
     pub events_acked: u64,
-    /// Durable frames sent again after a reconnect because they were not acknowledged.
+    /// Durable frames sent again because they were not acknowledged: after a reconnect, or
+    /// after a heartbeat interval without an ack (refused, or the ack lost).
     pub events_resent: u64,
     /// What the robots did with the gateway's commands.
     #[serde(flatten)]

@@ -4,6 +4,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
 
 use lekiwi_protocol::{AgentMessage, Sample, Severity, encode};
 use tokio_tungstenite::tungstenite::Message;
@@ -16,6 +17,8 @@ use super::Stats;
 pub(super) struct Outbox {
     next_seq: u64,
     pub(super) unacked: BTreeMap<u64, Pending>,
+    /// When each unacknowledged message was last sent.
+    sent: BTreeMap<u64, Instant>,
 }
 
 /// A durable message kept until acknowledged.
@@ -45,6 +48,7 @@ impl Outbox {
     pub(super) fn push_at(&mut self, ts_ms: i64, stats: &Stats) -> (u64, i64) {
         self.next_seq += 1;
         self.unacked.insert(self.next_seq, Pending::Tick(ts_ms));
+        self.sent.insert(self.next_seq, Instant::now());
         stats.events_generated.fetch_add(1, Ordering::Relaxed);
         (self.next_seq, ts_ms)
     }
@@ -61,6 +65,7 @@ impl Outbox {
             self.next_seq,
             Pending::Frame(frame.clone().into_boxed_str()),
         );
+        self.sent.insert(self.next_seq, Instant::now());
         stats.events_generated.fetch_add(1, Ordering::Relaxed);
         Message::text(frame)
     }
@@ -74,23 +79,39 @@ impl Outbox {
             .fetch_add(samples.len() as u64, Ordering::Relaxed);
         self.unacked
             .insert(self.next_seq, Pending::Telemetry(samples));
+        self.sent.insert(self.next_seq, Instant::now());
         self.next_seq
     }
 
     /// The gateway stored `seq`.
     pub(super) fn ack(&mut self, seq: u64, stats: &Stats) {
+        self.sent.remove(&seq);
         if let Some(done) = self.unacked.remove(&seq) {
             done.count_acked(stats);
         }
     }
 
-    /// `welcome.stored_seq`: everything up to it is stored already.
-    pub(super) fn stored_through(&mut self, stored: Option<u64>, stats: &Stats) {
-        let Some(stored) = stored else { return };
-        let keep = self.unacked.split_off(&(stored + 1));
-        for done in std::mem::replace(&mut self.unacked, keep).values() {
-            done.count_acked(stats);
+    /// `seq` was (re)sent now.
+    pub(super) fn mark_sent(&mut self, seq: u64) {
+        if self.unacked.contains_key(&seq) {
+            self.sent.insert(seq, Instant::now());
         }
+    }
+
+    /// The unacknowledged messages last sent at least `age` ago, in ascending `seq`: refused
+    /// (`store_unavailable`, `rate_limited`) or their ack lost, they go again (PROTOCOL.md §6
+    /// rule 3).
+    pub(super) fn due(&self, age: Duration) -> Vec<u64> {
+        let now = Instant::now();
+        self.unacked
+            .keys()
+            .filter(|seq| {
+                self.sent
+                    .get(seq)
+                    .is_none_or(|at| now.duration_since(*at) >= age)
+            })
+            .copied()
+            .collect()
     }
 
     /// The highest `seq` acknowledged, for `hello.last_acked_seq`.
@@ -132,6 +153,24 @@ pub(super) fn event(name: &str, seq: u64, ts_ms: i64) -> Message {
 mod tests {
     use super::*;
 
+    /// A message the gateway refused or whose ack was lost goes again once it has waited;
+    /// an acknowledged one never.
+    #[test]
+    fn unacknowledged_messages_are_due_again_after_a_while() {
+        let stats = Stats::default();
+        let mut outbox = Outbox::default();
+        for _ in 0..3 {
+            outbox.push_at(1, &stats);
+        }
+        assert!(outbox.due(Duration::from_secs(60)).is_empty(), "just sent");
+        outbox.ack(2, &stats);
+        assert_eq!(outbox.due(Duration::ZERO), [1, 3]);
+        outbox.mark_sent(1);
+        assert_eq!(outbox.due(Duration::from_millis(50)), Vec::<u64>::new());
+        std::thread::sleep(Duration::from_millis(60));
+        assert_eq!(outbox.due(Duration::from_millis(50)), [1, 3]);
+    }
+
     #[test]
     fn the_outbox_keeps_what_is_not_acknowledged_and_counts_each_event_once() {
         let stats = Stats::default();
@@ -145,8 +184,9 @@ mod tests {
         assert_eq!(outbox.last_acked(), None, "seq 1 is still unacknowledged");
         outbox.ack(1, &stats);
         assert_eq!(outbox.last_acked(), Some(2));
-        // A new session's welcome says 4 is stored: 3 and 4 count as acknowledged, 5 stays.
-        outbox.stored_through(Some(4), &stats);
+        // Replays of 3 and 4 after a reconnect are acknowledged; 5 stays.
+        outbox.ack(3, &stats);
+        outbox.ack(4, &stats);
         assert_eq!(outbox.unacked.keys().copied().collect::<Vec<_>>(), [5]);
         assert_eq!(outbox.last_acked(), Some(4));
         assert_eq!(stats.events_generated.load(Ordering::Relaxed), 5);
@@ -166,7 +206,9 @@ mod tests {
         );
         outbox.push_at(1, &stats);
         outbox.push_telemetry(vec![sample(3.0)], &stats);
-        outbox.stored_through(Some(7), &stats);
+        for seq in [6, 7] {
+            outbox.ack(seq, &stats);
+        }
         assert_eq!(outbox.unacked.keys().copied().collect::<Vec<_>>(), [8]);
         outbox.ack(8, &stats);
         let load = |c: &std::sync::atomic::AtomicU64| c.load(Ordering::Relaxed);

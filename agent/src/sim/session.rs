@@ -126,7 +126,9 @@ pub(super) async fn robot(fleet: Fleet, name: String, gateway: usize) {
                         creds.token = token;
                     }
                     creds.robot = welcome.robot.clone();
-                    outbox.stored_through(welcome.stored_seq, &fleet.stats);
+                    // Not dropped by `welcome.stored_seq`: the robot pipelines its durable
+                    // messages, so a stored later one says nothing of an earlier one
+                    // (PROTOCOL.md §6 rule 4); everything unacknowledged goes again.
                     fleet.count_session(std::mem::take(&mut first));
                     let interval = args
                         .heartbeat_interval
@@ -225,17 +227,8 @@ impl Session<'_> {
         let (mut tx, mut rx) = ws.split();
         self.commands.welcomed();
         let stats = &*self.fleet.stats;
-        for (&seq, pending) in &self.outbox.unacked {
-            if !matches!(pending, Pending::Telemetry(_)) {
-                stats.events_resent.fetch_add(1, Ordering::Relaxed);
-            }
-            if tx
-                .send(Outbox::frame(self.name, seq, pending))
-                .await
-                .is_err()
-            {
-                return Ended::Lost;
-            }
+        if !self.resend(&mut tx, Duration::ZERO).await {
+            return Ended::Lost;
         }
         // Spread the first heartbeat, event and telemetry batch over one period each.
         let mut tick = spread_interval(self.interval);
@@ -286,13 +279,37 @@ impl Session<'_> {
             match step {
                 Step::Go => {}
                 Step::Heartbeat => {
-                    if !self.heartbeat(&mut tx).await {
+                    let interval = self.interval;
+                    if !self.heartbeat(&mut tx).await || !self.resend(&mut tx, interval).await {
                         return Ended::Lost;
                     }
                 }
                 Step::End(ended) => return ended,
             }
         }
+    }
+
+    /// Sends again, in ascending `seq`, the unacknowledged messages last sent at least `age`
+    /// ago; false if the connection failed.
+    async fn resend(&mut self, tx: &mut Tx, age: Duration) -> bool {
+        let stats = &*self.fleet.stats;
+        for seq in self.outbox.due(age) {
+            let Some(pending) = self.outbox.unacked.get(&seq) else {
+                continue;
+            };
+            if !matches!(pending, Pending::Telemetry(_)) {
+                stats.events_resent.fetch_add(1, Ordering::Relaxed);
+            }
+            if tx
+                .send(Outbox::frame(self.name, seq, pending))
+                .await
+                .is_err()
+            {
+                return false;
+            }
+            self.outbox.mark_sent(seq);
+        }
+        true
     }
 
     /// Sends a heartbeat; false if the connection failed.
