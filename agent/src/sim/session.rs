@@ -126,9 +126,7 @@ pub(super) async fn robot(fleet: Fleet, name: String, gateway: usize) {
                         creds.token = token;
                     }
                     creds.robot = welcome.robot.clone();
-                    // Not dropped by `welcome.stored_seq`: the robot pipelines its durable
-                    // messages, so a stored later one says nothing of an earlier one
-                    // (PROTOCOL.md §6 rule 4); everything unacknowledged goes again.
+                    // Nothing dropped by stored_seq: we pipeline (PROTOCOL.md §6 rule 4).
                     fleet.count_session(std::mem::take(&mut first));
                     let interval = args
                         .heartbeat_interval

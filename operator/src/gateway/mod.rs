@@ -6,6 +6,7 @@ pub mod admission;
 pub mod api;
 pub mod auth;
 pub mod blob_api;
+mod blob_start;
 pub mod blob_store;
 pub mod dashboard;
 pub mod desired;

@@ -21,19 +21,16 @@ use super::admission::EnrollAdmission;
 use super::api::FleetApi;
 use super::api::cache::Cache;
 use super::auth::Authenticator;
-use super::blob_store::BlobStore;
 use super::desired::DesiredReleases;
-use super::kube_auth::KubeAuth;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
 use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
-use super::releases::{self, Releases};
 use super::session::{Limits, Shared};
 use super::tls::reload;
 use super::tokens::TokenIndex;
-use super::{AppState, Routes, blob_api, dispatch, lease, routes};
+use super::{AppState, Routes, dispatch, lease, routes};
 use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::gateway::event_store::Store;
@@ -41,70 +38,6 @@ use crate::metrics::Metrics;
 
 /// At most one quota Warning Event per robot this often.
 const QUOTA_WARNING_INTERVAL: Duration = Duration::from_secs(300);
-
-/// The blob routes' state: the store's directories are made now when possible; if not, the
-/// gateway still serves agents and uploads answer 500 until they can be made.
-async fn blob_api_state(
-    config: &Config,
-    client: &kube::Client,
-    metrics: &Metrics,
-    cancel: CancellationToken,
-) -> blob_api::BlobApi {
-    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes)
-        .with_read_grace(Duration::from_secs(config.blob_read_grace_seconds));
-    match store.ensure_dirs().await {
-        Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
-        Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
-    }
-    tokio::spawn(remove_stale_uploads(
-        store.clone(),
-        Duration::from_secs(config.stale_upload_hours.saturating_mul(3600)),
-        cancel,
-    ));
-    let kube_auth = KubeAuth::new(
-        client.clone(),
-        metrics.gateway.clone(),
-        config.auth_lookup_qps,
-        config.auth_lookup_burst,
-    );
-    blob_api::BlobApi::new(store, kube_auth)
-}
-
-/// The blob routes' state and the releases of its store (used by the Robots and
-/// RobotDeployments of `fleet`'s caches), with the task that cares for the store.
-async fn blob_state(
-    config: &Config,
-    (client, metrics): (&kube::Client, &Metrics),
-    fleet: &FleetApi,
-    leader: watch::Receiver<bool>,
-    cancel: &CancellationToken,
-) -> (blob_api::BlobApi, Arc<Releases>, JoinHandle<()>) {
-    let blobs = blob_api_state(config, client, metrics, cancel.clone()).await;
-    let releases = Releases::new(
-        blobs.store.clone(),
-        (fleet.robots.clone(), fleet.rollouts.clone()),
-        config.release_retention,
-        metrics.gateway.clone(),
-    );
-    let (releases, task) = releases::task::start(config, releases, (client, leader), cancel);
-    (blobs, releases, task)
-}
-
-/// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
-async fn remove_stale_uploads(store: BlobStore, max_age: Duration, cancel: CancellationToken) {
-    let mut every = tokio::time::interval(Duration::from_secs(3600));
-    loop {
-        tokio::select! {
-            _ = cancel.cancelled() => return,
-            _ = every.tick() => {}
-        }
-        match store.remove_stale_uploads(max_age).await {
-            Ok((0, _)) => {}
-            Ok((files, bytes)) => info!(files, bytes, "removed interrupted blob uploads"),
-            Err(e) => warn!(error = %e, "cannot remove interrupted blob uploads"),
-        }
-    }
-}
 
 /// Runs the gateway until `cancel` fires.
 /// `listening` is set once the gateway accepts connections; `leader` says whether this replica
@@ -157,7 +90,7 @@ pub async fn run(
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
     let (blobs, releases, care_task) =
-        blob_state(&config, (&client, &metrics), &fleet, leader, &cancel).await;
+        super::blob_start::blob_state(&config, (&client, &metrics), &fleet, leader, &cancel).await;
     let state = AppState {
         shared: Arc::new(shared),
         client: client.clone(),

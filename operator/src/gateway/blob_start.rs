@@ -1,0 +1,82 @@
+//! The release blob store as the gateway process starts it: the blob routes' state, the
+//! releases of the store, and the tasks that care for both (garbage collection, stale uploads).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use super::api::FleetApi;
+use super::blob_api;
+use super::blob_store::BlobStore;
+use super::kube_auth::KubeAuth;
+use super::releases::{self, Releases};
+use crate::config::Config;
+use crate::metrics::Metrics;
+
+/// The blob routes' state: the store's directories are made now when possible; if not, the
+/// gateway still serves agents and uploads answer 500 until they can be made.
+async fn blob_api_state(
+    config: &Config,
+    client: &kube::Client,
+    metrics: &Metrics,
+    cancel: CancellationToken,
+) -> blob_api::BlobApi {
+    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes)
+        .with_read_grace(Duration::from_secs(config.blob_read_grace_seconds));
+    match store.ensure_dirs().await {
+        Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
+        Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
+    }
+    tokio::spawn(remove_stale_uploads(
+        store.clone(),
+        Duration::from_secs(config.stale_upload_hours.saturating_mul(3600)),
+        cancel,
+    ));
+    let kube_auth = KubeAuth::new(
+        client.clone(),
+        metrics.gateway.clone(),
+        config.auth_lookup_qps,
+        config.auth_lookup_burst,
+    );
+    blob_api::BlobApi::new(store, kube_auth)
+}
+
+/// The blob routes' state and the releases of its store (used by the Robots and
+/// RobotDeployments of `fleet`'s caches), with the task that cares for the store.
+pub(super) async fn blob_state(
+    config: &Config,
+    (client, metrics): (&kube::Client, &Metrics),
+    fleet: &FleetApi,
+    leader: watch::Receiver<bool>,
+    cancel: &CancellationToken,
+) -> (blob_api::BlobApi, Arc<Releases>, JoinHandle<()>) {
+    let blobs = blob_api_state(config, client, metrics, cancel.clone()).await;
+    let releases = Releases::new(
+        blobs.store.clone(),
+        (fleet.robots.clone(), fleet.rollouts.clone()),
+        config.release_retention,
+        metrics.gateway.clone(),
+    );
+    let (releases, task) = releases::task::start(config, releases, (client, leader), cancel);
+    (blobs, releases, task)
+}
+
+/// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.
+async fn remove_stale_uploads(store: BlobStore, max_age: Duration, cancel: CancellationToken) {
+    let mut every = tokio::time::interval(Duration::from_secs(3600));
+    loop {
+        tokio::select! {
+            _ = cancel.cancelled() => return,
+            _ = every.tick() => {}
+        }
+        match store.remove_stale_uploads(max_age).await {
+            Ok((0, _)) => {}
+            Ok((files, bytes)) => info!(files, bytes, "removed interrupted blob uploads"),
+            Err(e) => warn!(error = %e, "cannot remove interrupted blob uploads"),
+        }
+    }
+}
