@@ -7,12 +7,14 @@
 
 use std::path::Path;
 use std::process::{Command, Output};
+use std::time::Duration;
 
 use anyhow::{Context as _, Result, ensure};
 use k8s_openapi::api::core::v1::Secret;
 use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
 use kube::api::DeleteParams;
+
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, account, bin, chart_roles_named, gateway_operator, http_request,
     namespace,
@@ -142,7 +144,20 @@ async fn kubernetes_rbac_decides_who_pushes_releases_and_reads_events_where() ->
         "no namespace: {code} {body}"
     );
 
-    // A viewer of A reads A's robots' events, not B's.
+    // A viewer of A reads A's robots' events, not B's (a robot that does not exist is 404
+    // once the permission is granted, so A's is made).
+    lekiwi_tests::create_robot(&client, &a, "kiwi", &[]).await?;
+    lekiwi_tests::wait_for(
+        "the gateway holding robot kiwi",
+        Duration::from_secs(30),
+        || async {
+            let (code, _) = call(&op, "GET", &format!("/v1/robots/{a}/kiwi/events"), &viewer)
+                .await
+                .ok()?;
+            (code == 200).then_some(())
+        },
+    )
+    .await?;
     let (code, body) = call(&op, "GET", &format!("/v1/robots/{a}/kiwi/events"), &viewer).await?;
     ensure!(code == 200, "events in A: {code} {body}");
     let (code, body) = call(&op, "GET", &format!("/v1/robots/{b}/kiwi/events"), &viewer).await?;
