@@ -770,7 +770,12 @@ async fn two_replicas_hand_leadership_over_mid_rollout() -> anyhow::Result<()> {
 async fn the_plugin_reaches_the_gateway_from_the_kubeconfig_alone() -> anyhow::Result<()> {
     let cluster = Cluster::shared();
     cluster.operator_image();
-    let site = Install::new(cluster, "plugin", &[]).await?;
+    // Its operator minds its own namespace: tests that follow must not meet it reconciling
+    // their deployments while its Pod terminates.
+    let client = cluster.client().await?;
+    let ns = namespace(&client, "plugin").await?;
+    let watch = format!("operator.watchNamespace={ns}");
+    let site = Install::install(cluster, client, ns, &["--set", &watch]).await?;
     site.ready_pods(1, Duration::from_secs(120)).await?;
     let plugin = |args: &[&str]| -> anyhow::Result<String> {
         let out = Command::new(bin("kubectl-lekiwi"))
