@@ -246,20 +246,7 @@ pub(crate) fn format_table(rows: Vec<Vec<String>>) -> String {
                 .collect()
         })
         .collect();
-    let widths: Vec<usize> = (0..rows[0].len())
-        .map(|i| rows.iter().map(|r| r[i].chars().count()).max().unwrap_or(0))
-        .collect();
-    let mut out = String::new();
-    for row in rows {
-        let line: Vec<String> = row
-            .iter()
-            .zip(&widths)
-            .map(|(c, w)| format!("{c:<w$}"))
-            .collect();
-        out.push_str(line.join("   ").trim_end());
-        out.push('\n');
-    }
-    out
+    crate::output::aligned(&rows)
 }
 
 /// kubectl-style age: `45s`, `3m`, `5h`, `2d`.
