@@ -7,7 +7,8 @@ use lekiwi_crds::{Condition, ReleaseRef, RobotDeployment, RobotDeploymentStatus}
 
 use super::{
     ABORT_ANNOTATION, Facts, Mark, Overlap, PlannedEvent, RESTART_ANNOTATION, ReleaseCheck,
-    RobotView, RobotWrite, UNDO_ANNOTATION, rollout_id, same_rollout, secs, time,
+    RobotView, RobotWrite, UNDO_ANNOTATION, rollout_id, rollout_id_at, rollout_start, same_rollout,
+    secs, time,
 };
 
 /// The facts of one plan that no step changes: the deployment's spec, the rollout it is in,
@@ -69,14 +70,11 @@ impl<'a> Rollout<'a> {
         let previous = deployment.status.clone().unwrap_or_default();
         let is_new = !same_rollout(previous.rollout_id.as_deref(), &key);
         let id = if is_new {
-            format!("{key}-{:x}", now.as_millisecond())
+            rollout_id_at(&key, now)
         } else {
             previous.rollout_id.clone().unwrap_or_default()
         };
-        let started = id
-            .rsplit_once('-')
-            .and_then(|(_, ms)| i64::from_str_radix(ms, 16).ok())
-            .and_then(|ms| Timestamp::from_millisecond(ms).ok());
+        let started = rollout_start(&id);
         let was_active = matches!(
             previous.phase,
             None | Some(

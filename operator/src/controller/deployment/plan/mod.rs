@@ -211,6 +211,19 @@ pub fn rollout_id(release: &ReleaseRef, restart: Option<&str>) -> String {
     hex::encode(&h.finalize()[..5])
 }
 
+/// The id of a rollout of the spec whose key is `key` (see [`rollout_id`]) started at `now`:
+/// the key, `-`, and the start in Unix milliseconds, hex.
+pub fn rollout_id_at(key: &str, now: Timestamp) -> String {
+    format!("{key}-{:x}", now.as_millisecond())
+}
+
+/// When the rollout `id` started, to the millisecond (see [`rollout_id_at`]); the status's
+/// `startTime` keeps whole seconds only.
+pub fn rollout_start(id: &str) -> Option<Timestamp> {
+    let (_, ms) = id.rsplit_once('-')?;
+    Timestamp::from_millisecond(i64::from_str_radix(ms, 16).ok()?).ok()
+}
+
 /// Whether the rollout `id` is of the spec whose key is `key` (see [`rollout_id`]).
 pub fn same_rollout(id: Option<&str>, key: &str) -> bool {
     id.and_then(|id| id.strip_prefix(key))
