@@ -1,6 +1,8 @@
 //! The agent's side of a gateway session: open the WebSocket with the right credentials, send
 //! `hello`, read `welcome`. Shared by the agent and the fleet simulator.
 
+use std::future::Future;
+use std::pin::Pin;
 use std::time::Duration;
 
 use futures::{Sink, SinkExt, Stream, StreamExt};
@@ -17,6 +19,12 @@ use tokio_tungstenite::{MaybeTlsStream, WebSocketStream};
 
 /// An open WebSocket to the gateway.
 pub type Socket = WebSocketStream<MaybeTlsStream<TcpStream>>;
+
+/// A connection attempt: the open connection and the gateway's `welcome`, or why not.
+pub type Connecting<S> = Pin<Box<dyn Future<Output = Result<(S, Welcome), ConnectError>>>>;
+
+/// Starts a connection attempt with these credentials and this `hello`.
+pub type Connector<S> = Box<dyn FnMut(Credentials, AgentMessage) -> Connecting<S>>;
 
 /// A connection to the gateway as a session uses it: WebSocket messages in and out. The real
 /// [`Socket`] in production; unit tests use channels.

@@ -278,6 +278,41 @@ pub struct Flags {
     pub agent_update_max_starts: Option<u32>,
 }
 
+/// Arguments of `lekiwi-agent join` (printed by `kubectl lekiwi robot add` and `kubectl lekiwi
+/// enroll-token`).
+#[derive(Debug, clap::Args)]
+pub struct JoinArgs {
+    /// The gateway's agent URL, wss://HOST:PORT/v1/agent.
+    #[arg(long)]
+    pub gateway: String,
+    /// Pin of the gateway's CA: `sha256:` and the hex SHA-256 of the CA certificate's DER
+    /// SubjectPublicKeyInfo. The CA the gateway presents must have it, or join refuses.
+    #[arg(long)]
+    pub ca_cert_hash: String,
+    /// A fleet enrollment token (lke_...) or the robot's own token (lkr_..., from `kubectl
+    /// lekiwi robot add`, which then needs --name).
+    #[arg(long, env = "LEKIWI_JOIN_TOKEN", hide_env_values = true)]
+    pub token: String,
+    /// The robot, `namespace/name` (default: named after the host, in the token's namespace).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Join another gateway than the one this robot joined before (its files are replaced,
+    /// and with another CA the robot's own token is forgotten).
+    #[arg(long)]
+    pub force: bool,
+    /// Write the files but do not run `systemctl enable --now lekiwi-agent` (containers,
+    /// tests: start the agent yourself; join still waits for it).
+    #[arg(long)]
+    pub no_start: bool,
+    /// Seconds to wait for the agent to reach the gateway (0: do not wait).
+    #[arg(long, default_value_t = 120)]
+    pub wait_s: u64,
+    /// Directory that stands for `/`: files are written under it, and the paths written into
+    /// them name it (for tests and images).
+    #[arg(long, default_value = "/")]
+    pub root: PathBuf,
+}
+
 /// Subcommands.
 #[derive(Debug, clap::Subcommand)]
 pub enum Command {
@@ -288,7 +323,7 @@ pub enum Command {
     /// /var/lib/lekiwi/credentials.json (0600), runs `systemctl enable --now lekiwi-agent` and
     /// waits until the agent is connected. Run again, it changes nothing; another gateway needs
     /// --force.
-    Join(crate::join::JoinArgs),
+    Join(JoinArgs),
     /// Queue an event for the fleet (e.g. from a lekiwi_host hook); it is stored in the outbox
     /// at once and sent by the running agent, also if the gateway is unreachable right now.
     Event {

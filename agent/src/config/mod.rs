@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 
 mod flags;
 
-pub use flags::{Command, Flags};
+pub use flags::{Command, Flags, JoinArgs};
 
 /// Errors loading the configuration.
 #[derive(Debug, thiserror::Error)]

@@ -17,43 +17,9 @@ use lekiwi_protocol::join::{
 };
 use rustls_pki_types::CertificateDer;
 
+pub use crate::config::JoinArgs;
 pub use fetch::Endpoint;
 use files::{DropIn, Existing, Root};
-
-/// Arguments of `lekiwi-agent join` (printed by `kubectl lekiwi robot add` and `kubectl lekiwi
-/// enroll-token`).
-#[derive(Debug, clap::Args)]
-pub struct JoinArgs {
-    /// The gateway's agent URL, wss://HOST:PORT/v1/agent.
-    #[arg(long)]
-    pub gateway: String,
-    /// Pin of the gateway's CA: `sha256:` and the hex SHA-256 of the CA certificate's DER
-    /// SubjectPublicKeyInfo. The CA the gateway presents must have it, or join refuses.
-    #[arg(long)]
-    pub ca_cert_hash: String,
-    /// A fleet enrollment token (lke_...) or the robot's own token (lkr_..., from `kubectl
-    /// lekiwi robot add`, which then needs --name).
-    #[arg(long, env = "LEKIWI_JOIN_TOKEN", hide_env_values = true)]
-    pub token: String,
-    /// The robot, `namespace/name` (default: named after the host, in the token's namespace).
-    #[arg(long)]
-    pub name: Option<String>,
-    /// Join another gateway than the one this robot joined before (its files are replaced,
-    /// and with another CA the robot's own token is forgotten).
-    #[arg(long)]
-    pub force: bool,
-    /// Write the files but do not run `systemctl enable --now lekiwi-agent` (containers,
-    /// tests: start the agent yourself; join still waits for it).
-    #[arg(long)]
-    pub no_start: bool,
-    /// Seconds to wait for the agent to reach the gateway (0: do not wait).
-    #[arg(long, default_value_t = 120)]
-    pub wait_s: u64,
-    /// Directory that stands for `/`: files are written under it, and the paths written into
-    /// them name it (for tests and images).
-    #[arg(long, default_value = "/")]
-    pub root: PathBuf,
-}
 
 /// Why a join failed.
 #[derive(Debug, thiserror::Error)]

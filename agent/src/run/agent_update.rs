@@ -15,7 +15,7 @@
 use lekiwi_protocol::Severity;
 use tracing::{info, warn};
 
-use super::commands::Deploying;
+use super::commands::{AgentTarget, Deploying};
 use super::{Agent, Error};
 use crate::outbox::Lane;
 use crate::release::{Outcome, Phase, Releases};
@@ -24,13 +24,6 @@ use crate::selfupdate::{self, Pending, Slots};
 
 /// Largest agent build downloaded, in bytes (it is held in memory while verified).
 const MAX_AGENT_BYTES: usize = 128 * 1024 * 1024;
-
-/// The build an update task installs.
-#[derive(Clone, Debug)]
-pub(super) struct AgentTarget {
-    pub(super) version: String,
-    pub(super) digest: String,
-}
 
 impl Agent {
     /// Why an `update_agent` for `digest` is not even started, if it is not.

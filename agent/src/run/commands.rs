@@ -4,7 +4,6 @@
 use lekiwi_protocol::{AgentMessage, Command, Release};
 use tracing::{error, info};
 
-use super::agent_update::AgentTarget;
 use super::{Agent, Error};
 use crate::outbox::Lane;
 use crate::release::{Outcome, Phase, Releases};
@@ -12,6 +11,13 @@ use crate::release::{Outcome, Phase, Releases};
 /// What a deployment task hands back: the release store, and the outcome (none for a
 /// recovery that found nothing to do).
 pub(super) type Joined = Result<(Releases, Option<Outcome>), tokio::task::JoinError>;
+
+/// The build an update task installs.
+#[derive(Clone, Debug)]
+pub(super) struct AgentTarget {
+    pub(super) version: String,
+    pub(super) digest: String,
+}
 
 /// A deployment task and what it is for.
 pub(super) struct Deploying {

@@ -12,13 +12,13 @@ use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 use tracing::warn;
 
 use super::commands::Joined;
-use super::link::{Connecting, Connector};
 use super::session::Session;
 use super::status::STATUS_EVERY;
 use super::{Agent, Error, SAMPLES_PER_MESSAGE, Stopped};
 use crate::backoff::Backoff;
 use crate::config::Config;
 use crate::connection::{ConnectError, Transport, Welcome};
+use crate::connection::{Connecting, Connector};
 use crate::outbox::Lane;
 use crate::release::Progress;
 

@@ -2,12 +2,10 @@
 //! follows, and the wait before the next attempt (backoff with full jitter, longer when retrying
 //! soon cannot help).
 
-use std::future::Future;
-use std::pin::Pin;
 use std::time::Duration;
 
 use futures::SinkExt;
-use lekiwi_protocol::{AgentMessage, ErrorCode};
+use lekiwi_protocol::ErrorCode;
 use tokio::time::Instant;
 use tokio_tungstenite::tungstenite::Message;
 use tracing::{error, info, warn};
@@ -17,13 +15,7 @@ use super::session::Session;
 use super::{Agent, Error};
 use crate::backoff::Backoff;
 use crate::config::Config;
-use crate::connection::{ConnectError, Credentials, Socket, Transport, Welcome};
-
-/// A connection attempt: the open connection and the gateway's `welcome`, or why not.
-pub(super) type Connecting<S> = Pin<Box<dyn Future<Output = Result<(S, Welcome), ConnectError>>>>;
-
-/// Starts a connection attempt with these credentials and this `hello`.
-pub(super) type Connector<S> = Box<dyn FnMut(Credentials, AgentMessage) -> Connecting<S>>;
+use crate::connection::{ConnectError, Connector, Socket, Transport, Welcome};
 
 /// Connects over a real WebSocket to the configured gateway.
 pub(super) fn websocket(config: &Config) -> Connector<Socket> {

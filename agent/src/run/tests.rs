@@ -12,9 +12,9 @@ use lekiwi_protocol::{
 };
 use tokio_tungstenite::tungstenite::{Error as WsError, Message};
 
-use super::link::Connector;
 use super::{AGENT_VERSION, Agent};
 use crate::config::Config;
+use crate::connection::Connector;
 use crate::connection::{Credentials, handshake};
 use crate::outbox::Outbox;
 use crate::state;

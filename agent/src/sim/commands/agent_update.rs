@@ -8,8 +8,8 @@ use lekiwi_protocol::Severity;
 use lekiwi_protocol::release::digest_hex;
 use serde_json::json;
 
-use super::deploy::Task;
 use super::disk::{Disk, hex};
+use super::task::Task;
 use super::{Commands, Durable, Finished, Report, Running};
 use crate::release::{Error, Outcome, Phase, sha256_digest};
 

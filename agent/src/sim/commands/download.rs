@@ -11,9 +11,9 @@ use lekiwi_protocol::release::blob_path;
 
 use super::Report;
 use super::args::Fault;
-use super::deploy::{Reporter, Tally, Task};
 use super::disk::Disk;
 use super::shared::Known;
+use super::task::{Reporter, Tally, Task};
 use crate::release::{Error, Phase, sha256_digest};
 
 /// Attempts per blob within one deployment (each resumes where the previous stopped).

@@ -12,6 +12,7 @@ mod deploy;
 mod disk;
 mod download;
 mod shared;
+mod task;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -284,7 +285,7 @@ impl Commands {
             return;
         };
         let (stop_tx, stop) = watch::channel(false);
-        let task = deploy::Task {
+        let task = task::Task {
             shared: self.shared.clone(),
             robot: robot.clone(),
             tx: self.tx.clone(),
