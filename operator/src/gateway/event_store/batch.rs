@@ -15,6 +15,7 @@ use sqlx::QueryBuilder;
 use sqlx::types::Json;
 use tokio::sync::{Mutex, mpsc, oneshot};
 
+use super::drain::next_batch;
 use super::{Error, Result, RobotKey, Store, StoredEvent, storable_ms};
 
 const CLAIM_SEQS: &str = "INSERT INTO seqs (namespace, robot, seq, received_ms) ";
@@ -256,17 +257,4 @@ async fn flush_loop(
             Ordering::Relaxed,
         );
     }
-}
-
-/// Waits for one item, then takes whatever else waits already, up to `max` in all; `None` once
-/// every sender is gone.
-pub(super) async fn next_batch<T>(rx: &mut mpsc::Receiver<T>, max: usize) -> Option<Vec<T>> {
-    let mut batch = vec![rx.recv().await?];
-    while batch.len() < max {
-        match rx.try_recv() {
-            Ok(item) => batch.push(item),
-            Err(_) => break,
-        }
-    }
-    Some(batch)
 }

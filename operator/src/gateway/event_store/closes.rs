@@ -116,7 +116,7 @@ pub(super) async fn close_loop(
     mut rx: mpsc::Receiver<Close>,
     statements: Arc<AtomicU64>,
 ) {
-    while let Some(batch) = super::batch::next_batch(&mut rx, CLOSES_PER_STATEMENT).await {
+    while let Some(batch) = super::drain::next_batch(&mut rx, CLOSES_PER_STATEMENT).await {
         store.flush_closes(batch, &statements).await;
     }
 }

@@ -2,6 +2,7 @@
 //! the default) or PostgreSQL, stored once per `(robot, seq)` so that replays are harmless.
 
 mod error;
+
 #[cfg(test)]
 mod tests;
 
@@ -39,6 +40,42 @@ impl RobotKey {
 impl fmt::Display for RobotKey {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(f, "{}/{}", self.namespace, self.name)
+    }
+}
+
+/// The most one robot may keep stored.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Quota {
+    /// Events plus telemetry samples.
+    pub rows: u64,
+    /// Bytes of event kind, severity, message and data, and of samples (metric name + 16).
+    pub bytes: u64,
+}
+
+impl Quota {
+    /// No limit.
+    pub const UNLIMITED: Quota = Quota {
+        rows: u64::MAX,
+        bytes: u64::MAX,
+    };
+}
+
+/// Which limit of the [`Quota`] a message would exceed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum QuotaLimit {
+    /// [`Quota::rows`].
+    Rows,
+    /// [`Quota::bytes`].
+    Bytes,
+}
+
+impl QuotaLimit {
+    /// `rows` or `bytes`: a bounded metric label.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            QuotaLimit::Rows => "rows",
+            QuotaLimit::Bytes => "bytes",
+        }
     }
 }
 
@@ -143,6 +180,7 @@ macro_rules! with_pool {
 mod batch;
 mod closes;
 mod connect;
+mod drain;
 mod history;
 mod opens;
 mod quota;
@@ -151,7 +189,6 @@ mod retention;
 
 pub use self::history::{PagedSample, SampleCursor, TimeRange};
 pub use self::opens::SessionStart;
-pub use self::quota::{Quota, QuotaLimit};
 
 impl Store {
     /// A store on `backend` without a quota.

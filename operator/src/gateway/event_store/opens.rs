@@ -275,7 +275,7 @@ pub(super) async fn open_loop(
     mut rx: mpsc::Receiver<Open>,
     statements: Arc<AtomicU64>,
 ) {
-    while let Some(batch) = super::batch::next_batch(&mut rx, OPENS_PER_STATEMENT).await {
+    while let Some(batch) = super::drain::next_batch(&mut rx, OPENS_PER_STATEMENT).await {
         store.flush_opens(batch, &statements).await;
     }
 }

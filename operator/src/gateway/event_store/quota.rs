@@ -6,7 +6,7 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use super::{Error, Result, RobotKey, Store};
+use super::{Error, Quota, QuotaLimit, Result, RobotKey, Store};
 
 /// How long a robot's usage counted in memory is trusted before it is read from the store
 /// again (other gateway replicas store for the same robot, retention deletes).
@@ -20,42 +20,6 @@ const USAGE: &str = "SELECT \
      + (SELECT COUNT(*) FROM samples WHERE namespace = $1 AND robot = $2), \
      CAST((SELECT COALESCE(SUM(bytes), 0) FROM events WHERE namespace = $1 AND robot = $2) AS BIGINT) \
      + CAST((SELECT COALESCE(SUM(bytes), 0) FROM telemetry_batches WHERE namespace = $1 AND robot = $2) AS BIGINT)";
-
-/// The most one robot may keep stored.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Quota {
-    /// Events plus telemetry samples.
-    pub rows: u64,
-    /// Bytes of event kind, severity, message and data, and of samples (metric name + 16).
-    pub bytes: u64,
-}
-
-impl Quota {
-    /// No limit.
-    pub const UNLIMITED: Quota = Quota {
-        rows: u64::MAX,
-        bytes: u64::MAX,
-    };
-}
-
-/// Which limit of the [`Quota`] a message would exceed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum QuotaLimit {
-    /// [`Quota::rows`].
-    Rows,
-    /// [`Quota::bytes`].
-    Bytes,
-}
-
-impl QuotaLimit {
-    /// `rows` or `bytes`: a bounded metric label.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            QuotaLimit::Rows => "rows",
-            QuotaLimit::Bytes => "bytes",
-        }
-    }
-}
 
 #[derive(Clone, Copy)]
 struct Usage {
