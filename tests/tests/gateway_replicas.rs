@@ -15,7 +15,7 @@ use kube::Api;
 use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
 use lekiwi_crds::{Robot, RobotPhase};
-use lekiwi_operator::gateway::api::cache::Cache;
+use lekiwi_operator::gateway::cache::Cache;
 use lekiwi_operator::gateway::desired::DesiredReleases;
 use lekiwi_operator::gateway::event_store::RobotKey;
 use lekiwi_operator::gateway::presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};

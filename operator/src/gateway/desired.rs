@@ -8,7 +8,7 @@ use std::sync::Arc;
 use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 
-use crate::gateway::api::cache::Cache;
+use crate::gateway::cache::Cache;
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::Holder;
 

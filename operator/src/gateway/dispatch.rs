@@ -1,5 +1,5 @@
 //! Deploy dispatch and takeover: from the changes of the gateway's Robot cache (the Fleet API's,
-//! [`super::api::cache`]: one watch of Robots per gateway), the gateway tells a connected
+//! [`super::cache`]: one watch of Robots per gateway), the gateway tells a connected
 //! robot's session when its `spec.release` changes (the session then sends the agent a `deploy`
 //! command, PROTOCOL.md §12) or when another gateway's later session took the robot over (the
 //! session closes, see [`super::holder`]); and presence when another gateway's earlier session
@@ -16,7 +16,7 @@ use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use super::api::cache::{Cache, Change};
+use super::cache::{Cache, Change};
 use super::desired::DesiredReleases;
 use super::holder::Holder;
 use super::presence::{Presence, claims};

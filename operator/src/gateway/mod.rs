@@ -8,6 +8,7 @@ pub mod auth;
 pub mod blob_api;
 mod blob_start;
 pub mod blob_store;
+pub mod cache;
 pub mod dashboard;
 pub mod desired;
 pub mod dispatch;

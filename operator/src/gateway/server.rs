@@ -19,7 +19,7 @@ use tracing::{info, warn};
 
 use super::admission::EnrollAdmission;
 use super::api::FleetApi;
-use super::api::cache::Cache;
+use super::cache::Cache;
 use super::auth::Authenticator;
 use super::desired::DesiredReleases;
 use super::listener::{self, ConnLimits};

@@ -7,7 +7,6 @@
 //! The routes and their document are listed once, in [`openapi`].
 
 mod access;
-pub mod cache;
 pub mod graphql;
 mod history;
 pub mod limits;
@@ -30,7 +29,7 @@ use lekiwi_crds::{Robot, RobotDeployment};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-use self::cache::Cache;
+use super::cache::{self, Cache};
 use self::limits::UserLimits;
 use super::auth::{Refusal, valid_name};
 use super::kube_auth::Access;

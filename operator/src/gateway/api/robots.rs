@@ -13,7 +13,7 @@ use lekiwi_crds::Robot;
 use lekiwi_crds::robot::{RobotPhase, TelemetrySummary};
 use serde::{Deserialize, Serialize};
 
-use super::cache::{Found, Key};
+use crate::gateway::cache::{Found, Key};
 use super::selector::Selector;
 use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
 use crate::gateway::event_store::RobotKey;
@@ -282,7 +282,7 @@ pub(crate) fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gateway::api::cache::Cache;
+    use crate::gateway::cache::Cache;
     use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
     use lekiwi_crds::robot::RobotStatus;
     use lekiwi_crds::{Robot, RobotSpec};

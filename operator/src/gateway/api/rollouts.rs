@@ -93,7 +93,7 @@ pub(crate) fn page(
         .then(|| {
             items
                 .last()
-                .map(|d| continue_after(&super::cache::key(d.as_ref())))
+                .map(|d| continue_after(&crate::gateway::cache::key(d.as_ref())))
         })
         .flatten();
     Ok(Page { items, next })

@@ -116,7 +116,7 @@ impl Presence {
 mod tests {
     use serde_json::json;
 
-    use crate::gateway::api::cache::Cache;
+    use crate::gateway::cache::Cache;
 
     use super::*;
     use crate::gateway::presence::{ConnectInfo, PresenceConfig};

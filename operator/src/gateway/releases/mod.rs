@@ -13,7 +13,7 @@ use lekiwi_crds::{Robot, RobotDeployment};
 use serde::Serialize;
 use tokio::sync::Notify;
 
-use crate::gateway::api::cache::Cache;
+use crate::gateway::cache::Cache;
 use crate::gateway::blob_store::gc::{self, Inputs, Plan, Removed};
 use crate::gateway::blob_store::index::ReleaseRecord;
 use crate::gateway::blob_store::{BlobStore, Result};

@@ -1,6 +1,6 @@
 //! GraphQL subscriptions: robots whose phase, vitals, release or labels change (a namespace and
 //! label selector), and rollouts whose progress changes (a namespace, optionally one name).
-//! Every subscriber reads the cache's one broadcast ([`super::super::cache::Cache::subscribe`]);
+//! Every subscriber reads the cache's one broadcast ([`crate::gateway::cache::Cache::subscribe`]);
 //! none opens a watch. Each keeps at most one pending state per object (the latest wins,
 //! first come first sent), so its memory is bounded by the objects it matches; one that falls
 //! more than the broadcast's buffer behind (a slow client) reads the current state from the
@@ -19,7 +19,7 @@ use tokio::sync::broadcast::{Receiver, error::RecvError, error::TryRecvError};
 
 use super::query::{RobotObject, RolloutObject};
 use super::{Caller, allowed, refusal};
-use crate::gateway::api::cache::{Cache, Change, Key, key};
+use crate::gateway::cache::{Cache, Change, Key, key};
 use crate::gateway::api::check_names;
 use crate::gateway::api::selector::Selector;
 use crate::gateway::kube_auth::{Access, TTL};
