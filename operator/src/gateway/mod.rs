@@ -22,7 +22,6 @@ pub mod listener;
 pub mod lookup;
 pub mod mailbox;
 pub mod metrics;
-pub mod peers;
 pub mod poll;
 pub mod presence;
 pub mod quota_warnings;

@@ -19,8 +19,8 @@ use tracing::{info, warn};
 
 use super::admission::EnrollAdmission;
 use super::api::FleetApi;
-use super::cache::Cache;
 use super::auth::Authenticator;
+use super::cache::Cache;
 use super::desired::DesiredReleases;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
@@ -291,7 +291,7 @@ fn start_background(
         Some(presence.clone()),
         cancel.clone(),
     ));
-    let peers = super::peers::watch(
+    let peers = super::presence::peers::watch(
         client.clone(),
         config.namespace.clone(),
         name.to_owned(),

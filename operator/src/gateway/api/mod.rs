@@ -29,9 +29,9 @@ use lekiwi_crds::{Robot, RobotDeployment};
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-use super::cache::{self, Cache};
 use self::limits::UserLimits;
 use super::auth::{Refusal, valid_name};
+use super::cache::{self, Cache};
 use super::kube_auth::Access;
 use super::{ApiError, AppState, bearer};
 

@@ -13,9 +13,9 @@ use lekiwi_crds::Robot;
 use lekiwi_crds::robot::{RobotPhase, TelemetrySummary};
 use serde::{Deserialize, Serialize};
 
-use crate::gateway::cache::{Found, Key};
 use super::selector::Selector;
 use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
+use crate::gateway::cache::{Found, Key};
 use crate::gateway::event_store::RobotKey;
 use crate::gateway::kube_auth::Access;
 use crate::gateway::{ApiError, AppState};

@@ -20,7 +20,7 @@
 //! shown wrong: its write goes before every other waiting one ([`Priority::Gone`]). This gateway
 //! learns that from its Robot watch ([`Presence::shown_gone`]) or, seconds sooner on a
 //! saturated API server, from the list of marked robots on the old gateway's Lease
-//! ([`crate::gateway::peers`], [`Presence::marked`]).
+//! ([`crate::gateway::presence::peers`], [`Presence::marked`]).
 
 use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
@@ -28,7 +28,7 @@ use lekiwi_crds::{Robot, RobotPhase};
 
 use super::{Entry, Presence, Priority};
 use crate::gateway::event_store::RobotKey;
-use crate::gateway::peers::Peers;
+use crate::gateway::presence::peers::Peers;
 
 /// How long a claim outlives its robot's last landed write when this gateway's Robot watch
 /// does not show that write (a watch that is listing again, say): the write landed, so the

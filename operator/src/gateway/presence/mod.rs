@@ -18,6 +18,7 @@ mod analysis_tests;
 pub mod claims;
 mod lag;
 mod patch;
+pub mod peers;
 mod phase;
 #[cfg(test)]
 mod properties_tests;
@@ -164,8 +165,8 @@ pub struct Presence {
     /// Set once the gateway's Robot cache is ready: status writes then carry the phase too.
     planner: Arc<std::sync::OnceLock<Arc<PhasePlanner>>>,
     /// The robots other gateways' Leases list as marked `Unknown` (see [`claims`]); empty until
-    /// their watch ([`crate::gateway::peers::watch`]) fills it.
-    peers: crate::gateway::peers::Peers,
+    /// their watch ([`crate::gateway::presence::peers::watch`]) fills it.
+    peers: crate::gateway::presence::peers::Peers,
 }
 
 impl Presence {
@@ -178,7 +179,7 @@ impl Presence {
             config: Arc::new(config),
             metrics,
             planner: Arc::default(),
-            peers: crate::gateway::peers::Peers::default(),
+            peers: crate::gateway::presence::peers::Peers::default(),
         }
     }
 

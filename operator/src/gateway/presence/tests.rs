@@ -831,10 +831,8 @@ fn only_a_switch_a_rollout_asked_to_watch_is_written_when_its_window_ends() {
         .unwrap()
     };
     let window = json!({ lekiwi_crds::analysis::WINDOW_ANNOTATION: "1" });
-    let cache = crate::gateway::cache::Cache::listed([
-        robot("asked", window),
-        robot("plain", json!({})),
-    ]);
+    let cache =
+        crate::gateway::cache::Cache::listed([robot("asked", window), robot("plain", json!({}))]);
     let robots = crate::gateway::desired::DesiredReleases(std::sync::Arc::new(cache));
     p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
     let write_all = |p: &Presence| {

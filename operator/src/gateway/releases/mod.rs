@@ -13,10 +13,10 @@ use lekiwi_crds::{Robot, RobotDeployment};
 use serde::Serialize;
 use tokio::sync::Notify;
 
-use crate::gateway::cache::Cache;
 use crate::gateway::blob_store::gc::{self, Inputs, Plan, Removed};
 use crate::gateway::blob_store::index::ReleaseRecord;
 use crate::gateway::blob_store::{BlobStore, Result};
+use crate::gateway::cache::Cache;
 use crate::metrics::{GatewayMetrics, KindLabels};
 
 /// How many robots reference a release, by how.

@@ -19,9 +19,9 @@ use tokio::sync::broadcast::{Receiver, error::RecvError, error::TryRecvError};
 
 use super::query::{RobotObject, RolloutObject};
 use super::{Caller, allowed, refusal};
-use crate::gateway::cache::{Cache, Change, Key, key};
 use crate::gateway::api::check_names;
 use crate::gateway::api::selector::Selector;
+use crate::gateway::cache::{Cache, Change, Key, key};
 use crate::gateway::kube_auth::{Access, TTL};
 use crate::gateway::{ApiError, AppState};
 

@@ -18,8 +18,8 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
+use super::Presence;
 use crate::gateway::event_store::RobotKey;
-use crate::gateway::presence::Presence;
 
 /// The robots each other gateway's Lease lists as marked `Unknown`; cheap to clone.
 #[derive(Clone, Default)]
