@@ -19,7 +19,7 @@ import sys
 
 USE_RE = re.compile(r'^\s*(?:pub(?:\([^)]*\))?\s+)?use\s+([^;]+);', re.M | re.S)
 PATH_RE = re.compile(r'\b((?:crate|super|self)(?:::\w+)+)')
-MOD_RE = re.compile(r'^\s*(?:pub(?:\([^)]*\))?\s+)?mod\s+(\w+)\s*;', re.M)
+MOD_RE = re.compile(r'^(#\[cfg\(test\)\]\s*)?\s*(?:pub(?:\([^)]*\))?\s+)?mod\s+(\w+)\s*;', re.M)
 # Comments and literals, in one pass so that a quote in a comment or `//` in a string is not
 # mistaken for the other: line comment, block comment, raw string, string, char literal.
 TOKEN_RE = re.compile(r'//[^\n]*|/\*[\s\S]*?\*/|r(#*)"[\s\S]*?"\1|"(?:\\[\s\S]|[^"\\])*"'
@@ -97,7 +97,9 @@ class Crate:
         base = os.path.basename(path)
         child_dir = here if base in ('lib.rs', 'main.rs', 'mod.rs') else os.path.join(here, base[:-3])
         for m in MOD_RE.finditer(text):
-            name = m.group(1)
+            if m.group(1):
+                continue  # a test module
+            name = m.group(2)
             for candidate in (os.path.join(child_dir, name + '.rs'),
                               os.path.join(child_dir, name, 'mod.rs')):
                 if os.path.exists(candidate) and not candidate.endswith('_tests.rs'):

@@ -37,7 +37,7 @@ pub enum Error {
     TaskStopped(&'static str),
     /// The durable event store failed.
     #[error("event store: {0}")]
-    Store(#[from] crate::gateway::event_store::Error),
+    Store(#[from] crate::event_store::Error),
 }
 
 impl Error {

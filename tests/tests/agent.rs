@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use lekiwi_crds::RobotPhase;
-use lekiwi_operator::gateway::event_store::{RobotKey, Store};
+use lekiwi_operator::event_store::{RobotKey, Store};
 use lekiwi_tests::{
     AgentProcess, ControlPlane, OperatorProcess, enrollment_token_file, gateway_url, get_robot,
     namespace, wait_for,

@@ -13,7 +13,7 @@ use kube::Api;
 use kube::api::{Patch, PatchParams, PostParams};
 use lekiwi_crds::deployment::{AGENT_MARK_ANNOTATION, RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, Robot, RobotDeployment, RobotDeploymentSpec};
-use lekiwi_operator::gateway::event_store::RobotKey;
+use lekiwi_operator::event_store::RobotKey;
 use lekiwi_tests::agent_fleet::{AgentFleet, DEADLINE_S, T, agent_fleet, arch, wrapper};
 use lekiwi_tests::supervisor::Supervised;
 use lekiwi_tests::{bin, wait_for, wait_online};

@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use anyhow::{Result, ensure};
-use lekiwi_operator::gateway::event_store::{
+use lekiwi_operator::event_store::{
     ConnectionRecord, Error, PruneCounts, Quota, QuotaLimit, RobotKey, Sample, Store, StoredEvent,
 };
 use lekiwi_tests::postgres::Postgres;
@@ -517,7 +517,7 @@ async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {
                     .create_if_missing(true);
             let pool = sqlx::SqlitePool::connect_with(options).await?;
             first(sqlx::migrate!(
-                "../operator/src/gateway/event_store/migrations/sqlite"
+                "../operator/src/event_store/migrations/sqlite"
             ))
             .run(&pool)
             .await?;
@@ -529,7 +529,7 @@ async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {
         Db::Postgres(_) => {
             let pool = sqlx::PgPool::connect(&db.url()).await?;
             first(sqlx::migrate!(
-                "../operator/src/gateway/event_store/migrations/postgres"
+                "../operator/src/event_store/migrations/postgres"
             ))
             .run(&pool)
             .await?;
@@ -632,7 +632,7 @@ async fn migration_claims_the_seqs_stored_before(db: Db) -> Result<()> {
 /// when the gateway received them, so each of these is in the last hour's range, and samples
 /// are in the widest range a query can name.
 async fn extreme_times_are_clamped_into_reach(db: Db) -> Result<()> {
-    use lekiwi_operator::gateway::event_store::{MAX_TIME_MS, MIN_TIME_MS, TimeRange};
+    use lekiwi_operator::event_store::{MAX_TIME_MS, MIN_TIME_MS, TimeRange};
 
     let now = jiff::Timestamp::now().as_millisecond();
     old_schema(

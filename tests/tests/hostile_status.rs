@@ -12,7 +12,7 @@ use kube::Api;
 use kube::api::ListParams;
 use lekiwi_agent::connection::{Credentials, Socket, connect};
 use lekiwi_crds::RobotPhase;
-use lekiwi_operator::gateway::event_store::RobotKey;
+use lekiwi_operator::event_store::RobotKey;
 use lekiwi_operator::gateway::presence::{ConnectInfo, Presence, PresenceConfig};
 use lekiwi_protocol::{AgentMessage, ErrorCode, Release, ServerMessage, encode};
 use lekiwi_tests::{

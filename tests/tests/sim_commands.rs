@@ -19,7 +19,7 @@ use kube::api::{Patch, PatchParams, PostParams};
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, ReleaseRef, Robot, RobotDeployment};
 use lekiwi_crds::{RobotDeploymentSpec, RobotDeploymentStatus};
-use lekiwi_operator::gateway::event_store::RobotKey;
+use lekiwi_operator::event_store::RobotKey;
 use lekiwi_tests::{
     AgentProcess, OperatorSite, SimProcess, SimSpec, bin, gateway_url, http_get_with, push_agent,
     rollout_finished, test_strategy, wait_for, wait_online,

@@ -11,8 +11,8 @@ use lekiwi_crds::contract::{
     hash_token, robot_secret_name,
 };
 
+use crate::event_store::RobotKey;
 use crate::gateway::enroll;
-use crate::gateway::event_store::RobotKey;
 use crate::gateway::lookup::{Lookups, Skip, Subject};
 use crate::gateway::tokens::{TokenIndex, TokenKind};
 

@@ -11,9 +11,9 @@ use tracing::{info, warn};
 
 use super::api::FleetApi;
 use super::blob_api;
-use super::blob_store::BlobStore;
 use super::kube_auth::KubeAuth;
 use super::releases::{self, Releases};
+use crate::blob_store::BlobStore;
 use crate::config::Config;
 use crate::metrics::Metrics;
 

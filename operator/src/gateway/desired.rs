@@ -8,8 +8,8 @@ use std::sync::Arc;
 use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 
+use crate::event_store::RobotKey;
 use crate::gateway::cache::Cache;
-use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::Holder;
 
 /// Looks up a robot's `spec.release` in the gateway's Robot cache (the one the Fleet API answers

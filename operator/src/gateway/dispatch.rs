@@ -22,7 +22,7 @@ use super::holder::Holder;
 use super::presence::{Presence, claims};
 use super::registry::Registry;
 use crate::error::{Error, Result};
-use crate::gateway::event_store::RobotKey;
+use crate::event_store::RobotKey;
 
 /// Follows the changes of `robots` (the gateway's Robot cache, filled by its own watch); returns,
 /// once the cache holds the first full list, what sessions read their desired release (and the

@@ -12,7 +12,7 @@ use serde::Deserialize;
 use super::auth::valid_name;
 use super::kube_auth::Access;
 use super::{ApiError, AppState};
-use crate::gateway::event_store::{RobotKey, StoredEvent};
+use crate::event_store::{RobotKey, StoredEvent};
 
 /// Events answered per request unless the query says otherwise.
 pub const DEFAULT_LIMIT: u32 = 100;

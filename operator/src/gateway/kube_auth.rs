@@ -27,8 +27,8 @@ use sha2::{Digest, Sha256};
 use tracing::{debug, warn};
 
 use crate::gateway::metrics::{GatewayMetrics, ReviewLabels};
-use crate::gateway::rate::SharedBucket;
 use crate::metrics::KindLabels;
+use crate::rate::SharedBucket;
 
 /// API group of the fleet's resources, the group every check names.
 pub const GROUP: &str = "fleet.lekiwi.io";

@@ -11,8 +11,8 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use tokio::time::Instant;
 
-use crate::gateway::rate::SharedBucket;
 use crate::metrics::KindLabels;
+use crate::rate::SharedBucket;
 
 /// Most misses remembered at once (each a short string); beyond it the older half is forgotten.
 const MAX_MISSES: usize = 10_000;

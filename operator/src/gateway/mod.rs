@@ -7,13 +7,11 @@ pub mod api;
 pub mod auth;
 pub mod blob_api;
 mod blob_start;
-pub mod blob_store;
 pub mod cache;
 pub mod dashboard;
 pub mod desired;
 pub mod dispatch;
 pub mod enroll;
-pub mod event_store;
 pub mod events_api;
 pub mod holder;
 pub mod kube_auth;
@@ -25,7 +23,6 @@ pub mod metrics;
 pub mod poll;
 pub mod presence;
 pub mod quota_warnings;
-pub mod rate;
 pub mod registry;
 pub mod releases;
 pub mod server;
@@ -50,8 +47,8 @@ use tokio::sync::Semaphore;
 use tracing::warn;
 
 use self::auth::{Grant, Refusal};
-use self::event_store::RobotKey;
 use self::session::Shared;
+use crate::event_store::RobotKey;
 use crate::metrics::KindLabels;
 
 /// Errors answered over HTTP, as JSON; internal details are logged, never returned.

@@ -22,7 +22,7 @@ use super::desired::DesiredReleases;
 use super::presence::ConnectInfo;
 use super::session::Limits;
 use super::{ApiError, AppState, bearer};
-use crate::gateway::event_store::RobotKey;
+use crate::event_store::RobotKey;
 use crate::metrics::KindLabels;
 
 /// How long a poll answer stays the same after the robot's desired release changed.

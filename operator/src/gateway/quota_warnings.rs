@@ -11,7 +11,7 @@ use kube::{Resource as _, ResourceExt as _};
 use lekiwi_crds::Robot;
 use tracing::warn;
 
-use super::event_store::{Quota, RobotKey};
+use crate::event_store::{Quota, RobotKey};
 
 /// Reason of the Warning Event.
 pub const REASON: &str = "EventQuotaExceeded";

@@ -33,7 +33,7 @@ use super::tokens::TokenIndex;
 use super::{AppState, Routes, dispatch, lease, routes};
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::gateway::event_store::Store;
+use crate::event_store::Store;
 use crate::metrics::Metrics;
 
 /// At most one quota Warning Event per robot this often.

@@ -12,7 +12,7 @@ use lekiwi_crds::robot::CONDITION_UP_TO_DATE;
 use lekiwi_crds::{Condition, Robot, RobotPhase};
 use tokio::time::Instant;
 
-use super::plan::{GatewayState, Plan};
+use crate::liveness::{GatewayState, Plan};
 
 /// How long the controller leaves an Online robot's new spec to its gateway's write.
 pub const GATEWAY_WAIT: Duration = Duration::from_secs(60);
@@ -88,7 +88,7 @@ fn only_new_spec(robot: &Robot, plan: &Plan, gateway: Option<GatewayState>) -> b
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::controller::robot::plan::{Facts, plan};
+    use crate::liveness::{Facts, plan};
     use jiff::Timestamp;
     use serde_json::json;
 

@@ -17,9 +17,9 @@ use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use super::plan::GatewayState;
 use crate::controller::Context;
 use crate::controller::trigger::Trigger;
+use crate::liveness::GatewayState;
 use crate::metrics::PhaseLabels;
 
 /// The end of a Lease's validity: its last renewal plus its duration (`None` without either).

@@ -9,7 +9,6 @@ pub mod deferred;
 pub mod events;
 pub(crate) mod gateways;
 pub mod marks;
-pub mod plan;
 pub mod status;
 
 use std::sync::Arc;
@@ -29,10 +28,10 @@ use tracing::{Instrument, debug, info, info_span, warn};
 
 pub(crate) use self::gateways::status_lag;
 use self::gateways::{gateway_state, watch_gateways};
-use self::plan::{Facts, GatewayState};
 use super::Context;
 use super::trigger::trigger;
 use crate::error::{Error, Result};
+use crate::liveness::{self, Facts, GatewayState};
 use crate::metrics::{ControllerName, PhaseLabels};
 
 /// Watches the gateways' Leases in the operator's namespace until `cancel` fires: returns `ctx`
@@ -152,7 +151,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
             ),
             gateway,
         };
-        let plan = plan::plan(robot, &facts);
+        let plan = liveness::plan(robot, &facts);
         if let Some(action) = write_status(&ctx, robot, &plan, gateway).await? {
             return Ok(action);
         }
@@ -161,7 +160,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
         let old_phase = ctx
             .robot_events
             .observe((&namespace, &name), stored, plan.phase);
-        if let Some(reason) = plan::transition_reason(old_phase, plan.phase) {
+        if let Some(reason) = liveness::transition_reason(old_phase, plan.phase) {
             info!(from = ?old_phase, to = %plan.phase, "robot phase changed");
             ctx.metrics
                 .controllers
@@ -188,7 +187,7 @@ async fn reconcile(guard: Arc<DeserializeGuard<Robot>>, ctx: Arc<Context>) -> Re
 async fn write_status(
     ctx: &Context,
     robot: &Robot,
-    plan: &plan::Plan,
+    plan: &liveness::Plan,
     gateway: Option<GatewayState>,
 ) -> Result<Option<Action>> {
     let (name, namespace) = (robot.name_any(), robot.namespace().unwrap_or_default());
@@ -222,7 +221,7 @@ async fn write_status(
 
 /// Notes `robot` in the list of robots marked `Unknown` (see [`marks`]) when this reconcile
 /// just wrote `plan`, `Unknown` because its gateway is gone.
-fn note_marked(ctx: &Context, robot: &Robot, plan: &plan::Plan, gateway: Option<GatewayState>) {
+fn note_marked(ctx: &Context, robot: &Robot, plan: &liveness::Plan, gateway: Option<GatewayState>) {
     if plan.phase != RobotPhase::Unknown || gateway != Some(GatewayState::Gone) {
         return;
     }
@@ -241,7 +240,7 @@ fn hold(
     gateway: Option<GatewayState>,
     now: Timestamp,
 ) -> Option<Duration> {
-    if let Some(wait) = plan::enrolled_wait(robot, now) {
+    if let Some(wait) = liveness::enrolled_wait(robot, now) {
         debug!(
             ?wait,
             "a robot just enrolled; leaving its first status to its gateway"
@@ -307,7 +306,7 @@ fn claimed_elsewhere(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Str
 
 /// Publishes the Event of a phase change, or counts it into a summary when the budget of
 /// per-robot Events is spent.
-async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &plan::Plan) {
+async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &liveness::Plan) {
     let namespace = robot.namespace().unwrap_or_default();
     let gateway = robot.status.as_ref().and_then(|s| s.gateway.as_deref());
     if ctx.robot_events.admit(&namespace, gateway, plan.phase) == events::Publish::Summarised {

@@ -6,9 +6,9 @@ use lekiwi_crds::Robot;
 use lekiwi_crds::contract::managers;
 use serde_json::json;
 
-use super::plan::Plan;
 use crate::controller::apply_status;
 use crate::error::{Error, Result};
+use crate::liveness::Plan;
 
 /// Applies `phase`, `conditions` and `observedGeneration`, and nothing else. With `fence` (the
 /// Robot's `resourceVersion` as the plan saw it), the API server refuses the write (409) if the

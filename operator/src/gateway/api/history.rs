@@ -12,7 +12,7 @@ use serde::Deserialize;
 
 use super::robots::Page;
 use super::{authorize, bad_query, check_names, page_size, ready};
-use crate::gateway::event_store::{RobotKey, SampleCursor, StoredEvent, StoredSample, TimeRange};
+use crate::event_store::{RobotKey, SampleCursor, StoredEvent, StoredSample, TimeRange};
 use crate::gateway::kube_auth::Access;
 use crate::gateway::{ApiError, AppState};
 

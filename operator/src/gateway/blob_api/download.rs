@@ -19,8 +19,8 @@ use super::{
     BlobApi, Caller, Failure, InNamespace, access, authorize, check_digest, failure, not_found,
     store_failure,
 };
-use crate::gateway::blob_store::readers::ReadGuard;
-use crate::gateway::event_store::RobotKey;
+use crate::blob_store::readers::ReadGuard;
+use crate::event_store::RobotKey;
 use crate::gateway::{ApiError, AppState};
 
 /// Bytes read from disk per chunk of a download.

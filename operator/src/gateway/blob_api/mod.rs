@@ -53,8 +53,8 @@ use self::upload::put_blob;
 use super::auth::{Grant, Refusal, parse_robot};
 use super::kube_auth::{Access, KubeAuth};
 use super::{ApiError, AppState, bearer};
-use crate::gateway::blob_store::{BlobStore, Error as StoreError};
-use crate::gateway::event_store::RobotKey;
+use crate::blob_store::{BlobStore, Error as StoreError};
+use crate::event_store::RobotKey;
 
 /// What the blob routes share.
 pub struct BlobApi {

@@ -14,9 +14,9 @@ use serde_json::json;
 use tracing::{Instrument, debug, info, info_span, warn};
 
 use super::{Failure, InNamespace, authorize, json_response, store_failure};
+use crate::blob_store::{Error as StoreError, UploadState};
 use crate::gateway::AppState;
 use crate::gateway::auth::valid_name;
-use crate::gateway::blob_store::{Error as StoreError, UploadState};
 use crate::metrics::KindLabels;
 
 /// Parses `Content-Range: bytes START-END/TOTAL` into `(START, Some(END), TOTAL)`, and

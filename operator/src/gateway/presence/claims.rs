@@ -27,7 +27,7 @@ use lekiwi_crds::contract::encode_claims;
 use lekiwi_crds::{Robot, RobotPhase};
 
 use super::{Entry, Presence, Priority};
-use crate::gateway::event_store::RobotKey;
+use crate::event_store::RobotKey;
 use crate::gateway::presence::peers::Peers;
 
 /// How long a claim outlives its robot's last landed write when this gateway's Robot watch

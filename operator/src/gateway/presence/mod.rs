@@ -41,7 +41,7 @@ pub use self::lag::status_lag_annotation;
 pub use self::phase::PhasePlanner;
 pub use self::queue::Priority;
 use self::queue::State;
-use crate::gateway::event_store::RobotKey;
+use crate::event_store::RobotKey;
 use crate::gateway::holder::next_epoch;
 use crate::metrics::Metrics;
 

@@ -17,9 +17,9 @@ use serde_json::Value;
 
 use super::patch::{Precondition, planned_status_patch};
 use super::{Entry, Presence};
-use crate::controller::robot::plan::{Facts, GatewayState, plan};
+use crate::event_store::RobotKey;
 use crate::gateway::desired::DesiredReleases;
-use crate::gateway::event_store::RobotKey;
+use crate::liveness::{Facts, GatewayState, plan};
 
 /// What the gateway needs to plan a robot's phase: its Robot cache (spec, generation, phase and
 /// conditions) and the controller's heartbeat grace.

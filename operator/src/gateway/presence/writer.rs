@@ -19,10 +19,10 @@ use tracing::{debug, warn};
 use super::adapt::AdaptiveRate;
 use super::patch::Precondition;
 use super::{Entry, Presence, Priority};
+use crate::event_store::RobotKey;
 use crate::gateway::desired::DesiredReleases;
-use crate::gateway::event_store::RobotKey;
 use crate::gateway::holder::Holder;
-use crate::gateway::rate::TokenBucket;
+use crate::rate::TokenBucket;
 
 /// Why a status write did not happen.
 enum WriteError {

@@ -13,9 +13,9 @@ use lekiwi_crds::{Robot, RobotDeployment};
 use serde::Serialize;
 use tokio::sync::Notify;
 
-use crate::gateway::blob_store::gc::{self, Inputs, Plan, Removed};
-use crate::gateway::blob_store::index::ReleaseRecord;
-use crate::gateway::blob_store::{BlobStore, Result};
+use crate::blob_store::gc::{self, Inputs, Plan, Removed};
+use crate::blob_store::index::ReleaseRecord;
+use crate::blob_store::{BlobStore, Result};
 use crate::gateway::cache::Cache;
 use crate::metrics::{GatewayMetrics, KindLabels};
 
@@ -380,7 +380,7 @@ pub enum Refused {
     /// The gateway has not read the fleet yet.
     NotReady,
     /// The store failed.
-    Store(crate::gateway::blob_store::Error),
+    Store(crate::blob_store::Error),
 }
 
 impl Refused {

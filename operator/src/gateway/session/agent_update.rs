@@ -13,7 +13,7 @@ use tracing::info;
 
 use super::Session;
 use super::conn::Flow;
-use crate::gateway::event_store::StoredEvent;
+use crate::event_store::StoredEvent;
 use crate::gateway::metrics::AgentUpdateLabels;
 use crate::gateway::presence::AgentUpdateOutcome;
 

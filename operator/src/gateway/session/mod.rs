@@ -29,7 +29,7 @@ use super::holder::next_epoch;
 use super::presence::{ConnectInfo, Presence};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::{Control, Registry};
-use crate::gateway::event_store::{ConnectionRecord, RobotKey, Store};
+use crate::event_store::{ConnectionRecord, RobotKey, Store};
 use crate::metrics::{KindLabels, Metrics};
 
 /// Limits one session enforces.
@@ -356,8 +356,8 @@ async fn close(shared: &Shared, key: &RobotKey, opened: &Opened, end: &End) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::event_store::RobotKey;
     use crate::gateway::auth::Authenticator;
-    use crate::gateway::event_store::RobotKey;
     use crate::gateway::presence::{Presence, PresenceConfig};
 
     #[tokio::test]

@@ -13,9 +13,9 @@ use tracing::{debug, info, warn};
 use super::Limits;
 use super::Session;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, End, Flow};
-use crate::gateway::rate::TokenBucket;
 use crate::gateway::registry::Control;
 use crate::metrics::KindLabels;
+use crate::rate::TokenBucket;
 
 /// What woke the session up.
 enum Wake<E> {

@@ -1,5 +1,6 @@
-//! Pure planning for the Robot controller: phase, conditions and next wake-up from the facts
-//! a gateway recorded, the robot's spec and the state of the gateway's Lease.
+//! A Robot's liveness rules, pure: its phase, conditions and next wake-up from the facts a
+//! gateway recorded, the robot's spec and the state of the gateway's Lease. Both writers of a
+//! Robot's phase apply them: the gateway that holds its session and the Robot controller.
 
 use std::borrow::Cow;
 use std::time::Duration;

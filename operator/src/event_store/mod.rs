@@ -155,13 +155,13 @@ impl fmt::Debug for Store {
 macro_rules! with_pool {
     ($store:expr, $pool:ident, $begin:ident => $body:expr) => {
         match &$store.backend {
-            $crate::gateway::event_store::Backend::Sqlite($pool) => {
+            $crate::event_store::Backend::Sqlite($pool) => {
                 // Take the write lock up front, waiting for the busy timeout; a deferred
                 // transaction would fail with SQLITE_BUSY if it had to upgrade.
                 let $begin = "BEGIN IMMEDIATE";
                 $body
             }
-            $crate::gateway::event_store::Backend::Postgres($pool) => {
+            $crate::event_store::Backend::Postgres($pool) => {
                 let $begin = "BEGIN";
                 $body
             }
@@ -169,8 +169,8 @@ macro_rules! with_pool {
     };
     ($store:expr, $pool:ident => $body:expr) => {
         match &$store.backend {
-            $crate::gateway::event_store::Backend::Sqlite($pool) => $body,
-            $crate::gateway::event_store::Backend::Postgres($pool) => $body,
+            $crate::event_store::Backend::Sqlite($pool) => $body,
+            $crate::event_store::Backend::Postgres($pool) => $body,
         }
     };
 }
