@@ -13,38 +13,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::error::{Error, Result};
-use crate::metrics::{Metrics, Registry};
-use prometheus_client::metrics::counter::Counter;
-use prometheus_client::metrics::gauge::Gauge;
-
-/// What leader election exports.
-#[derive(Clone)]
-pub struct LeaderMetrics {
-    /// 1 while this replica holds the leader Lease.
-    pub is_leader: Gauge,
-    /// Times this replica became leader.
-    pub acquisitions: Counter,
-}
-
-impl LeaderMetrics {
-    pub(crate) fn register(registry: &mut Registry) -> Self {
-        let m = Self {
-            is_leader: Gauge::default(),
-            acquisitions: Counter::default(),
-        };
-        registry.register(
-            "lekiwi_leader_election_is_leader",
-            "1 while this replica holds the leader Lease, else 0",
-            m.is_leader.clone(),
-        );
-        registry.register(
-            "lekiwi_leader_election_acquisitions",
-            "Times this replica became leader",
-            m.acquisitions.clone(),
-        );
-        m
-    }
-}
+use crate::metrics::Metrics;
 
 /// One replica's view of the election.
 pub struct LeaderElector {

@@ -2,7 +2,6 @@
 //! controllers make, and the [`trigger`] they are woken by besides their own watch.
 
 pub mod deployment;
-pub mod metrics;
 pub mod robot;
 pub mod trigger;
 

@@ -26,8 +26,8 @@ use kube::api::PostParams;
 use sha2::{Digest, Sha256};
 use tracing::{debug, warn};
 
-use crate::gateway::metrics::{GatewayMetrics, ReviewLabels};
 use crate::metrics::KindLabels;
+use crate::metrics::{GatewayMetrics, ReviewLabels};
 use crate::rate::SharedBucket;
 
 /// API group of the fleet's resources, the group every check names.

@@ -19,7 +19,6 @@ pub mod lease;
 pub mod listener;
 pub mod lookup;
 pub mod mailbox;
-pub mod metrics;
 pub mod poll;
 pub mod presence;
 pub mod quota_warnings;

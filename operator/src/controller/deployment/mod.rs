@@ -7,7 +7,6 @@ mod apply;
 mod facts;
 #[cfg(test)]
 mod facts_tests;
-pub mod metrics;
 mod ownership;
 mod pace;
 pub mod plan;
@@ -158,7 +157,10 @@ async fn reconcile(
             robots: written,
         };
         own.await_in_stores(&state).await;
-        ctx.metrics.rollouts.record(deployment, &plan, now);
+        let judged = plan.batch_result.map(|(_, ratio)| ratio);
+        ctx.metrics
+            .rollouts
+            .record(deployment, &plan.status, (judged, plan.finished), now);
         ctx.reset_backoff(&name, &namespace);
         Ok(match (plan.requeue_after, held) {
             (Some(after), Some(held)) => Action::requeue(after.min(held)),

@@ -14,8 +14,8 @@ use tracing::info;
 use super::Session;
 use super::conn::Flow;
 use crate::event_store::StoredEvent;
-use crate::gateway::metrics::AgentUpdateLabels;
 use crate::gateway::presence::AgentUpdateOutcome;
+use crate::metrics::AgentUpdateLabels;
 
 /// What the session knows about the robot's agent and the `update_agent` it sent.
 pub(super) struct AgentLedger {

@@ -11,9 +11,9 @@ use tracing::{debug, info, warn};
 use super::Session;
 use super::conn::{End, Flow, wire_name};
 use crate::event_store::{self, Quota, QuotaLimit, StoredEvent};
-use crate::gateway::metrics::ReasonLabels;
 use crate::gateway::presence::{HeartbeatInfo, UpdateOutcome};
 use crate::metrics::KindLabels;
+use crate::metrics::ReasonLabels;
 
 impl<W> Session<'_, W>
 where

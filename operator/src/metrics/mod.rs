@@ -7,16 +7,20 @@ use std::sync::Arc;
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::registry::Metric;
 
-pub use crate::controller::deployment::metrics::{
-    DeploymentLabels, DeploymentPhaseLabels, OutcomeLabels, RolloutMetrics,
-};
-pub use crate::controller::metrics::{
+mod controller;
+mod gateway;
+mod leader;
+mod rollout;
+
+pub use controller::{
     ControllerLabels, ControllerMetrics, ControllerName, ErrorLabels, PhaseLabels, ReconcileTimer,
 };
-pub use crate::gateway::metrics::{
-    GatewayMetrics, PriorityLabels, RobotLabels, RobotMetrics, RobotReleaseLabels, WriteLabels,
+pub use gateway::{
+    AgentUpdateLabels, GatewayMetrics, PriorityLabels, ReasonLabels, ReviewLabels, RobotLabels,
+    RobotMetrics, RobotReleaseLabels, WriteLabels,
 };
-pub use crate::leader::LeaderMetrics;
+pub use leader::LeaderMetrics;
+pub use rollout::{DeploymentLabels, DeploymentPhaseLabels, OutcomeLabels, RolloutMetrics};
 
 /// A bounded label with one value from a fixed set.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]

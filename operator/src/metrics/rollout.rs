@@ -4,6 +4,7 @@
 use jiff::Timestamp;
 use kube::ResourceExt;
 use lekiwi_crds::RobotDeployment;
+use lekiwi_crds::deployment::RobotDeploymentStatus;
 use lekiwi_crds::deployment::RolloutPhase;
 use prometheus_client::encoding::EncodeLabelSet;
 use prometheus_client::metrics::counter::Counter;
@@ -11,8 +12,7 @@ use prometheus_client::metrics::family::Family;
 use prometheus_client::metrics::gauge::Gauge;
 use prometheus_client::metrics::histogram::{Histogram, exponential_buckets};
 
-use super::plan::Plan;
-use crate::metrics::Registry;
+use super::Registry;
 
 /// Labels of per-deployment series (bounded by the number of RobotDeployments, which people
 /// create by hand).
@@ -130,9 +130,16 @@ impl RolloutMetrics {
 }
 
 impl RolloutMetrics {
-    /// Records what one plan of `deployment` says: gauges always, batch and rollout outcomes
-    /// only in the plan that ended them.
-    pub(super) fn record(&self, deployment: &RobotDeployment, plan: &Plan, now: Timestamp) {
+    /// Records what one plan of `deployment` says: gauges from the `status` it writes always;
+    /// a batch's success ratio only in the plan that judged the batch (`batch_result`), the
+    /// rollout's outcome only in the plan that ended it (`finished`).
+    pub fn record(
+        &self,
+        deployment: &RobotDeployment,
+        status: &RobotDeploymentStatus,
+        (batch_result, finished): (Option<f64>, bool),
+        now: Timestamp,
+    ) {
         let (namespace, name) = (
             deployment.namespace().unwrap_or_default(),
             deployment.name_any(),
@@ -141,7 +148,6 @@ impl RolloutMetrics {
             namespace: namespace.clone(),
             deployment: name.clone(),
         };
-        let status = &plan.status;
         self.targeted
             .get_or_create(&labels)
             .set(i64::from(status.targeted));
@@ -163,7 +169,7 @@ impl RolloutMetrics {
                 })
                 .set(i64::from(status.phase == Some(phase)));
         }
-        if let Some((_, ratio)) = plan.batch_result {
+        if let Some(ratio) = batch_result {
             self.batch_success.observe(ratio);
             let outcome = if ratio >= deployment.spec.strategy.success_threshold {
                 "succeeded"
@@ -172,7 +178,7 @@ impl RolloutMetrics {
             };
             self.batches.get_or_create(&OutcomeLabels { outcome }).inc();
         }
-        if plan.finished {
+        if finished {
             let outcome = match status.phase {
                 Some(RolloutPhase::Completed) => "completed",
                 Some(RolloutPhase::RolledBack) => "rolled_back",

@@ -1,10 +1,14 @@
 //! Command-line flags of `lekiwi-operator`; every flag can also be set by an environment variable.
 
+mod graphql;
+
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
+
+pub use graphql::GraphQlConfig;
 
 /// Log output format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -331,7 +335,7 @@ pub struct Config {
 
     /// The GraphQL endpoint's limits.
     #[command(flatten)]
-    pub graphql: crate::gateway::api::graphql::GraphQlConfig,
+    pub graphql: GraphQlConfig,
 
     /// Validity of the gateway's own Lease (renewed every third of it).
     #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]
