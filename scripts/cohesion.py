@@ -229,7 +229,39 @@ def findings(roots):
     return found
 
 
+def self_test():
+    """The checker on a made-up crate: a cycle through a re-export and a `use` group is found,
+    a child using its parent is not a cycle, a test module does not count, and two impls of one
+    type in two files are listed."""
+    import tempfile
+    with tempfile.TemporaryDirectory() as root:
+        files = {
+            'Cargo.toml': '',
+            'src/lib.rs': 'pub mod a;\npub mod b;\npub mod c;\n#[cfg(test)]\nmod tests;\n',
+            'src/a/mod.rs': 'mod x;\nmod y;\npub use self::y::Thing;\npub struct A;\n',
+            'src/a/x.rs': 'use super::{Thing, A};\nimpl A { fn f() {} }\n',
+            'src/a/y.rs': 'pub struct Thing;\nuse super::x as _; // super::x here\n'
+                          'fn g() { let s = "crate::c::C"; super::x::h(); }\n',
+            'src/b.rs': 'use crate::a::A;\nimpl A { fn k() {} }\n',
+            'src/c.rs': 'pub struct C;\n',
+            'src/tests.rs': 'use crate::{a, b, c};\n',
+        }
+        for name, text in files.items():
+            os.makedirs(os.path.dirname(os.path.join(root, name)), exist_ok=True)
+            with open(os.path.join(root, name), 'w', encoding='utf-8') as f:
+                f.write(text)
+        found = findings([root])
+    cycles_found = [f for f in found if f.startswith('cycle')]
+    assert len(cycles_found) == 1 and 'crate::a: x <-> y' in cycles_found[0], found
+    assert any(f.startswith('impl A spread over 2 files') for f in found), found
+    assert len(found) == 2, found
+
+
 if __name__ == '__main__':
+    if '--self-test' in sys.argv:
+        self_test()
+        print('cohesion: self-test passed')
+        sys.exit(0)
     result = findings([a for a in sys.argv[1:] if not a.startswith('--')] or ['.'])
     print('\n'.join(result) if result else 'cohesion: no sibling cycle, no type spread over files')
     sys.exit(1 if result and '--check' in sys.argv else 0)

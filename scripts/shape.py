@@ -1,14 +1,18 @@
 #!/usr/bin/env python3
-"""Keeps the code in small rooms: lists non-test Rust functions longer than --fn lines and modules
-with more than --mod non-test, non-comment lines. A function or module may stay larger with a
-reason: a comment containing `shape:` in the three lines above the `fn`, or in the first five
-lines of the module. With --check it exits 1 when anything is listed (scripts/test.sh runs it).
+"""Keeps the code in rooms cut by concern: lists non-test Rust functions longer than --fn lines,
+modules with more than --mod non-test, non-comment lines, and (scripts/cohesion.py) import
+cycles among sibling modules. A function or module may stay larger with a reason: a comment
+containing `shape:` in the three lines above the `fn`, or in the first five lines of the module.
+No cycle may stay. Types whose inherent impl is spread over several files are listed as notes.
+With --check it exits 1 when anything but a note is listed (scripts/test.sh runs it).
 
 Usage: python3 scripts/shape.py [--check] [--fn 80] [--mod 400] [DIR ...]
 """
 import os
 import re
 import sys
+
+import cohesion
 
 FN_RE = re.compile(r'^(\s*)(pub(\([^)]*\))? )?(async )?(const )?(unsafe )?fn (\w+)')
 
@@ -74,7 +78,14 @@ def main():
             found.append(f'module {path}: {len(code)} non-test lines (limit {mod_max})')
         for length, line, name in long_functions(lines, fn_max):
             found.append(f'fn {path}:{line} {name}: {length} lines (limit {fn_max})')
-    print('\n'.join(found) if found else f'shape: no fn over {fn_max} lines, no module over {mod_max}')
+    if '--check' in sys.argv:
+        cohesion.self_test()
+    notes = []
+    for finding in cohesion.findings(roots):
+        (notes if finding.startswith('impl ') else found).append(finding)
+    print('\n'.join('note: ' + n for n in notes))
+    print('\n'.join(found) if found else
+          f'shape: no fn over {fn_max} lines, no module over {mod_max}, no sibling import cycle')
     return 1 if found and '--check' in sys.argv else 0
 
 

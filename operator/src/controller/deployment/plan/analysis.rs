@@ -7,23 +7,29 @@ use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::analysis::{AnalysisReport, AnalysisSpec, MetricSummary};
 
 use super::RobotView;
-use super::classify::RobotState;
 use super::draft::Rollout;
 
-/// The state of a started robot in batch `batch`, told to switch at `since`, if its switch is
-/// settled: `Succeeded` once it runs the release healthy (and, with `spec.analysis`, once its
-/// window passed within the thresholds), `Failed` when a metric rose past one. `None`: not yet.
+/// How a started robot's switch settled.
+#[derive(Clone, Debug, PartialEq)]
+pub(super) enum Settled {
+    /// It runs the release healthy (and, with `spec.analysis`, its window passed within the
+    /// thresholds).
+    Updated,
+    /// A metric rose past its threshold over the baseline: why.
+    Failed(String),
+}
+
+/// How the switch of a started robot, told to switch at `since`, settled; `None`: not yet.
 pub(super) fn switched(
     robot: &RobotView,
-    batch: i32,
     since: Timestamp,
     rollout: &Rollout<'_>,
-) -> Option<RobotState> {
+) -> Option<Settled> {
     if !(robot.runs(rollout.target) && robot.healthy) {
         return None;
     }
     let Some(spec) = rollout.analysis else {
-        return Some(RobotState::Succeeded(batch));
+        return Some(Settled::Updated);
     };
     let report = robot.analysis.as_ref()?;
     let start = report.window_start.as_ref()?.0;
@@ -41,8 +47,8 @@ pub(super) fn switched(
         .or_else(|| judge_events(spec, report, span))
         .or_else(|| judge_telemetry(spec, report));
     Some(match failed {
-        Some(why) => RobotState::Failed(batch, why),
-        None => RobotState::Succeeded(batch),
+        Some(why) => Settled::Failed(why),
+        None => Settled::Updated,
     })
 }
 

@@ -4,6 +4,7 @@
 use jiff::Timestamp;
 use lekiwi_crds::{ReleaseRef, RobotPhase};
 
+use super::analysis::{Settled, switched};
 use super::draft::Rollout;
 use super::{MarkState, RobotView, batch_size, total_batches};
 
@@ -183,8 +184,10 @@ fn classify(robot: &RobotView, rollout: &Rollout<'_>) -> RobotState {
 /// a failure since it was started, or when it is still not there after the robot timeout.
 fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_>) -> RobotState {
     let target = rollout.target;
-    if let Some(state) = super::analysis::switched(robot, batch, since, rollout) {
-        return state;
+    match switched(robot, since, rollout) {
+        Some(Settled::Updated) => return RobotState::Succeeded(batch),
+        Some(Settled::Failed(why)) => return RobotState::Failed(batch, why),
+        None => {}
     }
     if let Some((release, phase, message, at)) = &robot.last_update
         && release == target

@@ -15,6 +15,7 @@ mod gates;
 mod pause;
 mod phase;
 mod progress;
+mod rollback;
 mod status;
 
 use std::time::Duration;

@@ -8,7 +8,7 @@ use lekiwi_crds::deployment::{RolloutPhase, UnavailablePolicy};
 
 use super::classify::{Fleet, RobotState, Unavailable};
 use super::draft::{Draft, Rollout};
-use super::{Mark, MarkState, RobotView, pause, phase, secs, time};
+use super::{Mark, MarkState, RobotView, pause, rollback, secs, time};
 
 /// How far the current batch got in this plan.
 enum Outcome {
@@ -77,7 +77,7 @@ pub(super) fn roll_forward(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut
                 "RollbackStarted",
                 format!("{}; rolling back every updated robot", draft.message),
             );
-            phase::start_rollback(rollout, fleet, draft);
+            rollback::start_rollback(rollout, fleet, draft);
             draft.wake_at(rollout.now + SignedDuration::from_secs(2));
         }
     }
