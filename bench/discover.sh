@@ -6,7 +6,7 @@
 #! file) it runs discover once with each window (--timeout) of 100, 200, 300, 500, 750, 1000 and
 #! 1500 ms and reports how many robots it found in each, and the shortest window from which on it
 #! found all N. Runs as the ignored test `discover_time_to_find_per_method` of
-#! tests/tests/discover_methods.rs, against the shared test control plane.
+#! tests/tests/agents/discover_methods.rs, against the shared test control plane.
 #!
 #! Usage: bash bench/discover.sh [options]
 #!   --robots N   robots in the lab (default 50; at most 200)
@@ -48,8 +48,8 @@ cargo build --workspace --bins >&2
 OUT="$ROOT/target/test-logs/discover-bench.log"
 mkdir -p "$(dirname "$OUT")"
 log "discovering $ROBOTS robots by each method"
-LEKIWI_DISCOVER_ROBOTS="$ROBOTS" cargo test -p lekiwi-tests --test discover_methods -- \
-  --ignored --exact discover_time_to_find_per_method --nocapture >"$OUT" \
+LEKIWI_DISCOVER_ROBOTS="$ROBOTS" cargo test -p lekiwi-tests --test agents -- \
+  --ignored --exact discover_methods::discover_time_to_find_per_method --nocapture >"$OUT" \
   || die "the benchmark test failed (its output: $OUT)"
 grep -q '^| mdns' "$OUT" || die "no table in the test's output (skipped? see above)"
 

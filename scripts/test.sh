@@ -41,7 +41,7 @@ log "running tests"
 export RUST_BACKTRACE="${LEKIWI_TEST_BACKTRACE:-0}" RUST_LIB_BACKTRACE=0
 # Tests that keep the CPU busy for long (emulated Pis, a whole cluster with Pods, image builds)
 # run after the others, one at a time, so they never starve the timing of the rest.
-HEAVY='binary_id(/^lekiwi-tests::(arm64|cluster|node|image)$/)'
+HEAVY='binary_id(lekiwi-tests::testbed)'
 if cargo nextest --version >/dev/null 2>&1; then
   if [ $# -gt 0 ]; then
     cargo nextest run --workspace --no-fail-fast "$@"

@@ -243,7 +243,7 @@ async fn long_message(op: &OperatorProcess, token: &str) -> Result<()> {
 
 /// GraphiQL's introspection query, with `ofType` nine deep, under the default limits.
 async fn introspection(op: &OperatorProcess, token: &str) -> Result<()> {
-    let query = include_str!("../fixtures/introspection.graphql");
+    let query = include_str!("../../fixtures/introspection.graphql");
     let body =
         serde_json::to_vec(&json!({ "query": query, "operationName": "IntrospectionQuery" }))?;
     let (code, json) = post(op, token, &body).await?;
