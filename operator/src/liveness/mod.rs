@@ -78,7 +78,15 @@ pub fn plan(robot: &Robot, facts: &Facts) -> Plan {
     let status = robot.status.clone().unwrap_or_default();
     let generation = robot.metadata.generation;
     let heartbeat = status.last_heartbeat_time.as_ref().map(|t| t.0);
-    let heartbeat_age = heartbeat.map(|t| facts.now.duration_since(t).unsigned_abs());
+    // A heartbeat stamped ahead of this clock (the gateway's clock runs ahead) is fresh, not
+    // old: its age is zero until this clock passes it.
+    let heartbeat_age = heartbeat.map(|t| {
+        facts
+            .now
+            .duration_since(t)
+            .max(jiff::SignedDuration::ZERO)
+            .unsigned_abs()
+    });
     let presence = presence(&status, facts, heartbeat_age);
     let phase = if robot.spec.maintenance {
         RobotPhase::Maintenance
@@ -326,6 +334,9 @@ pub fn transition_reason(from: Option<RobotPhase>, to: RobotPhase) -> Option<&'s
         RobotPhase::Maintenance => "RobotMaintenance",
     })
 }
+
+#[cfg(test)]
+mod properties_tests;
 
 #[cfg(test)]
 mod tests {
