@@ -25,8 +25,14 @@ use kube::{Api, Resource};
 use serde_json::json;
 
 use crate::config::Config;
-use crate::error::{Error, Result};
+use crate::error::{Category, Error, Result};
 use crate::metrics::{ControllerName, ErrorLabels, Metrics};
+
+/// The longest a failing object waits before its next reconcile.
+const MAX_BACKOFF: Duration = Duration::from_secs(300);
+/// When an object whose write met a newer version (409) is planned again; the watch usually
+/// brings that version first.
+const CONFLICT_RETRY: Duration = Duration::from_secs(1);
 
 /// What every reconcile gets.
 #[derive(Clone)]
@@ -82,10 +88,13 @@ impl Context {
             .entry((namespace.to_owned(), name.to_owned()))
             .or_insert(0);
         *n = n.saturating_add(1);
-        Duration::from_secs(1u64 << (*n - 1).min(8)).min(Duration::from_secs(300))
+        Duration::from_secs(1u64 << (*n - 1).min(8)).min(MAX_BACKOFF)
     }
 
-    /// Counts a failed reconcile of `name` by its reason and returns how long to back off.
+    /// Counts a failed reconcile of `name` by its reason and returns how long to back off, by
+    /// what can be done about the error: a conflict is planned again soon from the newer
+    /// version (without growing the backoff), a transient failure backs off from 1 s doubling,
+    /// a permanent one waits the longest backoff at once.
     pub fn reconcile_failed(
         &self,
         controller: ControllerName,
@@ -101,7 +110,11 @@ impl Context {
                 reason: error.metric_reason(),
             })
             .inc();
-        self.next_backoff(name, namespace)
+        match error.category() {
+            Category::Conflict => CONFLICT_RETRY,
+            Category::Transient => self.next_backoff(name, namespace),
+            Category::Permanent => MAX_BACKOFF,
+        }
     }
 
     /// The heartbeat age past which a robot connected through `gateway` is Offline:
@@ -198,4 +211,45 @@ pub(crate) async fn drive<K, Ctx, Fut>(
             futures::future::ready(())
         })
         .await;
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    /// A context whose client points nowhere: reconcile_failed never calls it.
+    fn context() -> Context {
+        let config = kube::Config::new("http://127.0.0.1:9".parse().unwrap());
+        let client = kube::Client::try_from(config).unwrap();
+        let recorder = Recorder::new(client.clone(), "test".into());
+        let config = Config::parse_from(["lekiwi-operator"]);
+        Context::new(client, recorder, Metrics::default(), Arc::new(config))
+    }
+
+    fn failed(ctx: &Context, code: u16) -> Duration {
+        let status: kube::core::Status =
+            serde_json::from_value(serde_json::json!({ "code": code })).unwrap();
+        let error = Error::PatchStatus {
+            object: "lab/kiwi".into(),
+            source: kube::Error::Api(Box::new(status)),
+        };
+        ctx.reconcile_failed(ControllerName::robot, "kiwi", "lab", &error)
+    }
+
+    #[tokio::test]
+    async fn the_retry_follows_what_can_be_done_about_the_error() {
+        let ctx = context();
+        // Transient: 1 s, doubling.
+        assert_eq!(failed(&ctx, 503), Duration::from_secs(1));
+        assert_eq!(failed(&ctx, 503), Duration::from_secs(2));
+        // A conflict is planned again soon and does not grow the backoff.
+        assert_eq!(failed(&ctx, 409), CONFLICT_RETRY);
+        assert_eq!(failed(&ctx, 503), Duration::from_secs(4));
+        // A refused write waits the longest at once.
+        assert_eq!(failed(&ctx, 422), MAX_BACKOFF);
+        ctx.reset_backoff("kiwi", "lab");
+        assert_eq!(failed(&ctx, 500), Duration::from_secs(1));
+    }
 }
