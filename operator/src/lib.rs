@@ -1,6 +1,7 @@
 //! The LeKiwi fleet operator: wires the Kubernetes client, leader election, controllers and the
 //! HTTP endpoints together and runs them until a signal.
 
+pub mod apply;
 pub mod blob_store;
 pub mod config;
 pub mod controller;

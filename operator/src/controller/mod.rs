@@ -22,8 +22,8 @@ use kube::api::{Patch, PatchParams};
 use kube::runtime::events::Recorder;
 use kube::runtime::reflector::Store;
 use kube::{Api, Resource};
-use serde_json::json;
 
+use crate::apply::StatusApply;
 use crate::config::Config;
 use crate::error::{Category, Error, Result};
 use crate::metrics::{ControllerName, ErrorLabels, Metrics};
@@ -142,25 +142,22 @@ impl Context {
     }
 }
 
-/// Writes `status` to the object `name` by server-side apply under `manager`, forcing
-/// ownership: each controller owns its status fields outright, so a conflict means a stale
-/// writer (e.g. a former leader) that must lose. `object` names it in the error. Returns the
-/// object as written.
-pub async fn apply_status<K>(
+/// Writes `patch` (a typed [`StatusApply`] of `K`) to the object `name` by server-side apply
+/// under `manager`, forcing ownership: each controller owns its status fields outright, so a
+/// conflict means a stale writer (e.g. a former leader) that must lose; a fenced patch is
+/// refused (409) if the object changed since it was read. `object` names it in the error.
+/// Returns the object as written.
+pub async fn apply_status<K, S>(
     api: &Api<K>,
     name: &str,
     object: &str,
-    status: serde_json::Value,
+    patch: &StatusApply<S>,
     manager: &str,
 ) -> Result<K>
 where
     K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug,
+    S: serde::Serialize + Debug,
 {
-    let patch = json!({
-        "apiVersion": K::api_version(&()),
-        "kind": K::kind(&()),
-        "status": status,
-    });
     api.patch_status(
         name,
         &PatchParams::apply(manager).force(),

@@ -13,10 +13,10 @@ use lekiwi_crds::analysis::WINDOW_ANNOTATION;
 use lekiwi_crds::contract::managers;
 use lekiwi_crds::deployment::RolloutKind;
 use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, ReleaseRef, Robot, RobotDeployment};
-use serde_json::json;
 use tracing::{debug, info, warn};
 
 use super::plan::{Facts, Mark, Plan, PlannedEvent, RobotView};
+use crate::apply::{RobotApply, RobotSpecPart, StatusApply};
 use crate::controller::apply_status;
 use crate::error::{Error, Result};
 
@@ -44,7 +44,7 @@ pub(super) async fn write_robots(
     let kind = deployment.spec.kind();
     let views: BTreeMap<&str, &RobotView> =
         facts.robots.iter().map(|r| (r.name.as_str(), r)).collect();
-    let jobs: Vec<(String, Mark, Option<serde_json::Value>, Option<i64>)> = plan
+    let jobs: Vec<(String, Mark, Option<RobotSpecPart>, Option<i64>)> = plan
         .writes
         .iter()
         .map(|w| {
@@ -81,8 +81,11 @@ pub(super) async fn write_robots(
 /// The Robot `spec` of a release rollout's write: `release`, the planned release, else (a
 /// mark-only write) the one it has, so that server-side apply keeps this manager owning
 /// `spec.release` instead of dropping it.
-fn release_spec(release: Option<&ReleaseRef>) -> Option<serde_json::Value> {
-    Some(json!({ "release": release? }))
+fn release_spec(release: Option<&ReleaseRef>) -> Option<RobotSpecPart> {
+    Some(RobotSpecPart {
+        release: Some(release?.clone()),
+        agent: None,
+    })
 }
 
 /// The analysis window (`windowSeconds`) a write that leaves the robot's `spec.release` at
@@ -108,7 +111,7 @@ fn agent_spec(
     view: Option<&RobotView>,
     facts: &Facts,
     deployment: &RobotDeployment,
-) -> Option<serde_json::Value> {
+) -> Option<RobotSpecPart> {
     let agent = match planned {
         Some(target) if *target == facts.target => deployment.spec.agent.clone()?,
         Some(previous) => {
@@ -131,7 +134,10 @@ fn agent_spec(
         }
         None => view.and_then(|v| v.desired_agent.clone())?,
     };
-    Some(json!({ "agent": agent }))
+    Some(RobotSpecPart {
+        release: None,
+        agent: Some(agent),
+    })
 }
 
 async fn write_robot(
@@ -139,22 +145,16 @@ async fn write_robot(
     kind: RolloutKind,
     name: &str,
     mark: &Mark,
-    spec: Option<serde_json::Value>,
+    spec: Option<RobotSpecPart>,
     window: Option<i64>,
 ) -> Result<Written> {
     let text = serde_json::to_string(mark).unwrap_or_default();
     let key = kind.mark_annotation();
-    let mut patch = json!({
-        "apiVersion": "fleet.lekiwi.io/v1alpha1",
-        "kind": "Robot",
-        "metadata": { "annotations": { key: &text } },
-    });
+    let mut annotations = BTreeMap::from([(key.to_owned(), text.clone())]);
     if let Some(seconds) = window {
-        patch["metadata"]["annotations"][WINDOW_ANNOTATION] = json!(seconds.to_string());
+        annotations.insert(WINDOW_ANNOTATION.to_owned(), seconds.to_string());
     }
-    if let Some(spec) = &spec {
-        patch["spec"] = spec.clone();
-    }
+    let patch = RobotApply::new(annotations, spec.clone());
     let robot = api
         .patch(
             name,
@@ -194,7 +194,7 @@ pub(super) async fn update_status(
         &api,
         &name,
         &format!("{namespace}/{name}"),
-        json!(plan.status),
+        &StatusApply::new::<RobotDeployment>(&plan.status),
         managers::DEPLOYMENT_STATUS,
     )
     .await

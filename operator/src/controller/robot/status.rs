@@ -1,13 +1,12 @@
 //! Client steps of the Robot controller: write the planned status by server-side apply.
 
-use kube::api::{Patch, PatchParams};
-use kube::{Api, Resource};
-use lekiwi_crds::Robot;
+use kube::Api;
 use lekiwi_crds::contract::managers;
-use serde_json::json;
+use lekiwi_crds::{Robot, RobotStatus};
 
+use crate::apply::StatusApply;
 use crate::controller::apply_status;
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::liveness::Plan;
 
 /// Applies `phase`, `conditions` and `observedGeneration`, and nothing else. With `fence` (the
@@ -20,31 +19,18 @@ use crate::liveness::Plan;
 /// `Online`; unfenced, it would flap `Online → Pending → Online`. And a robot marked `Unknown`
 /// because its gateway died may have reconnected through another gateway already.
 pub async fn apply(api: &Api<Robot>, name: &str, plan: &Plan, fence: Option<&str>) -> Result<()> {
-    let mut status = json!({ "phase": plan.phase, "conditions": plan.conditions });
-    // The schema has no `nullable`: omit unset fields rather than sending null.
-    if let Some(generation) = plan.observed_generation {
-        status["observedGeneration"] = json!(generation);
-    }
-    let Some(version) = fence else {
-        return apply_status(api, name, name, status, managers::ROBOT_CONTROLLER)
-            .await
-            .map(drop);
+    // Only the fields this controller owns; the gateway owns the rest of the status.
+    let status = RobotStatus {
+        phase: Some(plan.phase),
+        conditions: plan.conditions.clone(),
+        observed_generation: plan.observed_generation,
+        ..RobotStatus::default()
     };
-    let patch = json!({
-        "apiVersion": Robot::api_version(&()),
-        "kind": Robot::kind(&()),
-        "metadata": { "resourceVersion": version },
-        "status": status,
-    });
-    api.patch_status(
-        name,
-        &PatchParams::apply(managers::ROBOT_CONTROLLER).force(),
-        &Patch::Apply(&patch),
-    )
-    .await
-    .map(drop)
-    .map_err(|source| Error::PatchStatus {
-        object: name.to_owned(),
-        source,
-    })
+    let mut patch = StatusApply::new::<Robot>(status);
+    if let Some(version) = fence {
+        patch = patch.fenced(Some(version.to_owned()));
+    }
+    apply_status(api, name, name, &patch, managers::ROBOT_CONTROLLER)
+        .await
+        .map(drop)
 }

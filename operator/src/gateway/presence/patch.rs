@@ -1,6 +1,7 @@
-//! The gateway's server-side-apply patch of a `Robot` status, built from the `crds` types so
-//! that a renamed or retyped status field fails to compile here instead of silently writing a
-//! key the CRD schema does not know.
+//! The gateway's server-side-apply patch of a `Robot` status, built from the `crds` types
+//! ([`crate::apply::StatusApply`], as the controllers' writes are) so that a renamed or retyped
+//! status field fails to compile here instead of silently writing a key the CRD schema does not
+//! know.
 //!
 //! The patch holds exactly the fields the gateway owns, plus the phase and conditions they
 //! imply when the gateway can plan them ([`super::phase`]): server-side apply drops a field its
@@ -8,45 +9,24 @@
 //! when `None`), never sent as `null`.
 
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
-use kube::Resource;
 use lekiwi_crds::release::ReleaseRef;
 use lekiwi_crds::robot::{
     HealthReport, Robot, RobotStatus, SystemInfo, TelemetrySummary, TeleoperationReport,
     UpdateReport,
 };
 use lekiwi_protocol::{SystemFacts, Vitals, rules};
-use serde::Serialize;
 use serde_json::Value;
 
 use super::{Entry, UpdateOutcome};
+use crate::apply::{Metadata, StatusApply};
 
 /// The agent's explanation of an update outcome is cut to this many characters.
 const MAX_UPDATE_MESSAGE_CHARS: usize = 1024;
 
-/// A `Robot` apply patch that touches only `status` (and, for a guarded write, the
-/// `resourceVersion` precondition).
-#[derive(Serialize)]
-#[serde(rename_all = "camelCase")]
-struct StatusPatch {
-    api_version: String,
-    kind: String,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    metadata: Option<Precondition>,
-    status: RobotStatus,
-}
-
-/// Makes the API server refuse the write if the robot changed since it was read.
-#[derive(Serialize)]
-#[serde(rename_all = "camelCase")]
-pub(super) struct Precondition {
-    /// The `metadata.resourceVersion` of the robot as read.
-    pub(super) resource_version: Option<String>,
-}
-
 /// The apply patch of the robot's status as `gateway` sees it in `e`; with a `precondition`,
 /// the write only succeeds against that version of the robot.
 #[cfg(test)]
-pub(super) fn status_patch(gateway: &str, e: &Entry, precondition: Option<Precondition>) -> Value {
+pub(super) fn status_patch(gateway: &str, e: &Entry, precondition: Option<Metadata>) -> Value {
     planned_status_patch(gateway, e, precondition, |_| {})
 }
 
@@ -55,17 +35,12 @@ pub(super) fn status_patch(gateway: &str, e: &Entry, precondition: Option<Precon
 pub(super) fn planned_status_patch(
     gateway: &str,
     e: &Entry,
-    precondition: Option<Precondition>,
+    precondition: Option<Metadata>,
     plan: impl FnOnce(&mut RobotStatus),
 ) -> Value {
     let mut status = gateway_status(gateway, e);
     plan(&mut status);
-    let patch = StatusPatch {
-        api_version: Robot::api_version(&()).into_owned(),
-        kind: Robot::kind(&()).into_owned(),
-        metadata: precondition,
-        status,
-    };
+    let patch = StatusApply::new::<Robot>(status).with_metadata(precondition);
     // A `Value` keeps the keys sorted, as the hand-written patch had them on the wire.
     serde_json::to_value(patch).unwrap_or(Value::Null)
 }

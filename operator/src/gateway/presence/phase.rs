@@ -15,8 +15,9 @@ use kube::api::ObjectMeta;
 use lekiwi_crds::{Robot, RobotStatus};
 use serde_json::Value;
 
-use super::patch::{Precondition, planned_status_patch};
+use super::patch::planned_status_patch;
 use super::{Entry, Presence};
+use crate::apply::Metadata;
 use crate::event_store::RobotKey;
 use crate::gateway::desired::DesiredReleases;
 use crate::liveness::{Facts, GatewayState, plan};
@@ -98,7 +99,7 @@ impl Presence {
         &self,
         key: &RobotKey,
         e: &Entry,
-        precondition: Option<Precondition>,
+        precondition: Option<Metadata>,
         fresh: Option<&Robot>,
     ) -> Value {
         // What was just read is newer than the cache; without either, the controller plans.

@@ -17,8 +17,8 @@ use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
 use super::adapt::AdaptiveRate;
-use super::patch::Precondition;
 use super::{Entry, Presence, Priority};
+use crate::apply::Metadata;
 use crate::event_store::RobotKey;
 use crate::gateway::desired::DesiredReleases;
 use crate::gateway::holder::Holder;
@@ -357,9 +357,7 @@ impl Presence {
             debug!(robot = %key.name, holder = ?holder.gateway, "a later session holds the robot; not writing");
             return Err(WriteError::Superseded);
         }
-        let precondition = Precondition {
-            resource_version: holder.resource_version.clone(),
-        };
+        let precondition = Metadata::fence(holder.resource_version.clone());
         let patch = self.patch(key, e, Some(precondition), fresh);
         match api
             .patch_status(
