@@ -7,6 +7,7 @@ mod apply;
 mod facts;
 #[cfg(test)]
 mod facts_tests;
+mod index;
 pub mod metrics;
 mod ownership;
 mod pace;
@@ -27,7 +28,6 @@ use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, info, info_span, warn};
 
 pub use self::facts::check_release;
-use self::facts::is_active;
 use super::Context;
 use super::trigger::{Trigger, trigger};
 use crate::error::{Error, Result};
@@ -87,14 +87,15 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     Ok(())
 }
 
-/// The Robot store and the watch that fills it; any robot change may move a rollout of its
-/// namespace on, so it wakes every active deployment there.
+/// The Robot store and the watch that fills it; a robot change wakes the active deployments
+/// it concerns (see [`index`]), not every deployment of its namespace.
 fn watch_robots(
     robots: Api<Robot>,
     deployments: Store<DeserializeGuard<RobotDeployment>>,
     wake: Trigger<DeserializeGuard<RobotDeployment>>,
 ) -> (Store<Robot>, impl Future<Output = ()> + Send + 'static) {
     let (store, writer) = reflector::store();
+    let index = index::RobotIndex::default();
     let watch = reflector(
         writer,
         watcher(robots, watcher::Config::default().any_semantic()).modify(|r: &mut Robot| {
@@ -103,14 +104,19 @@ fn watch_robots(
         }),
     )
     .default_backoff()
-    .applied_objects()
-    .for_each(move |robot| {
-        if let Ok(robot) = robot {
-            let namespace = robot.namespace();
-            for d in deployments.state() {
-                if d.namespace() == namespace && is_active(&d) {
-                    wake.request(ObjectRef::from_obj(d.as_ref()));
-                }
+    .for_each(move |event| {
+        let all = deployments.state();
+        let concerned = match &event {
+            Ok(watcher::Event::Apply(robot) | watcher::Event::InitApply(robot)) => {
+                Some((robot, index.applied(robot, &all)))
+            }
+            Ok(watcher::Event::Delete(robot)) => Some((robot, index.deleted(robot, &all))),
+            _ => None,
+        };
+        if let Some((robot, names)) = concerned {
+            let namespace = robot.namespace().unwrap_or_default();
+            for name in names {
+                wake.request(ObjectRef::new(&name).within(&namespace));
             }
         }
         futures::future::ready(())
