@@ -4,6 +4,7 @@
 //! ([`apply`]), record metrics.
 
 mod apply;
+mod catch_up;
 mod facts;
 #[cfg(test)]
 mod facts_tests;
@@ -42,6 +43,8 @@ struct State {
     wake: Trigger<DeserializeGuard<RobotDeployment>>,
     /// When each deployment's status was last written (see [`pace`]).
     pace: pace::Pace,
+    /// Each deployment's last writes, until the stores show them (see [`catch_up`]).
+    catch_up: catch_up::CatchUp<ObjectRef<DeserializeGuard<RobotDeployment>>, OwnWrites>,
 }
 
 /// Runs the RobotDeployment controller until `cancel` fires.
@@ -70,6 +73,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         deployments: deployment_store,
         wake,
         pace: pace::Pace::default(),
+        catch_up: catch_up::CatchUp::default(),
     });
     info!("robot deployment controller started");
     let handlers = (reconcile, error_policy);
@@ -146,6 +150,14 @@ async fn reconcile(
             .metrics
             .controllers
             .reconcile_started(ControllerName::deployment);
+        // Planning from stores that do not show the last plan's writes yet would misjudge;
+        // the watch that brings them wakes this deployment again (the wait holds no worker).
+        if let Some(wait) = state
+            .catch_up
+            .behind(&key, |own| own.in_stores(&state, &key))
+        {
+            return Ok(Action::requeue(wait));
+        }
         let now = Timestamp::now();
         let Some(facts) = facts::gather(&state, deployment, now).await? else {
             warn!("selector cannot be evaluated");
@@ -157,13 +169,14 @@ async fn reconcile(
         let written = apply::write_robots(&ctx.client, deployment, &facts, &plan).await?;
         let (status_version, held) = write_status(&state, deployment, &plan).await?;
         apply::publish_events(&ctx.recorder, deployment, &plan.events).await;
-        let own = OwnWrites {
-            deployment: key,
-            status: &plan.status,
-            status_version,
-            robots: written,
-        };
-        own.await_in_stores(&state).await;
+        state.catch_up.wrote(
+            key,
+            OwnWrites {
+                status: plan.status.clone(),
+                status_version,
+                robots: written,
+            },
+        );
         ctx.metrics.rollouts.record(deployment, &plan, now);
         ctx.reset_backoff(&name, &namespace);
         Ok(match (plan.requeue_after, held) {
@@ -199,55 +212,40 @@ async fn write_status(
     Ok((version, None))
 }
 
-/// How long a reconcile waits for the shared stores to show its own writes.
-const CATCH_UP: Duration = Duration::from_secs(5);
-
-/// What one reconcile wrote. The next reconcile plans from the shared stores, which the watches
-/// fill a little after each write: planning from a store older than the last plan's own writes
-/// would judge a batch from robots' new marks under the old status (a rollback taken for a
-/// success) or start robots again.
-struct OwnWrites<'a> {
-    deployment: ObjectRef<DeserializeGuard<RobotDeployment>>,
-    status: &'a lekiwi_crds::RobotDeploymentStatus,
+/// What one reconcile wrote: the next reconcile plans from the shared stores, which the
+/// watches fill a little after each write; planning from a store older than the last plan's
+/// own writes would judge a batch from robots' new marks under the old status (a rollback
+/// taken for a success) or start robots again.
+struct OwnWrites {
+    status: lekiwi_crds::RobotDeploymentStatus,
     status_version: Option<String>,
     robots: Vec<apply::Written>,
 }
 
-impl OwnWrites<'_> {
+impl OwnWrites {
     /// Whether the stores show every write: the object at the written resourceVersion, or with
     /// the same content (another writer may have changed it since). A deleted object counts.
-    fn in_stores(&self, state: &State, namespace: &str) -> bool {
+    fn in_stores(
+        &self,
+        state: &State,
+        deployment: &ObjectRef<DeserializeGuard<RobotDeployment>>,
+    ) -> bool {
+        let namespace = deployment.namespace.clone().unwrap_or_default();
         let status_seen = self.status_version.is_none()
-            || state.deployments.get(&self.deployment).is_none_or(|g| {
+            || state.deployments.get(deployment).is_none_or(|g| {
                 g.resource_version() == self.status_version
                     || g.0
                         .as_ref()
-                        .is_ok_and(|d| d.status.as_ref() == Some(self.status))
+                        .is_ok_and(|d| d.status.as_ref() == Some(&self.status))
             });
         status_seen
             && self.robots.iter().all(|w| {
-                let key = ObjectRef::new(&w.robot).within(namespace);
+                let key = ObjectRef::new(&w.robot).within(&namespace);
                 state.robots.get(&key).is_none_or(|r| {
                     r.resource_version() == w.resource_version
                         || r.annotations().get(w.key) == Some(&w.mark)
                 })
             })
-    }
-
-    /// Waits, for [`CATCH_UP`] at most, until the stores show every write.
-    async fn await_in_stores(&self, state: &State) {
-        let namespace = self.deployment.namespace.clone().unwrap_or_default();
-        let started = tokio::time::Instant::now();
-        while !self.in_stores(state, &namespace) {
-            if started.elapsed() > CATCH_UP {
-                warn!(
-                    robots = self.robots.len(),
-                    "the stores do not show this reconcile's writes yet; planning on"
-                );
-                return;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
     }
 }
 
