@@ -52,15 +52,22 @@ pub(super) fn roll_forward(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut
         .iter()
         .filter(|(_, s)| s.batch() == Some(batch))
         .collect();
-    let outcome = if members.is_empty() {
+    let mut outcome = if members.is_empty() {
         form_batch(rollout, fleet, draft)
     } else {
         resolve_batch(rollout, &members, draft)
     };
+    if let Outcome::BatchSucceeded(b, ratio) = outcome {
+        draft.batch_result = Some((b, ratio));
+        // No pause to wait for: the next batch starts in this plan, so a batch costs one
+        // status write and one reconcile, not one to close it and one to open the next.
+        if !rollout.paused && pause_ends(rollout, &draft.status).is_none() {
+            outcome = form_batch(rollout, fleet, draft);
+        }
+    }
     match outcome {
         Outcome::Continue(message) => draft.message = message,
-        Outcome::BatchSucceeded(b, ratio) => {
-            draft.batch_result = Some((b, ratio));
+        Outcome::BatchSucceeded(b, _) => {
             draft.message = format!("batch {b} succeeded; next batch after the pause");
         }
         Outcome::Completed => {
