@@ -164,7 +164,15 @@ async fn reconcile(
             return Ok(Action::await_change());
         };
         ownership::wake_rivals(&state.deployments, &state.wake, deployment);
-        let plan = plan::plan(deployment, &facts);
+        // A status held by the pace is where the rollout stands: plan on from it.
+        let held = state
+            .pace
+            .held((namespace.as_str(), name.as_str()), deployment)
+            .map(|status| RobotDeployment {
+                status: Some(status),
+                ..deployment.clone()
+            });
+        let plan = plan::plan(held.as_ref().unwrap_or(deployment), &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
         let written = apply::write_robots(&ctx.client, deployment, &facts, &plan).await?;
         let (status_version, held) = write_status(&state, deployment, &plan).await?;
@@ -206,9 +214,7 @@ async fn write_status(
         return Ok((None, Some(held)));
     }
     let version = apply::update_status(&state.ctx.client, deployment, plan).await?;
-    if version.is_some() {
-        state.pace.written(key, now);
-    }
+    state.pace.stored(key, version.is_some().then_some(now));
     Ok((version, None))
 }
 
