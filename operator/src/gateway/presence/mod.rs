@@ -127,7 +127,17 @@ struct Entry {
     /// Robot watch has not shown a write of this session yet: the gateway claims it in its
     /// Lease (see [`claims`]).
     moved: bool,
+    /// Seconds (ticks) left before the end of this session is written: the session ended while
+    /// its agent update was in progress, so the agent is restarting into the new build and its
+    /// next session is due; if it comes first, its write is the one write (see
+    /// [`RESTART_GRACE_SECONDS`]). Zero otherwise.
+    restart_grace: u8,
 }
+
+/// How long the session end of an agent restarting into its update waits for the agent's next
+/// session before it is written, in seconds: an update then costs the robot one status write
+/// (the new session's, with the new version), not two.
+pub const RESTART_GRACE_SECONDS: u8 = 15;
 
 /// How long a new session of a robot shown as disconnected must last before it is written as
 /// connected (see `State::known_offline`).
@@ -257,6 +267,7 @@ impl Presence {
                     presence_only: false,
                     settling: s.known_offline.contains(key) && !moved,
                     moved,
+                    restart_grace: 0,
                 }),
             );
             let queue = if gone {
@@ -389,11 +400,22 @@ impl Presence {
                 return false;
             };
             e.connected = false;
-            let unwritten = e.settling && !s.queued.contains_key(key);
+            let updating = e
+                .agent_update
+                .as_ref()
+                .is_some_and(|u| matches!(u.phase, "Sent" | "Started"));
+            let settling = e.settling;
+            let queued = s.queued.contains_key(key);
             self.metrics.per_robot.forget(&key.namespace, &key.name);
-            if unwritten {
+            if settling && !queued {
                 // Never written as connected, and the status still says disconnected.
                 s.robots.remove(key);
+                return false;
+            }
+            if updating && !queued {
+                if let Some(e) = s.robots.get_mut(key) {
+                    e.restart_grace = RESTART_GRACE_SECONDS;
+                }
                 return false;
             }
             s.enqueue(key, Priority::High);
@@ -456,6 +478,12 @@ impl Presence {
             for (key, e) in s.robots.iter_mut() {
                 claims::end_stale_claim(e, now);
                 if !e.connected {
+                    if e.restart_grace > 0 {
+                        e.restart_grace -= 1;
+                        if e.restart_grace == 0 {
+                            due.push((key.clone(), Priority::High));
+                        }
+                    }
                     continue;
                 }
                 if e.settling && now.duration_since(e.connected_since) >= settle {
