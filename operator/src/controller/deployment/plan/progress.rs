@@ -60,8 +60,11 @@ pub(super) fn roll_forward(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut
     if let Outcome::BatchSucceeded(b, ratio) = outcome {
         draft.batch_result = Some((b, ratio));
         // No pause to wait for: the next batch starts in this plan, so a batch costs one
-        // status write and one reconcile, not one to close it and one to open the next.
-        if !rollout.paused && pause_ends(rollout, &draft.status).is_none() {
+        // status write and one reconcile, not one to close it and one to open the next. Unless
+        // robots' marks show it started already (the status is older than the marks: a
+        // restarted leader): the next plan resolves it then.
+        let next_started = fleet.robots.iter().any(|(_, s)| s.batch() == Some(b + 1));
+        if !rollout.paused && !next_started && pause_ends(rollout, &draft.status).is_none() {
             outcome = form_batch(rollout, fleet, draft);
         }
     }

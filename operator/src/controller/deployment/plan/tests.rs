@@ -824,3 +824,27 @@ fn a_batch_that_succeeds_opens_the_next_in_the_same_plan_unless_a_pause_is_asked
         Some("batch 0 succeeded; next batch after the pause")
     );
 }
+
+/// A status older than the robots' marks (a leader that stopped after writing robots, before
+/// its status write) does not open a batch twice: the batch the marks show started is resolved.
+#[test]
+fn a_status_older_than_the_marks_does_not_open_the_next_batch_twice() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 6);
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    let before = sim.d.status.clone();
+    let p = sim.step();
+    let started: Vec<_> = p.writes.iter().map(|w| w.robot.as_str()).collect();
+    assert_eq!(started, ["kiwi-02", "kiwi-03"]);
+    // The status write is lost; the marks of kiwi-02 and kiwi-03 are not.
+    sim.d.status = before;
+    sim.advance(1);
+    let p = sim.step();
+    assert!(p.writes.is_empty(), "nobody else starts: {:?}", p.writes);
+    sim.agents();
+    sim.advance(1);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert_eq!(sim.running("2").len(), 6);
+}
