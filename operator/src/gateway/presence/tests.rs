@@ -950,13 +950,13 @@ fn an_agent_restarting_into_its_update_is_written_once() {
     );
     p.connect(&key("a"), 2, 1_001, ConnectInfo::default());
     assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
-    for _ in 0..=RESTART_GRACE_SECONDS {
+    for _ in 0..=agent::RESTART_GRACE_SECONDS {
         p.tick();
     }
     assert_eq!(p.with_state(|s| s.pop()), None, "one write for the restart");
     // Still away after the grace: written disconnected then.
     p.disconnect(&key("a"), 2);
-    for _ in 1..RESTART_GRACE_SECONDS {
+    for _ in 1..agent::RESTART_GRACE_SECONDS {
         p.tick();
     }
     assert_eq!(p.with_state(|s| s.pop()), None);
