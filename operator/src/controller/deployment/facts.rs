@@ -2,7 +2,6 @@
 //! from the shared stores (selected robots, overlapping deployments) and the blob store
 //! (whether the release can be rolled out).
 
-use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -31,7 +30,7 @@ pub(super) async fn gather(
         return Ok(None);
     };
     let ours = selected(&all_robots, &namespace, &selector);
-    let (overlaps, active_deployments) = overlaps(state, deployment, &all_robots, &ours);
+    let (overlaps, active_deployments) = overlaps(state, deployment, &ours);
     let config = &state.ctx.config;
     let blob_dir = config.blob_dir.clone();
     let spec = deployment.spec.clone();
@@ -185,12 +184,10 @@ fn selected<'a>(
 fn overlaps(
     state: &State,
     deployment: &RobotDeployment,
-    all_robots: &[Arc<Robot>],
     ours: &[&Arc<Robot>],
 ) -> (Vec<Overlap>, Vec<String>) {
     let name = deployment.name_any();
     let namespace = deployment.namespace().unwrap_or_default();
-    let our_names: BTreeSet<String> = ours.iter().map(|r| r.name_any()).collect();
     // Creation time, then name: the older deployment wins an overlap.
     let age = |x: &RobotDeployment| {
         (
@@ -215,10 +212,12 @@ fn overlaps(
         let Some(other_selector) = selector(other) else {
             continue;
         };
-        let shared: Vec<String> = selected(all_robots, &namespace, &other_selector)
+        // Only our robots can be shared: matching them alone keeps a plan's cost flat in the
+        // number of deployments (matching every robot of the namespace for each did not).
+        let shared: Vec<String> = ours
             .iter()
+            .filter(|r| other_selector.matches(r.labels()))
             .map(|r| r.name_any())
-            .filter(|n| our_names.contains(n))
             .collect();
         if !shared.is_empty() {
             overlaps.push(Overlap {

@@ -4,9 +4,11 @@
 //! ([`apply`]), record metrics.
 
 mod apply;
+mod catch_up;
 mod facts;
 #[cfg(test)]
 mod facts_tests;
+mod index;
 mod ownership;
 mod pace;
 pub mod plan;
@@ -23,13 +25,12 @@ use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, ResourceExt};
 use lekiwi_crds::{Robot, RobotDeployment};
 use tokio_util::sync::CancellationToken;
-use tracing::{Instrument, info, info_span, warn};
+use tracing::{Instrument, debug, error, info, info_span, warn};
 
 pub use self::facts::check_release;
-use self::facts::is_active;
 use super::Context;
 use super::trigger::{Trigger, trigger};
-use crate::error::{Error, Result};
+use crate::error::{Category, Error, Result};
 use crate::metrics::ControllerName;
 
 /// What every reconcile of this controller reads: the context and the two shared stores.
@@ -41,6 +42,8 @@ struct State {
     wake: Trigger<DeserializeGuard<RobotDeployment>>,
     /// When each deployment's status was last written (see [`pace`]).
     pace: pace::Pace,
+    /// Each deployment's last writes, until the stores show them (see [`catch_up`]).
+    catch_up: catch_up::CatchUp<ObjectRef<DeserializeGuard<RobotDeployment>>, OwnWrites>,
 }
 
 /// Runs the RobotDeployment controller until `cancel` fires.
@@ -69,6 +72,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         deployments: deployment_store,
         wake,
         pace: pace::Pace::default(),
+        catch_up: catch_up::CatchUp::default(),
     });
     info!("robot deployment controller started");
     let handlers = (reconcile, error_policy);
@@ -86,14 +90,15 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     Ok(())
 }
 
-/// The Robot store and the watch that fills it; any robot change may move a rollout of its
-/// namespace on, so it wakes every active deployment there.
+/// The Robot store and the watch that fills it; a robot change wakes the active deployments
+/// it concerns (see [`index`]), not every deployment of its namespace.
 fn watch_robots(
     robots: Api<Robot>,
     deployments: Store<DeserializeGuard<RobotDeployment>>,
     wake: Trigger<DeserializeGuard<RobotDeployment>>,
 ) -> (Store<Robot>, impl Future<Output = ()> + Send + 'static) {
     let (store, writer) = reflector::store();
+    let index = index::RobotIndex::default();
     let watch = reflector(
         writer,
         watcher(robots, watcher::Config::default().any_semantic()).modify(|r: &mut Robot| {
@@ -102,14 +107,19 @@ fn watch_robots(
         }),
     )
     .default_backoff()
-    .applied_objects()
-    .for_each(move |robot| {
-        if let Ok(robot) = robot {
-            let namespace = robot.namespace();
-            for d in deployments.state() {
-                if d.namespace() == namespace && is_active(&d) {
-                    wake.request(ObjectRef::from_obj(d.as_ref()));
-                }
+    .for_each(move |event| {
+        let all = deployments.state();
+        let concerned = match &event {
+            Ok(watcher::Event::Apply(robot) | watcher::Event::InitApply(robot)) => {
+                Some((robot, index.applied(robot, &all)))
+            }
+            Ok(watcher::Event::Delete(robot)) => Some((robot, index.deleted(robot, &all))),
+            _ => None,
+        };
+        if let Some((robot, names)) = concerned {
+            let namespace = robot.namespace().unwrap_or_default();
+            for name in names {
+                wake.request(ObjectRef::new(&name).within(&namespace));
             }
         }
         futures::future::ready(())
@@ -139,24 +149,41 @@ async fn reconcile(
             .metrics
             .controllers
             .reconcile_started(ControllerName::deployment);
+        // Planning from stores that do not show the last plan's writes yet would misjudge;
+        // the watch that brings them wakes this deployment again (the wait holds no worker).
+        if let Some(wait) = state
+            .catch_up
+            .behind(&key, |own| own.in_stores(&state, &key))
+        {
+            return Ok(Action::requeue(wait));
+        }
         let now = Timestamp::now();
         let Some(facts) = facts::gather(&state, deployment, now).await? else {
             warn!("selector cannot be evaluated");
             return Ok(Action::await_change());
         };
         ownership::wake_rivals(&state.deployments, &state.wake, deployment);
-        let plan = plan::plan(deployment, &facts);
+        // A status held by the pace is where the rollout stands: plan on from it.
+        let held = state
+            .pace
+            .held((namespace.as_str(), name.as_str()), deployment)
+            .map(|status| RobotDeployment {
+                status: Some(status),
+                ..deployment.clone()
+            });
+        let plan = plan::plan(held.as_ref().unwrap_or(deployment), &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
         let written = apply::write_robots(&ctx.client, deployment, &facts, &plan).await?;
         let (status_version, held) = write_status(&state, deployment, &plan).await?;
         apply::publish_events(&ctx.recorder, deployment, &plan.events).await;
-        let own = OwnWrites {
-            deployment: key,
-            status: &plan.status,
-            status_version,
-            robots: written,
-        };
-        own.await_in_stores(&state).await;
+        state.catch_up.wrote(
+            key,
+            OwnWrites {
+                status: plan.status.clone(),
+                status_version,
+                robots: written,
+            },
+        );
         let judged = plan.batch_result.map(|(_, ratio)| ratio);
         ctx.metrics
             .rollouts
@@ -189,61 +216,44 @@ async fn write_status(
         return Ok((None, Some(held)));
     }
     let version = apply::update_status(&state.ctx.client, deployment, plan).await?;
-    if version.is_some() {
-        state.pace.written(key, now);
-    }
+    state.pace.stored(key, version.is_some().then_some(now));
     Ok((version, None))
 }
 
-/// How long a reconcile waits for the shared stores to show its own writes.
-const CATCH_UP: Duration = Duration::from_secs(5);
-
-/// What one reconcile wrote. The next reconcile plans from the shared stores, which the watches
-/// fill a little after each write: planning from a store older than the last plan's own writes
-/// would judge a batch from robots' new marks under the old status (a rollback taken for a
-/// success) or start robots again.
-struct OwnWrites<'a> {
-    deployment: ObjectRef<DeserializeGuard<RobotDeployment>>,
-    status: &'a lekiwi_crds::RobotDeploymentStatus,
+/// What one reconcile wrote: the next reconcile plans from the shared stores, which the
+/// watches fill a little after each write; planning from a store older than the last plan's
+/// own writes would judge a batch from robots' new marks under the old status (a rollback
+/// taken for a success) or start robots again.
+struct OwnWrites {
+    status: lekiwi_crds::RobotDeploymentStatus,
     status_version: Option<String>,
     robots: Vec<apply::Written>,
 }
 
-impl OwnWrites<'_> {
+impl OwnWrites {
     /// Whether the stores show every write: the object at the written resourceVersion, or with
     /// the same content (another writer may have changed it since). A deleted object counts.
-    fn in_stores(&self, state: &State, namespace: &str) -> bool {
+    fn in_stores(
+        &self,
+        state: &State,
+        deployment: &ObjectRef<DeserializeGuard<RobotDeployment>>,
+    ) -> bool {
+        let namespace = deployment.namespace.clone().unwrap_or_default();
         let status_seen = self.status_version.is_none()
-            || state.deployments.get(&self.deployment).is_none_or(|g| {
+            || state.deployments.get(deployment).is_none_or(|g| {
                 g.resource_version() == self.status_version
                     || g.0
                         .as_ref()
-                        .is_ok_and(|d| d.status.as_ref() == Some(self.status))
+                        .is_ok_and(|d| d.status.as_ref() == Some(&self.status))
             });
         status_seen
             && self.robots.iter().all(|w| {
-                let key = ObjectRef::new(&w.robot).within(namespace);
+                let key = ObjectRef::new(&w.robot).within(&namespace);
                 state.robots.get(&key).is_none_or(|r| {
                     r.resource_version() == w.resource_version
                         || r.annotations().get(w.key) == Some(&w.mark)
                 })
             })
-    }
-
-    /// Waits, for [`CATCH_UP`] at most, until the stores show every write.
-    async fn await_in_stores(&self, state: &State) {
-        let namespace = self.deployment.namespace.clone().unwrap_or_default();
-        let started = tokio::time::Instant::now();
-        while !self.in_stores(state, &namespace) {
-            if started.elapsed() > CATCH_UP {
-                warn!(
-                    robots = self.robots.len(),
-                    "the stores do not show this reconcile's writes yet; planning on"
-                );
-                return;
-            }
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
     }
 }
 
@@ -256,6 +266,16 @@ fn error_policy(
     let delay = state
         .ctx
         .reconcile_failed(ControllerName::deployment, &name, &namespace, error);
-    warn!(deployment = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed");
+    match error.category() {
+        Category::Conflict => {
+            debug!(deployment = %name, %namespace, error = %error, retry_in = ?delay, "reconcile met a newer version")
+        }
+        Category::Transient => {
+            warn!(deployment = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed")
+        }
+        Category::Permanent => {
+            error!(deployment = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed; retrying cannot help until the cause is fixed")
+        }
+    }
     Action::requeue(delay)
 }

@@ -1,29 +1,52 @@
-//! A deployment's status written at a bounded rate however many robots move: a change of its
-//! counters alone (updated, failed, pending, the per-robot rows, the message) waits until
-//! [`STATUS_PERIOD`] has passed since this process last wrote it; anything else (phase, batch,
-//! conditions, generation, an Event, the end of the rollout) is written at once. Robot writes
-//! are not held: the marks on robots are what a rollout resumes from.
+//! A deployment's status written at a bounded rate however many robots move: a change that
+//! leaves its phase, rollout, generation and conditions' verdicts alone (counts, rows, the
+//! batch, the message) waits until [`STATUS_PERIOD`] has passed since this process last wrote
+//! it; a change of those is written at once, and so is the end of the rollout. A held status is
+//! kept here and the next plan starts from it, not from the stored one, so nothing is planned
+//! twice (no batch closed again, no Event published again) while the write waits. Robot writes
+//! are not held: the marks on robots are what a rollout resumes from, also when this process
+//! stops with a status held.
 
 use std::collections::HashMap;
 use std::sync::Mutex;
 use std::time::Duration;
 
-use lekiwi_crds::RobotDeploymentStatus;
+use lekiwi_crds::{RobotDeployment, RobotDeploymentStatus};
 use tokio::time::Instant;
 
 use super::plan::Plan;
 
-/// The least time between two status writes of one deployment that only count robots.
+/// The least time between two status writes of one deployment that change no verdict.
 pub const STATUS_PERIOD: Duration = Duration::from_secs(3);
 
-/// When this process last wrote each deployment's status, by namespace and name.
+/// Per deployment (by namespace and name): when this process last wrote its status, and the
+/// status planned since but held.
 #[derive(Debug, Default)]
 pub struct Pace {
-    last: Mutex<HashMap<(String, String), Instant>>,
+    last: Mutex<HashMap<(String, String), Entry>>,
+}
+
+#[derive(Debug, Default)]
+struct Entry {
+    written: Option<Instant>,
+    held: Option<RobotDeploymentStatus>,
 }
 
 impl Pace {
-    /// How long the status of `plan` waits before it is written, or `None` to write it now.
+    /// The status the next plan of `deployment` starts from: the one held for it, if planned
+    /// for its current generation; else `None` (the stored one).
+    pub fn held(
+        &self,
+        key: (&str, &str),
+        deployment: &RobotDeployment,
+    ) -> Option<RobotDeploymentStatus> {
+        let last = self.lock();
+        let held = last.get(&owned(key))?.held.as_ref()?;
+        (held.observed_generation == deployment.metadata.generation).then(|| held.clone())
+    }
+
+    /// How long the status of `plan` waits before it is written (it is then held), or `None`
+    /// to write it now.
     pub fn wait(
         &self,
         key: (&str, &str),
@@ -32,40 +55,55 @@ impl Pace {
         now: Instant,
     ) -> Option<Duration> {
         let stored = stored?;
-        if !plan.events.is_empty() || plan.finished || !only_counts(stored, &plan.status) {
+        if plan.finished || !same_verdicts(stored, &plan.status) {
             return None;
         }
-        let last = self.lock();
-        let since = now.duration_since(*last.get(&(key.0.to_owned(), key.1.to_owned()))?);
-        STATUS_PERIOD
+        let mut last = self.lock();
+        let entry = last.get_mut(&owned(key))?;
+        let since = now.duration_since(entry.written?);
+        let left = STATUS_PERIOD
             .checked_sub(since)
-            .filter(|left| !left.is_zero())
+            .filter(|left| !left.is_zero())?;
+        entry.held = Some(plan.status.clone());
+        Some(left)
     }
 
-    /// The status was written at `now`.
-    pub fn written(&self, key: (&str, &str), now: Instant) {
-        self.lock()
-            .insert((key.0.to_owned(), key.1.to_owned()), now);
+    /// The planned status is stored now: written at `now`, or `None` when it already was.
+    pub fn stored(&self, key: (&str, &str), written: Option<Instant>) {
+        let mut last = self.lock();
+        let entry = last.entry(owned(key)).or_default();
+        entry.held = None;
+        if written.is_some() {
+            entry.written = written;
+        }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<(String, String), Instant>> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<(String, String), Entry>> {
         self.last.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
-/// Whether `a` and `b` differ at most in what counts robots as they move.
-fn only_counts(a: &RobotDeploymentStatus, b: &RobotDeploymentStatus) -> bool {
-    let strip = |s: &RobotDeploymentStatus| {
-        let mut s = s.clone();
-        (s.updated, s.failed, s.skipped, s.pending, s.superseded) = (0, 0, 0, 0, 0);
-        (s.progress, s.message) = (None, None);
-        s.robots.clear();
-        for c in &mut s.conditions {
-            c.message = Default::default();
-        }
-        s
+fn owned(key: (&str, &str)) -> (String, String) {
+    (key.0.to_owned(), key.1.to_owned())
+}
+
+/// Whether `a` and `b` agree on everything a change of which is written at once: the phase,
+/// the rollout, the generation, and each condition's status and reason.
+fn same_verdicts(a: &RobotDeploymentStatus, b: &RobotDeploymentStatus) -> bool {
+    let verdicts = |s: &RobotDeploymentStatus| {
+        let conditions: Vec<_> = s
+            .conditions
+            .iter()
+            .map(|c| (c.r#type.clone(), c.status, c.reason.clone()))
+            .collect();
+        (
+            s.phase,
+            s.rollout_id.clone(),
+            s.observed_generation,
+            conditions,
+        )
     };
-    strip(a) == strip(b)
+    verdicts(a) == verdicts(b)
 }
 
 #[cfg(test)]
@@ -91,37 +129,73 @@ mod tests {
             pending: 40 - updated,
             progress: Some(format!("{updated}/40")),
             current_batch: Some(batch),
+            observed_generation: Some(1),
             ..RobotDeploymentStatus::default()
         }
     }
 
     #[test]
-    fn counts_alone_are_written_at_most_once_a_period_anything_else_at_once() {
+    fn only_a_new_verdict_is_written_at_once_the_rest_once_a_period_and_planned_from_meanwhile() {
         let (pace, key, t0) = (Pace::default(), ("ns", "fleet"), Instant::now());
         let stored = status(1, 1);
+        let spec = lekiwi_crds::RobotDeploymentSpec {
+            selector: Default::default(),
+            release: None,
+            agent: None,
+            strategy: Default::default(),
+            paused: false,
+            analysis: None,
+            priority: 0,
+        };
+        let mut d = RobotDeployment::new("fleet", spec);
+        d.metadata.generation = Some(1);
         // Never written by this process: at once.
         assert_eq!(pace.wait(key, Some(&stored), &plan(status(2, 1)), t0), None);
-        pace.written(key, t0);
+        pace.stored(key, Some(t0));
         let soon = t0 + Duration::from_secs(1);
         assert_eq!(
             pace.wait(key, Some(&stored), &plan(status(3, 1)), soon),
             Some(STATUS_PERIOD - Duration::from_secs(1))
         );
         assert_eq!(
+            pace.held(key, &d),
+            Some(status(3, 1)),
+            "the next plan starts from it"
+        );
+        // A new batch is held too: the next plan starts from it, so it is not opened twice.
+        assert_eq!(
+            pace.wait(key, Some(&stored), &plan(status(3, 2)), soon),
+            Some(STATUS_PERIOD - Duration::from_secs(1))
+        );
+        assert_eq!(pace.held(key, &d), Some(status(3, 2)));
+        d.metadata.generation = Some(2);
+        assert_eq!(pace.held(key, &d), None, "planned for an older spec");
+        assert_eq!(
             pace.wait(key, Some(&stored), &plan(status(3, 1)), t0 + STATUS_PERIOD),
             None
         );
-        // A new batch, a new phase, the end: at once.
-        assert_eq!(
-            pace.wait(key, Some(&stored), &plan(status(3, 2)), soon),
-            None
-        );
+        // A new phase, a condition's new verdict, the end: at once.
         let mut done = status(40, 1);
         done.phase = Some(RolloutPhase::Completed);
         assert_eq!(pace.wait(key, Some(&stored), &plan(done), soon), None);
+        let mut conflict = status(3, 1);
+        conflict.conditions.push(lekiwi_crds::Condition {
+            r#type: "Conflict".into(),
+            status: lekiwi_crds::ConditionStatus::True,
+            last_transition_time: k8s_openapi::apimachinery::pkg::apis::meta::v1::Time(
+                "2026-12-05T10:00:00Z".parse().unwrap(),
+            ),
+            reason: "OlderDeployment".into(),
+            message: "".into(),
+            observed_generation: None,
+        });
+        assert_eq!(pace.wait(key, Some(&stored), &plan(conflict), soon), None);
         let mut finished = plan(status(3, 1));
         finished.finished = true;
         assert_eq!(pace.wait(key, Some(&stored), &finished, soon), None);
         assert_eq!(pace.wait(key, None, &plan(status(3, 1)), soon), None);
+        pace.stored(key, None);
+        d.metadata.generation = Some(1);
+        assert_eq!(pace.held(key, &d), None, "stored: nothing held");
     }
 }

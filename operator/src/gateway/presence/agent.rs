@@ -5,7 +5,7 @@ use jiff::Timestamp;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_crds::AgentUpdateReport;
 
-use super::{Presence, Priority};
+use super::{Entry, Presence, Priority, State};
 use crate::event_store::RobotKey;
 
 /// Longest message written to `status.agentUpdate.message`, in characters.
@@ -68,6 +68,37 @@ impl Presence {
                 .is_some_and(|o| o.version == version && o.phase == "FallenBack")
         })
     }
+}
+
+/// How long, in seconds, the end of a session whose agent restarts into its update waits for
+/// the agent's next session before it is written: an update then costs the robot one status
+/// write (the new session's, with the new version), not two (the end, then the new start).
+pub const RESTART_GRACE_SECONDS: u8 = 15;
+
+/// Whether the session of `key` that ended now ended as its agent restarts into the update in
+/// progress: then its end waits for the next session (see [`RESTART_GRACE_SECONDS`]).
+pub(super) fn wait_for_restart(s: &mut State, key: &RobotKey) -> bool {
+    let Some(e) = s.robots.get_mut(key) else {
+        return false;
+    };
+    let restarting = e
+        .agent_update
+        .as_ref()
+        .is_some_and(|u| matches!(u.phase, "Sent" | "Started"));
+    if restarting {
+        e.restart_grace = RESTART_GRACE_SECONDS;
+    }
+    restarting
+}
+
+/// One second of the restart grace of `e` (see [`RESTART_GRACE_SECONDS`]) went by: whether it
+/// ran out just now, and the session's end is written.
+pub(super) fn grace_ran_out(e: &mut Entry) -> bool {
+    if e.restart_grace == 0 {
+        return false;
+    }
+    e.restart_grace -= 1;
+    e.restart_grace == 0
 }
 
 /// The status field of an outcome.

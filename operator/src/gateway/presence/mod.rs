@@ -23,6 +23,7 @@ mod phase;
 #[cfg(test)]
 mod properties_tests;
 mod queue;
+mod refresh;
 #[cfg(test)]
 mod tests;
 mod writer;
@@ -41,6 +42,7 @@ pub use self::lag::status_lag_annotation;
 pub use self::phase::PhasePlanner;
 pub use self::queue::Priority;
 use self::queue::State;
+use self::refresh::{refresh_due, refresh_hash};
 use crate::event_store::RobotKey;
 use crate::gateway::holder::next_epoch;
 use crate::metrics::Metrics;
@@ -128,6 +130,8 @@ struct Entry {
     /// Robot watch has not shown a write of this session yet: the gateway claims it in its
     /// Lease (see [`claims`]).
     moved: bool,
+    /// Seconds left before this session's end is written (see [`agent::wait_for_restart`]).
+    restart_grace: u8,
 }
 
 /// How long a new session of a robot shown as disconnected must last before it is written as
@@ -258,6 +262,7 @@ impl Presence {
                     presence_only: false,
                     settling: s.known_offline.contains(key) && !moved,
                     moved,
+                    restart_grace: 0,
                 }),
             );
             let queue = if gone {
@@ -397,6 +402,9 @@ impl Presence {
                 s.robots.remove(key);
                 return false;
             }
+            if !s.queued.contains_key(key) && agent::wait_for_restart(s, key) {
+                return false;
+            }
             s.enqueue(key, Priority::High);
             true
         });
@@ -457,6 +465,7 @@ impl Presence {
             for (key, e) in s.robots.iter_mut() {
                 claims::end_stale_claim(e, now);
                 if !e.connected {
+                    due.extend(agent::grace_ran_out(e).then(|| (key.clone(), Priority::High)));
                     continue;
                 }
                 if e.settling && now.duration_since(e.connected_since) >= settle {
@@ -490,41 +499,4 @@ impl Presence {
             self.wake();
         }
     }
-}
-
-/// Whether the routine refresh of `e`, last written at `written`, is due at `now`.
-///
-/// Normally once per `refresh` period, at the robot's own point in it (its [`refresh_hash`]): a
-/// refresh is due once such a point passed since the last write. A fleet that connected within
-/// a minute (after a gateway restart, say) then refreshes spread evenly over the whole period,
-/// at most N/period writes per second at any time, instead of in the same one-minute wave every
-/// period; a transition's write does not move the robot's point. So `lastHeartbeatTime` is
-/// never more than a period old (the Robot controller's `--heartbeat-grace-seconds` counts on
-/// that), and a robot's first refresh after a transition may come sooner than a period. An
-/// analysis window does not make it sooner (see [`analysis`]).
-fn refresh_due(
-    e: &Entry,
-    written: Timestamp,
-    now: Timestamp,
-    refresh: jiff::SignedDuration,
-) -> bool {
-    let period = refresh.as_micros().clamp(1, i64::MAX.into()) as i64;
-    // `period` is positive, so the remainder fits in i64.
-    let phase = (e.refresh_hash % period.unsigned_abs()) as i64;
-    let slot = |t: Timestamp| t.as_microsecond().saturating_sub(phase).div_euclid(period);
-    slot(now) > slot(written)
-}
-
-/// A hash of the robot's name that places it in each refresh period: spread evenly over the
-/// fleet, and the same on every gateway and after every restart.
-fn refresh_hash(key: &RobotKey) -> u64 {
-    use sha2::Digest;
-    let digest = sha2::Sha256::new()
-        .chain_update(key.namespace.as_bytes())
-        .chain_update(b"/")
-        .chain_update(key.name.as_bytes())
-        .finalize();
-    let mut first = [0u8; 8];
-    first.copy_from_slice(&digest[..8]);
-    u64::from_be_bytes(first)
 }

@@ -252,6 +252,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         presence_only: false,
         settling: false,
         moved: false,
+        restart_grace: 0,
     }
 }
 

@@ -43,6 +43,7 @@ fn entry(connected: bool, info: ConnectInfo) -> Entry {
         presence_only: false,
         settling: false,
         moved: false,
+        restart_grace: 0,
     }
 }
 
@@ -408,6 +409,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 presence_only: false,
                 settling: false,
                 moved: false,
+                restart_grace: 0,
             }),
         );
         s.enqueue(&key("a"), Priority::Low);
@@ -918,4 +920,47 @@ fn agent_update_steps_in_progress_wait_for_the_next_write_outcomes_do_not() {
     assert_eq!(patch["status"]["agentUpdate"]["phase"], json!("Started"));
     assert!(p.agent_update(&key("a"), 1, step("Succeeded")));
     assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+}
+
+/// An agent restarting into its update costs the robot one status write: its session's end
+/// waits for the next session, which writes the new version; only an agent that stays away
+/// longer than the grace is written disconnected. Any other session end is written at once.
+#[test]
+fn an_agent_restarting_into_its_update_is_written_once() {
+    let p = presence();
+    p.connect(&key("a"), 1, 1_000, ConnectInfo::default());
+    p.with_state(|s| s.pop());
+    let started = AgentUpdateOutcome {
+        version: "0.3.0".into(),
+        phase: "Started",
+        message: "switching".into(),
+        time: Timestamp::now(),
+    };
+    assert!(p.agent_update(&key("a"), 1, started.clone()));
+    p.disconnect(&key("a"), 1);
+    p.tick();
+    assert_eq!(
+        p.with_state(|s| s.pop()),
+        None,
+        "the end waits for the next session"
+    );
+    p.connect(&key("a"), 2, 1_001, ConnectInfo::default());
+    assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+    for _ in 0..=agent::RESTART_GRACE_SECONDS {
+        p.tick();
+    }
+    assert_eq!(p.with_state(|s| s.pop()), None, "one write for the restart");
+    // Still away after the grace: written disconnected then.
+    p.disconnect(&key("a"), 2);
+    for _ in 1..agent::RESTART_GRACE_SECONDS {
+        p.tick();
+    }
+    assert_eq!(p.with_state(|s| s.pop()), None);
+    p.tick();
+    assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+    // Without an update in progress a session's end is written at once.
+    p.connect(&key("b"), 3, 1_000, ConnectInfo::default());
+    p.with_state(|s| s.pop());
+    p.disconnect(&key("b"), 3);
+    assert_eq!(p.with_state(|s| s.pop()), Some((key("b"), Priority::High)));
 }

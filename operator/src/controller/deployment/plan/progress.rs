@@ -52,15 +52,25 @@ pub(super) fn roll_forward(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut
         .iter()
         .filter(|(_, s)| s.batch() == Some(batch))
         .collect();
-    let outcome = if members.is_empty() {
+    let mut outcome = if members.is_empty() {
         form_batch(rollout, fleet, draft)
     } else {
         resolve_batch(rollout, &members, draft)
     };
+    if let Outcome::BatchSucceeded(b, ratio) = outcome {
+        draft.batch_result = Some((b, ratio));
+        // No pause to wait for: the next batch starts in this plan, so a batch costs one
+        // status write and one reconcile, not one to close it and one to open the next. Unless
+        // robots' marks show it started already (the status is older than the marks: a
+        // restarted leader): the next plan resolves it then.
+        let next_started = fleet.robots.iter().any(|(_, s)| s.batch() == Some(b + 1));
+        if !rollout.paused && !next_started && pause_ends(rollout, &draft.status).is_none() {
+            outcome = form_batch(rollout, fleet, draft);
+        }
+    }
     match outcome {
         Outcome::Continue(message) => draft.message = message,
-        Outcome::BatchSucceeded(b, ratio) => {
-            draft.batch_result = Some((b, ratio));
+        Outcome::BatchSucceeded(b, _) => {
             draft.message = format!("batch {b} succeeded; next batch after the pause");
         }
         Outcome::Completed => {

@@ -700,8 +700,6 @@ fn aborted_mid_batch() -> Sim {
     sim.step();
     sim.agents();
     sim.advance(1);
-    sim.step();
-    sim.advance(1);
     let p = sim.step();
     let started: Vec<_> = p.writes.iter().map(|w| w.robot.as_str()).collect();
     assert_eq!(started, ["kiwi-02", "kiwi-03"], "{:?}", sim.d.status);
@@ -787,4 +785,66 @@ fn an_abort_of_a_finished_or_earlier_rollout_changes_nothing() {
     sim.run_until_done(10);
     assert_eq!(sim.phase(), RolloutPhase::Completed);
     assert_eq!(sim.running("3").len(), 3);
+}
+
+/// With no pause between batches, the plan that closes a batch opens the next: a batch costs
+/// one status write and one reconcile. With a pause, the next batch waits for it.
+#[test]
+fn a_batch_that_succeeds_opens_the_next_in_the_same_plan_unless_a_pause_is_asked() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 6);
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    let p = sim.step();
+    let started: Vec<_> = p.writes.iter().map(|w| w.robot.as_str()).collect();
+    assert_eq!(started, ["kiwi-02", "kiwi-03"]);
+    assert_eq!(p.batch_result.map(|(b, _)| b), Some(0));
+    assert_eq!(p.status.current_batch, Some(1));
+    let reasons: Vec<_> = p.events.iter().map(|e| e.reason).collect();
+    assert_eq!(reasons, ["BatchSucceeded", "BatchStarted"]);
+    // Every batch is one plan: 3 batches, 3 plans to the last one's success, which completes.
+    sim.agents();
+    sim.advance(1);
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    assert!(sim.step().finished);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+
+    let mut paced = deployment(IntOrString::Int(2), 0);
+    paced.spec.strategy.pause_between_batches_seconds = 30;
+    let mut sim = Sim::new(paced, 6);
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    let p = sim.step();
+    assert!(p.writes.is_empty(), "{p:?}");
+    assert_eq!(
+        p.status.message.as_deref(),
+        Some("batch 0 succeeded; next batch after the pause")
+    );
+}
+
+/// A status older than the robots' marks (a leader that stopped after writing robots, before
+/// its status write) does not open a batch twice: the batch the marks show started is resolved.
+#[test]
+fn a_status_older_than_the_marks_does_not_open_the_next_batch_twice() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 6);
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    let before = sim.d.status.clone();
+    let p = sim.step();
+    let started: Vec<_> = p.writes.iter().map(|w| w.robot.as_str()).collect();
+    assert_eq!(started, ["kiwi-02", "kiwi-03"]);
+    // The status write is lost; the marks of kiwi-02 and kiwi-03 are not.
+    sim.d.status = before;
+    sim.advance(1);
+    let p = sim.step();
+    assert!(p.writes.is_empty(), "nobody else starts: {:?}", p.writes);
+    sim.agents();
+    sim.advance(1);
+    sim.run_until_done(10);
+    assert_eq!(sim.phase(), RolloutPhase::Completed);
+    assert_eq!(sim.running("2").len(), 6);
 }
