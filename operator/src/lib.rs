@@ -76,7 +76,7 @@ fn user_agent(config: &Config, identity: &str) -> HeaderValue {
 type Tasks = tokio::task::JoinSet<(&'static str, Result<()>)>;
 
 /// What the long-lived tasks of one process share.
-struct Shared {
+struct Process {
     config: Arc<Config>,
     identity: String,
     client: kube::Client,
@@ -90,7 +90,7 @@ pub async fn run(config: Config) -> Result<()> {
     let identity = config.identity();
     let client = client(&config, &identity).await?;
     crd_install::ensure(client.clone(), config.install_crds).await?;
-    let shared = Shared {
+    let shared = Process {
         identity,
         metrics: Metrics::new(config.per_robot_metrics),
         cancel: CancellationToken::new(),
@@ -142,7 +142,7 @@ pub async fn run(config: Config) -> Result<()> {
 }
 
 /// Binds the HTTP address and serves /metrics, /healthz and /readyz until cancelled.
-async fn serve_http(shared: &Shared, app: axum::Router, tasks: &mut Tasks) -> Result<()> {
+async fn serve_http(shared: &Process, app: axum::Router, tasks: &mut Tasks) -> Result<()> {
     let addr = shared.config.http_addr;
     let listener = tokio::net::TcpListener::bind(addr)
         .await
@@ -161,7 +161,7 @@ async fn serve_http(shared: &Shared, app: axum::Router, tasks: &mut Tasks) -> Re
 
 /// Campaigns for the leader Lease and runs the controllers while this replica leads.
 fn start_controllers(
-    shared: &Shared,
+    shared: &Process,
     leader_tx: watch::Sender<bool>,
     leader_rx: watch::Receiver<bool>,
     tasks: &mut Tasks,
@@ -204,7 +204,7 @@ fn start_controllers(
 
 /// Connects the event store and runs the gateway; `listening` turns true once it accepts.
 async fn start_gateway(
-    shared: &Shared,
+    shared: &Process,
     listening: Arc<AtomicBool>,
     leader: watch::Receiver<bool>,
     tasks: &mut Tasks,

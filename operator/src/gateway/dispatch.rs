@@ -17,10 +17,10 @@ use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
 use super::cache::{Cache, Change};
-use super::desired::DesiredReleases;
 use super::holder::Holder;
 use super::presence::{Presence, claims};
 use super::registry::Registry;
+use super::watched::WatchedRobots;
 use crate::error::{Error, Result};
 use crate::event_store::RobotKey;
 
@@ -34,7 +34,7 @@ pub async fn start(
     presence: Presence,
     gateway: &str,
     cancel: &CancellationToken,
-) -> Result<(DesiredReleases, tokio::task::JoinHandle<()>)> {
+) -> Result<(WatchedRobots, tokio::task::JoinHandle<()>)> {
     let (gateway, cancel) = (gateway.to_owned(), cancel.clone());
     // Subscribed before the first list is awaited, so no change falls between the two.
     let mut changes = robots.subscribe();
@@ -67,7 +67,7 @@ pub async fn start(
             }
         }
     });
-    Ok((DesiredReleases(robots), task))
+    Ok((WatchedRobots(robots), task))
 }
 
 /// The dispatch task: which sessions to tell, the robots' presence, and this gateway's name. It

@@ -9,7 +9,6 @@ pub mod blob_api;
 mod blob_start;
 pub mod cache;
 pub mod dashboard;
-pub mod desired;
 pub mod dispatch;
 pub mod enroll;
 pub mod events_api;
@@ -28,6 +27,7 @@ pub mod server;
 pub mod session;
 pub mod tls;
 pub mod tokens;
+pub mod watched;
 
 pub use self::server::run;
 
@@ -46,7 +46,7 @@ use tokio::sync::Semaphore;
 use tracing::warn;
 
 use self::auth::{Grant, Refusal};
-use self::session::Shared;
+use self::session::SessionContext;
 use crate::event_store::RobotKey;
 use crate::metrics::KindLabels;
 
@@ -164,7 +164,7 @@ pub fn bearer(headers: &HeaderMap) -> Option<&str> {
 #[derive(Clone)]
 pub struct AppState {
     /// What every WebSocket session shares; the HTTP routes use its store, auth and metrics.
-    pub shared: Arc<Shared>,
+    pub shared: Arc<SessionContext>,
     /// Reads Robots the Robot watch does not hold yet (legacy polls).
     pub client: kube::Client,
     /// What each robot's legacy polls were answered with lately.

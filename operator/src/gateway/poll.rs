@@ -18,9 +18,9 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use super::auth::{Grant, Refusal};
-use super::desired::DesiredReleases;
 use super::presence::ConnectInfo;
 use super::session::Limits;
+use super::watched::WatchedRobots;
 use super::{ApiError, AppState, bearer};
 use crate::event_store::RobotKey;
 use crate::metrics::KindLabels;
@@ -61,7 +61,7 @@ pub struct PollAnswer {
 /// The release each robot's polls were last answered with, and when: an answer stays the same
 /// for up to [`CACHE_TTL`] after the Robot changed, as legacy agents have always been answered.
 /// Its source is the gateway's Robot watch
-/// ([`DesiredReleases`]); the API server is read only for a
+/// ([`WatchedRobots`]); the API server is read only for a
 /// robot the watch does not hold.
 #[derive(Default)]
 pub struct PollMemo {
@@ -72,7 +72,7 @@ impl PollMemo {
     /// The release `key` should run, as its polls are answered now.
     async fn desired(
         &self,
-        watch: Option<&DesiredReleases>,
+        watch: Option<&WatchedRobots>,
         client: &kube::Client,
         key: &RobotKey,
     ) -> Result<Option<Release>, ApiError> {

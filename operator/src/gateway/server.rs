@@ -21,15 +21,15 @@ use super::admission::EnrollAdmission;
 use super::api::FleetApi;
 use super::auth::Authenticator;
 use super::cache::Cache;
-use super::desired::DesiredReleases;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
 use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
-use super::session::{Limits, Shared};
+use super::session::{Limits, SessionContext};
 use super::tls::reload;
 use super::tokens::TokenIndex;
+use super::watched::WatchedRobots;
 use super::{AppState, Routes, dispatch, lease, routes};
 use crate::config::Config;
 use crate::error::{Error, Result};
@@ -77,7 +77,7 @@ pub async fn run(
         &cancel,
     )
     .await?;
-    let shared = Shared {
+    let shared = SessionContext {
         presence: presence.clone(),
         store: store.clone(),
         auth: Authenticator::new(client.clone(), tokens).with_lookups(lookups(&config, &metrics)),
@@ -131,7 +131,7 @@ async fn start_dispatch(
     registry: Arc<Registry>,
     presence: &Presence,
     cancel: &CancellationToken,
-) -> Result<(DesiredReleases, JoinHandle<()>)> {
+) -> Result<(WatchedRobots, JoinHandle<()>)> {
     let name = config.gateway_name();
     let (desired, task) =
         dispatch::start(robots, registry, presence.clone(), &name, cancel).await?;
@@ -272,7 +272,7 @@ fn start_background(
     config: &Config,
     name: &str,
     client: &kube::Client,
-    (presence, holders): (&Presence, DesiredReleases),
+    (presence, holders): (&Presence, WatchedRobots),
     store: &Store,
     cancel: &CancellationToken,
 ) -> Background {

@@ -17,8 +17,8 @@ use lekiwi_agent::connection::Socket;
 use lekiwi_crds::{Robot, RobotPhase};
 use lekiwi_operator::event_store::RobotKey;
 use lekiwi_operator::gateway::cache::Cache;
-use lekiwi_operator::gateway::desired::DesiredReleases;
 use lekiwi_operator::gateway::presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};
+use lekiwi_operator::gateway::watched::WatchedRobots;
 use lekiwi_operator::metrics::Metrics;
 use lekiwi_protocol::{AgentMessage, ErrorCode, Health, ServerMessage, Severity, encode};
 use lekiwi_tests::postgres::Postgres;
@@ -313,7 +313,7 @@ async fn a_robot_moves_when_its_replica_is_killed(r: &mut Replicas) -> anyhow::R
 fn status_writer(
     client: &kube::Client,
     gateway: &str,
-    cache: &DesiredReleases,
+    cache: &WatchedRobots,
 ) -> (Presence, Metrics, CancellationToken) {
     let metrics = Metrics::new(false);
     let presence = Presence::new(
@@ -351,7 +351,7 @@ fn writes(metrics: &Metrics, result: &str) -> f64 {
 /// every write meets a conflict first and decides on the Robot read again.
 async fn an_older_sessions_writes_are_fenced(r: &Replicas) -> anyhow::Result<()> {
     let created = create_robot(&r.client, &r.ns, "kiwi-f", &[]).await?;
-    let cache = DesiredReleases(Arc::new(Cache::listed([created])));
+    let cache = WatchedRobots(Arc::new(Cache::listed([created])));
     let key = RobotKey::new(&r.ns, "kiwi-f");
     let (old, old_metrics, old_cancel) = status_writer(&r.client, "gw-old", &cache);
     let (new, new_metrics, new_cancel) = status_writer(&r.client, "gw-new", &cache);

@@ -19,20 +19,20 @@ use super::patch::planned_status_patch;
 use super::{Entry, Presence};
 use crate::apply::Metadata;
 use crate::event_store::RobotKey;
-use crate::gateway::desired::DesiredReleases;
+use crate::gateway::watched::WatchedRobots;
 use crate::liveness::{Facts, GatewayState, plan};
 
 /// What the gateway needs to plan a robot's phase: its Robot cache (spec, generation, phase and
 /// conditions) and the controller's heartbeat grace.
 #[derive(Clone)]
 pub struct PhasePlanner {
-    robots: DesiredReleases,
+    robots: WatchedRobots,
     heartbeat_grace: Duration,
 }
 
 impl PhasePlanner {
     /// A planner over the gateway's Robot cache.
-    pub fn new(robots: DesiredReleases, heartbeat_grace: Duration) -> Self {
+    pub fn new(robots: WatchedRobots, heartbeat_grace: Duration) -> Self {
         Self {
             robots,
             heartbeat_grace,
@@ -156,7 +156,7 @@ status:
     /// a robot not in it, the write holds the gateway's facts alone, as before.
     #[test]
     fn a_connect_write_carries_the_phase_the_controller_would_write() {
-        let store = DesiredReleases(Arc::new(Cache::listed([
+        let store = WatchedRobots(Arc::new(Cache::listed([
             serde_yaml::from_str(CACHED).unwrap()
         ])));
         let p = presence();

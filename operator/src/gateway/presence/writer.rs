@@ -20,8 +20,8 @@ use super::adapt::AdaptiveRate;
 use super::{Entry, Presence, Priority};
 use crate::apply::Metadata;
 use crate::event_store::RobotKey;
-use crate::gateway::desired::DesiredReleases;
 use crate::gateway::holder::Holder;
+use crate::gateway::watched::WatchedRobots;
 use crate::rate::TokenBucket;
 
 /// Why a status write did not happen.
@@ -68,7 +68,7 @@ impl Presence {
     pub async fn run_writer(
         self,
         client: kube::Client,
-        holders: Option<DesiredReleases>,
+        holders: Option<WatchedRobots>,
         cancel: CancellationToken,
     ) {
         let slots = Arc::new(Semaphore::new(self.config.concurrency.max(1)));
@@ -314,7 +314,7 @@ impl Presence {
     async fn write(
         &self,
         client: &kube::Client,
-        holders: Option<&DesiredReleases>,
+        holders: Option<&WatchedRobots>,
         key: &RobotKey,
         e: &Entry,
     ) -> Result<(), WriteError> {

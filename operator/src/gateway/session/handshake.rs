@@ -7,7 +7,7 @@ use lekiwi_protocol::rules::{self, FieldError};
 use lekiwi_protocol::{AgentMessage, ErrorCode, PROTOCOL_VERSION, decode, hello_version};
 use tracing::{info, warn};
 
-use super::Shared;
+use super::SessionContext;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, Conn};
 use crate::gateway::auth::Grant;
 use crate::gateway::enroll;
@@ -31,7 +31,7 @@ pub(super) struct Hello {
 /// Waits for the agent's `hello`: what it says about the robot, for presence, or [`Refused`]
 /// when it came late, was something else or spoke another protocol version.
 pub(super) async fn hello<W, R, E>(
-    shared: &Shared,
+    shared: &SessionContext,
     conn: &mut Conn<W>,
     stream: &mut R,
 ) -> Result<Hello, Refused>
@@ -111,7 +111,7 @@ where
 /// The first text frame, within the handshake timeout; [`Refused`] when none came in time (said
 /// to the agent and counted) or the socket closed.
 async fn first_text<W, R, E>(
-    shared: &Shared,
+    shared: &SessionContext,
     conn: &mut Conn<W>,
     stream: &mut R,
 ) -> Result<String, Refused>
@@ -174,7 +174,7 @@ where
 /// Enrollment mints the robot's own token (sent in `welcome`); a robot that has its own token
 /// gets `None`. [`Refused`] when the token cannot be made.
 pub(super) async fn enroll<W>(
-    shared: &Shared,
+    shared: &SessionContext,
     grant: &Grant,
     conn: &mut Conn<W>,
 ) -> Result<Option<String>, Refused>

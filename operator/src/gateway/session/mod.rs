@@ -24,11 +24,11 @@ use self::agent_update::AgentLedger;
 use self::commands::CommandLedger;
 use self::conn::{Conn, End, Flow};
 use super::auth::{Authenticator, Grant};
-use super::desired::DesiredReleases;
 use super::holder::next_epoch;
 use super::presence::{ConnectInfo, Presence};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::{Control, Registry};
+use super::watched::WatchedRobots;
 use crate::event_store::{ConnectionRecord, RobotKey, Store};
 use crate::metrics::{KindLabels, Metrics};
 
@@ -57,7 +57,7 @@ pub struct Limits {
 
 /// What every session shares.
 #[derive(Clone)]
-pub struct Shared {
+pub struct SessionContext {
     /// Each robot's connection state in memory, written to `Robot` status sparingly.
     pub presence: Presence,
     /// Where durable agent messages and connection records are stored before they are acked.
@@ -75,14 +75,14 @@ pub struct Shared {
     /// Fires on shutdown: every session says so to its agent and closes.
     pub cancel: CancellationToken,
     /// The robots' desired releases (`spec.release`), when this gateway watches Robots.
-    pub desired: Option<DesiredReleases>,
+    pub desired: Option<WatchedRobots>,
     /// Warning Events on Robots whose agents send past their event store quota.
     pub quota_warnings: QuotaWarnings,
 }
 
 /// A session past its handshake: what its loop and its frame handlers work with.
 struct Session<'a, W> {
-    shared: &'a Shared,
+    shared: &'a SessionContext,
     key: &'a RobotKey,
     /// This session's number in the registry.
     id: u64,
@@ -112,7 +112,7 @@ struct Opened {
 /// of the token the agent presented ([`lekiwi_crds::contract::hash_token`]). Not an `async fn`:
 /// its arguments would stay in the returned future, as well as in the one they move into.
 pub fn run<W, R, E>(
-    shared: Arc<Shared>,
+    shared: Arc<SessionContext>,
     grant: Grant,
     token_hash: String,
     address: Option<String>,
@@ -130,7 +130,7 @@ where
 }
 
 async fn run_inner<W, R, E>(
-    shared: Arc<Shared>,
+    shared: Arc<SessionContext>,
     grant: Grant,
     token_hash: String,
     address: Option<String>,
@@ -174,7 +174,7 @@ async fn run_inner<W, R, E>(
 /// hello's refused fields. `None` when the agent never got as far as a session (it was told
 /// why); else the session, what opening it left to close, and how the welcome went.
 async fn start<'a, W, R, E>(
-    shared: &'a Shared,
+    shared: &'a SessionContext,
     grant: &Grant,
     key: &'a RobotKey,
     token_hash: String,
@@ -235,7 +235,7 @@ where
 
 /// Registers the session (replacing an older one) with an epoch above the one the robot's
 /// status shows, tells presence (whether the robot moved here), then records the connection.
-async fn open(shared: &Shared, key: &RobotKey, hello: ConnectInfo) -> Opened {
+async fn open(shared: &SessionContext, key: &RobotKey, hello: ConnectInfo) -> Opened {
     let holder = shared.desired.as_ref().and_then(|d| d.holder(key));
     let seen = holder.as_ref().and_then(|h| h.epoch);
     // Its status names another gateway: it moved here (that gateway may have died).
@@ -321,7 +321,7 @@ where
 /// Unregisters the session, tells presence (unless a newer session took over: here, it has the
 /// presence entry; on another gateway, the status), counts the end and closes the connection
 /// record.
-async fn close(shared: &Shared, key: &RobotKey, opened: &Opened, end: &End) {
+async fn close(shared: &SessionContext, key: &RobotKey, opened: &Opened, end: &End) {
     shared.registry.unregister(key, opened.id);
     match end {
         End::Replaced => {}
@@ -366,7 +366,7 @@ mod tests {
             kube::Client::try_from(kube::Config::new("http://127.0.0.1:1".parse().unwrap()))
                 .unwrap();
         let metrics = Metrics::default();
-        let shared = Arc::new(Shared {
+        let shared = Arc::new(SessionContext {
             presence: Presence::new(
                 PresenceConfig {
                     gateway: "gw".into(),

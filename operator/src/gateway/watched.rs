@@ -1,6 +1,7 @@
-//! The robots' desired releases (`spec.release`) as the gateway's Robot watch last saw them: what
-//! sessions send deploy commands for and what the legacy poll answers; and who holds each robot
-//! (what the status writer's fence reads first).
+//! The Robots as the gateway's watch last saw them, read by what each part of the gateway
+//! needs: the release and agent build a robot should run (what sessions send deploy commands for
+//! and what the legacy poll answers), the digests a namespace may download, and who holds each
+//! robot (what the status writer's fence reads first).
 
 use std::collections::BTreeSet;
 use std::sync::Arc;
@@ -12,12 +13,12 @@ use crate::event_store::RobotKey;
 use crate::gateway::cache::Cache;
 use crate::gateway::holder::Holder;
 
-/// Looks up a robot's `spec.release` in the gateway's Robot cache (the one the Fleet API answers
-/// from, see [`super::dispatch::start`]).
+/// The gateway's Robot cache (the one the Fleet API answers from, see
+/// [`super::dispatch::start`]), read robot by robot.
 #[derive(Clone)]
-pub struct DesiredReleases(pub Arc<Cache<Robot>>);
+pub struct WatchedRobots(pub Arc<Cache<Robot>>);
 
-impl DesiredReleases {
+impl WatchedRobots {
     /// The Robot `key` as the cache holds it.
     pub fn robot(&self, key: &RobotKey) -> Option<Arc<Robot>> {
         self.0.get(&key.namespace, &key.name)
