@@ -31,6 +31,10 @@ pub struct EventsArgs {
     /// Only events of this kind (e.g. agent_started); repeatable.
     #[arg(long)]
     pub kind: Vec<String>,
+    /// After the list, print each new event as the gateway stores it (asked every 2 s) until
+    /// interrupted.
+    #[arg(short = 'w', long)]
+    pub watch: bool,
     /// Where the gateway is and which Kubernetes token to present to it.
     #[command(flatten)]
     pub server: ServerArgs,
@@ -52,20 +56,98 @@ pub async fn run(
     let gateway = Gateway::connect(kube, &args.server, None).await?;
     let now = Timestamp::now();
     let since_ms = now.as_millisecond() - i64::try_from(args.since.as_millis()).unwrap_or(i64::MAX);
-    let events = fetch(&gateway, &ns, &name).await?;
+    let events = fetch(&gateway, &ns, &name, None).await?;
+    let mut seen = Seen::default();
+    for e in &events {
+        seen.insert(e.seq);
+    }
     let shown = select(events, since_ms, &args.kind, args.limit);
-    let text = render(&shown, output, now)?;
-    print!(
-        "{}",
-        crate::list::headers(text, no_headers && output.table())
-    );
+    if !(args.watch && shown.is_empty() && output.table()) {
+        let text = render(&shown, output, now)?;
+        print!(
+            "{}",
+            crate::list::headers(text, no_headers && output.table())
+        );
+    }
+    if args.watch {
+        follow(&gateway, (&ns, &name), &args.kind, output, seen).await?;
+    }
     Ok(())
 }
 
-/// Reads every stored event of the robot, page by page.
-async fn fetch(gateway: &Gateway, ns: &str, name: &str) -> anyhow::Result<Vec<StoredEvent>> {
+/// How often `--watch` asks the gateway for new events.
+const WATCH_EVERY: Duration = Duration::from_secs(2);
+/// How far below the highest sequence number seen `--watch` still looks for events stored
+/// late (an agent resending what the store refused a moment ago).
+const LATE_SEQS: u64 = 1000;
+
+/// The sequence numbers `--watch` printed or listed, within [`LATE_SEQS`] of the highest.
+#[derive(Default)]
+struct Seen {
+    seqs: std::collections::BTreeSet<u64>,
+}
+
+impl Seen {
+    /// Notes `seq`; false if it was seen already.
+    fn insert(&mut self, seq: u64) -> bool {
+        let new = self.seqs.insert(seq);
+        let low = self.low_water();
+        self.seqs = self.seqs.split_off(&low);
+        new
+    }
+
+    /// The sequence number below which events are no longer looked for.
+    fn low_water(&self) -> u64 {
+        self.seqs
+            .last()
+            .map_or(0, |max| max.saturating_sub(LATE_SEQS))
+    }
+}
+
+/// Prints the robot's new events as they are stored, one object (or row) each, until the
+/// gateway stops answering or the user interrupts.
+async fn follow(
+    gateway: &Gateway,
+    (ns, name): (&str, &str),
+    kinds: &[String],
+    output: &Output,
+    mut seen: Seen,
+) -> anyhow::Result<()> {
+    use std::io::Write as _;
+    loop {
+        tokio::time::sleep(WATCH_EVERY).await;
+        let after = seen.low_water().checked_sub(1);
+        let fresh: Vec<StoredEvent> = fetch(gateway, ns, name, after)
+            .await?
+            .into_iter()
+            .filter(|e| seen.insert(e.seq) && (kinds.is_empty() || kinds.contains(&e.kind)))
+            .collect();
+        let now = Timestamp::now();
+        for e in &fresh {
+            let text = match output {
+                Output::Table | Output::Wide => {
+                    crate::list::headers(render(std::slice::from_ref(e), output, now)?, true)
+                }
+                Output::Name => output
+                    .rows(std::slice::from_ref(e), |e| e.seq.to_string())?
+                    .unwrap_or_default(),
+                _ => output.structured(e)?.unwrap_or_default(),
+            };
+            print!("{text}");
+        }
+        std::io::stdout().flush()?;
+    }
+}
+
+/// Reads every stored event of the robot with a sequence number above `after` (all if `None`),
+/// page by page.
+async fn fetch(
+    gateway: &Gateway,
+    ns: &str,
+    name: &str,
+    mut after: Option<u64>,
+) -> anyhow::Result<Vec<StoredEvent>> {
     let mut all = Vec::new();
-    let mut after: Option<u64> = None;
     for _ in 0..MAX_PAGES {
         let mut path = format!("/v1/robots/{ns}/{name}/events?limit={PAGE}");
         if let Some(seq) = after {
@@ -182,6 +264,22 @@ mod tests {
             message: format!("event {seq}"),
             data: serde_json::Value::Null,
         }
+    }
+
+    #[test]
+    fn watch_remembers_a_bounded_window_below_the_newest() {
+        let mut seen = Seen::default();
+        assert!(seen.insert(5));
+        assert!(!seen.insert(5));
+        assert_eq!(seen.low_water(), 0);
+        assert!(seen.insert(5000));
+        assert_eq!(seen.low_water(), 5000 - LATE_SEQS);
+        // Far below the window: forgotten, and no longer asked for.
+        assert!(!seen.seqs.contains(&5));
+        // A late event within the window is still new once, then seen.
+        assert!(seen.insert(4500));
+        assert!(!seen.insert(4500));
+        assert!(seen.seqs.len() <= LATE_SEQS as usize + 1);
     }
 
     #[test]

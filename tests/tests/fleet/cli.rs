@@ -324,6 +324,51 @@ async fn robot_add_events_and_discover_with_a_real_agent() -> Result<()> {
         ],
     )?;
     assert_eq!(none, "No events found.\n");
+    // events -w: the list, then each event as it is stored.
+    let mut watch = Command::new(bin("kubectl-lekiwi"))
+        .arg("--kubeconfig")
+        .arg(cp.kubeconfig())
+        .args([
+            "-n", &ns, "-o", "json", "events", "kiwi-r", "-w", "--server", &server,
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()?;
+    let printed = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let reader = {
+        let printed = printed.clone();
+        let mut stdout = watch.stdout.take().context("no stdout")?;
+        std::thread::spawn(move || {
+            let mut buf = [0u8; 4096];
+            while let Ok(n @ 1..) = std::io::Read::read(&mut stdout, &mut buf) {
+                printed
+                    .lock()
+                    .unwrap()
+                    .push_str(&String::from_utf8_lossy(&buf[..n]));
+            }
+        })
+    };
+    let queued = Command::new(bin("lekiwi-agent"))
+        .args(["--config", "/nonexistent/lekiwi-agent.yaml"])
+        .arg("--state-dir")
+        .arg(&state)
+        .args(["event", "--kind", "watched_note", "--message", "seen live"])
+        .output()?;
+    assert!(queued.status.success(), "{queued:?}");
+    let seen = wait_for("events -w printing the new event", T, || async {
+        let text = printed.lock().unwrap().clone();
+        text.contains("\"watched_note\"").then_some(text)
+    })
+    .await;
+    watch.kill()?;
+    watch.wait()?;
+    reader.join().ok();
+    let seen = seen?;
+    assert_eq!(
+        seen.matches("\"watched_note\"").count(),
+        1,
+        "printed once: {seen}"
+    );
     // A robot that does not exist is said so, not shown as one without events.
     let missing = plugin(
         cp,
