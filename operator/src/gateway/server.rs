@@ -352,7 +352,11 @@ async fn serve(
 ) -> Result<std::io::Result<()>> {
     let addr = config.gateway_addr;
     let metrics = state.shared.metrics.gateway.clone();
-    let tls = reload::acceptor(config, metrics.tls_reloads.clone(), cancel).await?;
+    let tls_metrics = reload::TlsMetrics {
+        reloads: metrics.tls_reloads.clone(),
+        expiry: metrics.tls_certificate_expiry.clone(),
+    };
+    let tls = reload::acceptor(config, tls_metrics, cancel).await?;
     let bind = |addr| async move {
         tokio::net::TcpListener::bind(addr)
             .await

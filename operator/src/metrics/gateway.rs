@@ -110,6 +110,8 @@ pub struct GatewayMetrics {
     pub connections_dropped: Family<KindLabels, Counter>,
     /// Reloads of the TLS certificate files, `reloaded` or `failed` (the old one kept).
     pub tls_reloads: Family<KindLabels, Counter>,
+    /// The notAfter of the TLS certificate the gateway serves now, in Unix seconds.
+    pub tls_certificate_expiry: Gauge,
     /// TokenReviews and SubjectAccessReviews made for the HTTP API, by kind and result.
     pub kube_reviews: Family<ReviewLabels, Counter>,
     /// Reviews answered from the gateway's cache instead, by kind.
@@ -217,6 +219,10 @@ impl GatewayMetrics {
             tls_reloads: r.add(
                 "lekiwi_gateway_tls_reloads",
                 "Reloads of the gateway's TLS certificate and key after their files changed, by result (reloaded, failed: the certificate loaded before is kept)",
+            ),
+            tls_certificate_expiry: r.add(
+                "lekiwi_gateway_tls_certificate_expiry_timestamp_seconds",
+                "Expiry (notAfter) of the TLS certificate the gateway serves to new connections, in Unix seconds, set at each load and reload",
             ),
             kube_reviews: r.add(
                 "lekiwi_gateway_kube_reviews",

@@ -111,6 +111,14 @@ tests:
         values: '50000000000x90'
       - series: 'lekiwi_gateway_blob_volume_size_bytes{instance="b"}'
         values: '100000000000x90'
+      # Replica a serves a certificate that expires 5 days after the test's start, b one of 30
+      # days; c has not loaded one (0: plain HTTP or before the first load).
+      - series: 'lekiwi_gateway_tls_certificate_expiry_timestamp_seconds{instance="a"}'
+        values: '432000x90'
+      - series: 'lekiwi_gateway_tls_certificate_expiry_timestamp_seconds{instance="b"}'
+        values: '2592000x90'
+      - series: 'lekiwi_gateway_tls_certificate_expiry_timestamp_seconds{instance="c"}'
+        values: '0x90'
     alert_rule_test:
       # Pending before its `for`, firing after.
       - {eval_time: 5m, alertname: LekiwiRobotsOffline, exp_alerts: []}
@@ -157,6 +165,14 @@ tests:
             exp_annotations:
               summary: The release blob store's volume is nearly full.
               description: 'Under 10% free on the blob volume of a: delete releases (kubectl lekiwi release list, release delete), lower gateway.releases.retention or grow the volume.'
+      - {eval_time: 5m, alertname: LekiwiGatewayCertificateExpiring, exp_alerts: []}
+      - eval_time: 15m
+        alertname: LekiwiGatewayCertificateExpiring
+        exp_alerts:
+          - exp_labels: {severity: warning, instance: a}
+            exp_annotations:
+              summary: The gateway's TLS certificate expires within 14 days.
+              description: 'The certificate a serves expires in 4d 23h 45m 0s: robots cannot connect once it has. cert-manager renews its own (kubectl describe certificate); the chart''s CA signs a new one on helm upgrade with another gateway.tls.validityDays; a Secret of yours is yours to replace. The gateway reloads it without restarting.'
 "#;
 
 fn promtool(dir: &std::path::Path, args: &[&str]) {

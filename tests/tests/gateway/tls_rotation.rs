@@ -2,8 +2,9 @@
 //! Kubernetes Secret volume (`tls.crt -> ..data/tls.crt`, `..data -> ..<version>`), 50
 //! simulated robots are connected, and the files are replaced as the kubelet replaces them (a
 //! new `..data` symlink renamed over the old one). New connections get the new certificate
-//! (a new serial from the same CA), on the robots' port and the API's, none of the 50 sessions drops or reconnects, and a pair
-//! that does not load is refused and counted, the last good certificate still served.
+//! (a new serial from the same CA), on the robots' port and the API's, none of the 50 sessions drops or reconnects, the
+//! expiry gauge follows the certificate served, and a pair that does not load is refused and
+//! counted, the last good certificate still served.
 
 use std::path::Path;
 use std::process::Command;
@@ -18,6 +19,7 @@ use lekiwi_tests::{
 const ROBOTS: usize = 50;
 const RELOADED: &str = "lekiwi_gateway_tls_reloads_total{kind=\"reloaded\"}";
 const FAILED: &str = "lekiwi_gateway_tls_reloads_total{kind=\"failed\"}";
+const EXPIRY: &str = "lekiwi_gateway_tls_certificate_expiry_timestamp_seconds";
 
 fn sh(script: &str, dir: &Path) -> anyhow::Result<String> {
     let out = Command::new("bash")
@@ -52,12 +54,12 @@ fn secret_version(dir: &Path, version: &str, make: &str) -> anyhow::Result<()> {
 }
 
 /// A new key and a certificate for 127.0.0.1 signed by the test CA in `ca_dir`, in the
-/// current directory.
+/// current directory, valid a day longer than the test CA's first one.
 fn signed_by(ca_dir: &Path) -> String {
     let ca = ca_dir.display();
     format!(
         "openssl req -newkey rsa:2048 -nodes -subj /CN=127.0.0.1 -keyout tls.key -out tls.csr 2>/dev/null && \
-         openssl x509 -req -in tls.csr -CA {ca}/ca.crt -CAkey {ca}/ca.key -CAcreateserial -days 1 \
+         openssl x509 -req -in tls.csr -CA {ca}/ca.crt -CAkey {ca}/ca.key -CAcreateserial -days 2 \
          -extfile {ca}/ext -out tls.crt 2>/dev/null"
     )
 }
@@ -71,6 +73,19 @@ fn served_serial(port: u16, dir: &Path) -> anyhow::Result<String> {
         ),
         dir,
     )
+}
+
+/// The notAfter of the certificate in `file`, in Unix seconds, as openssl reads it.
+fn file_not_after(file: &Path) -> anyhow::Result<f64> {
+    let date = sh(
+        &format!(
+            "openssl x509 -noout -enddate -dateopt iso_8601 -in {}",
+            file.display()
+        ),
+        Path::new("/"),
+    )?;
+    let at = date.strip_prefix("notAfter=").context("openssl -enddate")?;
+    Ok(at.parse::<jiff::Timestamp>()?.as_second() as f64)
 }
 
 fn file_serial(file: &Path) -> anyhow::Result<String> {
@@ -137,6 +152,8 @@ async fn a_rotated_certificate_reaches_new_connections_and_no_robot_reconnects()
     wait_online(&client, &ns, ROBOTS, Duration::from_secs(120)).await?;
     let before = served_serial(op.gateway_port, base)?;
     assert_eq!(before, file_serial(&cert)?);
+    let first_expiry = file_not_after(&cert)?;
+    assert_eq!(op.metric(EXPIRY).await, Some(first_expiry));
 
     // The rotation: a new key and certificate from the same CA, swapped in as a Secret is.
     let swapped = Instant::now();
@@ -150,6 +167,13 @@ async fn a_rotated_certificate_reaches_new_connections_and_no_robot_reconnects()
     );
     assert_eq!(after, file_serial(&cert)?, "not the certificate on disk");
     assert_eq!(served_serial(api_port, base)?, after, "the API's port too");
+    let second_expiry = file_not_after(&cert)?;
+    assert!(second_expiry > first_expiry + 86_000.0, "a day later");
+    assert_eq!(
+        op.metric(EXPIRY).await,
+        Some(second_expiry),
+        "the expiry of the new certificate"
+    );
     assert!(
         op.log_text().contains("gateway TLS certificate reloaded"),
         "no log line of the reload"
@@ -167,6 +191,11 @@ async fn a_rotated_certificate_reaches_new_connections_and_no_robot_reconnects()
     metric_reaches(&op, FAILED, 1.0).await?;
     assert_eq!(served_serial(op.gateway_port, base)?, after);
     assert_eq!(op.metric(RELOADED).await, Some(1.0));
+    assert_eq!(
+        op.metric(EXPIRY).await,
+        Some(second_expiry),
+        "still the served one's"
+    );
     assert!(
         op.log_text().contains("do not load"),
         "no log line of the failure"

@@ -3,17 +3,20 @@
 //! copies new files. The files are read every few seconds and compared with what was loaded;
 //! new handshakes get the new certificate, open connections keep theirs. A pair that does not
 //! load (half-written, a key of another certificate) keeps the old one, counted and logged.
+//! The expiry (notAfter) of the certificate served is a gauge, set at each load.
 
 use std::path::PathBuf;
 use std::time::Duration;
 
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
+use prometheus_client::metrics::gauge::Gauge;
 use rustls::pki_types::CertificateDer;
 use rustls::pki_types::pem::PemObject;
 use sha2::{Digest, Sha256};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
+use x509_cert::der::Decode as _;
 
 use super::Acceptor;
 use crate::config::Config;
@@ -30,6 +33,37 @@ pub struct CertFiles {
     /// PEM certificate of the CA that signs it (`--tls-ca`), sent after the chain so that
     /// `lekiwi-agent join` can pin it; reloaded with the others.
     pub ca: Option<PathBuf>,
+}
+
+/// What the reloads report.
+#[derive(Clone, Debug, Default)]
+pub struct TlsMetrics {
+    /// `lekiwi_gateway_tls_reloads_total{kind}`: `reloaded` and `failed`.
+    pub reloads: Family<KindLabels, Counter>,
+    /// `lekiwi_gateway_tls_certificate_expiry_timestamp_seconds`: the notAfter of the
+    /// certificate new connections get, in Unix seconds (0 until one is loaded).
+    pub expiry: Gauge,
+}
+
+impl TlsMetrics {
+    /// Sets the expiry gauge to the notAfter of the first certificate in `pem`; one that cannot
+    /// be read is logged and leaves the gauge as it was.
+    fn served(&self, pem: &[u8]) {
+        match not_after(pem) {
+            Some(at) => {
+                self.expiry.set(at);
+            }
+            None => warn!("cannot read the served TLS certificate's expiry"),
+        }
+    }
+}
+
+/// The notAfter of the first certificate in `pem`, in Unix seconds.
+pub fn not_after(pem: &[u8]) -> Option<i64> {
+    let der = CertificateDer::pem_slice_iter(pem).next()?.ok()?;
+    let cert = x509_cert::Certificate::from_der(der.as_ref()).ok()?;
+    let at = cert.tbs_certificate.validity.not_after.to_unix_duration();
+    i64::try_from(at.as_secs()).ok()
 }
 
 /// The bytes of both files, as last read.
@@ -74,15 +108,17 @@ fn fingerprint(pem: &[u8]) -> String {
 }
 
 /// Reads `files` every `every` until `cancel` and hands `acceptor` what changed since `loaded`;
-/// `lekiwi_gateway_tls_reloads_total{kind}` counts `reloaded` and `failed`.
+/// `metrics` count `reloaded` and `failed` and follow the served certificate's expiry.
 pub async fn watch(
     acceptor: Acceptor,
     files: CertFiles,
     mut loaded: Loaded,
     every: Duration,
-    reloads: Family<KindLabels, Counter>,
+    metrics: TlsMetrics,
     cancel: CancellationToken,
 ) {
+    metrics.served(&loaded.cert);
+    let reloads = &metrics.reloads;
     let mut tick = tokio::time::interval(every);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     // An unreadable file is logged once until it reads again, not every few seconds.
@@ -110,6 +146,7 @@ pub async fn watch(
         match acceptor.replace(&now.cert, &now.key) {
             Ok(()) => {
                 info!(sha256 = %fingerprint(&now.cert), "gateway TLS certificate reloaded; new connections get it");
+                metrics.served(&now.cert);
                 reloads
                     .get_or_create(&KindLabels { kind: "reloaded" })
                     .inc();
@@ -126,10 +163,10 @@ pub async fn watch(
 }
 
 /// The TLS acceptor for `--tls-cert` and `--tls-key`, if given, with the task that reloads them
-/// when they change (every `--tls-reload-seconds`, until `cancel`).
+/// when they change (every `--tls-reload-seconds`, until `cancel`); `metrics` follow them.
 pub async fn acceptor(
     config: &Config,
-    reloads: Family<KindLabels, Counter>,
+    metrics: TlsMetrics,
     cancel: &CancellationToken,
 ) -> Result<Option<Acceptor>> {
     let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) else {
@@ -152,10 +189,12 @@ pub async fn acceptor(
             files,
             loaded,
             every,
-            reloads,
+            metrics,
             cancel.clone(),
         );
         tokio::spawn(watch);
+    } else {
+        metrics.served(&loaded.cert);
     }
     Ok(Some(acceptor))
 }

@@ -17,7 +17,7 @@ use tokio::time::timeout;
 use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 
-use super::reload::{self, CertFiles};
+use super::reload::{self, CertFiles, TlsMetrics};
 use super::{Acceptor, TlsStream};
 use crate::metrics::KindLabels;
 
@@ -362,13 +362,14 @@ async fn a_peer_that_stops_reading_holds_the_writer_to_one_record() {
     );
 }
 
-/// Makes a new key and a certificate for 127.0.0.1 from the same CA in `dir` and puts them in
-/// place of `tls.crt` and `tls.key`, each by a rename (as a Secret volume swaps its files).
+/// Makes a new key and a certificate for 127.0.0.1 from the same CA in `dir`, valid a day longer
+/// than the first, and puts them in place of `tls.crt` and `tls.key`, each by a rename (as a
+/// Secret volume swaps its files).
 fn renew(dir: &Path) {
     let script = r#"set -e
 openssl ecparam -name prime256v1 -genkey -noout -out new.key
 openssl req -new -key new.key -subj /CN=127.0.0.1 -out new.csr
-openssl x509 -req -in new.csr -CA ca.crt -CAkey ca.key -CAcreateserial -days 1 -extfile ext -out new.crt 2>/dev/null
+openssl x509 -req -in new.csr -CA ca.crt -CAkey ca.key -CAcreateserial -days 2 -extfile ext -out new.crt 2>/dev/null
 mv new.crt tls.crt
 mv new.key tls.key
 "#;
@@ -415,7 +416,8 @@ async fn new_files_serve_new_connections_while_open_ones_stay_and_bad_ones_are_n
     };
     let (acceptor, loaded) = files.load().await.unwrap();
     bed.acceptor = acceptor.clone();
-    let reloads = Family::<KindLabels, Counter>::default();
+    let metrics = TlsMetrics::default();
+    let reloads = metrics.reloads.clone();
     let cancel = tokio_util::sync::CancellationToken::new();
     let every = Duration::from_millis(20);
     let watch = reload::watch(
@@ -423,16 +425,21 @@ async fn new_files_serve_new_connections_while_open_ones_stay_and_bad_ones_are_n
         files,
         loaded,
         every,
-        reloads.clone(),
+        metrics.clone(),
         cancel.clone(),
     );
     tokio::spawn(watch);
     let first = on_disk(&dir);
     let (old_client, old_server) = bed.pair().await;
     assert_eq!(presented(&old_client), first);
+    let first_expiry = openssl_not_after(&dir.join("tls.crt"));
+    assert_eq!(metrics.expiry.get(), first_expiry, "the expiry served");
 
     renew(&dir);
     counted(&reloads, "reloaded", 1).await;
+    let second_expiry = openssl_not_after(&dir.join("tls.crt"));
+    assert_eq!(metrics.expiry.get(), second_expiry, "the renewed expiry");
+    assert!(second_expiry - first_expiry > 86_000, "a day later");
     let second = on_disk(&dir);
     assert_ne!(second, first, "a new certificate");
     let (client, _server) = bed.pair().await;
@@ -455,5 +462,36 @@ async fn new_files_serve_new_connections_while_open_ones_stay_and_bad_ones_are_n
             .get(),
         1
     );
+    assert_eq!(
+        metrics.expiry.get(),
+        second_expiry,
+        "still the served one's"
+    );
     cancel.cancel();
+}
+
+/// The notAfter of the certificate in `file` as openssl reads it, in Unix seconds.
+fn openssl_not_after(file: &Path) -> i64 {
+    let out = std::process::Command::new("openssl")
+        .args(["x509", "-noout", "-enddate", "-dateopt", "iso_8601", "-in"])
+        .arg(file)
+        .output()
+        .expect("openssl runs");
+    let text = String::from_utf8(out.stdout).unwrap();
+    let at = text.trim().strip_prefix("notAfter=").expect(&text);
+    at.parse::<jiff::Timestamp>().expect(at).as_second()
+}
+
+#[test]
+fn not_after_reads_what_openssl_reads_and_nothing_from_garbage() {
+    let dir = tempfile::tempdir().unwrap();
+    certificates(dir.path());
+    for file in ["tls.crt", "ca.crt"] {
+        let pem = std::fs::read(dir.path().join(file)).unwrap();
+        let expected = openssl_not_after(&dir.path().join(file));
+        assert_eq!(reload::not_after(&pem), Some(expected), "{file}");
+    }
+    assert_eq!(reload::not_after(b"not a certificate"), None);
+    let garbage = b"-----BEGIN CERTIFICATE-----\nAAAA\n-----END CERTIFICATE-----\n";
+    assert_eq!(reload::not_after(garbage), None);
 }
