@@ -5,7 +5,9 @@
 //! gateway Service's NodePort over wss:// trusting the chart's generated CA, a release pushed
 //! through the NodePort rolls out and a failing one rolls back; `helm upgrade` to a new image
 //! tag replaces the Pod, the robots reconnect and every stored event is still there; `helm
-//! uninstall` leaves the CRDs and the robots.
+//! uninstall` leaves the CRDs and the robots. The install page walked as written (issue #41):
+//! from an empty cluster to a first rollout, a certificate rotation, a second rollout and a
+//! release deleted, with no gateway address, port-forward or CA file typed (module `walk`).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -28,6 +30,9 @@ use lekiwi_tests::{
     test_strategy, wait_for, wait_online,
 };
 use serde_json::{Value, json};
+
+#[path = "cluster/walk.rs"]
+mod walk;
 
 const CHART: &str = "charts/lekiwi-operator";
 const ROBOTS: usize = 6;
@@ -820,5 +825,177 @@ async fn the_plugin_reaches_the_gateway_from_the_kubeconfig_alone() -> anyhow::R
         "{line}"
     );
     assert!(line.contains(&format!("--ca-cert-hash {pin}")), "{line}");
+    Ok(())
+}
+
+/// Writes the robot's code for `version` in the lab's `~/kiwi-app`: one file the same in every
+/// version, one of its own; returns the SHA-256 (hex) of the latter.
+fn kiwi_app(lab: &walk::Lab, version: &str) -> anyhow::Result<String> {
+    use sha2::Digest as _;
+    let dir = lab.home.path().join("kiwi-app/lekiwi");
+    std::fs::create_dir_all(&dir)?;
+    std::fs::write(dir.join("drive.py"), "print('the same in every version')\n")?;
+    let own = format!("VERSION = {version:?}\n").repeat(50);
+    std::fs::write(dir.join("version.py"), &own)?;
+    Ok(hex::encode(sha2::Sha256::digest(own.as_bytes())))
+}
+
+/// The release robot `name` of the lab's namespace reports.
+async fn current_release(lab: &walk::Lab, name: &str) -> anyhow::Result<String> {
+    let robot = Api::<Robot>::namespaced(lab.client.clone(), &lab.ns)
+        .get(name)
+        .await?;
+    let current = robot.status.and_then(|s| s.current_release);
+    Ok(current.map(|r| r.version.to_string()).unwrap_or_default())
+}
+
+/// The chart's operator Pod (Ready) and the gateway's NodePort, in the page's release.
+async fn walked_install(lab: &walk::Lab) -> anyhow::Result<(Pod, u16)> {
+    let pods = Api::<Pod>::namespaced(lab.client.clone(), walk::RELEASE_NS);
+    let lp = ListParams::default().labels("app.kubernetes.io/component=operator");
+    let pod = wait_for(
+        "the operator Pod Ready",
+        Duration::from_secs(60),
+        || async {
+            let list = pods.list(&lp).await.ok()?.items;
+            (list.len() == 1 && is_ready(&list[0])).then(|| list[0].clone())
+        },
+    )
+    .await?;
+    let svc = Api::<Service>::namespaced(lab.client.clone(), walk::RELEASE_NS)
+        .get(&format!("{}-gateway", walk::FULL))
+        .await?;
+    let port = svc.spec.and_then(|s| s.ports?.first()?.node_port);
+    Ok((pod, u16::try_from(port.context("nodePort")?)?))
+}
+
+/// The page's join: `robot add` prints one line shaped as the page's `sh robot` block (the
+/// same words up to the values), naming the gateway by the node's address and NodePort; run on
+/// the robot host it joins, and the robot is Online.
+async fn walked_join(
+    lab: &mut walk::Lab,
+    robot: &mut walk::RobotHost,
+    node_port: u16,
+) -> anyhow::Result<()> {
+    let line = lab.run("add")?;
+    assert_eq!(line.lines().count(), 1, "{line}");
+    let flags = |l: &str| {
+        let words: Vec<String> = l.split_whitespace().map(str::to_owned).collect();
+        let mut shape: Vec<String> = words[..3].to_vec();
+        shape.extend(words.into_iter().filter(|w| w.starts_with("--")));
+        shape
+    };
+    assert_eq!(flags(&line), flags(&lab.page().robot), "{line}");
+    let gateway = format!(
+        "--gateway wss://{}:{node_port}/v1/agent",
+        lab.cluster.node_ip
+    );
+    assert!(line.contains(&gateway), "{line}");
+    let said = robot.join(line.trim()).await?;
+    eprintln!("join: {said}");
+    let name = format!("{}/kiwi-1", lab.ns);
+    assert!(
+        said.contains(&format!("robot {name} joined: Online")),
+        "{said}"
+    );
+    Ok(())
+}
+
+/// The page's rotation: `helm upgrade` with another validity; new connections to the NodePort
+/// get a new certificate, the expiry gauge moves to it, the robot stays Online.
+async fn walked_rotation(lab: &mut walk::Lab, pod: &Pod, node_port: u16) -> anyhow::Result<()> {
+    const EXPIRY: &str = "lekiwi_gateway_tls_certificate_expiry_timestamp_seconds";
+    let addr = format!("{}:{node_port}", lab.cluster.node_ip);
+    let before = walk::served_serial(&addr)?;
+    let expiry = gauge(pod, EXPIRY).await.context("the expiry gauge")?;
+    let t = Instant::now();
+    lab.run("rotate")?;
+    // The kubelet updates a Secret volume on its next sync of the Pod (up to a minute and its
+    // cache's TTL), the gateway reads the files every 10 s.
+    wait_for(
+        "the new certificate served",
+        Duration::from_secs(240),
+        || async {
+            let now = walk::served_serial(&addr).ok()?;
+            (now != before).then_some(())
+        },
+    )
+    .await?;
+    let served = t.elapsed();
+    let after = wait_for(
+        "the expiry gauge moved",
+        Duration::from_secs(30),
+        || async { gauge(pod, EXPIRY).await.filter(|e| *e != expiry) },
+    )
+    .await?;
+    let days = (after - jiff::Timestamp::now().as_second() as f64) / 86_400.0;
+    eprintln!(
+        "rotation: new certificate served {served:?} after helm upgrade; {days:.1} days left (was {:.1})",
+        (expiry - jiff::Timestamp::now().as_second() as f64) / 86_400.0
+    );
+    assert!((729.0..=730.1).contains(&days), "{days} days");
+    let connections = gauge(pod, "lekiwi_gateway_connections").await;
+    assert_eq!(connections, Some(1.0), "the robot's session");
+    Ok(())
+}
+
+/// Issue #41 part 6: docs/src/install/first-rollout.md walked as written, on the node: the
+/// image loaded and the chart installed with its defaults (a NodePort and the node's address
+/// in the certificate), a robot on a host of its own joined with the one command `robot add`
+/// prints, a release pushed and rolled out, the gateway's certificate rotated, the next
+/// release rolled out with `set-release`, and an unused release deleted with its blobs, with
+/// no gateway address, port-forward or CA file typed.
+#[tokio::test(flavor = "multi_thread")]
+async fn the_first_rollout_page_walked_as_written() -> anyhow::Result<()> {
+    let cluster = Cluster::shared();
+    // Builds target/image/lekiwi-operator-*.oci.tar, which the page's first block imports.
+    cluster.operator_image();
+    let mut lab = walk::Lab::new(cluster).await?;
+    // What a lab types to its first completed rollout: the page's commands and the join on the
+    // robot, without the image import (only where nodes cannot pull it) and `rollout status`
+    // (it watches).
+    let typed: Vec<String> = lab
+        .page()
+        .commands_until("first")
+        .into_iter()
+        .filter(|c| !c.starts_with("ctr ") && !c.starts_with("kubectl lekiwi rollout status"))
+        .chain(["sudo lekiwi-agent join ... (on the robot)".to_owned()])
+        .collect();
+    eprintln!(
+        "{} commands to the first completed rollout:\n{}",
+        typed.len(),
+        typed.join("\n")
+    );
+    assert_eq!(typed.len(), 5, "the page says five");
+    lab.run("image")?;
+    let t = Instant::now();
+    lab.run("install")?;
+    eprintln!("helm install --wait returned after {:?}", t.elapsed());
+    let (pod, node_port) = walked_install(&lab).await?;
+    let mut robot = walk::RobotHost::new(cluster)?;
+    walked_join(&mut lab, &mut robot, node_port).await?;
+    kiwi_app(&lab, "1.0.0")?;
+    let status = lab.run("first")?;
+    eprintln!(
+        "first rollout completed {:?} after helm install began: {status}",
+        t.elapsed()
+    );
+    assert_eq!(current_release(&lab, "kiwi-1").await?, "1.0.0");
+    walked_rotation(&mut lab, &pod, node_port).await?;
+    let next = kiwi_app(&lab, "1.1.0")?;
+    lab.run("next")?;
+    assert_eq!(current_release(&lab, "kiwi-1").await?, "1.1.0");
+    let rc = kiwi_app(&lab, "1.2.0-rc.1")?;
+    let deleted = lab.run("delete")?;
+    let digest = deleted
+        .split(['(', ')'])
+        .find(|w| w.starts_with("sha256:"))
+        .context("the deleted release's digest")?;
+    let blobs = lab.blobs();
+    assert!(!blobs.join(&digest[7..]).exists(), "its manifest is gone");
+    assert!(!blobs.join(&rc).exists(), "its own file is gone");
+    assert!(blobs.join(&next).exists(), "1.1.0's file stays");
+    lab.all_ran()?;
+    drop(robot);
     Ok(())
 }
