@@ -16,7 +16,7 @@ use kube::api::PostParams;
 use kube::{Api, Client};
 use lekiwi_tests::cluster::Cluster;
 use lekiwi_tests::netns::ip;
-use lekiwi_tests::{bin, log_dir, namespace, repo_root, tool, wait_for};
+use lekiwi_tests::{bin, log_dir, namespace, repo_root, tool};
 use pulldown_cmark::{CodeBlockKind, Event, Parser, Tag, TagEnd};
 use serde_json::json;
 
@@ -236,6 +236,30 @@ impl Lab {
         Ok(())
     }
 
+    /// What to read when a step fails: the lab's robots and rollouts, the operator's log.
+    pub fn diagnose(&self) -> String {
+        let ns = self.ns.as_str();
+        let get = [
+            "get",
+            "robots,robotdeployments,events",
+            "-o",
+            "yaml",
+            "-n",
+            ns,
+        ];
+        let logs = [
+            "logs",
+            "-n",
+            RELEASE_NS,
+            "-l",
+            "app.kubernetes.io/component=operator",
+            "--tail",
+            "80",
+        ];
+        let run = |args: &[&str]| self.cluster.kubectl(args).unwrap_or_else(|e| e.to_string());
+        format!("{}\n{}", run(&get), run(&logs))
+    }
+
     pub fn page(&self) -> &Page {
         &self.page
     }
@@ -266,13 +290,14 @@ impl Drop for Lab {
 /// A robot on a host of its own: network namespace `lkw-robot-PID`, linked by a veth pair to
 /// the node's namespace as a second network of the node (`198.18.214.0/30`: the node `.1`, the
 /// robot `.2`, its default route through the node). `/` of the robot is a directory (join's
-/// `--root`) and the agent runs as its unit would, from `/etc/lekiwi/agent.yaml` and the
+/// `--root`) on a disk of its own (a tmpfs) and the agent runs as its unit would, from `/etc/lekiwi/agent.yaml` and the
 /// drop-ins beside it. All removed when dropped.
 pub struct RobotHost {
     netns: String,
     pub root: tempfile::TempDir,
     agent: Option<Child>,
     log: PathBuf,
+    mounted: bool,
 }
 
 const ROBOT_NET_NODE: &str = "198.18.214.1";
@@ -289,7 +314,10 @@ impl RobotHost {
             root: tempfile::tempdir()?,
             agent: None,
             log: log_dir().join(format!("walk-agent-{netns}.log")),
+            mounted: false,
         };
+        let mut host = host;
+        host.mount_disk()?;
         ip(&[
             "link", "add", &robot_end, "type", "veth", "peer", "name", &node_end,
         ])?;
@@ -329,6 +357,18 @@ impl RobotHost {
         Ok(host)
     }
 
+    /// The robot's own disk: a 256 MiB tmpfs on its root, so that the agent's disk check sees
+    /// the robot's file system, not the test machine's.
+    fn mount_disk(&mut self) -> anyhow::Result<()> {
+        let out = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", "size=256m", "tmpfs"])
+            .arg(self.root.path())
+            .output()?;
+        ensure!(out.status.success(), "mount tmpfs: {out:?}");
+        self.mounted = true;
+        Ok(())
+    }
+
     /// Runs `line`, the join command as printed (`sudo lekiwi-agent join ...`), on the robot:
     /// under its root, with `--no-start` (no systemd here) and the agent started as its unit
     /// does once join has written its drop-in. Returns what join printed.
@@ -346,16 +386,30 @@ impl RobotHost {
             .args(["--root", &root, "--no-start"])
             .stdin(Stdio::null())
             .output();
-        let joining = tokio::spawn(joining);
+        let mut joining = tokio::spawn(joining);
         let drop_in = self.root.path().join("etc/lekiwi/agent.d/50-join.yaml");
-        wait_for(
-            "join wrote its drop-in",
-            Duration::from_secs(30),
-            || async { drop_in.exists().then_some(()) },
-        )
-        .await?;
-        self.start_agent()?;
-        let out = joining.await??;
+        // Join writes its drop-in once the gateway's CA matched the pin, then waits for the
+        // agent; one that ends before has failed.
+        let ended = tokio::time::timeout(Duration::from_secs(30), async {
+            loop {
+                tokio::select! {
+                    out = &mut joining => return Some(out),
+                    () = tokio::time::sleep(Duration::from_millis(50)) => {}
+                }
+                if drop_in.exists() {
+                    return None;
+                }
+            }
+        })
+        .await
+        .context("join wrote no drop-in within 30 s")?;
+        let out = match ended {
+            Some(out) => out??,
+            None => {
+                self.start_agent()?;
+                joining.await??
+            }
+        };
         let said = format!(
             "{}{}",
             String::from_utf8_lossy(&out.stdout),
@@ -399,6 +453,9 @@ impl Drop for RobotHost {
         }
         // Deleting the namespace deletes the veth end inside it and so its peer in the node's.
         let _ = ip(&["netns", "del", &self.netns]);
+        if self.mounted {
+            let _ = Command::new("umount").arg(self.root.path()).status();
+        }
     }
 }
 

@@ -891,12 +891,35 @@ async fn walked_join(
         lab.cluster.node_ip
     );
     assert!(line.contains(&gateway), "{line}");
+    // `lekiwi-agent join` tries the gateway once: right after `helm install --wait` kube-proxy
+    // may still refuse the NodePort (the Service's endpoint not synced yet), which a lab
+    // walking to its robot never sees. Wait for it as that walk would.
+    let addr = format!("{}:{node_port}", lab.cluster.node_ip);
+    let t = Instant::now();
+    wait_for(
+        "the gateway's NodePort answers",
+        Duration::from_secs(60),
+        || async { walk::served_serial(&addr).ok() },
+    )
+    .await?;
+    eprintln!(
+        "the NodePort answered {:?} after robot add returned",
+        t.elapsed()
+    );
     let said = robot.join(line.trim()).await?;
     eprintln!("join: {said}");
     let name = format!("{}/kiwi-1", lab.ns);
     assert!(
         said.contains(&format!("robot {name} joined: Online")),
         "{said}"
+    );
+    // Join returns once the gateway has welcomed the agent; the Robot's phase is the gateway's
+    // status write.
+    let joined = Instant::now();
+    wait_online(&lab.client, &lab.ns, 1, Duration::from_secs(30)).await?;
+    eprintln!(
+        "the Robot Online in the API {:?} after join returned",
+        joined.elapsed()
     );
     Ok(())
 }
@@ -980,11 +1003,13 @@ async fn the_first_rollout_page_walked_as_written() -> anyhow::Result<()> {
         "first rollout completed {:?} after helm install began: {status}",
         t.elapsed()
     );
-    assert_eq!(current_release(&lab, "kiwi-1").await?, "1.0.0");
+    let current = current_release(&lab, "kiwi-1").await?;
+    assert_eq!(current, "1.0.0", "{}", lab.diagnose());
     walked_rotation(&mut lab, &pod, node_port).await?;
     let next = kiwi_app(&lab, "1.1.0")?;
     lab.run("next")?;
-    assert_eq!(current_release(&lab, "kiwi-1").await?, "1.1.0");
+    let current = current_release(&lab, "kiwi-1").await?;
+    assert_eq!(current, "1.1.0", "{}", lab.diagnose());
     let rc = kiwi_app(&lab, "1.2.0-rc.1")?;
     let deleted = lab.run("delete")?;
     let digest = deleted
