@@ -124,18 +124,27 @@ pub async fn presented_chain(
         .with_no_client_auth();
     let name = at.server_name()?;
     let address = format!("{}:{}", at.host, at.port);
-    let handshake = async {
-        let tcp = tokio::net::TcpStream::connect(&address).await?;
-        tokio_rustls::TlsConnector::from(Arc::new(config))
-            .connect(name, tcp)
-            .await
+    let connect = tokio::net::TcpStream::connect(&address);
+    let tcp = match tokio::time::timeout(timeout, connect).await {
+        Err(_) => {
+            return Err(Error::Unreachable(format!(
+                "no connection to the gateway at {address} within {timeout:?}"
+            )));
+        }
+        Ok(Err(e)) => {
+            return Err(Error::Unreachable(format!(
+                "cannot reach the gateway at {address}: {e}"
+            )));
+        }
+        Ok(Ok(tcp)) => tcp,
     };
+    let handshake = tokio_rustls::TlsConnector::from(Arc::new(config)).connect(name, tcp);
     match tokio::time::timeout(timeout, handshake).await {
         Err(_) => Err(Error::Gateway(format!(
             "no TLS handshake with {address} within {timeout:?}"
         ))),
         Ok(Err(e)) => Err(Error::Gateway(format!(
-            "cannot reach the gateway at {address} over TLS: {e}"
+            "no TLS handshake with the gateway at {address}: {e}"
         ))),
         Ok(Ok(_tls)) => Ok(std::mem::take(
             &mut *recorder.chain.lock().unwrap_or_else(|e| e.into_inner()),

@@ -17,6 +17,7 @@ use lekiwi_protocol::join::{
 };
 use rustls_pki_types::CertificateDer;
 
+use crate::backoff::Backoff;
 pub use crate::config::JoinArgs;
 pub use fetch::Endpoint;
 use files::{DropIn, Existing, Root};
@@ -24,9 +25,13 @@ use files::{DropIn, Existing, Root};
 /// Why a join failed.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
-    /// The gateway cannot be reached, or its certificate is not usable.
+    /// The gateway's certificate is not usable, or it answers no TLS.
     #[error("{0}")]
     Gateway(String),
+    /// No connection to the gateway (refused, unreachable, timed out): tried again until
+    /// `--wait-s` ends.
+    #[error("{0}")]
+    Unreachable(String),
     /// No CA the gateway presents has the pin.
     #[error(
         "refusing to join {gateway}: --ca-cert-hash is {want}, but the CA it presents is \
@@ -127,12 +132,29 @@ fn token_kind<'a>(args: &'a JoinArgs) -> Result<Token<'a>, Error> {
     ))
 }
 
+/// The certificate chain the gateway at `at` presents; a gateway that cannot be connected to
+/// yet (its Service's endpoint not up, the robot's network coming up) is tried again, backing
+/// off, until `within` has passed.
+async fn reach(at: &Endpoint, within: Duration) -> Result<Vec<CertificateDer<'static>>, Error> {
+    let deadline = std::time::Instant::now() + within;
+    let mut backoff = Backoff::new(Duration::from_millis(250), Duration::from_secs(5));
+    loop {
+        match fetch::presented_chain(at, HANDSHAKE_TIMEOUT).await {
+            Err(Error::Unreachable(e)) if std::time::Instant::now() < deadline => {
+                println!("{e}; trying again");
+                tokio::time::sleep(backoff.next_delay()).await;
+            }
+            other => return other,
+        }
+    }
+}
+
 /// Runs `join`, printing what it does to standard output.
 pub async fn run(args: &JoinArgs) -> Result<(), Error> {
     let pin = parse_pin(&args.ca_cert_hash)?;
     let token = token_kind(args)?;
     let at = Endpoint::of_url(&args.gateway)?;
-    let chain = fetch::presented_chain(&at, HANDSHAKE_TIMEOUT).await?;
+    let chain = reach(&at, Duration::from_secs(args.wait_s)).await?;
     let ca = fetch::pinned_ca(&at, &chain, &pin)?;
     println!(
         "the gateway at {}:{} presents the CA {pin}",

@@ -180,6 +180,76 @@ async fn a_robot_joins_with_one_command_and_a_second_run_changes_nothing() -> Re
     Ok(())
 }
 
+/// A gateway that answers late (connection refused: a Service whose endpoint is not up yet) is
+/// tried again within `--wait-s`: join started 2 s before anything listens on its port (then a
+/// forwarder to the gateway) still checks the pin and writes its files.
+#[tokio::test]
+async fn a_gateway_that_answers_late_is_tried_again() -> Result<()> {
+    let client = ControlPlane::shared().client().await?;
+    let ns = namespace(&client, "join-late").await?;
+    let (op, ca_dir) = tls_operator(&ns).await?;
+    let pin = openssl_pin(&ca_dir.path().join("ca.crt"))?;
+    let token = enrollment_token(&client, &ns).await?;
+    let port = free_port();
+    let gateway = format!("wss://127.0.0.1:{port}/v1/agent");
+    let root = tempfile::tempdir()?;
+    // No status endpoint: join returns once its files are written.
+    std::fs::create_dir_all(root.path().join("etc/lekiwi"))?;
+    std::fs::write(
+        root.path().join("etc/lekiwi/agent.yaml"),
+        "statusListen: \"off\"\n",
+    )?;
+    let robot = format!("{ns}/kiwi-late");
+    let args: Vec<String> = [
+        "--gateway",
+        &gateway,
+        "--ca-cert-hash",
+        &pin,
+        "--token",
+        &token,
+        "--name",
+        &robot,
+        "--wait-s",
+        "30",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    let joining = tokio::spawn({
+        let root = root.path().to_owned();
+        async move {
+            let args: Vec<&str> = args.iter().map(String::as_str).collect();
+            join(&root, &args).await
+        }
+    });
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let listener = tokio::net::TcpListener::bind(("127.0.0.1", port)).await?;
+    let to = op.gateway_port;
+    tokio::spawn(async move {
+        while let Ok((mut inbound, _)) = listener.accept().await {
+            let Ok(mut outbound) = tokio::net::TcpStream::connect(("127.0.0.1", to)).await else {
+                continue;
+            };
+            tokio::spawn(async move {
+                let _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound).await;
+            });
+        }
+    });
+    let out = joining.await??;
+    let said = text(&out);
+    assert!(out.status.success(), "{said}");
+    assert!(
+        said.contains("Connection refused") && said.contains("trying again"),
+        "{said}"
+    );
+    assert!(said.contains(&format!("presents the CA {pin}")), "{said}");
+    assert!(
+        root.path().join("etc/lekiwi/agent.d/50-join.yaml").exists(),
+        "{said}"
+    );
+    Ok(())
+}
+
 #[tokio::test]
 async fn a_wrong_pin_is_refused_with_both_fingerprints_and_writes_nothing() -> Result<()> {
     let client = ControlPlane::shared().client().await?;

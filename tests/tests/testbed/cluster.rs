@@ -891,21 +891,6 @@ async fn walked_join(
         lab.cluster.node_ip
     );
     assert!(line.contains(&gateway), "{line}");
-    // `lekiwi-agent join` tries the gateway once: right after `helm install --wait` kube-proxy
-    // may still refuse the NodePort (the Service's endpoint not synced yet), which a lab
-    // walking to its robot never sees. Wait for it as that walk would.
-    let addr = format!("{}:{node_port}", lab.cluster.node_ip);
-    let t = Instant::now();
-    wait_for(
-        "the gateway's NodePort answers",
-        Duration::from_secs(60),
-        || async { walk::served_serial(&addr).ok() },
-    )
-    .await?;
-    eprintln!(
-        "the NodePort answered {:?} after robot add returned",
-        t.elapsed()
-    );
     let said = robot.join(line.trim()).await?;
     eprintln!("join: {said}");
     let name = format!("{}/kiwi-1", lab.ns);
