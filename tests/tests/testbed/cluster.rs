@@ -24,15 +24,14 @@ use kube::{Api, Client};
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::cluster::{Cluster, forward, http_get_at};
+
+use crate::walk;
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
     FleetProcess, FleetSpec, bin, enrollment_token_file, namespace, rollout_finished,
     test_strategy, wait_for, wait_online,
 };
 use serde_json::{Value, json};
-
-#[path = "cluster/walk.rs"]
-mod walk;
 
 const CHART: &str = "charts/lekiwi-operator";
 const ROBOTS: usize = 6;
