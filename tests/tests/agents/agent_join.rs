@@ -5,7 +5,7 @@
 //! the gateway's name), are refused with both fingerprints.
 
 use std::os::unix::fs::PermissionsExt;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::{Output, Stdio};
 use std::time::Duration;
 
@@ -45,6 +45,29 @@ async fn join(root: &Path, args: &[&str]) -> Result<Output> {
         .stdin(Stdio::null())
         .output()
         .await?)
+}
+
+/// Starts [`join`] with `args` in the background, so the test can play the agent or the
+/// gateway meanwhile.
+fn spawn_join(root: &Path, args: Vec<String>) -> tokio::task::JoinHandle<Result<Output>> {
+    let root = root.to_owned();
+    tokio::spawn(async move {
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        join(&root, &args).await
+    })
+}
+
+/// Waits until the join under `root` wrote its drop-in (before it waits for the agent);
+/// returns the drop-in's path.
+async fn drop_in_written(root: &Path) -> Result<PathBuf> {
+    let drop_in = root.join("etc/lekiwi/agent.d/50-join.yaml");
+    wait_for(
+        "join wrote its drop-in",
+        Duration::from_secs(15),
+        || async { drop_in.exists().then_some(()) },
+    )
+    .await?;
+    Ok(drop_in)
 }
 
 fn text(out: &Output) -> String {
@@ -105,21 +128,8 @@ async fn a_robot_joins_with_one_command_and_a_second_run_changes_nothing() -> Re
         "--wait-s",
         "30",
     ];
-    let joining = tokio::spawn({
-        let root = root.path().to_owned();
-        let args: Vec<String> = args.iter().map(|s| s.to_string()).collect();
-        async move {
-            let args: Vec<&str> = args.iter().map(String::as_str).collect();
-            join(&root, &args).await
-        }
-    });
-    let drop_in = root.path().join("etc/lekiwi/agent.d/50-join.yaml");
-    wait_for(
-        "join wrote its drop-in",
-        Duration::from_secs(15),
-        || async { drop_in.exists().then_some(()) },
-    )
-    .await?;
+    let joining = spawn_join(root.path(), args.iter().map(|s| s.to_string()).collect());
+    let drop_in = drop_in_written(root.path()).await?;
     // The agent as its unit starts it: the lab's file and the drop-ins beside it.
     let agent = AgentProcess::from_config(
         &root.path().join("etc/lekiwi/agent.yaml"),
@@ -215,13 +225,7 @@ async fn a_gateway_that_answers_late_is_tried_again() -> Result<()> {
     .iter()
     .map(|s| s.to_string())
     .collect();
-    let joining = tokio::spawn({
-        let root = root.path().to_owned();
-        async move {
-            let args: Vec<&str> = args.iter().map(String::as_str).collect();
-            join(&root, &args).await
-        }
-    });
+    let joining = spawn_join(root.path(), args);
     tokio::time::sleep(Duration::from_secs(2)).await;
     let listener = tokio::net::TcpListener::bind(("127.0.0.1", port)).await?;
     let to = op.gateway_port;
@@ -400,22 +404,10 @@ async fn the_join_command_robot_add_prints_joins_the_robot() -> Result<()> {
         root.path().join("etc/lekiwi/agent.yaml"),
         format!("statusListen: 127.0.0.1:{status_port}\n"),
     )?;
-    let joining = tokio::spawn({
-        let root = root.path().to_owned();
-        let mut args: Vec<String> = words[3..].iter().map(|s| s.to_string()).collect();
-        args.extend(["--wait-s".to_owned(), "30".to_owned()]);
-        async move {
-            let args: Vec<&str> = args.iter().map(String::as_str).collect();
-            join(&root, &args).await
-        }
-    });
-    let drop_in = root.path().join("etc/lekiwi/agent.d/50-join.yaml");
-    wait_for(
-        "join wrote its drop-in",
-        Duration::from_secs(15),
-        || async { drop_in.exists().then_some(()) },
-    )
-    .await?;
+    let mut args: Vec<String> = words[3..].iter().map(|s| s.to_string()).collect();
+    args.extend(["--wait-s".to_owned(), "30".to_owned()]);
+    let joining = spawn_join(root.path(), args);
+    drop_in_written(root.path()).await?;
     let state = root.path().join("var/lib/lekiwi");
     assert_eq!(mode(&state.join("credentials.json")), 0o600);
     assert!(!root.path().join("etc/lekiwi/enrollment-token").exists());
