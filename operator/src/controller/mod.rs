@@ -16,6 +16,7 @@ use kube::runtime::watcher;
 use serde::de::DeserializeOwned;
 use std::fmt::Debug;
 use tokio_util::sync::CancellationToken;
+use tracing::{debug, error, warn};
 
 use k8s_openapi::api::coordination::v1::Lease;
 use kube::api::{Patch, PatchParams};
@@ -91,10 +92,11 @@ impl Context {
         Duration::from_secs(1u64 << (*n - 1).min(8)).min(MAX_BACKOFF)
     }
 
-    /// Counts a failed reconcile of `name` by its reason and returns how long to back off, by
-    /// what can be done about the error: a conflict is planned again soon from the newer
-    /// version (without growing the backoff), a transient failure backs off from 1 s doubling,
-    /// a permanent one waits the longest backoff at once.
+    /// Counts and logs a failed reconcile of `name` by its reason and returns how long to back
+    /// off, by what can be done about the error: a conflict is planned again soon from the newer
+    /// version (without growing the backoff; logged at debug), a transient failure backs off
+    /// from 1 s doubling (a warning), a permanent one waits the longest backoff at once (an
+    /// error: retrying cannot help until the cause is fixed).
     pub fn reconcile_failed(
         &self,
         controller: ControllerName,
@@ -110,11 +112,24 @@ impl Context {
                 reason: error.metric_reason(),
             })
             .inc();
-        match error.category() {
+        let category = error.category();
+        let delay = match category {
             Category::Conflict => CONFLICT_RETRY,
             Category::Transient => self.next_backoff(name, namespace),
             Category::Permanent => MAX_BACKOFF,
+        };
+        match category {
+            Category::Conflict => {
+                debug!(?controller, name, namespace, %error, retry_in = ?delay, "reconcile met a newer version")
+            }
+            Category::Transient => {
+                warn!(?controller, name, namespace, %error, retry_in = ?delay, "reconcile failed")
+            }
+            Category::Permanent => {
+                error!(?controller, name, namespace, %error, retry_in = ?delay, "reconcile failed; retrying cannot help until the cause is fixed")
+            }
         }
+        delay
     }
 
     /// The heartbeat age past which a robot connected through `gateway` is Offline:

@@ -25,12 +25,12 @@ use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, ResourceExt};
 use lekiwi_crds::{Robot, RobotDeployment};
 use tokio_util::sync::CancellationToken;
-use tracing::{Instrument, debug, error, info, info_span, warn};
+use tracing::{Instrument, info, info_span, warn};
 
 pub use self::facts::check_release;
 use super::Context;
 use super::trigger::{Trigger, trigger};
-use crate::error::{Category, Error, Result};
+use crate::error::{Error, Result};
 use crate::metrics::ControllerName;
 
 /// What every reconcile of this controller reads: the context and the two shared stores.
@@ -266,16 +266,5 @@ fn error_policy(
     let delay = state
         .ctx
         .reconcile_failed(ControllerName::deployment, &name, &namespace, error);
-    match error.category() {
-        Category::Conflict => {
-            debug!(deployment = %name, %namespace, error = %error, retry_in = ?delay, "reconcile met a newer version")
-        }
-        Category::Transient => {
-            warn!(deployment = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed")
-        }
-        Category::Permanent => {
-            error!(deployment = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed; retrying cannot help until the cause is fixed")
-        }
-    }
     Action::requeue(delay)
 }

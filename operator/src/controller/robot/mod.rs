@@ -24,13 +24,13 @@ use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, Resource, ResourceExt};
 use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
-use tracing::{Instrument, debug, error, info, info_span, warn};
+use tracing::{Instrument, debug, info, info_span, warn};
 
 pub(crate) use self::gateways::status_lag;
 use self::gateways::{gateway_state, watch_gateways};
 use super::Context;
 use super::trigger::trigger;
-use crate::error::{Category, Error, Result};
+use crate::error::{Error, Result};
 use crate::liveness::{self, Facts, GatewayState};
 use crate::metrics::{ControllerName, PhaseLabels};
 
@@ -336,16 +336,5 @@ async fn publish_transition(ctx: &Context, robot: &Robot, reason: &str, plan: &l
 fn error_policy(guard: Arc<DeserializeGuard<Robot>>, error: &Error, ctx: Arc<Context>) -> Action {
     let (name, namespace) = (guard.name_any(), guard.namespace().unwrap_or_default());
     let delay = ctx.reconcile_failed(ControllerName::robot, &name, &namespace, error);
-    match error.category() {
-        Category::Conflict => {
-            debug!(robot = %name, %namespace, error = %error, retry_in = ?delay, "reconcile met a newer version")
-        }
-        Category::Transient => {
-            warn!(robot = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed")
-        }
-        Category::Permanent => {
-            error!(robot = %name, %namespace, error = %error, retry_in = ?delay, "reconcile failed; retrying cannot help until the cause is fixed")
-        }
-    }
     Action::requeue(delay)
 }
