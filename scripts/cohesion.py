@@ -27,14 +27,18 @@ TOKEN_RE = re.compile(r'//[^\n]*|/\*[\s\S]*?\*/|r(#*)"[\s\S]*?"\1|"(?:\\[\s\S]|[
 IMPL_RE = re.compile(r'^impl(?:<[^{]*?>)?\s+([A-Z]\w*)(?:<[^{]*?>)?\s*(?:where[^{]*)?\{', re.M)
 
 
-def strip(text):
-    """The text without comments, string literals and the trailing test module."""
-    lines = text.split('\n')
+def non_test_lines(lines):
+    """The lines before a top-level `#[cfg(test)] mod ... {` (scripts/shape.py counts these too)."""
     for i, line in enumerate(lines[:-1]):
         if line.startswith('#[cfg(test)]') and re.match(r'(pub )?mod \w+ \{', lines[i + 1]):
-            lines = lines[:i]
-            break
-    return TOKEN_RE.sub(lambda m: '""' if m.group(0).endswith('"') else ' ', '\n'.join(lines))
+            return lines[:i]
+    return lines
+
+
+def strip(text):
+    """The text without comments, string literals and the trailing test module."""
+    code = '\n'.join(non_test_lines(text.split('\n')))
+    return TOKEN_RE.sub(lambda m: '""' if m.group(0).endswith('"') else ' ', code)
 
 
 def expand(tree):

@@ -13,6 +13,7 @@ import re
 import sys
 
 import cohesion
+from cohesion import non_test_lines
 
 FN_RE = re.compile(r'^(\s*)(pub(\([^)]*\))? )?(async )?(const )?(unsafe )?fn (\w+)')
 
@@ -30,14 +31,6 @@ def rust_files(roots):
             for f in sorted(files):
                 if f.endswith('.rs') and f != 'tests.rs' and not f.endswith('_tests.rs'):
                     yield os.path.join(d, f)
-
-
-def non_test_lines(lines):
-    """The lines before a top-level `#[cfg(test)] mod ... {`."""
-    for i, line in enumerate(lines[:-1]):
-        if line.startswith('#[cfg(test)]') and re.match(r'(pub )?mod \w+ \{', lines[i + 1]):
-            return lines[:i]
-    return lines
 
 
 def long_functions(lines, limit):
