@@ -80,6 +80,9 @@ const WATCH_EVERY: Duration = Duration::from_secs(2);
 /// How far below the highest sequence number seen `--watch` still looks for events stored
 /// late (an agent resending what the store refused a moment ago).
 const LATE_SEQS: u64 = 1000;
+/// Every how many polls `--watch` reads that whole window again; the other polls read only
+/// what lies above the highest sequence number seen.
+const LATE_EVERY: u32 = 15;
 
 /// The sequence numbers `--watch` printed or listed, within [`LATE_SEQS`] of the highest.
 #[derive(Default)]
@@ -90,17 +93,23 @@ struct Seen {
 impl Seen {
     /// Notes `seq`; false if it was seen already.
     fn insert(&mut self, seq: u64) -> bool {
-        let new = self.seqs.insert(seq);
+        self.seqs.insert(seq)
+    }
+
+    /// Forgets what lies below [`Seen::low_water`], so the set stays bounded.
+    fn prune(&mut self) {
         let low = self.low_water();
         self.seqs = self.seqs.split_off(&low);
-        new
+    }
+
+    /// The highest sequence number seen, if any.
+    fn newest(&self) -> Option<u64> {
+        self.seqs.last().copied()
     }
 
     /// The sequence number below which events are no longer looked for.
     fn low_water(&self) -> u64 {
-        self.seqs
-            .last()
-            .map_or(0, |max| max.saturating_sub(LATE_SEQS))
+        self.newest().map_or(0, |max| max.saturating_sub(LATE_SEQS))
     }
 }
 
@@ -114,14 +123,19 @@ async fn follow(
     mut seen: Seen,
 ) -> anyhow::Result<()> {
     use std::io::Write as _;
-    loop {
+    for poll in (1..=LATE_EVERY).cycle() {
         tokio::time::sleep(WATCH_EVERY).await;
-        let after = seen.low_water().checked_sub(1);
+        let after = if poll == LATE_EVERY {
+            seen.low_water().checked_sub(1)
+        } else {
+            seen.newest()
+        };
         let fresh: Vec<StoredEvent> = fetch(gateway, ns, name, after)
             .await?
             .into_iter()
             .filter(|e| seen.insert(e.seq) && (kinds.is_empty() || kinds.contains(&e.kind)))
             .collect();
+        seen.prune();
         let now = Timestamp::now();
         for e in &fresh {
             let text = match output {
@@ -137,6 +151,7 @@ async fn follow(
         }
         std::io::stdout().flush()?;
     }
+    Ok(())
 }
 
 /// Reads every stored event of the robot with a sequence number above `after` (all if `None`),
@@ -273,12 +288,15 @@ mod tests {
         assert!(!seen.insert(5));
         assert_eq!(seen.low_water(), 0);
         assert!(seen.insert(5000));
+        seen.prune();
+        assert_eq!(seen.newest(), Some(5000));
         assert_eq!(seen.low_water(), 5000 - LATE_SEQS);
         // Far below the window: forgotten, and no longer asked for.
         assert!(!seen.seqs.contains(&5));
         // A late event within the window is still new once, then seen.
         assert!(seen.insert(4500));
         assert!(!seen.insert(4500));
+        seen.prune();
         assert!(seen.seqs.len() <= LATE_SEQS as usize + 1);
     }
 
