@@ -77,14 +77,7 @@ trap_cleanup
 take_bench_lock
 log "work directory: $WORK"
 
-if [ $BUILD = 1 ]; then
-  log "building release binaries"
-  (cd "$ROOT" && cargo build --release -p lekiwi-operator -p lekiwi-agent -p kubectl-lekiwi) \
-    >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
-fi
-for b in lekiwi-operator lekiwi-fleet kubectl-lekiwi; do
-  [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
-done
+release_binaries "lekiwi-operator lekiwi-agent kubectl-lekiwi" lekiwi-operator lekiwi-fleet kubectl-lekiwi
 run_setup
 ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
 [ "$(ulimit -n)" -gt $((ROBOTS * 8 + 100)) ] || die "open-file limit $(ulimit -n) is too low for $ROBOTS agents"

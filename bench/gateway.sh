@@ -118,14 +118,7 @@ NOFILE="$(ulimit -n)"
   || die "open-file limit $NOFILE is too low for $ROBOTS connections (raise the hard limit)"
 
 log "work directory: $WORK"
-if [ $BUILD = 1 ]; then
-  log "building release binaries"
-  (cd "$ROOT" && cargo build --release --bins -p lekiwi-operator -p lekiwi-agent -p lekiwi-bench-echo) \
-    >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
-fi
-for b in lekiwi-operator lekiwi-sim lekiwi-bench-echo; do
-  [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
-done
+release_binaries "lekiwi-operator lekiwi-agent lekiwi-bench-echo" lekiwi-operator lekiwi-sim lekiwi-bench-echo
 
 run_setup
 

@@ -111,14 +111,7 @@ ulimit -n "$(ulimit -Hn)" 2>/dev/null || true
   || die "open-file limit $(ulimit -n) is too low (raise the hard limit)"
 
 log "work directory: $WORK"
-if [ $BUILD = 1 ]; then
-  log "building release binaries"
-  (cd "$ROOT" && cargo build --release --bins -p lekiwi-operator -p lekiwi-agent) \
-    >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
-fi
-for b in lekiwi-operator lekiwi-sim; do
-  [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
-done
+release_binaries "lekiwi-operator lekiwi-agent" lekiwi-operator lekiwi-sim
 run_setup
 
 fact date "$(date -Is)"

@@ -273,6 +273,23 @@ PY
 # ---- one benchmark at a time ----------------------------------------------------------------
 # Two benchmarks would share the 2 cores and disturb each other: takes the machine's benchmark
 # lock on file descriptor 8, waiting at most 15 minutes for another run to finish.
+# Builds the release binaries of the packages in $1 (unless the run says --no-build: BUILD=0),
+# then checks that each binary named after it is in $BIN.
+# Usage: release_binaries "lekiwi-operator lekiwi-agent" lekiwi-operator lekiwi-sim
+release_binaries() {
+  local packages=() p b
+  for p in $1; do packages+=(-p "$p"); done
+  shift
+  if [ "$BUILD" = 1 ]; then
+    log "building release binaries"
+    (cd "$ROOT" && cargo build --release --bins "${packages[@]}") \
+      >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
+  fi
+  for b in "$@"; do
+    [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
+  done
+}
+
 take_bench_lock() {
   LOCK="${TMPDIR:-/tmp}/lekiwi-bench.lock"
   exec 8>>"$LOCK"

@@ -196,14 +196,7 @@ fi
 LB_COUNT=$(( (2 * (ROBOTS + INCUMBENTS) + FDS - 1001) / (FDS - 1000) ))
 
 log "work directory: $WORK"
-if [ $BUILD = 1 ]; then
-  log "building release binaries"
-  (cd "$ROOT" && cargo build --release --bins -p lekiwi-operator -p lekiwi-agent) \
-    >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
-fi
-for b in lekiwi-operator lekiwi-sim; do
-  [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
-done
+release_binaries "lekiwi-operator lekiwi-agent" lekiwi-operator lekiwi-sim
 run_setup
 command -v haproxy >/dev/null || die "haproxy is missing (scripts/setup.sh installs it)"
 

@@ -111,14 +111,7 @@ FREE_MB=$(($(df -Pk "$WORK" | awk 'NR == 2 { print $4 }') / 1024))
   || die "$((FREE_MB / 1000)) GB free in $(df -P "$WORK" | awk 'NR == 2 { print $6 }'), need $((NEED_MB / 1000)) GB ($ROBOTS robots x $MBYTES MB x 1.5); set TMPDIR to a larger disk or use fewer --robots / --mbytes"
 log "disk: $((FREE_MB / 1000)) GB free, $((ROBOTS * MBYTES / 1000)) GB will be written by the robots"
 
-if [ $BUILD = 1 ]; then
-  log "building release binaries"
-  (cd "$ROOT" && cargo build --release -p lekiwi-operator -p lekiwi-agent -p kubectl-lekiwi) \
-    >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
-fi
-for b in lekiwi-operator lekiwi-fleet kubectl-lekiwi; do
-  [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
-done
+release_binaries "lekiwi-operator lekiwi-agent kubectl-lekiwi" lekiwi-operator lekiwi-fleet kubectl-lekiwi
 
 run_setup
 

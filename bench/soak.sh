@@ -101,14 +101,7 @@ FDS="$(ulimit -n)"
   || die "open-file limit $FDS is too low for $((ROBOTS + AGENTS)) robots (raise the hard limit)"
 
 log "work directory: $WORK"
-if [ $BUILD = 1 ]; then
-  log "building release binaries"
-  (cd "$ROOT" && cargo build --release -p lekiwi-operator -p lekiwi-agent -p kubectl-lekiwi) \
-    >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
-fi
-for b in lekiwi-operator lekiwi-sim lekiwi-fleet kubectl-lekiwi; do
-  [ -x "$BIN/$b" ] || die "$BIN/$b is missing (run without --no-build)"
-done
+release_binaries "lekiwi-operator lekiwi-agent kubectl-lekiwi" lekiwi-operator lekiwi-sim lekiwi-fleet kubectl-lekiwi
 run_setup
 command -v haproxy >/dev/null || die "haproxy is missing (scripts/setup.sh installs it)"
 
