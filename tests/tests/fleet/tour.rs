@@ -8,34 +8,13 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
+use lekiwi_tests::markdown::code_blocks;
 use lekiwi_tests::{free_ports, log_dir, repo_root};
-use pulldown_cmark::{CodeBlockKind, Event, Parser, Tag, TagEnd};
 
 /// The page the test runs.
 const PAGE: &str = "docs/src/getting-started.md";
 /// How long the whole tour may take (a quickstart, three rollouts and a rollback).
 const TIMEOUT: Duration = Duration::from_secs(25 * 60);
-
-/// Fenced code blocks of `markdown`: (info string, code).
-fn blocks(markdown: &str) -> Vec<(String, String)> {
-    let mut out = Vec::new();
-    let mut current: Option<(String, String)> = None;
-    for event in Parser::new(markdown) {
-        match event {
-            Event::Start(Tag::CodeBlock(CodeBlockKind::Fenced(info))) => {
-                current = Some((info.to_string(), String::new()));
-            }
-            Event::Text(text) => {
-                if let Some((_, code)) = current.as_mut() {
-                    code.push_str(&text);
-                }
-            }
-            Event::End(TagEnd::CodeBlock) => out.extend(current.take()),
-            _ => {}
-        }
-    }
-    out
-}
 
 fn is_tour(info: &str) -> bool {
     let mut words = info.split_whitespace();
@@ -86,7 +65,7 @@ fn expand(page: &Path) -> String {
 #[test]
 fn every_command_block_of_the_tour_is_marked_and_run() {
     let root = repo_root();
-    let page = blocks(&expand(&root.join(PAGE)));
+    let page = code_blocks(&expand(&root.join(PAGE)));
     assert!(page.len() >= 6, "only {} blocks on the page", page.len());
     for (info, code) in &page {
         assert!(
@@ -101,12 +80,12 @@ fn every_command_block_of_the_tour_is_marked_and_run() {
     );
     let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
     let tour = anchored(&readme, "tour").expect("README.md has the tour anchors");
-    let inside = blocks(&tour);
+    let inside = code_blocks(&tour);
     assert!(
         inside.iter().all(|(info, _)| is_tour(info)),
         "README tour blocks not marked"
     );
-    let all_tour = blocks(&readme)
+    let all_tour = code_blocks(&readme)
         .into_iter()
         .filter(|(i, _)| is_tour(i))
         .count();
@@ -185,7 +164,7 @@ impl Drop for Cleanup {
 fn the_tour_runs_against_a_quickstart_of_its_own() {
     use std::os::unix::process::CommandExt as _;
     let root = repo_root();
-    let page = blocks(&expand(&root.join(PAGE)));
+    let page = code_blocks(&expand(&root.join(PAGE)));
     let dir = tempfile::tempdir().unwrap();
     let mut script = String::from("set -euo pipefail\nPS4='+ tour: '\nset -x\n");
     for (_, code) in &page {

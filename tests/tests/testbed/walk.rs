@@ -15,9 +15,9 @@ use k8s_openapi::api::core::v1::PersistentVolume;
 use kube::api::PostParams;
 use kube::{Api, Client};
 use lekiwi_tests::cluster::Cluster;
+use lekiwi_tests::markdown::code_blocks;
 use lekiwi_tests::netns::ip;
 use lekiwi_tests::{bin, log_dir, namespace, repo_root, tool};
-use pulldown_cmark::{CodeBlockKind, Event, Parser, Tag, TagEnd};
 use serde_json::json;
 
 /// The page the test walks.
@@ -26,27 +26,6 @@ pub const PAGE: &str = "docs/src/install/first-rollout.md";
 pub const RELEASE_NS: &str = "lekiwi-system";
 /// The chart's full name for release `lekiwi`.
 pub const FULL: &str = "lekiwi-lekiwi-operator";
-
-/// Fenced code blocks of `markdown`: (info string, code).
-fn blocks(markdown: &str) -> Vec<(String, String)> {
-    let mut out = Vec::new();
-    let mut current: Option<(String, String)> = None;
-    for event in Parser::new(markdown) {
-        match event {
-            Event::Start(Tag::CodeBlock(CodeBlockKind::Fenced(info))) => {
-                current = Some((info.to_string(), String::new()));
-            }
-            Event::Text(text) => {
-                if let Some((_, code)) = current.as_mut() {
-                    code.push_str(&text);
-                }
-            }
-            Event::End(TagEnd::CodeBlock) => out.extend(current.take()),
-            _ => {}
-        }
-    }
-    out
-}
 
 /// The page's blocks: `sh walk=ID` (what the lab types, in order) and the one `sh robot`
 /// block (the shape of the join command the plugin prints). Any other block is an error:
@@ -60,7 +39,7 @@ impl Page {
     pub fn read() -> anyhow::Result<Self> {
         let text = std::fs::read_to_string(repo_root().join(PAGE))?;
         let (mut walk, mut robot) = (Vec::new(), Vec::new());
-        for (info, code) in blocks(&text) {
+        for (info, code) in code_blocks(&text) {
             let mut words = info.split_whitespace();
             ensure!(
                 words.next() == Some("sh"),
