@@ -53,7 +53,8 @@ pub enum RolloutCommand {
         #[arg(long, default_value = "0", value_parser = crate::duration::parse)]
         timeout: Duration,
     },
-    /// Pause: robots updating now finish, no new robot starts.
+    /// Pause: no robot starts; robots told to switch that have not switched yet stop their
+    /// downloads and wait (`resume` continues them where they stopped).
     Pause {
         /// The RobotDeployment.
         name: String,

@@ -12,6 +12,7 @@ pub mod dashboard;
 pub mod dispatch;
 pub mod enroll;
 pub mod events_api;
+pub mod halt;
 pub mod holder;
 pub mod kube_auth;
 pub mod lease;

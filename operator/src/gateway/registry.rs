@@ -27,6 +27,10 @@ pub enum Control {
     Send(Box<ServerMessage>),
     /// The robot's `spec.release` changed to this; the session sends a deploy command if due.
     Desired(Option<Box<Release>>),
+    /// A user aborted or undid the rollout of this release: the session cancels a deploy of it
+    /// in flight at once, before the Robot's `spec.release` changes (see
+    /// [`super::halt`]).
+    Halt(Box<Release>),
     /// The robot's `spec.agent` changed to this; the session sends `update_agent` if due.
     DesiredAgent(Option<Box<AgentRef>>),
     /// The robot's token Secret changed (`deleted`: it is gone); the session checks that the
@@ -120,6 +124,12 @@ impl Registry {
     /// session here or its channel is full.
     pub fn notify_desired_release(&self, key: &RobotKey, release: Option<Release>) -> bool {
         self.try_send(key, Control::Desired(release.map(Box::new)))
+    }
+
+    /// Tells a robot's session to stop a download of `release` in flight; false when the robot
+    /// has no session here or its channel is full.
+    pub fn notify_halt(&self, key: &RobotKey, release: Release) -> bool {
+        self.try_send(key, Control::Halt(Box::new(release)))
     }
 
     /// Tells a robot's session that its desired agent changed; false when the robot has no

@@ -10,7 +10,6 @@ use futures::StreamExt;
 use k8s_openapi::api::core::v1::Secret;
 use kube::Api;
 use kube::runtime::{WatchStreamExt, watcher};
-use lekiwi_crds::Robot;
 use lekiwi_crds::contract::TOKEN_LABEL;
 use tokio::sync::{Semaphore, watch};
 use tokio::task::JoinHandle;
@@ -20,7 +19,6 @@ use tracing::{info, warn};
 use super::admission::EnrollAdmission;
 use super::api::FleetApi;
 use super::auth::Authenticator;
-use super::cache::Cache;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
 use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
@@ -69,14 +67,8 @@ pub async fn run(
         &config,
         &cancel,
     );
-    let (desired, dispatch_task) = start_dispatch(
-        &config,
-        fleet.robots.clone(),
-        registry.clone(),
-        &presence,
-        &cancel,
-    )
-    .await?;
+    let (desired, [dispatch_task, halt_task]) =
+        start_dispatch(&config, &fleet, registry.clone(), &presence, &cancel).await?;
     let shared = SessionContext {
         presence: presence.clone(),
         store: store.clone(),
@@ -113,7 +105,7 @@ pub async fn run(
         &store,
         &cancel,
     );
-    let more = [secret_task, dispatch_task, care_task];
+    let more = [secret_task, dispatch_task, halt_task, care_task];
     tasks.aborted.extend(more.into_iter().chain(fleet_tasks));
     let addr = config.gateway_addr;
     let served = serve(&config, &name, state, listening, &cancel).await?;
@@ -122,22 +114,25 @@ pub async fn run(
     served.map_err(|source| Error::Serve { addr, source })
 }
 
-/// Starts the dispatch of Robot changes to this gateway's sessions and presence once `robots`
-/// holds the first list, and lets presence plan phases from it: the desired releases (and
-/// holders) of the robots, and the dispatch task.
+/// Starts the dispatch of Robot changes to this gateway's sessions and presence once the
+/// fleet's Robot cache holds the first list, and lets presence plan phases from it; and the
+/// halting of downloads a user's abort, undo or pause of a rollout stops. Returns the desired
+/// releases (and holders) of the robots, the dispatch task and the halt task.
 async fn start_dispatch(
     config: &Config,
-    robots: Arc<Cache<Robot>>,
+    fleet: &FleetApi,
     registry: Arc<Registry>,
     presence: &Presence,
     cancel: &CancellationToken,
-) -> Result<(WatchedRobots, JoinHandle<()>)> {
+) -> Result<(WatchedRobots, [JoinHandle<()>; 2])> {
     let name = config.gateway_name();
+    let robots = fleet.robots.clone();
+    let halt = super::halt::start(&fleet.rollouts, robots.clone(), registry.clone(), cancel);
     let (desired, task) =
         dispatch::start(robots, registry, presence.clone(), &name, cancel).await?;
     let grace = Duration::from_secs(config.heartbeat_grace_seconds);
     presence.plan_phases(PhasePlanner::new(desired.clone(), grace));
-    Ok((desired, task))
+    Ok((desired, [task, halt]))
 }
 
 /// The gateway's presence: the robots' states and the status writer's limits.

@@ -2,7 +2,8 @@
 //! with its download rate capped by `--release-download-rate-limit`) download a 30 MB release
 //! from the real operator; `kubectl lekiwi rollout undo` and `rollout pause` make the gateway
 //! send `cancel`, the agents stop within moments on the release they ran, and a later rollout
-//! of the same release resumes their partial downloads.
+//! of the same release resumes their partial downloads. The gateway alone (no controller)
+//! cancels downloads the moment it sees an abort, before any robot's `spec.release` changes.
 
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -15,6 +16,7 @@ use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
+use lekiwi_operator::controller::deployment::plan;
 use lekiwi_tests::{
     AgentProcess, OperatorSite, bin, gateway_url, http_get_with, test_strategy, wait_for,
     wait_online,
@@ -38,7 +40,12 @@ lekiwi_tests::deref_to_operator_site!(Site);
 
 impl Site {
     async fn new(prefix: &str) -> anyhow::Result<Self> {
-        let base = OperatorSite::start(prefix).await?;
+        Self::new_with(prefix, &[]).await
+    }
+
+    /// As [`Self::new`], the operator started with `extra` flags.
+    async fn new_with(prefix: &str, extra: &[&str]) -> anyhow::Result<Self> {
+        let base = OperatorSite::start_with(prefix, extra).await?;
         let (dir, ns, op, token_file) = (&base.dir, &base.ns, &base.op, &base.token_file);
         let mut agents = Vec::new();
         for i in 0..ROBOTS {
@@ -304,5 +311,86 @@ async fn undo_and_pause_cancel_downloads_in_flight_and_resume_continues_them() -
             r.metadata.name.unwrap_or_default()
         );
     }
+    Ok(())
+}
+
+/// The gateway stops downloads from the RobotDeployment change alone: with no controller running
+/// (`--role gateway`), the test writes what the controller would (each robot's `spec.release`
+/// and mark, the deployment's status) and aborts the rollout with the plugin. Every agent
+/// reports `cancelled` within 5 s although its `spec.release` still names the new release, and
+/// no download starts again while it does.
+#[tokio::test]
+async fn the_gateway_cancels_downloads_on_abort_before_any_robot_is_written() -> anyhow::Result<()>
+{
+    let site = Site::new_with("halt", &["--role", "gateway"]).await?;
+    let v1 = site.push(&release_dir(site.dir.path(), "1", 1024)?, "1.0.0")?;
+    let v2 = site.push(&release_dir(site.dir.path(), "2", BIG)?, "2.0.0")?;
+    let robots: Api<Robot> = Api::namespaced(site.client.clone(), &site.ns);
+    let names: Vec<String> = (0..ROBOTS).map(|i| format!("kiwi-{i}")).collect();
+    for name in &names {
+        let patch = json!({"spec": {"release": v1}});
+        robots
+            .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+            .await?;
+    }
+    wait_for("every robot on 1.0.0", Duration::from_secs(60), || async {
+        let all = site.robots().await.ok()?;
+        all.iter()
+            .all(|r| r.status.as_ref().and_then(|s| s.current_release.as_ref()) == Some(&v1))
+            .then_some(())
+    })
+    .await?;
+
+    // What the controller writes when a rollout of 2.0.0 starts its batch.
+    let started = jiff::Timestamp::now() - jiff::SignedDuration::from_secs(2);
+    let key = plan::rollout_id(&v2, None);
+    let rollout_id = plan::rollout_id_at(&key, started);
+    site.deploy("cx", &v2).await?;
+    let status = json!({"status": {"phase": "Progressing", "rolloutId": rollout_id}});
+    site.deployments()
+        .patch_status("cx", &PatchParams::default(), &Patch::Merge(&status))
+        .await?;
+    for name in &names {
+        let mark = plan::Mark {
+            deployment: "cx".into(),
+            rollout_id: rollout_id.clone(),
+            batch: 0,
+            state: plan::MarkState::Started,
+            since: started,
+            previous: Some(v1.clone()),
+            message: None,
+            failed: false,
+        };
+        let patch = json!({
+            "metadata": {"annotations": {plan::MARK_ANNOTATION: serde_json::to_string(&mark)?}},
+            "spec": {"release": v2},
+        });
+        robots
+            .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+            .await?;
+    }
+    site.downloading_past(2 * 1024 * 1024).await?;
+
+    let asked = (Instant::now(), jiff::Timestamp::now());
+    site.rollout("abort", "cx")?;
+    let took = site
+        .all_cancelled(&v2, &v1, asked, Duration::from_secs(5))
+        .await?;
+    eprintln!("abort, gateway alone: every robot cancelled after {took:?}");
+    for r in site.robots().await? {
+        assert_eq!(
+            r.spec.release.as_ref(),
+            Some(&v2),
+            "no controller wrote the robot back"
+        );
+    }
+    let stopped = site.partial_bytes();
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert_eq!(
+        site.partial_bytes(),
+        stopped,
+        "no download started again while spec.release still names 2.0.0"
+    );
+    assert!(!site.any_installed("2.0.0"));
     Ok(())
 }

@@ -27,6 +27,9 @@ pub(super) struct CommandLedger {
     /// Commands cancelled in this session, with their releases: their final report (normally
     /// `cancelled`) is still recorded as the robot's last update.
     cancelled: Vec<(String, Release)>,
+    /// A release whose download a user's abort or undo stopped (see [`Self::halt`]): not
+    /// deployed again in this session until `desired` changes.
+    halted: Option<Release>,
     /// Commands made in this session, numbering their ids.
     counter: u32,
 }
@@ -41,6 +44,7 @@ impl CommandLedger {
             in_flight: false,
             before: None,
             cancelled: Vec::new(),
+            halted: None,
             counter: 0,
         }
     }
@@ -57,7 +61,29 @@ impl CommandLedger {
         {
             self.sent = None;
         }
+        if release != self.desired {
+            self.halted = None;
+        }
         self.desired = release;
+    }
+
+    /// Stops the command in flight when it is for `release` (a user's abort or undo of
+    /// its rollout, seen before the Robot's `spec.release` changes): the `cancel` to send, if
+    /// one is due. `release` is not deployed again in this session until `spec.release`
+    /// changes, which the controller's plan does next.
+    pub(super) fn halt(
+        &mut self,
+        release: Release,
+        gateway: &str,
+        session: u64,
+    ) -> Option<ServerMessage> {
+        let in_flight = self.in_flight;
+        let stopped = self.sent.take_if(|(_, r)| in_flight && *r == release);
+        self.halted = Some(release);
+        let (id, release) = stopped?;
+        self.in_flight = false;
+        self.cancelled.push((id, release));
+        Some(self.command(gateway, session, Command::Cancel).1)
     }
 
     /// Records the release a heartbeat reports; true when it is one and differs from the last
@@ -115,6 +141,7 @@ impl CommandLedger {
         }
         if self.current.as_ref() == Some(&desired)
             || self.sent.as_ref().is_some_and(|(_, r)| *r == desired)
+            || self.halted.as_ref() == Some(&desired)
         {
             return out;
         }
@@ -289,5 +316,46 @@ mod tests {
             ledger.next_commands("gw", 1).is_empty(),
             "unset asks nothing"
         );
+    }
+
+    #[test]
+    fn an_abort_halts_the_download_at_once_and_it_stays_halted_until_the_spec_moves() {
+        let mut ledger = CommandLedger::new(Some(release("1")), Some(release("2")));
+        let (first, _) = deployed(ledger.next_commands("gw", 1)).unwrap();
+        assert_eq!(ledger.halt(release("3"), "gw", 1), None, "another release");
+        let cancel = ledger.halt(release("2"), "gw", 1).expect("in flight");
+        assert_eq!(actions(&[cancel]), ["cancel"]);
+        assert_eq!(ledger.halt(release("2"), "gw", 1), None, "cancelled once");
+        assert!(ledger.reported(&Some(release("0"))));
+        assert!(
+            ledger.next_commands("gw", 1).is_empty(),
+            "not deployed again while spec.release still names it"
+        );
+        assert_eq!(
+            ledger.finished(&first, Some(ProgressPhase::Cancelled)),
+            Some(release("2"))
+        );
+        // The controller writes the robot back to what it runs; nothing more is due.
+        ledger.set_desired(Some(release("1")));
+        ledger.reported(&Some(release("1")));
+        assert!(ledger.next_commands("gw", 1).is_empty());
+        // A restart of the rollout asks for 2 again.
+        ledger.set_desired(Some(release("2")));
+        assert_eq!(deployed(ledger.next_commands("gw", 1)).unwrap().1, "2");
+    }
+
+    #[test]
+    fn a_halt_seen_after_the_spec_moved_changes_nothing() {
+        let mut ledger = CommandLedger::new(Some(release("1")), Some(release("2")));
+        deployed(ledger.next_commands("gw", 1)).unwrap();
+        ledger.set_desired(Some(release("1")));
+        assert_eq!(actions(&ledger.next_commands("gw", 1)), ["cancel"]);
+        assert_eq!(
+            ledger.halt(release("2"), "gw", 1),
+            None,
+            "already cancelled"
+        );
+        ledger.set_desired(Some(release("2")));
+        assert_eq!(deployed(ledger.next_commands("gw", 1)).unwrap().1, "2");
     }
 }

@@ -6,7 +6,7 @@ use std::time::Duration;
 use crate::gateway::mailbox::Receiver;
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
-use lekiwi_protocol::{AgentMessage, ErrorCode, ServerMessage, decode};
+use lekiwi_protocol::{AgentMessage, ErrorCode, Release, ServerMessage, decode};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
@@ -127,6 +127,19 @@ where
         Ok(())
     }
 
+    /// Cancels a download of `release` in flight, when a user's abort or undo stopped its
+    /// rollout.
+    async fn halt(&mut self, release: Release) -> Flow {
+        let version = release.version.clone();
+        let Some(cmd) = self.commands.halt(release, &self.shared.gateway, self.id) else {
+            return Ok(());
+        };
+        if let ServerMessage::Command { command_id, .. } = &cmd {
+            info!(%command_id, %version, "rollout stopped by a user; cancelling the download");
+        }
+        self.conn.send(&cmd).await
+    }
+
     async fn shut_down(&mut self) -> Flow {
         self.conn
             .fail(
@@ -145,6 +158,7 @@ where
                 self.commands.set_desired(release.map(|r| *r));
                 self.send_commands().await
             }
+            Some(Control::Halt(release)) => self.halt(*release).await,
             Some(Control::DesiredAgent(agent)) => {
                 self.agent.set_desired(agent.map(|a| *a));
                 self.send_agent_update().await

@@ -12,6 +12,7 @@ mod analysis;
 mod classify;
 mod draft;
 mod gates;
+pub mod halt;
 mod pause;
 mod phase;
 mod progress;

@@ -1,0 +1,73 @@
+//! Downloads stopped the moment a user aborts or undoes a rollout: from the changes of the
+//! gateway's RobotDeployment cache, the gateway tells the sessions of the robots the rollout
+//! told to switch to cancel a download in flight, without waiting for the controller to write
+//! each robot's `spec.release` back (which for a batch of a large fleet takes seconds at the
+//! API server's write rate). Which requests and robots count is the planner's rule
+//! ([`crate::controller::deployment::plan::halt`]); the controller's writes follow as before.
+
+use std::sync::Arc;
+
+use kube::ResourceExt;
+use lekiwi_crds::{Robot, RobotDeployment};
+use lekiwi_protocol::Release;
+use tokio::sync::broadcast::error::RecvError;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info};
+
+use super::cache::{Cache, Change};
+use super::registry::Registry;
+use crate::controller::deployment::plan::halt;
+use crate::event_store::RobotKey;
+
+/// Starts the task that follows `rollouts` and halts downloads of the robots of `robots` whose
+/// rollout a user stopped; it runs until `cancel`.
+pub fn start(
+    rollouts: &Cache<RobotDeployment>,
+    robots: Arc<Cache<Robot>>,
+    registry: Arc<Registry>,
+    cancel: &CancellationToken,
+) -> tokio::task::JoinHandle<()> {
+    let mut changes = rollouts.subscribe();
+    let cancel = cancel.clone();
+    tokio::spawn(async move {
+        loop {
+            let change = tokio::select! {
+                () = cancel.cancelled() => return,
+                c = changes.recv() => c,
+            };
+            match change {
+                Ok(Change::Applied(Some(old), new)) => stop(&old, &new, &robots, &registry),
+                Ok(_) => {}
+                // A missed request is not lost: the controller's plan rewrites the robots'
+                // `spec.release`, which cancels their downloads as it always did.
+                Err(RecvError::Lagged(missed)) => {
+                    debug!(missed, "RobotDeployment changes lagged");
+                }
+                Err(RecvError::Closed) => return,
+            }
+        }
+    })
+}
+
+/// Halts the downloads `new` stops, if its change from `old` asks to.
+fn stop(old: &RobotDeployment, new: &RobotDeployment, robots: &Cache<Robot>, registry: &Registry) {
+    let Some((rollout_id, target)) = halt::stopped_by(old, new) else {
+        return;
+    };
+    let (namespace, name) = (new.namespace().unwrap_or_default(), new.name_any());
+    let release = Release::from(&target);
+    let (halted, _) = robots.page(Some(&namespace), None, usize::MAX, |r| {
+        halt::halts(r, &name, &rollout_id)
+    });
+    let told = halted
+        .iter()
+        .filter(|r| {
+            let key = RobotKey::new(namespace.clone(), r.name_any());
+            registry.notify_halt(&key, release.clone())
+        })
+        .count();
+    info!(
+        deployment = %name, %namespace, release = %target.version, robots = halted.len(), told,
+        "rollout stopped by a user; cancelling downloads in flight"
+    );
+}
