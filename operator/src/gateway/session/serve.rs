@@ -134,8 +134,12 @@ where
         let Some(cmd) = self.commands.halt(release, &self.shared.gateway, self.id) else {
             return Ok(());
         };
-        if let ServerMessage::Command { command_id, .. } = &cmd {
-            info!(%command_id, %version, "rollout stopped by a user; cancelling the download");
+        if let ServerMessage::Command {
+            command_id,
+            command,
+        } = &cmd
+        {
+            info!(%command_id, ?command, %version, "sending command: a user stopped the rollout");
         }
         self.conn.send(&cmd).await
     }
