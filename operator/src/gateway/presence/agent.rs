@@ -91,6 +91,18 @@ pub(super) fn wait_for_restart(s: &mut State, key: &RobotKey) -> bool {
     restarting
 }
 
+/// How long, in seconds, the first session after an agent restarted into its update waits to
+/// be written for the agent's `agent_update_*` report, which it sends as soon as it is
+/// welcomed: the new session and the update's outcome then cost the robot one status write.
+pub const REPORT_WAIT_SECONDS: u8 = 2;
+
+/// Whether `old`, the entry a new session of its robot replaces, is a session's end held back
+/// as its agent restarted into an update (see [`wait_for_restart`]): the new session is then
+/// written with the agent's report of the update, or after [`REPORT_WAIT_SECONDS`].
+pub(super) fn restarted_into_update(old: &Entry) -> bool {
+    !old.connected && old.restart_grace > 0
+}
+
 /// One second of the restart grace of `e` (see [`RESTART_GRACE_SECONDS`]) went by: whether it
 /// ran out just now, and the session's end is written.
 pub(super) fn grace_ran_out(e: &mut Entry) -> bool {

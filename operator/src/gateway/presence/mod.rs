@@ -130,7 +130,9 @@ struct Entry {
     /// Robot watch has not shown a write of this session yet: the gateway claims it in its
     /// Lease (see [`claims`]).
     moved: bool,
-    /// Seconds left before this session's end is written (see [`agent::wait_for_restart`]).
+    /// Seconds left before this session's end is written (see [`agent::wait_for_restart`]),
+    /// or, connected, before the session that followed such an end is written without the
+    /// agent's report of its update (see [`agent::restarted_into_update`]).
     restart_grace: u8,
 }
 
@@ -229,6 +231,7 @@ impl Presence {
             // Keep the last update's outcome: rollouts read it, and a manager that stops
             // sending a field makes server-side apply drop it.
             let old = s.robots.get(key);
+            let restarted = old.is_some_and(|e| agent::restarted_into_update(e));
             let last_update = old.and_then(|e| e.last_update.clone());
             let agent_update = old.and_then(|e| e.agent_update.clone());
             let cached = self.cached_robot(key);
@@ -262,13 +265,20 @@ impl Presence {
                     presence_only: false,
                     settling: s.known_offline.contains(key) && !moved,
                     moved,
-                    restart_grace: 0,
+                    restart_grace: if restarted {
+                        agent::REPORT_WAIT_SECONDS
+                    } else {
+                        0
+                    },
                 }),
             );
             let queue = if gone {
                 Some(Priority::Gone)
             } else if moved {
                 Some(Priority::Move)
+            } else if restarted {
+                // Written with the agent's report of its update, which follows at once.
+                None
             } else {
                 (!s.known_offline.contains(key)).then_some(Priority::High)
             };
@@ -464,8 +474,11 @@ impl Presence {
             let mut due = Vec::new();
             for (key, e) in s.robots.iter_mut() {
                 claims::end_stale_claim(e, now);
+                if agent::grace_ran_out(e) {
+                    due.push((key.clone(), Priority::High));
+                    continue;
+                }
                 if !e.connected {
-                    due.extend(agent::grace_ran_out(e).then(|| (key.clone(), Priority::High)));
                     continue;
                 }
                 if e.settling && now.duration_since(e.connected_since) >= settle {

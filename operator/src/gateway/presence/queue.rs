@@ -84,10 +84,12 @@ impl State {
     }
 
     /// The entry of `key` as the writer takes it to write: from now on a disconnect of its
-    /// session must be written too, so it no longer settles.
+    /// session must be written too, so it no longer settles, and what a restart grace held
+    /// back is in this write.
     pub(super) fn take_for_write(&mut self, key: &RobotKey) -> Option<Entry> {
         self.robots.get_mut(key).map(|e| {
             e.settling = false;
+            e.restart_grace = 0;
             Entry::clone(e)
         })
     }

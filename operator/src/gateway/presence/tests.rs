@@ -923,8 +923,9 @@ fn agent_update_steps_in_progress_wait_for_the_next_write_outcomes_do_not() {
 }
 
 /// An agent restarting into its update costs the robot one status write: its session's end
-/// waits for the next session, which writes the new version; only an agent that stays away
-/// longer than the grace is written disconnected. Any other session end is written at once.
+/// waits for the next session, which waits for the agent's report of the update and is
+/// written with it; only an agent that stays away longer than the grace is written
+/// disconnected. Any other session end is written at once.
 #[test]
 fn an_agent_restarting_into_its_update_is_written_once() {
     let p = presence();
@@ -945,13 +946,38 @@ fn an_agent_restarting_into_its_update_is_written_once() {
         "the end waits for the next session"
     );
     p.connect(&key("a"), 2, 1_001, ConnectInfo::default());
-    assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+    assert_eq!(
+        p.with_state(|s| s.pop()),
+        None,
+        "the new session waits for the agent's report"
+    );
+    let succeeded = AgentUpdateOutcome {
+        phase: "Succeeded",
+        message: "running 0.3.0".into(),
+        ..started.clone()
+    };
+    assert!(p.agent_update(&key("a"), 2, succeeded));
+    let (k, _) = p.with_state(|s| s.pop()).expect("the report is written");
+    let written = p.with_state(|s| s.take_for_write(&k)).unwrap();
+    assert!(written.connected, "with the new session");
     for _ in 0..=agent::RESTART_GRACE_SECONDS {
         p.tick();
     }
     assert_eq!(p.with_state(|s| s.pop()), None, "one write for the restart");
-    // Still away after the grace: written disconnected then.
+    // An agent whose report does not come is written after the wait all the same.
+    p.agent_update(&key("a"), 2, started.clone());
     p.disconnect(&key("a"), 2);
+    p.connect(&key("a"), 4, 1_002, ConnectInfo::default());
+    for _ in 1..agent::REPORT_WAIT_SECONDS {
+        p.tick();
+    }
+    assert_eq!(p.with_state(|s| s.pop()), None);
+    p.tick();
+    assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+    p.with_state(|s| s.take_for_write(&key("a")));
+    p.agent_update(&key("a"), 4, started.clone());
+    // Still away after the grace: written disconnected then.
+    p.disconnect(&key("a"), 4);
     for _ in 1..agent::RESTART_GRACE_SECONDS {
         p.tick();
     }
