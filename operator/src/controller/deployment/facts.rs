@@ -281,10 +281,7 @@ fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: RolloutKind) -> Ro
         last_update: status
             .last_update
             .and_then(|u| Some((u.release?, u.phase?, u.message, u.time.map(|t| t.0)))),
-        mark: robot
-            .annotations()
-            .get(kind.mark_annotation())
-            .and_then(|m| serde_json::from_str::<Mark>(m).ok()),
+        mark: Mark::of(robot, kind),
         analysis: status.analysis.map(|a| *a),
         superseded_by: None,
         ..RobotView::default()

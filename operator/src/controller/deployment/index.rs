@@ -76,8 +76,7 @@ impl RobotIndex {
 fn marked_by(robot: &Robot) -> impl Iterator<Item = String> + '_ {
     [RolloutKind::Release, RolloutKind::Agent]
         .into_iter()
-        .filter_map(|kind| robot.annotations().get(kind.mark_annotation()))
-        .filter_map(|m| serde_json::from_str::<Mark>(m).ok())
+        .filter_map(|kind| Mark::of(robot, kind))
         .map(|m| m.deployment)
 }
 

@@ -8,11 +8,11 @@
 use jiff::Timestamp;
 use kube::ResourceExt;
 use lekiwi_crds::condition::{ConditionStatus, find};
-use lekiwi_crds::deployment::RolloutPhase;
+use lekiwi_crds::deployment::{RolloutKind, RolloutPhase};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment};
 
 use super::{
-    ABORT_ANNOTATION, CONDITION_CONFLICT, MARK_ANNOTATION, Mark, MarkState, UNDO_ANNOTATION, abort,
+    ABORT_ANNOTATION, CONDITION_CONFLICT, Mark, MarkState, UNDO_ANNOTATION, abort, rollback,
 };
 
 /// The rollout a change of `old` into `new` stops downloads of: its id and release. Some when
@@ -36,8 +36,7 @@ pub fn stopped_by(old: &RobotDeployment, new: &RobotDeployment) -> Option<(Strin
             .filter(|at| fresh && *at > started)
     };
     let phase = status.phase?;
-    let undo = asked(UNDO_ANNOTATION).is_some()
-        && !matches!(phase, RolloutPhase::RollingBack | RolloutPhase::RolledBack);
+    let undo = asked(UNDO_ANNOTATION).is_some() && rollback::undo_applies(phase);
     let abort = asked(ABORT_ANNOTATION).is_some() && abort::applies(phase);
     // A pause holds robots only where the rollout moves forward (not while it waits for an
     // older overlapping deployment: robots started then keep going).
@@ -52,16 +51,12 @@ pub fn stopped_by(old: &RobotDeployment, new: &RobotDeployment) -> Option<(Strin
 /// that has a release to stay on (its mark's `previous`): its download of the rollout's
 /// release stops. (Its gateway's session knows whether one is in flight.)
 pub fn halts(robot: &Robot, deployment: &str, rollout_id: &str) -> bool {
-    robot
-        .annotations()
-        .get(MARK_ANNOTATION)
-        .and_then(|m| serde_json::from_str::<Mark>(m).ok())
-        .is_some_and(|m| {
-            m.deployment == deployment
-                && m.rollout_id == rollout_id
-                && m.state == MarkState::Started
-                && m.previous.is_some()
-        })
+    Mark::of(robot, RolloutKind::Release).is_some_and(|m| {
+        m.deployment == deployment
+            && m.rollout_id == rollout_id
+            && m.state == MarkState::Started
+            && m.previous.is_some()
+    })
 }
 
 #[cfg(test)]
@@ -70,6 +65,7 @@ mod tests {
 
     use lekiwi_crds::{RobotDeploymentSpec, RobotDeploymentStatus};
 
+    use super::super::MARK_ANNOTATION;
     use super::*;
 
     fn release(version: &str) -> ReleaseRef {

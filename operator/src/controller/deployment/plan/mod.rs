@@ -87,6 +87,17 @@ pub struct Mark {
     pub failed: bool,
 }
 
+impl Mark {
+    /// The mark `robot` carries for rollouts of `kind`, if it has one that parses.
+    pub fn of(
+        robot: &lekiwi_crds::Robot,
+        kind: lekiwi_crds::deployment::RolloutKind,
+    ) -> Option<Self> {
+        let marks = robot.metadata.annotations.as_ref()?;
+        serde_json::from_str(marks.get(kind.mark_annotation())?).ok()
+    }
+}
+
 /// The facts about one selected robot that a rollout needs.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct RobotView {

@@ -9,7 +9,7 @@ use lekiwi_crds::deployment::RolloutPhase;
 use super::classify::{Fleet, RobotState};
 use super::draft::{Draft, Rollout};
 use super::gates::Gates;
-use super::rollback::{await_rollback, resume_recorded_rollback, start_rollback};
+use super::rollback::{self, await_rollback, resume_recorded_rollback, start_rollback};
 use super::{MarkState, ReleaseCheck, abort, progress, time};
 
 /// Robots whose failure became known now get a permanent mark (and a Warning).
@@ -52,11 +52,7 @@ pub(super) fn advance(
         draft.phase = RolloutPhase::Progressing;
         draft.status.completion_time = None;
     }
-    let undo_now = gates.undo_requested
-        && !matches!(
-            draft.phase,
-            RolloutPhase::RollingBack | RolloutPhase::RolledBack
-        );
+    let undo_now = gates.undo_requested && rollback::undo_applies(draft.phase);
     if undo_now {
         draft.phase = RolloutPhase::RollingBack;
         draft.message = "rollback requested by a user (kubectl lekiwi rollout undo)".to_owned();

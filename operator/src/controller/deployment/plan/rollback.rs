@@ -9,6 +9,12 @@ use super::classify::{Fleet, RobotState};
 use super::draft::{Draft, Rollout};
 use super::{MarkState, time};
 
+/// Whether a user's undo asked for now starts a rollback of a rollout in `phase`: any but one
+/// rolling back or rolled back already.
+pub(super) fn undo_applies(phase: RolloutPhase) -> bool {
+    !matches!(phase, RolloutPhase::RollingBack | RolloutPhase::RolledBack)
+}
+
 /// Tells every robot this rollout started to switch back to the release it ran before.
 pub(super) fn start_rollback(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
     for (robot, state) in &fleet.robots {
