@@ -176,6 +176,32 @@ impl Site {
         Ok(started.elapsed())
     }
 
+    /// Sends `kubectl lekiwi rollout <verb> cx` while the robots download `release`, and waits
+    /// until every robot reports it `cancelled` while it runs `running`, within 5 s.
+    async fn cancel_with(
+        &self,
+        verb: &str,
+        release: &ReleaseRef,
+        running: &ReleaseRef,
+    ) -> anyhow::Result<()> {
+        let asked = (Instant::now(), jiff::Timestamp::now());
+        self.rollout(verb, "cx")?;
+        let took = self
+            .all_cancelled(release, running, asked, Duration::from_secs(5))
+            .await?;
+        eprintln!("{verb}: every robot cancelled after {took:?}");
+        Ok(())
+    }
+
+    /// Asserts that no agent's partial download grows for 3 s (`why` says what that shows);
+    /// returns the partial sizes.
+    async fn downloads_stay_stopped(&self, why: &str) -> Vec<u64> {
+        let stopped = self.partial_bytes();
+        tokio::time::sleep(Duration::from_secs(3)).await;
+        assert_eq!(self.partial_bytes(), stopped, "{why}");
+        stopped
+    }
+
     /// Bytes the gateway served to each robot.
     async fn bytes_served(&self) -> anyhow::Result<Vec<u64>> {
         let token = self.cp.admin_token()?;
@@ -248,19 +274,12 @@ async fn undo_and_pause_cancel_downloads_in_flight_and_resume_continues_them() -
         )
         .await?;
     site.downloading_past(2 * 1024 * 1024).await?;
-    let asked = (Instant::now(), jiff::Timestamp::now());
-    site.rollout("undo", "cx")?;
-    let took = site
-        .all_cancelled(&v2, &v1, asked, Duration::from_secs(5))
-        .await?;
-    eprintln!("undo: every robot cancelled and on 1.0.0 after {took:?}");
-    let stopped = site.partial_bytes();
+    site.cancel_with("undo", &v2, &v1).await?;
+    let stopped = site.downloads_stay_stopped("the downloads stopped").await;
     assert!(
         stopped.iter().all(|b| *b > 0 && *b < BIG),
         "partial downloads are kept: {stopped:?}"
     );
-    tokio::time::sleep(Duration::from_secs(3)).await;
-    assert_eq!(site.partial_bytes(), stopped, "the downloads stopped");
     assert!(!site.any_installed("2.0.0"), "no robot finished 2.0.0");
     site.phase_is("cx", RolloutPhase::RolledBack, 30).await?;
 
@@ -275,20 +294,10 @@ async fn undo_and_pause_cancel_downloads_in_flight_and_resume_continues_them() -
             .then_some(())
     })
     .await?;
-    let asked = (Instant::now(), jiff::Timestamp::now());
-    site.rollout("pause", "cx")?;
-    let took = site
-        .all_cancelled(&v2, &v1, asked, Duration::from_secs(5))
-        .await?;
-    eprintln!("pause: every robot cancelled and on 1.0.0 after {took:?}");
+    site.cancel_with("pause", &v2, &v1).await?;
     site.phase_is("cx", RolloutPhase::Paused, 10).await?;
-    let paused = site.partial_bytes();
-    tokio::time::sleep(Duration::from_secs(3)).await;
-    assert_eq!(
-        site.partial_bytes(),
-        paused,
-        "a paused rollout downloads nothing"
-    );
+    site.downloads_stay_stopped("a paused rollout downloads nothing")
+        .await;
     assert!(!site.any_installed("2.0.0"));
 
     let served_before = site.bytes_served().await?;
@@ -371,12 +380,7 @@ async fn the_gateway_cancels_downloads_on_abort_before_any_robot_is_written() ->
     }
     site.downloading_past(2 * 1024 * 1024).await?;
 
-    let asked = (Instant::now(), jiff::Timestamp::now());
-    site.rollout("abort", "cx")?;
-    let took = site
-        .all_cancelled(&v2, &v1, asked, Duration::from_secs(5))
-        .await?;
-    eprintln!("abort, gateway alone: every robot cancelled after {took:?}");
+    site.cancel_with("abort", &v2, &v1).await?;
     for r in site.robots().await? {
         assert_eq!(
             r.spec.release.as_ref(),
@@ -384,13 +388,8 @@ async fn the_gateway_cancels_downloads_on_abort_before_any_robot_is_written() ->
             "no controller wrote the robot back"
         );
     }
-    let stopped = site.partial_bytes();
-    tokio::time::sleep(Duration::from_secs(3)).await;
-    assert_eq!(
-        site.partial_bytes(),
-        stopped,
-        "no download started again while spec.release still names 2.0.0"
-    );
+    site.downloads_stay_stopped("no download started again while spec.release still names 2.0.0")
+        .await;
     assert!(!site.any_installed("2.0.0"));
     Ok(())
 }
