@@ -37,7 +37,7 @@ pub enum Error {
     TaskStopped(&'static str),
     /// The durable event store failed.
     #[error("event store: {0}")]
-    Store(#[from] crate::event_store::Error),
+    Store(#[from] lekiwi_event_store::Error),
 }
 
 /// What the caller of a failed operation can do about it.
@@ -70,7 +70,6 @@ fn kube_category(e: &kube::Error) -> Category {
 impl Error {
     /// What a caller can do about this error (see [`Category`]).
     pub fn category(&self) -> Category {
-        use crate::event_store::Error as Store;
         match self {
             Error::PatchRobot { source, .. }
             | Error::PatchStatus { source, .. }
@@ -80,14 +79,8 @@ impl Error {
             Error::KubeConfig(_) | Error::CrdMissing(_) | Error::Serve { .. } => {
                 Category::Permanent
             }
-            Error::Store(e) => match e {
-                Store::UnsupportedUrl { .. }
-                | Store::CreateDir { .. }
-                | Store::Migrate { .. }
-                | Store::QuotaExceeded { .. }
-                | Store::SeqOutOfRange(_) => Category::Permanent,
-                _ => Category::Transient,
-            },
+            Error::Store(e) if e.is_transient() => Category::Transient,
+            Error::Store(_) => Category::Permanent,
         }
     }
 
@@ -165,12 +158,25 @@ mod tests {
             Category::Transient
         );
         assert_eq!(
-            Error::Store(crate::event_store::Error::Closed).category(),
+            Error::Store(lekiwi_event_store::Error::Closed).category(),
             Category::Transient
         );
         assert_eq!(
-            Error::Store(crate::event_store::Error::SeqOutOfRange(u64::MAX)).category(),
+            Error::Store(lekiwi_event_store::Error::SeqOutOfRange(u64::MAX)).category(),
             Category::Permanent
+        );
+    }
+
+    #[tokio::test]
+    async fn store_errors_are_wrapped_with_their_reason() {
+        let err: Error = lekiwi_event_store::Store::connect("nope://x")
+            .await
+            .unwrap_err()
+            .into();
+        assert_eq!(err.metric_reason(), "store");
+        assert!(
+            err.to_string()
+                .starts_with("event store: unsupported event store URL")
         );
     }
 }

@@ -1,19 +1,14 @@
 //! The LeKiwi fleet operator: wires the Kubernetes client, leader election, controllers and the
 //! HTTP endpoints together and runs them until a signal.
 
-pub mod apply;
-pub mod blob_store;
 pub mod config;
 pub mod controller;
 pub mod crd_install;
 pub mod error;
-pub mod event_store;
 pub mod gateway;
 pub mod http;
 pub mod leader;
-pub mod liveness;
 pub mod metrics;
-pub mod rate;
 pub mod telemetry;
 
 use std::sync::Arc;
@@ -209,7 +204,7 @@ async fn start_gateway(
     leader: watch::Receiver<bool>,
     tasks: &mut Tasks,
 ) -> Result<()> {
-    let store = crate::event_store::Store::connect(&shared.config.store_url)
+    let store = lekiwi_event_store::Store::connect(&shared.config.store_url)
         .await?
         .with_quota(shared.config.robot_quota());
     info!(backend = store.backend(), "event store ready");

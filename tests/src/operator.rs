@@ -135,9 +135,9 @@ impl OperatorProcess {
     }
 
     /// Opens this operator's SQLite event store beside it, to check what the gateway stored.
-    pub async fn event_store(&self) -> Result<lekiwi_operator::event_store::Store> {
+    pub async fn event_store(&self) -> Result<lekiwi_event_store::Store> {
         let url = format!("sqlite://{}", self.store_path.display());
-        Ok(lekiwi_operator::event_store::Store::connect(&url).await?)
+        Ok(lekiwi_event_store::Store::connect(&url).await?)
     }
 
     /// Starts it again with the same ports, store and flags (after [`Self::kill`] or

@@ -382,9 +382,9 @@ pub struct Config {
 
 impl Config {
     /// The per-robot event store quota of `--robot-quota-rows` and `--robot-quota-bytes`.
-    pub fn robot_quota(&self) -> crate::event_store::Quota {
+    pub fn robot_quota(&self) -> lekiwi_event_store::Quota {
         let limit = |n: u64| if n == 0 { u64::MAX } else { n };
-        crate::event_store::Quota {
+        lekiwi_event_store::Quota {
             rows: limit(self.robot_quota_rows),
             bytes: limit(self.robot_quota_bytes),
         }

@@ -24,10 +24,10 @@ use kube::runtime::events::Recorder;
 use kube::runtime::reflector::Store;
 use kube::{Api, Resource};
 
-use crate::apply::StatusApply;
 use crate::config::Config;
 use crate::error::{Category, Error, Result};
 use crate::metrics::{ControllerName, ErrorLabels, Metrics};
+use lekiwi_core::apply::StatusApply;
 
 /// The longest a failing object waits before its next reconcile.
 const MAX_BACKOFF: Duration = Duration::from_secs(300);

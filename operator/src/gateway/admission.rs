@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use tokio::time::Instant;
 
-use crate::rate::TokenBucket;
+use lekiwi_core::rate::TokenBucket;
 
 /// The longest `Retry-After` the gateway gives (the agent's own cap).
 const MAX_RETRY_AFTER_SECS: u64 = 3600;

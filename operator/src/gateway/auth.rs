@@ -11,10 +11,10 @@ use lekiwi_crds::contract::{
     hash_token, robot_secret_name,
 };
 
-use crate::event_store::RobotKey;
 use crate::gateway::enroll;
 use crate::gateway::lookup::{Lookups, Skip, Subject};
 use crate::gateway::tokens::{TokenIndex, TokenKind};
+use lekiwi_core::RobotKey;
 
 /// Why a connection was refused (logged and counted; never with the token).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

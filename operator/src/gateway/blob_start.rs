@@ -13,9 +13,9 @@ use super::api::FleetApi;
 use super::blob_api;
 use super::kube_auth::KubeAuth;
 use super::releases::{self, Releases};
-use crate::blob_store::BlobStore;
 use crate::config::Config;
 use crate::metrics::Metrics;
+use lekiwi_blob_store::BlobStore;
 
 /// The blob routes' state: the store's directories are made now when possible; if not, the
 /// gateway still serves agents and uploads answer 500 until they can be made.

@@ -22,7 +22,7 @@ use super::presence::{Presence, claims};
 use super::registry::Registry;
 use super::watched::WatchedRobots;
 use crate::error::{Error, Result};
-use crate::event_store::RobotKey;
+use lekiwi_core::RobotKey;
 
 /// Follows the changes of `robots` (the gateway's Robot cache, filled by its own watch); returns,
 /// once the cache holds the first full list, what sessions read their desired release (and the

@@ -12,8 +12,8 @@ use lekiwi_crds::contract::{
     ENROLLED_LABEL, REENROLL_ANNOTATION, managers, new_token, robot_secret_name, robot_token_secret,
 };
 
-use crate::event_store::RobotKey;
 use crate::gateway::tokens::TokenIndex;
+use lekiwi_core::RobotKey;
 
 /// Why an enrollment token may not (re-)enroll a robot.
 #[derive(Clone, Debug, PartialEq, Eq)]

@@ -12,7 +12,8 @@ use serde::Deserialize;
 use super::auth::valid_name;
 use super::kube_auth::Access;
 use super::{ApiError, AppState};
-use crate::event_store::{RobotKey, StoredEvent};
+use lekiwi_core::RobotKey;
+use lekiwi_event_store::StoredEvent;
 
 /// Events answered per request unless the query says otherwise.
 pub const DEFAULT_LIMIT: u32 = 100;

@@ -17,7 +17,7 @@ use tracing::{debug, info};
 use super::cache::{Cache, Change};
 use super::registry::Registry;
 use crate::controller::deployment::plan::halt;
-use crate::event_store::RobotKey;
+use lekiwi_core::RobotKey;
 
 /// Starts the task that follows `rollouts` and halts downloads of the robots of `robots` whose
 /// rollout a user stopped; it runs until `cancel`.

@@ -28,7 +28,7 @@ use tracing::{debug, warn};
 
 use crate::metrics::KindLabels;
 use crate::metrics::{GatewayMetrics, ReviewLabels};
-use crate::rate::SharedBucket;
+use lekiwi_core::rate::SharedBucket;
 
 /// API group of the fleet's resources, the group every check names.
 pub const GROUP: &str = "fleet.lekiwi.io";

@@ -12,7 +12,7 @@ use prometheus_client::metrics::family::Family;
 use tokio::time::Instant;
 
 use crate::metrics::KindLabels;
-use crate::rate::SharedBucket;
+use lekiwi_core::rate::SharedBucket;
 
 /// Most misses remembered at once (each a short string); beyond it the older half is forgotten.
 const MAX_MISSES: usize = 10_000;

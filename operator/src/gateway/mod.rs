@@ -48,8 +48,8 @@ use tracing::warn;
 
 use self::auth::{Grant, Refusal};
 use self::session::SessionContext;
-use crate::event_store::RobotKey;
 use crate::metrics::KindLabels;
+use lekiwi_core::RobotKey;
 
 /// Errors answered over HTTP, as JSON; internal details are logged, never returned.
 #[derive(Debug)]

@@ -11,7 +11,8 @@ use kube::{Resource as _, ResourceExt as _};
 use lekiwi_crds::Robot;
 use tracing::warn;
 
-use crate::event_store::{Quota, RobotKey};
+use lekiwi_core::RobotKey;
+use lekiwi_event_store::Quota;
 
 /// Reason of the Warning Event.
 pub const REASON: &str = "EventQuotaExceeded";

@@ -5,9 +5,9 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use crate::event_store::RobotKey;
 use crate::gateway::mailbox::{self, Receiver, Sender};
-use crate::rate::TokenBucket;
+use lekiwi_core::RobotKey;
+use lekiwi_core::rate::TokenBucket;
 use lekiwi_crds::AgentRef;
 use lekiwi_protocol::{Release, ServerMessage};
 

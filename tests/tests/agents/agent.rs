@@ -6,8 +6,9 @@ use std::os::unix::fs::PermissionsExt;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use lekiwi_core::RobotKey;
 use lekiwi_crds::RobotPhase;
-use lekiwi_operator::event_store::{RobotKey, Store};
+use lekiwi_event_store::Store;
 use lekiwi_tests::{
     AgentProcess, ControlPlane, OperatorProcess, enrollment_token_file, gateway_url, get_robot,
     namespace, wait_for,

@@ -11,7 +11,8 @@
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use lekiwi_operator::event_store::{RobotKey, Store};
+use lekiwi_core::RobotKey;
+use lekiwi_event_store::Store;
 use lekiwi_tests::agent_fleet::{
     AgentFleet as Fleet, DEADLINE_S, T, agent_fleet as fleet, arch, wrapper,
 };

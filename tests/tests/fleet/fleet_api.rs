@@ -17,7 +17,7 @@ use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
 use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
 use lekiwi_crds::{Robot, RobotDeployment};
-use lekiwi_operator::event_store::{MAX_TIME_MS, MIN_TIME_MS, Sample, Store, StoredEvent};
+use lekiwi_event_store::{MAX_TIME_MS, MIN_TIME_MS, Sample, Store, StoredEvent};
 use lekiwi_protocol::{AgentMessage, ServerMessage, Severity, encode};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{
@@ -267,7 +267,7 @@ async fn empty_parameters_and_unknown_robots(
     ] {
         ok(op, &path, viewer).await?;
     }
-    let gone = lekiwi_operator::event_store::RobotKey::new(ns, "kiwi-gone");
+    let gone = lekiwi_core::RobotKey::new(ns, "kiwi-gone");
     let ev = StoredEvent {
         seq: 1,
         ts_ms: jiff::Timestamp::now().as_millisecond(),
@@ -294,7 +294,7 @@ async fn empty_parameters_and_unknown_robots(
 
 /// Events and telemetry of `kiwi-1`, stored in `store`, read back by time range and in pages.
 async fn history(op: &OperatorProcess, store: &Store, ns: &str, viewer: &str) -> Result<()> {
-    let robot = lekiwi_operator::event_store::RobotKey::new(ns, "kiwi-1");
+    let robot = lekiwi_core::RobotKey::new(ns, "kiwi-1");
     let now = jiff::Timestamp::now().as_millisecond();
     let minutes = |m: i64| now - m * 60_000;
     for (seq, ts) in [

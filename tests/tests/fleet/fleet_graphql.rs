@@ -18,8 +18,9 @@ use futures::{SinkExt, StreamExt};
 use k8s_openapi::api::rbac::v1::ClusterRole;
 use kube::Api;
 use kube::api::{DeleteParams, Patch, PatchParams, PostParams};
+use lekiwi_core::RobotKey;
 use lekiwi_crds::{Robot, RobotDeployment};
-use lekiwi_operator::event_store::{RobotKey, StoredEvent};
+use lekiwi_event_store::StoredEvent;
 use lekiwi_tests::graphql::{Ws, connect, next, open, subscribe};
 use lekiwi_tests::{
     ControlPlane, OperatorProcess, account, chart_roles, connect_agent, create_robot,

@@ -4,8 +4,9 @@
 use std::sync::Arc;
 
 use anyhow::{Result, ensure};
-use lekiwi_operator::event_store::{
-    ConnectionRecord, Error, PruneCounts, Quota, QuotaLimit, RobotKey, Sample, Store, StoredEvent,
+use lekiwi_core::RobotKey;
+use lekiwi_event_store::{
+    ConnectionRecord, Error, PruneCounts, Quota, QuotaLimit, Sample, Store, StoredEvent,
 };
 use lekiwi_tests::postgres::Postgres;
 use serde_json::json;
@@ -516,11 +517,9 @@ async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {
                 <sqlx::sqlite::SqliteConnectOptions as std::str::FromStr>::from_str(&db.url())?
                     .create_if_missing(true);
             let pool = sqlx::SqlitePool::connect_with(options).await?;
-            first(sqlx::migrate!(
-                "../operator/src/event_store/migrations/sqlite"
-            ))
-            .run(&pool)
-            .await?;
+            first(sqlx::migrate!("../operator/event-store/migrations/sqlite"))
+                .run(&pool)
+                .await?;
             for row in rows {
                 sqlx::query(row).execute(&pool).await?;
             }
@@ -529,7 +528,7 @@ async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {
         Db::Postgres(_) => {
             let pool = sqlx::PgPool::connect(&db.url()).await?;
             first(sqlx::migrate!(
-                "../operator/src/event_store/migrations/postgres"
+                "../operator/event-store/migrations/postgres"
             ))
             .run(&pool)
             .await?;
@@ -632,7 +631,7 @@ async fn migration_claims_the_seqs_stored_before(db: Db) -> Result<()> {
 /// when the gateway received them, so each of these is in the last hour's range, and samples
 /// are in the widest range a query can name.
 async fn extreme_times_are_clamped_into_reach(db: Db) -> Result<()> {
-    use lekiwi_operator::event_store::{MAX_TIME_MS, MIN_TIME_MS, TimeRange};
+    use lekiwi_event_store::{MAX_TIME_MS, MIN_TIME_MS, TimeRange};
 
     let now = jiff::Timestamp::now().as_millisecond();
     old_schema(

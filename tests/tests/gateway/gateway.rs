@@ -380,7 +380,7 @@ async fn durable_events_are_stored_once_and_acked_again() -> anyhow::Result<()> 
     drop(ws);
 
     let store = op.event_store().await?;
-    let key = lekiwi_operator::event_store::RobotKey::new(ns.clone(), "kiwi-1");
+    let key = lekiwi_core::RobotKey::new(ns.clone(), "kiwi-1");
     let events = store.events(&key, None, 100).await?;
     assert_eq!(
         events.iter().map(|e| e.seq).collect::<Vec<_>>(),
@@ -429,7 +429,7 @@ async fn an_agent_update_step_stored_before_reaches_the_status_when_sent_again()
     let enroll = enrollment_token(&client, &ns).await?;
     let (mut ws, _) = connect_agent(&op, &enroll, &format!("{ns}/kiwi-1")).await?;
     wait_phase(&client, &ns, "kiwi-1", RobotPhase::Online, secs(20)).await?;
-    let succeeded = lekiwi_operator::event_store::StoredEvent {
+    let succeeded = lekiwi_event_store::StoredEvent {
         seq: 7,
         ts_ms: 1_763_800_000_000,
         kind: "agent_update_succeeded".into(),
@@ -438,7 +438,7 @@ async fn an_agent_update_step_stored_before_reaches_the_status_when_sent_again()
         data: json!({"version": "9.9.9"}),
     };
     let store = op.event_store().await?;
-    let key = lekiwi_operator::event_store::RobotKey::new(ns.clone(), "kiwi-1");
+    let key = lekiwi_core::RobotKey::new(ns.clone(), "kiwi-1");
     assert!(store.insert_event(&key, &succeeded).await?, "stored first");
     let resend = AgentMessage::Event {
         seq: 7,

@@ -119,7 +119,7 @@ async fn sequence_numbers_are_bounded_and_error_frames_stay_short() -> anyhow::R
     assert_eq!(ask(&mut ws, critical).await, ServerMessage::Ack { seq: 5 });
     drop(ws);
     let store = op.event_store().await?;
-    let key = lekiwi_operator::event_store::RobotKey::new(ns.clone(), "kiwi-1");
+    let key = lekiwi_core::RobotKey::new(ns.clone(), "kiwi-1");
     let stored = store.events(&key, None, 10).await?;
     let seqs: Vec<(u64, &str)> = stored
         .iter()
@@ -208,7 +208,7 @@ async fn null_optional_fields_count_as_omitted() -> anyhow::Result<()> {
     );
     drop(ws);
     let store = op.event_store().await?;
-    let key = lekiwi_operator::event_store::RobotKey::new(ns.clone(), "kiwi-go");
+    let key = lekiwi_core::RobotKey::new(ns.clone(), "kiwi-go");
     let stored = store.events(&key, None, 10).await?;
     assert_eq!(stored.len(), 2, "{stored:?}");
     assert_eq!(
@@ -327,7 +327,7 @@ async fn an_agent_keeps_working_after_a_forged_seq_and_refuses_oversized_events(
     agent.restart()?;
     agent.wait_connected(TIMEOUT).await?;
     let store = op.event_store().await?;
-    let key = lekiwi_operator::event_store::RobotKey::new(ns.clone(), "kiwi-1");
+    let key = lekiwi_core::RobotKey::new(ns.clone(), "kiwi-1");
     wait_for("the event after the forgery stored", TIMEOUT, || async {
         let events = store.events(&key, None, 100).await.ok()?;
         events

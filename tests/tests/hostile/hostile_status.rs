@@ -11,8 +11,8 @@ use k8s_openapi::api::core::v1::Event;
 use kube::Api;
 use kube::api::ListParams;
 use lekiwi_agent::connection::{Credentials, Socket, connect};
+use lekiwi_core::RobotKey;
 use lekiwi_crds::RobotPhase;
-use lekiwi_operator::event_store::RobotKey;
 use lekiwi_operator::gateway::presence::{ConnectInfo, Presence, PresenceConfig};
 use lekiwi_protocol::{AgentMessage, ErrorCode, Release, ServerMessage, encode};
 use lekiwi_tests::{

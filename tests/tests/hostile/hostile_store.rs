@@ -98,7 +98,7 @@ async fn past_its_quota_a_robot_is_refused_visibly_and_stays_online() -> anyhow:
         ServerMessage::Ack { seq: 2 }
     );
     let store = op.event_store().await?;
-    let key = lekiwi_operator::event_store::RobotKey::new(&ns, "kiwi-1");
+    let key = lekiwi_core::RobotKey::new(&ns, "kiwi-1");
     let stored: Vec<u64> = store
         .events(&key, None, 100)
         .await?
@@ -175,7 +175,7 @@ async fn retention_goes_by_receive_time_not_the_robots_clock() -> anyhow::Result
         );
     }
     let store = op.event_store().await?;
-    let key = lekiwi_operator::event_store::RobotKey::new(&ns, "kiwi-1");
+    let key = lekiwi_core::RobotKey::new(&ns, "kiwi-1");
     // Retention with a cutoff before they arrived keeps both, the 1970 one included.
     assert_eq!(store.prune(before).await?.events, 0);
     let kept = store.events(&key, None, 10).await?;

@@ -11,9 +11,9 @@ use anyhow::bail;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
+use lekiwi_core::RobotKey;
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
-use lekiwi_operator::event_store::RobotKey;
 use lekiwi_tests::{
     AgentProcess, FleetProcess, FleetSpec, OperatorSite, bin, gateway_url, http_get_with,
     rollout_finished, test_strategy, wait_for, wait_online,

@@ -16,10 +16,10 @@ use anyhow::bail;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::Api;
 use kube::api::{Patch, PatchParams, PostParams};
+use lekiwi_core::RobotKey;
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, ReleaseRef, Robot, RobotDeployment};
 use lekiwi_crds::{RobotDeploymentSpec, RobotDeploymentStatus};
-use lekiwi_operator::event_store::RobotKey;
 use lekiwi_tests::{
     AgentProcess, OperatorSite, SimProcess, SimSpec, bin, gateway_url, http_get_with, push_agent,
     rollout_finished, test_strategy, wait_for, wait_online,

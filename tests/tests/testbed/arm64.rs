@@ -682,7 +682,7 @@ impl Site {
         let to_a = t1.elapsed();
         assert_eq!(on_a.agent_digest.as_deref(), Some(a_digest.as_str()));
         let store = self.op.event_store().await?;
-        let key = lekiwi_operator::event_store::RobotKey::new(ns.to_owned(), "kiwi-pi".to_owned());
+        let key = lekiwi_core::RobotKey::new(ns.to_owned(), "kiwi-pi".to_owned());
         let started: Vec<serde_json::Value> = store
             .events(&key, None, 10_000)
             .await?

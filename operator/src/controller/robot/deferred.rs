@@ -12,7 +12,7 @@ use lekiwi_crds::robot::CONDITION_UP_TO_DATE;
 use lekiwi_crds::{Condition, Robot, RobotPhase};
 use tokio::time::Instant;
 
-use crate::liveness::{GatewayState, Plan};
+use lekiwi_liveness::{GatewayState, Plan};
 
 /// How long the controller leaves an Online robot's new spec to its gateway's write.
 pub const GATEWAY_WAIT: Duration = Duration::from_secs(60);
@@ -88,8 +88,8 @@ fn only_new_spec(robot: &Robot, plan: &Plan, gateway: Option<GatewayState>) -> b
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::liveness::{Facts, plan};
     use jiff::Timestamp;
+    use lekiwi_liveness::{Facts, plan};
     use serde_json::json;
 
     /// An Online robot of generation 1, as its gateway wrote it, whose spec then asks for 2.0.0.

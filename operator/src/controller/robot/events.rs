@@ -18,7 +18,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::controller::Context;
-use crate::rate::TokenBucket;
+use lekiwi_core::rate::TokenBucket;
 
 /// Per-robot phase Events published at once before the budget applies.
 pub const ROBOT_EVENT_BURST: u32 = 10;

@@ -19,8 +19,8 @@ use tracing::{info, warn};
 
 use crate::controller::Context;
 use crate::controller::trigger::Trigger;
-use crate::liveness::GatewayState;
 use crate::metrics::PhaseLabels;
+use lekiwi_liveness::GatewayState;
 
 /// The end of a Lease's validity: its last renewal plus its duration (`None` without either).
 pub(super) fn valid_until(lease: &Lease) -> Option<Timestamp> {

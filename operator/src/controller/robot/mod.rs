@@ -31,8 +31,8 @@ use self::gateways::{gateway_state, watch_gateways};
 use super::Context;
 use super::trigger::trigger;
 use crate::error::{Error, Result};
-use crate::liveness::{self, Facts, GatewayState};
 use crate::metrics::{ControllerName, PhaseLabels};
+use lekiwi_liveness::{self as liveness, Facts, GatewayState};
 
 /// Watches the gateways' Leases in the operator's namespace until `cancel` fires: returns `ctx`
 /// with their store, once it has listed them (both controllers read it: whether a robot's

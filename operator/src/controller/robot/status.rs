@@ -4,10 +4,10 @@ use kube::Api;
 use lekiwi_crds::contract::managers;
 use lekiwi_crds::{Robot, RobotStatus};
 
-use crate::apply::StatusApply;
 use crate::controller::apply_status;
 use crate::error::Result;
-use crate::liveness::Plan;
+use lekiwi_core::apply::StatusApply;
+use lekiwi_liveness::Plan;
 
 /// Applies `phase`, `conditions` and `observedGeneration`, and nothing else. With `fence` (the
 /// Robot's `resourceVersion` as the plan saw it), the API server refuses the write (409) if the

@@ -12,9 +12,10 @@ use serde::Deserialize;
 
 use super::robots::Page;
 use super::{authorize, bad_query, check_names, page_size, ready};
-use crate::event_store::{RobotKey, SampleCursor, StoredEvent, StoredSample, TimeRange};
 use crate::gateway::kube_auth::Access;
 use crate::gateway::{ApiError, AppState};
+use lekiwi_core::RobotKey;
+use lekiwi_event_store::{SampleCursor, StoredEvent, StoredSample, TimeRange};
 
 /// How far back a range reaches when the query gives no `since`.
 const DEFAULT_SPAN: SignedDuration = SignedDuration::from_hours(1);

@@ -4,7 +4,7 @@
 use std::collections::HashMap;
 use std::sync::Mutex;
 
-use crate::rate::TokenBucket;
+use lekiwi_core::rate::TokenBucket;
 
 /// Most users with a bucket at once; past this, users whose buckets are full again are
 /// forgotten (they lose nothing), then, if still too many, all.

@@ -15,10 +15,10 @@ use serde::{Deserialize, Serialize};
 
 use super::selector::Selector;
 use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
-use crate::event_store::RobotKey;
 use crate::gateway::cache::{Found, Key};
 use crate::gateway::kube_auth::Access;
 use crate::gateway::{ApiError, AppState};
+use lekiwi_core::RobotKey;
 
 static NO_LABELS: std::collections::BTreeMap<String, String> = std::collections::BTreeMap::new();
 

@@ -14,8 +14,8 @@ use std::sync::{Arc, Mutex};
 use tracing::debug;
 
 use super::Caller;
-use crate::blob_store::BlobStore;
 use crate::gateway::AppState;
+use lekiwi_blob_store::BlobStore;
 
 /// Manifests whose file lists are kept; past this many the cache starts over.
 const MAX_CACHED_MANIFESTS: usize = 1024;
@@ -109,7 +109,7 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
 }
 
 /// Counts and logs a refused read; always `false`.
-fn refuse(state: &AppState, robot: &crate::event_store::RobotKey, digest: &str) -> bool {
+fn refuse(state: &AppState, robot: &lekiwi_core::RobotKey, digest: &str) -> bool {
     state.count_refusal("blob_not_referenced");
     debug!(%robot, %digest, "refused a blob no release of the robot's namespace references");
     false

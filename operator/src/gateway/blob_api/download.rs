@@ -19,9 +19,9 @@ use super::{
     BlobApi, Caller, Failure, InNamespace, access, authorize, check_digest, failure, not_found,
     store_failure,
 };
-use crate::blob_store::readers::ReadGuard;
-use crate::event_store::RobotKey;
 use crate::gateway::{ApiError, AppState};
+use lekiwi_blob_store::readers::ReadGuard;
+use lekiwi_core::RobotKey;
 
 /// Bytes read from disk per chunk of a download.
 const READ_CHUNK: usize = 64 * 1024;

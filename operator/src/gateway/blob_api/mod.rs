@@ -53,8 +53,8 @@ use self::upload::put_blob;
 use super::auth::{Grant, Refusal, parse_robot};
 use super::kube_auth::{Access, KubeAuth};
 use super::{ApiError, AppState, bearer};
-use crate::blob_store::{BlobStore, Error as StoreError};
-use crate::event_store::RobotKey;
+use lekiwi_blob_store::{BlobStore, Error as StoreError};
+use lekiwi_core::RobotKey;
 
 /// What the blob routes share.
 pub struct BlobApi {

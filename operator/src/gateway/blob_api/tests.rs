@@ -43,7 +43,7 @@ async fn a_release_grants_its_manifest_and_its_files_only() {
     use sha2::{Digest, Sha256};
 
     use super::access::ManifestFiles;
-    use crate::blob_store::BlobStore;
+    use lekiwi_blob_store::BlobStore;
 
     let digest = |b: &[u8]| format!("sha256:{}", hex::encode(Sha256::digest(b)));
     let dir = tempfile::tempdir().unwrap();

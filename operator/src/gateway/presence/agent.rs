@@ -6,7 +6,7 @@ use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
 use lekiwi_crds::AgentUpdateReport;
 
 use super::{Entry, Presence, Priority, State};
-use crate::event_store::RobotKey;
+use lekiwi_core::RobotKey;
 
 /// Longest message written to `status.agentUpdate.message`, in characters.
 const MAX_MESSAGE_CHARS: usize = 1024;

@@ -348,13 +348,13 @@ impl Tracker {
 
 impl super::Presence {
     /// What the Robot of `key`, as the gateway's cache holds it, asks of a switch.
-    pub(super) fn asked(&self, key: &crate::event_store::RobotKey) -> Option<Asked> {
+    pub(super) fn asked(&self, key: &lekiwi_core::RobotKey) -> Option<Asked> {
         self.cached_robot(key).as_deref().and_then(Asked::of)
     }
 
     /// The session `session` of `key` sent an event (`error` if of that severity): counted for
     /// analysis, written with the next status write.
-    pub fn event(&self, key: &crate::event_store::RobotKey, session: u64, error: bool) {
+    pub fn event(&self, key: &lekiwi_core::RobotKey, session: u64, error: bool) {
         self.with_state(|s| {
             if let Some(e) = s.live_session(key, session) {
                 e.analysis.event(error);
@@ -364,7 +364,7 @@ impl super::Presence {
 
     /// The session `session` of `key` sent telemetry: the highest reading per metric is kept
     /// for analysis.
-    pub fn telemetry(&self, key: &crate::event_store::RobotKey, session: u64, samples: &[Sample]) {
+    pub fn telemetry(&self, key: &lekiwi_core::RobotKey, session: u64, samples: &[Sample]) {
         self.with_state(|s| {
             if let Some(e) = s.live_session(key, session) {
                 e.analysis.telemetry(samples);

@@ -27,8 +27,8 @@ use lekiwi_crds::contract::encode_claims;
 use lekiwi_crds::{Robot, RobotPhase};
 
 use super::{Entry, Presence, Priority};
-use crate::event_store::RobotKey;
 use crate::gateway::presence::peers::Peers;
+use lekiwi_core::RobotKey;
 
 /// How long a claim outlives its robot's last landed write when this gateway's Robot watch
 /// does not show that write (a watch that is listing again, say): the write landed, so the

@@ -43,9 +43,9 @@ pub use self::phase::PhasePlanner;
 pub use self::queue::Priority;
 use self::queue::State;
 use self::refresh::{refresh_due, refresh_hash};
-use crate::event_store::RobotKey;
 use crate::gateway::holder::next_epoch;
 use crate::metrics::Metrics;
+use lekiwi_core::RobotKey;
 
 /// What a robot told us at connect time.
 #[derive(Clone, Debug, Default)]

@@ -1,5 +1,5 @@
 //! The gateway's server-side-apply patch of a `Robot` status, built from the `crds` types
-//! ([`crate::apply::StatusApply`], as the controllers' writes are) so that a renamed or retyped
+//! ([`lekiwi_core::apply::StatusApply`], as the controllers' writes are) so that a renamed or retyped
 //! status field fails to compile here instead of silently writing a key the CRD schema does not
 //! know.
 //!
@@ -18,7 +18,7 @@ use lekiwi_protocol::{SystemFacts, Vitals, rules};
 use serde_json::Value;
 
 use super::{Entry, UpdateOutcome};
-use crate::apply::{Metadata, StatusApply};
+use lekiwi_core::apply::{Metadata, StatusApply};
 
 /// The agent's explanation of an update outcome is cut to this many characters.
 const MAX_UPDATE_MESSAGE_CHARS: usize = 1024;

@@ -19,7 +19,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
 
 use super::Presence;
-use crate::event_store::RobotKey;
+use lekiwi_core::RobotKey;
 
 /// The robots each other gateway's Lease lists as marked `Unknown`; cheap to clone.
 #[derive(Clone, Default)]

@@ -17,10 +17,10 @@ use serde_json::Value;
 
 use super::patch::planned_status_patch;
 use super::{Entry, Presence};
-use crate::apply::Metadata;
-use crate::event_store::RobotKey;
 use crate::gateway::watched::WatchedRobots;
-use crate::liveness::{Facts, GatewayState, plan};
+use lekiwi_core::RobotKey;
+use lekiwi_core::apply::Metadata;
+use lekiwi_liveness::{Facts, GatewayState, plan};
 
 /// What the gateway needs to plan a robot's phase: its Robot cache (spec, generation, phase and
 /// conditions) and the controller's heartbeat grace.

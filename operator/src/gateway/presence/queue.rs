@@ -5,7 +5,7 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use super::Entry;
-use crate::event_store::RobotKey;
+use lekiwi_core::RobotKey;
 
 /// Which queue a robot waits in for its status write: robots shown gone while connected here
 /// overtake moves, which overtake other transitions, which overtake routine refreshes.

@@ -4,7 +4,7 @@
 use jiff::Timestamp;
 
 use super::Entry;
-use crate::event_store::RobotKey;
+use lekiwi_core::RobotKey;
 
 /// Whether the routine refresh of `e`, last written at `written`, is due at `now`.
 ///

@@ -315,7 +315,7 @@ fn typed_status_patch_matches_the_hand_written_one() {
         let guarded = patch::status_patch(
             "gw-0",
             &e,
-            Some(crate::apply::Metadata::fence(Some("4711".into()))),
+            Some(lekiwi_core::apply::Metadata::fence(Some("4711".into()))),
         );
         let mut expected = expected;
         expected["metadata"] = json!({ "resourceVersion": "4711" });

@@ -18,11 +18,11 @@ use tracing::{debug, warn};
 
 use super::adapt::AdaptiveRate;
 use super::{Entry, Presence, Priority};
-use crate::apply::Metadata;
-use crate::event_store::RobotKey;
 use crate::gateway::holder::Holder;
 use crate::gateway::watched::WatchedRobots;
-use crate::rate::TokenBucket;
+use lekiwi_core::RobotKey;
+use lekiwi_core::apply::Metadata;
+use lekiwi_core::rate::TokenBucket;
 
 /// Why a status write did not happen.
 enum WriteError {

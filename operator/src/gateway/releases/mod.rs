@@ -13,11 +13,11 @@ use lekiwi_crds::{Robot, RobotDeployment};
 use serde::Serialize;
 use tokio::sync::Notify;
 
-use crate::blob_store::gc::{self, Inputs, Plan, Removed};
-use crate::blob_store::index::ReleaseRecord;
-use crate::blob_store::{BlobStore, Result};
 use crate::gateway::cache::Cache;
 use crate::metrics::{GatewayMetrics, KindLabels};
+use lekiwi_blob_store::gc::{self, Inputs, Plan, Removed};
+use lekiwi_blob_store::index::ReleaseRecord;
+use lekiwi_blob_store::{BlobStore, Result};
 
 /// How many robots reference a release, by how.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
@@ -380,7 +380,7 @@ pub enum Refused {
     /// The gateway has not read the fleet yet.
     NotReady,
     /// The store failed.
-    Store(crate::blob_store::Error),
+    Store(lekiwi_blob_store::Error),
 }
 
 impl Refused {

@@ -10,10 +10,10 @@ use tracing::{debug, info, warn};
 
 use super::Session;
 use super::conn::{End, Flow, wire_name};
-use crate::event_store::{self, Quota, QuotaLimit, StoredEvent};
 use crate::gateway::presence::{HeartbeatInfo, UpdateOutcome};
 use crate::metrics::KindLabels;
 use crate::metrics::ReasonLabels;
+use lekiwi_event_store::{self as event_store, Quota, QuotaLimit, StoredEvent};
 
 impl<W> Session<'_, W>
 where

@@ -29,8 +29,9 @@ use super::presence::{ConnectInfo, Presence};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::{Control, Registry};
 use super::watched::WatchedRobots;
-use crate::event_store::{ConnectionRecord, RobotKey, Store};
 use crate::metrics::{KindLabels, Metrics};
+use lekiwi_core::RobotKey;
+use lekiwi_event_store::{ConnectionRecord, Store};
 
 /// Limits one session enforces.
 #[derive(Clone, Debug)]
@@ -356,9 +357,9 @@ async fn close(shared: &SessionContext, key: &RobotKey, opened: &Opened, end: &E
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::event_store::RobotKey;
     use crate::gateway::auth::Authenticator;
     use crate::gateway::presence::{Presence, PresenceConfig};
+    use lekiwi_core::RobotKey;
 
     #[tokio::test]
     async fn an_idle_session_is_small() {

@@ -15,7 +15,7 @@ use super::Session;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, End, Flow};
 use crate::gateway::registry::Control;
 use crate::metrics::KindLabels;
-use crate::rate::TokenBucket;
+use lekiwi_core::rate::TokenBucket;
 
 /// What woke the session up.
 enum Wake<E> {

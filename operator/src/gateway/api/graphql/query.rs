@@ -15,10 +15,10 @@ use serde_json::{Value, json};
 
 use super::scalar::BigInt;
 use super::{allowed, refusal};
-use crate::event_store::RobotKey;
 use crate::gateway::api::history::{self, HistoryQuery};
 use crate::gateway::api::{DEFAULT_LIMIT, check_names, robots, rollouts};
 use crate::gateway::kube_auth::Access;
+use lekiwi_core::RobotKey;
 
 /// A paged field's cost: 1, plus the page size asked for times what is selected in it (its
 /// `items` with their fields, and `continue`), so that a query costs at least 1 per field.

@@ -575,16 +575,6 @@ async fn bad_urls_and_seqs_give_clear_errors() {
 }
 
 #[tokio::test]
-async fn crate_error_wraps_store_errors() {
-    let err: crate::Error = Store::connect("nope://x").await.unwrap_err().into();
-    assert_eq!(err.metric_reason(), "store");
-    assert!(
-        err.to_string()
-            .starts_with("event store: unsupported event store URL")
-    );
-}
-
-#[tokio::test]
 async fn migration_gives_old_rows_a_clamped_receive_time_and_their_size() {
     use std::borrow::Cow;
     use std::str::FromStr;

@@ -1,5 +1,5 @@
 //! Rebuilds when a migration is added, since `sqlx::migrate!` embeds the directory.
 
 fn main() {
-    println!("cargo:rerun-if-changed=src/event_store/migrations");
+    println!("cargo:rerun-if-changed=migrations");
 }

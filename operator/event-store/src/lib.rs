@@ -15,33 +15,9 @@ use sqlx::postgres::PgPool;
 use sqlx::sqlite::SqlitePool;
 
 pub use self::error::{Error, Result};
+use lekiwi_core::RobotKey;
 /// One telemetry sample as the agent sends it; [`Store::insert_telemetry`] takes a batch.
 pub use lekiwi_protocol::Sample;
-
-/// A robot's identity: its Robot resource's namespace and name, the key of everything stored.
-#[derive(Clone, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub struct RobotKey {
-    /// Namespace of the Robot resource.
-    pub namespace: String,
-    /// Name of the Robot resource.
-    pub name: String,
-}
-
-impl RobotKey {
-    /// The robot `namespace/name`.
-    pub fn new(namespace: impl Into<String>, name: impl Into<String>) -> Self {
-        Self {
-            namespace: namespace.into(),
-            name: name.into(),
-        }
-    }
-}
-
-impl fmt::Display for RobotKey {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}/{}", self.namespace, self.name)
-    }
-}
 
 /// The most one robot may keep stored.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -155,13 +131,13 @@ impl fmt::Debug for Store {
 macro_rules! with_pool {
     ($store:expr, $pool:ident, $begin:ident => $body:expr) => {
         match &$store.backend {
-            $crate::event_store::Backend::Sqlite($pool) => {
+            $crate::Backend::Sqlite($pool) => {
                 // Take the write lock up front, waiting for the busy timeout; a deferred
                 // transaction would fail with SQLITE_BUSY if it had to upgrade.
                 let $begin = "BEGIN IMMEDIATE";
                 $body
             }
-            $crate::event_store::Backend::Postgres($pool) => {
+            $crate::Backend::Postgres($pool) => {
                 let $begin = "BEGIN";
                 $body
             }
@@ -169,8 +145,8 @@ macro_rules! with_pool {
     };
     ($store:expr, $pool:ident => $body:expr) => {
         match &$store.backend {
-            $crate::event_store::Backend::Sqlite($pool) => $body,
-            $crate::event_store::Backend::Postgres($pool) => $body,
+            $crate::Backend::Sqlite($pool) => $body,
+            $crate::Backend::Postgres($pool) => $body,
         }
     };
 }

@@ -156,7 +156,7 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::event_store::{MAX_TIME_MS, MIN_TIME_MS, Sample};
+    use crate::{MAX_TIME_MS, MIN_TIME_MS, Sample};
 
     fn event(seq: u64, ts_ms: i64) -> StoredEvent {
         StoredEvent {
