@@ -13,7 +13,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use crate::error::{Error, Result};
-use crate::metrics::Metrics;
+use lekiwi_metrics::Metrics;
 
 /// One replica's view of the election.
 pub struct LeaderElector {

@@ -2,13 +2,11 @@
 //! HTTP endpoints together and runs them until a signal.
 
 pub mod config;
-pub mod controller;
 pub mod crd_install;
 pub mod error;
 pub mod gateway;
 pub mod http;
 pub mod leader;
-pub mod metrics;
 pub mod telemetry;
 
 use std::sync::Arc;
@@ -21,11 +19,11 @@ use tokio_util::sync::CancellationToken;
 use tracing::{error, info};
 
 use crate::config::Config;
-use crate::controller::Context;
 pub use crate::error::{Error, Result};
-use crate::metrics::Metrics;
 use axum::http::{HeaderValue, header::USER_AGENT};
 use clap::ValueEnum;
+use lekiwi_controllers::Context;
+use lekiwi_metrics::Metrics;
 
 /// Builds a client from `--kubeconfig`/`--context`, `$KUBECONFIG`, `~/.kube/config` or the
 /// in-cluster service account, in that order; its requests name this process by
@@ -186,7 +184,7 @@ fn start_controllers(
         shared.client.clone(),
         recorder,
         shared.metrics.clone(),
-        config.clone(),
+        Arc::new(config.controller_settings()),
     ));
     let cancel = shared.cancel.clone();
     tasks.spawn(async move {
@@ -262,16 +260,21 @@ async fn run_while_leader(
             r = wait_leader(&mut leader, true) => if r.is_err() { return Ok(()) },
         }
         let term = cancel.child_token();
-        let Some((ctx, leases)) = controller::robot::watch_gateway_leases(&ctx, &term).await?
+        let Some((ctx, leases)) =
+            lekiwi_controllers::robot::watch_gateway_leases(&ctx, &term).await?
         else {
             return Ok(());
         };
         let _leases = tokio_util::task::AbortOnDropHandle::new(leases);
-        let mut robot = tokio::spawn(controller::robot::run(ctx.clone(), term.clone()));
-        let mut rollout = tokio::spawn(controller::deployment::run(ctx.clone(), term.clone()));
-        let stopped = |r: Result<Result<()>, tokio::task::JoinError>, what: &'static str| match r {
+        let mut robot = tokio::spawn(lekiwi_controllers::robot::run(ctx.clone(), term.clone()));
+        let mut rollout = tokio::spawn(lekiwi_controllers::deployment::run(
+            ctx.clone(),
+            term.clone(),
+        ));
+        let stopped = |r: Result<lekiwi_controllers::Result<()>, tokio::task::JoinError>,
+                       what: &'static str| match r {
             Ok(Ok(())) if cancel.is_cancelled() => Ok(()),
-            Ok(Err(e)) => Err(e),
+            Ok(Err(e)) => Err(e.into()),
             _ => Err(Error::TaskStopped(what)),
         };
         tokio::select! {

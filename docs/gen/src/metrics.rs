@@ -5,7 +5,7 @@ use crate::md;
 /// The page, from the registry's catalogue with every subsystem registered (per-robot series
 /// included).
 pub fn page() -> String {
-    let metrics = lekiwi_operator::metrics::Metrics::new(true);
+    let metrics = lekiwi_metrics::Metrics::new(true);
     let rows: Vec<Vec<String>> = metrics
         .catalogue()
         .iter()
@@ -17,8 +17,7 @@ pub fn page() -> String {
             ]
         })
         .collect();
-    let mut out =
-        md::generated_note("the operator's metrics registry (`lekiwi_operator::metrics`)");
+    let mut out = md::generated_note("the operator's metrics registry (`lekiwi_metrics`)");
     out.push_str(
         "# Metrics\n\n\
          Every metric the operator serves on `/metrics` (`--http-addr`), in the OpenMetrics text \

@@ -15,7 +15,7 @@ fn reference_pages_match_the_code() {
 /// it): a renamed metric breaks the test, not a lab's alert.
 #[test]
 fn the_pages_name_only_metrics_that_exist() {
-    let metrics = lekiwi_operator::metrics::Metrics::new(true);
+    let metrics = lekiwi_metrics::Metrics::new(true);
     let mut known = Vec::new();
     for m in metrics.catalogue() {
         match m.kind.as_str() {

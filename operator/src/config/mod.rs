@@ -390,6 +390,19 @@ impl Config {
         }
     }
 
+    /// The controllers' section of these flags.
+    pub fn controller_settings(&self) -> lekiwi_controllers::Settings {
+        lekiwi_controllers::Settings {
+            namespace: self.namespace.clone(),
+            watch_namespace: self.watch_namespace.clone(),
+            leader_lease: self.leader_lease.clone(),
+            heartbeat_grace_seconds: self.heartbeat_grace_seconds,
+            max_status_lag_seconds: self.max_status_lag_seconds,
+            concurrency: self.concurrency,
+            blob_dir: self.blob_dir.clone(),
+        }
+    }
+
     /// Leader lease validity.
     pub fn lease_duration(&self) -> Duration {
         Duration::from_secs(self.lease_duration_seconds.max(1))

@@ -14,8 +14,8 @@ use super::blob_api;
 use super::kube_auth::KubeAuth;
 use super::releases::{self, Releases};
 use crate::config::Config;
-use crate::metrics::Metrics;
 use lekiwi_blob_store::BlobStore;
+use lekiwi_metrics::Metrics;
 
 /// The blob routes' state: the store's directories are made now when possible; if not, the
 /// gateway still serves agents and uploads answer 500 until they can be made.

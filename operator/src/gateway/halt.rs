@@ -3,7 +3,7 @@
 //! told to switch to cancel a download in flight, without waiting for the controller to write
 //! each robot's `spec.release` back (which for a batch of a large fleet takes seconds at the
 //! API server's write rate). Which requests and robots count is the planner's rule
-//! ([`crate::controller::deployment::plan::halt`]); the controller's writes follow as before.
+//! ([`lekiwi_controllers::deployment::plan::halt`]); the controller's writes follow as before.
 
 use std::sync::Arc;
 
@@ -16,7 +16,7 @@ use tracing::{debug, info};
 
 use super::cache::{Cache, Change};
 use super::registry::Registry;
-use crate::controller::deployment::plan::halt;
+use lekiwi_controllers::deployment::plan::halt;
 use lekiwi_core::RobotKey;
 
 /// Starts the task that follows `rollouts` and halts downloads of the robots of `robots` whose

@@ -26,9 +26,9 @@ use kube::api::PostParams;
 use sha2::{Digest, Sha256};
 use tracing::{debug, warn};
 
-use crate::metrics::KindLabels;
-use crate::metrics::{GatewayMetrics, ReviewLabels};
 use lekiwi_core::rate::SharedBucket;
+use lekiwi_metrics::KindLabels;
+use lekiwi_metrics::{GatewayMetrics, ReviewLabels};
 
 /// API group of the fleet's resources, the group every check names.
 pub const GROUP: &str = "fleet.lekiwi.io";

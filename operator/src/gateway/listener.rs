@@ -26,7 +26,7 @@ use tower::ServiceExt;
 use tracing::{debug, warn};
 
 use super::tls::Acceptor;
-use crate::metrics::KindLabels;
+use lekiwi_metrics::KindLabels;
 
 /// How the gateway treats connections before they are authenticated.
 #[derive(Clone, Debug)]

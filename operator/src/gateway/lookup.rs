@@ -11,8 +11,8 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use tokio::time::Instant;
 
-use crate::metrics::KindLabels;
 use lekiwi_core::rate::SharedBucket;
+use lekiwi_metrics::KindLabels;
 
 /// Most misses remembered at once (each a short string); beyond it the older half is forgotten.
 const MAX_MISSES: usize = 10_000;

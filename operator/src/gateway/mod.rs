@@ -48,8 +48,8 @@ use tracing::warn;
 
 use self::auth::{Grant, Refusal};
 use self::session::SessionContext;
-use crate::metrics::KindLabels;
 use lekiwi_core::RobotKey;
+use lekiwi_metrics::KindLabels;
 
 /// Errors answered over HTTP, as JSON; internal details are logged, never returned.
 #[derive(Debug)]

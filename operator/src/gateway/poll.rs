@@ -22,8 +22,8 @@ use super::presence::ConnectInfo;
 use super::session::Limits;
 use super::watched::WatchedRobots;
 use super::{ApiError, AppState, bearer};
-use crate::metrics::KindLabels;
 use lekiwi_core::RobotKey;
+use lekiwi_metrics::KindLabels;
 
 /// How long a poll answer stays the same after the robot's desired release changed.
 pub const CACHE_TTL: Duration = Duration::from_secs(60);

@@ -31,8 +31,8 @@ use super::watched::WatchedRobots;
 use super::{AppState, Routes, dispatch, lease, routes};
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::metrics::Metrics;
 use lekiwi_event_store::Store;
+use lekiwi_metrics::Metrics;
 
 /// At most one quota Warning Event per robot this often.
 const QUOTA_WARNING_INTERVAL: Duration = Duration::from_secs(300);

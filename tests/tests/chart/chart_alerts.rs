@@ -6,7 +6,7 @@
 use std::collections::BTreeSet;
 use std::process::Command;
 
-use lekiwi_operator::metrics::Metrics;
+use lekiwi_metrics::Metrics;
 use lekiwi_tests::repo_root;
 
 const CHART: &str = "charts/lekiwi-operator";

@@ -16,10 +16,10 @@ use kube::runtime::{WatchStreamExt, watcher};
 use lekiwi_agent::connection::Socket;
 use lekiwi_core::RobotKey;
 use lekiwi_crds::{Robot, RobotPhase};
+use lekiwi_metrics::Metrics;
 use lekiwi_operator::gateway::cache::Cache;
 use lekiwi_operator::gateway::presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};
 use lekiwi_operator::gateway::watched::WatchedRobots;
-use lekiwi_operator::metrics::Metrics;
 use lekiwi_protocol::{AgentMessage, ErrorCode, Health, ServerMessage, Severity, encode};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{

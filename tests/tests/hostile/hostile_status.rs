@@ -226,7 +226,7 @@ async fn a_refused_status_falls_back_to_presence_and_a_warning_event() -> anyhow
             burst: 50,
             concurrency: 4,
         },
-        lekiwi_operator::metrics::Metrics::new(false),
+        lekiwi_metrics::Metrics::new(false),
     );
     let cancel = tokio_util::sync::CancellationToken::new();
     let writer = tokio::spawn(

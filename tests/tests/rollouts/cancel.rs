@@ -14,9 +14,9 @@ use anyhow::bail;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
+use lekiwi_controllers::deployment::plan;
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
-use lekiwi_operator::controller::deployment::plan;
 use lekiwi_tests::{
     AgentProcess, OperatorSite, bin, gateway_url, http_get_with, test_strategy, wait_for,
     wait_online,

@@ -16,8 +16,8 @@ use tracing::{Instrument, debug, info, info_span, warn};
 use super::{Failure, InNamespace, authorize, json_response, store_failure};
 use crate::gateway::AppState;
 use crate::gateway::auth::valid_name;
-use crate::metrics::KindLabels;
 use lekiwi_blob_store::{Error as StoreError, UploadState};
+use lekiwi_metrics::KindLabels;
 
 /// Parses `Content-Range: bytes START-END/TOTAL` into `(START, Some(END), TOTAL)`, and
 /// `bytes */TOTAL` (an empty body that finishes an upload holding all its bytes) into

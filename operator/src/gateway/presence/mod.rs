@@ -44,8 +44,8 @@ pub use self::queue::Priority;
 use self::queue::State;
 use self::refresh::{refresh_due, refresh_hash};
 use crate::gateway::holder::next_epoch;
-use crate::metrics::Metrics;
 use lekiwi_core::RobotKey;
+use lekiwi_metrics::Metrics;
 
 /// What a robot told us at connect time.
 #[derive(Clone, Debug, Default)]
@@ -195,7 +195,7 @@ impl Presence {
         for priority in Priority::ALL {
             let len = state.queues[priority.index()].len();
             let priority = priority.label();
-            let labels = crate::metrics::PriorityLabels { priority };
+            let labels = lekiwi_metrics::PriorityLabels { priority };
             self.metrics
                 .gateway
                 .status_queue

@@ -121,7 +121,7 @@ mod tests {
 
     use super::*;
     use crate::gateway::presence::{ConnectInfo, PresenceConfig};
-    use crate::metrics::Metrics;
+    use lekiwi_metrics::Metrics;
 
     const CACHED: &str = r#"
 apiVersion: fleet.lekiwi.io/v1alpha1

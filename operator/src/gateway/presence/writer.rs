@@ -137,7 +137,7 @@ impl Presence {
                 me.metrics
                     .gateway
                     .status_writes
-                    .get_or_create(&crate::metrics::WriteLabels {
+                    .get_or_create(&lekiwi_metrics::WriteLabels {
                         priority: priority.label(),
                         result: outcome,
                     })

@@ -14,10 +14,10 @@ use serde::Serialize;
 use tokio::sync::Notify;
 
 use crate::gateway::cache::Cache;
-use crate::metrics::{GatewayMetrics, KindLabels};
 use lekiwi_blob_store::gc::{self, Inputs, Plan, Removed};
 use lekiwi_blob_store::index::ReleaseRecord;
 use lekiwi_blob_store::{BlobStore, Result};
+use lekiwi_metrics::{GatewayMetrics, KindLabels};
 
 /// How many robots reference a release, by how.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]

@@ -19,7 +19,7 @@ use tracing::{info, warn};
 
 use super::Releases;
 use crate::config::Config;
-use crate::metrics::GatewayMetrics;
+use lekiwi_metrics::GatewayMetrics;
 
 /// Reason of the Warning Event about the volume.
 pub const NEARLY_FULL: &str = "BlobStoreNearlyFull";

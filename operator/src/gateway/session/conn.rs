@@ -11,7 +11,7 @@ use prometheus_client::metrics::family::Family;
 use serde::Serialize;
 use tracing::warn;
 
-use crate::metrics::{KindLabels, Metrics};
+use lekiwi_metrics::{KindLabels, Metrics};
 
 /// WebSocket close code for a session ended by policy (limits, replacement).
 pub(super) const CLOSE_POLICY: u16 = 1008;

@@ -12,7 +12,7 @@ use super::conn::{CLOSE_AWAY, CLOSE_POLICY, Conn};
 use crate::gateway::auth::Grant;
 use crate::gateway::enroll;
 use crate::gateway::presence::ConnectInfo;
-use crate::metrics::KindLabels;
+use lekiwi_metrics::KindLabels;
 
 /// The session was refused (and its socket closed, if the agent had not closed it already).
 pub(super) struct Refused;

@@ -29,9 +29,9 @@ use super::presence::{ConnectInfo, Presence};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::{Control, Registry};
 use super::watched::WatchedRobots;
-use crate::metrics::{KindLabels, Metrics};
 use lekiwi_core::RobotKey;
 use lekiwi_event_store::{ConnectionRecord, Store};
+use lekiwi_metrics::{KindLabels, Metrics};
 
 /// Limits one session enforces.
 #[derive(Clone, Debug)]

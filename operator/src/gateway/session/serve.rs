@@ -14,8 +14,8 @@ use super::Limits;
 use super::Session;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, End, Flow};
 use crate::gateway::registry::Control;
-use crate::metrics::KindLabels;
 use lekiwi_core::rate::TokenBucket;
+use lekiwi_metrics::KindLabels;
 
 /// What woke the session up.
 enum Wake<E> {

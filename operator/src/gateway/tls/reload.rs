@@ -21,7 +21,7 @@ use x509_cert::der::Decode as _;
 use super::Acceptor;
 use crate::config::Config;
 use crate::error::{Error, Result};
-use crate::metrics::KindLabels;
+use lekiwi_metrics::KindLabels;
 
 /// The certificate chain and key files the gateway serves.
 #[derive(Clone, Debug)]

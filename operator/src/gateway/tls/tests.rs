@@ -19,7 +19,7 @@ use prometheus_client::metrics::family::Family;
 
 use super::reload::{self, CertFiles, TlsMetrics};
 use super::{Acceptor, TlsStream};
-use crate::metrics::KindLabels;
+use lekiwi_metrics::KindLabels;
 
 type Client<S = TcpStream> = tokio_rustls::client::TlsStream<S>;
 

@@ -7,7 +7,7 @@
 pub mod claims;
 pub mod deferred;
 pub mod events;
-pub(crate) mod gateways;
+pub mod gateways;
 pub mod marks;
 pub mod status;
 
@@ -30,9 +30,9 @@ pub(crate) use self::gateways::status_lag;
 use self::gateways::{gateway_state, watch_gateways};
 use super::Context;
 use super::trigger::trigger;
-use crate::error::{Error, Result};
-use crate::metrics::{ControllerName, PhaseLabels};
+use crate::{Error, Result};
 use lekiwi_liveness::{self as liveness, Facts, GatewayState};
+use lekiwi_metrics::{ControllerName, PhaseLabels};
 
 /// Watches the gateways' Leases in the operator's namespace until `cancel` fires: returns `ctx`
 /// with their store, once it has listed them (both controllers read it: whether a robot's

@@ -409,7 +409,7 @@ fn release_labels(robot: &RobotLabels, version: String) -> RobotReleaseLabels {
 #[cfg(test)]
 mod robot_tests {
     use super::*;
-    use crate::metrics::Metrics;
+    use crate::Metrics;
 
     #[test]
     fn per_robot_series_follow_heartbeats_and_disconnects() {

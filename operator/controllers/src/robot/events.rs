@@ -17,7 +17,7 @@ use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use crate::controller::Context;
+use crate::Context;
 use lekiwi_core::rate::TokenBucket;
 
 /// Per-robot phase Events published at once before the budget applies.

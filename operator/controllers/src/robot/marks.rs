@@ -21,7 +21,7 @@ use lekiwi_crds::contract::{MARKED_ANNOTATION, MAX_MARKED_BYTES, encode_robot_li
 use tracing::{debug, warn};
 
 use super::gateways::{ByGateway, lease_alive};
-use crate::controller::Context;
+use crate::Context;
 
 /// A robot: `(namespace, name)`.
 type RobotId = (String, String);
@@ -195,7 +195,7 @@ impl Marks {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::controller::robot::gateways::test_lease;
+    use crate::robot::gateways::test_lease;
     use std::sync::Arc;
 
     /// Marks of a dead gateway are published once per change, in the order marked, without the

@@ -1,9 +1,13 @@
-//! Controllers and the state they share: the reconcile [`Context`], the status write both
-//! controllers make, and the [`trigger`] they are woken by besides their own watch.
+//! The Robot and RobotDeployment controllers and the state they share: the reconcile
+//! [`Context`] and its [`Settings`], the status write both controllers make, and the
+//! [`trigger`] they are woken by besides their own watch.
 
 pub mod deployment;
+mod error;
 pub mod robot;
 pub mod trigger;
+
+pub use error::{Category, Error, Result};
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -24,16 +28,38 @@ use kube::runtime::events::Recorder;
 use kube::runtime::reflector::Store;
 use kube::{Api, Resource};
 
-use crate::config::Config;
-use crate::error::{Category, Error, Result};
-use crate::metrics::{ControllerName, ErrorLabels, Metrics};
 use lekiwi_core::apply::StatusApply;
+use lekiwi_metrics::{ControllerName, ErrorLabels, Metrics};
 
 /// The longest a failing object waits before its next reconcile.
 const MAX_BACKOFF: Duration = Duration::from_secs(300);
 /// When an object whose write met a newer version (409) is planned again; the watch usually
 /// brings that version first.
 const CONFLICT_RETRY: Duration = Duration::from_secs(1);
+
+/// The controllers' section of the operator's configuration (the binary's flags of the same
+/// names fill it).
+#[derive(Clone, Debug)]
+pub struct Settings {
+    /// The operator's namespace, where its leader Lease and the gateways' Leases live
+    /// (`--namespace`).
+    pub namespace: String,
+    /// Watch Robots and RobotDeployments only here; all namespaces when `None`
+    /// (`--watch-namespace`).
+    pub watch_namespace: Option<String>,
+    /// The leader-election Lease's name, the source of Events not tied to a gateway
+    /// (`--leader-lease`).
+    pub leader_lease: String,
+    /// Heartbeat age past which a robot is Offline (`--heartbeat-grace-seconds`).
+    pub heartbeat_grace_seconds: u64,
+    /// The most status lag a gateway's Lease may add to that grace (`--max-status-lag-seconds`).
+    pub max_status_lag_seconds: u64,
+    /// Reconciles run at once per controller (`--concurrency`).
+    pub concurrency: u16,
+    /// Where the pushed releases' manifests and blobs are, to check a deployment's release
+    /// (`--blob-dir`).
+    pub blob_dir: std::path::PathBuf,
+}
 
 /// What every reconcile gets.
 #[derive(Clone)]
@@ -44,8 +70,8 @@ pub struct Context {
     pub recorder: Recorder,
     /// Every metric of the process (controllers record into theirs).
     pub metrics: Metrics,
-    /// Operator configuration (namespaces, concurrency, heartbeat grace, blob directory).
-    pub config: Arc<Config>,
+    /// The controllers' settings (namespaces, concurrency, heartbeat grace, blob directory).
+    pub config: Arc<Settings>,
     /// Leases of the gateways, once the Robot controller has started watching them.
     pub gateway_leases: Option<Store<Lease>>,
     /// The robots live gateways claim in their Leases (see [`robot::claims`]).
@@ -66,7 +92,7 @@ impl Context {
         client: kube::Client,
         recorder: Recorder,
         metrics: Metrics,
-        config: Arc<Config>,
+        config: Arc<Settings>,
     ) -> Self {
         Self {
             client,
@@ -227,8 +253,6 @@ pub(crate) async fn drive<K, Ctx, Fut>(
 
 #[cfg(test)]
 mod tests {
-    use clap::Parser;
-
     use super::*;
 
     /// A context whose client points nowhere: reconcile_failed never calls it.
@@ -236,8 +260,16 @@ mod tests {
         let config = kube::Config::new("http://127.0.0.1:9".parse().unwrap());
         let client = kube::Client::try_from(config).unwrap();
         let recorder = Recorder::new(client.clone(), "test".into());
-        let config = Config::parse_from(["lekiwi-operator"]);
-        Context::new(client, recorder, Metrics::default(), Arc::new(config))
+        let settings = Settings {
+            namespace: "ops".into(),
+            watch_namespace: None,
+            leader_lease: "lekiwi-operator".into(),
+            heartbeat_grace_seconds: 30,
+            max_status_lag_seconds: 60,
+            concurrency: 4,
+            blob_dir: "/nonexistent".into(),
+        };
+        Context::new(client, recorder, Metrics::default(), Arc::new(settings))
     }
 
     fn failed(ctx: &Context, code: u16) -> Duration {

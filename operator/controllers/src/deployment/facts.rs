@@ -16,7 +16,7 @@ use lekiwi_protocol::release::{ReleaseManifest, digest_hex};
 
 use super::State;
 use super::plan::{Facts, Mark, Overlap, ReleaseCheck, RobotView};
-use crate::error::{Error, Result};
+use crate::{Error, Result};
 
 /// The facts for one plan of `deployment`, or None when its selector cannot be evaluated.
 pub(super) async fn gather(

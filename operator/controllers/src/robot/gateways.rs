@@ -17,10 +17,10 @@ use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use crate::controller::Context;
-use crate::controller::trigger::Trigger;
-use crate::metrics::PhaseLabels;
+use crate::Context;
+use crate::trigger::Trigger;
 use lekiwi_liveness::GatewayState;
+use lekiwi_metrics::PhaseLabels;
 
 /// The end of a Lease's validity: its last renewal plus its duration (`None` without either).
 pub(super) fn valid_until(lease: &Lease) -> Option<Timestamp> {
@@ -246,8 +246,8 @@ fn recheck_changed_gateways(
 
 /// A gateway's Lease in namespace `ops` for tests: held by `name`, 15 s long, renewed
 /// `renewed_ago_s` seconds ago, resourceVersion `1`.
-#[cfg(test)]
-pub(crate) fn test_lease(name: &str, renewed_ago_s: i64) -> Lease {
+#[cfg(any(test, feature = "test-util"))]
+pub fn test_lease(name: &str, renewed_ago_s: i64) -> Lease {
     use k8s_openapi::api::coordination::v1::LeaseSpec;
     use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
     Lease {

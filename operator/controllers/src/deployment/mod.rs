@@ -30,8 +30,8 @@ use tracing::{Instrument, info, info_span, warn};
 pub use self::facts::check_release;
 use super::Context;
 use super::trigger::{Trigger, trigger};
-use crate::error::{Error, Result};
-use crate::metrics::ControllerName;
+use crate::{Error, Result};
+use lekiwi_metrics::ControllerName;
 
 /// What every reconcile of this controller reads: the context and the two shared stores.
 struct State {

@@ -14,7 +14,7 @@ use kube::runtime::reflector::{ObjectRef, Store};
 use kube::{Resource, ResourceExt};
 use lekiwi_crds::{Robot, RobotDeployment};
 
-use crate::controller::trigger::Trigger;
+use crate::trigger::Trigger;
 
 /// How a deployment ranks for ownership: greater wins.
 type Rank = (i32, Option<Timestamp>, String);

@@ -16,8 +16,8 @@ use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, ReleaseRef, Robot, RobotDeplo
 use tracing::{debug, info, warn};
 
 use super::plan::{Facts, Mark, Plan, PlannedEvent, RobotView};
-use crate::controller::apply_status;
-use crate::error::{Error, Result};
+use crate::apply_status;
+use crate::{Error, Result};
 use lekiwi_core::apply::{RobotApply, RobotSpecPart, StatusApply};
 
 /// Robot writes in flight at once.

@@ -4,8 +4,8 @@ use kube::Api;
 use lekiwi_crds::contract::managers;
 use lekiwi_crds::{Robot, RobotStatus};
 
-use crate::controller::apply_status;
-use crate::error::Result;
+use crate::Result;
+use crate::apply_status;
 use lekiwi_core::apply::StatusApply;
 use lekiwi_liveness::Plan;
 
