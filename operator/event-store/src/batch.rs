@@ -157,10 +157,13 @@ impl Store {
         // Every flusher claims seqs in the same order: two claiming some of the same (each
         // waits for the other's transaction) wait in a line, never in a circle (a deadlock).
         first.sort_unstable_by(|a, b| (&a.robot, a.seq).cmp(&(&b.robot, b.seq)));
+        // The first copies the store holds now, stored by this flush or before it.
+        let mut held = HashSet::new();
         match self.insert_event_rows(&first).await {
             Ok(inserted) => {
                 for p in first {
                     let new = inserted.contains(&row_key(&p));
+                    held.insert(row_key(&p));
                     let _ = p.reply.send(Ok(new));
                 }
             }
@@ -170,12 +173,25 @@ impl Store {
                     let single = self
                         .insert_event_row(&p.robot, p.seq, &p.event, p.bytes, p.received_ms)
                         .await;
+                    if single.is_ok() {
+                        held.insert(row_key(&p));
+                    }
                     let _ = p.reply.send(single);
                 }
             }
         }
+        // A copy is a replay only if its first copy is stored: when that insert failed, the
+        // copy fails with it, as acknowledging it would lose the message.
         for p in repeats {
-            let _ = p.reply.send(Ok(false));
+            let answer = if held.contains(&row_key(&p)) {
+                Ok(false)
+            } else {
+                Err(Error::NotStored {
+                    robot: p.robot.to_string(),
+                    seq: p.seq,
+                })
+            };
+            let _ = p.reply.send(answer);
         }
     }
 
@@ -256,5 +272,65 @@ async fn flush_loop(
             rows.div_ceil(EVENTS_PER_STATEMENT as u64),
             Ordering::Relaxed,
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An event of `robot` under `seq` for [`Store::flush`], and where its answer arrives.
+    fn pending(robot: &RobotKey, seq: i64) -> (Pending, oneshot::Receiver<Result<bool>>) {
+        let (reply, answer) = oneshot::channel();
+        let event = StoredEvent {
+            seq: seq as u64,
+            ts_ms: 1_000,
+            kind: "note".into(),
+            severity: "info".into(),
+            message: "hello".into(),
+            data: serde_json::Value::Null,
+        };
+        let pending = Pending {
+            robot: robot.clone(),
+            seq,
+            event,
+            bytes: 10,
+            received_ms: 1_000,
+            reply,
+        };
+        (pending, answer)
+    }
+
+    /// A robot resends a message whose ack is late, so both copies can wait in one batch.
+    /// The copy is a replay once the first is stored...
+    #[tokio::test]
+    async fn a_second_copy_in_a_batch_is_a_replay_of_the_stored_first() {
+        let store = Store::connect("sqlite::memory:").await.unwrap();
+        let robot = RobotKey::new("lab", "kiwi-1");
+        let (first, first_answer) = pending(&robot, 7);
+        let (copy, copy_answer) = pending(&robot, 7);
+        store.flush(vec![first, copy]).await;
+        assert!(first_answer.await.unwrap().unwrap());
+        assert!(!copy_answer.await.unwrap().unwrap());
+        assert_eq!(store.last_seq(&robot).await.unwrap(), Some(7));
+    }
+
+    /// ...but when the first copy could not be stored (the database restarting), the copy is
+    /// refused too: an ack for it would make the robot drop a message the store lacks.
+    #[tokio::test]
+    async fn a_second_copy_of_a_message_that_failed_is_not_acknowledged() {
+        let store = Store::connect("sqlite::memory:").await.unwrap();
+        store.close().await;
+        let robot = RobotKey::new("lab", "kiwi-1");
+        let (first, first_answer) = pending(&robot, 7);
+        let (copy, copy_answer) = pending(&robot, 7);
+        store.flush(vec![first, copy]).await;
+        assert!(first_answer.await.unwrap().is_err());
+        let copy = copy_answer.await.unwrap();
+        assert!(
+            matches!(copy, Err(Error::NotStored { seq: 7, .. })),
+            "{copy:?}"
+        );
+        assert!(copy.unwrap_err().is_transient());
     }
 }

@@ -90,6 +90,15 @@ pub enum Error {
         /// The quota in force.
         quota: super::Quota,
     },
+    /// A second copy of a message (a resend) waited in the same batch as the first, whose
+    /// insert failed: it was not stored either, and must not be acknowledged.
+    #[error("message {seq} of robot {robot} was not stored: its first copy failed")]
+    NotStored {
+        /// `namespace/name` of the robot.
+        robot: String,
+        /// The message's sequence number.
+        seq: i64,
+    },
     /// The store was closed (the gateway is stopping) before the message was stored.
     #[error("the event store is closed")]
     Closed,
