@@ -164,7 +164,7 @@ impl Context {
     pub fn heartbeat_grace(&self, gateway: Option<&str>, now: jiff::Timestamp) -> Duration {
         let grace = Duration::from_secs(self.config.heartbeat_grace_seconds);
         let lag = match (gateway, &self.gateway_leases) {
-            (Some(gateway), Some(leases)) => robot::status_lag(
+            (Some(gateway), Some(leases)) => lekiwi_liveness::gateways::status_lag(
                 leases,
                 &self.config.namespace,
                 gateway,

@@ -2,6 +2,8 @@
 //! gateway recorded, the robot's spec and the state of the gateway's Lease. Both writers of a
 //! Robot's phase apply them: the gateway that holds its session and the Robot controller.
 
+pub mod gateways;
+
 use std::borrow::Cow;
 use std::time::Duration;
 

@@ -12,7 +12,6 @@ use k8s_openapi::api::coordination::v1::Lease;
 use kube::core::DeserializeGuard;
 use kube::runtime::reflector::{ObjectRef, Store};
 use kube::{Api, ResourceExt};
-use lekiwi_crds::contract::STATUS_LAG_ANNOTATION;
 use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
@@ -20,61 +19,8 @@ use tracing::{info, warn};
 use crate::Context;
 use crate::trigger::Trigger;
 use lekiwi_liveness::GatewayState;
+use lekiwi_liveness::gateways::{gateway_state, valid_until};
 use lekiwi_metrics::PhaseLabels;
-
-/// The end of a Lease's validity: its last renewal plus its duration (`None` without either).
-pub(super) fn valid_until(lease: &Lease) -> Option<Timestamp> {
-    let spec = lease.spec.as_ref()?;
-    let renew = spec.renew_time.as_ref()?.0;
-    renew
-        .checked_add(jiff::SignedDuration::from_secs(i64::from(
-            spec.lease_duration_seconds?,
-        )))
-        .ok()
-}
-
-/// Whether a Lease has a holder and was renewed within its duration.
-pub(crate) fn lease_alive(lease: &Lease, now: Timestamp) -> bool {
-    lease
-        .spec
-        .as_ref()
-        .and_then(|s| s.holder_identity.as_deref())
-        .is_some_and(|h| !h.is_empty())
-        && valid_until(lease).is_some_and(|end| now <= end)
-}
-
-pub(super) fn gateway_state(
-    store: &Store<Lease>,
-    namespace: &str,
-    gateway: &str,
-    now: Timestamp,
-) -> GatewayState {
-    match store.get(&ObjectRef::new(gateway).within(namespace)) {
-        Some(lease) if lease_alive(&lease, now) => GatewayState::Alive,
-        _ => GatewayState::Gone,
-    }
-}
-
-/// The status lag (see [`lekiwi_crds::contract::STATUS_LAG_ANNOTATION`]) that the live Lease of
-/// `gateway` declares, at most `max`; zero for a dead or missing Lease, or a value that is not a
-/// whole number of seconds.
-pub(crate) fn status_lag(
-    store: &Store<Lease>,
-    namespace: &str,
-    gateway: &str,
-    now: Timestamp,
-    max: Duration,
-) -> Duration {
-    store
-        .get(&ObjectRef::new(gateway).within(namespace))
-        .filter(|lease| lease_alive(lease, now))
-        .and_then(|lease| {
-            let value = lease.annotations().get(STATUS_LAG_ANNOTATION)?;
-            value.parse::<u64>().ok().map(Duration::from_secs)
-        })
-        .unwrap_or_default()
-        .min(max)
-}
 
 /// A gateway Lease expired this long and held by no robot is deleted.
 const STALE_GATEWAY_LEASE: jiff::SignedDuration = jiff::SignedDuration::from_hours(1);
@@ -244,37 +190,6 @@ fn recheck_changed_gateways(
     current
 }
 
-/// A gateway's Lease in namespace `ops` for tests: held by `name`, 15 s long, renewed
-/// `renewed_ago_s` seconds ago, resourceVersion `1`.
-#[cfg(any(test, feature = "test-util"))]
-pub fn test_lease(name: &str, renewed_ago_s: i64) -> Lease {
-    use k8s_openapi::api::coordination::v1::LeaseSpec;
-    use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
-    Lease {
-        metadata: kube::api::ObjectMeta {
-            name: Some(name.into()),
-            namespace: Some("ops".into()),
-            resource_version: Some("1".into()),
-            labels: Some(
-                [(
-                    lekiwi_crds::contract::GATEWAY_LEASE_LABEL.to_owned(),
-                    "true".to_owned(),
-                )]
-                .into(),
-            ),
-            ..kube::api::ObjectMeta::default()
-        },
-        spec: Some(LeaseSpec {
-            holder_identity: Some(name.into()),
-            lease_duration_seconds: Some(15),
-            renew_time: Some(MicroTime(
-                Timestamp::now() - jiff::SignedDuration::from_secs(renewed_ago_s),
-            )),
-            ..LeaseSpec::default()
-        }),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
@@ -282,7 +197,7 @@ mod tests {
     use super::*;
 
     fn lease(name: &str, gateway: bool, renewed_ago_s: i64) -> Arc<Lease> {
-        let mut lease = test_lease(name, renewed_ago_s);
+        let mut lease = lekiwi_liveness::gateways::test_lease(name, renewed_ago_s);
         if !gateway {
             lease.metadata.labels = None;
         }
@@ -310,7 +225,7 @@ mod tests {
         ];
         let alive: Vec<bool> = leases
             .iter()
-            .map(|l| lease_alive(l, Timestamp::now()))
+            .map(|l| lekiwi_liveness::gateways::lease_alive(l, Timestamp::now()))
             .collect();
         // Only the Lease renewed 5 s ago is alive (one without a renewal never is).
         assert_eq!(alive, [false, false, true, false, false, false, false]);
@@ -326,42 +241,6 @@ mod tests {
                 ("gw-never-renewed".to_owned(), Some("1".to_owned())),
                 ("gw-old".to_owned(), Some("1".to_owned()))
             ]
-        );
-    }
-
-    /// A live Lease's status lag counts, capped; a dead Lease's, a missing one's or a value
-    /// that is not whole seconds does not.
-    #[test]
-    fn a_live_gateways_status_lag_extends_within_the_cap() {
-        use kube::runtime::{reflector, watcher};
-        let (store, mut writer) = reflector::store::<Lease>();
-        let annotated = |name: &str, renewed_ago_s: i64, lag: &str| {
-            let mut l = (*lease(name, true, renewed_ago_s)).clone();
-            l.metadata.namespace = Some("ops".into());
-            l.metadata.annotations =
-                Some([(STATUS_LAG_ANNOTATION.to_owned(), lag.to_owned())].into());
-            l
-        };
-        for l in [
-            annotated("gw-late", 2, "120"),
-            annotated("gw-very-late", 2, "5000"),
-            annotated("gw-dead", 60, "120"),
-            annotated("gw-garbled", 2, "2m"),
-            annotated("gw-negative", 2, "-30"),
-        ] {
-            writer.apply_watcher_event(&watcher::Event::Apply(l));
-        }
-        let max = Duration::from_secs(900);
-        let lag = |gw: &str| status_lag(&store, "ops", gw, Timestamp::now(), max).as_secs();
-        assert_eq!(lag("gw-late"), 120);
-        assert_eq!(lag("gw-very-late"), 900, "capped");
-        assert_eq!(lag("gw-dead"), 0, "a dead gateway vouches for nothing");
-        assert_eq!(lag("gw-garbled"), 0);
-        assert_eq!(lag("gw-negative"), 0);
-        assert_eq!(lag("gw-missing"), 0);
-        assert_eq!(
-            status_lag(&store, "lab", "gw-late", Timestamp::now(), max).as_secs(),
-            0
         );
     }
 }

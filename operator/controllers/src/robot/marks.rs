@@ -20,8 +20,9 @@ use kube::{Api, ResourceExt};
 use lekiwi_crds::contract::{MARKED_ANNOTATION, MAX_MARKED_BYTES, encode_robot_list, managers};
 use tracing::{debug, warn};
 
-use super::gateways::{ByGateway, lease_alive};
+use super::gateways::ByGateway;
 use crate::Context;
+use lekiwi_liveness::gateways::lease_alive;
 
 /// A robot: `(namespace, name)`.
 type RobotId = (String, String);
@@ -195,7 +196,7 @@ impl Marks {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::robot::gateways::test_lease;
+    use lekiwi_liveness::gateways::test_lease;
     use std::sync::Arc;
 
     /// Marks of a dead gateway are published once per change, in the order marked, without the

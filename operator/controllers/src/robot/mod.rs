@@ -26,11 +26,11 @@ use lekiwi_crds::{Robot, RobotPhase};
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, debug, info, info_span, warn};
 
-pub(crate) use self::gateways::status_lag;
-use self::gateways::{gateway_state, watch_gateways};
+use self::gateways::watch_gateways;
 use super::Context;
 use super::trigger::trigger;
 use crate::{Error, Result};
+use lekiwi_liveness::gateways::{gateway_state, late_write_wait, renewal_wait};
 use lekiwi_liveness::{self as liveness, Facts, GatewayState};
 use lekiwi_metrics::{ControllerName, PhaseLabels};
 
@@ -254,8 +254,8 @@ fn hold(
 
 /// How long to look again instead of calling `robot`, whose gateway is gone, `Unknown`: while a
 /// live gateway claims it, while a live gateway has not renewed its Lease (and claims) since
-/// that gateway's expired (see [`claims::renewal_wait`]), or while its status may be a write
-/// that outlived its gateway (see [`claims::late_write_wait`]); `None` when nothing holds it
+/// that gateway's expired (see [`renewal_wait`]), or while its status may be a write
+/// that outlived its gateway (see [`late_write_wait`]); `None` when nothing holds it
 /// back.
 fn hold_unknown(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Duration> {
     if let Some(claimant) = claimed_elsewhere(ctx, robot, now) {
@@ -264,11 +264,11 @@ fn hold_unknown(ctx: &Context, robot: &Robot, now: Timestamp) -> Option<Duration
         return Some(CLAIM_RECHECK);
     }
     let leases = ctx.gateway_leases.as_ref()?;
-    if let Some(wait) = claims::renewal_wait(leases, &ctx.config.namespace, robot, now) {
+    if let Some(wait) = renewal_wait(leases, &ctx.config.namespace, robot, now) {
         debug!("waiting for the live gateways to renew their Leases (and claims) once more");
         return Some(wait);
     }
-    let wait = claims::late_write_wait(leases, &ctx.config.namespace, robot, now)?;
+    let wait = late_write_wait(leases, &ctx.config.namespace, robot, now)?;
     // The gateway that holds the robot now claims it once it sees that write.
     debug!(
         ?wait,

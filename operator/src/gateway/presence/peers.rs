@@ -133,7 +133,7 @@ pub fn watch(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use lekiwi_controllers::robot::gateways::test_lease;
+    use lekiwi_liveness::gateways::test_lease;
 
     /// A Lease's list is read whole each time: new robots are reported once, a Lease that lists
     /// none (or is deleted) forgets its robots.

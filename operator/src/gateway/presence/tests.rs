@@ -680,7 +680,7 @@ fn a_robot_marked_on_its_old_gateways_lease_is_written_first() {
     let robots = crate::gateway::watched::WatchedRobots(std::sync::Arc::new(cache));
     p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
     let peers = p.peers().clone();
-    let mut lease = lekiwi_controllers::robot::gateways::test_lease("dead", 60);
+    let mut lease = lekiwi_liveness::gateways::test_lease("dead", 60);
     let mut list = |value: &str| {
         lease.metadata.annotations = Some(
             [(
