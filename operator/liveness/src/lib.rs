@@ -338,6 +338,8 @@ pub fn transition_reason(from: Option<RobotPhase>, to: RobotPhase) -> Option<&'s
 }
 
 #[cfg(test)]
+mod model_tests;
+#[cfg(test)]
 mod properties_tests;
 
 #[cfg(test)]
