@@ -3,7 +3,8 @@
 modules with more than --mod non-test, non-comment lines, and (scripts/cohesion.py) import
 cycles among sibling modules. A function or module may stay larger with a reason: a comment
 containing `shape:` in the three lines above the `fn`, or in the first five lines of the module.
-No cycle may stay. Types whose inherent impl is spread over several files are listed as notes.
+No cycle may stay, and a type's inherent impl stays in one file unless the type gives a reason
+(scripts/cohesion.py says how); types that give one are listed as notes.
 With --check it exits 1 when anything but a note is listed (scripts/test.sh runs it).
 
 Usage: python3 scripts/shape.py [--check] [--fn 80] [--mod 400] [DIR ...]
@@ -75,10 +76,12 @@ def main():
         cohesion.self_test()
     notes = []
     for finding in cohesion.findings(roots):
-        (notes if finding.startswith('impl ') else found).append(finding)
-    print('\n'.join('note: ' + n for n in notes))
+        (notes if finding.startswith('note: ') else found).append(finding)
+    if notes:
+        print('\n'.join(notes))
     print('\n'.join(found) if found else
-          f'shape: no fn over {fn_max} lines, no module over {mod_max}, no sibling import cycle')
+          f'shape: no fn over {fn_max} lines, no module over {mod_max}, no sibling import cycle, '
+          'no type spread over files without a reason')
     return 1 if found and '--check' in sys.argv else 0
 
 

@@ -74,6 +74,9 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T> + Send + 'sta
 ///
 /// Owned by one task at a time; `deploy`, `rollback` and `recover` take `&mut self` and their
 /// futures are `Send`, so the run loop can move the whole value into a spawned task.
+// shape: its methods by step of a deployment: here the store and what the gateway asked for,
+// prepare.rs making the release complete on disk, activate.rs the switch, health check and
+// rollback.
 pub struct Releases {
     layout: Layout,
     client: Client,

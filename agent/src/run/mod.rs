@@ -72,6 +72,9 @@ const SAMPLES_PER_MESSAGE: usize = 1000;
 
 /// The agent: its state directory (credentials, outbox, releases), its sensors, and what it
 /// publishes locally. [`Agent::run`] drives it.
+// shape: one run loop's state, its methods by concern: driver.rs the loop, link.rs the connection,
+// session.rs a session, commands.rs and agent_update.rs the commands, status.rs what it publishes
+// locally.
 pub struct Agent {
     config: Config,
     outbox: Outbox,

@@ -91,6 +91,7 @@ pub struct FallenBack {
 
 /// The `agent/` directory of a state directory and the files in it.
 #[derive(Clone, Debug)]
+// shape: the A/B switch here; local.rs the builds the robot keeps on its own disk.
 pub struct Slots {
     root: PathBuf,
 }

@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use super::ServerArgs;
 
 /// The gateway's HTTP API with the user's Kubernetes token.
+// shape: the release API's requests here; upload.rs the chunked, resumable upload.
 pub(crate) struct Gateway {
     http: reqwest::Client,
     /// Base URL, without a trailing `/`.

@@ -133,6 +133,7 @@ pub struct ReleaseInfo {
 
 /// Content-addressed blobs in a directory.
 #[derive(Clone)]
+// shape: reads here; upload.rs verified, resumable uploads; gc.rs garbage collection.
 pub struct BlobStore {
     root: PathBuf,
     max_blob_bytes: u64,

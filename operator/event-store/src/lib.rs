@@ -101,6 +101,9 @@ pub struct PruneCounts {
 
 /// A handle on the event store; cheap to clone (a connection pool).
 #[derive(Clone)]
+// shape: one method family per file: records.rs writes and reads, batch.rs, opens.rs and closes.rs
+// the batched writes, history.rs paged reads, quota.rs quotas, retention.rs pruning, connect.rs
+// opening.
 pub struct Store {
     backend: Backend,
     /// Each robot's usage against the quota, shared by clones.

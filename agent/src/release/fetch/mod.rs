@@ -127,6 +127,8 @@ pub(crate) struct Caller<'a> {
 }
 
 /// The client: gateway access, TLS settings and a few idle connections.
+// shape: here the requests and retries; blob.rs a download into the store, stream.rs a blob read as
+// a stream.
 pub(crate) struct Client {
     access: GatewayAccess,
     target: Target,

@@ -130,6 +130,7 @@ struct Running {
 }
 
 /// One robot's commands; see the module docs.
+// shape: deploy, rollback and cancel here; agent_update.rs the simulated agent update.
 pub(super) struct Commands {
     shared: Arc<Shared>,
     /// The disk, while no task holds it.

@@ -161,6 +161,8 @@ pub struct PresenceConfig {
 
 /// The presence tracker; cheap to clone.
 #[derive(Clone)]
+// shape: what sessions tell it here; writer.rs the status writer, phase.rs the phase it writes,
+// claims.rs the robots it claims, agent.rs agent updates, lag.rs how late its writes run.
 pub struct Presence {
     state: Arc<Mutex<State>>,
     notify: Arc<Notify>,

@@ -82,6 +82,8 @@ pub struct SessionContext {
 }
 
 /// A session past its handshake: what its loop and its frame handlers work with.
+// shape: the handshake and shared state here; serve.rs the main loop, frames.rs one handler per
+// message type, agent_update.rs agent-update bookkeeping.
 struct Session<'a, W> {
     shared: &'a SessionContext,
     key: &'a RobotKey,
