@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-#! Analysis-writes benchmark (issue 47): what a rollout, and the time after it, costs the API
+#! Analysis-writes benchmark: what a rollout, and the time after it, costs the API
 #! server in Robot writes, without and with post-switch analysis (`spec.analysis`).
 #!
 #! Runs a private control plane (etcd + kube-apiserver v1.20.2) whose audit log records every

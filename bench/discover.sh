@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-#! Discovery benchmark (issue 16): how long `kubectl lekiwi discover` needs to find every robot
+#! Discovery benchmark: how long `kubectl lekiwi discover` needs to find every robot
 #! of a lab, per method. The lab is N network namespaces on a bridge (10.79.0.0/24), each running
 #! a real `lekiwi-agent` (status endpoint on :9477, mDNS on); a dnsmasq-format lease file lists
 #! them all. Once the agents have had 15 s to start up, for each method alone (mDNS; probe of the /24; ARP sweep of the bridge; DHCP lease
@@ -22,9 +22,8 @@ RESULTS="$ROOT/bench/results"
 ROBOTS=50
 COMMAND="bash bench/discover.sh $*"
 
-usage() { sed -n 's/^#!\( \|$\)//p' "$0"; }
-log() { printf '[bench %s] %s\n' "$(date +%T)" "$*" >&2; }
-die() { log "error: $*"; exit 1; }
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
 
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -41,8 +40,8 @@ command -v ip >/dev/null || die "needs ip (iproute2)"
 cd "$ROOT"
 export LEKIWI_CP_DIR="${LEKIWI_CP_DIR:-$HOME/.cache/lekiwi/test-control-plane}"
 log "shared test control plane"
-bash scripts/control-plane.sh up >&2
-eval "$(bash scripts/control-plane.sh env)"
+bash scripts/testbed/control-plane.sh up >&2
+eval "$(bash scripts/testbed/control-plane.sh env)"
 log "building"
 cargo build --workspace --bins >&2
 OUT="$ROOT/target/test-logs/discover-bench.log"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-#! Fleet-rollout benchmark (issue 44): rollouts at the fleet's size, on one private control plane
+#! Fleet-rollout benchmark: rollouts at the fleet's size, on one private control plane
 #! (etcd + kube-apiserver v1.20.2), the operator as two processes (--role controller, --role
 #! gateway; SQLite store, blob store in the work directory) and N simulated robots
 #! (`lekiwi-sim`, which answers deploy commands over the real blob API). Then:

@@ -10,8 +10,8 @@
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
-usage() { sed -n 's/^#!\( \|$\)//p' "$0"; }
-die() { printf '[fuzz] error: %s\n' "$*" >&2; exit 1; }
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
 
 TOTAL=1000000 TIMEOUT=900 PROFILE=release
 while [ $# -gt 0 ]; do

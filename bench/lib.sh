@@ -1,5 +1,5 @@
-# Shared by bench/agent.sh, bench/analysis-writes.sh, bench/fleet-rollout.sh, bench/gateway.sh, bench/hostile.sh, bench/recovery.sh and bench/rollout.sh (sourced, never run): messages,
-# option checks, the processes a benchmark starts and their cleanup, ports, waiting, the lock that
+# Shared by every benchmark driver in bench/ (sourced, never run): messages, option checks,
+# the processes a benchmark starts and their cleanup, ports, waiting, the lock that
 # keeps two benchmarks from running at once.
 #
 # The sourcing script sets ROOT, WORK, CP_DIR, KEEP, CP_UP=0 and PIDS=() first, and may set
@@ -75,7 +75,7 @@ cleanup() {
   if [ "$CP_UP" = 1 ]; then
     # A kept work directory keeps the control plane's logs too (the purge removes its state).
     [ "${KEEP:-0}" = 1 ] && cp "$CP_DIR"/*.log "$WORK/" 2>/dev/null
-    LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/control-plane.sh" down --purge >/dev/null 2>&1
+    LEKIWI_CP_DIR="$CP_DIR" "$ROOT/scripts/testbed/control-plane.sh" down --purge >/dev/null 2>&1
   fi
   keep_or_remove_work "$rc"
   exit $rc
@@ -105,7 +105,7 @@ elapsed() { awk -v a="$1" -v b="$(now)" 'BEGIN { printf "%.1f", b - a }'; }
 
 # A free 127.0.0.1 port below the ephemeral range, so outgoing connections (the gateway
 # simulator's 10,000 client sockets among them) can never take it.
-free_port() { python3 "$ROOT/scripts/free-ports.py" 1; }
+free_port() { python3 "$ROOT/scripts/lib/free-ports.py" 1; }
 
 wait_for() { # what timeout_s command...
   local what="$1" timeout="$2"; shift 2
@@ -198,12 +198,12 @@ start_control_plane() {
   log "starting a private control plane in $CP_DIR"
   export LEKIWI_CP_DIR="$CP_DIR"
   CP_UP=1
-  "$ROOT/scripts/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
+  "$ROOT/scripts/testbed/control-plane.sh" up 2>"$WORK/control-plane.log" 8>&- \
     || { tail -20 "$WORK/control-plane.log" >&2; die "control plane did not start"; }
-  eval "$("$ROOT/scripts/control-plane.sh" env)"
+  eval "$("$ROOT/scripts/testbed/control-plane.sh" env)"
   # shellcheck disable=SC1091
   . "$CP_DIR/ports.env"
-  "$ROOT/scripts/control-plane.sh" crds 8>&-
+  "$ROOT/scripts/testbed/control-plane.sh" crds 8>&-
 }
 
 # Writes a new fleet enrollment token to file $2 (mode 600) and its hash to the Secret

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 #! The agent on an emulated Raspberry Pi 5, next to prometheus-node-exporter: boots the Debian
-#! arm64 root filesystem of `scripts/pi.sh rootfs` (systemd as PID 1; prometheus-node-exporter
+#! arm64 root filesystem of `scripts/testbed/pi.sh rootfs` (systemd as PID 1; prometheus-node-exporter
 #! installed and started by its own package), installs our arm64 .deb (`scripts/deb.sh`) with
 #! `dpkg -i` and starts lekiwi-agent.service with its DEFAULT settings (only the gateway, its CA,
 #! the enrollment token and the robot's name set) against the operator (`--role all`, defaults:
@@ -70,11 +70,11 @@ if [ $BUILD = 1 ]; then
     || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
 fi
 [ -x "$OPERATOR" ] || die "$OPERATOR is missing (run without --no-build)"
-log "the arm64 .deb (scripts/deb.sh) and the root filesystem (scripts/pi.sh rootfs)"
+log "the arm64 .deb (scripts/deb.sh) and the root filesystem (scripts/testbed/pi.sh rootfs)"
 [ -n "$DEB" ] || DEB="$(bash "$ROOT/scripts/deb.sh" --arch arm64 --out "$WORK/deb" 2>"$WORK/deb.log" | tail -1)" \
   || { tail -20 "$WORK/deb.log" >&2; die "scripts/deb.sh failed"; }
 [ -f "$DEB" ] || die "no .deb at $DEB"
-bash "$ROOT/scripts/pi.sh" rootfs 2>"$WORK/rootfs.log" || { tail -20 "$WORK/rootfs.log" >&2; die "pi.sh rootfs failed"; }
+bash "$ROOT/scripts/testbed/pi.sh" rootfs 2>"$WORK/rootfs.log" || { tail -20 "$WORK/rootfs.log" >&2; die "pi.sh rootfs failed"; }
 
 fact date "$(date -Is)"
 fact host "$(nproc) CPUs ($(awk -F': ' '/^model name/ { print $2; exit }' /proc/cpuinfo)), kernel $(uname -r), load average at start $(cut -d' ' -f1-3 /proc/loadavg)"
@@ -155,7 +155,7 @@ EOF
 NE_PORT="$(free_port)"
 log "booting the emulated Pi 5 (node-exporter forwarded to 127.0.0.1:$NE_PORT)"
 T0="$(now)"
-start guest env LEKIWI_PI_RUN="$WORK/pi" bash "$ROOT/scripts/pi.sh" boot --rootfs --foreground \
+start guest env LEKIWI_PI_RUN="$WORK/pi" bash "$ROOT/scripts/testbed/pi.sh" boot --rootfs --foreground \
   --name bench-pi --memory 768 --payload "$PAYLOAD" --forward "$NE_PORT:9100"
 GUEST_PID=$LAST_PID
 CONSOLE="$WORK/pi/bench-pi/console.log"
@@ -210,7 +210,7 @@ print(f"host: {f['host']}")
 print(f"source: {f['source']}")
 print(f"command: {f['command']}")
 print("guest: QEMU virt, 2 x Cortex-A76 (TCG), 768 MB, Debian bookworm arm64 root filesystem of "
-      f"scripts/pi.sh rootfs with systemd, kernel {f['kernel']}")
+      f"scripts/testbed/pi.sh rootfs with systemd, kernel {f['kernel']}")
 print(f"agent: {f['deb']} installed with dpkg -i, lekiwi-agent.service, default settings "
       "(gateway, CA, enrollment token and robot name set); the operator --role all on the host, "
       f"defaults (heartbeat 30 s), over wss:// ({f['operator']})")

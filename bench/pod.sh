@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-#! Operator Pod benchmark on the real node of scripts/cluster.sh: installs the chart (image from
+#! Operator Pod benchmark on the real node of scripts/testbed/cluster.sh: installs the chart (image from
 #! scripts/image.sh, defaults except a 200Mi claim, the gateway as a NodePort and plain ws://, which
 #! is all lekiwi-sim speaks), then reads the operator container's cgroup (v1 `memory`, `cpuacct`)
 #! from the host at idle and with N robots of `lekiwi-sim` connected through the NodePort, and
@@ -12,9 +12,9 @@
 #! Environment: CARGO_TARGET_DIR (where the debug binaries are built, default target/).
 set -euo pipefail
 
-usage() { sed -n 's/^#!\( \|$\)//p' "$0"; }
-log() { printf '[bench %s] %s\n' "$(date +%T)" "$*" >&2; }
-die() { log "error: $*"; exit 1; }
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+# shellcheck source=bench/lib.sh
+source "$ROOT/bench/lib.sh"
 
 ROBOTS=1000
 SAMPLE=10
@@ -27,10 +27,9 @@ while [ $# -gt 0 ]; do
   esac
   shift
 done
-[[ "$ROBOTS" =~ ^[1-9][0-9]*$ ]] || die "--robots needs a positive integer"
-[[ "$SAMPLE" =~ ^[1-9][0-9]*$ ]] || die "--sample needs a positive integer"
+positive_int --robots "$ROBOTS"
+positive_int --sample "$SAMPLE"
 
-ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 cd "$ROOT"
 BIN="${CARGO_TARGET_DIR:-$ROOT/target}/debug"
 export PATH="$HOME/.cache/lekiwi/bin:$PATH"
@@ -47,8 +46,8 @@ cleanup() {
 trap cleanup EXIT
 
 log "cluster, binaries and image"
-bash scripts/cluster.sh up >&2
-eval "$(bash scripts/cluster.sh env)"
+bash scripts/testbed/cluster.sh up >&2
+eval "$(bash scripts/testbed/cluster.sh env)"
 cargo build --quiet --workspace --bins
 bash scripts/image.sh operator --arch amd64 --load ctr --address "$CONTAINERD_ADDRESS" >/dev/null
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-#! Recovery benchmark (issue 14): a fleet on two gateway replicas loses one to SIGKILL.
+#! Recovery benchmark: a fleet on two gateway replicas loses one to SIGKILL.
 #!
 #! Runs, on loopback only: a private control plane (etcd + kube-apiserver), PostgreSQL 15 as the
 #! shared event store, the operator as three processes (one --role controller, two --role gateway

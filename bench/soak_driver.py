@@ -42,7 +42,7 @@ def run(*args, check=True, timeout=120, **kw):
 
 
 def free_port():
-    out = run("python3", os.path.join(C["root"], "scripts/free-ports.py"), "1").stdout
+    out = run("python3", os.path.join(C["root"], "scripts/lib/free-ports.py"), "1").stdout
     return int(out.split()[0])
 
 
@@ -475,7 +475,7 @@ backend gateways
                 self.procs[leader].restart()
         elif kind == "apiserver":
             env = dict(os.environ, LEKIWI_CP_DIR=C["cp_dir"])
-            script = os.path.join(C["root"], "scripts/control-plane.sh")
+            script = os.path.join(C["root"], "scripts/testbed/control-plane.sh")
             subprocess.run(["bash", script, "kill"], env=env, capture_output=True, timeout=60)
             time.sleep(5)
             p = subprocess.run(["bash", script, "up"], env=env, capture_output=True, text=True,

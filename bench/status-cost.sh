@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-#! What one Robot status write costs the API server, by the shape of the write (issue 14: after a
+#! What one Robot status write costs the API server, by the shape of the write (after a
 #! gateway dies, the survivor's status writes for the robots that moved to it are what bounds the
 #! recovery, and on a small control plane the API server's CPU is what bounds the writes).
 #!

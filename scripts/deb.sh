@@ -4,8 +4,8 @@
 #!
 #! Usage: scripts/deb.sh [--arch arm64|amd64] [--out DIR]
 #!   --arch arm64   (default) the Raspberry Pi 5 (Raspberry Pi OS 64-bit, Debian bookworm arm64):
-#!                  cross-built with scripts/pi.sh's toolchain (Debian's rustc, in
-#!                  $LEKIWI_CACHE/arm64-target, shared with `scripts/pi.sh build`)
+#!                  cross-built with scripts/testbed/pi.sh's toolchain (Debian's rustc, in
+#!                  $LEKIWI_CACHE/arm64-target, shared with `scripts/testbed/pi.sh build`)
 #!   --arch amd64   this machine's architecture, built with the workspace's cargo
 #!                  ($CARGO_TARGET_DIR or target/)
 #!   --out DIR      where the .deb goes (default: target/deb in the checkout)
@@ -24,7 +24,7 @@
 #! /etc/lekiwi/agent.d/50-join.yaml, /etc/lekiwi/ca.crt, /etc/lekiwi/enrollment-token and starts it.
 #!
 #! The build is the release profile, not the size-optimised `agent` profile: the aarch64 release
-#! build is the one scripts/pi.sh and the tests already make (warm), while the `agent` profile's
+#! build is the one scripts/testbed/pi.sh and the tests already make (warm), while the `agent` profile's
 #! fat LTO would add a second cold aarch64 build of several minutes to the test suite.
 set -euo pipefail
 
@@ -51,7 +51,7 @@ t0=$(date +%s)
 case "$arch" in
   arm64)
     # `pi.sh build` cross-builds the release agent (and the initramfs the tests boot; cached).
-    bash "$REPO/scripts/pi.sh" build
+    bash "$REPO/scripts/testbed/pi.sh" build
     bin="${LEKIWI_ARM64_TARGET:-$CACHE/arm64-target}/aarch64-unknown-linux-gnu/release/lekiwi-agent"
     strip=aarch64-linux-gnu-strip
     ;;

@@ -47,8 +47,8 @@ log() { printf '\033[1;34m[image]\033[0m %s\n' "$*" >&2; }
 die() { printf '\033[1;31m[image]\033[0m %s\n' "$*" >&2; exit 1; }
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-# shellcheck source=scripts/cache-build.sh
-source "$REPO/scripts/cache-build.sh"
+# shellcheck source=scripts/lib/cache-build.sh
+source "$REPO/scripts/lib/cache-build.sh"
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 KIND=operator OUT="" ARCHES="" LOAD="" ADDRESS=/run/containerd/containerd.sock
 ARM64_PROFILE="${LEKIWI_IMAGE_ARM64_PROFILE:-release}"
@@ -83,12 +83,12 @@ IFS=, read -r -a ARCH_LIST <<<"$ARCHES"
   die "--load loads the host's platform: build $HOST_ARCH too"
 export SOURCE_DATE_EPOCH="${SOURCE_DATE_EPOCH:-$(git -C "$REPO" log -1 --format=%ct)}"
 
-# We write the OCI layout ourselves (scripts/oci.py, ~300 lines of standard-library Python) rather
+# We write the OCI layout ourselves (scripts/lib/oci.py, ~300 lines of standard-library Python) rather
 # than use buildah: buildah needs a storage driver, user namespaces or root, and its archives carry
 # timestamps and history we would have to scrub, while an image of a few host files needs none of
 # that; writing the tar ourselves makes sorted entries, owners 0:0 and fixed mtimes (the same
 # digest twice) a property of the code instead of a set of flags.
-pack() { python3 "$REPO/scripts/oci.py" "$@" >&2; }
+pack() { python3 "$REPO/scripts/lib/oci.py" "$@" >&2; }
 
 build_pause() {
   [ -x /bin/busybox ] && /bin/busybox --list >/dev/null 2>&1 ||
@@ -134,7 +134,7 @@ arm64_libraries() {
   } | sort -u
 }
 
-# Builds the operator for $1 (amd64, or arm64 with Debian's rustc, as scripts/pi.sh builds the
+# Builds the operator for $1 (amd64, or arm64 with Debian's rustc, as scripts/testbed/pi.sh builds the
 # agent) from the source copy $2; sets BIN to the binary and PROFILE to its cargo profile (amd64:
 # release; arm64: $ARM64_PROFILE). The binary must not depend on where the sources, the cargo home
 # or the target dir are. SOURCE_DATE_EPOCH is fixed for cargo: ring's build script reruns when it
@@ -146,7 +146,7 @@ cargo_build() {
   PROFILE=release
   if [ "$arch" = arm64 ]; then
     # Its own target dir: Debian's rustc 1.96 and rustup's would otherwise rebuild each other's
-    # build scripts; and not scripts/pi.sh's: different sources path and RUSTFLAGS rebuild all.
+    # build scripts; and not scripts/testbed/pi.sh's: different sources path and RUSTFLAGS rebuild all.
     target="${LEKIWI_IMAGE_TARGET_ARM64:-$CACHE/image-target-arm64}"
     PROFILE="$ARM64_PROFILE"
     [ -x /usr/bin/rustc ] && command -v aarch64-linux-gnu-gcc >/dev/null ||
@@ -207,7 +207,7 @@ build_operator() {
   mkdir -p "$CACHE"
   exec 9>"$CACHE/.image.lock"
   flock 9
-  # The build runs in a copy of the sources at a fixed path (scripts/cache-build.sh says why).
+  # The build runs in a copy of the sources at a fixed path (scripts/lib/cache-build.sh says why).
   local src="$CACHE/image-src"
   src_copy "$src"
   for arch in "${ARCH_LIST[@]}"; do

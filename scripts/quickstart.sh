@@ -41,7 +41,7 @@ print_env() {
   [ -s "$STATE/ports.env" ] || { echo "no quickstart in $STATE: run bash scripts/quickstart.sh" >&2; exit 1; }
   # shellcheck source=/dev/null
   . "$STATE/ports.env"
-  bash scripts/control-plane.sh env
+  bash scripts/testbed/control-plane.sh env
   printf 'export PATH=%q:"$PATH"\n' "$ROOT/target/debug"
   printf 'export NS=%q GW=%q WS=%q METRICS=%q QS=%q\n' "$NS" "http://127.0.0.1:$GW_PORT" \
     "ws://127.0.0.1:$GW_PORT/v1/agent" "http://127.0.0.1:$PORT/metrics" "$STATE"
@@ -50,7 +50,7 @@ print_env() {
 case "${1:-up}" in
   down)
     stop_operator
-    bash scripts/control-plane.sh down
+    bash scripts/testbed/control-plane.sh down
     exit 0 ;;
   env) print_env; exit 0 ;;
   up) ;;
@@ -61,12 +61,12 @@ esac
 t0=$SECONDS
 # etcd, kube-apiserver, kubectl, and the workspace's binaries (built while the rest installs).
 bash scripts/setup.sh main
-bash scripts/control-plane.sh up
-eval "$(bash scripts/control-plane.sh env)"
+bash scripts/testbed/control-plane.sh up
+eval "$(bash scripts/testbed/control-plane.sh env)"
 export PATH="$ROOT/target/debug:$PATH"   # so `kubectl lekiwi` finds the plugin
 
 log "installing the CRDs"
-bash scripts/control-plane.sh crds
+bash scripts/testbed/control-plane.sh crds
 for ns in "$SYSTEM_NS" "$NS"; do
   kubectl get namespace "$ns" >/dev/null 2>&1 || kubectl create namespace "$ns" >/dev/null
 done

@@ -11,12 +11,12 @@
 #!         kube-scheduler and kube-proxy (the same source), the node runtime (containerd, runc,
 #!         CNI plugins, iptables, conntrack), PostgreSQL, Prometheus, Chromium, HAProxy, wrk,
 #!         cargo-nextest and mdbook from crates.io (into ~/.cache/lekiwi/cargo-tools), the arm64
-#!         cross toolchain and an emulated Raspberry Pi 5 (scripts/pi.sh).
+#!         cross toolchain and an emulated Raspberry Pi 5 (scripts/testbed/pi.sh).
 #!   --print-packages PROFILE  print the Debian packages the profile installs, one a line
 #!
 #! Environment: LEKIWI_CACHE (default ~/.cache/lekiwi); KUBEBUILDER_ASSETS (a directory with etcd and
 #! kube-apiserver to use instead of building them; the node binaries are then built only with
-#! LEKIWI_BUILD_NODE=1, which scripts/cluster.sh sets); LEKIWI_SKIP_ARM64=1 (test: no arm64 part).
+#! LEKIWI_BUILD_NODE=1, which scripts/testbed/cluster.sh sets); LEKIWI_SKIP_ARM64=1 (test: no arm64 part).
 set -euo pipefail
 PROFILE=test
 PRINT=0
@@ -114,8 +114,8 @@ fetch_kubectl_helm >"$CACHE/setup-kubectl.log" 2>&1 &
 KUBECTL_PID=$!
 
 # ---- Kubernetes binaries --------------------------------------------------------------------
-# kube-apiserver alone serves scripts/control-plane.sh (the main profile); the other four make
-# scripts/cluster.sh's real node (test). Whatever is missing is built in ONE make run.
+# kube-apiserver alone serves scripts/testbed/control-plane.sh (the main profile); the other four make
+# scripts/testbed/cluster.sh's real node (test). Whatever is missing is built in ONE make run.
 K8S_CMDS=(kube-apiserver)
 [ "$PROFILE" = main ] || K8S_CMDS+=(kubelet kube-controller-manager kube-scheduler kube-proxy)
 missing=()
@@ -206,7 +206,7 @@ fi
 # ---- arm64: cross-building the agent and an emulated Raspberry Pi 5 -----------------------------
 # Debian's rustc 1.96 with its arm64 standard library cross-builds the agent (rustup's toolchain
 # has no aarch64 std here); qemu-system-arm comes from bookworm-backports because the machine's
-# qemu-utils already does (bookworm's 7.2 conflicts with it). scripts/pi.sh uses all of this.
+# qemu-utils already does (bookworm's 7.2 conflicts with it). scripts/testbed/pi.sh uses all of this.
 # LEKIWI_SKIP_ARM64=1 skips the section.
 if [ "${LEKIWI_SKIP_ARM64:-0}" != 1 ]; then
   arm64_update=0
@@ -239,10 +239,10 @@ BPO
       || $SUDO "${APT[@]}" install -y -qq --no-install-recommends -t bookworm-backports "${ARM64_BACKPORTS[@]}" >/dev/null
   fi
   # The arm64 agent, its unit tests, the kernel and the initramfs the tests boot (warm: seconds).
-  bash "$(dirname "${BASH_SOURCE[0]}")/pi.sh" build
+  bash "$(dirname "${BASH_SOURCE[0]}")/testbed/pi.sh" build
   # The Debian arm64 root filesystem the .deb test installs into (cold: ~5 min on 2 busy cores, most
   # of it dpkg --configure in the emulated Pi; then cached in ~/.cache/lekiwi/pi/debian-arm64.qcow2).
-  bash "$(dirname "${BASH_SOURCE[0]}")/pi.sh" rootfs
+  bash "$(dirname "${BASH_SOURCE[0]}")/testbed/pi.sh" rootfs
 fi
 
 log "ready (test): $("$BIN/kubectl" version --client 2>/dev/null | head -1); helm $("$BIN/helm" version --short 2>/dev/null)"

@@ -18,7 +18,7 @@ cargo fmt --all -- --check
 log "cargo clippy --all-targets -- -D warnings"
 cargo clippy --quiet --workspace --all-targets -- -D warnings
 log "code shape: no fn over 80 lines, no module over 400 without a written reason"
-python3 scripts/shape.py --check
+python3 scripts/checks/shape.py --check
 log "building binaries"
 cargo build --quiet --workspace --bins
 # The operator image for amd64 and arm64 (cached in ~/.cache/lekiwi/image-target and
@@ -31,8 +31,8 @@ bash scripts/image.sh >/dev/null
 # The tests' own control plane, apart from the quickstart's (whose operator watches everything).
 export LEKIWI_CP_DIR="${LEKIWI_CP_DIR:-${LEKIWI_CACHE:-$HOME/.cache/lekiwi}/test-control-plane}"
 log "starting the shared control plane ($LEKIWI_CP_DIR)"
-bash scripts/control-plane.sh up
-eval "$(bash scripts/control-plane.sh env)"
+bash scripts/testbed/control-plane.sh up
+eval "$(bash scripts/testbed/control-plane.sh env)"
 
 log "running tests"
 # A failing test ends its output with its own message (a cluster.sh failure prints the script's

@@ -1,5 +1,5 @@
-//! The single-node cluster whose Pods really run (`scripts/cluster.sh`): started once per test
-//! process and reused across runs, images built with `scripts/oci.py` and imported into its
+//! The single-node cluster whose Pods really run (`scripts/testbed/cluster.sh`): started once per test
+//! process and reused across runs, images built with `scripts/lib/oci.py` and imported into its
 //! containerd, and plain HTTP to the addresses of its network namespace (ClusterIPs, NodePorts).
 
 use std::net::{IpAddr, SocketAddr};
@@ -16,7 +16,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use crate::netns::NetView;
 use crate::{repo_root, tool};
 
-/// A running cluster managed by `scripts/cluster.sh`, described by its `env` output.
+/// A running cluster managed by `scripts/testbed/cluster.sh`, described by its `env` output.
 pub struct Cluster {
     /// State directory (`LEKIWI_CLUSTER_DIR`).
     pub dir: PathBuf,
@@ -49,8 +49,8 @@ impl Cluster {
         static SHARED: OnceLock<Cluster> = OnceLock::new();
         SHARED.get_or_init(|| {
             if let Err(first) = script(&["up"]) {
-                eprintln!("{first:#}\nscripts/cluster.sh up failed once; trying again");
-                script(&["up"]).expect("scripts/cluster.sh up, the second time");
+                eprintln!("{first:#}\nscripts/testbed/cluster.sh up failed once; trying again");
+                script(&["up"]).expect("scripts/testbed/cluster.sh up, the second time");
             }
             let env = String::from_utf8_lossy(&script(&["env"]).expect("cluster.sh env").stdout)
                 .into_owned();
@@ -211,7 +211,7 @@ impl Cluster {
 
 fn script(args: &[&str]) -> Result<Output> {
     let out = Command::new("bash")
-        .arg(repo_root().join("scripts/cluster.sh"))
+        .arg(repo_root().join("scripts/testbed/cluster.sh"))
         .args(args)
         .stdin(Stdio::null())
         .output()?;
@@ -236,10 +236,10 @@ fn checked(out: Output, what: &str) -> Result<String> {
 }
 
 /// Writes an image `reference` holding Debian's static busybox at `/bin/busybox` (user
-/// 65532:65532) plus `files` (`SRC:DEST`), with `scripts/oci.py`.
+/// 65532:65532) plus `files` (`SRC:DEST`), with `scripts/lib/oci.py`.
 pub fn busybox_image(out: &Path, reference: &str, files: &[String]) -> Result<()> {
     let mut cmd = Command::new("python3");
-    cmd.arg(repo_root().join("scripts/oci.py"))
+    cmd.arg(repo_root().join("scripts/lib/oci.py"))
         .arg("--out")
         .arg(out)
         .args(["--ref", reference, "--file", "/bin/busybox:/bin/busybox"])
@@ -247,7 +247,7 @@ pub fn busybox_image(out: &Path, reference: &str, files: &[String]) -> Result<()
     for file in files {
         cmd.args(["--file", file]);
     }
-    checked(cmd.output().context("run scripts/oci.py")?, "oci.py").map(|_| ())
+    checked(cmd.output().context("run scripts/lib/oci.py")?, "oci.py").map(|_| ())
 }
 
 /// `GET path` over HTTP/1.0 to `addr`: the status code and the body.

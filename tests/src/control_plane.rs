@@ -1,4 +1,4 @@
-//! The etcd + kube-apiserver pair the tests run against (`scripts/control-plane.sh`): the shared
+//! The etcd + kube-apiserver pair the tests run against (`scripts/testbed/control-plane.sh`): the shared
 //! one, private ones for tests that restart it, and a namespace per test.
 
 use std::path::{Path, PathBuf};
@@ -13,7 +13,7 @@ use kube::{Api, Client};
 
 use crate::{repo_root, tool};
 
-/// A running etcd + kube-apiserver managed by `scripts/control-plane.sh`.
+/// A running etcd + kube-apiserver managed by `scripts/testbed/control-plane.sh`.
 pub struct ControlPlane {
     /// State directory of the instance (`LEKIWI_CP_DIR`).
     pub dir: PathBuf,
@@ -52,7 +52,7 @@ impl ControlPlane {
 
     fn script(&self, args: &[&str]) -> Result<Output> {
         let out = Command::new("bash")
-            .arg(repo_root().join("scripts/control-plane.sh"))
+            .arg(repo_root().join("scripts/testbed/control-plane.sh"))
             .args(args)
             .env("LEKIWI_CP_DIR", &self.dir)
             .stdin(Stdio::null())
@@ -234,7 +234,7 @@ impl ControlPlane {
     }
 
     /// Server-side applies our CRDs and waits until they are served
-    /// (`scripts/control-plane.sh crds`).
+    /// (`scripts/testbed/control-plane.sh crds`).
     pub fn install_crds(&self) -> Result<()> {
         self.script(&["crds"]).map(drop)
     }

@@ -198,22 +198,22 @@ pub fn log_dir() -> PathBuf {
     dir
 }
 
-/// `count` distinct free loopback ports from `scripts/free-ports.py`, which picks them outside
+/// `count` distinct free loopback ports from `scripts/lib/free-ports.py`, which picks them outside
 /// the kernel's ephemeral range: a port the kernel may give a client socket can be taken by any
 /// of the many connections parallel tests open between the pick and the server's bind (a CI
 /// flake: an operator's "Address already in use").
 pub fn free_ports(count: usize) -> Vec<u16> {
     let out = Command::new("python3")
-        .arg(repo_root().join("scripts/free-ports.py"))
+        .arg(repo_root().join("scripts/lib/free-ports.py"))
         .arg(count.to_string())
         .output()
-        .expect("run scripts/free-ports.py");
-    assert!(out.status.success(), "scripts/free-ports.py: {out:?}");
+        .expect("run scripts/lib/free-ports.py");
+    assert!(out.status.success(), "scripts/lib/free-ports.py: {out:?}");
     let ports: Vec<u16> = String::from_utf8_lossy(&out.stdout)
         .lines()
         .map(|l| l.trim().parse().expect("a port number"))
         .collect();
-    assert_eq!(ports.len(), count, "scripts/free-ports.py {count}");
+    assert_eq!(ports.len(), count, "scripts/lib/free-ports.py {count}");
     ports
 }
 

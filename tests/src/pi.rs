@@ -1,4 +1,4 @@
-//! An emulated Raspberry Pi 5 (`scripts/pi.sh`): QEMU's `virt` machine with a Cortex-A76 booting
+//! An emulated Raspberry Pi 5 (`scripts/testbed/pi.sh`): QEMU's `virt` machine with a Cortex-A76 booting
 //! the arm64 agent from an initramfs. The guest reaches the host's loopback as 10.0.2.2; its
 //! serial console is a file the test reads, where the guest's `/init` prints markers
 //! (`LEKIWI-CPU`, `LEKIWI-RSS`, `LEKIWI-EXIT`).
@@ -20,24 +20,24 @@ pub const HOST_FROM_GUEST: &str = "10.0.2.2";
 /// The guest port of the agent's status endpoint (`--status-listen 0.0.0.0:9477`).
 pub const GUEST_STATUS_PORT: u16 = 9477;
 
-/// `scripts/pi.sh` with `args`, with none of the calling `cargo test`'s variables (the script
+/// `scripts/testbed/pi.sh` with `args`, with none of the calling `cargo test`'s variables (the script
 /// builds with Debian's cargo in its own target directory).
 fn pi_sh(args: &[&str]) -> Command {
     let mut cmd = Command::new("bash");
-    cmd.arg(repo_root().join("scripts/pi.sh"))
+    cmd.arg(repo_root().join("scripts/testbed/pi.sh"))
         .args(args)
         .env("LEKIWI_PI_RUN", log_dir().join("pi"));
     cmd
 }
 
-/// Runs `scripts/pi.sh build` once per test process: the arm64 agent, its unit-test binary, the
+/// Runs `scripts/testbed/pi.sh build` once per test process: the arm64 agent, its unit-test binary, the
 /// kernel and the initramfs (cached; `scripts/setup.sh` ran it cold already).
 pub fn build() -> Result<()> {
     static BUILT: OnceLock<Result<String, String>> = OnceLock::new();
     once(&BUILT, "pi.sh", &["build"]).map(drop)
 }
 
-/// Runs `scripts/pi.sh` (or another script of `scripts/`) once per test process and returns its
+/// Runs `scripts/testbed/pi.sh` (or another script of `scripts/testbed/`) once per test process and returns its
 /// stdout; the error carries its stderr.
 fn once(
     cell: &'static OnceLock<Result<String, String>>,
@@ -48,14 +48,14 @@ fn once(
         let mut cmd = pi_sh(args);
         if script != "pi.sh" {
             cmd = Command::new("bash");
-            cmd.arg(repo_root().join("scripts").join(script)).args(args);
+            cmd.arg(repo_root().join("scripts/testbed").join(script)).args(args);
         }
         let out = cmd.output().map_err(|e| e.to_string())?;
         if out.status.success() {
             Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
         } else {
             Err(format!(
-                "scripts/{script} {} failed:\n{}",
+                "scripts/testbed/{script} {} failed:\n{}",
                 args.join(" "),
                 String::from_utf8_lossy(&out.stderr)
             ))
@@ -78,7 +78,7 @@ pub fn deb() -> Result<PathBuf> {
     Ok(PathBuf::from(path.lines().last().unwrap_or_default()))
 }
 
-/// The Debian bookworm arm64 root filesystem (`scripts/pi.sh rootfs`: cached; the first build
+/// The Debian bookworm arm64 root filesystem (`scripts/testbed/pi.sh rootfs`: cached; the first build
 /// runs debootstrap's second stage in the emulated Pi).
 pub fn rootfs() -> Result<()> {
     static ROOTFS: OnceLock<Result<String, String>> = OnceLock::new();

@@ -142,7 +142,7 @@ impl Drop for Cleanup {
         ];
         for args in [
             &["scripts/quickstart.sh", "down"][..],
-            &["scripts/control-plane.sh", "down", "--purge"],
+            &["scripts/testbed/control-plane.sh", "down", "--purge"],
         ] {
             let _ = Command::new("bash")
                 .args(args)

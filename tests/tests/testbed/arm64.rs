@@ -1,5 +1,5 @@
 //! The agent on the robots' own CPU: built for aarch64 and run on an emulated Raspberry Pi 5
-//! (`scripts/pi.sh`: QEMU `virt`, Cortex-A76, Debian's arm64 kernel). Its unit tests pass there,
+//! (`scripts/testbed/pi.sh`: QEMU `virt`, Cortex-A76, Debian's arm64 kernel). Its unit tests pass there,
 //! and an arm64 agent enrolls against the x86_64 operator over wss://, goes Online, reports
 //! telemetry and teleoperation, applies a release from a RobotDeployment and rolls back when the
 //! next one fails its health check. Installed from the `.deb` under systemd, it also survives a

@@ -1,4 +1,4 @@
-//! The Helm chart on a real node (`scripts/cluster.sh`) with the operator image from
+//! The Helm chart on a real node (`scripts/testbed/cluster.sh`) with the operator image from
 //! `scripts/image.sh`: the operator Pod becomes Ready through its real probes under the chart's
 //! securityContext as the kernel enforces it (non-root, read-only root filesystem, no
 //! capabilities, seccomp) and writes only to its volumes; agents on the host enroll through the

@@ -40,7 +40,7 @@ fn text(field: &[u8]) -> String {
     String::from_utf8_lossy(&field[..end]).into_owned()
 }
 
-/// Reads a ustar/pax tar (what scripts/oci.py writes): entries by path, directories with a
+/// Reads a ustar/pax tar (what scripts/lib/oci.py writes): entries by path, directories with a
 /// trailing `/` removed. A pax `path` record names the entry after it.
 fn read_tar(bytes: &[u8]) -> BTreeMap<String, Entry> {
     let mut entries = BTreeMap::new();

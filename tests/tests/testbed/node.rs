@@ -1,4 +1,4 @@
-//! A real node (`scripts/cluster.sh`): a Pod from a locally built and imported image runs with a
+//! A real node (`scripts/testbed/cluster.sh`): a Pod from a locally built and imported image runs with a
 //! Pod IP under a locked-down securityContext that is enforced (non-root user, read-only root
 //! filesystem, no capabilities, seccomp filter; a root container is refused), its PVC binds to
 //! the default StorageClass and the Pod writes to it, a Service reaches it through kube-proxy by

@@ -4,7 +4,7 @@
 #! busybox-static, the cross sysroot's glibc) and boots it on QEMU's `virt` machine with a
 #! Cortex-A76, the Pi 5's core. The guest reaches the host's loopback as 10.0.2.2.
 #!
-#! Usage: scripts/pi.sh <command> [options]
+#! Usage: scripts/testbed/pi.sh <command> [options]
 #!   build                 cross-build and assemble; heavy artefacts cached under $LEKIWI_CACHE/pi
 #!                         (default ~/.cache/lekiwi/pi); a warm run only asks cargo whether
 #!                         anything changed. Needs what scripts/setup.sh installs.
@@ -49,9 +49,9 @@
 #! default $LEKIWI_CACHE/arm64-target: Debian's rustc 1.96 builds there, apart from rustup's).
 set -euo pipefail
 
-REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-# shellcheck source=scripts/cache-build.sh
-source "$REPO/scripts/cache-build.sh"
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
+# shellcheck source=scripts/lib/cache-build.sh
+source "$REPO/scripts/lib/cache-build.sh"
 CACHE="${LEKIWI_CACHE:-$HOME/.cache/lekiwi}"
 PI="$CACHE/pi"
 RUN="${LEKIWI_PI_RUN:-$PI/run}"
@@ -97,7 +97,7 @@ kernel_pkg() {
 write_init() {
   cat >"$1" <<'INIT'
 #!/bin/busybox sh
-# /init of the emulated Raspberry Pi 5 (written by scripts/pi.sh).
+# /init of the emulated Raspberry Pi 5 (written by scripts/testbed/pi.sh).
 /bin/busybox --install -s /bin
 export PATH=/bin:/sbin HOME=/root
 mount -t proc proc /proc
@@ -204,7 +204,7 @@ cmd_build() {
   [ -x /usr/bin/rustc ] && command -v aarch64-linux-gnu-gcc >/dev/null && command -v qemu-system-aarch64 >/dev/null \
     || die "the arm64 toolchain or qemu-system-arm is missing: run scripts/setup.sh"
   log "cross-building lekiwi-agent for $TRIPLE (release) into $TARGET_DIR"
-  # From a copy of the sources at a fixed path (scripts/cache-build.sh says why).
+  # From a copy of the sources at a fixed path (scripts/lib/cache-build.sh says why).
   local src="$PI/src"
   src_copy "$src"
   ( cd "$src" && cross_cargo build --quiet --release -p lekiwi-agent --target "$TRIPLE" )
@@ -237,7 +237,7 @@ cmd_build() {
 prepare_guest() {
   local name="$1" run="$2" payload="$3" port="$4" mem="$5" dir="$RUN/$1"
   shift 5
-  [ -e "$PI/agent.cpio.gz" ] || die "nothing built yet: run scripts/pi.sh build"
+  [ -e "$PI/agent.cpio.gz" ] || die "nothing built yet: run scripts/testbed/pi.sh build"
   rm -rf "$dir" && mkdir -p "$dir/payload/lekiwi"
   [ -z "$payload" ] || cp -a "$payload/." "$dir/payload/lekiwi/"
   : >"$dir/payload/lekiwi/args"
@@ -261,7 +261,7 @@ prepare_guest() {
 # the cached image, and DIR of --payload as a second disk (/dev/vdb, mounted at /payload).
 prepare_rootfs_guest() {
   local name="$1" payload="$2" port="$3" mem="$4" forwards="$5" dir="$RUN/$1"
-  [ -e "$ROOTFS" ] && [ -e "$PI/rootinit.cpio.gz" ] || die "no root filesystem yet: run scripts/pi.sh rootfs"
+  [ -e "$ROOTFS" ] && [ -e "$PI/rootinit.cpio.gz" ] || die "no root filesystem yet: run scripts/testbed/pi.sh rootfs"
   rm -rf "$dir" && mkdir -p "$dir"
   qemu-img create -q -f qcow2 -F qcow2 -b "$ROOTFS" "$dir/disk.qcow2"
   cat "$PI/base.cpio.gz" "$PI/rootinit.cpio.gz" >"$dir/initrd"
@@ -531,7 +531,7 @@ cmd_rootfs() {
   mkdir -p "$PI"
   exec 8>"$PI/.rootfs.lock"
   flock 8
-  [ -e "$PI/base.cpio.gz" ] || die "run scripts/pi.sh build first"
+  [ -e "$PI/base.cpio.gz" ] || die "run scripts/testbed/pi.sh build first"
   command -v debootstrap >/dev/null || die "debootstrap is missing: run scripts/setup.sh"
   [ -e "$ROOTFS" ] && [ "$(cat "$ROOTFS_STAMP" 2>/dev/null)" = "$(rootfs_stamp)" ] && return 0
   build_rootfs

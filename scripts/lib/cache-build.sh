@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 #! Sourced by the scripts that build into a cache shared across checkouts and callers
-#! (scripts/image.sh, scripts/pi.sh), so that a build is incremental and the same whoever starts it:
+#! (scripts/image.sh, scripts/testbed/pi.sh), so that a build is incremental and the same whoever starts it:
 #!   src_copy DEST   mirrors this checkout's sources (tracked and untracked, not ignored, no .git or
 #!                   target) to DEST, copying only files whose content changed. Building in the
 #!                   checkout itself would rebuild everything whenever its path changes (a fresh CI
@@ -13,7 +13,7 @@
 
 src_copy() {
   local repo dest="$1"
-  repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+  repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)"
   mkdir -p "$dest"
   rsync -rlc --delete --exclude=/.git --exclude=/target --filter=':- .gitignore' "$repo/" "$dest/"
 }

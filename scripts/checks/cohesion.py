@@ -11,9 +11,9 @@
    `struct` or `enum`, which says where they are and why.
 
 Only non-test code counts (a file's trailing `#[cfg(test)] mod` and `*_tests.rs` files are
-skipped). scripts/shape.py runs these checks; run alone, this prints what it finds.
+skipped). scripts/checks/shape.py runs these checks; run alone, this prints what it finds.
 
-Usage: python3 scripts/cohesion.py [DIR ...]
+Usage: python3 scripts/checks/cohesion.py [DIR ...]
 """
 import os
 import re
@@ -30,7 +30,7 @@ IMPL_RE = re.compile(r'^impl(?:<[^{]*?>)?\s+([A-Z]\w*)(?:<[^{]*?>)?\s*(?:where[^
 
 
 def non_test_lines(lines):
-    """The lines before a top-level `#[cfg(test)] mod ... {` (scripts/shape.py counts these too)."""
+    """The lines before a top-level `#[cfg(test)] mod ... {` (scripts/checks/shape.py counts these too)."""
     for i, line in enumerate(lines[:-1]):
         if line.startswith('#[cfg(test)]') and re.match(r'(pub )?mod \w+ \{', lines[i + 1]):
             return lines[:i]

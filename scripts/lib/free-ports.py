@@ -3,7 +3,7 @@
 plane and the benchmarks. They are picked outside the kernel's ephemeral range, so client sockets
 (the fleet simulator opens 10,000) can never take them between this pick and the server's bind.
 
-Usage: python3 scripts/free-ports.py [N]
+Usage: python3 scripts/lib/free-ports.py [N]
 """
 import random
 import socket

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-#! Sourced by scripts/control-plane.sh and scripts/cluster.sh: the background processes they own.
+#! Sourced by scripts/testbed/control-plane.sh and scripts/testbed/cluster.sh: the background processes they own.
 #! Each process NAME has $STATE/NAME.pid and $STATE/NAME.log, and is recognised by its pid file AND
 #! by the argument `marker NAME` prints (the caller defines `marker`, `log` and `die`), so a
 #! recycled pid never makes us signal or trust an unrelated process.

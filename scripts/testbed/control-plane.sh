@@ -3,7 +3,7 @@
 #! controller-manager, no kubelet) as background processes on free 127.0.0.1 ports, for tests and
 #! local development of the LeKiwi fleet control plane.
 #!
-#! Usage: scripts/control-plane.sh <command>
+#! Usage: scripts/testbed/control-plane.sh <command>
 #!   up            start etcd + kube-apiserver and wait for /readyz (idempotent; a healthy instance is
 #!                 left alone; a stopped or crashed one is restarted on the SAME ports with the same
 #!                 data, certificates and tokens)
@@ -13,7 +13,7 @@
 #!                 (etcd or kube-apiserver) only that one
 #!   status        print state, ports and pids; exit 0 if healthy, 1 otherwise
 #!   env           print `export KUBECONFIG=...` and `export PATH=...` lines, for
-#!                 eval "$(scripts/control-plane.sh env)"
+#!                 eval "$(scripts/testbed/control-plane.sh env)"
 #!   crds          server-side apply manifests/crds/ and wait (60 s at most) until each is
 #!                 Established; a CRD created a moment ago has no status.conditions yet, which
 #!                 `kubectl wait --for=condition=Established` takes for an error at once
@@ -55,7 +55,7 @@ resolve_binaries() {
   local dir="$CACHE/k8s/v1.20.2"
   if [ ! -x "$dir/kube-apiserver" ] || [ ! -x "$dir/etcd" ]; then
     log "kube-apiserver/etcd not found in $dir; running scripts/setup.sh"
-    "$SCRIPT_DIR/setup.sh" >&2
+    "$SCRIPT_DIR/../setup.sh" >&2
   fi
   [ -x "$dir/kube-apiserver" ] || die "setup.sh did not produce $dir/kube-apiserver"
   [ -x "$dir/etcd" ] || die "setup.sh did not produce $dir/etcd"
@@ -73,8 +73,8 @@ marker() {
   esac
 }
 
-# shellcheck source=scripts/procs.sh
-source "$(dirname "${BASH_SOURCE[0]}")/procs.sh"
+# shellcheck source=scripts/lib/procs.sh
+source "$(dirname "${BASH_SOURCE[0]}")/../lib/procs.sh"
 
 # ---- state (created once, reused across restarts) -------------------------------------------
 load_ports() {
@@ -96,7 +96,7 @@ PY
 
 pick_ports() {
   local ports
-  mapfile -t ports < <(python3 "$SCRIPT_DIR/free-ports.py" 3)
+  mapfile -t ports < <(python3 "$SCRIPT_DIR/../lib/free-ports.py" 3)
   printf 'ETCD_PORT=%d\nETCD_PEER_PORT=%d\nAPISERVER_PORT=%d\n' "${ports[@]}"
 }
 
@@ -336,7 +336,7 @@ cmd_env() {
 
 cmd_crds() {
   local kubectl=("$BIN_DIR/kubectl" --kubeconfig "$STATE/kubeconfig") crd deadline=$((SECONDS + 60))
-  "${kubectl[@]}" apply --server-side --force-conflicts -f "$SCRIPT_DIR/../manifests/crds/" >/dev/null
+  "${kubectl[@]}" apply --server-side --force-conflicts -f "$SCRIPT_DIR/../../manifests/crds/" >/dev/null
   for crd in robots.fleet.lekiwi.io robotdeployments.fleet.lekiwi.io; do
     until [ "$("${kubectl[@]}" get crd "$crd" \
              -o 'jsonpath={.status.conditions[?(@.type=="Established")].status}')" = True ]; do

@@ -6,7 +6,7 @@
 #! imported with `ctr -n k8s.io images import` (the pause image from scripts/image.sh is imported
 #! by `up`).
 #!
-#! Usage: scripts/cluster.sh <command>
+#! Usage: scripts/testbed/cluster.sh <command>
 #!   up            start everything, wait until the node is Ready and the basics work (idempotent: a
 #!                 healthy cluster is left alone, Released PVs are made Available again)
 #!   down          delete every Pod, stop every process, unmount every mount under the directory,
@@ -16,7 +16,7 @@
 #!                 data and imported images
 #!   down --purge  the same, then delete the directory (alias: clean)
 #!   status        print state, addresses and pids; exit 0 if healthy, 1 otherwise
-#!   env           print export lines for eval "$(scripts/cluster.sh env)": KUBECONFIG, PATH,
+#!   env           print export lines for eval "$(scripts/testbed/cluster.sh env)": KUBECONFIG, PATH,
 #!                 LEKIWI_NODE_IP (the API server and NodePorts listen there), LEKIWI_HOST_IP (the
 #!                 host as Pods reach it), LEKIWI_NODE_NETNS, LEKIWI_NODE_BRIDGE, LEKIWI_POD_CIDR,
 #!                 LEKIWI_SERVICE_CIDR, CONTAINERD_ADDRESS (for `ctr -n k8s.io images import`),
@@ -79,7 +79,7 @@ die() { printf '[cluster] error: %s\n' "$*" >&2; exit 1; }
 usage() { sed -n 's/^#!\( \|$\)//p' "${BASH_SOURCE[0]}"; }
 kc() { "$BIN_DIR/kubectl" --kubeconfig "$STATE/kubeconfig" "$@"; }
 
-# ---- processes (the same pid-file + marker scheme as scripts/control-plane.sh) ---------------
+# ---- processes (the same pid-file + marker scheme as scripts/testbed/control-plane.sh) ---------------
 # Each process is identified by its pid file AND by a marker argument naming this directory, so a
 # recycled pid never makes us signal or trust an unrelated process.
 marker() {
@@ -94,8 +94,8 @@ marker() {
   esac
 }
 
-# shellcheck source=scripts/procs.sh
-source "$(dirname "${BASH_SOURCE[0]}")/procs.sh"
+# shellcheck source=scripts/lib/procs.sh
+source "$(dirname "${BASH_SOURCE[0]}")/../lib/procs.sh"
 
 # Waits until "$@" succeeds; dies naming $what (and the log of $proc) after $TIMEOUT seconds.
 # The last attempt's own output is printed too, and each step's time is logged (a slow step is
@@ -202,7 +202,7 @@ init_state() {
   mkdir -p -m 700 "$STATE/etcd"
   printf '%s\n' "$LAYOUT" >"$STATE/network"
   if [ ! -s "$STATE/ports.env" ]; then
-    mapfile -t p < <(python3 "$SCRIPT_DIR/free-ports.py" 9)
+    mapfile -t p < <(python3 "$SCRIPT_DIR/../lib/free-ports.py" 9)
     printf 'ETCD_PORT=%d\nETCD_PEER_PORT=%d\nAPISERVER_PORT=%d\nKUBELET_PORT=%d\nKUBELET_HEALTHZ_PORT=%d\nPROXY_HEALTHZ_PORT=%d\nPROXY_METRICS_PORT=%d\nCM_PORT=%d\nSCHED_PORT=%d\n' \
       "${p[@]}" >"$STATE/ports.env.tmp"
     mv -f "$STATE/ports.env.tmp" "$STATE/ports.env"
@@ -363,9 +363,9 @@ for table, name in chains:
 }
 
 # ---- configuration files --------------------------------------------------------------------
-# This VM's kernel refuses writes to /proc/self/oom_score_adj; then runc needs scripts/runc-wrapper,
+# This VM's kernel refuses writes to /proc/self/oom_score_adj; then runc needs scripts/testbed/runc-wrapper,
 # copied into the state directory: the cluster outlives the checkout that started it (a deleted
-# CI clone left containerd with "fork/exec .../scripts/runc-wrapper: no such file").
+# CI clone left containerd with "fork/exec .../scripts/testbed/runc-wrapper: no such file").
 runc_binary() {
   if (echo -999 >/proc/self/oom_score_adj) 2>/dev/null; then
     command -v runc
@@ -507,7 +507,7 @@ start_node() {
   write_containerd_config
   spawn_node containerd /usr/bin/containerd "$(marker containerd)"
   wait_for "containerd at $SOCK" containerd ctr --address "$SOCK" version
-  [ -s "$PAUSE_TAR" ] || "$SCRIPT_DIR/image.sh" pause >&2 || die "no pause image at $PAUSE_TAR"
+  [ -s "$PAUSE_TAR" ] || "$SCRIPT_DIR/../image.sh" pause >&2 || die "no pause image at $PAUSE_TAR"
   # containerd answers `version` before every plugin (content store, snapshotter) is loaded.
   wait_for "pause image imported into containerd" containerd \
     ctr --address "$SOCK" -n k8s.io images import "$PAUSE_TAR"
@@ -620,7 +620,7 @@ resolve_binaries() {
   [ -x "$BIN_DIR/kubectl" ] && [ -d /usr/lib/cni ] || missing=1
   if [ $missing = 1 ]; then
     log "binaries missing; running scripts/setup.sh"
-    LEKIWI_BUILD_NODE=1 "$SCRIPT_DIR/setup.sh" >&2
+    LEKIWI_BUILD_NODE=1 "$SCRIPT_DIR/../setup.sh" >&2
   fi
   for b in etcd kube-apiserver kubelet kube-controller-manager kube-scheduler kube-proxy; do
     [ -x "$K8S_DIR/$b" ] || die "setup.sh did not produce $K8S_DIR/$b"

@@ -17,11 +17,11 @@ Reproducible: the same inputs give a byte-identical archive. Tar entries are sor
 0:0 with no user or group names, their mtimes are `--epoch` (default `SOURCE_DATE_EPOCH`, else 0);
 the gzip header has mtime 0 and no file name; JSON has sorted keys and no spaces.
 
-    python3 scripts/oci.py --out FILE.tar --ref NAME:TAG [--file SRC:DEST[:MODE]]...
+    python3 scripts/lib/oci.py --out FILE.tar --ref NAME:TAG [--file SRC:DEST[:MODE]]...
         [--dir DEST[:MODE]]... [--symlink TARGET:DEST]... [--entrypoint JSON_ARRAY]
         [--cmd JSON_ARRAY] [--user UID:GID] [--env K=V]... [--workdir DIR] [--label K=V]...
         [--arch amd64|arm64] [--epoch SECONDS]
-    python3 scripts/oci.py --out FILE.tar --ref NAME:TAG --merge A.tar --merge B.tar [--epoch SECONDS]
+    python3 scripts/lib/oci.py --out FILE.tar --ref NAME:TAG --merge A.tar --merge B.tar [--epoch SECONDS]
 
 Prints the manifest digest and the archive size. Python 3.11 standard library only.
 """
@@ -196,7 +196,7 @@ def image_config(args: argparse.Namespace, diff_id: str, epoch: int) -> dict:
         "created": created.strftime("%Y-%m-%dT%H:%M:%SZ"),
         "config": run,
         "rootfs": {"type": "layers", "diff_ids": [diff_id]},
-        "history": [{"created": created.strftime("%Y-%m-%dT%H:%M:%SZ"), "created_by": "scripts/oci.py"}],
+        "history": [{"created": created.strftime("%Y-%m-%dT%H:%M:%SZ"), "created_by": "scripts/lib/oci.py"}],
     }
     if args.arch == "arm64":
         config["variant"] = "v8"
