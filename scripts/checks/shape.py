@@ -4,7 +4,7 @@ modules with more than --mod non-test, non-comment lines, and (scripts/checks/co
 cycles among sibling modules. A function or module may stay larger with a reason: a comment
 containing `shape:` in the three lines above the `fn`, or in the first five lines of the module.
 No cycle may stay, and a type's inherent impl stays in one file unless the type gives a reason
-(scripts/cohesion.py says how); types that give one are listed as notes.
+(scripts/checks/cohesion.py says how); types that give one are listed as notes.
 With --check it exits 1 when anything but a note is listed (scripts/test.sh runs it).
 
 Usage: python3 scripts/checks/shape.py [--check] [--fn 80] [--mod 400] [DIR ...]
