@@ -117,8 +117,12 @@ PG_DIR="$WORK/pg"
 mkdir -p "$PG_DIR"
 PG_DISK_MB=0
 if [ "$(id -u)" = 0 ]; then
-  # A tmpfs of its own: the disk-full fault fills it without touching the machine's disk.
-  PG_DISK_MB=$((1024 + ROBOTS / 10))
+  # A tmpfs of its own: the disk-full fault fills it without touching the machine's disk. Sized
+  # for the whole run: the database grows about 0.55 MiB per robot and hour at the default
+  # rates (1 MiB here, for headroom; a tmpfs takes memory only for what it holds), the WAL
+  # stays near its 512 MB bound. Too small, the store would fill up for good in the middle of
+  # the run, as no fault does.
+  PG_DISK_MB=$((768 + (ROBOTS + AGENTS) * DURATION / 3600))
   mount -t tmpfs -o "size=${PG_DISK_MB}m,mode=0755" lekiwi-soak-pg "$PG_DIR" \
     || die "could not mount a tmpfs for PostgreSQL"
   ON_EXIT_UMOUNT="umount -l '$PG_DIR' 2>/dev/null"
@@ -132,7 +136,8 @@ touch "$WORK/postgres.log"
 [ "$(id -u)" != 0 ] || chown postgres: "$WORK/postgres.log"
 pg_start() {
   as_postgres "$PG_BIN/pg_ctl" -D "$PG_DIR/data" -l "$WORK/postgres.log" -w -t 60 \
-    -o "-h 127.0.0.1 -p $PG_PORT -k $PG_DIR -c max_connections=200" start >/dev/null
+    -o "-h 127.0.0.1 -p $PG_PORT -k $PG_DIR -c max_connections=200 -c max_wal_size=512MB" \
+    start >/dev/null
 }
 pg_start || die "postgres did not start: $(tail -5 "$WORK/postgres.log")"
 ON_EXIT='as_postgres "$PG_BIN/pg_ctl" -D "$PG_DIR/data" stop -m immediate >/dev/null 2>&1; eval "${ON_EXIT_UMOUNT:-}"'
