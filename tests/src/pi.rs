@@ -48,7 +48,8 @@ fn once(
         let mut cmd = pi_sh(args);
         if script != "pi.sh" {
             cmd = Command::new("bash");
-            cmd.arg(repo_root().join("scripts/testbed").join(script)).args(args);
+            cmd.arg(repo_root().join("scripts/testbed").join(script))
+                .args(args);
         }
         let out = cmd.output().map_err(|e| e.to_string())?;
         if out.status.success() {
