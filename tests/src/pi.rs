@@ -20,11 +20,14 @@ pub const HOST_FROM_GUEST: &str = "10.0.2.2";
 /// The guest port of the agent's status endpoint (`--status-listen 0.0.0.0:9477`).
 pub const GUEST_STATUS_PORT: u16 = 9477;
 
-/// `scripts/testbed/pi.sh` with `args`, with none of the calling `cargo test`'s variables (the script
-/// builds with Debian's cargo in its own target directory).
+/// The emulated Pi's script, by its path in the repository.
+const PI_SH: &str = "scripts/testbed/pi.sh";
+
+/// `scripts/testbed/pi.sh` with `args`, with none of the calling `cargo test`'s variables (the
+/// script builds with Debian's cargo in its own target directory).
 fn pi_sh(args: &[&str]) -> Command {
     let mut cmd = Command::new("bash");
-    cmd.arg(repo_root().join("scripts/testbed/pi.sh"))
+    cmd.arg(repo_root().join(PI_SH))
         .args(args)
         .env("LEKIWI_PI_RUN", log_dir().join("pi"));
     cmd
@@ -34,11 +37,11 @@ fn pi_sh(args: &[&str]) -> Command {
 /// kernel and the initramfs (cached; `scripts/setup.sh` ran it cold already).
 pub fn build() -> Result<()> {
     static BUILT: OnceLock<Result<String, String>> = OnceLock::new();
-    once(&BUILT, "pi.sh", &["build"]).map(drop)
+    once(&BUILT, PI_SH, &["build"]).map(drop)
 }
 
-/// Runs `scripts/testbed/pi.sh` (or another script of `scripts/testbed/`) once per test process and returns its
-/// stdout; the error carries its stderr.
+/// Runs `scripts/testbed/pi.sh` (or another script, by its path in the repository) once per
+/// test process and returns its stdout; the error carries its stderr.
 fn once(
     cell: &'static OnceLock<Result<String, String>>,
     script: &str,
@@ -46,17 +49,16 @@ fn once(
 ) -> Result<String> {
     cell.get_or_init(|| {
         let mut cmd = pi_sh(args);
-        if script != "pi.sh" {
+        if script != PI_SH {
             cmd = Command::new("bash");
-            cmd.arg(repo_root().join("scripts/testbed").join(script))
-                .args(args);
+            cmd.arg(repo_root().join(script)).args(args);
         }
         let out = cmd.output().map_err(|e| e.to_string())?;
         if out.status.success() {
             Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
         } else {
             Err(format!(
-                "scripts/testbed/{script} {} failed:\n{}",
+                "{script} {} failed:\n{}",
                 args.join(" "),
                 String::from_utf8_lossy(&out.stderr)
             ))
@@ -73,7 +75,7 @@ pub fn deb() -> Result<PathBuf> {
     let out = log_dir().join("deb");
     let path = once(
         &DEB,
-        "deb.sh",
+        "scripts/deb.sh",
         &["--arch", "arm64", "--out", out.to_str().context("log dir")?],
     )?;
     Ok(PathBuf::from(path.lines().last().unwrap_or_default()))
@@ -84,7 +86,7 @@ pub fn deb() -> Result<PathBuf> {
 pub fn rootfs() -> Result<()> {
     static ROOTFS: OnceLock<Result<String, String>> = OnceLock::new();
     build()?;
-    once(&ROOTFS, "pi.sh", &["rootfs"]).map(drop)
+    once(&ROOTFS, PI_SH, &["rootfs"]).map(drop)
 }
 
 /// What the guest's `/init` runs (`lekiwi.run=` on the kernel command line).
