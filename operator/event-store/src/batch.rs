@@ -157,13 +157,12 @@ impl Store {
         // Every flusher claims seqs in the same order: two claiming some of the same (each
         // waits for the other's transaction) wait in a line, never in a circle (a deadlock).
         first.sort_unstable_by(|a, b| (&a.robot, a.seq).cmp(&(&b.robot, b.seq)));
-        // The first copies the store holds now, stored by this flush or before it.
-        let mut held = HashSet::new();
+        // The first copies this flush could not store (none when the batch went in whole).
+        let mut failed = HashSet::new();
         match self.insert_event_rows(&first).await {
             Ok(inserted) => {
                 for p in first {
                     let new = inserted.contains(&row_key(&p));
-                    held.insert(row_key(&p));
                     let _ = p.reply.send(Ok(new));
                 }
             }
@@ -173,8 +172,8 @@ impl Store {
                     let single = self
                         .insert_event_row(&p.robot, p.seq, &p.event, p.bytes, p.received_ms)
                         .await;
-                    if single.is_ok() {
-                        held.insert(row_key(&p));
+                    if single.is_err() {
+                        failed.insert(row_key(&p));
                     }
                     let _ = p.reply.send(single);
                 }
@@ -183,13 +182,13 @@ impl Store {
         // A copy is a replay only if its first copy is stored: when that insert failed, the
         // copy fails with it, as acknowledging it would lose the message.
         for p in repeats {
-            let answer = if held.contains(&row_key(&p)) {
-                Ok(false)
-            } else {
+            let answer = if failed.contains(&row_key(&p)) {
                 Err(Error::NotStored {
                     robot: p.robot.to_string(),
                     seq: p.seq,
                 })
+            } else {
+                Ok(false)
             };
             let _ = p.reply.send(answer);
         }
@@ -331,6 +330,10 @@ mod tests {
             matches!(copy, Err(Error::NotStored { seq: 7, .. })),
             "{copy:?}"
         );
-        assert!(copy.unwrap_err().is_transient());
+        assert!(
+            copy.unwrap_err()
+                .to_string()
+                .contains("message 7 of robot lab/kiwi-1 was not stored")
+        );
     }
 }
