@@ -37,21 +37,6 @@ pub enum Error {
     Store(#[from] lekiwi_event_store::Error),
 }
 
-impl Error {
-    /// A bounded label for the `reason` of the error metric.
-    pub fn metric_reason(&self) -> &'static str {
-        match self {
-            Error::KubeConfig(_) => "kube_config",
-            Error::CrdMissing(_) | Error::Crd { .. } | Error::CrdNotEstablished(_) => "crd",
-            Error::Controllers(e) => e.metric_reason(),
-            Error::Lease { .. } => "lease",
-            Error::Serve { .. } => "serve",
-            Error::TaskStopped(_) => "task_stopped",
-            Error::Store(_) => "store",
-        }
-    }
-}
-
 /// Result with the operator's [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
@@ -59,16 +44,19 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 mod tests {
     use super::*;
 
+    /// What `lekiwi-operator` prints when it cannot start: the failing part and its reason.
     #[tokio::test]
-    async fn store_errors_are_wrapped_with_their_reason() {
+    async fn start_up_errors_name_the_part_that_failed() {
         let err: Error = lekiwi_event_store::Store::connect("nope://x")
             .await
             .unwrap_err()
             .into();
-        assert_eq!(err.metric_reason(), "store");
         assert!(
             err.to_string()
-                .starts_with("event store: unsupported event store URL")
+                .starts_with("event store: unsupported event store URL"),
+            "{err}"
         );
+        let err: Error = lekiwi_controllers::Error::TaskStopped("robot reflector").into();
+        assert_eq!(err.to_string(), "task robot reflector stopped unexpectedly");
     }
 }

@@ -107,22 +107,5 @@ pub enum Error {
     SeqOutOfRange(u64),
 }
 
-impl Error {
-    /// Whether the same call can succeed later (the database unreachable, slow, or busy; the
-    /// store closing): a caller backs off and retries. The rest (a bad URL or directory, a
-    /// failed migration, a robot over its quota, a sequence number out of range) fail again
-    /// however often they are tried.
-    pub fn is_transient(&self) -> bool {
-        !matches!(
-            self,
-            Error::UnsupportedUrl { .. }
-                | Error::CreateDir { .. }
-                | Error::Migrate { .. }
-                | Error::QuotaExceeded { .. }
-                | Error::SeqOutOfRange(_)
-        )
-    }
-}
-
 /// Result with the event store's [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;

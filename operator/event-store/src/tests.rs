@@ -633,13 +633,3 @@ async fn migration_gives_old_rows_a_clamped_receive_time_and_their_size() {
         4_000_000_000_000
     );
 }
-
-#[test]
-fn errors_say_whether_a_retry_can_help() {
-    assert!(Error::Closed.is_transient());
-    assert!(!Error::SeqOutOfRange(u64::MAX).is_transient());
-    let bad_url = Error::UnsupportedUrl {
-        reason: "no scheme".into(),
-    };
-    assert!(!bad_url.is_transient());
-}
