@@ -77,15 +77,17 @@ impl Error {
 /// Result with the controllers' [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 
+/// The API server's answer `code` as the client reports it, for tests.
+#[cfg(test)]
+pub(crate) fn api(code: u16) -> kube::Error {
+    let status: kube::core::Status =
+        serde_json::from_value(serde_json::json!({ "code": code })).unwrap();
+    kube::Error::Api(Box::new(status))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn api(code: u16) -> kube::Error {
-        let status: kube::core::Status =
-            serde_json::from_value(serde_json::json!({ "code": code })).unwrap();
-        kube::Error::Api(Box::new(status))
-    }
 
     fn patch(code: u16) -> Error {
         Error::PatchStatus {

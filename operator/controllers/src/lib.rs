@@ -273,11 +273,9 @@ mod tests {
     }
 
     fn failed(ctx: &Context, code: u16) -> Duration {
-        let status: kube::core::Status =
-            serde_json::from_value(serde_json::json!({ "code": code })).unwrap();
         let error = Error::PatchStatus {
             object: "lab/kiwi".into(),
-            source: kube::Error::Api(Box::new(status)),
+            source: error::api(code),
         };
         ctx.reconcile_failed(ControllerName::robot, "kiwi", "lab", &error)
     }
