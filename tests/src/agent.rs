@@ -16,8 +16,10 @@ use crate::process::{ChildProcess, Launch};
 use crate::{bin, free_port, log_dir, wait_for};
 
 /// The flags every test agent runs with: no mDNS, quick reconnects and connect timeouts, JSON
-/// logs (which the tests read).
-pub const QUICK_AGENT_FLAGS: [&str; 10] = [
+/// logs (which the tests read), and no disk check: test agents share the build machine's disk,
+/// whose fill (build output, other tenants of a shared volume) says nothing about the behaviour
+/// under test and made whole rollouts skip "unhealthy" robots. The check has its unit tests.
+pub const QUICK_AGENT_FLAGS: [&str; 12] = [
     "--mdns",
     "false",
     "--backoff-initial-ms",
@@ -28,6 +30,8 @@ pub const QUICK_AGENT_FLAGS: [&str; 10] = [
     "5",
     "--log-format",
     "json",
+    "--health-disk-max-percent",
+    "0",
 ];
 
 /// A real `lekiwi-agent` process with its own state directory, for tests; SIGKILLed when dropped.

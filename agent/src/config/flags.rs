@@ -227,8 +227,8 @@ pub struct Flags {
     #[arg(long, env = "LEKIWI_HEALTH_SERIAL_DEVICE")]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub health_serial_device: Option<PathBuf>,
-    /// Use of the state directory's file system, percent, from which the robot is unhealthy
-    /// (0 turns the check off).
+    /// Use of the state directory's file system, percent as `df` shows it, from which the robot
+    /// is unhealthy (0 turns the check off).
     #[arg(long, env = "LEKIWI_HEALTH_DISK_MAX_PERCENT")]
     #[serde(skip_serializing_if = "Option::is_none")]
     pub health_disk_max_percent: Option<f64>,

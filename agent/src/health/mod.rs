@@ -111,7 +111,7 @@ impl Checks {
             });
         }
         if self.disk_max_percent > 0.0
-            && let Some(used) = used_percent(&self.state_dir)
+            && let Some(used) = crate::telemetry::fs_use_percent(&self.state_dir)
             && used >= self.disk_max_percent
         {
             failures.push(Failure {
@@ -229,17 +229,6 @@ pub fn find_process(proc_root: &Path, pattern: &[u8], own_pid: u32) -> Option<u3
             std::fs::read(proc_root.join(pid.to_string()).join("cmdline"))
                 .is_ok_and(|mut cmdline| crate::teleop::cmdline_contains(&mut cmdline, pattern))
         })
-}
-
-/// Percent in use of the file system holding `path`, counting blocks reserved for root as
-/// used (what `df` shows); `None` when it cannot be read or has no size (ramfs). Asked of the
-/// file system itself (`statvfs`), so it also works where no mount table lists the path, as on
-/// an initramfs root.
-fn used_percent(path: &Path) -> Option<f64> {
-    let st = rustix::fs::statvfs(path).ok()?;
-    let total = st.f_blocks.saturating_mul(st.f_frsize);
-    let available = st.f_bavail.saturating_mul(st.f_frsize);
-    (total > 0).then(|| total.saturating_sub(available) as f64 * 100.0 / total as f64)
 }
 
 /// What the periodic checks publish: the verdict, whose changes the run loop waits for, and the

@@ -52,8 +52,8 @@ mod thermal;
 pub use delta::{
     CompressionStats, DeltaFilter, Metric, MetricStats, NETWORK_DELTA_FLOOR_BYTES_PER_S, Threshold,
 };
-pub use probe::system_facts;
 use probe::{Probe, SystemProbe};
+pub use probe::{fs_use_percent, system_facts};
 
 /// Delay from [`Telemetry::new`] to the first collection: long enough for a meaningful first CPU
 /// reading (it needs two counter snapshots), short enough that the fleet sees the robot's state
@@ -374,7 +374,7 @@ mod tests {
 
     use lekiwi_protocol::{AgentMessage, encode};
 
-    use super::probe::{MemoryReading, NetworkReading, pick_sensors, used_percent};
+    use super::probe::{MemoryReading, NetworkReading, pick_sensors, use_percent};
     use super::*;
 
     fn secs(s: u64) -> Duration {
@@ -876,10 +876,14 @@ mod tests {
     }
 
     #[test]
-    fn disk_use_counts_reserved_blocks_and_an_empty_file_system_has_none() {
-        assert_eq!(used_percent(1000, 250), Some(75.0));
-        assert_eq!(used_percent(1000, 2000), Some(0.0));
-        assert_eq!(used_percent(0, 0), None);
+    fn disk_use_is_what_df_shows_and_an_empty_file_system_has_none() {
+        // 1000 blocks, 600 free, 100 of them usable without root: 400 used of 500 usable.
+        assert_eq!(use_percent(1000, 600, 100), Some(80.0));
+        // Nothing reserved: used over total.
+        assert_eq!(use_percent(1000, 250, 250), Some(75.0));
+        assert_eq!(use_percent(1000, 1000, 1000), Some(0.0));
+        assert_eq!(use_percent(1000, 1000, 0), None);
+        assert_eq!(use_percent(0, 0, 0), None);
     }
 
     #[test]

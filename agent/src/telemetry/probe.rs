@@ -2,9 +2,9 @@
 //! for this machine, which refreshes only what each sampler reads.
 
 use lekiwi_protocol::SystemFacts;
-use sysinfo::{
-    Components, CpuRefreshKind, DiskRefreshKind, Disks, MemoryRefreshKind, Networks, System,
-};
+use std::path::Path;
+
+use sysinfo::{Components, CpuRefreshKind, MemoryRefreshKind, Networks, System};
 use tracing::info;
 
 use super::thermal::ThermalZones;
@@ -64,9 +64,6 @@ pub(super) struct SystemProbe {
     components: Components,
     /// Indices into `components` of the sensors that count (see [`pick_sensors`]).
     sensors: Vec<usize>,
-    disks: Disks,
-    /// Index into `disks` of the root file system.
-    root_disk: Option<usize>,
 }
 
 impl SystemProbe {
@@ -82,16 +79,12 @@ impl SystemProbe {
             Components::new()
         };
         let sensors = pick_sensors(components.list().iter().map(sysinfo::Component::label));
-        let disks =
-            Disks::new_with_refreshed_list_specifics(DiskRefreshKind::nothing().with_storage());
-        let root_disk = pick_root_disk(&disks);
         info!(
             thermal_zones = ?zones.names(),
             sensors = ?sensors
                 .iter()
                 .map(|&i| components.list()[i].label())
                 .collect::<Vec<_>>(),
-            disk = ?root_disk.map(|i| disks.list()[i].mount_point()),
             "telemetry samplers ready"
         );
         Self {
@@ -101,8 +94,6 @@ impl SystemProbe {
             zones,
             components,
             sensors,
-            disks,
-            root_disk,
         }
     }
 }
@@ -189,14 +180,7 @@ impl Probe for SystemProbe {
     }
 
     fn disk_percent(&mut self) -> Option<f64> {
-        if self.root_disk.is_none() {
-            self.disks
-                .refresh_specifics(true, DiskRefreshKind::nothing().with_storage());
-            self.root_disk = pick_root_disk(&self.disks);
-        }
-        let disk = self.disks.list_mut().get_mut(self.root_disk?)?;
-        disk.refresh_specifics(DiskRefreshKind::nothing().with_storage());
-        used_percent(disk.total_space(), disk.available_space())
+        fs_use_percent(Path::new("/"))
     }
 
     fn uptime_s(&self) -> Option<u64> {
@@ -234,20 +218,20 @@ pub(super) fn pick_sensors<'a>(labels: impl Iterator<Item = &'a str>) -> Vec<usi
     }
 }
 
-/// The disk mounted at `/`, else the largest.
-fn pick_root_disk(disks: &Disks) -> Option<usize> {
-    let list = disks.list();
-    list.iter()
-        .position(|d| d.mount_point() == std::path::Path::new("/"))
-        .or_else(|| {
-            list.iter()
-                .enumerate()
-                .max_by_key(|(_, d)| d.total_space())
-                .map(|(i, _)| i)
-        })
+/// Percent in use of the file system holding `path`, as `df` reports it; `None` when it cannot
+/// be read or has no size (ramfs). Asked of the file system itself (`statvfs`), so it also
+/// works where no mount table lists the path, as on an initramfs root.
+pub fn fs_use_percent(path: &Path) -> Option<f64> {
+    let st = rustix::fs::statvfs(path).ok()?;
+    use_percent(st.f_blocks, st.f_bfree, st.f_bavail)
 }
 
-/// Percent of a file system in use, counting reserved blocks as used.
-pub(super) fn used_percent(total: u64, available: u64) -> Option<f64> {
-    (total > 0).then(|| total.saturating_sub(available) as f64 * 100.0 / total as f64)
+/// Percent in use of a file system of `blocks` blocks, `free` of them free and `available` of
+/// those usable without root, as `df` computes it: used over used plus available, so the blocks
+/// only root may use count on neither side. A shared or quota-bound file system thus reads as
+/// full as it is for the agent, not as full as its reservation makes it look.
+pub(super) fn use_percent(blocks: u64, free: u64, available: u64) -> Option<f64> {
+    let used = blocks.saturating_sub(free);
+    let usable = used.saturating_add(available);
+    (usable > 0).then(|| used as f64 * 100.0 / usable as f64)
 }
