@@ -149,6 +149,16 @@ impl Postgres {
         self.spawn()
     }
 
+    /// Stops the server cleanly and leaves it down (an outage) until [`Postgres::start_again`].
+    pub fn shut_down(&mut self) -> Result<()> {
+        self.stop("INT")
+    }
+
+    /// Starts a server stopped by [`Postgres::shut_down`] on the same port and data.
+    pub fn start_again(&mut self) -> Result<()> {
+        self.spawn()
+    }
+
     /// Stops the server as a crash would (immediate shutdown: no checkpoint, so the next start
     /// runs crash recovery from the WAL) and starts it again on the same port and data.
     pub fn crash_restart(&mut self) -> Result<()> {

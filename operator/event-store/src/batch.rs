@@ -159,7 +159,9 @@ impl Store {
         first.sort_unstable_by(|a, b| (&a.robot, a.seq).cmp(&(&b.robot, b.seq)));
         // The first copies this flush could not store (none when the batch went in whole).
         let mut failed = HashSet::new();
-        match self.insert_event_rows(&first).await {
+        // Events that waited for a flusher while the database went out of reach are refused
+        // at once, not after another connect deadline.
+        match self.unless_down(self.insert_event_rows(&first)).await {
             Ok(inserted) => {
                 for p in first {
                     let new = inserted.contains(&row_key(&p));
@@ -167,10 +169,20 @@ impl Store {
                 }
             }
             Err(e) => {
-                tracing::warn!(error = %e, events = first.len(), "batched event insert failed; inserting one by one");
+                // One by one finds the bad row of a refused batch; with the database out of
+                // reach it would wait out the connect deadline once per row: those are refused.
+                if !matches!(e, Error::Unavailable { .. }) {
+                    tracing::warn!(error = %e, events = first.len(), "batched event insert failed; inserting one by one");
+                }
                 for p in first {
                     let single = self
-                        .insert_event_row(&p.robot, p.seq, &p.event, p.bytes, p.received_ms)
+                        .unless_down(self.insert_event_row(
+                            &p.robot,
+                            p.seq,
+                            &p.event,
+                            p.bytes,
+                            p.received_ms,
+                        ))
                         .await;
                     if single.is_err() {
                         failed.insert(row_key(&p));

@@ -13,6 +13,10 @@ use tokio::sync::{mpsc, oneshot};
 
 use super::{Error, Result, Store};
 
+// The first disconnect wins: a late duplicate must not rewrite when or why it closed.
+const CLOSE_CONNECTION: &str = "UPDATE connections SET disconnected_at_ms = $2, reason = $3 \
+     WHERE id = $1 AND disconnected_at_ms IS NULL";
+
 /// Rows per statement (three parameters each).
 const CLOSES_PER_STATEMENT: usize = 500;
 /// Closes waiting for a flush before a session's close waits for room.
@@ -27,6 +31,37 @@ pub(super) struct Close {
 }
 
 impl Store {
+    /// Marks connection `id` closed at `at_ms` (batched with other sessions' closes). A
+    /// connection already closed keeps its first time and reason; an unknown id changes nothing.
+    pub async fn record_disconnect(&self, id: i64, at_ms: i64, reason: &str) -> Result<()> {
+        self.refuse_while_down()?;
+        let closed = self.close_connection(id, at_ms, reason).await;
+        self.noted(closed)
+    }
+
+    /// [`Store::record_disconnect`] in a statement of its own.
+    pub(super) async fn close_connection_row(
+        &self,
+        id: i64,
+        at_ms: i64,
+        reason: &str,
+    ) -> Result<()> {
+        with_pool!(self, pool => {
+            sqlx::query(CLOSE_CONNECTION)
+                .bind(id)
+                .bind(at_ms)
+                .bind(reason)
+                .execute(pool)
+                .await
+                .map(|_| ())
+        })
+        .map_err(|source| Error::Update {
+            what: "connection",
+            source,
+        })?;
+        Ok(())
+    }
+
     /// Closes connection record `id` through the batcher if there is one.
     pub(super) async fn close_connection(&self, id: i64, at_ms: i64, reason: &str) -> Result<()> {
         let Some(batcher) = &self.batcher else {
@@ -61,10 +96,19 @@ impl Store {
             batch.into_iter().partition(|c| seen.insert(c.id));
         for chunk in first.chunks(CLOSES_PER_STATEMENT) {
             statements.fetch_add(1, Ordering::Relaxed);
-            if let Err(e) = self.close_rows(chunk).await {
+            // Skipped at once while the database is out of reach (the records stay open until
+            // the gateway's next start closes them), one by one too.
+            if let Err(e) = self.unless_down(self.close_rows(chunk)).await {
+                if matches!(e, Error::Unavailable { .. }) {
+                    continue;
+                }
                 tracing::warn!(error = %e, closes = chunk.len(), "batched connection close failed; closing one by one");
                 for c in chunk {
-                    if let Err(e) = self.close_connection_row(c.id, c.at_ms, &c.reason).await {
+                    let closed =
+                        self.unless_down(self.close_connection_row(c.id, c.at_ms, &c.reason));
+                    if let Err(e) = closed.await
+                        && !matches!(e, Error::Unavailable { .. })
+                    {
                         tracing::warn!(error = %e, id = c.id, "cannot close a connection record");
                     }
                 }

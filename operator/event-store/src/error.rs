@@ -99,12 +99,48 @@ pub enum Error {
         /// The message's sequence number.
         seq: i64,
     },
+    /// The database has been out of reach since a write failed for want of a connection;
+    /// nothing was tried: writes are refused until a probe finds the database again.
+    #[error("the {backend} event store has been out of reach for {for_s} s; not stored")]
+    Unavailable {
+        /// `sqlite` or `postgres`.
+        backend: &'static str,
+        /// Seconds since the outage began.
+        for_s: u64,
+    },
     /// The store was closed (the gateway is stopping) before the message was stored.
     #[error("the event store is closed")]
     Closed,
     /// A sequence number too large for the database's signed 64-bit integers.
     #[error("sequence number {0} is out of range: the event store holds at most {max}", max = i64::MAX)]
     SeqOutOfRange(u64),
+}
+
+impl Error {
+    /// Whether this failure says the database could not be reached at all (no connection in
+    /// time, a broken socket, the server shutting down), not that it refused one statement.
+    pub(crate) fn unreachable(&self) -> bool {
+        match self {
+            Error::Insert { source, .. }
+            | Error::Update { source, .. }
+            | Error::Query { source, .. }
+            | Error::Prune(source) => unreachable(source),
+            Error::Unavailable { .. } => true,
+            _ => false,
+        }
+    }
+}
+
+/// No connection in time, I/O or TLS failing, or PostgreSQL's connection exceptions (class 08)
+/// and shutdown codes (57P01-57P03).
+fn unreachable(e: &sqlx::Error) -> bool {
+    match e {
+        sqlx::Error::PoolTimedOut | sqlx::Error::Io(_) | sqlx::Error::Tls(_) => true,
+        sqlx::Error::Database(db) => db.code().is_some_and(|code| {
+            code.starts_with("08") || matches!(code.as_ref(), "57P01" | "57P02" | "57P03")
+        }),
+        _ => false,
+    }
 }
 
 /// Result with the event store's [`Error`].

@@ -103,7 +103,7 @@ pub struct PruneCounts {
 #[derive(Clone)]
 // shape: one method family per file: records.rs writes and reads, batch.rs, opens.rs and closes.rs
 // the batched writes, history.rs paged reads, quota.rs quotas, retention.rs pruning, connect.rs
-// opening.
+// opening, outage.rs refusing writes while the database is out of reach.
 pub struct Store {
     backend: Backend,
     /// Each robot's usage against the quota, shared by clones.
@@ -111,6 +111,8 @@ pub struct Store {
     /// Batches event inserts, session opens and connection closes (see [`batch`]); `None`
     /// outside a Tokio runtime.
     batcher: Option<batch::Batcher>,
+    /// Since when the database has been out of reach, shared by clones (see [`outage`]).
+    outage: Arc<outage::Outage>,
 }
 
 #[derive(Clone)]
@@ -162,6 +164,7 @@ mod connect;
 mod drain;
 mod history;
 mod opens;
+mod outage;
 mod quota;
 mod records;
 mod retention;
@@ -176,6 +179,7 @@ impl Store {
             backend,
             ledger: Arc::new(quota::Ledger::new(Quota::UNLIMITED)),
             batcher: None,
+            outage: Arc::default(),
         }
         .batched()
     }

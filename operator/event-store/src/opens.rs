@@ -102,6 +102,12 @@ impl Store {
     /// Records a new session's connection and reads its robot's last stored seq, batched with
     /// other sessions opening at the same time (one by one without a batcher).
     pub async fn open_session(&self, robot: &RobotKey, record: &ConnectionRecord) -> SessionStart {
+        if let Err(e) = self.refuse_while_down() {
+            return SessionStart {
+                record_id: Err(e),
+                last_seq: self.refuse_while_down().map(|()| None),
+            };
+        }
         let Some(batcher) = &self.batcher else {
             return self.open_session_alone(robot, record).await;
         };
@@ -141,12 +147,17 @@ impl Store {
     /// whichever of the two fails, so a bad row fails only its own session.
     async fn flush_opens(&self, batch: Vec<Open>, statements: &AtomicU64) {
         statements.fetch_add(2, Ordering::Relaxed);
-        let ids = self.insert_connection_rows(&batch).await;
-        let seqs = self.last_seq_rows(&batch).await;
-        if let Err(e) = &ids {
+        // Refused at once while the database is out of reach, and one by one then too.
+        let ids = self.unless_down(self.insert_connection_rows(&batch)).await;
+        let seqs = self.unless_down(self.last_seq_rows(&batch)).await;
+        if let Err(e) = &ids
+            && !matches!(e, Error::Unavailable { .. })
+        {
             tracing::warn!(error = %e, sessions = batch.len(), "batched connection insert failed; inserting one by one");
         }
-        if let Err(e) = &seqs {
+        if let Err(e) = &seqs
+            && !matches!(e, Error::Unavailable { .. })
+        {
             tracing::warn!(error = %e, sessions = batch.len(), "batched last-seq read failed; reading one by one");
         }
         let (mut ids, seqs) = (ids.ok(), seqs.ok());
@@ -156,11 +167,14 @@ impl Store {
                     .get_mut(&record_key(&open.robot, &open.record))
                     .and_then(Vec::pop)
                     .ok_or_else(|| missing(&open.robot)),
-                None => self.record_connect(&open.robot, &open.record).await,
+                None => {
+                    self.unless_down(self.record_connect(&open.robot, &open.record))
+                        .await
+                }
             };
             let last_seq = match &seqs {
                 Some(seqs) => Ok(seqs.get(&open.robot).copied().flatten()),
-                None => self.last_seq(&open.robot).await,
+                None => self.unless_down(self.last_seq(&open.robot)).await,
             };
             let _ = open.reply.send(SessionStart {
                 record_id,

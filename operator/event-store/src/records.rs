@@ -74,9 +74,6 @@ const LAST_SEQ: &str = "SELECT MAX(seq) FROM (\
 const INSERT_CONNECTION: &str = "INSERT INTO connections \
      (namespace, robot, gateway, protocol, address, connected_at_ms, disconnected_at_ms, reason) \
      VALUES ($1, $2, $3, $4, $5, $6, $7, $8) RETURNING id";
-// The first disconnect wins: a late duplicate must not rewrite when or why it closed.
-const CLOSE_CONNECTION: &str = "UPDATE connections SET disconnected_at_ms = $2, reason = $3 \
-     WHERE id = $1 AND disconnected_at_ms IS NULL";
 const CLOSE_GATEWAY_CONNECTIONS: &str = "UPDATE connections SET disconnected_at_ms = $2, reason = $3 \
      WHERE gateway = $1 AND disconnected_at_ms IS NULL";
 const SELECT_EVENTS: &str = "SELECT seq, ts_ms, kind, severity, message, data FROM events \
@@ -108,9 +105,10 @@ impl Store {
         received_ms: i64,
     ) -> Result<bool> {
         let seq = to_db_seq(ev.seq)?;
+        self.refuse_while_down()?;
         let bytes = event_bytes(ev);
-        self.check_quota_unless_stored(robot, seq, 1, bytes).await?;
-        let inserted = self.store_event(robot, seq, ev, bytes, received_ms).await?;
+        self.noted(self.check_quota_unless_stored(robot, seq, 1, bytes).await)?;
+        let inserted = self.noted(self.store_event(robot, seq, ev, bytes, received_ms).await)?;
         if inserted {
             self.count_stored(robot, 1, bytes);
         }
@@ -216,10 +214,13 @@ impl Store {
         received_ms: i64,
     ) -> Result<bool> {
         let seq = to_db_seq(seq)?;
+        self.refuse_while_down()?;
         let rows = samples.len() as u64;
         let bytes = samples.iter().map(sample_bytes).sum::<u64>();
-        self.check_quota_unless_stored(robot, seq, rows, bytes)
-            .await?;
+        self.noted(
+            self.check_quota_unless_stored(robot, seq, rows, bytes)
+                .await,
+        )?;
         // An empty batch still claims its seq; retention drops it like any other.
         let max_ts_ms = samples
             .iter()
@@ -278,7 +279,8 @@ impl Store {
             what: "telemetry",
             robot: robot.to_string(),
             source,
-        })?;
+        });
+        let inserted = self.noted(inserted)?;
         if inserted {
             self.count_stored(robot, rows, bytes);
         }
@@ -322,35 +324,6 @@ impl Store {
             robot: robot.to_string(),
             source,
         })
-    }
-
-    /// Marks connection `id` closed at `at_ms` (batched with other sessions' closes). A
-    /// connection already closed keeps its first time and reason; an unknown id changes nothing.
-    pub async fn record_disconnect(&self, id: i64, at_ms: i64, reason: &str) -> Result<()> {
-        self.close_connection(id, at_ms, reason).await
-    }
-
-    /// [`Store::record_disconnect`] in a statement of its own.
-    pub(super) async fn close_connection_row(
-        &self,
-        id: i64,
-        at_ms: i64,
-        reason: &str,
-    ) -> Result<()> {
-        with_pool!(self, pool => {
-            sqlx::query(CLOSE_CONNECTION)
-                .bind(id)
-                .bind(at_ms)
-                .bind(reason)
-                .execute(pool)
-                .await
-                .map(|_| ())
-        })
-        .map_err(|source| Error::Update {
-            what: "connection",
-            source,
-        })?;
-        Ok(())
     }
 
     /// Closes every record `gateway` left open, e.g. when it restarts after a crash; returns how

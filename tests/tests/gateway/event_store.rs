@@ -501,6 +501,119 @@ async fn data_survives_reconnects_and_restarts(mut db: Db) -> Result<()> {
     Ok(())
 }
 
+/// PostgreSQL down for a while: each session's writes are refused at once, not after the
+/// pool's 30 s connect deadline each (a session storing five messages used to be held for
+/// minutes, its heartbeats and commands behind them); once the server is back the resent
+/// messages go in, each once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn postgres_down_refuses_writes_at_once_and_takes_them_back_up() -> Result<()> {
+    const ROBOTS: usize = 40;
+    const EVENTS: u64 = 5;
+    /// The pool's connect deadline: the longest a write may wait once, to learn of the outage.
+    const CONNECT_DEADLINE: std::time::Duration = std::time::Duration::from_secs(30);
+    let Db::Postgres(mut pg) = Db::postgres()? else {
+        unreachable!()
+    };
+    let store = Store::connect(&pg.url("lekiwi")).await?;
+    store
+        .insert_event(&robot("kiwi-0"), &event(1, 1_000))
+        .await?;
+    pg.shut_down()?;
+
+    // Every robot's session stores its messages one after another, as a session does.
+    let started = std::time::Instant::now();
+    let mut sessions = tokio::task::JoinSet::new();
+    for i in 0..ROBOTS {
+        let (store, r) = (store.clone(), robot(&format!("kiwi-{i}")));
+        sessions.spawn(async move {
+            let t0 = std::time::Instant::now();
+            let mut refused = Vec::new();
+            for seq in 2..2 + EVENTS {
+                let answer = if seq % 2 == 0 {
+                    store.insert_event(&r, &event(seq, 2_000)).await
+                } else {
+                    store
+                        .insert_telemetry(&r, seq, &[sample("cpu_percent", 2_000, 1.0)])
+                        .await
+                };
+                refused.push(answer.expect_err("nothing is stored while the server is down"));
+            }
+            (t0.elapsed(), refused)
+        });
+    }
+    let mut unavailable = 0;
+    while let Some(joined) = sessions.join_next().await {
+        let (took, refused) = joined?;
+        ensure!(
+            took < CONNECT_DEADLINE + std::time::Duration::from_secs(10),
+            "a session's {EVENTS} writes took {took:?}: more than one connect deadline"
+        );
+        unavailable += refused
+            .iter()
+            .filter(|e| matches!(e, Error::Unavailable { .. }))
+            .count();
+    }
+    println!(
+        "{} writes refused in {:?}, {unavailable} of them at once",
+        ROBOTS * EVENTS as usize,
+        started.elapsed()
+    );
+    ensure!(
+        unavailable >= ROBOTS * (EVENTS as usize - 1),
+        "after its first, every session's writes are refused at once ({unavailable})"
+    );
+    // A session opening meanwhile is told at once too.
+    let t0 = std::time::Instant::now();
+    let start = store
+        .open_session(&robot("kiwi-new"), &connection(3_000))
+        .await;
+    ensure!(
+        matches!(start.record_id, Err(Error::Unavailable { .. })) && start.last_seq.is_err(),
+        "{start:?}"
+    );
+    ensure!(
+        t0.elapsed() < std::time::Duration::from_secs(1),
+        "{:?}",
+        t0.elapsed()
+    );
+
+    // Back up: the probe finds it within seconds; the resent messages go in once each.
+    pg.start_again()?;
+    let back = std::time::Instant::now();
+    loop {
+        match store.insert_event(&robot("kiwi-0"), &event(2, 2_000)).await {
+            Ok(new) => {
+                ensure!(new, "kiwi-0's message 2 stored now");
+                break;
+            }
+            Err(e) if back.elapsed() < std::time::Duration::from_secs(20) => {
+                eprintln!("not yet: {e}");
+                tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
+    println!(
+        "writes taken again {:?} after the server started",
+        back.elapsed()
+    );
+    for i in 0..ROBOTS {
+        let r = robot(&format!("kiwi-{i}"));
+        for seq in 2..2 + EVENTS {
+            let again = if seq % 2 == 0 {
+                store.insert_event(&r, &event(seq, 2_000)).await?
+            } else {
+                store
+                    .insert_telemetry(&r, seq, &[sample("cpu_percent", 2_000, 1.0)])
+                    .await?
+            };
+            ensure!(again == (i != 0 || seq != 2), "{r:?} {seq}: stored once");
+        }
+        assert_eq!(store.last_seq(&r).await?, Some(1 + EVENTS), "{r:?}");
+    }
+    Ok(())
+}
+
 /// Brings `db` to the state the first `migrations` schema versions left, then runs `rows`
 /// (plain SQL, the same text on both backends) in it.
 async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {

@@ -220,7 +220,13 @@ where
             }
             Err(e) => {
                 self.shared.metrics.gateway.event_store_error("write");
-                warn!(seq, error = %e, "cannot store a durable message");
+                if matches!(e, event_store::Error::Unavailable { .. }) {
+                    // The store logged the outage once; every message refused meanwhile
+                    // would flood the log.
+                    debug!(seq, error = %e, "durable message refused: event store out of reach");
+                } else {
+                    warn!(seq, error = %e, "cannot store a durable message");
+                }
                 ServerMessage::Error {
                     code: ErrorCode::StoreUnavailable,
                     message: format!("message {seq} was not stored; resend it later"),
