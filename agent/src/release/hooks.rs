@@ -152,17 +152,21 @@ impl Hooks {
     }
 }
 
-/// Sends SIGKILL to the process group `pgid` (the crate forbids `unsafe`, so by `kill(1)`);
-/// a failure leaves only the group leader to kill, which the caller does anyway.
+/// Sends SIGKILL to the process group `pgid` (by the system call: some `kill(1)`s misread a
+/// negative pid after a signal, procps-ng 4.0's turning `-KILL -12345` into every process); a
+/// failure leaves only the group leader to kill, which the caller does anyway. Group 0 (ours) and
+/// 1 (every process) are never signalled.
 pub(crate) fn kill_group(pgid: u32) {
-    let result = std::process::Command::new("kill")
-        .args(["-s", "KILL", "--", &format!("-{pgid}")])
-        .stdin(Stdio::null())
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status();
-    if !matches!(result, Ok(status) if status.success()) {
-        tracing::warn!(pgid, "could not kill the hook's process group: {result:?}");
+    let group = i32::try_from(pgid)
+        .ok()
+        .and_then(rustix::process::Pid::from_raw)
+        .filter(|g| *g != rustix::process::Pid::INIT);
+    let Some(group) = group else {
+        tracing::warn!(pgid, "not a process group to kill");
+        return;
+    };
+    if let Err(e) = rustix::process::kill_process_group(group, rustix::process::Signal::KILL) {
+        tracing::warn!(pgid, error = %e, "could not kill the hook's process group");
     }
 }
 

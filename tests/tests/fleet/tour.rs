@@ -152,10 +152,14 @@ impl Drop for Cleanup {
                 .stderr(Stdio::null())
                 .status();
         }
-        if let Some(group) = self.group {
-            let _ = Command::new("kill")
-                .args(["-KILL", &format!("-{group}")])
-                .status();
+        // By the system call: procps-ng 4.0's kill(1) reads `-KILL -12345` as `kill(-1)`, every
+        // process on the machine, whenever the group's id starts with a 1. Never group 1 either.
+        if let Some(group) = self
+            .group
+            .and_then(rustix::process::Pid::from_raw)
+            .filter(|g| *g != rustix::process::Pid::INIT)
+        {
+            let _ = rustix::process::kill_process_group(group, rustix::process::Signal::KILL);
         }
     }
 }
