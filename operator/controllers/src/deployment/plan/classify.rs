@@ -193,7 +193,10 @@ fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_
         && release == target
         && lekiwi_protocol::ProgressPhase::parse(phase)
             .is_some_and(lekiwi_protocol::ProgressPhase::is_failure)
-        && at.is_none_or(|at| at >= since)
+        // Status times are whole seconds: a failure reported in the second the robot was
+        // started is this start's (compared to the instant, it looked older and was ignored,
+        // so the robot waited out its whole timeout).
+        && at.is_none_or(|at| at.as_second() >= since.as_second())
     {
         return RobotState::Failed(
             batch,

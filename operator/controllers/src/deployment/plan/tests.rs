@@ -848,3 +848,41 @@ fn a_status_older_than_the_marks_does_not_open_the_next_batch_twice() {
     assert_eq!(sim.phase(), RolloutPhase::Completed);
     assert_eq!(sim.running("2").len(), 6);
 }
+
+/// A failure the agent reports in the second its robot was started fails the robot at once:
+/// status times are whole seconds while the start is not, and compared to the instant the
+/// report looked older than the start, so the robot waited out its whole timeout (a canary in
+/// the soak, refused a release its gateway did not know yet, held a rollout 180 s so).
+#[test]
+fn a_failure_reported_in_the_second_of_the_start_fails_the_robot_at_once() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(1), 1), 2);
+    sim.now = "2026-11-22T10:00:00.400Z".parse().unwrap();
+    let first = sim.step();
+    assert_eq!(first.writes.len(), 1, "the canary starts");
+    let canary = first.writes[0].robot.clone();
+    let reported: Timestamp = "2026-11-22T10:00:00.450Z".parse().unwrap();
+    // As the API server keeps it: to the whole second.
+    let stored = Timestamp::from_second(reported.as_second()).unwrap();
+    let r = sim.robots.iter_mut().find(|r| r.name == canary).unwrap();
+    r.last_update = Some((
+        rel("2"),
+        "failed".into(),
+        Some("release unknown to the gateway".into()),
+        Some(stored),
+    ));
+    sim.advance(1);
+    sim.step();
+    let st = sim.d.status.clone().unwrap();
+    let result = st.robots.iter().find(|r| r.robot == canary).unwrap();
+    // Failed a second after its start, not after its 60 s timeout: its batch rolls back (the
+    // robot never left its release, so it is back on it at once).
+    assert_eq!(st.phase, Some(RolloutPhase::RollingBack), "{st:#?}");
+    assert_eq!(result.state, RobotRolloutState::RolledBack, "{st:#?}");
+    assert!(
+        result
+            .message
+            .as_deref()
+            .is_some_and(|m| m.contains("the agent reported failed")),
+        "{st:#?}"
+    );
+}
