@@ -329,6 +329,12 @@ impl<K: Resource + Serialize> Cache<K> {
         }
     }
 
+    /// Takes `o` as a watch would deliver it (tests of what follows the changes).
+    #[cfg(test)]
+    pub(crate) fn apply_for_tests(&self, o: K) {
+        self.applied(o);
+    }
+
     /// Keeps `o` and then sends the change, under the map's lock: whoever reads the change
     /// finds the map as new as it.
     fn applied(&self, o: K) {

@@ -6,16 +6,26 @@
 //! a manifest's file list is read from the blob store once, then kept (a manifest never changes:
 //! its name is its content's digest). A rollout reaches a robot only through its Robot's
 //! `spec.release`, so a RobotDeployment's release is readable exactly for the robots it has
-//! started to update.
+//! started to update. A read refused at first waits up to 3 s for the cache to show a release
+//! another gateway replica has already told the robot of.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
+use tokio::sync::broadcast::error::RecvError;
 use tracing::debug;
 
 use super::Caller;
 use crate::gateway::AppState;
+use crate::gateway::cache::Cache;
+use crate::gateway::watched::WatchedRobots;
 use lekiwi_blob_store::BlobStore;
+use lekiwi_crds::Robot;
+
+/// How long a robot's read of a blob no release references yet waits for this gateway's Robot
+/// cache to catch up with another replica's (bounded: a refusal costs at most this).
+const CATCH_UP: Duration = Duration::from_secs(3);
 
 /// Manifests whose file lists are kept; past this many the cache starts over.
 const MAX_CACHED_MANIFESTS: usize = 1024;
@@ -83,10 +93,53 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
     let Caller::Robot(robot) = caller else {
         return true;
     };
-    let blobs = &state.blobs;
     let Some(desired) = state.shared.desired.as_ref() else {
         return refuse(state, robot, digest);
     };
+    if referenced(state, desired, robot, digest).await {
+        return true;
+    }
+    // Behind one Service, the gateway holding the robot's session may have seen the new
+    // release first and told the robot, whose download reached this replica before this
+    // replica's watch brought the change: follow the cache's changes for a moment.
+    if caught_up(&desired.0, CATCH_UP, || {
+        referenced(state, desired, robot, digest)
+    })
+    .await
+    {
+        return true;
+    }
+    refuse(state, robot, digest)
+}
+
+/// Runs `check` again at every change of `cache` until it passes (`true`) or `wait` is over
+/// (`false`); also once right after subscribing, for a change that came in just before.
+pub(super) async fn caught_up<F, Fut>(cache: &Cache<Robot>, wait: Duration, mut check: F) -> bool
+where
+    F: FnMut() -> Fut,
+    Fut: Future<Output = bool>,
+{
+    let mut changes = cache.subscribe();
+    let deadline = tokio::time::Instant::now() + wait;
+    loop {
+        if check().await {
+            return true;
+        }
+        match tokio::time::timeout_at(deadline, changes.recv()).await {
+            Ok(Ok(_) | Err(RecvError::Lagged(_))) => {}
+            Ok(Err(RecvError::Closed)) | Err(_) => return false,
+        }
+    }
+}
+
+/// Whether a release of `robot`'s namespace references `digest` now.
+async fn referenced(
+    state: &AppState,
+    desired: &WatchedRobots,
+    robot: &lekiwi_core::RobotKey,
+    digest: &str,
+) -> bool {
+    let blobs = &state.blobs;
     // The robot's own release first: one cache lookup, the case of every normal download. Only
     // a miss scans the namespace's Robots.
     let own: BTreeSet<String> = desired.get(robot).map(|r| r.digest).into_iter().collect();
@@ -98,14 +151,10 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
         return true;
     }
     let releases = desired.digests_in(&robot.namespace);
-    if blobs
+    blobs
         .manifests
         .referenced(&blobs.store, &releases, digest)
         .await
-    {
-        return true;
-    }
-    refuse(state, robot, digest)
 }
 
 /// Counts and logs a refused read; always `false`.

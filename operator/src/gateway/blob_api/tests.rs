@@ -83,3 +83,43 @@ async fn a_release_grants_its_manifest_and_its_files_only() {
     assert!(files.referenced(&store, &not_a_manifest, &late).await);
     assert!(!files.referenced(&store, &not_a_manifest, &file).await);
 }
+
+/// A robot's read refused at first (another replica told it of a release this replica's watch
+/// has not brought yet) passes once the cache shows the change; one that never passes is
+/// refused when the wait is over, not sooner and not later.
+#[tokio::test(start_paused = true)]
+async fn a_read_refused_at_first_passes_once_the_cache_catches_up() {
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    use lekiwi_crds::{Robot, RobotSpec};
+
+    use super::access::caught_up;
+    use crate::gateway::cache::Cache;
+
+    let cache = Arc::new(Cache::<Robot>::listed(Vec::new()));
+    let mut robot = Robot::new("kiwi-1", RobotSpec::default());
+    robot.metadata.namespace = Some("lab".into());
+    let later = cache.clone();
+    tokio::spawn(async move {
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        later.apply_for_tests(robot);
+    });
+    let t0 = tokio::time::Instant::now();
+    let seen = caught_up(&cache, Duration::from_secs(3), || {
+        let cache = cache.clone();
+        async move { cache.get("lab", "kiwi-1").is_some() }
+    })
+    .await;
+    assert!(seen, "passes with the change");
+    assert_eq!(t0.elapsed(), Duration::from_secs(1), "as soon as it comes");
+
+    let t0 = tokio::time::Instant::now();
+    let never = caught_up(&cache, Duration::from_secs(3), || async { false }).await;
+    assert!(!never);
+    assert_eq!(
+        t0.elapsed(),
+        Duration::from_secs(3),
+        "refused when the wait is over"
+    );
+}
