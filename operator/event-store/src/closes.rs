@@ -34,9 +34,8 @@ impl Store {
     /// Marks connection `id` closed at `at_ms` (batched with other sessions' closes). A
     /// connection already closed keeps its first time and reason; an unknown id changes nothing.
     pub async fn record_disconnect(&self, id: i64, at_ms: i64, reason: &str) -> Result<()> {
-        self.refuse_while_down()?;
-        let closed = self.close_connection(id, at_ms, reason).await;
-        self.noted(closed)
+        self.unless_down(self.close_connection(id, at_ms, reason))
+            .await
     }
 
     /// [`Store::record_disconnect`] in a statement of its own.

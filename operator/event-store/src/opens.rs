@@ -102,10 +102,12 @@ impl Store {
     /// Records a new session's connection and reads its robot's last stored seq, batched with
     /// other sessions opening at the same time (one by one without a batcher).
     pub async fn open_session(&self, robot: &RobotKey, record: &ConnectionRecord) -> SessionStart {
-        if let Err(e) = self.refuse_while_down() {
+        // Both answers refused, or neither: a last seq of `Ok(None)` beside a refused record
+        // would tell the agent that nothing is stored.
+        if let (Err(record), Err(seq)) = (self.refuse_while_down(), self.refuse_while_down()) {
             return SessionStart {
-                record_id: Err(e),
-                last_seq: self.refuse_while_down().map(|()| None),
+                record_id: Err(record),
+                last_seq: Err(seq),
             };
         }
         let Some(batcher) = &self.batcher else {
