@@ -81,8 +81,56 @@ if [ "$PROFILE" = main ]; then
   trap 'kill "$CARGO_PID" 2>/dev/null || true' EXIT
 fi
 
+# ---- which Kubernetes binaries are missing ---------------------------------------------------
+# kube-apiserver alone serves scripts/testbed/control-plane.sh (the main profile); the other four make
+# scripts/testbed/cluster.sh's real node (test). Whatever is missing is built in ONE make run.
+K8S_CMDS=(kube-apiserver)
+[ "$PROFILE" = main ] || K8S_CMDS+=(kubelet kube-controller-manager kube-scheduler kube-proxy)
+missing=()
+for c in "${K8S_CMDS[@]}"; do
+  [ -x "$K8S_DIR/$c" ] || missing+=("$c")
+done
+if [ -n "${KUBEBUILDER_ASSETS:-}" ] && [ -x "$KUBEBUILDER_ASSETS/kube-apiserver" ]; then
+  log "using kube-apiserver from KUBEBUILDER_ASSETS=$KUBEBUILDER_ASSETS"
+  # envtest assets carry no node binaries; build those only if asked to.
+  [ "${LEKIWI_BUILD_NODE:-0}" = 1 ] || missing=()
+fi
+
+# The Debian mirror the machine already uses (deb.debian.org if none is found).
+debian_mirror() {
+  local m
+  m="$(cat /etc/apt/sources.list.d/*.sources /etc/apt/sources.list 2>/dev/null \
+    | sed -nE 's,^(URIs:|deb)[[:space:]]+(\[[^]]*\][[:space:]]+)?(https?://[^ ]+/debian)/?([[:space:]].*)?$,\3,p' | head -1 || true)"
+  echo "${m:-http://deb.debian.org/debian}"
+}
+
+# Kubernetes' release source is Debian's orig tarball, fetched straight from the archive's pool
+# and checked against its SHA-256: what `apt-get source` fetches, without a deb-src entry and the
+# source index an extra `apt-get update` downloads and parses. `apt-get source` remains the way
+# when the pool no longer holds this file.
+K8S_ORIG=kubernetes_1.20.5+really1.20.2.orig.tar.gz
+K8S_ORIG_SHA256=b83c0780efb182d928dc63d46488a847f161f04e40a94b96bf5247dd671ecdfc
+SRC="$CACHE/k8s/src"
+fetch_k8s_source() {
+  mkdir -p "$SRC"
+  if [ ! -s "$SRC/$K8S_ORIG" ]; then
+    curl -fsSL --retry 3 -o "$SRC/$K8S_ORIG.part" "$(debian_mirror)/pool/main/k/kubernetes/$K8S_ORIG" || return 1
+    mv "$SRC/$K8S_ORIG.part" "$SRC/$K8S_ORIG"
+  fi
+  echo "$K8S_ORIG_SHA256  $SRC/$K8S_ORIG" | sha256sum -c --quiet --status || { rm -f "$SRC/$K8S_ORIG"; return 1; }
+}
+K8S_FETCH_PID=""
+if [ ${#missing[@]} -gt 0 ]; then
+  fetch_k8s_source >"$CACHE/setup-k8s-source.log" 2>&1 &
+  K8S_FETCH_PID=$!
+fi
+
+# ---- Debian packages: one `apt-get update` and one install ------------------------------------
+# A build of Kubernetes adds its packages to the same transaction: on a fresh machine each extra
+# update and dpkg run is seconds on the first run's critical path.
 want=("${MAIN_PKGS[@]}")
 [ "$PROFILE" = main ] || want+=("${TEST_PKGS[@]}")
+[ ${#missing[@]} = 0 ] || want+=("${MAIN_BUILD[@]}")
 mapfile -t need_apt < <(apt_missing "${want[@]}")
 if [ ${#need_apt[@]} -gt 0 ]; then
   log "installing apt packages: ${need_apt[*]}"
@@ -114,41 +162,27 @@ fetch_kubectl_helm >"$CACHE/setup-kubectl.log" 2>&1 &
 KUBECTL_PID=$!
 
 # ---- Kubernetes binaries --------------------------------------------------------------------
-# kube-apiserver alone serves scripts/testbed/control-plane.sh (the main profile); the other four make
-# scripts/testbed/cluster.sh's real node (test). Whatever is missing is built in ONE make run.
-K8S_CMDS=(kube-apiserver)
-[ "$PROFILE" = main ] || K8S_CMDS+=(kubelet kube-controller-manager kube-scheduler kube-proxy)
-missing=()
-for c in "${K8S_CMDS[@]}"; do
-  [ -x "$K8S_DIR/$c" ] || missing+=("$c")
-done
-if [ -n "${KUBEBUILDER_ASSETS:-}" ] && [ -x "$KUBEBUILDER_ASSETS/kube-apiserver" ]; then
-  log "using kube-apiserver from KUBEBUILDER_ASSETS=$KUBEBUILDER_ASSETS"
-  # envtest assets carry no node binaries; build those only if asked to.
-  [ "${LEKIWI_BUILD_NODE:-0}" = 1 ] || missing=()
-fi
 if [ ${#missing[@]} = 0 ]; then
   log "Kubernetes $K8S_VERSION binaries cached in $K8S_DIR"
 else
   log "building ${missing[*]} $K8S_VERSION from Debian's source package (once; minutes)"
-  if ! grep -rqs '^Types:.*deb-src' /etc/apt/sources.list.d/ && ! grep -qs '^deb-src' /etc/apt/sources.list; then
-    $SUDO tee /etc/apt/sources.list.d/lekiwi-deb-src.sources >/dev/null <<'SRC'
+  if ! wait "$K8S_FETCH_PID"; then
+    log "$K8S_ORIG is not in the pool of $(debian_mirror): apt-get source kubernetes"
+    if ! grep -rqs '^Types:.*deb-src' /etc/apt/sources.list.d/ && ! grep -qs '^deb-src' /etc/apt/sources.list; then
+      $SUDO tee /etc/apt/sources.list.d/lekiwi-deb-src.sources >/dev/null <<SRCS
 Types: deb-src
-URIs: http://deb.debian.org/debian
+URIs: $(debian_mirror)
 Suites: bookworm
 Components: main
 Signed-By: /usr/share/keyrings/debian-archive-keyring.gpg
-SRC
-    $SUDO "${APT[@]}" update -qq
+SRCS
+      $SUDO "${APT[@]}" update -qq
+    fi
+    ( cd "$SRC" && apt-get source --download-only kubernetes >/dev/null )
   fi
-  mapfile -t need_build < <(apt_missing "${MAIN_BUILD[@]}")
-  [ ${#need_build[@]} = 0 ] || $SUDO "${APT[@]}" install -y -qq --no-install-recommends "${need_build[@]}" >/dev/null
-  SRC="$CACHE/k8s/src"
-  mkdir -p "$SRC"
   ( cd "$SRC"
-    ls kubernetes_*.orig.tar.gz >/dev/null 2>&1 || apt-get source --download-only kubernetes >/dev/null
     rm -rf tree && mkdir tree
-    tar -xzf kubernetes_*.orig.tar.gz -C tree --strip-components=1 )
+    tar -xzf "$(ls -t kubernetes_*.orig.tar.gz | head -1)" -C tree --strip-components=1 )
   TREE="$SRC/tree"
   # Go 1.19 crashes the v1.20 apiserver in reflect2 unless these two vendored libraries are the
   # newer copies Debian packages.
@@ -217,9 +251,8 @@ if [ "${LEKIWI_SKIP_ARM64:-0}" != 1 ]; then
   fi
   if ! grep -rqs 'bookworm-backports' /etc/apt/sources.list /etc/apt/sources.list.d/; then
     # The same mirror as the existing Debian entry.
-    mirror="$(cat /etc/apt/sources.list.d/*.sources /etc/apt/sources.list 2>/dev/null \
-      | sed -nE 's,^(URIs:|deb)[[:space:]]+(\[[^]]*\][[:space:]]+)?(https?://[^ ]+/debian)/?([[:space:]].*)?$,\3,p' | head -1 || true)"
-    log "adding bookworm-backports (${mirror:=http://deb.debian.org/debian})"
+    mirror="$(debian_mirror)"
+    log "adding bookworm-backports ($mirror)"
     $SUDO tee /etc/apt/sources.list.d/lekiwi-backports.sources >/dev/null <<BPO
 Types: deb
 URIs: $mirror

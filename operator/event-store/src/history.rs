@@ -2,7 +2,7 @@
 //! of times the gateway received them, telemetry samples by the time they were taken within a
 //! range of those, resumed from a cursor the previous page ended on.
 
-use sqlx::FromRow;
+use sqlx_macros::FromRow;
 
 use super::{Error, Result, RobotKey, Store, StoredEvent, StoredSample, from_db_seq};
 

@@ -10,9 +10,10 @@ use std::fmt;
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
-use sqlx::FromRow;
+
 use sqlx::postgres::PgPool;
 use sqlx::sqlite::SqlitePool;
+use sqlx_macros::FromRow;
 
 pub use self::error::{Error, Result};
 use lekiwi_core::RobotKey;

@@ -8,7 +8,8 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use sqlx::{FromRow, QueryBuilder};
+use sqlx::QueryBuilder;
+use sqlx_macros::FromRow;
 use tokio::sync::{mpsc, oneshot};
 
 use super::{ConnectionRecord, Error, Result, RobotKey, Store, from_db_seq};

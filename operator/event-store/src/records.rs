@@ -2,8 +2,9 @@
 //! stored once per `(robot, seq)` (one seq space for every kind, claimed in table `seqs`) or
 //! connection id.
 
+use sqlx::QueryBuilder;
 use sqlx::types::Json;
-use sqlx::{FromRow, QueryBuilder};
+use sqlx_macros::FromRow;
 
 use super::{
     ConnectionRecord, Error, Result, RobotKey, Sample, Store, StoredEvent, StoredSample,

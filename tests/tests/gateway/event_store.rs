@@ -630,9 +630,11 @@ async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {
                 <sqlx::sqlite::SqliteConnectOptions as std::str::FromStr>::from_str(&db.url())?
                     .create_if_missing(true);
             let pool = sqlx::SqlitePool::connect_with(options).await?;
-            first(sqlx::migrate!("../operator/event-store/migrations/sqlite"))
-                .run(&pool)
-                .await?;
+            first(sqlx_macros::migrate!(
+                "../operator/event-store/migrations/sqlite"
+            ))
+            .run(&pool)
+            .await?;
             for row in rows {
                 sqlx::query(row).execute(&pool).await?;
             }
@@ -640,7 +642,7 @@ async fn old_schema(db: &Db, migrations: usize, rows: &[&str]) -> Result<()> {
         }
         Db::Postgres(_) => {
             let pool = sqlx::PgPool::connect(&db.url()).await?;
-            first(sqlx::migrate!(
+            first(sqlx_macros::migrate!(
                 "../operator/event-store/migrations/postgres"
             ))
             .run(&pool)
