@@ -171,7 +171,7 @@ impl Store {
             Err(e) => {
                 // One by one finds the bad row of a refused batch; with the database out of
                 // reach it would wait out the connect deadline once per row: those are refused.
-                if !matches!(e, Error::Unavailable { .. }) {
+                if !e.is_unavailable() {
                     tracing::warn!(error = %e, events = first.len(), "batched event insert failed; inserting one by one");
                 }
                 for p in first {

@@ -98,7 +98,7 @@ impl Store {
             // Skipped at once while the database is out of reach (the records stay open until
             // the gateway's next start closes them), one by one too.
             if let Err(e) = self.unless_down(self.close_rows(chunk)).await {
-                if matches!(e, Error::Unavailable { .. }) {
+                if e.is_unavailable() {
                     continue;
                 }
                 tracing::warn!(error = %e, closes = chunk.len(), "batched connection close failed; closing one by one");
@@ -106,7 +106,7 @@ impl Store {
                     let closed =
                         self.unless_down(self.close_connection_row(c.id, c.at_ms, &c.reason));
                     if let Err(e) = closed.await
-                        && !matches!(e, Error::Unavailable { .. })
+                        && !e.is_unavailable()
                     {
                         tracing::warn!(error = %e, id = c.id, "cannot close a connection record");
                     }

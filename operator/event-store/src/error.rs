@@ -117,6 +117,12 @@ pub enum Error {
 }
 
 impl Error {
+    /// Whether the write was refused, untried, because the database is in an outage
+    /// ([`Error::Unavailable`]): the caller keeps the message and tries again later.
+    pub fn is_unavailable(&self) -> bool {
+        matches!(self, Error::Unavailable { .. })
+    }
+
     /// Whether this failure says the database could not be reached at all (no connection in
     /// time, a broken socket, the server shutting down), not that it refused one statement.
     pub(crate) fn unreachable(&self) -> bool {

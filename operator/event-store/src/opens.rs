@@ -154,12 +154,12 @@ impl Store {
         let ids = self.unless_down(self.insert_connection_rows(&batch)).await;
         let seqs = self.unless_down(self.last_seq_rows(&batch)).await;
         if let Err(e) = &ids
-            && !matches!(e, Error::Unavailable { .. })
+            && !e.is_unavailable()
         {
             tracing::warn!(error = %e, sessions = batch.len(), "batched connection insert failed; inserting one by one");
         }
         if let Err(e) = &seqs
-            && !matches!(e, Error::Unavailable { .. })
+            && !e.is_unavailable()
         {
             tracing::warn!(error = %e, sessions = batch.len(), "batched last-seq read failed; reading one by one");
         }

@@ -548,10 +548,7 @@ async fn postgres_down_refuses_writes_at_once_and_takes_them_back_up() -> Result
             took < CONNECT_DEADLINE + std::time::Duration::from_secs(10),
             "a session's {EVENTS} writes took {took:?}: more than one connect deadline"
         );
-        unavailable += refused
-            .iter()
-            .filter(|e| matches!(e, Error::Unavailable { .. }))
-            .count();
+        unavailable += refused.iter().filter(|e| e.is_unavailable()).count();
     }
     println!(
         "{} writes refused in {:?}, {unavailable} of them at once",

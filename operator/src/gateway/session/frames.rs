@@ -220,7 +220,7 @@ where
             }
             Err(e) => {
                 self.shared.metrics.gateway.event_store_error("write");
-                if matches!(e, event_store::Error::Unavailable { .. }) {
+                if e.is_unavailable() {
                     // The store logged the outage once; every message refused meanwhile
                     // would flood the log.
                     debug!(seq, error = %e, "durable message refused: event store out of reach");
