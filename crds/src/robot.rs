@@ -1,6 +1,6 @@
 //! The `Robot` resource: one LeKiwi robot, what its lab wants of it and what it last reported.
 
-use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::{MicroTime, Time};
 use kube::CustomResource;
 use lekiwi_protocol::rules;
 
@@ -268,9 +268,10 @@ pub struct UpdateReport {
     /// The agent's explanation.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
-    /// When the gateway received the outcome.
+    /// When the gateway received the outcome, to the microsecond (a rollout tells the outcome
+    /// of the update it started from that of an update it cancelled a moment before).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub time: Option<Time>,
+    pub time: Option<MicroTime>,
 }
 
 /// The agent's own health verdict.

@@ -8,7 +8,7 @@
 //! manager stops sending, so an unset fact is left out (every `RobotStatus` field is skipped
 //! when `None`), never sent as `null`.
 
-use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::{MicroTime, Time};
 use lekiwi_crds::release::ReleaseRef;
 use lekiwi_crds::robot::{
     HealthReport, Robot, RobotStatus, SystemInfo, TelemetrySummary, TeleoperationReport,
@@ -135,6 +135,6 @@ fn update_report(u: &UpdateOutcome) -> UpdateReport {
             .message
             .as_ref()
             .map(|m| m.chars().take(MAX_UPDATE_MESSAGE_CHARS).collect()),
-        time: Some(Time(u.time)),
+        time: Some(MicroTime(u.time)),
     }
 }

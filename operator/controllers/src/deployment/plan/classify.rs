@@ -193,10 +193,10 @@ fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_
         && release == target
         && lekiwi_protocol::ProgressPhase::parse(phase)
             .is_some_and(lekiwi_protocol::ProgressPhase::is_failure)
-        // Status times are whole seconds: a failure reported in the second the robot was
-        // started is this start's (compared to the instant, it looked older and was ignored,
-        // so the robot waited out its whole timeout).
-        && at.is_none_or(|at| at.as_second() >= since.as_second())
+        // The report's time is the gateway's, to the microsecond: a failure reported in the
+        // second the robot was started is this start's when it came after it, and the outcome
+        // of an update cancelled just before (a pause and a resume in one second) when before.
+        && at.is_none_or(|at| at >= since)
     {
         return RobotState::Failed(
             batch,

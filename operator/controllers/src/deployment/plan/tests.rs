@@ -860,9 +860,8 @@ fn a_failure_reported_in_the_second_of_the_start_fails_the_robot_at_once() {
     let first = sim.step();
     assert_eq!(first.writes.len(), 1, "the canary starts");
     let canary = first.writes[0].robot.clone();
-    let reported: Timestamp = "2026-11-22T10:00:00.450Z".parse().unwrap();
-    // As the API server keeps it: to the whole second.
-    let stored = Timestamp::from_second(reported.as_second()).unwrap();
+    // As the gateway writes it: to the microsecond, 50 ms after the start.
+    let stored: Timestamp = "2026-11-22T10:00:00.450Z".parse().unwrap();
     let r = sim.robots.iter_mut().find(|r| r.name == canary).unwrap();
     r.last_update = Some((
         rel("2"),
@@ -885,4 +884,30 @@ fn a_failure_reported_in_the_second_of_the_start_fails_the_robot_at_once() {
             .is_some_and(|m| m.contains("the agent reported failed")),
         "{st:#?}"
     );
+}
+
+#[test]
+fn an_outcome_reported_just_before_the_start_in_the_same_second_is_not_this_starts() {
+    // A pause cancels the canary's update and a resume starts it again within one second; the
+    // agent's report of the cancelled update (rolled back: its health check was stopped) came
+    // 50 ms before the new start. It is the old update's outcome, not the new one's failure.
+    let mut sim = Sim::new(deployment(IntOrString::Int(1), 1), 2);
+    sim.now = "2026-11-22T10:00:00.400Z".parse().unwrap();
+    let first = sim.step();
+    assert_eq!(first.writes.len(), 1, "the canary starts");
+    let canary = first.writes[0].robot.clone();
+    let stored: Timestamp = "2026-11-22T10:00:00.350Z".parse().unwrap();
+    let r = sim.robots.iter_mut().find(|r| r.name == canary).unwrap();
+    r.last_update = Some((
+        rel("2"),
+        "rolled_back".into(),
+        Some("health check of 2 failed: cancelled by the gateway".into()),
+        Some(stored),
+    ));
+    sim.advance(1);
+    sim.step();
+    let st = sim.d.status.clone().unwrap();
+    let result = st.robots.iter().find(|r| r.robot == canary).unwrap();
+    assert_eq!(st.phase, Some(RolloutPhase::Progressing), "{st:#?}");
+    assert_eq!(result.state, RobotRolloutState::Updating, "{st:#?}");
 }
