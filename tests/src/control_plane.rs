@@ -144,6 +144,32 @@ impl ControlPlane {
         Ok(())
     }
 
+    /// A kubeconfig for the same server and user, reached at `server` (`https://host:port`,
+    /// a proxy in front of the API server), written to `path`.
+    pub fn kubeconfig_via(&self, server: &str, path: &Path) -> Result<()> {
+        let mut kc: serde_yaml::Value =
+            serde_yaml::from_str(&std::fs::read_to_string(self.kubeconfig())?)?;
+        let clusters = kc["clusters"]
+            .as_sequence_mut()
+            .context("kubeconfig has no clusters")?;
+        for cluster in clusters.iter_mut() {
+            cluster["cluster"]["server"] = serde_yaml::Value::from(server);
+        }
+        std::fs::write(path, serde_yaml::to_string(&kc)?)?;
+        Ok(())
+    }
+
+    /// The API server's address, from the kubeconfig's server URL.
+    pub fn api_server_addr(&self) -> Result<std::net::SocketAddr> {
+        let kc: serde_yaml::Value =
+            serde_yaml::from_str(&std::fs::read_to_string(self.kubeconfig())?)?;
+        let server = kc["clusters"][0]["cluster"]["server"]
+            .as_str()
+            .context("kubeconfig has no server")?;
+        let hostport = server.trim_start_matches("https://").trim_end_matches('/');
+        Ok(hostport.parse()?)
+    }
+
     /// Removes the kubectl discovery caches of test processes that have ended (one per
     /// process, a few MiB each: without this they pile up run after run).
     fn prune_kubectl_caches(&self) {

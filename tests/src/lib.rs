@@ -16,6 +16,7 @@ pub mod fleet;
 pub mod fleet_process;
 pub mod graphql;
 pub mod http;
+pub mod lag_proxy;
 pub mod markdown;
 pub mod netns;
 pub mod operator;

@@ -11,6 +11,7 @@ mod gateway_replicas;
 mod leader_election;
 mod otel;
 mod recovery;
+mod replica_lag;
 mod robot_controller;
 mod storm;
 mod tls_rotation;

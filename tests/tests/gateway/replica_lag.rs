@@ -1,0 +1,156 @@
+//! Two gateway replicas whose Robot watches are out of step, as behind one Service: the replica
+//! holding a robot's session sees the robot's new release and tells the robot, whose download
+//! reaches the other replica before that one's watch has the change. The download waits for the
+//! lagging replica's cache (bounded) and is served, not answered "unknown digest".
+//!
+//! The lagging replica reaches the API server through a proxy that, once the robot and its token
+//! are known to both, hands on every byte the server sends 2 s late, so its watch events (and
+//! every answer) arrive 2 s after the other's.
+
+use std::time::{Duration, Instant};
+
+use kube::Api;
+use kube::api::{Patch, PatchParams};
+use lekiwi_crds::Robot;
+use lekiwi_protocol::release::{ManifestFile, ReleaseManifest};
+use lekiwi_tests::lag_proxy::LagProxy;
+use lekiwi_tests::{
+    ControlPlane, OperatorProcess, create_robot, http_request, namespace, robot_token,
+};
+use serde_json::json;
+use sha2::{Digest, Sha256};
+
+/// How late the lagging replica sees the API server's answers and watch events.
+const LAG: Duration = Duration::from_secs(2);
+
+fn digest(bytes: &[u8]) -> String {
+    format!("sha256:{}", hex::encode(Sha256::digest(bytes)))
+}
+
+async fn get(port: u16, path: &str, headers: &[(&str, &str)]) -> (u16, Vec<u8>) {
+    let (code, _, body) = http_request(port, "GET", path, headers, None)
+        .await
+        .expect("request");
+    (code, body)
+}
+
+#[tokio::test]
+async fn a_download_on_a_replica_whose_watch_lags_waits_for_it_and_is_served() -> anyhow::Result<()>
+{
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "bloblag").await?;
+    let blobs = tempfile::tempdir()?;
+    let blob_dir = blobs.path().to_str().expect("utf-8 path");
+    let gateway = ["--role", "gateway", "--blob-dir", blob_dir];
+
+    let mut ahead = OperatorProcess::start(cp, &ns, "ahead", &gateway)?;
+    let proxy = LagProxy::start(cp.api_server_addr()?).await?;
+    let kubeconfig = blobs.path().join("lagging-kubeconfig");
+    cp.kubeconfig_via(&format!("https://{}", proxy.addr), &kubeconfig)?;
+    let mut lagging =
+        OperatorProcess::start_with_kubeconfig(&kubeconfig, &ns, "lagging", &gateway)?;
+    ahead.wait_ready().await?;
+    lagging.wait_ready().await?;
+
+    create_robot(&client, &ns, "kiwi", &[]).await?;
+    let token = format!("Bearer {}", robot_token(&client, &ns, "kiwi").await?);
+    let robot = format!("{ns}/kiwi");
+    let as_robot = [
+        ("authorization", token.as_str()),
+        ("x-lekiwi-robot", robot.as_str()),
+    ];
+
+    // A release of one file, pushed by a Kubernetes user to the replicas' shared blob store.
+    let content = b"the lagging replica's policy".to_vec();
+    let file = digest(&content);
+    let manifest_bytes = ReleaseManifest::new(
+        "1.0.0",
+        vec![ManifestFile {
+            path: "policy.bin".into(),
+            digest: file.clone(),
+            size: content.len() as u64,
+            mode: 0o644,
+        }],
+    )
+    .to_bytes();
+    let manifest = digest(&manifest_bytes);
+    let admin = format!("Bearer {}", cp.admin_token()?);
+    for (d, bytes) in [(&file, &content), (&manifest, &manifest_bytes)] {
+        let path = format!("/v1/blobs/{d}?namespace={ns}");
+        let headers = [("authorization", admin.as_str())];
+        let (code, _, _) =
+            http_request(ahead.gateway_port, "PUT", &path, &headers, Some(bytes)).await?;
+        assert_eq!(code, 201, "upload of {d}");
+    }
+    // Before the robot is told of it, the replica does not let it read the release (after
+    // waiting its bounded while for a change that does not come); the robot's token is known
+    // to it (a 404, not a 401). From now on that replica's watch lags.
+    let blob = format!("/v1/blobs/{file}");
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let (code, body) = get(lagging.gateway_port, &blob, &as_robot).await;
+        if code == 404 {
+            break;
+        }
+        assert_eq!(code, 401, "{}", String::from_utf8_lossy(&body));
+        assert!(
+            Instant::now() < deadline,
+            "the robot's token never reached the replica"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    proxy.set_lag(LAG);
+
+    // The rollout names the release in the robot's spec; the replica ahead sees it first.
+    let patch = json!({"spec": {"release": {"version": "1.0.0", "digest": manifest}}});
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch("kiwi", &PatchParams::default(), &Patch::Merge(&patch))
+        .await?;
+    let changed = Instant::now();
+    let (code, body) = get(ahead.gateway_port, &blob, &as_robot).await;
+    assert_eq!(
+        (code, body),
+        (200, content.clone()),
+        "the replica ahead serves it"
+    );
+    let ahead_after = changed.elapsed();
+    assert!(
+        ahead_after < LAG,
+        "the replica ahead took {ahead_after:?} to see the change: it does not lead"
+    );
+
+    // The download reaching the lagging replica now: its cache does not have the release yet,
+    // so the read waits for the watch and is then served.
+    let asked = Instant::now();
+    let (code, body) = get(lagging.gateway_port, &blob, &as_robot).await;
+    let waited = asked.elapsed();
+    eprintln!(
+        "replica ahead served the file {ahead_after:?} after the change; the lagging one \
+         answered {code} {waited:?} after being asked"
+    );
+    assert_eq!(
+        (code, body),
+        (200, content),
+        "the lagging replica serves the release once its watch has it"
+    );
+    assert!(
+        waited >= LAG / 4,
+        "the lagging replica answered in {waited:?}: its watch was not behind, so this run \
+         tested nothing"
+    );
+    assert!(
+        waited < Duration::from_secs(3) + LAG / 2,
+        "the wait is bounded (3 s): {waited:?}"
+    );
+    // The manifest too (the agent fetches it first).
+    let (code, body) = get(
+        lagging.gateway_port,
+        &format!("/v1/blobs/{manifest}"),
+        &as_robot,
+    )
+    .await;
+    assert_eq!((code, body), (200, manifest_bytes));
+    drop(proxy);
+    Ok(())
+}
