@@ -273,7 +273,7 @@ fn hand_written_patches() -> Vec<Value> {
                     "message": "é".repeat(1024),
                     "phase": "rolled_back",
                     "release": release_json("1.5.0"),
-                    "time": "2026-11-20T08:06:00Z"
+                    "time": "2026-11-20T08:06:00.000000Z"
                 },
                 "protocol": "websocket"
             }
@@ -292,7 +292,7 @@ fn hand_written_patches() -> Vec<Value> {
                 "lastUpdate": {
                     "phase": "done",
                     "release": release_json("1.5.0"),
-                    "time": "2026-11-20T08:07:00Z"
+                    "time": "2026-11-20T08:07:00.000000Z"
                 },
                 "protocol": "websocket"
             }
