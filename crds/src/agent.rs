@@ -1,7 +1,7 @@
 //! The agent build a robot should run (`Robot.spec.agent`) and how its latest agent update went
 //! (`Robot.status.agentUpdate`).
 
-use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
 use lekiwi_protocol::rules;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
@@ -97,7 +97,8 @@ pub struct AgentUpdateReport {
     /// Why, in words.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
-    /// When the gateway saw it.
+    /// When the gateway saw it, to the microsecond (a rollout tells the outcome of the update
+    /// it started from that of one before it in the same second).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub time: Option<Time>,
+    pub time: Option<MicroTime>,
 }

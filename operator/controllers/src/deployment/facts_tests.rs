@@ -1,7 +1,7 @@
 //! Unit tests of how an agent rollout sees a robot ([`super::facts`]): what it runs, its update
 //! report, a missing build, and the checks of an agent deployment's spec.
 
-use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, Time};
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::{LabelSelector, MicroTime};
 use lekiwi_crds::agent::AgentUpdateReport;
 use lekiwi_crds::robot::SystemInfo;
 use lekiwi_crds::{
@@ -51,7 +51,7 @@ fn robot(version: &str, arch: &str, update: Option<(&str, &str)>) -> Robot {
                 version: Some(version.into()),
                 phase: Some(phase.into()),
                 message: Some("crash at start".into()),
-                time: Some(Time("2026-11-25T10:00:00Z".parse().unwrap())),
+                time: Some(MicroTime("2026-11-25T10:00:00Z".parse().unwrap())),
             })
         }),
         ..RobotStatus::default()

@@ -2,7 +2,7 @@
 //! `spec.agent` and what the agent reported back in its `agent_update_*` events.
 
 use jiff::Timestamp;
-use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+use k8s_openapi::apimachinery::pkg::apis::meta::v1::MicroTime;
 use lekiwi_crds::AgentUpdateReport;
 
 use super::{Entry, Presence, Priority, State};
@@ -119,6 +119,6 @@ pub(super) fn report(o: &AgentUpdateOutcome) -> AgentUpdateReport {
         version: Some(o.version.clone()),
         phase: Some(o.phase.to_owned()),
         message: Some(o.message.chars().take(MAX_MESSAGE_CHARS).collect()),
-        time: Some(Time(o.time)),
+        time: Some(MicroTime(o.time)),
     }
 }
