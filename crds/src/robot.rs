@@ -261,8 +261,8 @@ pub struct UpdateReport {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub release: Option<ReleaseRef>,
     /// `done`, `failed` (nothing switched), `rolled_back` (switched, unhealthy, switched
-    /// back) or `cancelled` (stopped before the switch because the robot should no longer run
-    /// it: a pause, an undo or an automatic rollback).
+    /// back) or `cancelled` (stopped because the robot should no longer run it: a pause, an
+    /// undo or an automatic rollback; before the switch, or after it and switched back).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub phase: Option<String>,
     /// The agent's explanation.

@@ -98,19 +98,20 @@ impl CommandLedger {
     }
 
     /// The release of the command `command_id` when this progress report ends it (a final
-    /// phase of the command this session sent last, or of one it cancelled); a `done` of the
-    /// last one makes its release the current one. (A cancelled command that finished anyway
-    /// is left to the next heartbeat, which asks for the desired release again.)
+    /// phase of the command this session sent last, or of one it cancelled), and whether this
+    /// session cancelled it; a `done` of the last one makes its release the current one. (A
+    /// cancelled command that finished anyway is left to the next heartbeat, which asks for the
+    /// desired release again.)
     pub(super) fn finished(
         &mut self,
         command_id: &str,
         phase: Option<ProgressPhase>,
-    ) -> Option<Release> {
+    ) -> Option<(Release, bool)> {
         if !phase.is_some_and(ProgressPhase::is_final) {
             return None;
         }
         if let Some(i) = self.cancelled.iter().position(|(id, _)| id == command_id) {
-            return Some(self.cancelled.swap_remove(i).1);
+            return Some((self.cancelled.swap_remove(i).1, true));
         }
         let (sent_id, release) = self.sent.as_ref()?;
         if sent_id != command_id || !self.in_flight {
@@ -121,7 +122,7 @@ impl CommandLedger {
         if phase == Some(ProgressPhase::Done) {
             self.current = Some(release.clone());
         }
-        Some(release)
+        Some((release, false))
     }
 
     /// The commands to send now, in order: a `cancel` when the command in flight is for a
@@ -232,7 +233,7 @@ mod tests {
         assert_eq!(ledger.finished("other", Some(ProgressPhase::Done)), None);
         assert_eq!(
             ledger.finished(&id, Some(ProgressPhase::Done)),
-            Some(release("2"))
+            Some((release("2"), false))
         );
         assert!(
             !ledger.reported(&Some(release("2"))),
@@ -275,8 +276,8 @@ mod tests {
         assert!(ledger.next_commands("gw", 1).is_empty(), "cancelled once");
         assert_eq!(
             ledger.finished(&first, Some(ProgressPhase::Cancelled)),
-            Some(release("2")),
-            "the cancelled command's end is still recorded"
+            Some((release("2"), true)),
+            "the cancelled command's end is still recorded, as a cancelled one's"
         );
         ledger.set_desired(Some(release("2")));
         let (again, version) = deployed(ledger.next_commands("gw", 1)).unwrap();
@@ -333,7 +334,7 @@ mod tests {
         );
         assert_eq!(
             ledger.finished(&first, Some(ProgressPhase::Cancelled)),
-            Some(release("2"))
+            Some((release("2"), true))
         );
         // The controller writes the robot back to what it runs; nothing more is due.
         ledger.set_desired(Some(release("1")));

@@ -169,14 +169,14 @@ where
         message: String,
     ) -> ServerMessage {
         let known = ProgressPhase::parse(&phase);
-        if let Some(release) = self.commands.finished(&command_id, known) {
-            info!(%phase, release = %release.version, %message, "update finished");
+        if let Some((release, cancelled)) = self.commands.finished(&command_id, known) {
+            info!(%phase, release = %release.version, %message, cancelled, "update finished");
             self.shared.presence.update_finished(
                 self.key,
                 self.id,
                 UpdateOutcome {
                     release,
-                    phase: phase.clone(),
+                    phase: outcome_phase(&phase, known, cancelled),
                     message: (!message.is_empty()).then(|| message.clone()),
                     time: Timestamp::now(),
                 },
@@ -288,5 +288,46 @@ fn seq_out_of_range(seq: u64) -> ServerMessage {
         ),
         fatal: false,
         seq: Some(seq),
+    }
+}
+
+/// The phase recorded for an update that ended with `phase`: a command this gateway cancelled
+/// (the robot should no longer run its release: a pause, an undo, a rollback) that did not end
+/// `done` ended because of the cancel, whether before the switch (`cancelled`) or after it (the
+/// agent switched back: `rolled_back`), so it is recorded `cancelled`, never as a failure a
+/// rollout that starts the robot again could take for its own.
+fn outcome_phase(phase: &str, known: Option<ProgressPhase>, cancelled: bool) -> String {
+    if cancelled && known != Some(ProgressPhase::Done) {
+        ProgressPhase::Cancelled.as_str().to_owned()
+    } else {
+        phase.to_owned()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_cancelled_commands_end_is_recorded_cancelled_unless_it_switched_for_good() {
+        use ProgressPhase::{Cancelled, Done, Failed, RolledBack};
+        // The pause's cancel reached the agent in its health check: it switched back.
+        assert_eq!(
+            outcome_phase("rolled_back", Some(RolledBack), true),
+            "cancelled"
+        );
+        assert_eq!(outcome_phase("failed", Some(Failed), true), "cancelled");
+        assert_eq!(
+            outcome_phase("cancelled", Some(Cancelled), true),
+            "cancelled"
+        );
+        // It finished before the cancel arrived: the robot runs the release.
+        assert_eq!(outcome_phase("done", Some(Done), true), "done");
+        // A command not cancelled keeps the agent's word.
+        assert_eq!(
+            outcome_phase("rolled_back", Some(RolledBack), false),
+            "rolled_back"
+        );
+        assert_eq!(outcome_phase("failed", Some(Failed), false), "failed");
     }
 }
