@@ -131,38 +131,54 @@ impl ControlPlane {
 
     /// A kubeconfig for the same server with another bearer token.
     pub fn kubeconfig_with_token(&self, token: &str, path: &Path) -> Result<()> {
-        let mut kc: serde_yaml::Value =
-            serde_yaml::from_str(&std::fs::read_to_string(self.kubeconfig())?)?;
-        let users = kc["users"]
-            .as_sequence_mut()
-            .context("kubeconfig has no users")?;
-        for user in users.iter_mut() {
-            user["user"] =
-                serde_yaml::to_value(std::collections::BTreeMap::from([("token", token)]))?;
-        }
-        std::fs::write(path, serde_yaml::to_string(&kc)?)?;
-        Ok(())
+        self.write_kubeconfig(path, |kc| {
+            let users = kc["users"]
+                .as_sequence_mut()
+                .context("kubeconfig has no users")?;
+            for user in users.iter_mut() {
+                user["user"] =
+                    serde_yaml::to_value(std::collections::BTreeMap::from([("token", token)]))?;
+            }
+            Ok(())
+        })
     }
 
     /// A kubeconfig for the same server and user, reached at `server` (`https://host:port`,
     /// a proxy in front of the API server), written to `path`.
     pub fn kubeconfig_via(&self, server: &str, path: &Path) -> Result<()> {
-        let mut kc: serde_yaml::Value =
-            serde_yaml::from_str(&std::fs::read_to_string(self.kubeconfig())?)?;
-        let clusters = kc["clusters"]
-            .as_sequence_mut()
-            .context("kubeconfig has no clusters")?;
-        for cluster in clusters.iter_mut() {
-            cluster["cluster"]["server"] = serde_yaml::Value::from(server);
-        }
+        self.write_kubeconfig(path, |kc| {
+            let clusters = kc["clusters"]
+                .as_sequence_mut()
+                .context("kubeconfig has no clusters")?;
+            for cluster in clusters.iter_mut() {
+                cluster["cluster"]["server"] = serde_yaml::Value::from(server);
+            }
+            Ok(())
+        })
+    }
+
+    /// The admin kubeconfig as YAML.
+    fn kubeconfig_yaml(&self) -> Result<serde_yaml::Value> {
+        Ok(serde_yaml::from_str(&std::fs::read_to_string(
+            self.kubeconfig(),
+        )?)?)
+    }
+
+    /// The admin kubeconfig, changed by `edit`, written to `path`.
+    fn write_kubeconfig(
+        &self,
+        path: &Path,
+        edit: impl FnOnce(&mut serde_yaml::Value) -> Result<()>,
+    ) -> Result<()> {
+        let mut kc = self.kubeconfig_yaml()?;
+        edit(&mut kc)?;
         std::fs::write(path, serde_yaml::to_string(&kc)?)?;
         Ok(())
     }
 
     /// The API server's address, from the kubeconfig's server URL.
     pub fn api_server_addr(&self) -> Result<std::net::SocketAddr> {
-        let kc: serde_yaml::Value =
-            serde_yaml::from_str(&std::fs::read_to_string(self.kubeconfig())?)?;
+        let kc = self.kubeconfig_yaml()?;
         let server = kc["clusters"][0]["cluster"]["server"]
             .as_str()
             .context("kubeconfig has no server")?;

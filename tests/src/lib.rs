@@ -9,6 +9,7 @@
 
 pub mod agent;
 pub mod agent_fleet;
+pub mod blobs;
 pub mod browser;
 pub mod cluster;
 pub mod control_plane;

@@ -12,27 +12,13 @@ use std::time::{Duration, Instant};
 use kube::Api;
 use kube::api::{Patch, PatchParams};
 use lekiwi_crds::Robot;
-use lekiwi_protocol::release::{ManifestFile, ReleaseManifest};
+use lekiwi_tests::blobs::{OneFileRelease, get_bytes as get};
 use lekiwi_tests::lag_proxy::LagProxy;
-use lekiwi_tests::{
-    ControlPlane, OperatorProcess, create_robot, http_request, namespace, robot_token,
-};
+use lekiwi_tests::{ControlPlane, OperatorProcess, create_robot, namespace, robot_token};
 use serde_json::json;
-use sha2::{Digest, Sha256};
 
 /// How late the lagging replica sees the API server's answers and watch events.
 const LAG: Duration = Duration::from_secs(2);
-
-fn digest(bytes: &[u8]) -> String {
-    format!("sha256:{}", hex::encode(Sha256::digest(bytes)))
-}
-
-async fn get(port: u16, path: &str, headers: &[(&str, &str)]) -> (u16, Vec<u8>) {
-    let (code, _, body) = http_request(port, "GET", path, headers, None)
-        .await
-        .expect("request");
-    (code, body)
-}
 
 #[tokio::test]
 async fn a_download_on_a_replica_whose_watch_lags_waits_for_it_and_is_served() -> anyhow::Result<()>
@@ -62,27 +48,10 @@ async fn a_download_on_a_replica_whose_watch_lags_waits_for_it_and_is_served() -
     ];
 
     // A release of one file, pushed by a Kubernetes user to the replicas' shared blob store.
-    let content = b"the lagging replica's policy".to_vec();
-    let file = digest(&content);
-    let manifest_bytes = ReleaseManifest::new(
-        "1.0.0",
-        vec![ManifestFile {
-            path: "policy.bin".into(),
-            digest: file.clone(),
-            size: content.len() as u64,
-            mode: 0o644,
-        }],
-    )
-    .to_bytes();
-    let manifest = digest(&manifest_bytes);
+    let release = OneFileRelease::new("1.0.0", b"the lagging replica's policy");
     let admin = format!("Bearer {}", cp.admin_token()?);
-    for (d, bytes) in [(&file, &content), (&manifest, &manifest_bytes)] {
-        let path = format!("/v1/blobs/{d}?namespace={ns}");
-        let headers = [("authorization", admin.as_str())];
-        let (code, _, _) =
-            http_request(ahead.gateway_port, "PUT", &path, &headers, Some(bytes)).await?;
-        assert_eq!(code, 201, "upload of {d}");
-    }
+    release.push(ahead.gateway_port, &admin, &ns).await?;
+    let (file, manifest) = (&release.file, &release.manifest);
     // Before the robot is told of it, the replica does not let it read the release (after
     // waiting its bounded while for a change that does not come); the robot's token is known
     // to it (a 404, not a 401). From now on that replica's watch lags.
@@ -111,7 +80,7 @@ async fn a_download_on_a_replica_whose_watch_lags_waits_for_it_and_is_served() -
     let (code, body) = get(ahead.gateway_port, &blob, &as_robot).await;
     assert_eq!(
         (code, body),
-        (200, content.clone()),
+        (200, release.content.clone()),
         "the replica ahead serves it"
     );
     let ahead_after = changed.elapsed();
@@ -131,7 +100,7 @@ async fn a_download_on_a_replica_whose_watch_lags_waits_for_it_and_is_served() -
     );
     assert_eq!(
         (code, body),
-        (200, content),
+        (200, release.content.clone()),
         "the lagging replica serves the release once its watch has it"
     );
     assert!(
@@ -150,7 +119,7 @@ async fn a_download_on_a_replica_whose_watch_lags_waits_for_it_and_is_served() -
         &as_robot,
     )
     .await;
-    assert_eq!((code, body), (200, manifest_bytes));
+    assert_eq!((code, body), (200, release.manifest_bytes));
     drop(proxy);
     Ok(())
 }

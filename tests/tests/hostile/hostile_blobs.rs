@@ -10,17 +10,12 @@ use anyhow::Context as _;
 use kube::Api;
 use kube::api::{Patch, PatchParams};
 use lekiwi_crds::Robot;
-use lekiwi_protocol::release::{ManifestFile, ReleaseManifest};
+use lekiwi_tests::blobs::{OneFileRelease as Release, digest, get_bytes as get};
 use lekiwi_tests::{
     AgentProcess, ControlPlane, OperatorProcess, bin, connect_agent, enrollment_token,
     enrollment_token_file, gateway_url, http_request, namespace, wait_for,
 };
 use serde_json::{Value, json};
-use sha2::{Digest, Sha256};
-
-fn digest(bytes: &[u8]) -> String {
-    format!("sha256:{}", hex::encode(Sha256::digest(bytes)))
-}
 
 /// A robot's credentials for blob requests.
 struct AsRobot {
@@ -52,50 +47,6 @@ impl AsRobot {
     }
 }
 
-/// A release of one file: the file's bytes, its digest and the manifest's digest and bytes.
-struct Release {
-    file: String,
-    manifest: String,
-    manifest_bytes: Vec<u8>,
-    content: Vec<u8>,
-}
-
-impl Release {
-    fn new(version: &str, content: &[u8]) -> Self {
-        let file = digest(content);
-        let manifest_bytes = ReleaseManifest::new(
-            version,
-            vec![ManifestFile {
-                path: "policy.bin".into(),
-                digest: file.clone(),
-                size: content.len() as u64,
-                mode: 0o644,
-            }],
-        )
-        .to_bytes();
-        Self {
-            file,
-            manifest: digest(&manifest_bytes),
-            manifest_bytes,
-            content: content.to_vec(),
-        }
-    }
-
-    /// Uploads the file and the manifest with a Kubernetes user's token, into namespace `ns`.
-    async fn push(&self, port: u16, api: &str, ns: &str) -> anyhow::Result<()> {
-        for (d, bytes) in [
-            (&self.file, &self.content),
-            (&self.manifest, &self.manifest_bytes),
-        ] {
-            let path = format!("/v1/blobs/{d}?namespace={ns}");
-            let headers = [("authorization", api)];
-            let (code, _, _) = http_request(port, "PUT", &path, &headers, Some(bytes)).await?;
-            assert_eq!(code, 201, "upload of {d}");
-        }
-        Ok(())
-    }
-}
-
 /// Names `manifest` in the Robot's `spec.release`.
 async fn assign(client: &kube::Client, robot: &str, manifest: &str) -> anyhow::Result<()> {
     let (ns, name) = robot.split_once('/').context("ns/name")?;
@@ -104,13 +55,6 @@ async fn assign(client: &kube::Client, robot: &str, manifest: &str) -> anyhow::R
         .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
         .await?;
     Ok(())
-}
-
-async fn get(port: u16, path: &str, headers: &[(&str, &str)]) -> (u16, Vec<u8>) {
-    let (code, _, body) = http_request(port, "GET", path, headers, None)
-        .await
-        .expect("request");
-    (code, body)
 }
 
 /// The `message` of a JSON error answer, with `digest` replaced by `<d>`.

@@ -849,32 +849,50 @@ fn a_status_older_than_the_marks_does_not_open_the_next_batch_twice() {
     assert_eq!(sim.running("2").len(), 6);
 }
 
-/// A failure the agent reports in the second its robot was started fails the robot at once:
-/// status times are whole seconds while the start is not, and compared to the instant the
-/// report looked older than the start, so the robot waited out its whole timeout (a canary in
-/// the soak, refused a release its gateway did not know yet, held a rollout 180 s so).
-#[test]
-fn a_failure_reported_in_the_second_of_the_start_fails_the_robot_at_once() {
+/// The canary of a one-robot-canary rollout started at 10:00:00.400, whose agent then reports
+/// `phase` with `message` for the target release, received by its gateway at `at`: the status a
+/// second later, and the canary's row in it.
+fn canary_reported(
+    at: &str,
+    phase: &str,
+    message: &str,
+) -> (
+    lekiwi_crds::RobotDeploymentStatus,
+    lekiwi_crds::deployment::RobotResult,
+) {
     let mut sim = Sim::new(deployment(IntOrString::Int(1), 1), 2);
     sim.now = "2026-11-22T10:00:00.400Z".parse().unwrap();
     let first = sim.step();
     assert_eq!(first.writes.len(), 1, "the canary starts");
     let canary = first.writes[0].robot.clone();
-    // As the gateway writes it: to the microsecond, 50 ms after the start.
-    let stored: Timestamp = "2026-11-22T10:00:00.450Z".parse().unwrap();
     let r = sim.robots.iter_mut().find(|r| r.name == canary).unwrap();
-    r.last_update = Some((
-        rel("2"),
-        "failed".into(),
-        Some("release unknown to the gateway".into()),
-        Some(stored),
-    ));
+    let at: Timestamp = at.parse().unwrap();
+    r.last_update = Some((rel("2"), phase.into(), Some(message.into()), Some(at)));
     sim.advance(1);
     sim.step();
     let st = sim.d.status.clone().unwrap();
-    let result = st.robots.iter().find(|r| r.robot == canary).unwrap();
-    // Failed a second after its start, not after its 60 s timeout: its batch rolls back (the
-    // robot never left its release, so it is back on it at once).
+    let row = st
+        .robots
+        .iter()
+        .find(|r| r.robot == canary)
+        .unwrap()
+        .clone();
+    (st, row)
+}
+
+/// A failure the agent reports in the second its robot was started, after the start, fails
+/// the robot at once, not after its timeout (a canary in the soak, refused a release its
+/// gateway did not know yet, held a rollout 180 s when such reports were compared by the
+/// whole second).
+#[test]
+fn a_failure_reported_in_the_second_of_the_start_fails_the_robot_at_once() {
+    // As the gateway writes it: to the microsecond, 50 ms after the start.
+    let (st, result) = canary_reported(
+        "2026-11-22T10:00:00.450Z",
+        "failed",
+        "release unknown to the gateway",
+    );
+    // Its batch rolls back (the robot never left its release, so it is back on it at once).
     assert_eq!(st.phase, Some(RolloutPhase::RollingBack), "{st:#?}");
     assert_eq!(result.state, RobotRolloutState::RolledBack, "{st:#?}");
     assert!(
@@ -886,28 +904,16 @@ fn a_failure_reported_in_the_second_of_the_start_fails_the_robot_at_once() {
     );
 }
 
+/// A pause cancels the canary's update and a resume starts it again within one second; the
+/// agent's report of the cancelled update came 50 ms before the new start. It is the old
+/// update's outcome, not the new one's failure.
 #[test]
 fn an_outcome_reported_just_before_the_start_in_the_same_second_is_not_this_starts() {
-    // A pause cancels the canary's update and a resume starts it again within one second; the
-    // agent's report of the cancelled update (rolled back: its health check was stopped) came
-    // 50 ms before the new start. It is the old update's outcome, not the new one's failure.
-    let mut sim = Sim::new(deployment(IntOrString::Int(1), 1), 2);
-    sim.now = "2026-11-22T10:00:00.400Z".parse().unwrap();
-    let first = sim.step();
-    assert_eq!(first.writes.len(), 1, "the canary starts");
-    let canary = first.writes[0].robot.clone();
-    let stored: Timestamp = "2026-11-22T10:00:00.350Z".parse().unwrap();
-    let r = sim.robots.iter_mut().find(|r| r.name == canary).unwrap();
-    r.last_update = Some((
-        rel("2"),
-        "rolled_back".into(),
-        Some("health check of 2 failed: cancelled by the gateway".into()),
-        Some(stored),
-    ));
-    sim.advance(1);
-    sim.step();
-    let st = sim.d.status.clone().unwrap();
-    let result = st.robots.iter().find(|r| r.robot == canary).unwrap();
+    let (st, result) = canary_reported(
+        "2026-11-22T10:00:00.350Z",
+        "rolled_back",
+        "health check of 2 failed: cancelled by the gateway",
+    );
     assert_eq!(st.phase, Some(RolloutPhase::Progressing), "{st:#?}");
     assert_eq!(result.state, RobotRolloutState::Updating, "{st:#?}");
 }
