@@ -90,6 +90,19 @@ impl Histories {
         self.first_online(name, gateway).map(|(t, _)| t)
     }
 
+    /// [`Self::online_via`], waiting up to 5 s for this watch to bring the change: a read of
+    /// the API server can see a status before the watch has delivered it.
+    async fn seen_online_via(&self, name: &str, gateway: &str) -> Option<Instant> {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            let seen = self.online_via(name, gateway);
+            if seen.is_some() || Instant::now() > deadline {
+                return seen;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    }
+
     /// The resourceVersion that first showed `name` Online through `gateway`: the API
     /// server's order of writes, whatever this watch's delay.
     fn online_version(&self, name: &str, gateway: &str) -> Option<u64> {
@@ -452,7 +465,8 @@ async fn a_late_write_of_a_dead_gateway_turns_no_robot_unknown() -> anyhow::Resu
         .await?;
     f.all_online_via(&[name.as_str()], "gw-b").await?;
     let online_b = history
-        .online_via(&name, "gw-b")
+        .seen_online_via(&name, "gw-b")
+        .await
         .expect("seen Online via gw-b");
     // Room for a late controller write.
     tokio::time::sleep(Duration::from_secs(2 * GATEWAY_LEASE_SECS)).await;
