@@ -34,6 +34,7 @@ pub fn router(state: HttpState) -> Router {
 }
 
 async fn metrics(State(state): State<HttpState>) -> impl IntoResponse {
+    state.metrics.runtime.observe();
     (
         [(
             header::CONTENT_TYPE,
@@ -95,5 +96,48 @@ mod tests {
                 .unwrap()
                 .contains("lekiwi_leader_election_is_leader")
         );
+    }
+
+    /// Each scrape reads the runtime's live tasks: three tasks kept waiting count, and no longer
+    /// count once they ended.
+    #[tokio::test]
+    async fn a_scrape_counts_the_tasks_alive() {
+        let (_tx, leader) = tokio::sync::watch::channel(false);
+        let app = router(HttpState {
+            metrics: Metrics::default(),
+            ready: Arc::new(AtomicBool::new(true)),
+            leader,
+            gateway_ready: None,
+        });
+        let tasks = || async {
+            let res = app
+                .clone()
+                .oneshot(Request::get("/metrics").body(Body::empty()).unwrap())
+                .await
+                .unwrap();
+            let body = res.into_body().collect().await.unwrap().to_bytes();
+            let text = String::from_utf8(body.to_vec()).unwrap();
+            let line = text
+                .lines()
+                .find(|l| l.starts_with("lekiwi_runtime_tasks "))
+                .unwrap_or_else(|| panic!("no lekiwi_runtime_tasks in {text}"));
+            line.rsplit(' ').next().unwrap().parse::<i64>().unwrap()
+        };
+        let before = tasks().await;
+        let (go, _) = tokio::sync::broadcast::channel::<()>(1);
+        let waiting: Vec<_> = (0..3)
+            .map(|_| {
+                let mut go = go.subscribe();
+                tokio::spawn(async move {
+                    let _ = go.recv().await;
+                })
+            })
+            .collect();
+        assert_eq!(tasks().await, before + 3);
+        go.send(()).unwrap();
+        for task in waiting {
+            task.await.unwrap();
+        }
+        assert_eq!(tasks().await, before);
     }
 }

@@ -1,6 +1,7 @@
 //! The operator's Prometheus registry (`lekiwi_*`, bounded label sets only). Each subsystem
 //! defines and registers its own metrics: [`ControllerMetrics`], [`RolloutMetrics`],
-//! [`LeaderMetrics`], [`GatewayMetrics`] and the opt-in per-robot [`RobotMetrics`].
+//! [`LeaderMetrics`], [`GatewayMetrics`], [`RuntimeMetrics`] and the opt-in per-robot
+//! [`RobotMetrics`].
 
 use std::sync::Arc;
 
@@ -11,6 +12,7 @@ mod controller;
 mod gateway;
 mod leader;
 mod rollout;
+mod runtime;
 
 pub use controller::{
     ControllerLabels, ControllerMetrics, ControllerName, ErrorLabels, PhaseLabels, ReconcileTimer,
@@ -21,6 +23,7 @@ pub use gateway::{
 };
 pub use leader::LeaderMetrics;
 pub use rollout::{DeploymentLabels, DeploymentPhaseLabels, OutcomeLabels, RolloutMetrics};
+pub use runtime::RuntimeMetrics;
 
 /// A bounded label with one value from a fixed set.
 #[derive(Clone, Debug, Hash, PartialEq, Eq, EncodeLabelSet)]
@@ -99,6 +102,8 @@ pub struct Metrics {
     pub rollouts: RolloutMetrics,
     /// Per-robot vitals and release (empty unless `--per-robot-metrics`).
     pub per_robot: RobotMetrics,
+    /// The async runtime's tasks.
+    pub runtime: RuntimeMetrics,
 }
 
 impl Default for Metrics {
@@ -117,6 +122,7 @@ impl Metrics {
         let leader = LeaderMetrics::register(&mut registry);
         let rollouts = RolloutMetrics::register(&mut registry);
         let per_robot = RobotMetrics::register(&mut registry, per_robot);
+        let runtime = RuntimeMetrics::register(&mut registry);
         Self {
             registry: Arc::new(registry.inner),
             catalogue: Arc::new(registry.catalogue),
@@ -125,6 +131,7 @@ impl Metrics {
             gateway,
             rollouts,
             per_robot,
+            runtime,
         }
     }
 
