@@ -386,7 +386,7 @@ impl Releases {
 
     async fn load_journal(&self) -> Journal {
         let layout = self.layout.clone();
-        match blocking(move || layout.load_journal()).await {
+        match blocking(move || Journal::load(&layout)).await {
             Ok(j) => j,
             Err(e) => {
                 warn!(error = %e, "cannot read the deploy journal; starting a new one");
@@ -398,7 +398,7 @@ impl Releases {
     async fn write_journal(&self, journal: &Journal) -> Result<()> {
         let layout = self.layout.clone();
         let journal = journal.clone();
-        blocking(move || layout.save_journal(&journal)).await
+        blocking(move || journal.save(&layout)).await
     }
 
     /// Saves the journal where a failure cannot change the outcome any more; logs it.

@@ -605,7 +605,7 @@ async fn an_interrupted_download_resumes_with_range() {
 fn killed_after_switch(fx: &Fixture, target: &Release, previous: &Release) {
     let layout = fx.layout();
     layout.switch(Some(&target.version)).unwrap();
-    let mut journal = layout.load_journal().unwrap();
+    let mut journal = Journal::load(&layout).unwrap();
     journal.recent.retain(|f| f.command_id != "c2");
     journal.active = Some(Active {
         command_id: "c2".into(),
@@ -614,7 +614,7 @@ fn killed_after_switch(fx: &Fixture, target: &Release, previous: &Release) {
         phase: JournalPhase::Switching,
         reason: String::new(),
     });
-    layout.save_journal(&journal).unwrap();
+    journal.save(&layout).unwrap();
 }
 
 #[tokio::test]
@@ -649,7 +649,7 @@ async fn recovery_after_the_switch_finishes_a_healthy_release_and_rolls_back_a_s
     let progress = drain(&mut rx);
     assert_eq!(progress.last().unwrap().command_id, "c2");
     assert_eq!(progress.last().unwrap().phase, Phase::Done);
-    assert_eq!(fx.layout().load_journal().unwrap().active, None);
+    assert_eq!(Journal::load(&fx.layout()).unwrap().active, None);
     assert_eq!(r.recover(&tx).await, None);
 
     // Killed after switching to the sick 3: recovery switches back to 2.
@@ -711,7 +711,7 @@ async fn an_agent_killed_before_the_switch_leaves_a_complete_current_release() {
         );
     }
     assert_eq!(
-        fx.layout().load_journal().unwrap().active.map(|a| a.phase),
+        Journal::load(&fx.layout()).unwrap().active.map(|a| a.phase),
         Some(JournalPhase::Preparing)
     );
     let (tx, _rx) = unbounded_channel();

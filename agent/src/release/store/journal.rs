@@ -70,6 +70,32 @@ pub(in crate::release) struct Journal {
 }
 
 impl Journal {
+    /// Reads the journal under `layout`: empty when there is none, and a corrupt one is set
+    /// aside (as `deploy.json.corrupt`) rather than blocking every deployment.
+    pub(in crate::release) fn load(layout: &Layout) -> Result<Journal> {
+        let path = layout.journal();
+        match std::fs::read(&path) {
+            Ok(bytes) => match serde_json::from_slice(&bytes) {
+                Ok(j) => Ok(j),
+                Err(e) => {
+                    // Atomic writes make this unlikely; do not let it block every deployment.
+                    warn!(path = %path.display(), error = %e, "corrupt deploy journal; set aside");
+                    let aside = layout.root.join("deploy.json.corrupt");
+                    std::fs::rename(&path, &aside).map_err(io(&path))?;
+                    Ok(Journal::default())
+                }
+            },
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Journal::default()),
+            Err(e) => Err(io(&path)(e)),
+        }
+    }
+
+    /// Writes the journal under `layout`, atomically.
+    pub(in crate::release) fn save(&self, layout: &Layout) -> Result<()> {
+        let bytes = serde_json::to_vec_pretty(self).unwrap_or_default();
+        write_atomic(&layout.journal(), &bytes)
+    }
+
     /// Records a finished command, forgetting the oldest beyond [`RECENT_COMMANDS`].
     pub(in crate::release) fn remember(&mut self, finished: Finished) {
         self.recent.retain(|f| f.command_id != finished.command_id);
@@ -87,30 +113,5 @@ impl Journal {
             let excess = self.history.len() - HISTORY;
             self.history.drain(..excess);
         }
-    }
-}
-
-impl Layout {
-    pub(in crate::release) fn load_journal(&self) -> Result<Journal> {
-        let path = self.journal();
-        match std::fs::read(&path) {
-            Ok(bytes) => match serde_json::from_slice(&bytes) {
-                Ok(j) => Ok(j),
-                Err(e) => {
-                    // Atomic writes make this unlikely; do not let it block every deployment.
-                    warn!(path = %path.display(), error = %e, "corrupt deploy journal; set aside");
-                    let aside = self.root.join("deploy.json.corrupt");
-                    std::fs::rename(&path, &aside).map_err(io(&path))?;
-                    Ok(Journal::default())
-                }
-            },
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Journal::default()),
-            Err(e) => Err(io(&path)(e)),
-        }
-    }
-
-    pub(in crate::release) fn save_journal(&self, journal: &Journal) -> Result<()> {
-        let bytes = serde_json::to_vec_pretty(journal).unwrap_or_default();
-        write_atomic(&self.journal(), &bytes)
     }
 }

@@ -70,7 +70,6 @@ pub(super) struct Collected {
 
 /// Paths of the store.
 #[derive(Clone, Debug)]
-// shape: the paths of the store here; journal.rs reads and writes the deploy journal under them.
 pub(super) struct Layout {
     root: PathBuf,
 }
