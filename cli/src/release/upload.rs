@@ -72,25 +72,33 @@ enum Answer {
     Failed(String),
 }
 
-impl Gateway {
-    /// Uploads one blob from its offset on the gateway; returns the bytes sent and whether
+/// One blob's upload to one gateway.
+pub(super) struct Upload<'a> {
+    /// Where it goes.
+    pub(super) gateway: &'a Gateway,
+    /// What goes.
+    pub(super) blob: &'a Blob,
+}
+
+impl Upload<'_> {
+    /// Uploads the blob from its offset on the gateway; returns the bytes sent and whether
     /// this upload stored it (rather than finding it stored).
-    pub(super) async fn upload(
+    pub(super) async fn run(
         &self,
-        blob: &Blob,
         chunk_bytes: u64,
         progress: &Progress,
     ) -> anyhow::Result<(u64, bool)> {
+        let blob = self.blob;
         let mut sent = 0u64;
-        let mut offset = match self.upload_offset(&blob.digest).await? {
+        let mut offset = match self.gateway.upload_offset(&blob.digest).await? {
             UploadAnswer { complete: true, .. } => return Ok((0, false)),
             UploadAnswer { offset, .. } => offset.min(blob.size),
         };
         progress.bytes.fetch_add(offset, Ordering::Relaxed);
         let mut attempt = 0;
         loop {
-            let (request, len) = self.chunk_request(blob, offset, chunk_bytes).await?;
-            let failure = match self.answer(blob, offset, request.send().await).await? {
+            let (request, len) = self.chunk_request(offset, chunk_bytes).await?;
+            let failure = match answer(blob, offset, request.send().await).await? {
                 Answer::Done { stored } => {
                     if stored {
                         sent += len;
@@ -117,7 +125,7 @@ impl Gateway {
             }
             tokio::time::sleep(backoff(attempt)).await;
             // Resume from what the gateway holds, whatever the failure left behind.
-            match self.upload_offset(&blob.digest).await? {
+            match self.gateway.upload_offset(&blob.digest).await? {
                 UploadAnswer { complete: true, .. } => return Ok((sent, false)),
                 UploadAnswer { offset: at, .. } => {
                     let at = at.min(blob.size);
@@ -134,17 +142,17 @@ impl Gateway {
     /// The next request of an upload standing at `offset`, and how many blob bytes it carries.
     async fn chunk_request(
         &self,
-        blob: &Blob,
         offset: u64,
         chunk_bytes: u64,
     ) -> anyhow::Result<(reqwest::RequestBuilder, u64)> {
+        let (blob, gateway) = (self.blob, self.gateway);
         let path = blob_path(&blob.digest);
         Ok(if blob.size == 0 {
-            (self.request(Method::PUT, &path).body(Vec::new()), 0)
+            (gateway.request(Method::PUT, &path).body(Vec::new()), 0)
         } else if offset == blob.size {
             // Every byte arrived but the gateway did not verify them yet: ask it to.
             let range = format!("bytes */{}", blob.size);
-            let request = self
+            let request = gateway
                 .request(Method::PUT, &path)
                 .header(reqwest::header::CONTENT_RANGE, range)
                 .body(Vec::new());
@@ -153,56 +161,55 @@ impl Gateway {
             let len = chunk_bytes.min(blob.size - offset);
             let data = blob.source.read(offset, len).await?;
             let range = format!("bytes {offset}-{}/{}", offset + len - 1, blob.size);
-            let request = self
+            let request = gateway
                 .request(Method::PUT, &path)
                 .header(reqwest::header::CONTENT_RANGE, range)
                 .body(data);
             (request, len)
         })
     }
+}
 
-    /// Reads the gateway's answer to a chunk sent at `offset`; a refusal that another attempt
-    /// cannot fix is an error.
-    async fn answer(
-        &self,
-        blob: &Blob,
-        offset: u64,
-        sent: reqwest::Result<reqwest::Response>,
-    ) -> anyhow::Result<Answer> {
-        let resp = match sent {
-            Ok(resp) => resp,
-            Err(e) => return Ok(Answer::Failed(crate::http_error(&e))),
-        };
-        Ok(match resp.status() {
-            StatusCode::CREATED | StatusCode::OK => Answer::Done {
-                stored: resp.status() == StatusCode::CREATED,
-            },
-            StatusCode::ACCEPTED => {
-                let answer: UploadAnswer = resp.json().await?;
-                Answer::Accepted(answer.offset)
-            }
-            StatusCode::CONFLICT => {
-                // Another upload moved it on (or an earlier answer got lost).
-                let answer: UploadAnswer = resp.json().await?;
-                Answer::Failed(format!(
-                    "the upload stood at {}, not {offset}",
-                    answer.offset
-                ))
-            }
-            s if transient(s) => Answer::Failed(format!("{s}: {}", message(resp).await)),
-            StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
-                bail!("uploading {}: {}", blob.name, refused(resp, "").await)
-            }
-            StatusCode::BAD_REQUEST => bail!(
-                "uploading {}: the gateway refused it: {} (did the file change while pushing?)",
-                blob.name,
-                message(resp).await
-            ),
-            s => bail!(
-                "uploading {}: the gateway answered {s}: {}",
-                blob.name,
-                message(resp).await
-            ),
-        })
-    }
+/// Reads the gateway's answer to a chunk of `blob` sent at `offset`; a refusal that another
+/// attempt cannot fix is an error.
+async fn answer(
+    blob: &Blob,
+    offset: u64,
+    sent: reqwest::Result<reqwest::Response>,
+) -> anyhow::Result<Answer> {
+    let resp = match sent {
+        Ok(resp) => resp,
+        Err(e) => return Ok(Answer::Failed(crate::http_error(&e))),
+    };
+    Ok(match resp.status() {
+        StatusCode::CREATED | StatusCode::OK => Answer::Done {
+            stored: resp.status() == StatusCode::CREATED,
+        },
+        StatusCode::ACCEPTED => {
+            let answer: UploadAnswer = resp.json().await?;
+            Answer::Accepted(answer.offset)
+        }
+        StatusCode::CONFLICT => {
+            // Another upload moved it on (or an earlier answer got lost).
+            let answer: UploadAnswer = resp.json().await?;
+            Answer::Failed(format!(
+                "the upload stood at {}, not {offset}",
+                answer.offset
+            ))
+        }
+        s if transient(s) => Answer::Failed(format!("{s}: {}", message(resp).await)),
+        StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN => {
+            bail!("uploading {}: {}", blob.name, refused(resp, "").await)
+        }
+        StatusCode::BAD_REQUEST => bail!(
+            "uploading {}: the gateway refused it: {} (did the file change while pushing?)",
+            blob.name,
+            message(resp).await
+        ),
+        s => bail!(
+            "uploading {}: the gateway answered {s}: {}",
+            blob.name,
+            message(resp).await
+        ),
+    })
 }
