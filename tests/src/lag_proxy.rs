@@ -3,16 +3,21 @@
 //! everyone else, as a replica whose watch is behind does. What the client sends goes through at
 //! once. The lag can change while connections are open (it starts at zero, so the client can
 //! start up at full speed).
+//!
+//! It can also play an API server that restarts badly: [`LagProxy::cut_and_hold`] closes every
+//! open connection and takes the next ones in without ever answering them, as a server that
+//! accepted requests while it started and lost them; [`LagProxy::release`] forwards connections
+//! opened after it again (those held stay unanswered).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
 use anyhow::Result;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
@@ -24,6 +29,10 @@ pub struct LagProxy {
     /// Where clients connect: `127.0.0.1:port`.
     pub addr: SocketAddr,
     lag_ms: Arc<AtomicU64>,
+    /// Bumped to close every connection forwarded so far.
+    cuts: watch::Sender<u64>,
+    /// While set, connections are taken in and never answered.
+    holding: Arc<AtomicBool>,
     accept: JoinHandle<()>,
 }
 
@@ -34,17 +43,37 @@ impl LagProxy {
         let listener = TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
         let lag_ms = Arc::new(AtomicU64::new(0));
-        let lag = lag_ms.clone();
+        let (cuts, cut) = watch::channel(0);
+        let holding = Arc::new(AtomicBool::new(false));
+        let (lag, hold) = (lag_ms.clone(), holding.clone());
         let accept = tokio::spawn(async move {
             while let Ok((client, _)) = listener.accept().await {
-                tokio::spawn(forward(client, upstream, lag.clone()));
+                if hold.load(Ordering::Relaxed) {
+                    tokio::spawn(never_answer(client));
+                } else {
+                    tokio::spawn(forward(client, upstream, lag.clone(), cut.clone()));
+                }
             }
         });
         Ok(Self {
             addr,
             lag_ms,
+            cuts,
+            holding,
             accept,
         })
+    }
+
+    /// Closes every connection forwarded so far and, until [`LagProxy::release`], takes new
+    /// connections in without ever answering them (not even after the release).
+    pub fn cut_and_hold(&self) {
+        self.holding.store(true, Ordering::Relaxed);
+        self.cuts.send_modify(|n| *n += 1);
+    }
+
+    /// Forwards the connections opened from now on again.
+    pub fn release(&self) {
+        self.holding.store(false, Ordering::Relaxed);
     }
 
     /// From now on, what the server sends is handed on `lag` late, on open connections too.
@@ -60,19 +89,41 @@ impl Drop for LagProxy {
     }
 }
 
-/// One connection: client to server as it comes, server to client the lag late, in order.
-async fn forward(client: TcpStream, upstream: SocketAddr, lag_ms: Arc<AtomicU64>) {
+/// A connection taken in and never answered: what the client sends is read and dropped.
+async fn never_answer(mut client: TcpStream) {
+    let mut buf = vec![0u8; 16 * 1024];
+    while matches!(client.read(&mut buf).await, Ok(n) if n > 0) {}
+}
+
+/// One connection: client to server as it comes, server to client the lag late, in order, until
+/// the proxy cuts it.
+async fn forward(
+    client: TcpStream,
+    upstream: SocketAddr,
+    lag_ms: Arc<AtomicU64>,
+    mut cut: watch::Receiver<u64>,
+) {
+    cut.mark_unchanged();
+    tokio::select! {
+        () = relay(client, upstream, lag_ms) => {}
+        _ = cut.changed() => {}
+    }
+}
+
+async fn relay(client: TcpStream, upstream: SocketAddr, lag_ms: Arc<AtomicU64>) {
     let Ok(server) = TcpStream::connect(upstream).await else {
         return;
     };
     let (mut client_read, mut client_write) = client.into_split();
     let (mut server_read, mut server_write) = server.into_split();
-    let up = tokio::spawn(async move {
+    // Both halves' tasks end with this future, also when a cut drops it.
+    let mut tasks = tokio::task::JoinSet::new();
+    tasks.spawn(async move {
         let _ = tokio::io::copy(&mut client_read, &mut server_write).await;
         let _ = server_write.shutdown().await;
     });
     let (tx, mut rx) = mpsc::channel::<(Instant, Vec<u8>)>(IN_FLIGHT);
-    let read = tokio::spawn(async move {
+    tasks.spawn(async move {
         let mut buf = vec![0u8; 64 * 1024];
         while let Ok(n) = server_read.read(&mut buf).await {
             let lag = Duration::from_millis(lag_ms.load(Ordering::Relaxed));
@@ -93,6 +144,4 @@ async fn forward(client: TcpStream, upstream: SocketAddr, lag_ms: Arc<AtomicU64>
         }
     }
     let _ = client_write.shutdown().await;
-    read.abort();
-    up.abort();
 }

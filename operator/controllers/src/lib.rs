@@ -16,7 +16,6 @@ use std::time::Duration;
 use futures::{Stream, StreamExt};
 use kube::runtime::controller::{Action, Config as ControllerConfig, Controller};
 use kube::runtime::reflector::ObjectRef;
-use kube::runtime::watcher;
 use serde::de::DeserializeOwned;
 use std::fmt::Debug;
 use tokio_util::sync::CancellationToken;
@@ -216,7 +215,7 @@ pub(crate) fn controller_for<K>(api: Api<K>, ctx: &Context) -> Controller<K>
 where
     K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + Sync + 'static,
 {
-    Controller::new(api, watcher::Config::default().any_semantic())
+    Controller::new(api, lekiwi_core::api_client::watch_config().any_semantic())
         .with_config(ControllerConfig::default().concurrency(ctx.config.concurrency))
 }
 

@@ -363,7 +363,7 @@ where
     let cache = Arc::new(Cache::new());
     let filled = cache.clone();
     let task = tokio::spawn(async move {
-        let stream = watcher(api, watcher::Config::default().any_semantic())
+        let stream = watcher(api, lekiwi_core::api_client::watch_config().any_semantic())
             .default_backoff()
             .modify(trim);
         let mut stream = std::pin::pin!(stream);

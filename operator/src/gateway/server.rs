@@ -185,7 +185,7 @@ async fn watch_token_secrets(
         // Listed from the API server's watch cache: a restart under load must not wait for
         // 10,000 Secrets paged out of etcd one slow page at a time; the watch that follows
         // brings every later change.
-        watcher::Config::default()
+        lekiwi_core::api_client::watch_config()
             .labels(TOKEN_LABEL)
             .any_semantic(),
     )

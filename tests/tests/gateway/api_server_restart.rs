@@ -1,9 +1,12 @@
 //! On a private control plane: the operator refuses to start without CRDs (or installs them),
-//! and survives an etcd + kube-apiserver restart, catching up without a restart of its own.
+//! and survives an etcd + kube-apiserver restart, catching up without a restart of its own; and
+//! requests a restarting API server took in and never answered are sent again.
 
 use std::time::{Duration, Instant};
 
+use lekiwi_core::api_client::READ_TIMEOUT;
 use lekiwi_crds::RobotPhase;
+use lekiwi_tests::lag_proxy::LagProxy;
 use lekiwi_tests::{
     ControlPlane, GatewayStandIn, OperatorProcess, connect_agent, create_robot, get_robot,
     namespace, wait_for,
@@ -159,5 +162,60 @@ async fn gateway_status_writes_survive_an_api_outage() -> anyhow::Result<()> {
     );
     assert!(op.running());
     drop(stays);
+    Ok(())
+}
+
+/// An API server that restarts can take requests in while it starts and never answer them. The
+/// operator reaches the API server through a proxy that cuts every connection and then, for a
+/// few seconds, takes the next ones in without answering: the watches, lists and Lease renewals
+/// the operator sends in that time get no answer, ever. Once the proxy forwards again the
+/// operator gets over them without a restart (its requests time out, its watches end and
+/// resume, a leadership it lost is won back): a Robot created afterwards is seen and given its
+/// status. (The read timeout that ends such a request is tested on its own in
+/// `lekiwi_core::api_client`.)
+#[tokio::test]
+async fn requests_the_api_server_takes_in_and_never_answers_are_sent_again() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "held").await?;
+    let dir = tempfile::tempdir()?;
+    let proxy = LagProxy::start(cp.api_server_addr()?).await?;
+    let kubeconfig = dir.path().join("kubeconfig");
+    cp.kubeconfig_via(&format!("https://{}", proxy.addr), &kubeconfig)?;
+    let mut op = OperatorProcess::start_with_kubeconfig(
+        &kubeconfig,
+        &ns,
+        "held",
+        &["--role", "controller"],
+    )?;
+    op.wait_ready().await?;
+    let pending = |name: &'static str| {
+        let (client, ns) = (client.clone(), ns.clone());
+        move || {
+            let (client, ns) = (client.clone(), ns.clone());
+            async move {
+                (get_robot(&client, &ns, name).await.ok()?.status?.phase
+                    == Some(RobotPhase::Pending))
+                .then_some(())
+            }
+        }
+    };
+    create_robot(&client, &ns, "before", &[]).await?;
+    wait_for("before Pending", Duration::from_secs(20), pending("before")).await?;
+
+    proxy.cut_and_hold();
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    proxy.release();
+    let released = Instant::now();
+    create_robot(&client, &ns, "after", &[]).await?;
+    wait_for(
+        "after Pending, once the unanswered requests timed out",
+        READ_TIMEOUT + Duration::from_secs(60),
+        pending("after"),
+    )
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\noperator log:\n{}", op.log_text()))?;
+    println!("seen {:?} after the release", released.elapsed());
+    assert!(op.running());
     Ok(())
 }

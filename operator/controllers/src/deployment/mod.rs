@@ -101,7 +101,11 @@ fn watch_robots(
     let index = index::RobotIndex::default();
     let watch = reflector(
         writer,
-        watcher(robots, watcher::Config::default().any_semantic()).modify(|r: &mut Robot| {
+        watcher(
+            robots,
+            lekiwi_core::api_client::watch_config().any_semantic(),
+        )
+        .modify(|r: &mut Robot| {
             // Only labels, annotations, spec and status are read; drop the rest.
             r.managed_fields_mut().clear();
         }),

@@ -46,15 +46,18 @@ pub async fn watch_gateway_leases(
     let (lease_store, lease_writer) = reflector::store();
     // Every version's claims are noted as the watch brings it (see `ClaimIndex::observe`).
     let claims = ctx.gateway_claims.clone();
-    let lease_watch = reflector(lease_writer, watcher(leases, watcher::Config::default()))
-        .default_backoff()
-        .touched_objects()
-        .for_each(move |lease| {
-            if let Ok(lease) = lease {
-                claims.observe(&lease, Timestamp::now());
-            }
-            futures::future::ready(())
-        });
+    let lease_watch = reflector(
+        lease_writer,
+        watcher(leases, lekiwi_core::api_client::watch_config()),
+    )
+    .default_backoff()
+    .touched_objects()
+    .for_each(move |lease| {
+        if let Ok(lease) = lease {
+            claims.observe(&lease, Timestamp::now());
+        }
+        futures::future::ready(())
+    });
     let lease_task = tokio::spawn(lease_watch);
     // Without the gateways' Leases every connected robot would look Unknown for a moment.
     tokio::select! {

@@ -82,7 +82,7 @@ pub fn watch(
     let peers = presence.peers().clone();
     tokio::spawn(async move {
         let api: Api<Lease> = Api::namespaced(client, &namespace);
-        let config = watcher::Config::default().labels(GATEWAY_LEASE_LABEL);
+        let config = lekiwi_core::api_client::watch_config().labels(GATEWAY_LEASE_LABEL);
         let events = watcher(api, config).default_backoff();
         let mut events = std::pin::pin!(events);
         // The Leases of a list in progress (the watch lists again after it broke off).
