@@ -9,7 +9,7 @@ use anyhow::{Context as _, bail};
 use clap::Subcommand;
 use lekiwi_protocol::rules;
 
-use super::upload::{Blob, Progress, Source};
+use super::upload::{Blob, Progress, Source, Upload};
 use super::{Gateway, ServerArgs, files, human};
 
 /// Agent subcommands.
@@ -64,9 +64,11 @@ pub async fn run(
         name: binary.display().to_string(),
         source: Source::File(binary.clone()),
     };
-    let (sent, _) = gateway
-        .upload(&blob, chunk_bytes.max(1), &Progress::default())
-        .await?;
+    let upload = Upload {
+        gateway: &gateway,
+        blob: &blob,
+    };
+    let (sent, _) = upload.run(chunk_bytes.max(1), &Progress::default()).await?;
     eprintln!(
         "agent {version} ({arch}): {} uploaded of {}",
         human(sent),

@@ -9,7 +9,6 @@ use reqwest::{Method, StatusCode};
 use serde::{Deserialize, Serialize};
 
 use super::ServerArgs;
-use super::upload::{Blob, Progress, Upload};
 
 /// The gateway's HTTP API with the user's Kubernetes token.
 pub(crate) struct Gateway {
@@ -230,22 +229,6 @@ impl Gateway {
             }
             s => bail!("checking blob {digest}: the gateway answered {s}"),
         }
-    }
-
-    /// Uploads `blob` from its offset on the gateway, in chunks of `chunk_bytes` (see
-    /// [`Upload`]); returns the bytes sent and whether this upload stored it.
-    pub(super) async fn upload(
-        &self,
-        blob: &Blob,
-        chunk_bytes: u64,
-        progress: &Progress,
-    ) -> anyhow::Result<(u64, bool)> {
-        Upload {
-            gateway: self,
-            blob,
-        }
-        .run(chunk_bytes, progress)
-        .await
     }
 
     /// How far an upload of `digest` got (`GET /v1/uploads/{digest}`).

@@ -15,7 +15,7 @@ use sha2::{Digest, Sha256};
 
 use super::files::HashedFile;
 use super::gateway::Gateway;
-use super::upload::{Blob, Progress, Source};
+use super::upload::{Blob, Progress, Source, Upload};
 
 /// How a push uploads: blobs at once and bytes per request (each at least 1).
 #[derive(Clone, Copy, Debug)]
@@ -176,7 +176,11 @@ async fn upload_all(
         .map(|blob| {
             let progress = progress.clone();
             async move {
-                let done = gateway.upload(&blob, options.chunk_bytes, &progress).await;
+                let upload = Upload {
+                    gateway,
+                    blob: &blob,
+                };
+                let done = upload.run(options.chunk_bytes, &progress).await;
                 progress.blobs.fetch_add(1, Ordering::Relaxed);
                 done
             }
@@ -212,6 +216,11 @@ async fn push_manifest(
         name: "the manifest".into(),
         source: Source::Memory(Arc::new(manifest_bytes)),
     };
-    let (sent, stored) = gateway.upload(&blob, chunk_bytes, progress).await?;
+    let (sent, stored) = Upload {
+        gateway,
+        blob: &blob,
+    }
+    .run(chunk_bytes, progress)
+    .await?;
     Ok((digest, sent, stored))
 }
