@@ -20,6 +20,14 @@ pub const READ_TIMEOUT: Duration = Duration::from_secs(60);
 /// would.
 pub const WATCH_TIMEOUT_SECS: u32 = 50;
 
+/// Whether the API server said that the object `name` does not exist: a 404 whose details name
+/// it. A 404 without them comes from a path the server does not serve (yet): a restarting API
+/// server answers so for custom resources until it has loaded their definitions, and a gateway
+/// that took that for a deleted Robot stopped writing the status of a robot still connected.
+pub fn is_missing(status: &kube::core::Status, name: &str) -> bool {
+    status.code == 404 && status.details.as_ref().is_some_and(|d| d.name == name)
+}
+
 /// Sets the read timeout on the configuration every operator client is built from.
 pub fn with_timeouts(mut config: kube::Config) -> kube::Config {
     config.read_timeout = Some(READ_TIMEOUT);
@@ -37,6 +45,26 @@ pub fn watch_config() -> watcher::Config {
 mod tests {
     use super::*;
     use tokio::io::AsyncReadExt;
+
+    /// Only a 404 that names the object says it is missing; the plain "404 page not found" of
+    /// a path not served yet does not.
+    #[test]
+    fn only_a_not_found_naming_the_object_says_it_is_missing() {
+        let missing: kube::core::Status = serde_json::from_value(serde_json::json!({
+            "kind": "Status", "apiVersion": "v1", "status": "Failure", "reason": "NotFound",
+            "message": "robots.fleet.lekiwi.io \"kiwi\" not found", "code": 404,
+            "details": {"name": "kiwi", "group": "fleet.lekiwi.io", "kind": "robots"},
+        }))
+        .unwrap();
+        assert!(is_missing(&missing, "kiwi"));
+        assert!(!is_missing(&missing, "other"));
+        let unserved =
+            kube::core::Status::failure("404 page not found", "Failed to parse error data")
+                .with_code(404);
+        assert!(!is_missing(&unserved, "kiwi"));
+        let conflict = kube::core::Status::failure("changed", "Conflict").with_code(409);
+        assert!(!is_missing(&conflict, "kiwi"));
+    }
 
     /// A server that takes the connection and the request in and never answers: the request
     /// fails once the read timeout passed, rather than waiting for good.

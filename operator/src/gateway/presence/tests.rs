@@ -23,7 +23,7 @@ fn release_json(version: &str) -> Value {
     json!({ "digest": format!("sha256:{}", "ab".repeat(32)), "version": version })
 }
 
-fn entry(connected: bool, info: ConnectInfo) -> Entry {
+pub(super) fn entry(connected: bool, info: ConnectInfo) -> Entry {
     Entry {
         session: 7,
         epoch: 1_000,
@@ -329,7 +329,7 @@ fn key(n: &str) -> RobotKey {
     }
 }
 
-fn presence() -> Presence {
+pub(super) fn presence() -> Presence {
     Presence::new(
         PresenceConfig {
             gateway: "gw".into(),

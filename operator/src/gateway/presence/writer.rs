@@ -21,12 +21,13 @@ use super::{Entry, Presence, Priority};
 use crate::gateway::holder::Holder;
 use crate::gateway::watched::WatchedRobots;
 use lekiwi_core::RobotKey;
+use lekiwi_core::api_client::is_missing;
 use lekiwi_core::apply::Metadata;
 use lekiwi_core::rate::TokenBucket;
 
 /// Why a status write did not happen.
 enum WriteError {
-    /// The Robot was deleted.
+    /// The Robot was deleted (the API server said so of it; see [`is_missing`]).
     Gone,
     /// A later session (of another gateway) holds the robot: our write would undo its.
     Superseded,
@@ -326,9 +327,11 @@ impl Presence {
             }
         }
         for _ in 0..FRESH_ATTEMPTS {
-            let fresh = match api.get_opt(&key.name).await {
-                Ok(Some(r)) => r,
-                Ok(None) => return Err(WriteError::Gone),
+            let fresh = match api.get(&key.name).await {
+                Ok(r) => r,
+                Err(kube::Error::Api(s)) if is_missing(&s, &key.name) => {
+                    return Err(WriteError::Gone);
+                }
                 Err(err) => return Err(WriteError::Api(err)),
             };
             match self
@@ -368,12 +371,53 @@ impl Presence {
             .await
         {
             Ok(_) => Ok(()),
-            Err(kube::Error::Api(s)) if s.code == 404 => Err(WriteError::Gone),
+            Err(kube::Error::Api(s)) if is_missing(&s, &key.name) => Err(WriteError::Gone),
             Err(kube::Error::Api(s)) if s.code == 409 => Err(WriteError::Conflict),
             Err(kube::Error::Api(s)) if s.code == 400 || s.code == 422 => {
                 Err(WriteError::Refused(s.message))
             }
             Err(err) => Err(WriteError::Api(err)),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::gateway::presence::ConnectInfo;
+    use crate::gateway::presence::tests::entry;
+    use axum::http::StatusCode;
+
+    /// A stand-in API server that answers every request with `status` and `body`.
+    async fn answering(status: StatusCode, body: &'static str) -> kube::Client {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        let app = axum::Router::new().fallback(move || async move { (status, body) });
+        tokio::spawn(async move { axum::serve(listener, app).await });
+        kube::Client::try_from(kube::Config::new(url.parse().unwrap())).unwrap()
+    }
+
+    /// A restarting API server answers "404 page not found" for a custom resource it has not
+    /// loaded yet: the write is retried, the robot's presence kept. Only a 404 naming the Robot
+    /// drops it.
+    #[tokio::test]
+    async fn a_404_that_does_not_name_the_robot_is_retried_not_taken_for_a_deletion() {
+        let presence = crate::gateway::presence::tests::presence();
+        let key = RobotKey::new("fleet", "kiwi");
+        let e = entry(true, ConnectInfo::default());
+        let unserved = answering(StatusCode::NOT_FOUND, "404 page not found").await;
+        let outcome = presence.write(&unserved, None, &key, &e).await;
+        assert!(matches!(outcome, Err(WriteError::Api(_))), "not retried");
+
+        let deleted = answering(
+            StatusCode::NOT_FOUND,
+            r#"{"kind":"Status","apiVersion":"v1","status":"Failure","reason":"NotFound","message":"robots.fleet.lekiwi.io \"kiwi\" not found","details":{"name":"kiwi","group":"fleet.lekiwi.io","kind":"robots"},"code":404}"#,
+        )
+        .await;
+        let outcome = presence.write(&deleted, None, &key, &e).await;
+        assert!(
+            matches!(outcome, Err(WriteError::Gone)),
+            "a deleted Robot not seen as gone"
+        );
     }
 }
