@@ -26,7 +26,7 @@ def token_header(token_file):
 
 def main():
     api, ca, token_file, namespace, out_path = sys.argv[1:6]
-    base = f"{api}/apis/fleet.lekiwi.io/v1alpha1/namespaces/{namespace}/robots?watch=1&timeoutSeconds=3600"
+    base = f"{api}/apis/fleet.lekiwi.io/v1alpha1/namespaces/{namespace}/robots?watch=1&allowWatchBookmarks=true&timeoutSeconds=50"
     header = token_header(token_file)
     version = None
     with open(out_path, "w", buffering=1) as out:
@@ -34,16 +34,28 @@ def main():
             # Resume where the last stream ended; a version too old (410) starts over with a
             # fresh list of ADDED events, which the report reads as states, not changes.
             url = base + (f"&resourceVersion={version}" if version else "")
-            curl = ["curl", "-sS", "--no-buffer", "--cacert", ca, "-H", "@" + header, url]
+            # The server ends each watch within 50 s (after a bookmark of where it stood), and
+            # curl gives up on one that brings nothing for 60 s: a request an API server took in
+            # while it restarted may never be answered, and must not blind the watch for good.
+            # An error answer (a restarting server's 503, say) ends curl (--fail), not the watch.
+            curl = ["curl", "-sS", "--fail", "--no-buffer", "--max-time", "120", "--speed-time", "60",
+                    "--speed-limit", "1", "--cacert", ca, "-H", "@" + header, url]
             with subprocess.Popen(curl, stdout=subprocess.PIPE) as proc:
                 for line in proc.stdout:
-                    event = json.loads(line)
+                    try:
+                        event = json.loads(line)
+                    except ValueError:
+                        print("not a watch event: %r" % line[:200], file=sys.stderr)
+                        proc.kill()
+                        break
                     obj = event.get("object", {})
                     if event.get("type") == "ERROR":
                         print("watch error: %s" % obj.get("message"), file=sys.stderr)
                         version = None
                         continue
                     version = obj.get("metadata", {}).get("resourceVersion", version)
+                    if event.get("type") == "BOOKMARK":
+                        continue
                     status = obj.get("status") or {}
                     out.write("%.3f|%s|%s|%s|%s|%s\n" % (
                         time.time(), event.get("type", ""), obj.get("metadata", {}).get("name", ""),
@@ -51,6 +63,9 @@ def main():
                         "true" if status.get("connected") else "false"))
             print("%.3f watch stream ended (curl exit %s); resuming" % (time.time(), proc.returncode),
                   file=sys.stderr)
+            if proc.returncode == 22:
+                # An HTTP error (410 for a version too old among them): start over with a list.
+                version = None
             time.sleep(0.5)
 
 
