@@ -147,7 +147,9 @@ class Soak:
                 "--gateway-name", g, "--gateway-addr", f"127.0.0.1:{self.ports[g]}",
                 "--http-addr", f"127.0.0.1:{self.ports[g + '-http']}",
                 "--store-url", C["store_url"], "--blob-dir", os.path.join(WORK, "blobs"),
-                "--max-unauthenticated-per-address", "0"], env)
+                "--max-unauthenticated-per-address", "0"],
+                # The allocator's totals in the log when the gateway stops.
+                dict(env, MIMALLOC_SHOW_STATS="1"))
 
     def haproxy(self):
         self.ports["lb"] = free_port()
@@ -225,15 +227,23 @@ backend gateways
                 total += metric(text, "lekiwi_gateway_connections") or 0
         return total
 
-    def apiserver_writes(self):
+    def apiserver_metrics(self):
+        """The API server's /metrics text ("" when it does not answer)."""
+        try:
+            return subprocess.run(
+                ["curl", "-fsS", "--max-time", "20", "--cacert", f"{C['cp_dir']}/pki/ca.crt",
+                 "-H", f"Authorization: Bearer {open(C['cp_dir'] + '/admin-token').read().strip()}",
+                 f"https://127.0.0.1:{C['apiserver_port']}/metrics"],
+                capture_output=True, text=True, timeout=30).stdout
+        except (OSError, subprocess.TimeoutExpired):
+            return ""
+
+    def apiserver_writes(self, text=None):
         """Write requests the API server has served so far, by resource."""
-        p = subprocess.run(
-            ["curl", "-fsS", "--max-time", "20", "--cacert", f"{C['cp_dir']}/pki/ca.crt",
-             "-H", f"Authorization: Bearer {open(C['cp_dir'] + '/admin-token').read().strip()}",
-             f"https://127.0.0.1:{C['apiserver_port']}/metrics"],
-            capture_output=True, text=True, timeout=30)
+        if text is None:
+            text = self.apiserver_metrics()
         writes = {}
-        for line in p.stdout.splitlines():
+        for line in text.splitlines():
             if not line.startswith("apiserver_request_total{"):
                 continue
             labels = dict(kv.split("=", 1) for kv in line[line.index("{") + 1:line.index("}")]
@@ -271,9 +281,13 @@ backend gateways
             except (OSError, StopIteration, ValueError):
                 continue
             sessions = 0
-            if name.startswith("gw-"):
-                text = curl(f"http://127.0.0.1:{self.ports[name + '-http']}/metrics", 5)
+            if name.startswith(("gw-", "ctl-")):
+                port = self.ports[name + "-http" if name.startswith("gw-") else name]
+                text = curl(f"http://127.0.0.1:{port}/metrics", 5)
                 sessions = int(metric(text, "lekiwi_gateway_connections") or 0)
+                tasks = metric(text, "lekiwi_runtime_tasks")
+                if tasks is not None:
+                    self.samples.gauge(name, "tasks", pid, now, tasks, sessions)
             self.samples.add(name, pid, now, rss, fds, threads, sessions)
         self.check_robots(now)
 
@@ -604,9 +618,35 @@ backend gateways
         log(f"steady Robot writes/s ({label}): {rate:.1f}")
         return label, rate
 
+    def sample_control_plane(self, now, text):
+        """What the API server and etcd hold, beside their RSS: the Go heap in use (live data and
+        what the collector has not returned yet), the Kubernetes Events stored (they live for the
+        API server's --event-ttl) and etcd's database size."""
+        pids = self.pids()
+        if "kube-apiserver" in pids and text:
+            for name, series in (("heap", "go_memstats_heap_inuse_bytes"),
+                                 ("events", 'etcd_object_counts{resource="events"}'),
+                                 ("robots", 'etcd_object_counts{resource="robots.fleet.lekiwi.io"}')):
+                v = metric(text, series)
+                if v is not None:
+                    self.samples.gauge("kube-apiserver", name, pids["kube-apiserver"], now, v)
+        if "etcd" in pids:
+            try:
+                port = next(l.split("=", 1)[1].strip() for l in open(f"{C['cp_dir']}/ports.env")
+                            if l.startswith("ETCD_PORT="))
+            except (OSError, StopIteration):
+                return
+            etcd = curl(f"http://127.0.0.1:{port}/metrics", 5)
+            for name, series in (("heap", "go_memstats_heap_inuse_bytes"),
+                                 ("db", "etcd_mvcc_db_total_size_in_bytes")):
+                v = metric(etcd, series)
+                if v is not None:
+                    self.samples.gauge("etcd", name, pids["etcd"], now, v)
+
     def tick(self):
         self.sample()
-        writes = self.apiserver_writes()
+        text = self.apiserver_metrics()
+        writes = self.apiserver_writes(text)
         robot = sum(v for k, v in writes.items() if k.startswith("robots"))
         now = time.time() - self.t0
         if writes and getattr(self, "last_writes", None):
@@ -616,6 +656,7 @@ backend gateways
                 self.samples.write_rates.append((now, (robot - w0) / (now - t0)))
         if writes:
             self.last_writes = (now, robot)
+        self.sample_control_plane(now, text)
         self.follow_faults()
 
     def soak(self):
@@ -762,6 +803,7 @@ def main():
             f.write(text)
         with open(os.path.join(WORK, "samples.json"), "w") as f:
             json.dump({"processes": s.samples.by_role, "write_rates": s.samples.write_rates,
+                       "gauges": {f"{r} {n}": v for (r, n), v in s.samples.gauges.items()},
                        "faults": s.faults, "rollouts": s.rollouts}, f)
         return 0 if "Verdict: PASS" in text else 1
     finally:

@@ -15,6 +15,7 @@ class Samples:
     def __init__(self):
         self.by_role = {}
         self.write_rates = []  # (t, robot writes per second over the last interval)
+        self.gauges = {}  # (role, name) -> [(pid, t, value)]: what a process reports of itself
 
     def add(self, role, pid, t, rss, fds, threads, sessions=0):
         # A gateway's open files less its robots' sessions: what it holds besides them. Its
@@ -22,24 +23,41 @@ class Samples:
         self.by_role.setdefault(role, []).append(
             (pid, t, rss, fds - sessions, threads, sessions))
 
+    def gauge(self, role, name, pid, t, value, sessions=0):
+        self.gauges.setdefault((role, name), []).append((pid, t, value, 0, 0, sessions))
+
+    def gauge_drift(self, role, name, end):
+        """As `drift`, of a gauge the process reports; a gateway's at a constant number of
+        sessions."""
+        return self._drift(role, self.gauges.get((role, name), []), 2, end, at_sessions=True)
+
     def drift(self, role, field, end):
-        """(drift over the last two thirds, noise of the first third, samples used) of `field`
-        (2 rss, 3 fds, 4 threads) for the instance of `role` alive at the end; None when it was
-        restarted too late to say."""
-        rows = self.by_role.get(role, [])
+        """(drift over the last two thirds, noise of the first third, samples used, mean) of
+        `field` (2 rss, 3 fds, 4 threads) for the instance of `role` with the longest life in
+        the last two thirds of the run, its first WARM_UP seconds left out; None when no
+        instance lived long enough there to say."""
+        return self._drift(role, self.by_role.get(role, []), field, end, at_sessions=True)
+
+    def _drift(self, role, rows, field, end, at_sessions):
         if not rows:
             return None
-        pid = rows[-1][0]
         first_cut = end / 3
-        # A process restarted by a fault warms its caches up for a while: not a leak.
-        born = min(r[1] for r in rows if r[0] == pid)
-        start_late = max(end / 3, born + WARM_UP)
-        late = [(t, r[field]) for r in rows if r[0] == pid for t in [r[1]] if t >= start_late]
+        # A process restarted by a fault warms its caches up for a while: not a leak. Of the
+        # instances a fault restarted, the one with the longest steady life is judged: one
+        # started a few minutes before the end is all warm-up.
+        windows = []
+        for pid in dict.fromkeys(r[0] for r in rows):
+            born = min(r[1] for r in rows if r[0] == pid)
+            start_late = max(first_cut, born + WARM_UP)
+            late = [(r[1], r[field]) for r in rows if r[0] == pid and r[1] >= start_late]
+            windows.append((late[-1][0] - late[0][0] if late else -1, pid, start_late, late))
+        _, pid, start_late, late = max(windows, key=lambda w: w[0])
         early = [r[field] for r in rows if r[1] < first_cut and r[1] > min(120, end / 10)]
-        if len(late) < 6 or late[0][0] > start_late + (end - start_late) / 2:
+        # At least a third of the judged part of the run.
+        if len(late) < 6 or late[-1][0] - late[0][0] < (end - first_cut) / 3:
             return None
         slope = _slope(late)
-        if field == 2 and role.startswith("gw-"):
+        if at_sessions and field == 2 and role.startswith("gw-"):
             # Robots move between gateways with the faults (a killed gateway's robots stay with
             # the survivor): the memory they bring is load, not a leak. The drift is the trend
             # of the RSS at a constant number of sessions.
@@ -49,7 +67,8 @@ class Samples:
         drift = slope * (late[-1][0] - late[0][0])
         mean = statistics.fmean(v for _, v in late)
         noise = 3 * statistics.pstdev(early) if len(early) >= 3 else 0.0
-        return drift, max(noise, 0.02 * mean, 1.0), len(late), mean
+        span = f"min {late[0][0] / 60:.0f}-{late[-1][0] / 60:.0f}"
+        return drift, max(noise, 0.02 * mean, 1.0), f"{len(late)} samples, {span}", mean
 
 
 def _slope(points):
@@ -95,16 +114,23 @@ def report(facts, samples, rollouts, faults, violations, events, steady, sizes, 
         for field, name, unit in ((2, "RSS", "MiB"), (3, files, ""), (4, "threads", "")):
             d = samples.drift(role, field, end)
             if d is None:
-                row(f"{role} {name} drift, last 2/3 of the run", "restarted late: n/a")
+                row(f"{role} {name} drift, last 2/3 of the run", "no instance lived long enough: n/a")
                 continue
             drift, noise, n, mean = d
             scale = 1024 if unit == "MiB" else 1
             judged = role not in INFORMATIONAL and not (role == "kube-apiserver" and field == 4)
             what = f"{name} at constant sessions" if role.startswith("gw-") and field == 2 else name
-            row(f"{role} {what} drift, last 2/3 of the run ({n} samples, mean "
+            row(f"{role} {what} drift, last 2/3 of the run ({n}, mean "
                 f"{mean / scale:.1f}{' ' + unit if unit else ''})",
                 f"{drift / scale:+.1f}", f"within ±{noise / scale:.1f} (noise of the first third)",
                 abs(drift) <= noise if judged else None)
+        d = samples.gauge_drift(role, "tasks", end)
+        if d is not None:
+            drift, noise, n, mean = d
+            what = "tasks at constant sessions" if role.startswith("gw-") else "tasks"
+            row(f"{role} {what} drift, last 2/3 of the run ({n}, mean {mean:.0f})",
+                f"{drift:+.1f}", f"within ±{noise:.1f} (noise of the first third)",
+                abs(drift) <= noise)
     row("events lost (acknowledged to a robot, not in the store)", events["lost"], "0",
         events["lost"] == 0)
     row("gaps in a robot's stored sequence numbers", events["gaps"], "0", events["gaps"] == 0)
@@ -139,6 +165,19 @@ def report(facts, samples, rollouts, faults, violations, events, steady, sizes, 
         row(f"fault {f['kind']}: {f['notes']}",
             f"healed in {healed} s{extra}" if healed is not None else "NOT healed",
             "healed", healed is not None)
+    for role, name, what, scale, unit in (
+            ("kube-apiserver", "heap", "Go heap in use", 1 << 20, "MiB"),
+            ("kube-apiserver", "events", "Kubernetes Events stored", 1, ""),
+            ("kube-apiserver", "robots", "Robots stored", 1, ""),
+            ("etcd", "heap", "Go heap in use", 1 << 20, "MiB"),
+            ("etcd", "db", "database size", 1 << 20, "MiB")):
+        d = samples.gauge_drift(role, name, end)
+        if d is None:
+            continue
+        drift, noise, n, mean = d
+        u = " " + unit if unit else ""
+        row(f"{role} {what} drift, last 2/3 of the run ({n}, mean {mean / scale:.1f}{u})",
+            f"{drift / scale:+.1f}", f"within ±{noise / scale:.1f} (noise of the first third)")
     for label, w in steady:
         goal = facts["robots_total"] / 300
         row(f"steady Robot writes/s, {label}", f"{w:.1f}",
