@@ -9,7 +9,7 @@ use lekiwi_crds::RobotPhase;
 use lekiwi_tests::lag_proxy::LagProxy;
 use lekiwi_tests::{
     ControlPlane, GatewayStandIn, OperatorProcess, connect_agent, create_robot, get_robot,
-    namespace, wait_for,
+    namespace, wait_for, wait_phase,
 };
 
 #[tokio::test]
@@ -189,32 +189,26 @@ async fn requests_the_api_server_takes_in_and_never_answers_are_sent_again() -> 
         &["--role", "controller"],
     )?;
     op.wait_ready().await?;
-    let pending = |name: &'static str| {
-        let (client, ns) = (client.clone(), ns.clone());
-        move || {
-            let (client, ns) = (client.clone(), ns.clone());
-            async move {
-                (get_robot(&client, &ns, name).await.ok()?.status?.phase
-                    == Some(RobotPhase::Pending))
-                .then_some(())
-            }
-        }
-    };
     create_robot(&client, &ns, "before", &[]).await?;
-    wait_for("before Pending", Duration::from_secs(20), pending("before")).await?;
+    wait_phase(
+        &client,
+        &ns,
+        "before",
+        RobotPhase::Pending,
+        Duration::from_secs(20),
+    )
+    .await?;
 
     proxy.cut_and_hold();
     tokio::time::sleep(Duration::from_secs(5)).await;
     proxy.release();
     let released = Instant::now();
     create_robot(&client, &ns, "after", &[]).await?;
-    wait_for(
-        "after Pending, once the unanswered requests timed out",
-        READ_TIMEOUT + Duration::from_secs(60),
-        pending("after"),
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!("{e}\noperator log:\n{}", op.log_text()))?;
+    // Once the unanswered requests timed out.
+    let within = READ_TIMEOUT + Duration::from_secs(60);
+    wait_phase(&client, &ns, "after", RobotPhase::Pending, within)
+        .await
+        .map_err(|e| anyhow::anyhow!("{e}\noperator log:\n{}", op.log_text()))?;
     println!("seen {:?} after the release", released.elapsed());
     assert!(op.running());
     Ok(())
