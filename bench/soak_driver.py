@@ -618,6 +618,17 @@ backend gateways
         log(f"steady Robot writes/s ({label}): {rate:.1f}")
         return label, rate
 
+    def etcd_port(self):
+        """etcd's client port, read once from the control plane's ports.env (a restart keeps it)."""
+        if not getattr(self, "_etcd_port", None):
+            try:
+                self._etcd_port = next(
+                    l.split("=", 1)[1].strip() for l in open(f"{C['cp_dir']}/ports.env")
+                    if l.startswith("ETCD_PORT="))
+            except (OSError, StopIteration):
+                return None
+        return self._etcd_port
+
     def sample_control_plane(self, now, text):
         """What the API server and etcd hold, beside their RSS: the Go heap in use (live data and
         what the collector has not returned yet), the Kubernetes Events stored (they live for the
@@ -630,13 +641,8 @@ backend gateways
                 v = metric(text, series)
                 if v is not None:
                     self.samples.gauge("kube-apiserver", name, pids["kube-apiserver"], now, v)
-        if "etcd" in pids:
-            try:
-                port = next(l.split("=", 1)[1].strip() for l in open(f"{C['cp_dir']}/ports.env")
-                            if l.startswith("ETCD_PORT="))
-            except (OSError, StopIteration):
-                return
-            etcd = curl(f"http://127.0.0.1:{port}/metrics", 5)
+        if "etcd" in pids and self.etcd_port():
+            etcd = curl(f"http://127.0.0.1:{self.etcd_port()}/metrics", 5)
             for name, series in (("heap", "go_memstats_heap_inuse_bytes"),
                                  ("db", "etcd_mvcc_db_total_size_in_bytes")):
                 v = metric(etcd, series)
