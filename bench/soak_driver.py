@@ -151,15 +151,36 @@ class Soak:
                 # The allocator's totals in the log when the gateway stops.
                 dict(env, MIMALLOC_SHOW_STATS="1"))
 
+    # Which HAProxy each client process connects through. A proxied connection holds two open
+    # files in HAProxy (the robot's and the gateway's), and a process may hold at most the
+    # machine's open-file limit: one proxy for the whole fleet would cap it near half that
+    # limit, so the big simulator has a proxy of its own and the rest share another.
+    LBS = {"sim": "lb-a", "sim-cut": "lb-b", "sim-skew": "lb-b", "fleet": "lb-b"}
+
+    def lb_clients(self):
+        """The robots each proxy carries."""
+        n = {"sim": C["robots"] - C["stalled"], "sim-cut": C["stalled"], "sim-skew": 1,
+             "fleet": C["agents"]}
+        out = {}
+        for proc, lb in self.LBS.items():
+            out[lb] = out.get(lb, 0) + n[proc]
+        return out
+
     def haproxy(self):
-        self.ports["lb"] = free_port()
         servers = "\n".join(
             f"  server {g} 127.0.0.1:{self.ports[g]} check port {self.ports[g + '-http']} "
             "inter 1s fall 2 rise 2" for g in self.gateways)
-        cfg = os.path.join(WORK, "haproxy.cfg")
-        with open(cfg, "w") as f:
-            f.write(f"""global
-  maxconn {C['fds'] // 2 - 500}
+        maxconn = (C["fds"] - 500) // 2
+        for lb, clients in sorted(self.lb_clients().items()):
+            if clients > maxconn:
+                raise RuntimeError(
+                    f"{lb} would carry {clients} robots, beyond the {maxconn} connections an "
+                    f"open-file limit of {C['fds']} allows one proxy (two files a connection)")
+            self.ports[lb] = free_port()
+            cfg = os.path.join(WORK, f"haproxy-{lb}.cfg")
+            with open(cfg, "w") as f:
+                f.write(f"""global
+  maxconn {maxconn}
 defaults
   mode tcp
   timeout connect 5s
@@ -167,33 +188,39 @@ defaults
   timeout server 1h
   timeout tunnel 1h
 frontend agents
-  bind 127.0.0.1:{self.ports['lb']}
+  bind 127.0.0.1:{self.ports[lb]}
   default_backend gateways
 backend gateways
   balance roundrobin
   option httpchk GET /readyz
 {servers}
 """)
-        self.procs["haproxy"] = Proc("haproxy", ["haproxy", "-db", "-f", cfg], nice=10)
+            self.procs[f"haproxy-{lb}"] = Proc(
+                f"haproxy-{lb}", ["haproxy", "-db", "-f", cfg], nice=10)
 
     def fleet_procs(self):
-        lb = f"ws://127.0.0.1:{self.ports['lb']}/v1/agent"
+        def lb(proc):
+            return f"ws://127.0.0.1:{self.ports[self.LBS[proc]]}/v1/agent"
         token = open(os.path.join(WORK, "sim-token")).read().strip()
-        common = ["--gateway", lb, "--namespace", NS, "--report-every", "30",
+        common = ["--namespace", NS, "--report-every", "30",
                   "--events-per-minute", str(C["events_per_minute"]), "--drain-seconds", "60",
                   "--fail-health-share", "0.3", "--fail-health-versions", ",".join(self.failing),
                   "--health-check-seconds", "1", "--pre-switch-seconds", "0.5",
-                  "--restart-seconds", "0.5"]
+                  "--restart-seconds", "0.5",
+                  # Not a version the rollouts push (1.0.0, 2.0.0, ...): a robot still on the
+                  # release it started with is on no rolled-back release.
+                  "--release-version", "0.9.0"]
         env = {"LEKIWI_ENROLLMENT_TOKEN": token, "RUST_LOG": "warn"}
         for name, prefix, n, extra in (
                 ("sim", "sim", C["robots"] - C["stalled"], []),
                 ("sim-cut", "cut", C["stalled"], []),
                 ("sim-skew", "skew", 1, ["--clock-offset-seconds", "600"])):
             self.procs[name] = Proc(name, [
-                f"{BIN}/lekiwi-sim", *common, "--robots", str(n), "--prefix", prefix,
+                f"{BIN}/lekiwi-sim", "--gateway", lb(name), *common, "--robots", str(n),
+                "--prefix", prefix,
                 "--json", os.path.join(WORK, f"{name}.json"), *extra], env, nice=10)
         self.procs["fleet"] = Proc("fleet", [
-            f"{BIN}/lekiwi-fleet", "--gateway", lb, "--enrollment-token-file",
+            f"{BIN}/lekiwi-fleet", "--gateway", lb("fleet"), "--enrollment-token-file",
             os.path.join(WORK, "enroll-token"), "--namespace", NS, "--robots",
             str(C["agents"]), "--state-root", os.path.join(WORK, "agents"),
             "--health-command", "true", "--health-timeout-s", "5", "--backoff-max-ms", "5000",
@@ -589,7 +616,8 @@ backend gateways
             self.wait(f"{g} ready", 90, lambda g=g: self.ready(g, self.ports[g + "-http"]))
         self.wait("a controller leader", 90, lambda: self.leader()[0] is not None)
         self.haproxy()
-        self.procs["haproxy"].start()
+        for lb in sorted(self.lb_clients()):
+            self.procs[f"haproxy-{lb}"].start()
         self.procs["watch"] = Proc("watch", [
             "python3", "-u", os.path.join(C["root"], "bench/recovery_watch.py"),
             f"https://127.0.0.1:{C['apiserver_port']}", f"{C['cp_dir']}/pki/ca.crt",
