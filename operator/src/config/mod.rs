@@ -1,14 +1,12 @@
 //! Command-line flags of `lekiwi-operator`; every flag can also be set by an environment variable.
 
-mod graphql;
-
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::{Parser, ValueEnum};
 
-pub use graphql::GraphQlConfig;
+pub use lekiwi_fleet_api::config::{FleetApiConfig, GraphQlConfig};
 
 /// Log output format.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
@@ -324,18 +322,9 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_AUTH_MISS_SECONDS", default_value_t = 5)]
     pub auth_miss_seconds: u64,
 
-    /// Fleet API requests per second one user (the username a TokenReview names) may make,
-    /// sustained; faster gets 429 with `Retry-After`.
-    #[arg(long, env = "LEKIWI_API_RATE", default_value_t = 20.0)]
-    pub api_rate: f64,
-
-    /// Fleet API requests one user may make at once before that rate applies.
-    #[arg(long, env = "LEKIWI_API_BURST", default_value_t = 100)]
-    pub api_burst: u32,
-
-    /// The GraphQL endpoint's limits.
+    /// The Fleet API's per-user budgets and GraphQL limits.
     #[command(flatten)]
-    pub graphql: GraphQlConfig,
+    pub fleet_api: FleetApiConfig,
 
     /// Validity of the gateway's own Lease (renewed every third of it).
     #[arg(long, env = "LEKIWI_GATEWAY_LEASE_SECONDS", default_value_t = 15)]

@@ -15,6 +15,7 @@ use crate::gateway::enroll;
 use crate::gateway::lookup::{Lookups, Skip, Subject};
 use crate::gateway::tokens::{TokenIndex, TokenKind};
 use lekiwi_core::RobotKey;
+use lekiwi_core::http::valid_name;
 
 /// Why a connection was refused (logged and counted; never with the token).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -73,20 +74,6 @@ fn same_hash(a: &[u8], b: &[u8]) -> bool {
 
 fn secret_hash(secret: &Secret) -> Option<Vec<u8>> {
     secret.data.as_ref()?.get(HASH_KEY).map(|b| b.0.clone())
-}
-
-/// Whether `name` is a valid Kubernetes object name (RFC 1123 subdomain).
-pub fn valid_name(name: &str) -> bool {
-    !name.is_empty()
-        && name.len() <= 253
-        && name.split('.').all(|part| {
-            !part.is_empty()
-                && part
-                    .bytes()
-                    .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-')
-                && !part.starts_with('-')
-                && !part.ends_with('-')
-        })
 }
 
 /// Parses the robot header: `namespace/name`, or `name` alone for enrollment.

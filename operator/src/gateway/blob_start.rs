@@ -1,5 +1,6 @@
-//! The release blob store as the gateway process starts it: the blob routes' state, the
-//! releases of the store, and the tasks that care for both (garbage collection, stale uploads).
+//! The release blob store and the Fleet API as the gateway process starts them: the blob
+//! routes' state, the releases of the store, the Fleet API's state, and the tasks that care for
+//! the store (garbage collection, stale uploads).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -9,22 +10,19 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use super::api::FleetApi;
 use super::blob_api;
-use super::kube_auth::KubeAuth;
-use super::releases::{self, Releases};
 use crate::config::Config;
 use lekiwi_blob_store::BlobStore;
+use lekiwi_event_store::Store;
+use lekiwi_fleet_api::api::FleetApi;
+use lekiwi_fleet_api::kube_auth::KubeAuth;
+use lekiwi_fleet_api::releases::{self, Releases};
+use lekiwi_fleet_api::{FleetState, Heartbeats};
 use lekiwi_metrics::Metrics;
 
 /// The blob routes' state: the store's directories are made now when possible; if not, the
 /// gateway still serves agents and uploads answer 500 until they can be made.
-async fn blob_api_state(
-    config: &Config,
-    client: &kube::Client,
-    metrics: &Metrics,
-    cancel: CancellationToken,
-) -> blob_api::BlobApi {
+async fn blob_api_state(config: &Config, cancel: CancellationToken) -> blob_api::BlobApi {
     let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes)
         .with_read_grace(Duration::from_secs(config.blob_read_grace_seconds));
     match store.ensure_dirs().await {
@@ -36,33 +34,50 @@ async fn blob_api_state(
         Duration::from_secs(config.stale_upload_hours.saturating_mul(3600)),
         cancel,
     ));
-    let kube_auth = KubeAuth::new(
-        client.clone(),
-        metrics.gateway.clone(),
-        config.auth_lookup_qps,
-        config.auth_lookup_burst,
-    );
-    blob_api::BlobApi::new(store, kube_auth)
+    blob_api::BlobApi::new(store)
 }
 
-/// The blob routes' state and the releases of its store (used by the Robots and
-/// RobotDeployments of `fleet`'s caches), with the task that cares for the store.
+/// The blob routes' state, the Fleet API's state (`fleet`'s caches, the releases of the store
+/// as its Robots and RobotDeployments use them, the event store, the live heartbeats), and the
+/// task that cares for the store.
 pub(super) async fn blob_state(
     config: &Config,
     (client, metrics): (&kube::Client, &Metrics),
-    fleet: &FleetApi,
+    (fleet, store, presence): (FleetApi, &Store, Arc<dyn Heartbeats>),
     leader: watch::Receiver<bool>,
     cancel: &CancellationToken,
-) -> (blob_api::BlobApi, Arc<Releases>, JoinHandle<()>) {
-    let blobs = blob_api_state(config, client, metrics, cancel.clone()).await;
+) -> (blob_api::BlobApi, FleetState, JoinHandle<()>) {
+    let blobs = blob_api_state(config, cancel.clone()).await;
     let releases = Releases::new(
         blobs.store.clone(),
         (fleet.robots.clone(), fleet.rollouts.clone()),
         config.release_retention,
         metrics.gateway.clone(),
     );
-    let (releases, task) = releases::task::start(config, releases, (client, leader), cancel);
-    (blobs, releases, task)
+    let care = releases::task::Care {
+        period: (config.release_gc_seconds > 0)
+            .then(|| Duration::from_secs(config.release_gc_seconds)),
+        warn_percent: config.blob_free_warn_percent,
+        leader,
+        gateway: config.gateway_name(),
+        namespace: config.namespace.clone(),
+    };
+    let (releases, task) = releases::task::start(releases, care, client, cancel);
+    let kube_auth = KubeAuth::new(
+        client.clone(),
+        metrics.gateway.clone(),
+        config.auth_lookup_qps,
+        config.auth_lookup_burst,
+    );
+    let api = FleetState {
+        fleet: Arc::new(fleet),
+        kube_auth: Arc::new(kube_auth),
+        releases,
+        store: store.clone(),
+        presence,
+        metrics: metrics.gateway.clone(),
+    };
+    (blobs, api, task)
 }
 
 /// Deletes the blob uploads nobody resumed for `max_age`, now and every hour, until `cancel`.

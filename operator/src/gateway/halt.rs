@@ -14,10 +14,10 @@ use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
 
-use super::cache::{Cache, Change};
 use super::registry::Registry;
 use lekiwi_controllers::deployment::plan::halt;
 use lekiwi_core::RobotKey;
+use lekiwi_core::cache::{Cache, Change};
 
 /// Starts the task that follows `rollouts` and halts downloads of the robots of `robots` whose
 /// rollout a user stopped; it runs until `cancel`.

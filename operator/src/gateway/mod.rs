@@ -3,18 +3,13 @@
 //! stores every durable agent message before acknowledging it.
 
 pub mod admission;
-pub mod api;
 pub mod auth;
 pub mod blob_api;
 mod blob_start;
-pub mod cache;
-pub mod dashboard;
 pub mod dispatch;
 pub mod enroll;
-pub mod events_api;
 pub mod halt;
 pub mod holder;
-pub mod kube_auth;
 pub mod lease;
 pub mod listener;
 pub mod lookup;
@@ -23,7 +18,6 @@ pub mod poll;
 pub mod presence;
 pub mod quota_warnings;
 pub mod registry;
-pub mod releases;
 pub mod server;
 pub mod session;
 pub mod tls;
@@ -31,15 +25,16 @@ pub mod tokens;
 pub mod watched;
 
 pub use self::server::run;
+pub use lekiwi_core::http::{ApiError, bearer};
 
 use std::net::SocketAddr;
 use std::sync::Arc;
 
 use axum::Router;
 use axum::extract::ws::WebSocketUpgrade;
-use axum::extract::{ConnectInfo as PeerAddr, State};
-use axum::http::{HeaderMap, StatusCode, header};
-use axum::response::{IntoResponse, Response};
+use axum::extract::{ConnectInfo as PeerAddr, FromRef, State};
+use axum::http::HeaderMap;
+use axum::response::Response;
 use axum::routing::get;
 use futures::{FutureExt, StreamExt};
 use lekiwi_protocol::{AGENT_PATH, ROBOT_HEADER};
@@ -49,117 +44,8 @@ use tracing::warn;
 use self::auth::{Grant, Refusal};
 use self::session::SessionContext;
 use lekiwi_core::RobotKey;
+use lekiwi_fleet_api::FleetState;
 use lekiwi_metrics::KindLabels;
-
-/// Errors answered over HTTP, as JSON; internal details are logged, never returned.
-#[derive(Debug)]
-pub enum ApiError {
-    /// Missing or wrong credentials.
-    Unauthorized(&'static str),
-    /// Valid credentials that do not allow this (an enrollment token for an enrolled robot).
-    Forbidden(String),
-    /// A malformed request.
-    BadRequest(String),
-    /// The robot does not exist.
-    NotFound(String),
-    /// A request body beyond its route's limit: 413.
-    TooLarge(String),
-    /// The gateway is at its connection limit.
-    Unavailable(&'static str),
-    /// The gateway's budget of API reads for unauthenticated requests is spent: 503 with
-    /// `Retry-After`.
-    Throttled(&'static str),
-    /// A robot opens sessions faster than its budget: 429 with `Retry-After` (seconds).
-    TooManySessions(u64),
-    /// More robots enroll than the gateway admits: 503 with `Retry-After` (seconds).
-    EnrollmentsThrottled(u64),
-    /// A person's or tool's requests to the Fleet API exceed their user's budget: 429 with
-    /// `Retry-After` (seconds).
-    RateLimited(u64),
-    /// Something failed on our side.
-    Internal(String),
-}
-
-/// A JSON error that tells the client when to come back (`Retry-After`, in seconds).
-fn retry_later(status: StatusCode, code: &str, message: &str, seconds: u64) -> Response {
-    let body = serde_json::json!({ "error": code, "message": message });
-    (
-        status,
-        [
-            (header::CONTENT_TYPE, "application/json".to_owned()),
-            (header::RETRY_AFTER, seconds.to_string()),
-        ],
-        body.to_string(),
-    )
-        .into_response()
-}
-
-impl IntoResponse for ApiError {
-    fn into_response(self) -> Response {
-        let (status, code, message) = match self {
-            ApiError::Unauthorized(m) => (StatusCode::UNAUTHORIZED, "unauthorized", m.to_owned()),
-            ApiError::Forbidden(m) => (StatusCode::FORBIDDEN, "forbidden", m),
-            ApiError::BadRequest(m) => (StatusCode::BAD_REQUEST, "bad_request", m),
-            ApiError::NotFound(m) => (StatusCode::NOT_FOUND, "not_found", m),
-            ApiError::TooLarge(m) => (StatusCode::PAYLOAD_TOO_LARGE, "too_large", m),
-            ApiError::Unavailable(m) => {
-                (StatusCode::SERVICE_UNAVAILABLE, "unavailable", m.to_owned())
-            }
-            ApiError::Throttled(m) => {
-                return retry_later(StatusCode::SERVICE_UNAVAILABLE, "unavailable", m, 1);
-            }
-            ApiError::TooManySessions(seconds) => {
-                return retry_later(
-                    StatusCode::TOO_MANY_REQUESTS,
-                    "too_many_sessions",
-                    "this robot opens sessions too often; retry after Retry-After seconds",
-                    seconds,
-                );
-            }
-            ApiError::EnrollmentsThrottled(seconds) => {
-                return retry_later(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    "unavailable",
-                    "the gateway admits enrollments at a limited rate; retry after Retry-After seconds",
-                    seconds,
-                );
-            }
-            ApiError::RateLimited(seconds) => {
-                return retry_later(
-                    StatusCode::TOO_MANY_REQUESTS,
-                    "rate_limited",
-                    "too many requests from this user; retry after Retry-After seconds",
-                    seconds,
-                );
-            }
-            ApiError::Internal(detail) => {
-                warn!(%detail, "internal error answering a request");
-                (
-                    StatusCode::INTERNAL_SERVER_ERROR,
-                    "internal",
-                    "internal error".to_owned(),
-                )
-            }
-        };
-        let body = serde_json::json!({ "error": code, "message": message });
-        (
-            status,
-            [(header::CONTENT_TYPE, "application/json")],
-            body.to_string(),
-        )
-            .into_response()
-    }
-}
-
-/// The bearer token of a request, if any.
-pub fn bearer(headers: &HeaderMap) -> Option<&str> {
-    headers
-        .get(header::AUTHORIZATION)?
-        .to_str()
-        .ok()?
-        .strip_prefix("Bearer ")
-        .map(str::trim)
-}
 
 /// What the gateway's HTTP handlers share (axum's router state).
 #[derive(Clone)]
@@ -174,16 +60,19 @@ pub struct AppState {
     pub connections: Arc<Semaphore>,
     /// Enrollments admitted per second; beyond, 503 with `Retry-After`.
     pub enrollments: Arc<admission::EnrollAdmission>,
-    /// Release blobs, uploads and the Kubernetes checks of people's requests.
+    /// Release blobs and uploads.
     pub blobs: Arc<blob_api::BlobApi>,
-    /// The Fleet API's caches and per-user budgets.
-    pub fleet: Arc<api::FleetApi>,
-    /// The releases of the blob store, who uses them, and their garbage collection.
-    pub releases: Arc<releases::Releases>,
+    /// The Fleet API's state: the fleet's caches, people's authentication, the releases.
+    pub api: FleetState,
+}
+
+impl FromRef<AppState> for FleetState {
+    fn from_ref(state: &AppState) -> Self {
+        state.api.clone()
+    }
 }
 
 impl AppState {
-    /// Counts and logs a refused agent request and answers it with 401.
     /// Counts a refused request in `lekiwi_gateway_refused_total{kind}`.
     pub(crate) fn count_refusal(&self, kind: &'static str) {
         self.shared
@@ -194,6 +83,7 @@ impl AppState {
             .inc();
     }
 
+    /// Counts and logs a refused agent request and answers it with 401 (503 when throttled).
     fn refused(&self, reason: Refusal) -> ApiError {
         self.count_refusal(reason.as_str());
         // Never log the token itself.
@@ -219,44 +109,6 @@ impl AppState {
 }
 
 impl AppState {
-    /// Lets a person's or tool's request through when the API server accepts its bearer token
-    /// and RBAC allows `access` (see [`kube_auth`]): 401 for a token the API server refuses,
-    /// 403 naming the missing permission, 400 when the request names no namespace (`None`).
-    pub async fn check_user(
-        &self,
-        headers: &HeaderMap,
-        access: Option<kube_auth::Access>,
-    ) -> Result<(), ApiError> {
-        let Some(token) = bearer(headers).filter(|t| !t.is_empty()) else {
-            return Err(self.refused(Refusal::MissingToken));
-        };
-        let Some(access) = access else {
-            return Err(ApiError::BadRequest(
-                "name the namespace: ?namespace=NAME".into(),
-            ));
-        };
-        self.blobs
-            .kube_auth
-            .check(token, &access)
-            .await
-            .map_err(|d| self.denied(d))
-    }
-
-    /// The answer to a request [`kube_auth`] did not let through: 401 for a token the API
-    /// server refuses, 403 naming the missing permission, 503 when reviews are throttled.
-    fn denied(&self, denied: kube_auth::Denied) -> ApiError {
-        match denied {
-            kube_auth::Denied::Unauthenticated => self.refused(Refusal::WrongToken),
-            kube_auth::Denied::Forbidden(permission) => {
-                self.count_refusal("forbidden");
-                // The code (`forbidden`) is the body's `error`; GraphQL puts it before the message.
-                ApiError::Forbidden(format!("this needs {permission}"))
-            }
-            kube_auth::Denied::Unavailable(detail) => ApiError::Internal(detail),
-            kube_auth::Denied::Throttled => self.refused(Refusal::Throttled),
-        }
-    }
-
     /// Refuses (403) an enrollment token for a robot that has its own token and no permission
     /// to enroll again, before the upgrade.
     async fn may_enroll(&self, robot: &RobotKey) -> Result<(), ApiError> {
@@ -302,9 +154,9 @@ pub fn routes(state: AppState, which: Routes) -> Router {
     }
     authenticated = authenticated
         .merge(blob_api::routes())
-        .merge(events_api::routes());
+        .merge(lekiwi_fleet_api::events::routes());
     if which != Routes::Agents {
-        authenticated = authenticated.merge(api::routes());
+        authenticated = authenticated.merge(lekiwi_fleet_api::api::routes());
     }
     // Every route but /healthz and the dashboard's static files requires credentials: a
     // success there takes the connection out of the unauthenticated limits.
@@ -314,7 +166,7 @@ pub fn routes(state: AppState, which: Routes) -> Router {
         ))
         .route("/healthz", get(|| async { "ok\n" }));
     if which != Routes::Agents {
-        router = router.merge(dashboard::routes());
+        router = router.merge(lekiwi_fleet_api::dashboard::routes());
     }
     router.with_state(state)
 }

@@ -17,7 +17,6 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::admission::EnrollAdmission;
-use super::api::FleetApi;
 use super::auth::Authenticator;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
@@ -32,6 +31,7 @@ use super::{AppState, Routes, dispatch, lease, routes};
 use crate::config::Config;
 use crate::error::{Error, Result};
 use lekiwi_event_store::Store;
+use lekiwi_fleet_api::api::FleetApi;
 use lekiwi_metrics::Metrics;
 
 /// At most one quota Warning Event per robot this often.
@@ -39,7 +39,7 @@ const QUOTA_WARNING_INTERVAL: Duration = Duration::from_secs(300);
 
 /// Runs the gateway until `cancel` fires.
 /// `listening` is set once the gateway accepts connections; `leader` says whether this replica
-/// may collect the blob store's garbage (see [`super::releases::task`]).
+/// may collect the blob store's garbage (see [`lekiwi_fleet_api::releases::task`]).
 pub async fn run(
     config: Arc<Config>,
     client: kube::Client,
@@ -64,7 +64,7 @@ pub async fn run(
         watched(&config, &client),
         watched(&config, &client),
         client.clone(),
-        &config,
+        &config.fleet_api,
         &cancel,
     );
     let (desired, [dispatch_task, halt_task]) =
@@ -81,8 +81,9 @@ pub async fn run(
         desired: Some(desired.clone()),
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
-    let (blobs, releases, care_task) =
-        super::blob_start::blob_state(&config, (&client, &metrics), &fleet, leader, &cancel).await;
+    let people = (fleet, &store, Arc::new(presence.clone()) as _);
+    let (blobs, api, care_task) =
+        super::blob_start::blob_state(&config, (&client, &metrics), people, leader, &cancel).await;
     let state = AppState {
         shared: Arc::new(shared),
         client: client.clone(),
@@ -93,8 +94,7 @@ pub async fn run(
             config.enroll_burst,
         )),
         blobs: Arc::new(blobs),
-        fleet: Arc::new(fleet),
-        releases,
+        api,
     };
     close_stale_connections(&store, &name).await;
     let mut tasks = start_background(

@@ -9,9 +9,9 @@ use std::sync::Arc;
 use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 
-use crate::gateway::cache::Cache;
 use crate::gateway::holder::Holder;
 use lekiwi_core::RobotKey;
+use lekiwi_core::cache::Cache;
 
 /// The gateway's Robot cache (the one the Fleet API answers from, see
 /// [`super::dispatch::start`]), read robot by robot.

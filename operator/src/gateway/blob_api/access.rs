@@ -18,9 +18,9 @@ use tracing::debug;
 
 use super::Caller;
 use crate::gateway::AppState;
-use crate::gateway::cache::Cache;
 use crate::gateway::watched::WatchedRobots;
 use lekiwi_blob_store::BlobStore;
+use lekiwi_core::cache::Cache;
 use lekiwi_crds::Robot;
 
 /// How long a robot's read of a blob no release references yet waits for this gateway's Robot

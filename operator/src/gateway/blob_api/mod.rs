@@ -21,7 +21,7 @@
 //! `x-lekiwi-robot: namespace/name`; an enrollment token is refused). A request without the robot
 //! header carries a bearer token the API server accepts and names the namespace it acts in
 //! (`?namespace=`, 400 without); RBAC must allow the permission above on the group
-//! `fleet.lekiwi.io` there (see [`super::kube_auth`]; 401 for a refused token, 403 naming the
+//! `fleet.lekiwi.io` there (see [`lekiwi_fleet_api::kube_auth`]; 401 for a refused token, 403 naming the
 //! permission). A robot reads only the blobs its namespace's releases
 //! reference (see [`access`]); any other digest is answered as unknown (404). Bytes served are counted as they are sent: in
 //! `lekiwi_gateway_blob_bytes_served_total`, per robot in memory (`/v1/blobs-served`, since this
@@ -51,17 +51,15 @@ use tracing::{debug, warn};
 use self::download::{get_blob, head_blob};
 use self::upload::put_blob;
 use super::auth::{Grant, Refusal, parse_robot};
-use super::kube_auth::{Access, KubeAuth};
 use super::{ApiError, AppState, bearer};
 use lekiwi_blob_store::{BlobStore, Error as StoreError};
 use lekiwi_core::RobotKey;
+use lekiwi_fleet_api::kube_auth::Access;
 
 /// What the blob routes share.
 pub struct BlobApi {
     /// Where blobs and partial uploads live on disk.
     pub store: BlobStore,
-    /// Checks people's and tools' bearer tokens and permissions with the API server.
-    pub kube_auth: KubeAuth,
     /// File lists of the release manifests robots' reads were checked against.
     manifests: access::ManifestFiles,
     served: Mutex<HashMap<RobotKey, Served>>,
@@ -78,10 +76,9 @@ pub struct Served {
 
 impl BlobApi {
     /// The routes' shared state.
-    pub fn new(store: BlobStore, kube_auth: KubeAuth) -> Self {
+    pub fn new(store: BlobStore) -> Self {
         Self {
             store,
-            kube_auth,
             manifests: access::ManifestFiles::default(),
             served: Mutex::default(),
         }
@@ -220,7 +217,7 @@ impl InNamespace {
 }
 
 /// Authenticates a request: with the robot header as a robot (when `robots` allows), else as a
-/// Kubernetes user who must be allowed `access` (see [`AppState::check_user`]).
+/// Kubernetes user who must be allowed `access` (see [`FleetState::check_user`](lekiwi_fleet_api::FleetState::check_user)).
 async fn authorize(
     state: &AppState,
     headers: &HeaderMap,
@@ -250,7 +247,7 @@ async fn authorize(
             Err(r) => Err(state.refused(r).into()),
         };
     }
-    state.check_user(headers, access).await?;
+    state.api.check_user(headers, access).await?;
     Ok(Caller::User)
 }
 

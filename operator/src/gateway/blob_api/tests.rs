@@ -95,7 +95,7 @@ async fn a_read_refused_at_first_passes_once_the_cache_catches_up() {
     use lekiwi_crds::{Robot, RobotSpec};
 
     use super::access::caught_up;
-    use crate::gateway::cache::Cache;
+    use lekiwi_core::cache::Cache;
 
     let cache = Arc::new(Cache::<Robot>::listed(Vec::new()));
     let mut robot = Robot::new("kiwi-1", RobotSpec::default());

@@ -15,8 +15,8 @@ use tracing::{Instrument, debug, info, info_span, warn};
 
 use super::{Failure, InNamespace, authorize, json_response, store_failure};
 use crate::gateway::AppState;
-use crate::gateway::auth::valid_name;
 use lekiwi_blob_store::{Error as StoreError, UploadState};
+use lekiwi_core::http::valid_name;
 use lekiwi_metrics::KindLabels;
 
 /// Parses `Content-Range: bytes START-END/TOTAL` into `(START, Some(END), TOTAL)`, and
@@ -113,7 +113,7 @@ async fn record_release(state: &AppState, namespace: &str, digest: &str, size: u
     {
         Ok(true) => {
             info!(%namespace, version = %manifest.version, "release pushed");
-            state.releases.pushed.notify_one();
+            state.api.releases.pushed.notify_one();
         }
         Ok(false) => {}
         Err(e) => warn!(%namespace, error = %e, "cannot record a pushed release"),

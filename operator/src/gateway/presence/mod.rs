@@ -13,6 +13,7 @@
 mod adapt;
 mod agent;
 pub(crate) mod analysis;
+
 #[cfg(test)]
 mod analysis_tests;
 pub mod claims;
@@ -513,5 +514,12 @@ impl Presence {
         if queued {
             self.wake();
         }
+    }
+}
+
+/// The Fleet API answers each Robot with the live heartbeat of the session held here.
+impl lekiwi_fleet_api::Heartbeats for Presence {
+    fn last_heartbeats(&self, keys: &[RobotKey]) -> Vec<Option<Timestamp>> {
+        Presence::last_heartbeats(self, keys)
     }
 }

@@ -117,7 +117,7 @@ impl Presence {
 mod tests {
     use serde_json::json;
 
-    use crate::gateway::cache::Cache;
+    use lekiwi_core::cache::Cache;
 
     use super::*;
     use crate::gateway::presence::{ConnectInfo, PresenceConfig};

@@ -615,7 +615,7 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
         "status": { "phase": "Unknown", "gateway": "dead", "sessionEpoch": 500 },
     }))
     .unwrap();
-    let cache = crate::gateway::cache::Cache::listed([gone]);
+    let cache = lekiwi_core::cache::Cache::listed([gone]);
     let robots = crate::gateway::watched::WatchedRobots(std::sync::Arc::new(cache));
     p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
     for (n, name) in ["m1", "m2", "m3", "busy", "written"].iter().enumerate() {
@@ -670,7 +670,7 @@ fn a_robot_marked_on_its_old_gateways_lease_is_written_first() {
         .unwrap()
     };
     let p = presence();
-    let cache = crate::gateway::cache::Cache::listed([
+    let cache = lekiwi_core::cache::Cache::listed([
         robot("m1", "dead"),
         robot("m2", "dead"),
         robot("early", "dead"),
@@ -832,7 +832,7 @@ fn only_a_switch_a_rollout_asked_to_watch_is_written_when_its_window_ends() {
     };
     let window = json!({ lekiwi_crds::analysis::WINDOW_ANNOTATION: "1" });
     let cache =
-        crate::gateway::cache::Cache::listed([robot("asked", window), robot("plain", json!({}))]);
+        lekiwi_core::cache::Cache::listed([robot("asked", window), robot("plain", json!({}))]);
     let robots = crate::gateway::watched::WatchedRobots(std::sync::Arc::new(cache));
     p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
     let write_all = |p: &Presence| {

@@ -10,7 +10,7 @@ use axum::http::HeaderMap;
 use serde_json::{Value, json};
 
 use super::{DEFAULT_LIMIT, MAX_LIMIT, authorize};
-use crate::gateway::{ApiError, AppState};
+use crate::{ApiError, FleetState};
 
 /// Every route of the Fleet API, as axum spells it (`{param}`, as OpenAPI does too).
 pub mod paths {
@@ -80,7 +80,7 @@ pub const ROUTES: [(&str, &str); 20] = [
 
 /// `GET /api/v1/openapi.json`: the document, to any authenticated user.
 pub async fn document(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     headers: HeaderMap,
 ) -> Result<Json<Value>, ApiError> {
     authorize(&state, &headers, None).await?;

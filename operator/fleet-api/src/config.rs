@@ -1,4 +1,22 @@
-//! The Fleet API's GraphQL limits, a section of the operator's flags.
+//! The Fleet API's flags, a section of the operator's: each user's request budget and the
+//! GraphQL endpoint's limits.
+
+/// The Fleet API's budgets and limits (`lekiwi-operator --help`).
+#[derive(Clone, Debug, clap::Args)]
+pub struct FleetApiConfig {
+    /// Fleet API requests per second one user (the username a TokenReview names) may make,
+    /// sustained; faster gets 429 with `Retry-After`.
+    #[arg(long, env = "LEKIWI_API_RATE", default_value_t = 20.0)]
+    pub api_rate: f64,
+
+    /// Fleet API requests one user may make at once before that rate applies.
+    #[arg(long, env = "LEKIWI_API_BURST", default_value_t = 100)]
+    pub api_burst: u32,
+
+    /// The GraphQL endpoint's limits.
+    #[command(flatten)]
+    pub graphql: GraphQlConfig,
+}
 
 /// The GraphQL endpoint's limits (`lekiwi-operator --help`).
 #[derive(Clone, Debug, clap::Args)]

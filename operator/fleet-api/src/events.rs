@@ -1,18 +1,18 @@
 //! Read-only HTTP access to a robot's stored events for `kubectl lekiwi events`, for a
 //! Kubernetes user RBAC allows `get` on `robots/events` (group `fleet.lekiwi.io`) in the robot's
-//! namespace (see [`super::kube_auth`]).
+//! namespace (see [`crate::kube_auth`]).
 
 use axum::Json;
 use axum::Router;
-use axum::extract::{Path, Query, State};
+use axum::extract::{FromRef, Path, Query, State};
 use axum::http::HeaderMap;
 use axum::routing::get;
 use serde::Deserialize;
 
-use super::auth::valid_name;
-use super::kube_auth::Access;
-use super::{ApiError, AppState};
+use crate::kube_auth::Access;
+use crate::{ApiError, FleetState};
 use lekiwi_core::RobotKey;
+use lekiwi_core::http::valid_name;
 use lekiwi_event_store::StoredEvent;
 
 /// Events answered per request unless the query says otherwise.
@@ -20,8 +20,12 @@ pub const DEFAULT_LIMIT: u32 = 100;
 /// Most events one request answers; a client pages with `after_seq`.
 pub const MAX_LIMIT: u32 = 1000;
 
-/// The events route, merged into the gateway's [`super::router`].
-pub fn routes() -> Router<AppState> {
+/// The events route, merged into the gateway's router.
+pub fn routes<S>() -> Router<S>
+where
+    S: Clone + Send + Sync + 'static,
+    FleetState: FromRef<S>,
+{
     Router::new().route("/v1/robots/{namespace}/{name}/events", get(events))
 }
 
@@ -38,7 +42,7 @@ struct EventsQuery {
 /// ascending sequence order, as a JSON array of [`StoredEvent`]; 404 for a robot the gateway
 /// does not hold.
 async fn events(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path((namespace, name)): Path<(String, String)>,
     Query(query): Query<EventsQuery>,
     headers: HeaderMap,
@@ -56,7 +60,7 @@ async fn events(
     state.check_user(&headers, Some(access)).await?;
     // As the Fleet API's history routes: a robot the gateway does not hold is not found, not
     // an empty history, whatever the store still keeps under its name.
-    crate::gateway::api::ready(&state.fleet.robots)?;
+    crate::api::ready(&state.fleet.robots)?;
     if state.fleet.robots.get(&namespace, &name).is_none() {
         return Err(ApiError::NotFound(format!(
             "robot {namespace}/{name} not found"
@@ -65,7 +69,6 @@ async fn events(
     let limit = query.limit.unwrap_or(DEFAULT_LIMIT).clamp(1, MAX_LIMIT);
     let robot = RobotKey::new(namespace, name);
     let events = state
-        .shared
         .store
         .events(&robot, query.after_seq, limit)
         .await

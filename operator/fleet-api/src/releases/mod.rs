@@ -13,10 +13,10 @@ use lekiwi_crds::{Robot, RobotDeployment};
 use serde::Serialize;
 use tokio::sync::Notify;
 
-use crate::gateway::cache::Cache;
 use lekiwi_blob_store::gc::{self, Inputs, Plan, Removed};
 use lekiwi_blob_store::index::ReleaseRecord;
 use lekiwi_blob_store::{BlobStore, Result};
+use lekiwi_core::cache::Cache;
 use lekiwi_metrics::{GatewayMetrics, KindLabels};
 
 /// How many robots reference a release, by how.

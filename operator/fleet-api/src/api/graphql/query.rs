@@ -15,9 +15,9 @@ use serde_json::{Value, json};
 
 use super::scalar::BigInt;
 use super::{allowed, refusal};
-use crate::gateway::api::history::{self, HistoryQuery};
-use crate::gateway::api::{DEFAULT_LIMIT, check_names, robots, rollouts};
-use crate::gateway::kube_auth::Access;
+use crate::api::history::{self, HistoryQuery};
+use crate::api::{DEFAULT_LIMIT, check_names, robots, rollouts};
+use crate::kube_auth::Access;
 use lekiwi_core::RobotKey;
 
 /// A paged field's cost: 1, plus the page size asked for times what is selected in it (its
@@ -183,7 +183,7 @@ impl RobotObject {
         &self,
         ctx: &Context<'a>,
         subresource: &'static str,
-    ) -> Result<(&'a crate::gateway::AppState, RobotKey)> {
+    ) -> Result<(&'a crate::FleetState, RobotKey)> {
         let (ns, name) = (self.0.namespace().unwrap_or_default(), self.0.name_any());
         let access = Access {
             subresource: Some(subresource),
@@ -353,7 +353,7 @@ impl QueryRoot {
             ..Access::new("get", "robots", &namespace)
         };
         let (state, _) = allowed(ctx, access).await?;
-        crate::gateway::api::ready(&state.fleet.robots).map_err(refusal)?;
+        crate::api::ready(&state.fleet.robots).map_err(refusal)?;
         Ok(state.fleet.robots.get(&namespace, &name).map(RobotObject))
     }
 
@@ -393,7 +393,7 @@ impl QueryRoot {
             ..Access::new("get", "robotdeployments", &namespace)
         };
         let (state, _) = allowed(ctx, access).await?;
-        crate::gateway::api::ready(&state.fleet.rollouts).map_err(refusal)?;
+        crate::api::ready(&state.fleet.rollouts).map_err(refusal)?;
         Ok(state
             .fleet
             .rollouts

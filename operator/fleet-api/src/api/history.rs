@@ -12,8 +12,8 @@ use serde::Deserialize;
 
 use super::robots::Page;
 use super::{authorize, bad_query, check_names, page_size, ready};
-use crate::gateway::kube_auth::Access;
-use crate::gateway::{ApiError, AppState};
+use crate::kube_auth::Access;
+use crate::{ApiError, FleetState};
 use lekiwi_core::RobotKey;
 use lekiwi_event_store::{SampleCursor, StoredEvent, StoredSample, TimeRange};
 
@@ -80,7 +80,7 @@ fn timestamp(param: &str, text: &str) -> Result<Timestamp, ApiError> {
 /// gateway holds no such Robot (checked after the permission, so a 404 tells nothing to someone
 /// who may not read it), whatever the store still keeps of it.
 async fn allowed_robot(
-    state: &AppState,
+    state: &FleetState,
     headers: &HeaderMap,
     (namespace, name): (String, String),
     subresource: &'static str,
@@ -104,7 +104,7 @@ async fn allowed_robot(
 /// `GET .../robots/{name}/events?since=&until=&limit=&continue=`: events the gateway received
 /// within the range (its clock, whatever the robot's said), in ascending sequence order.
 pub async fn events(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path(path): Path<(String, String)>,
     query: Result<Query<HistoryQuery>, QueryRejection>,
     headers: HeaderMap,
@@ -116,7 +116,7 @@ pub async fn events(
 
 /// The page of `robot`'s stored events `query` asks for.
 pub(crate) async fn read_events(
-    state: &AppState,
+    state: &FleetState,
     robot: &RobotKey,
     query: &HistoryQuery,
 ) -> Result<Page<StoredEvent>, ApiError> {
@@ -131,7 +131,6 @@ pub(crate) async fn read_events(
         Some(t) => Some(t.parse::<u64>().map_err(|_| invalid_continue())?),
     };
     let mut items = state
-        .shared
         .store
         .events_in_range(robot, after, range, limit + 1)
         .await
@@ -149,7 +148,7 @@ pub(crate) async fn read_events(
 /// `GET .../robots/{name}/telemetry?metric=&since=&until=&limit=&continue=`: samples, oldest
 /// first.
 pub async fn telemetry(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path(path): Path<(String, String)>,
     query: Result<Query<HistoryQuery>, QueryRejection>,
     headers: HeaderMap,
@@ -161,14 +160,13 @@ pub async fn telemetry(
 
 /// The page of `robot`'s stored telemetry samples `query` asks for.
 pub(crate) async fn read_telemetry(
-    state: &AppState,
+    state: &FleetState,
     robot: &RobotKey,
     query: &HistoryQuery,
 ) -> Result<Page<StoredSample>, ApiError> {
     let (range, limit) = (query.range()?, page_size(query.limit)?);
     let after = query.resume().map(sample_cursor).transpose()?;
     let mut rows = state
-        .shared
         .store
         .samples_in_range(robot, query.metric.as_deref(), range, after, limit + 1)
         .await

@@ -37,8 +37,8 @@ use self::query::{MutationRoot, QueryRoot};
 use self::subscribe::SubscriptionRoot;
 use super::authorize;
 use crate::config::GraphQlConfig;
-use crate::gateway::kube_auth::Access;
-use crate::gateway::{ApiError, AppState};
+use crate::kube_auth::Access;
+use crate::{ApiError, FleetState};
 
 /// The schema and what bounds its requests and WebSockets.
 pub struct GraphQl {
@@ -101,7 +101,7 @@ pub(crate) struct Caller {
 /// (`unauthorized: ...`, `forbidden: ...`, `rate_limited: ...`). A message longer than
 /// `--graphql-max-body-bytes` ends the connection.
 pub async fn websocket(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     headers: HeaderMap,
     protocol: Result<GraphQLProtocol, StatusCode>,
     upgrade: Result<WebSocketUpgrade, WebSocketUpgradeRejection>,
@@ -191,7 +191,7 @@ fn transport_ws(headers: &HeaderMap) -> bool {
 /// Accepts a WebSocket whose `connection_init` payload carries an accepted token of a user
 /// below their WebSocket cap; the user's slot goes into `held`.
 async fn connection_init(
-    state: AppState,
+    state: FleetState,
     payload: serde_json::Value,
     held: Arc<Mutex<Option<subscribe::Slot>>>,
 ) -> async_graphql::Result<Data> {
@@ -242,11 +242,10 @@ pub(crate) fn refusal(e: ApiError) -> async_graphql::Error {
 pub(crate) async fn allowed<'a>(
     ctx: &async_graphql::Context<'a>,
     access: Access,
-) -> async_graphql::Result<(&'a AppState, &'a Caller)> {
-    let state = ctx.data::<AppState>()?;
+) -> async_graphql::Result<(&'a FleetState, &'a Caller)> {
+    let state = ctx.data::<FleetState>()?;
     let caller = ctx.data::<Caller>()?;
     state
-        .blobs
         .kube_auth
         .check(&caller.token, &access)
         .await
@@ -263,7 +262,7 @@ mod tests {
     /// The query GraphiQL, Apollo and code generators send first.
     const INTROSPECTION: &str = include_str!(concat!(
         env!("CARGO_MANIFEST_DIR"),
-        "/../tests/fixtures/introspection.graphql"
+        "/../../tests/fixtures/introspection.graphql"
     ));
 
     fn defaults() -> GraphQlConfig {

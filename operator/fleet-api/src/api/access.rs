@@ -9,8 +9,8 @@ use axum::http::HeaderMap;
 use serde::Serialize;
 
 use super::{authorize, check_names};
-use crate::gateway::kube_auth::{Access, Denied};
-use crate::gateway::{ApiError, AppState, bearer};
+use crate::kube_auth::{Access, Denied};
+use crate::{ApiError, FleetState, bearer};
 
 /// What the caller may do in one namespace.
 #[derive(Debug, Serialize)]
@@ -44,7 +44,7 @@ pub struct Allowed {
 
 /// `GET /api/v1/namespaces/{namespace}/access` (any authenticated user).
 pub async fn access(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path(namespace): Path<String>,
     headers: HeaderMap,
 ) -> Result<Json<AccessView>, ApiError> {
@@ -81,9 +81,9 @@ pub async fn access(
 
 /// Whether RBAC allows the caller `access`; a refusal is an answer here, not an error (and is
 /// not counted as a refused request).
-async fn may(state: &AppState, headers: &HeaderMap, access: Access) -> Result<bool, ApiError> {
+async fn may(state: &FleetState, headers: &HeaderMap, access: Access) -> Result<bool, ApiError> {
     let token = bearer(headers).unwrap_or_default();
-    match state.blobs.kube_auth.check(token, &access).await {
+    match state.kube_auth.check(token, &access).await {
         Ok(()) => Ok(true),
         Err(Denied::Forbidden(_)) => Ok(false),
         Err(denied) => Err(state.denied(denied)),

@@ -16,9 +16,9 @@ use axum::routing::get;
 /// Where the dashboard is served.
 pub const PATH: &str = "/dashboard/";
 
-const INDEX: &str = include_str!("../../dashboard/index.html");
-const SCRIPT: &str = include_str!("../../dashboard/app.js");
-const STYLE: &str = include_str!("../../dashboard/app.css");
+const INDEX: &str = include_str!("../dashboard/index.html");
+const SCRIPT: &str = include_str!("../dashboard/app.js");
+const STYLE: &str = include_str!("../dashboard/app.css");
 
 /// Only this origin's files and API; no inline script or style elements, no framing.
 const POLICY: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data:; \

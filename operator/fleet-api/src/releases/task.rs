@@ -18,7 +18,6 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::Releases;
-use crate::config::Config;
 use lekiwi_metrics::GatewayMetrics;
 
 /// Reason of the Warning Event about the volume.
@@ -38,23 +37,15 @@ pub struct Care {
     pub namespace: String,
 }
 
-/// Starts the care of `releases` as `config` says, collecting while `leader` is true; the
-/// releases (shared with the routes) and the task.
+/// Starts the care of `releases` as `care` says; the releases (shared with the routes) and the
+/// task.
 pub fn start(
-    config: &Config,
     releases: Releases,
-    (client, leader): (&kube::Client, watch::Receiver<bool>),
+    care: Care,
+    client: &kube::Client,
     cancel: &CancellationToken,
 ) -> (Arc<Releases>, JoinHandle<()>) {
     let releases = Arc::new(releases);
-    let care = Care {
-        period: (config.release_gc_seconds > 0)
-            .then(|| Duration::from_secs(config.release_gc_seconds)),
-        warn_percent: config.blob_free_warn_percent,
-        leader,
-        gateway: config.gateway_name(),
-        namespace: config.namespace.clone(),
-    };
     let metrics = releases.metrics.clone();
     let task = tokio::spawn(run(
         releases.clone(),

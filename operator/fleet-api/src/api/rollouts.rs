@@ -20,8 +20,8 @@ use tracing::info;
 
 use super::robots::Page;
 use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
-use crate::gateway::kube_auth::Access;
-use crate::gateway::{ApiError, AppState};
+use crate::kube_auth::Access;
+use crate::{ApiError, FleetState};
 
 /// Field manager of the API's patches (`kubectl get -o yaml --show-managed-fields`).
 const FIELD_MANAGER: &str = "lekiwi-fleet-api";
@@ -40,7 +40,7 @@ pub struct ListQuery {
 
 /// `GET /api/v1/rollouts` (`list robotdeployments` in all namespaces).
 pub async fn list_all(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Json<Page<Arc<RobotDeployment>>>, ApiError> {
@@ -49,7 +49,7 @@ pub async fn list_all(
 
 /// `GET /api/v1/namespaces/{namespace}/rollouts` (`list robotdeployments` there).
 pub async fn list_namespaced(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path(namespace): Path<String>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
@@ -59,7 +59,7 @@ pub async fn list_namespaced(
 }
 
 async fn list(
-    state: AppState,
+    state: FleetState,
     namespace: Option<String>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
@@ -77,7 +77,7 @@ async fn list(
 
 /// The page of rollouts `query` asks for in `namespace` (all if `None`), from the cache.
 pub(crate) fn page(
-    state: &AppState,
+    state: &FleetState,
     namespace: Option<&str>,
     query: &ListQuery,
 ) -> Result<Page<Arc<RobotDeployment>>, ApiError> {
@@ -93,7 +93,7 @@ pub(crate) fn page(
         .then(|| {
             items
                 .last()
-                .map(|d| continue_after(&crate::gateway::cache::key(d.as_ref())))
+                .map(|d| continue_after(&lekiwi_core::cache::key(d.as_ref())))
         })
         .flatten();
     Ok(Page { items, next })
@@ -101,7 +101,7 @@ pub(crate) fn page(
 
 /// `GET /api/v1/namespaces/{namespace}/rollouts/{name}` (`get robotdeployments`).
 pub async fn one(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path((namespace, name)): Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Json<Arc<RobotDeployment>>, ApiError> {
@@ -122,7 +122,7 @@ pub async fn one(
 
 /// `POST .../rollouts/{name}/pause`: sets `spec.paused`.
 pub async fn pause(
-    state: State<AppState>,
+    state: State<FleetState>,
     path: Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Json<RobotDeployment>, ApiError> {
@@ -131,7 +131,7 @@ pub async fn pause(
 
 /// `POST .../rollouts/{name}/resume`: clears `spec.paused`.
 pub async fn resume(
-    state: State<AppState>,
+    state: State<FleetState>,
     path: Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Json<RobotDeployment>, ApiError> {
@@ -140,7 +140,7 @@ pub async fn resume(
 
 /// `POST .../rollouts/{name}/abort`: stamps the abort annotation with now.
 pub async fn abort(
-    state: State<AppState>,
+    state: State<FleetState>,
     path: Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Json<RobotDeployment>, ApiError> {
@@ -149,7 +149,7 @@ pub async fn abort(
 
 /// `POST .../rollouts/{name}/undo`: stamps the undo annotation with now.
 pub async fn undo(
-    state: State<AppState>,
+    state: State<FleetState>,
     path: Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Json<RobotDeployment>, ApiError> {
@@ -158,7 +158,7 @@ pub async fn undo(
 
 /// `POST .../rollouts/{name}/restart`: stamps the restart annotation with now.
 pub async fn restart(
-    state: State<AppState>,
+    state: State<FleetState>,
     path: Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Json<RobotDeployment>, ApiError> {
@@ -173,7 +173,7 @@ pub(crate) fn stamp(annotation: &str) -> Value {
 /// Merge-patches the RobotDeployment with `patch` once the caller may `patch` it; answers the
 /// object as patched.
 async fn act(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path((namespace, name)): Path<(String, String)>,
     headers: HeaderMap,
     patch: Value,
@@ -192,7 +192,7 @@ async fn act(
 /// Merge-patches RobotDeployment `namespace/name` with `patch` for `user` (whose permission
 /// was checked); the object as patched.
 pub(crate) async fn patch_rollout(
-    state: &AppState,
+    state: &FleetState,
     user: &str,
     namespace: &str,
     name: &str,

@@ -329,9 +329,10 @@ impl<K: Resource + Serialize> Cache<K> {
         }
     }
 
-    /// Takes `o` as a watch would deliver it (tests of what follows the changes).
-    #[cfg(test)]
-    pub(crate) fn apply_for_tests(&self, o: K) {
+    /// Takes `o` as a watch would deliver it (tests of what follows the changes; with the
+    /// `test-util` feature).
+    #[cfg(any(test, feature = "test-util"))]
+    pub fn apply_for_tests(&self, o: K) {
         self.applied(o);
     }
 
@@ -363,7 +364,7 @@ where
     let cache = Arc::new(Cache::new());
     let filled = cache.clone();
     let task = tokio::spawn(async move {
-        let stream = watcher(api, lekiwi_core::api_client::watch_config().any_semantic())
+        let stream = watcher(api, crate::api_client::watch_config().any_semantic())
             .default_backoff()
             .modify(trim);
         let mut stream = std::pin::pin!(stream);

@@ -11,13 +11,13 @@ use serde_json::json;
 use tracing::info;
 
 use super::{authorize, check_names};
-use crate::gateway::kube_auth::Access;
-use crate::gateway::releases::Refused;
-use crate::gateway::{ApiError, AppState};
+use crate::kube_auth::Access;
+use crate::releases::Refused;
+use crate::{ApiError, FleetState};
 
 /// `GET /api/v1/namespaces/{namespace}/releases`.
 pub async fn list(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path(namespace): Path<String>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
@@ -40,7 +40,7 @@ pub async fn list(
 
 /// `DELETE /api/v1/namespaces/{namespace}/releases/{release}`.
 pub async fn delete(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path((namespace, release)): Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {

@@ -16,8 +16,8 @@ use serde::{Deserialize, Serialize};
 
 use super::selector::Selector;
 use super::{authorize, bad_query, check_names, ready};
-use crate::gateway::kube_auth::Access;
-use crate::gateway::{ApiError, AppState};
+use crate::kube_auth::Access;
+use crate::{ApiError, FleetState};
 
 /// Releases named one by one; the rest are summed under [`OTHER`].
 pub const MAX_RELEASES: usize = 20;
@@ -96,7 +96,7 @@ impl Summary {
 
 /// `GET /api/v1/namespaces/{namespace}/summary` (`list robots` in that namespace).
 pub async fn summary(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path(namespace): Path<String>,
     query: Result<Query<SummaryQuery>, QueryRejection>,
     headers: HeaderMap,

@@ -15,10 +15,10 @@ use serde::{Deserialize, Serialize};
 
 use super::selector::Selector;
 use super::{authorize, bad_query, check_names, continue_after, page_size, ready, resume_key};
-use crate::gateway::cache::{Found, Key};
-use crate::gateway::kube_auth::Access;
-use crate::gateway::{ApiError, AppState};
+use crate::kube_auth::Access;
+use crate::{ApiError, FleetState};
 use lekiwi_core::RobotKey;
+use lekiwi_core::cache::{Found, Key};
 
 static NO_LABELS: std::collections::BTreeMap<String, String> = std::collections::BTreeMap::new();
 
@@ -71,7 +71,7 @@ pub struct RobotView {
 /// `GET /api/v1/robots`: robots of every namespace the gateway watches (`list robots` in all
 /// namespaces).
 pub async fn list_all(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
@@ -80,7 +80,7 @@ pub async fn list_all(
 
 /// `GET /api/v1/namespaces/{namespace}/robots` (`list robots` in that namespace).
 pub async fn list_namespaced(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path(namespace): Path<String>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
@@ -90,7 +90,7 @@ pub async fn list_namespaced(
 }
 
 async fn list(
-    state: AppState,
+    state: FleetState,
     namespace: Option<String>,
     query: Result<Query<ListQuery>, QueryRejection>,
     headers: HeaderMap,
@@ -106,7 +106,7 @@ async fn list(
         |r| filter.keep(r),
     );
     let keys: Vec<RobotKey> = found.items.iter().map(|(r, _)| robot_key(r)).collect();
-    let held = state.shared.presence.last_heartbeats(&keys);
+    let held = state.presence.last_heartbeats(&keys);
     let body = page_body(&found, held);
     Ok(([(header::CONTENT_TYPE, "application/json")], body).into_response())
 }
@@ -213,7 +213,7 @@ impl Filter {
 
 /// The page of robots `query` asks for in `namespace` (all if `None`), from the cache.
 pub(crate) fn page(
-    state: &AppState,
+    state: &FleetState,
     namespace: Option<&str>,
     query: &ListQuery,
 ) -> Result<Page<Arc<Robot>>, ApiError> {
@@ -235,7 +235,7 @@ pub(crate) fn page(
 
 /// `GET /api/v1/namespaces/{namespace}/robots/{name}` (`get robots`): the Robot and its vitals.
 pub async fn one(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     Path((namespace, name)): Path<(String, String)>,
     headers: HeaderMap,
 ) -> Result<Json<RobotView>, ApiError> {
@@ -252,7 +252,7 @@ pub async fn one(
         .get(&namespace, &name)
         .ok_or_else(|| ApiError::NotFound(format!("robot {namespace}/{name} not found")))?;
     let status = robot.status.as_ref();
-    let held = state.shared.presence.last_heartbeats([&robot_key(&robot)]);
+    let held = state.presence.last_heartbeats(&[robot_key(&robot)]);
     Ok(Json(RobotView {
         last_seen: last_seen(&robot, held.into_iter().next().flatten()).map(rfc3339),
         vitals: status.and_then(|s| s.telemetry.as_deref().cloned()),
@@ -282,8 +282,8 @@ pub(crate) fn parse_phase(text: &str) -> Result<RobotPhase, ApiError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gateway::cache::Cache;
     use k8s_openapi::apimachinery::pkg::apis::meta::v1::Time;
+    use lekiwi_core::cache::Cache;
     use lekiwi_crds::robot::RobotStatus;
     use lekiwi_crds::{Robot, RobotSpec};
     use serde_json::Value;

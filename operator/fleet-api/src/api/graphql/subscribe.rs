@@ -1,6 +1,6 @@
 //! GraphQL subscriptions: robots whose phase, vitals, release or labels change (a namespace and
 //! label selector), and rollouts whose progress changes (a namespace, optionally one name).
-//! Every subscriber reads the cache's one broadcast ([`crate::gateway::cache::Cache::subscribe`]);
+//! Every subscriber reads the cache's one broadcast ([`lekiwi_core::cache::Cache::subscribe`]);
 //! none opens a watch. Each keeps at most one pending state per object (the latest wins,
 //! first come first sent), so its memory is bounded by the objects it matches; one that falls
 //! more than the broadcast's buffer behind (a slow client) reads the current state from the
@@ -19,11 +19,11 @@ use tokio::sync::broadcast::{Receiver, error::RecvError, error::TryRecvError};
 
 use super::query::{RobotObject, RolloutObject};
 use super::{Caller, allowed, refusal};
-use crate::gateway::api::check_names;
-use crate::gateway::api::selector::Selector;
-use crate::gateway::cache::{Cache, Change, Key, key};
-use crate::gateway::kube_auth::{Access, TTL};
-use crate::gateway::{ApiError, AppState};
+use crate::api::check_names;
+use crate::api::selector::Selector;
+use crate::kube_auth::{Access, TTL};
+use crate::{ApiError, FleetState};
+use lekiwi_core::cache::{Cache, Change, Key, key};
 
 /// Things (subscriptions, WebSockets) held per user, capped.
 pub struct PerUser {
@@ -86,7 +86,7 @@ struct Feed<K> {
     queue: VecDeque<Key>,
     latest: HashMap<Key, Arc<K>>,
     /// The permission re-checked every [`TTL`].
-    state: AppState,
+    state: FleetState,
     caller: Caller,
     access: Access,
     checked: Instant,
@@ -157,7 +157,7 @@ impl<K: Resource> Feed<K> {
         if self.checked.elapsed() < TTL {
             return Ok(());
         }
-        let auth = &self.state.blobs.kube_auth;
+        let auth = &self.state.kube_auth;
         auth.check(&self.caller.token, &self.access)
             .await
             .map_err(|d| refusal(self.state.denied(d)))?;
@@ -181,7 +181,7 @@ impl<K: Resource> Feed<K> {
 }
 
 /// Where a feed reads (a cache of the gateway's state) and the resource RBAC names it by.
-type Source<K> = (fn(&AppState) -> Arc<Cache<K>>, &'static str);
+type Source<K> = (fn(&FleetState) -> Arc<Cache<K>>, &'static str);
 
 /// The subscriber's permission, budget and slot, then a feed of `cache` in `namespace`.
 async fn feed<K: Resource>(
@@ -253,7 +253,7 @@ impl SubscriptionRoot {
         let wanted = Box::new(move |r: &Robot| {
             selector.matches(r.metadata.labels.as_ref().unwrap_or(&empty))
         });
-        let robots = |s: &AppState| s.fleet.robots.clone();
+        let robots = |s: &FleetState| s.fleet.robots.clone();
         let feed = feed(ctx, (robots, "robots"), namespace, wanted, robot_changed).await?;
         Ok(feed.stream(RobotObject))
     }
@@ -273,7 +273,7 @@ impl SubscriptionRoot {
             name.as_deref()
                 .is_none_or(|n| d.meta().name.as_deref() == Some(n))
         });
-        let rollouts = |s: &AppState| s.fleet.rollouts.clone();
+        let rollouts = |s: &FleetState| s.fleet.rollouts.clone();
         let feed = feed(
             ctx,
             (rollouts, "robotdeployments"),

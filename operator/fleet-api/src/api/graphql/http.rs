@@ -11,8 +11,8 @@ use axum::response::{IntoResponse, Response};
 use http_body_util::{BodyExt, LengthLimitError, Limited};
 
 use super::Caller;
-use crate::gateway::api::authorize;
-use crate::gateway::{ApiError, AppState, bearer};
+use crate::api::authorize;
+use crate::{ApiError, FleetState, bearer};
 
 /// The GraphQL-over-HTTP media type, answered to clients that ask for it.
 pub const GRAPHQL_RESPONSE: &str = "application/graphql-response+json";
@@ -24,7 +24,7 @@ const SHAPE: &str = r#"{"query": "...", "variables": {...}, "operationName": "..
 /// then the body is read (413 beyond the limit, 400 unless it is a GraphQL request), then the
 /// query runs (200 with GraphQL's `{"data", "errors"}`).
 pub async fn post(
-    State(state): State<AppState>,
+    State(state): State<FleetState>,
     headers: HeaderMap,
     body: Body,
 ) -> Result<Response, ApiError> {

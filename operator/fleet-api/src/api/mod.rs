@@ -2,7 +2,7 @@
 //! dashboard. Every request carries a bearer token the API server accepts (a `TokenReview`),
 //! counts against its user's budget ([`limits`]: 429 with `Retry-After`) and is allowed what RBAC
 //! allows that user on the matching resource (a `SubjectAccessReview`), both answers cached
-//! briefly by [`super::kube_auth`]. Reads come from memory ([`cache`], fed by watches) or the
+//! briefly by [`crate::kube_auth`]. Reads come from memory ([`cache`], fed by watches) or the
 //! event store; rollout actions patch the RobotDeployment as `kubectl lekiwi rollout` does.
 //! The routes and their document are listed once, in [`openapi`].
 
@@ -19,6 +19,7 @@ mod summary;
 
 use std::sync::Arc;
 
+use axum::extract::FromRef;
 use axum::extract::rejection::QueryRejection;
 use axum::http::{HeaderMap, Method, StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
@@ -30,10 +31,11 @@ use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
 use self::limits::UserLimits;
-use super::auth::{Refusal, valid_name};
-use super::cache::{self, Cache};
-use super::kube_auth::Access;
-use super::{ApiError, AppState, bearer};
+use crate::kube_auth::Access;
+use crate::users::Refusal;
+use crate::{ApiError, FleetState, bearer};
+use lekiwi_core::cache::{self, Cache};
+use lekiwi_core::http::valid_name;
 
 /// Items a list answers unless `limit` says otherwise.
 pub const DEFAULT_LIMIT: u32 = 100;
@@ -62,7 +64,7 @@ impl FleetApi {
         robots: Api<Robot>,
         rollouts: Api<RobotDeployment>,
         client: kube::Client,
-        config: &crate::config::Config,
+        config: &crate::config::FleetApiConfig,
         cancel: &CancellationToken,
     ) -> (Self, Vec<JoinHandle<()>>) {
         let (robots, robot_task) = cache::watch(robots, trim_meta::<Robot>, cancel.clone());
@@ -84,11 +86,15 @@ fn trim_meta<K: kube::Resource>(o: &mut K) {
     o.meta_mut().managed_fields = None;
 }
 
-/// The Fleet API's routes, merged into the gateway's [`super::router`].
+/// The Fleet API's routes, merged into the gateway's router.
 /// Unknown paths under `/api/v1/` and wrong methods answer JSON errors too.
-pub fn routes() -> Router<AppState> {
+pub fn routes<S>() -> Router<S>
+where
+    S: Clone + Send + Sync + 'static,
+    FleetState: FromRef<S>,
+{
     use openapi::paths as p;
-    let wrong = |m: MethodRouter<AppState>| m.fallback(wrong_method);
+    let wrong = |m: MethodRouter<S>| m.fallback(wrong_method);
     Router::new()
         .route(p::OPENAPI, wrong(get(openapi::document)))
         .route(p::ACCESS, wrong(get(access::access)))
@@ -136,7 +142,7 @@ async fn wrong_method(method: Method, uri: Uri) -> Response {
 /// Lets a request through when its bearer token is accepted, its user is within budget and
 /// RBAC allows it `access` (any authenticated user when `None`); returns the username.
 pub(crate) async fn authorize(
-    state: &AppState,
+    state: &FleetState,
     headers: &HeaderMap,
     access: Option<Access>,
 ) -> Result<String, ApiError> {
@@ -144,7 +150,6 @@ pub(crate) async fn authorize(
         return Err(state.refused(Refusal::MissingToken));
     };
     let user = state
-        .blobs
         .kube_auth
         .user_of(token)
         .await
