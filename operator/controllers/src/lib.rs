@@ -4,6 +4,7 @@
 
 pub mod deployment;
 mod error;
+pub mod failure_log;
 pub mod robot;
 pub mod trigger;
 
@@ -83,6 +84,8 @@ pub struct Context {
     pub robot_deferred: Arc<robot::deferred::Deferred>,
     /// Consecutive failures per object, for exponential backoff.
     failures: Arc<Mutex<HashMap<(String, String), u32>>>,
+    /// The budget of failure lines in the log.
+    failure_log: Arc<failure_log::FailureLog>,
 }
 
 impl Context {
@@ -104,6 +107,7 @@ impl Context {
             robot_events: Arc::default(),
             robot_deferred: Arc::default(),
             failures: Arc::default(),
+            failure_log: Arc::default(),
         }
     }
 
@@ -121,7 +125,9 @@ impl Context {
     /// off, by what can be done about the error: a conflict is planned again soon from the newer
     /// version (without growing the backoff; logged at debug), a transient failure backs off
     /// from 1 s doubling (a warning), a permanent one waits the longest backoff at once (an
-    /// error: retrying cannot help until the cause is fixed).
+    /// error: retrying cannot help until the cause is fixed). Warnings and errors are written
+    /// within a budget shared by the process ([`failure_log`]); each says how many failures
+    /// were `left_out` (logged at debug) since the previous one.
     pub fn reconcile_failed(
         &self,
         controller: ControllerName,
@@ -143,15 +149,24 @@ impl Context {
             Category::Transient => self.next_backoff(name, namespace),
             Category::Permanent => MAX_BACKOFF,
         };
-        match category {
-            Category::Conflict => {
+        // A conflict is routine; other failures get a line of their own within the budget
+        // (see [`failure_log`]), and at debug beyond it.
+        let line = match category {
+            Category::Conflict => None,
+            _ => self.failure_log.admit(),
+        };
+        match (category, line) {
+            (Category::Conflict, _) => {
                 debug!(?controller, name, namespace, %error, retry_in = ?delay, "reconcile met a newer version")
             }
-            Category::Transient => {
-                warn!(?controller, name, namespace, %error, retry_in = ?delay, "reconcile failed")
+            (_, None) => {
+                debug!(?controller, name, namespace, %error, retry_in = ?delay, "reconcile failed")
             }
-            Category::Permanent => {
-                error!(?controller, name, namespace, %error, retry_in = ?delay, "reconcile failed; retrying cannot help until the cause is fixed")
+            (Category::Transient, Some(left_out)) => {
+                warn!(?controller, name, namespace, %error, retry_in = ?delay, left_out, "reconcile failed")
+            }
+            (Category::Permanent, Some(left_out)) => {
+                error!(?controller, name, namespace, %error, retry_in = ?delay, left_out, "reconcile failed; retrying cannot help until the cause is fixed")
             }
         }
         delay
@@ -277,6 +292,62 @@ mod tests {
             source: error::api(code),
         };
         ctx.reconcile_failed(ControllerName::robot, "kiwi", "lab", &error)
+    }
+
+    /// What a subscriber wrote, for tests of what is logged.
+    #[derive(Clone, Default)]
+    struct Written(Arc<Mutex<Vec<u8>>>);
+
+    impl std::io::Write for Written {
+        fn write(&mut self, bytes: &[u8]) -> std::io::Result<usize> {
+            self.0.lock().unwrap().extend_from_slice(bytes);
+            Ok(bytes.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn an_api_server_outage_writes_a_few_failure_lines_not_one_per_robot() {
+        let ctx = context();
+        let written = Written::default();
+        let writer = written.clone();
+        let subscriber = tracing_subscriber::fmt()
+            .with_max_level(tracing::Level::WARN)
+            .with_ansi(false)
+            .with_writer(move || writer.clone())
+            .finish();
+        let robots = 10_000;
+        let error = |name: &str| Error::PatchStatus {
+            object: format!("lab/{name}"),
+            source: error::api(503),
+        };
+        tracing::subscriber::with_default(subscriber, || {
+            for i in 0..robots {
+                let name = format!("kiwi-{i}");
+                let delay =
+                    ctx.reconcile_failed(ControllerName::robot, &name, "lab", &error(&name));
+                assert_eq!(delay, Duration::from_secs(1), "each robot backs off alone");
+            }
+        });
+        let text = String::from_utf8(written.0.lock().unwrap().clone()).unwrap();
+        let lines = text
+            .lines()
+            .filter(|l| l.contains("reconcile failed"))
+            .count();
+        assert_eq!(lines, failure_log::LINES_BURST as usize, "{text}");
+        let labels = ErrorLabels {
+            controller: ControllerName::robot,
+            reason: error("kiwi-0").metric_reason(),
+        };
+        let counted = ctx
+            .metrics
+            .controllers
+            .reconcile_errors
+            .get_or_create(&labels)
+            .get();
+        assert_eq!(counted, robots, "every failure is counted");
     }
 
     #[tokio::test]
