@@ -32,6 +32,9 @@ pub(super) struct Written {
     pub resource_version: Option<String>,
 }
 
+/// One robot's write: its name, mark, the owned part of its spec, and the analysis window.
+type Job = (String, Mark, Option<RobotSpecPart>, Option<i64>);
+
 /// Writes every planned robot, a few at a time; fails with the first error after trying all.
 pub(super) async fn write_robots(
     client: &kube::Client,
@@ -42,27 +45,7 @@ pub(super) async fn write_robots(
     let namespace = deployment.metadata.namespace.clone().unwrap_or_default();
     let robots: Api<Robot> = Api::namespaced(client.clone(), &namespace);
     let kind = deployment.spec.kind();
-    let views: BTreeMap<&str, &RobotView> =
-        facts.robots.iter().map(|r| (r.name.as_str(), r)).collect();
-    let jobs: Vec<(String, Mark, Option<RobotSpecPart>, Option<i64>)> = plan
-        .writes
-        .iter()
-        .map(|w| {
-            let view = views.get(w.robot.as_str()).copied();
-            let (spec, window) = match kind {
-                RolloutKind::Release => {
-                    let release = w.release.as_ref().or_else(|| view?.desired.as_ref());
-                    let window = analysis_window(deployment, facts, release);
-                    (release_spec(release), window)
-                }
-                RolloutKind::Agent => (
-                    agent_spec(w.release.as_ref(), view, facts, deployment),
-                    None,
-                ),
-            };
-            (w.robot.clone(), w.mark.clone(), spec, window)
-        })
-        .collect();
+    let jobs = robot_writes(deployment, facts, plan);
     let results: Vec<Result<Written>> = futures::stream::iter(jobs)
         .map(|(robot, mark, spec, window)| {
             let robots = robots.clone();
@@ -78,9 +61,34 @@ pub(super) async fn write_robots(
     results.into_iter().collect()
 }
 
-/// The Robot `spec` of a release rollout's write: `release`, the planned release, else (a
-/// mark-only write) the one it has, so that server-side apply keeps this manager owning
-/// `spec.release` instead of dropping it.
+/// What each planned write sends. A write that sets no release (a mark-only write) still sends
+/// the value this rollout's field manager owns, or server-side apply would drop it: the one
+/// this rollout told the robot to run, by the mark being written ([`Mark::told`]); for a robot
+/// it told nothing, the one the store shows (an earlier rollout's).
+fn robot_writes(deployment: &RobotDeployment, facts: &Facts, plan: &Plan) -> Vec<Job> {
+    let kind = deployment.spec.kind();
+    let views: BTreeMap<&str, &RobotView> =
+        facts.robots.iter().map(|r| (r.name.as_str(), r)).collect();
+    plan.writes
+        .iter()
+        .map(|w| {
+            let view = views.get(w.robot.as_str()).copied();
+            let planned = w.release.clone().or_else(|| w.mark.told(&facts.target));
+            let (spec, window) = match kind {
+                RolloutKind::Release => {
+                    let release = planned.as_ref().or_else(|| view?.desired.as_ref());
+                    let window = analysis_window(deployment, facts, release);
+                    (release_spec(release), window)
+                }
+                RolloutKind::Agent => (agent_spec(planned.as_ref(), view, facts, deployment), None),
+            };
+            (w.robot.clone(), w.mark.clone(), spec, window)
+        })
+        .collect()
+}
+
+/// The Robot `spec` of a release rollout's write: `release` (see [`robot_writes`]), so that
+/// server-side apply keeps this manager owning `spec.release` instead of dropping it.
 fn release_spec(release: Option<&ReleaseRef>) -> Option<RobotSpecPart> {
     Some(RobotSpecPart {
         release: Some(release?.clone()),
@@ -227,5 +235,121 @@ pub(super) async fn publish_events(
         if let Err(err) = recorder.publish(&event, &deployment.object_ref(&())).await {
             warn!(error = %err, "cannot publish Event");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use jiff::Timestamp;
+    use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
+    use lekiwi_crds::RobotDeploymentSpec;
+    use lekiwi_crds::deployment::RolloutStrategy;
+
+    use super::super::plan::{MarkState, ReleaseCheck, RobotWrite};
+    use super::*;
+
+    fn rel(version: &str, hex: char) -> ReleaseRef {
+        serde_json::from_value(serde_json::json!({
+            "version": version,
+            "digest": format!("sha256:{}", hex.to_string().repeat(64)),
+        }))
+        .unwrap()
+    }
+
+    fn deployment(release: Option<ReleaseRef>, agent: Option<AgentRef>) -> RobotDeployment {
+        let spec = RobotDeploymentSpec {
+            selector: LabelSelector::default(),
+            release,
+            agent,
+            strategy: RolloutStrategy::default(),
+            paused: false,
+            analysis: None,
+            priority: 0,
+        };
+        let mut d = RobotDeployment::new("roll", spec);
+        d.metadata.namespace = Some("lab".into());
+        d
+    }
+
+    /// A plan with one mark-only write of `kiwi` in `state`, and facts whose store shows the
+    /// robot without the value the rollout wrote on it a moment ago (the store lags).
+    fn mark_only(state: MarkState, target: &ReleaseRef) -> (Facts, Plan) {
+        let mark = Mark {
+            deployment: "roll".into(),
+            rollout_id: "r1".into(),
+            batch: 3,
+            state,
+            since: Timestamp::UNIX_EPOCH,
+            previous: Some(rel("1.0.0", 'a')),
+            message: None,
+            failed: state == MarkState::Failed,
+        };
+        let facts = Facts {
+            now: Timestamp::UNIX_EPOCH,
+            robots: vec![RobotView {
+                name: "kiwi".into(),
+                ..RobotView::default()
+            }],
+            target: target.clone(),
+            release: ReleaseCheck::Valid,
+            overlaps: vec![],
+            active_deployments: vec![],
+        };
+        let plan = Plan {
+            writes: vec![RobotWrite {
+                robot: "kiwi".into(),
+                mark,
+                release: None,
+            }],
+            status: Default::default(),
+            events: vec![],
+            requeue_after: None,
+            batch_result: None,
+            finished: false,
+        };
+        (facts, plan)
+    }
+
+    #[test]
+    fn a_mark_only_write_keeps_what_the_rollout_told_the_robot_when_the_store_lags() {
+        let target = rel("2.0.0", 'b');
+        let release = deployment(Some(target.clone()), None);
+        for state in [MarkState::Started, MarkState::Failed] {
+            let (facts, plan) = mark_only(state, &target);
+            let (_, _, spec, _) = robot_writes(&release, &facts, &plan).remove(0);
+            assert_eq!(
+                spec.and_then(|s| s.release),
+                Some(target.clone()),
+                "{state:?}"
+            );
+        }
+        let (facts, plan) = mark_only(MarkState::RollingBack, &target);
+        let (_, _, spec, _) = robot_writes(&release, &facts, &plan).remove(0);
+        assert_eq!(spec.and_then(|s| s.release), Some(rel("1.0.0", 'a')));
+
+        let build = AgentRef {
+            version: "0.2.0".into(),
+            builds: vec![AgentBuild {
+                arch: AgentArch::Arm64,
+                digest: format!("sha256:{}", "c".repeat(64)),
+            }],
+        };
+        let agent = deployment(None, Some(build.clone()));
+        let agent_target = rel("0.2.0", 'c');
+        let (facts, plan) = mark_only(MarkState::Failed, &agent_target);
+        let (_, _, spec, _) = robot_writes(&agent, &facts, &plan).remove(0);
+        // Without the agent in the write, server-side apply would remove `spec.agent` (the
+        // API server 1.20 refused the write as `null`, stopping the rollout for good).
+        assert_eq!(spec.and_then(|s| s.agent), Some(build));
+    }
+
+    #[test]
+    fn a_robot_told_nothing_keeps_what_the_store_shows() {
+        let target = rel("2.0.0", 'b');
+        let release = deployment(Some(target.clone()), None);
+        let (mut facts, plan) = mark_only(MarkState::Waiting, &target);
+        facts.robots[0].desired = Some(rel("1.5.0", 'd'));
+        let (_, _, spec, _) = robot_writes(&release, &facts, &plan).remove(0);
+        assert_eq!(spec.and_then(|s| s.release), Some(rel("1.5.0", 'd')));
     }
 }

@@ -11,7 +11,7 @@ use super::draft::{Draft, Rollout};
 use super::{MarkState, time};
 
 /// The mark message of a robot whose update an abort cancelled.
-const CANCELLED: &str = "aborted before it switched; its update was cancelled";
+pub(super) const CANCELLED: &str = "aborted before it switched; its update was cancelled";
 
 /// Whether an abort asked for now stops a rollout in `phase`: one that is still going forward
 /// (or failed on an invalid release, and would go on once it is valid). A rollback goes on; a

@@ -96,6 +96,25 @@ impl Mark {
         let marks = robot.metadata.annotations.as_ref()?;
         serde_json::from_str(marks.get(kind.mark_annotation())?).ok()
     }
+
+    /// The release (or agent build) the robot was told to run by the rollout that wrote this
+    /// mark: the rollout's `target` once started (also when it then failed: only a rollback
+    /// moves it), `previous` once rolling back or held back by a pause or an abort; `None` for
+    /// a robot told nothing (waiting for its turn, skipped before it). A mark-only write sends
+    /// it so that server-side apply keeps the field; the store is not asked, as under load it
+    /// may not show the rollout's own write of a moment ago.
+    pub fn told(&self, target: &ReleaseRef) -> Option<ReleaseRef> {
+        let held_back = matches!(
+            self.message.as_deref(),
+            Some(pause::HELD_BY_PAUSE | abort::CANCELLED)
+        );
+        match self.state {
+            MarkState::Started | MarkState::Failed => Some(target.clone()),
+            MarkState::RollingBack => self.previous.clone(),
+            MarkState::Waiting | MarkState::Skipped if held_back => self.previous.clone(),
+            MarkState::Waiting | MarkState::Skipped => None,
+        }
+    }
 }
 
 /// The facts about one selected robot that a rollout needs.
