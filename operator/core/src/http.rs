@@ -129,3 +129,57 @@ pub fn valid_name(name: &str) -> bool {
                 && !part.ends_with('-')
         })
 }
+
+/// Why a request was refused before it reached its route (logged and counted; never with the
+/// token). The robots' routes refuse for every reason; the Fleet API for a missing or wrong
+/// token and a throttled review.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Refusal {
+    /// No `Authorization: Bearer` header.
+    MissingToken,
+    /// The robot header is absent or not a valid name.
+    BadRobotName,
+    /// The robot's name is longer than a robot with a token can have (63 characters).
+    RobotNameTooLong,
+    /// A token nobody accepts (no robot's, no enrollment token, or one the API server refuses).
+    WrongToken,
+    /// An enrollment token where only the robot's own token may speak for it (legacy polls).
+    EnrollmentToken,
+    /// The cache could not decide and the budget of API reads for unauthenticated requests
+    /// is spent: 503, retry later.
+    Throttled,
+}
+
+impl Refusal {
+    /// Bounded metric label and log text.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Refusal::MissingToken => "missing_token",
+            Refusal::BadRobotName => "bad_robot_name",
+            Refusal::RobotNameTooLong => "robot_name_too_long",
+            Refusal::WrongToken => "wrong_token",
+            Refusal::EnrollmentToken => "enrollment_token",
+            Refusal::Throttled => "lookup_throttled",
+        }
+    }
+
+    /// The answer: 401 saying what is wrong, or 503 with `Retry-After` when throttled.
+    pub fn answer(self) -> ApiError {
+        ApiError::Unauthorized(match self {
+            Refusal::Throttled => {
+                return ApiError::Throttled(
+                    "too many requests the gateway cannot authenticate from its cache; retry later",
+                );
+            }
+            Refusal::MissingToken => "missing bearer token",
+            Refusal::BadRobotName => "missing or invalid x-lekiwi-robot header (namespace/name)",
+            Refusal::RobotNameTooLong => {
+                "robot names are at most 63 characters (the robot's token Secret carries the name in a label)"
+            }
+            Refusal::WrongToken => "invalid token",
+            Refusal::EnrollmentToken => {
+                "an enrollment token cannot speak for a robot; use the robot's own token"
+            }
+        })
+    }
+}

@@ -8,28 +8,7 @@ use tracing::warn;
 
 use crate::kube_auth;
 use crate::{ApiError, FleetState, bearer};
-
-/// Why a person's or tool's request was refused before any permission check.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Refusal {
-    /// No `Authorization: Bearer` header.
-    MissingToken,
-    /// A token the API server does not accept.
-    WrongToken,
-    /// Token reviews are beyond their budget: 503, retry later.
-    Throttled,
-}
-
-impl Refusal {
-    /// Bounded metric label and log text, the same as the robots' refusals of that kind.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Refusal::MissingToken => "missing_token",
-            Refusal::WrongToken => "wrong_token",
-            Refusal::Throttled => "lookup_throttled",
-        }
-    }
-}
+use lekiwi_core::http::Refusal;
 
 impl FleetState {
     /// Counts a refused request in `lekiwi_gateway_refused_total{kind}`.
@@ -40,18 +19,13 @@ impl FleetState {
             .inc();
     }
 
-    /// Counts and logs a refused request and answers it (401, or 503 with `Retry-After`).
+    /// Counts and logs a refused request (a missing or wrong token, a throttled review) and
+    /// answers it (401, or 503 with `Retry-After`).
     pub fn refused(&self, reason: Refusal) -> ApiError {
         self.count_refusal(reason.as_str());
         // Never log the token itself.
         warn!(reason = reason.as_str(), "refused an API request");
-        match reason {
-            Refusal::MissingToken => ApiError::Unauthorized("missing bearer token"),
-            Refusal::WrongToken => ApiError::Unauthorized("invalid token"),
-            Refusal::Throttled => ApiError::Throttled(
-                "too many requests the gateway cannot authenticate from its cache; retry later",
-            ),
-        }
+        reason.answer()
     }
 
     /// Lets a person's or tool's request through when the API server accepts its bearer token

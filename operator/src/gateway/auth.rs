@@ -15,39 +15,8 @@ use crate::gateway::enroll;
 use crate::gateway::lookup::{Lookups, Skip, Subject};
 use crate::gateway::tokens::{TokenIndex, TokenKind};
 use lekiwi_core::RobotKey;
+pub use lekiwi_core::http::Refusal;
 use lekiwi_core::http::valid_name;
-
-/// Why a connection was refused (logged and counted; never with the token).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Refusal {
-    /// No `Authorization: Bearer` header.
-    MissingToken,
-    /// The robot header is absent or not a valid name.
-    BadRobotName,
-    /// The robot's name is longer than a robot with a token can have ([`MAX_ROBOT_NAME_LEN`]).
-    RobotNameTooLong,
-    /// The token matches neither the robot's token nor an enrollment token.
-    WrongToken,
-    /// An enrollment token where only the robot's own token may speak for it (legacy polls).
-    EnrollmentToken,
-    /// The cache could not decide and the budget of API reads for unauthenticated requests
-    /// is spent (see [`Lookups`]): 503, retry later.
-    Throttled,
-}
-
-impl Refusal {
-    /// Bounded metric label and log text.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Refusal::MissingToken => "missing_token",
-            Refusal::BadRobotName => "bad_robot_name",
-            Refusal::RobotNameTooLong => "robot_name_too_long",
-            Refusal::WrongToken => "wrong_token",
-            Refusal::EnrollmentToken => "enrollment_token",
-            Refusal::Throttled => "lookup_throttled",
-        }
-    }
-}
 
 /// Who the caller is, once the token checks out.
 #[derive(Clone, Debug, PartialEq, Eq)]

@@ -88,23 +88,7 @@ impl AppState {
         self.count_refusal(reason.as_str());
         // Never log the token itself.
         warn!(reason = reason.as_str(), "refused an agent request");
-        if reason == Refusal::Throttled {
-            return ApiError::Throttled(
-                "too many requests the gateway cannot authenticate from its cache; retry later",
-            );
-        }
-        ApiError::Unauthorized(match reason {
-            Refusal::MissingToken => "missing bearer token",
-            Refusal::BadRobotName => "missing or invalid x-lekiwi-robot header (namespace/name)",
-            Refusal::RobotNameTooLong => {
-                "robot names are at most 63 characters (the robot's token Secret carries the name in a label)"
-            }
-            Refusal::WrongToken => "invalid token",
-            Refusal::EnrollmentToken => {
-                "an enrollment token cannot speak for a robot; use the robot's own token"
-            }
-            Refusal::Throttled => "retry later",
-        })
+        reason.answer()
     }
 }
 

@@ -32,9 +32,9 @@ use tokio_util::sync::CancellationToken;
 
 use self::limits::UserLimits;
 use crate::kube_auth::Access;
-use crate::users::Refusal;
 use crate::{ApiError, FleetState, bearer};
 use lekiwi_core::cache::{self, Cache};
+use lekiwi_core::http::Refusal;
 use lekiwi_core::http::valid_name;
 
 /// Items a list answers unless `limit` says otherwise.
