@@ -157,13 +157,15 @@ class Soak:
     # limit, so the big simulator has a proxy of its own and the rest share another.
     LBS = {"sim": "lb-a", "sim-cut": "lb-b", "sim-skew": "lb-b", "fleet": "lb-b"}
 
+    # The robots each client process runs.
+    ROBOTS = {"sim": C["robots"] - C["stalled"], "sim-cut": C["stalled"], "sim-skew": 1,
+              "fleet": C["agents"]}
+
     def lb_clients(self):
         """The robots each proxy carries."""
-        n = {"sim": C["robots"] - C["stalled"], "sim-cut": C["stalled"], "sim-skew": 1,
-             "fleet": C["agents"]}
         out = {}
         for proc, lb in self.LBS.items():
-            out[lb] = out.get(lb, 0) + n[proc]
+            out[lb] = out.get(lb, 0) + self.ROBOTS[proc]
         return out
 
     def haproxy(self):
@@ -211,10 +213,10 @@ backend gateways
                   # release it started with is on no rolled-back release.
                   "--release-version", "0.9.0"]
         env = {"LEKIWI_ENROLLMENT_TOKEN": token, "RUST_LOG": "warn"}
-        for name, prefix, n, extra in (
-                ("sim", "sim", C["robots"] - C["stalled"], []),
-                ("sim-cut", "cut", C["stalled"], []),
-                ("sim-skew", "skew", 1, ["--clock-offset-seconds", "600"])):
+        for name, prefix, extra in (
+                ("sim", "sim", []), ("sim-cut", "cut", []),
+                ("sim-skew", "skew", ["--clock-offset-seconds", "600"])):
+            n = self.ROBOTS[name]
             self.procs[name] = Proc(name, [
                 f"{BIN}/lekiwi-sim", "--gateway", lb(name), *common, "--robots", str(n),
                 "--prefix", prefix,
@@ -222,7 +224,7 @@ backend gateways
         self.procs["fleet"] = Proc("fleet", [
             f"{BIN}/lekiwi-fleet", "--gateway", lb("fleet"), "--enrollment-token-file",
             os.path.join(WORK, "enroll-token"), "--namespace", NS, "--robots",
-            str(C["agents"]), "--state-root", os.path.join(WORK, "agents"),
+            str(self.ROBOTS["fleet"]), "--state-root", os.path.join(WORK, "agents"),
             "--health-command", "true", "--health-timeout-s", "5", "--backoff-max-ms", "5000",
             "--report-every", "30"], {"RUST_LOG": "warn"}, nice=10)
 
