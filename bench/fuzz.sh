@@ -33,13 +33,13 @@ PROPERTIES=(
   "lekiwi-protocol|--test properties|arbitrary_bytes_never_panic_the_manifest_parser"
   "lekiwi-protocol|--test properties|manifest_like_text_never_panics_the_manifest_parser"
   "lekiwi-protocol|--test properties|the_rule_checks_agree_with_the_crd_patterns"
-  "lekiwi-operator|--lib|gateway::presence::properties_tests::every_report_maps_to_a_status_the_crd_accepts"
+  "lekiwi-presence|--lib|properties_tests::every_report_maps_to_a_status_the_crd_accepts"
 )
 PER=$(( (TOTAL + ${#PROPERTIES[@]} - 1) / ${#PROPERTIES[@]} ))
 
 cd "$ROOT"
 printf '[fuzz] building the test binaries (%s profile)\n' "$PROFILE" >&2
-cargo test --profile "$PROFILE" -p lekiwi-protocol -p lekiwi-operator --no-run -q 2>&1 | tail -3 >&2
+cargo test --profile "$PROFILE" -p lekiwi-protocol -p lekiwi-presence --no-run -q 2>&1 | tail -3 >&2
 
 mkdir -p bench/results
 OUT="bench/results/fuzz-latest.txt"

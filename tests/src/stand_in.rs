@@ -139,7 +139,7 @@ impl Drop for GatewayStandIn {
     }
 }
 
-/// Applies the gateway Lease as the real gateway does (`operator/src/gateway/lease.rs`): labelled
+/// Applies the gateway Lease as the real gateway does (`lekiwi_presence::lease`): labelled
 /// with [`GATEWAY_LEASE_LABEL`], held by the gateway, renewed now.
 async fn renew(leases: &Api<Lease>, name: &str, lease_seconds: i32) -> Result<()> {
     let lease = Lease {

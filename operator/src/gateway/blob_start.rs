@@ -13,12 +13,24 @@ use tracing::{info, warn};
 use super::blob_api;
 use crate::config::Config;
 use lekiwi_blob_store::BlobStore;
+use lekiwi_core::RobotKey;
 use lekiwi_event_store::Store;
 use lekiwi_fleet_api::api::FleetApi;
 use lekiwi_fleet_api::kube_auth::KubeAuth;
 use lekiwi_fleet_api::releases::{self, Releases};
 use lekiwi_fleet_api::{FleetState, Heartbeats};
 use lekiwi_metrics::Metrics;
+use lekiwi_presence::Presence;
+
+/// The live heartbeats the Fleet API answers each Robot with: those of the sessions this
+/// gateway's presence holds.
+pub(super) struct LiveHeartbeats(pub(super) Presence);
+
+impl Heartbeats for LiveHeartbeats {
+    fn last_heartbeats(&self, keys: &[RobotKey]) -> Vec<Option<jiff::Timestamp>> {
+        self.0.last_heartbeats(keys)
+    }
+}
 
 /// The blob routes' state: the store's directories are made now when possible; if not, the
 /// gateway still serves agents and uploads answer 500 until they can be made.

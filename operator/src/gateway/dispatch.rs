@@ -2,9 +2,9 @@
 //! [`lekiwi_core::cache`]: one watch of Robots per gateway), the gateway tells a connected
 //! robot's session when its `spec.release` changes (the session then sends the agent a `deploy`
 //! command, PROTOCOL.md §12) or when another gateway's later session took the robot over (the
-//! session closes, see [`super::holder`]); and presence when another gateway's earlier session
+//! session closes, see [`lekiwi_presence::holder`]); and presence when another gateway's earlier session
 //! shows up only now in a robot whose session is here (the robot moved here: see
-//! [`super::presence::claims`]), or shows such a robot `Unknown` or `Offline` (its write then
+//! [`lekiwi_presence::claims`]), or shows such a robot `Unknown` or `Offline` (its write then
 //! goes first).
 
 use std::sync::Arc;
@@ -16,13 +16,13 @@ use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use super::holder::Holder;
-use super::presence::{Presence, claims};
 use super::registry::Registry;
-use super::watched::WatchedRobots;
 use crate::error::{Error, Result};
 use lekiwi_core::RobotKey;
 use lekiwi_core::cache::{Cache, Change};
+use lekiwi_presence::holder::Holder;
+use lekiwi_presence::watched::WatchedRobots;
+use lekiwi_presence::{Presence, claims};
 
 /// Follows the changes of `robots` (the gateway's Robot cache, filled by its own watch); returns,
 /// once the cache holds the first full list, what sessions read their desired release (and the

@@ -1,6 +1,7 @@
-//! The agent gateway: a WebSocket endpoint per robot (and the legacy polling endpoint) that
-//! authenticates agents, keeps their presence in memory, writes `Robot` status sparingly and
-//! stores every durable agent message before acknowledging it.
+//! The robot-facing gateway: a WebSocket endpoint per robot (and the legacy polling endpoint)
+//! that authenticates agents, tells their presence to the status writer (`lekiwi_presence`),
+//! sends them what their Robot asks for and stores every durable agent message before
+//! acknowledging it.
 
 pub mod admission;
 pub mod auth;
@@ -9,20 +10,16 @@ mod blob_start;
 pub mod dispatch;
 pub mod enroll;
 pub mod halt;
-pub mod holder;
-pub mod lease;
 pub mod listener;
 pub mod lookup;
 pub mod mailbox;
 pub mod poll;
-pub mod presence;
 pub mod quota_warnings;
 pub mod registry;
 pub mod server;
 pub mod session;
 pub mod tls;
 pub mod tokens;
-pub mod watched;
 
 pub use self::server::run;
 pub use lekiwi_core::http::{ApiError, bearer};

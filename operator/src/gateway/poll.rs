@@ -18,12 +18,12 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use super::auth::{Grant, Refusal};
-use super::presence::ConnectInfo;
 use super::session::Limits;
-use super::watched::WatchedRobots;
 use super::{ApiError, AppState, bearer};
 use lekiwi_core::RobotKey;
 use lekiwi_metrics::KindLabels;
+use lekiwi_presence::ConnectInfo;
+use lekiwi_presence::watched::WatchedRobots;
 
 /// How long a poll answer stays the same after the robot's desired release changed.
 pub const CACHE_TTL: Duration = Duration::from_secs(60);

@@ -41,7 +41,7 @@ pub enum Control {
     },
 }
 
-/// One registered session: its id, its session epoch (see [`super::holder`]) and the channel
+/// One registered session: its id, its session epoch (see [`lekiwi_presence::holder`]) and the channel
 /// that reaches it.
 struct Slot {
     id: u64,

@@ -20,19 +20,20 @@ use super::admission::EnrollAdmission;
 use super::auth::Authenticator;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
-use super::presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::Registry;
 use super::session::{Limits, SessionContext};
 use super::tls::reload;
 use super::tokens::TokenIndex;
-use super::watched::WatchedRobots;
-use super::{AppState, Routes, dispatch, lease, routes};
+use super::{AppState, Routes, dispatch, routes};
 use crate::config::Config;
 use crate::error::{Error, Result};
 use lekiwi_event_store::Store;
 use lekiwi_fleet_api::api::FleetApi;
 use lekiwi_metrics::Metrics;
+use lekiwi_presence::lease;
+use lekiwi_presence::watched::WatchedRobots;
+use lekiwi_presence::{PhasePlanner, Presence, PresenceConfig, RateBounds};
 
 /// At most one quota Warning Event per robot this often.
 const QUOTA_WARNING_INTERVAL: Duration = Duration::from_secs(300);
@@ -81,7 +82,8 @@ pub async fn run(
         desired: Some(desired.clone()),
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
-    let people = (fleet, &store, Arc::new(presence.clone()) as _);
+    let live = super::blob_start::LiveHeartbeats(presence.clone());
+    let people = (fleet, &store, Arc::new(live) as _);
     let (blobs, api, care_task) =
         super::blob_start::blob_state(&config, (&client, &metrics), people, leader, &cancel).await;
     let state = AppState {
@@ -286,7 +288,7 @@ fn start_background(
         Some(presence.clone()),
         cancel.clone(),
     ));
-    let peers = super::presence::peers::watch(
+    let peers = lekiwi_presence::peers::watch(
         client.clone(),
         config.namespace.clone(),
         name.to_owned(),

@@ -18,8 +18,8 @@ use lekiwi_core::RobotKey;
 use lekiwi_core::cache::Cache;
 use lekiwi_crds::{Robot, RobotPhase};
 use lekiwi_metrics::Metrics;
-use lekiwi_operator::gateway::presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};
-use lekiwi_operator::gateway::watched::WatchedRobots;
+use lekiwi_presence::watched::WatchedRobots;
+use lekiwi_presence::{ConnectInfo, HeartbeatInfo, Presence, PresenceConfig};
 use lekiwi_protocol::{AgentMessage, ErrorCode, Health, ServerMessage, Severity, encode};
 use lekiwi_tests::postgres::Postgres;
 use lekiwi_tests::{

@@ -13,7 +13,7 @@ use kube::api::ListParams;
 use lekiwi_agent::connection::{Credentials, Socket, connect};
 use lekiwi_core::RobotKey;
 use lekiwi_crds::RobotPhase;
-use lekiwi_operator::gateway::presence::{ConnectInfo, Presence, PresenceConfig};
+use lekiwi_presence::{ConnectInfo, Presence, PresenceConfig};
 use lekiwi_protocol::{AgentMessage, ErrorCode, Release, ServerMessage, encode};
 use lekiwi_tests::{
     ControlPlane, create_robot, enrollment_token, gateway_operator, gateway_url, get_robot, hello,

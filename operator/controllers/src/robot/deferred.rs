@@ -1,6 +1,6 @@
 //! A new spec of an Online robot is acknowledged by its gateway: the status write that reports
 //! the deploy's outcome carries the new `observedGeneration` and `UpToDate` (see
-//! `gateway::presence::phase`), so the controller does not write `ReleasePending` in between,
+//! `lekiwi_presence`'s `phase`), so the controller does not write `ReleasePending` in between,
 //! one write per robot of a rollout fewer. It writes only if the gateway has not within
 //! [`GATEWAY_WAIT`] (a deploy that never starts, a gateway that lost the robot).
 

@@ -18,10 +18,10 @@ use tracing::debug;
 
 use super::Caller;
 use crate::gateway::AppState;
-use crate::gateway::watched::WatchedRobots;
 use lekiwi_blob_store::BlobStore;
 use lekiwi_core::cache::Cache;
 use lekiwi_crds::Robot;
+use lekiwi_presence::watched::WatchedRobots;
 
 /// How long a robot's read of a blob no release references yet waits for this gateway's Robot
 /// cache to catch up with another replica's (bounded: a refusal costs at most this).

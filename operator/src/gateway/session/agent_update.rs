@@ -13,9 +13,9 @@ use tracing::info;
 
 use super::Session;
 use super::conn::Flow;
-use crate::gateway::presence::AgentUpdateOutcome;
 use lekiwi_event_store::StoredEvent;
 use lekiwi_metrics::AgentUpdateLabels;
+use lekiwi_presence::AgentUpdateOutcome;
 
 /// What the session knows about the robot's agent and the `update_agent` it sent.
 pub(super) struct AgentLedger {

@@ -10,10 +10,10 @@ use tracing::{debug, info, warn};
 
 use super::Session;
 use super::conn::{End, Flow, wire_name};
-use crate::gateway::presence::{HeartbeatInfo, UpdateOutcome};
 use lekiwi_event_store::{self as event_store, Quota, QuotaLimit, StoredEvent};
 use lekiwi_metrics::KindLabels;
 use lekiwi_metrics::ReasonLabels;
+use lekiwi_presence::{HeartbeatInfo, UpdateOutcome};
 
 impl<W> Session<'_, W>
 where

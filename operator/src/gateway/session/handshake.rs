@@ -11,8 +11,8 @@ use super::SessionContext;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, Conn};
 use crate::gateway::auth::Grant;
 use crate::gateway::enroll;
-use crate::gateway::presence::ConnectInfo;
 use lekiwi_metrics::KindLabels;
+use lekiwi_presence::ConnectInfo;
 
 /// The session was refused (and its socket closed, if the agent had not closed it already).
 pub(super) struct Refused;

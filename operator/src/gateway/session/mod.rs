@@ -24,14 +24,14 @@ use self::agent_update::AgentLedger;
 use self::commands::CommandLedger;
 use self::conn::{Conn, End, Flow};
 use super::auth::{Authenticator, Grant};
-use super::holder::next_epoch;
-use super::presence::{ConnectInfo, Presence};
 use super::quota_warnings::QuotaWarnings;
 use super::registry::{Control, Registry};
-use super::watched::WatchedRobots;
 use lekiwi_core::RobotKey;
 use lekiwi_event_store::{ConnectionRecord, Store};
 use lekiwi_metrics::{KindLabels, Metrics};
+use lekiwi_presence::holder::next_epoch;
+use lekiwi_presence::watched::WatchedRobots;
+use lekiwi_presence::{ConnectInfo, Presence};
 
 /// Limits one session enforces.
 #[derive(Clone, Debug)]
@@ -360,8 +360,8 @@ async fn close(shared: &SessionContext, key: &RobotKey, opened: &Opened, end: &E
 mod tests {
     use super::*;
     use crate::gateway::auth::Authenticator;
-    use crate::gateway::presence::{Presence, PresenceConfig};
     use lekiwi_core::RobotKey;
+    use lekiwi_presence::{Presence, PresenceConfig};
 
     #[tokio::test]
     async fn an_idle_session_is_small() {

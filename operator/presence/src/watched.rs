@@ -9,12 +9,12 @@ use std::sync::Arc;
 use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 
-use crate::gateway::holder::Holder;
+use crate::holder::Holder;
 use lekiwi_core::RobotKey;
 use lekiwi_core::cache::Cache;
 
-/// The gateway's Robot cache (the one the Fleet API answers from, see
-/// [`super::dispatch::start`]), read robot by robot.
+/// The gateway's Robot cache (the one its Robot watch fills and the Fleet API answers from),
+/// read robot by robot.
 #[derive(Clone)]
 pub struct WatchedRobots(pub Arc<Cache<Robot>>);
 

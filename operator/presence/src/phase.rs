@@ -17,7 +17,7 @@ use serde_json::Value;
 
 use super::patch::planned_status_patch;
 use super::{Entry, Presence};
-use crate::gateway::watched::WatchedRobots;
+use crate::watched::WatchedRobots;
 use lekiwi_core::RobotKey;
 use lekiwi_core::apply::Metadata;
 use lekiwi_liveness::{Facts, GatewayState, plan};
@@ -120,7 +120,7 @@ mod tests {
     use lekiwi_core::cache::Cache;
 
     use super::*;
-    use crate::gateway::presence::{ConnectInfo, PresenceConfig};
+    use crate::{ConnectInfo, PresenceConfig};
     use lekiwi_metrics::Metrics;
 
     const CACHED: &str = r#"

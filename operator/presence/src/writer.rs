@@ -18,8 +18,8 @@ use tracing::{debug, warn};
 
 use super::adapt::AdaptiveRate;
 use super::{Entry, Presence, Priority};
-use crate::gateway::holder::Holder;
-use crate::gateway::watched::WatchedRobots;
+use crate::holder::Holder;
+use crate::watched::WatchedRobots;
 use lekiwi_core::RobotKey;
 use lekiwi_core::api_client::is_missing;
 use lekiwi_core::apply::Metadata;
@@ -309,7 +309,7 @@ impl Presence {
     }
 
     /// Applies the status of `e`, fenced: only while no later session holds the robot (see
-    /// [`crate::gateway::holder`]), with the `resourceVersion` that showed it as a precondition.
+    /// [`crate::holder`]), with the `resourceVersion` that showed it as a precondition.
     /// The Robot watch's cache (`holders`) answers first; after a conflict, or for a robot
     /// missing there, the Robot is read from the API server, up to [`FRESH_ATTEMPTS`] times.
     async fn write(
@@ -384,8 +384,8 @@ impl Presence {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gateway::presence::ConnectInfo;
-    use crate::gateway::presence::tests::entry;
+    use crate::ConnectInfo;
+    use crate::tests::entry;
     use axum::http::StatusCode;
 
     /// A stand-in API server that answers every request with `status` and `body`.
@@ -402,7 +402,7 @@ mod tests {
     /// drops it.
     #[tokio::test]
     async fn a_404_that_does_not_name_the_robot_is_retried_not_taken_for_a_deletion() {
-        let presence = crate::gateway::presence::tests::presence();
+        let presence = crate::tests::presence();
         let key = RobotKey::new("fleet", "kiwi");
         let e = entry(true, ConnectInfo::default());
         let unserved = answering(StatusCode::NOT_FOUND, "404 page not found").await;

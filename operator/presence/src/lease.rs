@@ -1,7 +1,7 @@
 //! The gateway's own Lease: renewed while the gateway lives, so the Robot controller can tell
 //! that robots held by a dead gateway are Unknown; it also carries the gateway's claims (robots
-//! that moved here and are not written yet, see [`crate::gateway::presence::claims`]) and how
-//! late its status writes run (see [`crate::gateway::presence::Presence::status_lag`]).
+//! that moved here and are not written yet, see [`crate::claims`]) and how
+//! late its status writes run (see [`crate::Presence::status_lag`]).
 
 use std::time::{Duration, Instant};
 
@@ -18,7 +18,7 @@ use lekiwi_crds::contract::{
     CLAIMS_ANNOTATION, GATEWAY_LEASE_LABEL, STATUS_LAG_ANNOTATION, managers,
 };
 
-use crate::gateway::presence::{Presence, status_lag_annotation};
+use crate::{Presence, status_lag_annotation};
 
 /// Shortest time between two renewals: a robot moving here renews the Lease early (its claim
 /// must be seen before the dead gateway's Lease expires), at most this often.

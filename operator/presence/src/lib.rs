@@ -1,5 +1,7 @@
-//! Presence: what each connected robot last said, kept in memory, and the one writer that turns
-//! meaningful changes into `Robot` status by server-side apply without flooding the API server.
+//! The gateway's status writer: what each connected robot last said (its presence), kept in
+//! memory, and the one writer that turns meaningful changes into `Robot` status by server-side
+//! apply without flooding the API server. The robot-facing gateway (transport, sessions) feeds it;
+//! the phase rules it applies are `lekiwi_liveness`'s, shared with the Robot controller.
 //!
 //! Every robot has at most one entry in one of two queues: transitions (connect, disconnect,
 //! release, health or teleoperation change) go to the high-priority queue, routine heartbeat
@@ -17,7 +19,9 @@ pub(crate) mod analysis;
 #[cfg(test)]
 mod analysis_tests;
 pub mod claims;
+pub mod holder;
 mod lag;
+pub mod lease;
 mod patch;
 pub mod peers;
 mod phase;
@@ -27,6 +31,7 @@ mod queue;
 mod refresh;
 #[cfg(test)]
 mod tests;
+pub mod watched;
 mod writer;
 
 use std::sync::{Arc, Mutex};
@@ -44,7 +49,7 @@ pub use self::phase::PhasePlanner;
 pub use self::queue::Priority;
 use self::queue::State;
 use self::refresh::{refresh_due, refresh_hash};
-use crate::gateway::holder::next_epoch;
+use crate::holder::next_epoch;
 use lekiwi_core::RobotKey;
 use lekiwi_metrics::Metrics;
 
@@ -101,7 +106,7 @@ pub struct UpdateOutcome {
 #[derive(Clone, Debug)]
 struct Entry {
     session: u64,
-    /// The session's epoch (see [`super::holder`]), written to `status.sessionEpoch`.
+    /// The session's epoch (see [`crate::holder`]), written to `status.sessionEpoch`.
     epoch: i64,
     connected: bool,
     info: ConnectInfo,
@@ -174,8 +179,8 @@ pub struct Presence {
     /// Set once the gateway's Robot cache is ready: status writes then carry the phase too.
     planner: Arc<std::sync::OnceLock<Arc<PhasePlanner>>>,
     /// The robots other gateways' Leases list as marked `Unknown` (see [`claims`]); empty until
-    /// their watch ([`crate::gateway::presence::peers::watch`]) fills it.
-    peers: crate::gateway::presence::peers::Peers,
+    /// their watch ([`crate::peers::watch`]) fills it.
+    peers: crate::peers::Peers,
 }
 
 impl Presence {
@@ -188,7 +193,7 @@ impl Presence {
             config: Arc::new(config),
             metrics,
             planner: Arc::default(),
-            peers: crate::gateway::presence::peers::Peers::default(),
+            peers: crate::peers::Peers::default(),
         }
     }
 
@@ -514,12 +519,5 @@ impl Presence {
         if queued {
             self.wake();
         }
-    }
-}
-
-/// The Fleet API answers each Robot with the live heartbeat of the session held here.
-impl lekiwi_fleet_api::Heartbeats for Presence {
-    fn last_heartbeats(&self, keys: &[RobotKey]) -> Vec<Option<Timestamp>> {
-        Presence::last_heartbeats(self, keys)
     }
 }

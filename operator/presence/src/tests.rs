@@ -616,7 +616,7 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
     }))
     .unwrap();
     let cache = lekiwi_core::cache::Cache::listed([gone]);
-    let robots = crate::gateway::watched::WatchedRobots(std::sync::Arc::new(cache));
+    let robots = crate::watched::WatchedRobots(std::sync::Arc::new(cache));
     p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
     for (n, name) in ["m1", "m2", "m3", "busy", "written"].iter().enumerate() {
         p.connect_moved(
@@ -677,7 +677,7 @@ fn a_robot_marked_on_its_old_gateways_lease_is_written_first() {
         robot("late", "dead"),
         robot("other", "alive"),
     ]);
-    let robots = crate::gateway::watched::WatchedRobots(std::sync::Arc::new(cache));
+    let robots = crate::watched::WatchedRobots(std::sync::Arc::new(cache));
     p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
     let peers = p.peers().clone();
     let mut lease = lekiwi_liveness::gateways::test_lease("dead", 60);
@@ -833,7 +833,7 @@ fn only_a_switch_a_rollout_asked_to_watch_is_written_when_its_window_ends() {
     let window = json!({ lekiwi_crds::analysis::WINDOW_ANNOTATION: "1" });
     let cache =
         lekiwi_core::cache::Cache::listed([robot("asked", window), robot("plain", json!({}))]);
-    let robots = crate::gateway::watched::WatchedRobots(std::sync::Arc::new(cache));
+    let robots = crate::watched::WatchedRobots(std::sync::Arc::new(cache));
     p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
     let write_all = |p: &Presence| {
         let mut order = Vec::new();

@@ -20,14 +20,14 @@
 //! shown wrong: its write goes before every other waiting one ([`Priority::Gone`]). This gateway
 //! learns that from its Robot watch ([`Presence::shown_gone`]) or, seconds sooner on a
 //! saturated API server, from the list of marked robots on the old gateway's Lease
-//! ([`crate::gateway::presence::peers`], [`Presence::marked`]).
+//! ([`crate::peers`], [`Presence::marked`]).
 
 use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
 use lekiwi_crds::{Robot, RobotPhase};
 
 use super::{Entry, Presence, Priority};
-use crate::gateway::presence::peers::Peers;
+use crate::peers::Peers;
 use lekiwi_core::RobotKey;
 
 /// How long a claim outlives its robot's last landed write when this gateway's Robot watch
