@@ -308,8 +308,10 @@ pub struct Config {
 
     /// API-server reads per second, sustained, that the gateway may make for requests its
     /// token cache cannot authenticate (a token minted a moment ago, or a guess); beyond it they
-    /// are refused with 503. The HTTP API's TokenReviews of uncached tokens have a budget of the
-    /// same size. Status writes and Lease renewals have budgets of their own.
+    /// are refused with 503. The HTTP API's TokenReviews of uncached tokens, and the reads of a
+    /// robot's Robot when its blob download reaches a replica whose watch has not shown the
+    /// release yet, have budgets of the same size. Status writes and Lease renewals have
+    /// budgets of their own.
     #[arg(long, env = "LEKIWI_AUTH_LOOKUP_QPS", default_value_t = 1.0)]
     pub auth_lookup_qps: f64,
 
@@ -317,8 +319,9 @@ pub struct Config {
     #[arg(long, env = "LEKIWI_AUTH_LOOKUP_BURST", default_value_t = 10)]
     pub auth_lookup_burst: u32,
 
-    /// Seconds a read that found no matching token is remembered (between this and twice
-    /// this): the same robot or namespace costs no further read meanwhile.
+    /// Seconds a read that found no matching token (or no release naming a robot's blob) is
+    /// remembered (between this and twice this): the same robot or namespace costs no further
+    /// read meanwhile.
     #[arg(long, env = "LEKIWI_AUTH_MISS_SECONDS", default_value_t = 5)]
     pub auth_miss_seconds: u64,
 

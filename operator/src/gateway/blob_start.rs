@@ -11,6 +11,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::blob_api;
+use super::lookup::{LookupConfig, Lookups};
 use crate::config::Config;
 use lekiwi_blob_store::BlobStore;
 use lekiwi_core::RobotKey;
@@ -59,7 +60,13 @@ pub(super) async fn blob_state(
     leader: watch::Receiver<bool>,
     cancel: &CancellationToken,
 ) -> (blob_api::BlobApi, FleetState, JoinHandle<()>) {
-    let blobs = blob_api_state(config, cancel.clone()).await;
+    let reads = Lookups::new(
+        LookupConfig::of(config),
+        metrics.gateway.auth_lookups.clone(),
+    );
+    let blobs = blob_api_state(config, cancel.clone())
+        .await
+        .with_reads(reads);
     let releases = Releases::new(
         blobs.store.clone(),
         (fleet.robots.clone(), fleet.rollouts.clone()),

@@ -1,7 +1,8 @@
-//! The budget of API-server reads the gateway makes for callers its Secret cache cannot
-//! authenticate: misses are remembered for a short time and the reads share a small token
-//! bucket of their own, so guessed tokens cost the API server a bounded number of requests and
-//! never the budget of status writes or Lease renewals.
+//! The budget of API-server reads the gateway makes for callers its caches cannot answer (a
+//! token its Secret cache does not hold, a robot's blob read its Robot cache does not show
+//! yet): misses are remembered for a short time and the reads share a small token bucket of
+//! their own, so guesses cost the API server a bounded number of requests and never the budget
+//! of status writes or Lease renewals.
 
 use std::collections::HashSet;
 use std::sync::Mutex;
@@ -11,6 +12,7 @@ use prometheus_client::metrics::counter::Counter;
 use prometheus_client::metrics::family::Family;
 use tokio::time::Instant;
 
+use crate::config::Config;
 use lekiwi_core::rate::SharedBucket;
 use lekiwi_metrics::KindLabels;
 
@@ -24,6 +26,10 @@ pub enum Subject<'a> {
     Robot(&'a str, &'a str),
     /// The enrollment token Secrets of a namespace.
     Enrollment(&'a str),
+    /// The Robot `(namespace, name)` itself, for its read of blob `digest`: whether its
+    /// `spec.release` or `spec.agent` names the blob when the read reached this replica before
+    /// its watch showed them.
+    Spec(&'a str, &'a str, &'a str),
 }
 
 impl Subject<'_> {
@@ -31,6 +37,7 @@ impl Subject<'_> {
         match self {
             Subject::Robot(ns, name) => format!("r/{ns}/{name}"),
             Subject::Enrollment(ns) => format!("e/{ns}"),
+            Subject::Spec(ns, name, digest) => format!("s/{ns}/{name}/{digest}"),
         }
     }
 }
@@ -53,6 +60,18 @@ pub struct LookupConfig {
     pub burst: u32,
     /// How long a miss is remembered (between this and twice this).
     pub miss_ttl: Duration,
+}
+
+impl LookupConfig {
+    /// The settings the operator's flags give (`--auth-lookup-qps`, `--auth-lookup-burst`,
+    /// `--auth-miss-seconds`).
+    pub fn of(config: &Config) -> Self {
+        Self {
+            qps: config.auth_lookup_qps,
+            burst: config.auth_lookup_burst,
+            miss_ttl: Duration::from_secs(config.auth_miss_seconds.max(1)),
+        }
+    }
 }
 
 impl Default for LookupConfig {
@@ -92,8 +111,8 @@ pub struct Lookups {
     budget: SharedBucket,
     misses: Mutex<Misses>,
     ttl: Duration,
-    /// Live reads made and skipped, by kind (`robot_secret`, `enrollment_list`, `remembered`,
-    /// `throttled`).
+    /// Live reads made and skipped, by kind (`robot_secret`, `enrollment_list`, `robot_spec`,
+    /// `remembered`, `throttled`).
     counted: Family<KindLabels, Counter>,
 }
 
@@ -135,6 +154,7 @@ impl Lookups {
         self.count(match subject {
             Subject::Robot(..) => "robot_secret",
             Subject::Enrollment(_) => "enrollment_list",
+            Subject::Spec(..) => "robot_spec",
         });
         Ok(())
     }

@@ -230,12 +230,10 @@ fn credentials_changed(registry: &Registry, secret: &Secret, deleted: bool) {
 
 /// The budget of API reads for requests the token cache cannot authenticate.
 fn lookups(config: &Config, metrics: &Metrics) -> Lookups {
-    let settings = LookupConfig {
-        qps: config.auth_lookup_qps,
-        burst: config.auth_lookup_burst,
-        miss_ttl: Duration::from_secs(config.auth_miss_seconds.max(1)),
-    };
-    Lookups::new(settings, metrics.gateway.auth_lookups.clone())
+    Lookups::new(
+        LookupConfig::of(config),
+        metrics.gateway.auth_lookups.clone(),
+    )
 }
 
 /// The limits every session enforces, from the configuration.

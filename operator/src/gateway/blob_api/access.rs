@@ -7,7 +7,10 @@
 //! its name is its content's digest). A rollout reaches a robot only through its Robot's
 //! `spec.release`, so a RobotDeployment's release is readable exactly for the robots it has
 //! started to update. A read refused at first waits up to 3 s for the cache to show a release
-//! another gateway replica has already told the robot of.
+//! another gateway replica has already told the robot of; if it still does not, the robot's own
+//! Robot is read from the API server once, within a small budget of such reads (a miss is
+//! remembered for a few seconds), so a replica whose watch runs late under load does not fail
+//! a robot's update.
 
 use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
@@ -16,8 +19,11 @@ use std::time::Duration;
 use tokio::sync::broadcast::error::RecvError;
 use tracing::debug;
 
+use kube::Api;
+
 use super::Caller;
 use crate::gateway::AppState;
+use crate::gateway::lookup::Subject;
 use lekiwi_blob_store::BlobStore;
 use lekiwi_core::cache::Cache;
 use lekiwi_crds::Robot;
@@ -109,7 +115,56 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
     {
         return true;
     }
+    if read_live(state, robot, digest).await {
+        return true;
+    }
     refuse(state, robot, digest)
+}
+
+/// Whether `robot`'s Robot, read from the API server now, references `digest` in its
+/// `spec.release` (the manifest or a file it lists) or `spec.agent`. Within the budget of
+/// [`Lookups`](crate::gateway::lookup::Lookups): a read that does not find the blob is
+/// remembered (for this robot and blob), and a failed, throttled or remembered one answers
+/// `false`.
+async fn read_live(state: &AppState, robot: &lekiwi_core::RobotKey, digest: &str) -> bool {
+    let subject = Subject::Spec(&robot.namespace, &robot.name, digest);
+    if state.blobs.reads.admit(subject).is_err() {
+        return false;
+    }
+    let api: Api<Robot> = Api::namespaced(state.client.clone(), &robot.namespace);
+    let found = match api.get_opt(&robot.name).await {
+        Ok(Some(r)) => r,
+        Ok(None) => {
+            state.blobs.reads.missed(subject);
+            return false;
+        }
+        Err(e) => {
+            debug!(%robot, error = %e, "cannot read a robot to check its blob read");
+            return false;
+        }
+    };
+    let blobs = &state.blobs;
+    let release: BTreeSet<String> = found
+        .spec
+        .release
+        .iter()
+        .map(|r| r.digest.to_string())
+        .collect();
+    let agent = found
+        .spec
+        .agent
+        .iter()
+        .flat_map(|a| a.builds.iter())
+        .any(|b| b.digest == digest);
+    let allowed = agent
+        || blobs
+            .manifests
+            .referenced(&blobs.store, &release, digest)
+            .await;
+    if !allowed {
+        state.blobs.reads.missed(subject);
+    }
+    allowed
 }
 
 /// Runs `check` again at every change of `cache` until it passes (`true`) or `wait` is over

@@ -37,6 +37,7 @@ mod upload;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Mutex;
 
+use crate::gateway::lookup::Lookups;
 use axum::Router;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -62,6 +63,8 @@ pub struct BlobApi {
     pub store: BlobStore,
     /// File lists of the release manifests robots' reads were checked against.
     manifests: access::ManifestFiles,
+    /// The budget of live reads of a Robot whose blob read the Robot cache cannot allow yet.
+    reads: Lookups,
     served: Mutex<HashMap<RobotKey, Served>>,
 }
 
@@ -80,8 +83,14 @@ impl BlobApi {
         Self {
             store,
             manifests: access::ManifestFiles::default(),
+            reads: Lookups::default(),
             served: Mutex::default(),
         }
+    }
+
+    /// The same, with `reads` as the budget of live Robot reads (see [`access`]).
+    pub fn with_reads(self, reads: Lookups) -> Self {
+        Self { reads, ..self }
     }
 
     fn record(&self, robot: &RobotKey, bytes: u64, downloads: u64) {
