@@ -91,7 +91,7 @@ start controller env RUST_LOG=warn "$BIN/lekiwi-operator" --role controller \
   --identity bench-controller --http-addr "127.0.0.1:$CTRL_HTTP"
 CTRL_PID=$LAST_PID
 # The gateway logs each command it sends (the undo phase reads when the cancels went out).
-start gateway env RUST_LOG=warn,lekiwi_operator::gateway::session::serve=info "$BIN/lekiwi-operator" --role gateway \
+start gateway env RUST_LOG=warn,lekiwi_gateway::session::serve=info "$BIN/lekiwi-operator" --role gateway \
   --kubeconfig "$KUBECONFIG" --namespace lekiwi-system --watch-namespace "$NS" \
   --identity bench-gateway --gateway-name bench-gateway \
   --gateway-addr "127.0.0.1:$GW_PORT" --http-addr "127.0.0.1:$OP_HTTP" \

@@ -32,6 +32,9 @@ pub enum Error {
     /// A controller failed.
     #[error(transparent)]
     Controllers(#[from] lekiwi_controllers::Error),
+    /// The agent gateway failed.
+    #[error(transparent)]
+    Gateway(#[from] lekiwi_gateway::Error),
     /// The durable event store failed.
     #[error("event store: {0}")]
     Store(#[from] lekiwi_event_store::Error),

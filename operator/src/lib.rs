@@ -4,7 +4,6 @@
 pub mod config;
 pub mod crd_install;
 pub mod error;
-pub mod gateway;
 pub mod http;
 pub mod leader;
 pub mod telemetry;
@@ -207,7 +206,7 @@ async fn start_gateway(
         .with_quota(shared.config.robot_quota());
     info!(backend = store.backend(), "event store ready");
     let (config, client, metrics, cancel) = (
-        shared.config.clone(),
+        Arc::new(shared.config.gateway_settings()),
         shared.client.clone(),
         shared.metrics.clone(),
         shared.cancel.clone(),
@@ -215,7 +214,9 @@ async fn start_gateway(
     tasks.spawn(async move {
         (
             "gateway",
-            gateway::run(config, client, metrics, store, (listening, leader), cancel).await,
+            lekiwi_gateway::run(config, client, metrics, store, (listening, leader), cancel)
+                .await
+                .map_err(Error::from),
         )
     });
     Ok(())

@@ -149,7 +149,7 @@ async fn session(stream: TcpStream, stats: Arc<Stats>, heartbeat_interval_s: u32
             .map(str::to_owned);
         Ok(resp)
     };
-    // The gateway's socket settings (see `operator/src/gateway/mod.rs`), so only the work
+    // The gateway's socket settings (see `operator/gateway/src/lib.rs`), so only the work
     // behind the socket differs.
     let config = WebSocketConfig::default()
         .read_buffer_size(2 * 1024)

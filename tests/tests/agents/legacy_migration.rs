@@ -187,7 +187,7 @@ async fn a_polling_robot_moves_to_the_agent_and_keeps_its_identity() -> Result<(
     // would, until it offers the release.
     let answer = lekiwi_tests::wait_for(
         "the poll to offer 2.0.0",
-        lekiwi_operator::gateway::poll::CACHE_TTL + Duration::from_secs(30),
+        lekiwi_gateway::poll::CACHE_TTL + Duration::from_secs(30),
         || async {
             let answer = poller.poll("1.0.0").await.ok()?;
             (answer["update_available"] == true).then_some(answer)

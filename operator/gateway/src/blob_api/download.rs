@@ -19,7 +19,7 @@ use super::{
     BlobApi, Caller, Failure, InNamespace, access, authorize, check_digest, failure, not_found,
     store_failure,
 };
-use crate::gateway::{ApiError, AppState};
+use crate::{ApiError, AppState};
 use lekiwi_blob_store::readers::ReadGuard;
 use lekiwi_core::RobotKey;
 

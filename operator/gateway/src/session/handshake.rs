@@ -9,8 +9,8 @@ use tracing::{info, warn};
 
 use super::SessionContext;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, Conn};
-use crate::gateway::auth::Grant;
-use crate::gateway::enroll;
+use crate::auth::Grant;
+use crate::enroll;
 use lekiwi_metrics::KindLabels;
 use lekiwi_presence::ConnectInfo;
 

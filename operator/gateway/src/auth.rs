@@ -11,9 +11,9 @@ use lekiwi_crds::contract::{
     hash_token, robot_secret_name,
 };
 
-use crate::gateway::enroll;
-use crate::gateway::lookup::{Lookups, Skip, Subject};
-use crate::gateway::tokens::{TokenIndex, TokenKind};
+use crate::enroll;
+use crate::lookup::{Lookups, Skip, Subject};
+use crate::tokens::{TokenIndex, TokenKind};
 use lekiwi_core::RobotKey;
 pub use lekiwi_core::http::Refusal;
 use lekiwi_core::http::valid_name;

@@ -5,7 +5,7 @@ use std::collections::HashMap;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use crate::gateway::mailbox::{self, Receiver, Sender};
+use crate::mailbox::{self, Receiver, Sender};
 use lekiwi_core::RobotKey;
 use lekiwi_core::rate::TokenBucket;
 use lekiwi_crds::AgentRef;

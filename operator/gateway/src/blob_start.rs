@@ -36,15 +36,15 @@ impl Heartbeats for LiveHeartbeats {
 /// The blob routes' state: the store's directories are made now when possible; if not, the
 /// gateway still serves agents and uploads answer 500 until they can be made.
 async fn blob_api_state(config: &Config, cancel: CancellationToken) -> blob_api::BlobApi {
-    let store = BlobStore::new(&config.blob_dir, config.max_blob_bytes)
-        .with_read_grace(Duration::from_secs(config.blob_read_grace_seconds));
+    let store = BlobStore::new(&config.flags.blob_dir, config.flags.max_blob_bytes)
+        .with_read_grace(Duration::from_secs(config.flags.blob_read_grace_seconds));
     match store.ensure_dirs().await {
-        Ok(()) => info!(dir = %config.blob_dir.display(), "release blob store ready"),
+        Ok(()) => info!(dir = %config.flags.blob_dir.display(), "release blob store ready"),
         Err(e) => warn!(error = %e, "cannot prepare the release blob store"),
     }
     tokio::spawn(remove_stale_uploads(
         store.clone(),
-        Duration::from_secs(config.stale_upload_hours.saturating_mul(3600)),
+        Duration::from_secs(config.flags.stale_upload_hours.saturating_mul(3600)),
         cancel,
     ));
     blob_api::BlobApi::new(store)
@@ -70,13 +70,13 @@ pub(super) async fn blob_state(
     let releases = Releases::new(
         blobs.store.clone(),
         (fleet.robots.clone(), fleet.rollouts.clone()),
-        config.release_retention,
+        config.flags.release_retention,
         metrics.gateway.clone(),
     );
     let care = releases::task::Care {
-        period: (config.release_gc_seconds > 0)
-            .then(|| Duration::from_secs(config.release_gc_seconds)),
-        warn_percent: config.blob_free_warn_percent,
+        period: (config.flags.release_gc_seconds > 0)
+            .then(|| Duration::from_secs(config.flags.release_gc_seconds)),
+        warn_percent: config.flags.blob_free_warn_percent,
         leader,
         gateway: config.gateway_name(),
         namespace: config.namespace.clone(),
@@ -85,8 +85,8 @@ pub(super) async fn blob_state(
     let kube_auth = KubeAuth::new(
         client.clone(),
         metrics.gateway.clone(),
-        config.auth_lookup_qps,
-        config.auth_lookup_burst,
+        config.flags.auth_lookup_qps,
+        config.flags.auth_lookup_burst,
     );
     let api = FleetState {
         fleet: Arc::new(fleet),

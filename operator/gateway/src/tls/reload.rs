@@ -169,21 +169,21 @@ pub async fn acceptor(
     metrics: TlsMetrics,
     cancel: &CancellationToken,
 ) -> Result<Option<Acceptor>> {
-    let (Some(cert), Some(key)) = (&config.tls_cert, &config.tls_key) else {
+    let (Some(cert), Some(key)) = (&config.flags.tls_cert, &config.flags.tls_key) else {
         return Ok(None);
     };
     let files = CertFiles {
         cert: cert.clone(),
         key: key.clone(),
-        ca: config.tls_ca.clone(),
+        ca: config.flags.tls_ca.clone(),
     };
-    let addr = config.gateway_addr;
+    let addr = config.flags.gateway_addr;
     let (acceptor, loaded) = files
         .load()
         .await
         .map_err(|source| Error::Serve { addr, source })?;
-    if config.tls_reload_seconds > 0 {
-        let every = Duration::from_secs(config.tls_reload_seconds);
+    if config.flags.tls_reload_seconds > 0 {
+        let every = Duration::from_secs(config.flags.tls_reload_seconds);
         let watch = watch(
             acceptor.clone(),
             files,

@@ -14,7 +14,7 @@ use serde_json::json;
 use tracing::{Instrument, debug, info, info_span, warn};
 
 use super::{Failure, InNamespace, authorize, json_response, store_failure};
-use crate::gateway::AppState;
+use crate::AppState;
 use lekiwi_blob_store::{Error as StoreError, UploadState};
 use lekiwi_core::http::valid_name;
 use lekiwi_metrics::KindLabels;

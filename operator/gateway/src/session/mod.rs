@@ -12,7 +12,7 @@ mod serve;
 use std::sync::Arc;
 use std::time::Duration;
 
-use crate::gateway::mailbox::Receiver;
+use crate::mailbox::Receiver;
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
 use jiff::Timestamp;
@@ -359,7 +359,7 @@ async fn close(shared: &SessionContext, key: &RobotKey, opened: &Opened, end: &E
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::gateway::auth::Authenticator;
+    use crate::auth::Authenticator;
     use lekiwi_core::RobotKey;
     use lekiwi_presence::{Presence, PresenceConfig};
 
@@ -385,7 +385,7 @@ mod tests {
             store: Store::connect("sqlite::memory:").await.unwrap(),
             auth: Authenticator::new(
                 client.clone(),
-                Arc::new(crate::gateway::tokens::TokenIndex::listed([])),
+                Arc::new(crate::tokens::TokenIndex::listed([])),
             ),
             registry: Arc::default(),
             limits: Limits {

@@ -67,9 +67,9 @@ impl LookupConfig {
     /// `--auth-miss-seconds`).
     pub fn of(config: &Config) -> Self {
         Self {
-            qps: config.auth_lookup_qps,
-            burst: config.auth_lookup_burst,
-            miss_ttl: Duration::from_secs(config.auth_miss_seconds.max(1)),
+            qps: config.flags.auth_lookup_qps,
+            burst: config.flags.auth_lookup_burst,
+            miss_ttl: Duration::from_secs(config.flags.auth_miss_seconds.max(1)),
         }
     }
 }

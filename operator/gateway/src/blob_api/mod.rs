@@ -37,7 +37,7 @@ mod upload;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::Mutex;
 
-use crate::gateway::lookup::Lookups;
+use crate::lookup::Lookups;
 use axum::Router;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};

@@ -7,8 +7,10 @@ pub mod admission;
 pub mod auth;
 pub mod blob_api;
 mod blob_start;
+pub mod config;
 pub mod dispatch;
 pub mod enroll;
+pub mod error;
 pub mod halt;
 pub mod listener;
 pub mod lookup;
@@ -21,6 +23,7 @@ pub mod session;
 pub mod tls;
 pub mod tokens;
 
+pub use self::error::{Error, Result};
 pub use self::server::run;
 pub use lekiwi_core::http::{ApiError, bearer};
 

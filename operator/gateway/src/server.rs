@@ -51,8 +51,8 @@ pub async fn run(
 ) -> Result<()> {
     let name = config.gateway_name();
     let registry = Arc::new(Registry::with_open_rate(
-        config.session_opens_per_minute,
-        config.session_open_burst,
+        config.flags.session_opens_per_minute,
+        config.flags.session_open_burst,
     ));
     let Some((tokens, secret_task)) =
         watch_token_secrets(&config, &client, registry.clone(), &cancel).await?
@@ -90,10 +90,10 @@ pub async fn run(
         shared: Arc::new(shared),
         client: client.clone(),
         poll_memo: Arc::default(),
-        connections: Arc::new(Semaphore::new(config.max_connections)),
+        connections: Arc::new(Semaphore::new(config.flags.max_connections)),
         enrollments: Arc::new(EnrollAdmission::new(
-            config.enroll_rate,
-            config.enroll_burst,
+            config.flags.enroll_rate,
+            config.flags.enroll_burst,
         )),
         blobs: Arc::new(blobs),
         api,
@@ -109,7 +109,7 @@ pub async fn run(
     );
     let more = [secret_task, dispatch_task, halt_task, care_task];
     tasks.aborted.extend(more.into_iter().chain(fleet_tasks));
-    let addr = config.gateway_addr;
+    let addr = config.flags.gateway_addr;
     let served = serve(&config, &name, state, listening, &cancel).await?;
     cancel.cancel();
     drain(&presence, tasks).await;
@@ -142,16 +142,16 @@ fn presence(config: &Config, name: &str, metrics: &Metrics) -> Presence {
     Presence::new(
         PresenceConfig {
             gateway: name.to_owned(),
-            status_refresh: Duration::from_secs(config.status_refresh_seconds),
-            poll_grace: Duration::from_secs(config.poll_grace_seconds),
-            qps: config.status_qps,
+            status_refresh: Duration::from_secs(config.flags.status_refresh_seconds),
+            poll_grace: Duration::from_secs(config.flags.poll_grace_seconds),
+            qps: config.flags.status_qps,
             adaptive: Some(RateBounds {
-                min: config.status_qps_min,
-                max: config.status_qps_max,
-                slow: Duration::from_millis(config.status_slow_ms),
+                min: config.flags.status_qps_min,
+                max: config.flags.status_qps_max,
+                slow: Duration::from_millis(config.flags.status_slow_ms),
             }),
-            burst: config.status_burst,
-            concurrency: usize::from(config.status_concurrency),
+            burst: config.flags.status_burst,
+            concurrency: usize::from(config.flags.status_concurrency),
         },
         metrics.clone(),
     )
@@ -239,14 +239,14 @@ fn lookups(config: &Config, metrics: &Metrics) -> Lookups {
 /// The limits every session enforces, from the configuration.
 fn limits(config: &Config) -> Limits {
     Limits {
-        max_frame_bytes: config.max_frame_bytes,
-        rate: config.agent_rate,
-        burst: config.agent_burst,
-        abuse_threshold: config.agent_burst * 2,
-        handshake_timeout: Duration::from_secs(config.handshake_timeout_seconds),
-        heartbeat_interval: Duration::from_secs(config.heartbeat_interval_seconds),
-        missed_heartbeats: config.missed_heartbeats,
-        send_timeout: Duration::from_secs(config.send_timeout_seconds.max(1)),
+        max_frame_bytes: config.flags.max_frame_bytes,
+        rate: config.flags.agent_rate,
+        burst: config.flags.agent_burst,
+        abuse_threshold: config.flags.agent_burst * 2,
+        handshake_timeout: Duration::from_secs(config.flags.handshake_timeout_seconds),
+        heartbeat_interval: Duration::from_secs(config.flags.heartbeat_interval_seconds),
+        missed_heartbeats: config.flags.missed_heartbeats,
+        send_timeout: Duration::from_secs(config.flags.send_timeout_seconds.max(1)),
     }
 }
 
@@ -282,7 +282,7 @@ fn start_background(
         client.clone(),
         config.namespace.clone(),
         name.to_owned(),
-        Duration::from_secs(config.gateway_lease_seconds),
+        Duration::from_secs(config.flags.gateway_lease_seconds),
         Some(presence.clone()),
         cancel.clone(),
     ));
@@ -345,7 +345,7 @@ async fn serve(
     listening: Arc<AtomicBool>,
     cancel: &CancellationToken,
 ) -> Result<std::io::Result<()>> {
-    let addr = config.gateway_addr;
+    let addr = config.flags.gateway_addr;
     let metrics = state.shared.metrics.gateway.clone();
     let tls_metrics = reload::TlsMetrics {
         reloads: metrics.tls_reloads.clone(),
@@ -358,7 +358,7 @@ async fn serve(
             .map_err(|source| Error::Serve { addr, source })
     };
     let gateway = bind(addr).await?;
-    let api = match config.api_addr {
+    let api = match config.flags.api_addr {
         Some(api_addr) => Some(bind(api_addr).await?),
         None => None,
     };
@@ -367,11 +367,13 @@ async fn serve(
     info!(addr = %local(&gateway), gateway = %name, tls = tls.is_some(), api = %api.as_ref().map(local).unwrap_or_else(|| "same address".into()), "gateway listening");
     listening.store(true, Ordering::Release);
     let limits = ConnLimits {
-        header_timeout: Duration::from_secs(config.header_timeout_seconds.max(1)),
-        tls_handshake_timeout: Duration::from_secs(config.tls_handshake_timeout_seconds.max(1)),
-        max_header_bytes: config.max_header_bytes,
-        per_address: config.max_unauthenticated_per_address,
-        unauthenticated: config.max_unauthenticated_connections.max(1),
+        header_timeout: Duration::from_secs(config.flags.header_timeout_seconds.max(1)),
+        tls_handshake_timeout: Duration::from_secs(
+            config.flags.tls_handshake_timeout_seconds.max(1),
+        ),
+        max_header_bytes: config.flags.max_header_bytes,
+        per_address: config.flags.max_unauthenticated_per_address,
+        unauthenticated: config.flags.max_unauthenticated_connections.max(1),
     };
     let dropped = metrics.connections_dropped;
     let Some(api) = api else {

@@ -22,8 +22,8 @@ use tracing::debug;
 use kube::Api;
 
 use super::Caller;
-use crate::gateway::AppState;
-use crate::gateway::lookup::Subject;
+use crate::AppState;
+use crate::lookup::Subject;
 use lekiwi_blob_store::BlobStore;
 use lekiwi_core::cache::Cache;
 use lekiwi_crds::Robot;
@@ -123,7 +123,7 @@ pub(super) async fn may_read(state: &AppState, caller: &Caller, digest: &str) ->
 
 /// Whether `robot`'s Robot, read from the API server now, references `digest` in its
 /// `spec.release` (the manifest or a file it lists) or `spec.agent`. Within the budget of
-/// [`Lookups`](crate::gateway::lookup::Lookups): a read that does not find the blob is
+/// [`Lookups`](crate::lookup::Lookups): a read that does not find the blob is
 /// remembered (for this robot and blob), and a failed, throttled or remembered one answers
 /// `false`.
 async fn read_live(state: &AppState, robot: &lekiwi_core::RobotKey, digest: &str) -> bool {

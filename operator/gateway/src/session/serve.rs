@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use crate::gateway::mailbox::Receiver;
+use crate::mailbox::Receiver;
 use axum::extract::ws::Message;
 use futures::{Sink, Stream, StreamExt};
 use lekiwi_protocol::{AgentMessage, ErrorCode, Release, ServerMessage, decode};
@@ -13,7 +13,7 @@ use tracing::{debug, info, warn};
 use super::Limits;
 use super::Session;
 use super::conn::{CLOSE_AWAY, CLOSE_POLICY, End, Flow};
-use crate::gateway::registry::Control;
+use crate::registry::Control;
 use lekiwi_core::rate::TokenBucket;
 use lekiwi_metrics::KindLabels;
 

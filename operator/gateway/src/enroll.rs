@@ -12,7 +12,7 @@ use lekiwi_crds::contract::{
     ENROLLED_LABEL, REENROLL_ANNOTATION, managers, new_token, robot_secret_name, robot_token_secret,
 };
 
-use crate::gateway::tokens::TokenIndex;
+use crate::tokens::TokenIndex;
 use lekiwi_core::RobotKey;
 
 /// Why an enrollment token may not (re-)enroll a robot.
