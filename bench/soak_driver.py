@@ -148,8 +148,10 @@ class Soak:
                 "--http-addr", f"127.0.0.1:{self.ports[g + '-http']}",
                 "--store-url", C["store_url"], "--blob-dir", os.path.join(WORK, "blobs"),
                 "--max-unauthenticated-per-address", "0"],
-                # The allocator's totals in the log when the gateway stops.
-                dict(env, MIMALLOC_SHOW_STATS="1"))
+                # The allocator's totals in the log when the gateway stops; a robot's refused
+                # blob read (rare in a healthy fleet) named in the log, to tell a replica's lag.
+                dict(env, MIMALLOC_SHOW_STATS="1",
+                     RUST_LOG="warn,lekiwi_gateway::blob_api::access=debug"))
 
     # Which HAProxy each client process connects through. A proxied connection holds two open
     # files in HAProxy (the robot's and the gateway's), and a process may hold at most the
@@ -383,17 +385,23 @@ backend gateways
     def server(self):
         return f"http://127.0.0.1:{self.ports[self.live_gateway()]}"
 
-    def push(self, version):
-        d = self.make_release(version)
+    def push_to_gateway(self, what, *args):
+        """Runs `kubectl lekiwi <args> --server <a live gateway>` and returns the digest it
+        prints. A gateway may be down or still starting (a fault of the soak): up to 5 tries,
+        10 s apart, each at the gateway then alive."""
         for attempt in range(5):
-            p = run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], "release", "push", d,
-                    "--version", version, "--server", self.server(), "-n", NS, check=False,
-                    timeout=300)
+            p = run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], *args,
+                    "--server", self.server(), "-n", NS, check=False, timeout=300)
             if p.returncode == 0:
                 return p.stdout.strip().split()[-1]
-            log(f"push {version} failed (attempt {attempt + 1}): {p.stderr.strip()[-200:]}")
+            log(f"push of {what} failed (attempt {attempt + 1}): {p.stderr.strip()[-200:]}")
             time.sleep(10)
-        raise RuntimeError(f"could not push {version}")
+        raise RuntimeError(f"could not push {what}")
+
+    def push(self, version):
+        d = self.make_release(version)
+        return self.push_to_gateway(f"release {version}", "release", "push", d,
+                                    "--version", version)
 
     def push_agent(self, version):
         """A stand-in agent build (the simulated robots download and verify it, and restart as
@@ -403,10 +411,9 @@ backend gateways
             path = os.path.join(WORK, f"agent-{version}-{arch}")
             with open(path, "wb") as f:
                 f.write(b"\x7fELF" + random.randbytes(200_000))
-            p = run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], "agent", "push", path,
-                    "--version", version, "--arch", arch, "--server", self.server(), "-n", NS,
-                    timeout=300)
-            builds.append({"arch": arch, "digest": p.stdout.strip().split()[-1]})
+            digest = self.push_to_gateway(f"agent {version} ({arch})", "agent", "push", path,
+                                          "--version", version, "--arch", arch)
+            builds.append({"arch": arch, "digest": digest})
         return builds
 
     def apply(self, manifest):
