@@ -114,7 +114,7 @@ impl OperatorProcess {
         let process = ChildProcess::spawn(Launch {
             binary: "lekiwi-operator",
             what: "operator",
-            rust_log: "info,kube=warn,lekiwi_operator=debug",
+            rust_log: "info,kube=warn,lekiwi_operator=debug,lekiwi_gateway=debug,lekiwi_presence=debug",
             args,
             env: spec
                 .env
