@@ -1,6 +1,8 @@
 //! What every step of the rollout planner shares: what the plan is about ([`Rollout`], fixed
 //! for one plan) and what it has decided so far ([`Draft`], grown step by step).
 
+use std::collections::BTreeMap;
+
 use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{Condition, ReleaseRef, RobotDeployment, RobotDeploymentStatus};
@@ -10,6 +12,9 @@ use super::{
     RobotView, RobotWrite, UNDO_ANNOTATION, rollout_id, rollout_id_at, rollout_start, same_rollout,
     secs, time,
 };
+
+/// Events of one reason a reconcile publishes at most; the rest are counted in one more.
+pub(super) const EVENTS_PER_REASON: usize = 10;
 
 /// The facts of one plan that no step changes: the deployment's spec, the rollout it is in,
 /// the time and the robots it selects.
@@ -129,8 +134,10 @@ pub(super) struct Draft {
     pub status: RobotDeploymentStatus,
     /// Robot writes, in the order planned.
     pub writes: Vec<RobotWrite>,
-    /// Events, in the order they happened.
+    /// Events, in the order they happened, at most [`EVENTS_PER_REASON`] of each reason.
     pub events: Vec<PlannedEvent>,
+    /// Events left out past [`EVENTS_PER_REASON`], by reason (and whether they warn).
+    pub left_out: BTreeMap<&'static str, (bool, usize)>,
     /// Conditions decided by the gates; the status step adds the outcome conditions.
     pub conditions: Vec<Condition>,
     /// The earliest moment something is due (a timeout, the end of a pause).
@@ -179,6 +186,7 @@ impl Draft {
             status,
             writes: Vec::new(),
             events,
+            left_out: BTreeMap::new(),
             conditions: Vec::new(),
             wake: None,
             batch_result: None,
@@ -192,20 +200,44 @@ impl Draft {
 
     /// Records a Normal Event.
     pub fn normal(&mut self, reason: &'static str, note: String) {
-        self.events.push(PlannedEvent {
-            warning: false,
-            reason,
-            note,
-        });
+        self.event(false, reason, note);
     }
 
     /// Records a Warning Event.
     pub fn warning(&mut self, reason: &'static str, note: String) {
-        self.events.push(PlannedEvent {
-            warning: true,
-            reason,
-            note,
-        });
+        self.event(true, reason, note);
+    }
+
+    /// Records an Event, or counts it as left out once [`EVENTS_PER_REASON`] of its reason
+    /// are planned: a batch of a thousand robots that time out at once plans ten Events and a
+    /// summary, not a thousand (each an API request made before the rollout can go on).
+    fn event(&mut self, warning: bool, reason: &'static str, note: String) {
+        if self.events.iter().filter(|e| e.reason == reason).count() < EVENTS_PER_REASON {
+            self.events.push(PlannedEvent {
+                warning,
+                reason,
+                note,
+            });
+        } else {
+            self.left_out.entry(reason).or_insert((warning, 0)).1 += 1;
+        }
+    }
+
+    /// The planned Events, each reason that had more than [`EVENTS_PER_REASON`] closed by one
+    /// Event that says how many more there were.
+    pub fn take_events(&mut self) -> Vec<PlannedEvent> {
+        let mut events = std::mem::take(&mut self.events);
+        for (reason, (warning, n)) in std::mem::take(&mut self.left_out) {
+            events.push(PlannedEvent {
+                warning,
+                reason,
+                note: format!(
+                    "and {n} more {reason} in this step, left out of Events: the \
+                     RobotDeployment's status and each Robot's rollout mark say which robots"
+                ),
+            });
+        }
+        events
     }
 
     /// Plans a write of `mark` (and of `spec.release` when `release` is set) to `robot`.

@@ -86,6 +86,7 @@ pub(super) fn finish(rollout: &Rollout<'_>, fleet: &Fleet<'_>, mut draft: Draft)
     if draft.status.message.as_deref() == Some("") {
         draft.status.message = None;
     }
+    let events = draft.take_events();
     draft.status.conditions = merge_conditions(&rollout.previous.conditions, draft.conditions);
     let finished = rollout.was_active
         && matches!(
@@ -98,7 +99,7 @@ pub(super) fn finish(rollout: &Rollout<'_>, fleet: &Fleet<'_>, mut draft: Draft)
     Plan {
         writes: draft.writes,
         status: draft.status,
-        events: draft.events,
+        events,
         requeue_after: requeue_after(rollout, phase, draft.wake),
         batch_result: draft.batch_result,
         finished,

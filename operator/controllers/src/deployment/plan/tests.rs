@@ -917,3 +917,51 @@ fn an_outcome_reported_just_before_the_start_in_the_same_second_is_not_this_star
     assert_eq!(st.phase, Some(RolloutPhase::Progressing), "{st:#?}");
     assert_eq!(result.state, RobotRolloutState::Updating, "{st:#?}");
 }
+
+/// A batch whose robots all fail at once plans at most `EVENTS_PER_REASON` RobotUpdateFailed
+/// Events and one that counts the rest: each Event is an API request the reconcile makes before
+/// the rollout goes on, and the hour at 10,000 robots saw a batch of 990 timed-out robots hold
+/// its deployment for minutes while their Events went out one by one.
+#[test]
+fn a_batch_failing_at_once_plans_a_bounded_number_of_events() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(60), 0), 60);
+    sim.failing = (0..60).map(|i| robot(i).name).collect();
+    let mut most = 0;
+    let mut summaries = Vec::new();
+    for _ in 0..20 {
+        let plan = sim.step();
+        let failed: Vec<_> = plan
+            .events
+            .iter()
+            .filter(|e| e.reason == "RobotUpdateFailed")
+            .collect();
+        most = most.max(failed.len());
+        summaries.extend(
+            failed
+                .iter()
+                .filter(|e| e.note.starts_with("and "))
+                .map(|e| e.note.clone()),
+        );
+        sim.agents();
+        sim.now += SignedDuration::from_secs(5);
+    }
+    let st = sim.d.status.clone().unwrap();
+    assert_eq!(
+        st.failed, 60,
+        "every failure is still counted: {:?}",
+        st.message
+    );
+    assert_eq!(
+        most,
+        super::draft::EVENTS_PER_REASON + 1,
+        "ten Events and a summary"
+    );
+    assert_eq!(
+        summaries,
+        vec![
+            "and 50 more RobotUpdateFailed in this step, left out of Events: the \
+             RobotDeployment's status and each Robot's rollout mark say which robots"
+                .to_owned()
+        ]
+    );
+}
