@@ -78,7 +78,7 @@ pub(super) async fn blob_state(
             .then(|| Duration::from_secs(config.flags.release_gc_seconds)),
         warn_percent: config.flags.blob_free_warn_percent,
         leader,
-        gateway: config.gateway_name(),
+        gateway: config.name.clone(),
         namespace: config.namespace.clone(),
     };
     let (releases, task) = releases::task::start(releases, care, client, cancel);

@@ -266,10 +266,3 @@ pub struct Config {
     /// The Fleet API's section, for the routes it serves.
     pub fleet_api: FleetApiConfig,
 }
-
-impl Config {
-    /// The gateway's name.
-    pub fn gateway_name(&self) -> String {
-        self.name.clone()
-    }
-}

@@ -49,7 +49,7 @@ pub async fn run(
     (listening, leader): (Arc<AtomicBool>, watch::Receiver<bool>),
     cancel: CancellationToken,
 ) -> Result<()> {
-    let name = config.gateway_name();
+    let name = config.name.clone();
     let registry = Arc::new(Registry::with_open_rate(
         config.flags.session_opens_per_minute,
         config.flags.session_open_burst,
@@ -127,7 +127,7 @@ async fn start_dispatch(
     presence: &Presence,
     cancel: &CancellationToken,
 ) -> Result<(WatchedRobots, [JoinHandle<()>; 2])> {
-    let name = config.gateway_name();
+    let name = config.name.clone();
     let robots = fleet.robots.clone();
     let halt = super::halt::start(&fleet.rollouts, robots.clone(), registry.clone(), cancel);
     let (desired, task) =
