@@ -6,6 +6,9 @@ pub enum Error {
     /// Writing a Robot's spec or annotations failed.
     #[error("cannot patch {object}: {source}")]
     PatchRobot { object: String, source: kube::Error },
+    /// Reading a Robot from the API server (not the store) failed.
+    #[error("cannot read {object}: {source}")]
+    ReadRobot { object: String, source: kube::Error },
     /// Writing a Robot's or RobotDeployment's status failed.
     #[error("cannot patch status of {object}: {source}")]
     PatchStatus { object: String, source: kube::Error },
@@ -45,9 +48,9 @@ impl Error {
     /// What a caller can do about this error (see [`Category`]).
     pub fn category(&self) -> Category {
         match self {
-            Error::PatchRobot { source, .. } | Error::PatchStatus { source, .. } => {
-                kube_category(source)
-            }
+            Error::PatchRobot { source, .. }
+            | Error::ReadRobot { source, .. }
+            | Error::PatchStatus { source, .. } => kube_category(source),
             Error::TaskStopped(_) => Category::Transient,
         }
     }
@@ -69,6 +72,7 @@ impl Error {
         match self {
             Error::PatchStatus { .. } => "patch_status",
             Error::PatchRobot { .. } => "patch_robot",
+            Error::ReadRobot { .. } => "read_robot",
             Error::TaskStopped(_) => "task_stopped",
         }
     }

@@ -10,3 +10,4 @@ mod release_gc;
 mod releases;
 mod rollout;
 mod sim_commands;
+mod stale_store;

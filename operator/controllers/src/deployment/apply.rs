@@ -25,7 +25,7 @@ const WRITE_CONCURRENCY: usize = 16;
 
 /// One robot as this reconcile wrote it: its name, the mark annotation's key and text, and the
 /// resourceVersion the API server gave the write.
-pub(super) struct Written {
+pub struct Written {
     pub robot: String,
     pub key: &'static str,
     pub mark: String,
@@ -148,7 +148,14 @@ fn agent_spec(
     })
 }
 
-async fn write_robot(
+/// Writes one robot: its mark (and the analysis window) and the part of its spec the rollout
+/// kind's field manager owns, by server-side apply. A `spec` without that part (a mark-only
+/// write of a robot the rollout told nothing, when the Robot store shows no value) would drop
+/// what this manager set earlier if the store is behind the API server: the API server refuses
+/// such a write (a removed object field becomes `null`, which the schema rejects: every later
+/// reconcile failed the same way and held the rollout), or removes the robot's desired release.
+/// So the robot is read first, and the value it has is kept.
+pub async fn write_robot(
     api: &Api<Robot>,
     kind: RolloutKind,
     name: &str,
@@ -156,6 +163,7 @@ async fn write_robot(
     spec: Option<RobotSpecPart>,
     window: Option<i64>,
 ) -> Result<Written> {
+    let spec = keep_live(api, kind, name, spec).await?;
     let text = serde_json::to_string(mark).unwrap_or_default();
     let key = kind.mark_annotation();
     let mut annotations = BTreeMap::from([(key.to_owned(), text.clone())]);
@@ -181,6 +189,48 @@ async fn write_robot(
         mark: text,
         resource_version: robot.metadata.resource_version,
     })
+}
+
+/// `spec` when it carries the part `kind` owns (`release` or `agent`); otherwise that part as
+/// the API server has it now (read, not taken from the store), or `spec` when the robot has
+/// none (or is gone).
+async fn keep_live(
+    api: &Api<Robot>,
+    kind: RolloutKind,
+    name: &str,
+    spec: Option<RobotSpecPart>,
+) -> Result<Option<RobotSpecPart>> {
+    let owned = spec.as_ref().is_some_and(|s| match kind {
+        RolloutKind::Release => s.release.is_some(),
+        RolloutKind::Agent => s.agent.is_some(),
+    });
+    if owned {
+        return Ok(spec);
+    }
+    let live = match api.get_opt(name).await {
+        Ok(Some(robot)) => robot.spec,
+        Ok(None) => return Ok(spec),
+        Err(source) => {
+            return Err(Error::ReadRobot {
+                object: name.to_owned(),
+                source,
+            });
+        }
+    };
+    let kept = match kind {
+        RolloutKind::Release => live.release.map(|release| RobotSpecPart {
+            release: Some(release),
+            agent: None,
+        }),
+        RolloutKind::Agent => live.agent.map(|agent| RobotSpecPart {
+            release: None,
+            agent: Some(agent),
+        }),
+    };
+    if kept.is_some() {
+        debug!(robot = %name, ?kept, "the Robot store showed no value this rollout may own; keeping the robot's");
+    }
+    Ok(kept.or(spec))
 }
 
 /// Applies the planned status when it differs from the one read; returns the written

@@ -3,7 +3,7 @@
 //! ([`facts`]), plan ([`plan`], pure), write robots, apply status and publish Events
 //! ([`apply`]), record metrics.
 
-mod apply;
+pub mod apply;
 mod catch_up;
 mod facts;
 #[cfg(test)]
