@@ -3,6 +3,10 @@
 //! tenth of the memory: a tokio channel allocates a block of 32 slots and cache-line-padded
 //! state when it is created, about 1.2 KiB, and a gateway holds one per connection for as long
 //! as the connection lives, while almost every session receives nothing at all.
+//!
+//! Two kinds of message go through it: events, which a full mailbox refuses
+//! ([`Sender::try_send`]), and states, which it never loses ([`Sender::put`]): a newer state
+//! replaces the queued one of its kind, so each kind is queued once at most.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -59,6 +63,35 @@ impl<T> Sender<T> {
             if state.receiver_gone || state.queue.len() >= state.capacity {
                 return Err(message);
             }
+            state.queue.push_back(message);
+        }
+        self.0.wake.notify_one();
+        Ok(())
+    }
+}
+
+impl<T> Sender<T> {
+    /// Queues `message` as a state rather than an event: a queued message `same` holds for
+    /// (the same kind) leaves the queue and `merge(queued, message)` joins its end instead;
+    /// with none, `message` joins the end even when the mailbox is full. A kind always put
+    /// this way is queued once at most, so the queue holds at most the capacity plus the
+    /// number of such kinds. Gives `message` back only when the receiver is gone.
+    pub fn put(
+        &self,
+        message: T,
+        same: impl Fn(&T) -> bool,
+        merge: impl FnOnce(T, T) -> T,
+    ) -> Result<(), T> {
+        {
+            let mut state = self.0.lock();
+            if state.receiver_gone {
+                return Err(message);
+            }
+            let queued = state.queue.iter().position(&same);
+            let message = match queued.and_then(|i| state.queue.remove(i)) {
+                Some(queued) => merge(queued, message),
+                None => message,
+            };
             state.queue.push_back(message);
         }
         self.0.wake.notify_one();
@@ -158,6 +191,33 @@ mod tests {
         let (tx, rx) = mailbox(16);
         drop(rx);
         assert_eq!(tx.try_send(1), Err(1));
+        assert_eq!(tx.put(2, |_| true, |_, new| new), Err(2));
+    }
+
+    /// A state put into a full mailbox is kept; a newer state of the same kind replaces it
+    /// (merged, at the end of the queue), so the queue grows by one per kind at most.
+    #[tokio::test]
+    async fn a_state_is_never_lost_and_queued_once_per_kind() {
+        let (tx, mut rx) = mailbox(2);
+        let even = |n: &i32| n % 2 == 0;
+        assert!(tx.try_send(1).is_ok());
+        assert!(tx.try_send(3).is_ok());
+        assert_eq!(tx.try_send(5), Err(5), "full for events");
+        assert!(
+            tx.put(10, even, |_, new| new).is_ok(),
+            "a state still goes in"
+        );
+        assert!(tx.try_send(7).is_err());
+        assert!(tx.put(20, even, |old, new| old + new).is_ok(), "merged");
+        let mut got = Vec::new();
+        while let Some(n) = rx.try_recv() {
+            got.push(n);
+        }
+        assert_eq!(
+            got,
+            vec![1, 3, 30],
+            "one state, the merge of both, after the events"
+        );
     }
 
     #[test]

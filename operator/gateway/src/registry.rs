@@ -117,44 +117,40 @@ impl Registry {
         self.lock()
             .get(key)
             .filter(|slot| slot.epoch < epoch)
-            .is_some_and(|slot| slot.tx.try_send(Control::Moved).is_ok())
+            .is_some_and(|slot| put(&slot.tx, Control::Moved))
     }
 
     /// Tells a robot's session that its desired release changed; false when the robot has no
-    /// session here or its channel is full.
+    /// session here. Never lost to a full mailbox (see [`put`]).
     pub fn notify_desired_release(&self, key: &RobotKey, release: Option<Release>) -> bool {
-        self.try_send(key, Control::Desired(release.map(Box::new)))
+        self.put(key, Control::Desired(release.map(Box::new)))
     }
 
     /// Tells a robot's session to stop a download of `release` in flight; false when the robot
-    /// has no session here or its channel is full.
+    /// has no session here. Never lost to a full mailbox (see [`put`]).
     pub fn notify_halt(&self, key: &RobotKey, release: Release) -> bool {
-        self.try_send(key, Control::Halt(Box::new(release)))
+        self.put(key, Control::Halt(Box::new(release)))
     }
 
     /// Tells a robot's session that its desired agent changed; false when the robot has no
-    /// session here or its channel is full.
+    /// session here. Never lost to a full mailbox (see [`put`]).
     pub fn notify_desired_agent(&self, key: &RobotKey, agent: Option<AgentRef>) -> bool {
-        self.try_send(key, Control::DesiredAgent(agent.map(Box::new)))
+        self.put(key, Control::DesiredAgent(agent.map(Box::new)))
     }
 
     /// Tells a robot's session that its token Secret changed; false when the robot has no
-    /// session here or its channel is full.
+    /// session here. Never lost to a full mailbox (see [`put`]).
     pub fn notify_credentials(&self, key: &RobotKey, deleted: bool) -> bool {
-        self.try_send(key, Control::Credentials { deleted })
+        self.put(key, Control::Credentials { deleted })
     }
 
-    /// Tells every session to check its token again; returns how many were told (a session
-    /// whose channel is full is not). After the token Secrets were listed anew, a Secret deleted
-    /// while the watch was down shows only as missing from the list, never as a deletion.
+    /// Tells every session to check its token again; returns how many were told. After the
+    /// token Secrets were listed anew, a Secret deleted while the watch was down shows only as
+    /// missing from the list, never as a deletion.
     pub fn recheck_all_credentials(&self) -> usize {
         self.lock()
             .values()
-            .filter(|slot| {
-                slot.tx
-                    .try_send(Control::Credentials { deleted: false })
-                    .is_ok()
-            })
+            .filter(|slot| put(&slot.tx, Control::Credentials { deleted: false }))
             .count()
     }
 
@@ -180,9 +176,43 @@ impl Registry {
             .is_some_and(|slot| slot.tx.try_send(control).is_ok())
     }
 
+    fn put(&self, key: &RobotKey, control: Control) -> bool {
+        self.lock()
+            .get(key)
+            .is_some_and(|slot| put(&slot.tx, control))
+    }
+
     /// The sessions map; a panic elsewhere while holding it leaves the map itself consistent.
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<RobotKey, Slot>> {
         self.sessions.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// Queues `control`, a state (what the robot should run, whether its token still counts, that
+/// it moved), so that a full mailbox never loses it: a queued control of the same kind is
+/// replaced ([`Control::merge`]). A session busy sending to a slow socket while the gateway
+/// relists its Robots and its token Secrets could otherwise miss the one `Desired` that starts
+/// its update, and wait for the next change of its Robot. False when the session is gone.
+fn put(tx: &Sender<Control>, control: Control) -> bool {
+    let kind = std::mem::discriminant(&control);
+    tx.put(
+        control,
+        |queued| std::mem::discriminant(queued) == kind,
+        Control::merge,
+    )
+    .is_ok()
+}
+
+impl Control {
+    /// A newer control of the same kind, folded into the queued one: the newer wins, except
+    /// that a deleted token Secret stays deleted.
+    fn merge(queued: Control, newer: Control) -> Control {
+        match (queued, newer) {
+            (Control::Credentials { deleted: a }, Control::Credentials { deleted: b }) => {
+                Control::Credentials { deleted: a || b }
+            }
+            (_, newer) => newer,
+        }
     }
 }
 
@@ -202,5 +232,37 @@ mod tests {
         assert!(registry.moved(&key, 200));
         assert!(matches!(rx.try_recv(), Some(Control::Moved)));
         assert!(!registry.moved(&RobotKey::new("lab", "other"), 200));
+    }
+
+    /// A session whose mailbox is full of messages still gets the latest desired release and
+    /// agent, once each, and a revocation is not undone by a later recheck.
+    #[test]
+    fn a_full_mailbox_keeps_the_latest_state_of_each_kind() {
+        let registry = Registry::default();
+        let key = RobotKey::new("lab", "kiwi");
+        let (_, mut rx) = registry.register(&key, 100);
+        while registry.send(&key, ServerMessage::Ack { seq: 1 }) {}
+        let release = |v: &str| Release {
+            version: v.into(),
+            digest: format!("sha256:{}", "a".repeat(64)),
+        };
+        assert!(registry.notify_desired_release(&key, Some(release("1.0.0"))));
+        assert!(registry.notify_credentials(&key, true));
+        assert!(registry.notify_desired_release(&key, Some(release("2.0.0"))));
+        assert_eq!(registry.recheck_all_credentials(), 1);
+        assert!(registry.notify_desired_agent(&key, None));
+        let mut states = Vec::new();
+        while let Some(c) = rx.try_recv() {
+            if !matches!(c, Control::Send(_)) {
+                states.push(c);
+            }
+        }
+        assert_eq!(states.len(), 3, "{states:?}");
+        assert!(
+            matches!(&states[0], Control::Desired(Some(r)) if r.version == "2.0.0"),
+            "{states:?}"
+        );
+        assert!(matches!(states[1], Control::Credentials { deleted: true }));
+        assert!(matches!(states[2], Control::DesiredAgent(None)));
     }
 }
