@@ -132,7 +132,8 @@ class Soak:
     def operator_procs(self):
         common = ["--kubeconfig", C["kubeconfig"], "--namespace", "lekiwi-system",
                   "--watch-namespace", NS]
-        env = {"RUST_LOG": "warn"}
+        # Each robot a rollout writes, to tell when a robot was told its release.
+        env = {"RUST_LOG": "warn,lekiwi_controllers::deployment::apply=debug"}
         for c in ("ctl-a", "ctl-b"):
             self.ports[c] = free_port()
             self.procs[c] = Proc(c, [f"{BIN}/lekiwi-operator", "--role", "controller", *common,
@@ -149,9 +150,13 @@ class Soak:
                 "--store-url", C["store_url"], "--blob-dir", os.path.join(WORK, "blobs"),
                 "--max-unauthenticated-per-address", "0"],
                 # The allocator's totals in the log when the gateway stops; a robot's refused
-                # blob read (rare in a healthy fleet) named in the log, to tell a replica's lag.
+                # blob read (rare in a healthy fleet) named in the log, to tell a replica's lag;
+                # each command sent, each desired release or agent handed to a session, and
+                # each list of the Robot cache, to tell why a robot was not updated in time.
                 dict(env, MIMALLOC_SHOW_STATS="1",
-                     RUST_LOG="warn,lekiwi_gateway::blob_api::access=debug"))
+                     RUST_LOG="warn,lekiwi_gateway::blob_api::access=debug,"
+                              "lekiwi_gateway::session::serve=info,"
+                              "lekiwi_gateway::dispatch=debug,lekiwi_core::cache=info"))
 
     # Which HAProxy each client process connects through. A proxied connection holds two open
     # files in HAProxy (the robot's and the gateway's), and a process may hold at most the

@@ -294,7 +294,7 @@ impl<K: Resource + Serialize> Cache<K> {
     }
 
     /// Takes one event of the watch; `relist` holds the keys a relist in progress delivered.
-    fn apply(&self, event: watcher::Event<K>, relist: &mut Option<HashSet<Key>>) {
+    fn apply(&self, event: watcher::Event<K>, relist: &mut Option<Relist>) {
         match event {
             watcher::Event::Apply(o) => self.applied(o),
             watcher::Event::Delete(o) => {
@@ -302,15 +302,26 @@ impl<K: Resource + Serialize> Cache<K> {
                 objects.remove(&key(&o));
                 let _ = self.changes.send(Change::Deleted(Arc::new(o)));
             }
-            watcher::Event::Init => *relist = Some(HashSet::new()),
+            watcher::Event::Init => {
+                *relist = Some(Relist {
+                    seen: HashSet::new(),
+                    started: std::time::Instant::now(),
+                });
+            }
             watcher::Event::InitApply(o) => {
-                if let Some(seen) = relist.as_mut() {
-                    seen.insert(key(&o));
+                if let Some(r) = relist.as_mut() {
+                    r.seen.insert(key(&o));
                 }
                 self.applied(o);
             }
             watcher::Event::InitDone => {
-                if let Some(seen) = relist.take() {
+                if let Some(Relist { seen, started }) = relist.take() {
+                    tracing::info!(
+                        kind = kind_of::<K>(),
+                        objects = seen.len(),
+                        seconds = started.elapsed().as_secs_f64(),
+                        "listed"
+                    );
                     let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
                     let gone: Vec<Key> = objects
                         .map
@@ -346,6 +357,18 @@ impl<K: Resource + Serialize> Cache<K> {
     }
 }
 
+/// The short name of `K`'s type (`Robot`), for logs.
+fn kind_of<K>() -> &'static str {
+    let name = std::any::type_name::<K>();
+    name.rsplit("::").next().unwrap_or(name)
+}
+
+/// A list in progress: the keys it delivered so far, and when it began.
+struct Relist {
+    seen: HashSet<Key>,
+    started: std::time::Instant,
+}
+
 /// The key of `o`.
 pub fn key<K: Resource>(o: &K) -> Key {
     (o.namespace().unwrap_or_default(), o.name_any())
@@ -374,7 +397,13 @@ where
                 () = cancel.cancelled() => return,
                 event = stream.next() => match event {
                     Some(Ok(event)) => filled.apply(event, &mut relist),
-                    Some(Err(e)) => tracing::debug!(error = %e, "Fleet API watch error; retrying"),
+                    // Spaced by the watcher's backoff; a list or watch that keeps failing leaves
+                    // every reader of the cache (deploys, blob access, the Fleet API) behind.
+                    Some(Err(e)) => tracing::warn!(
+                        kind = kind_of::<K>(),
+                        error = %e,
+                        "watch failed; retrying"
+                    ),
                     None => return,
                 },
             }
