@@ -23,25 +23,27 @@ use lekiwi_core::apply::{RobotApply, RobotSpecPart, StatusApply};
 /// Robot writes in flight at once.
 const WRITE_CONCURRENCY: usize = 16;
 
-/// One robot as this reconcile wrote it: its name, the mark annotation's key and text, and the
-/// resourceVersion the API server gave the write.
+/// One robot as this reconcile wrote it: its name, the mark annotation's key and text, the
+/// part of its spec written, and the resourceVersion the API server gave the write.
 pub struct Written {
     pub robot: String,
     pub key: &'static str,
     pub mark: String,
+    pub spec: Option<RobotSpecPart>,
     pub resource_version: Option<String>,
 }
 
 /// One robot's write: its name, mark, the owned part of its spec, and the analysis window.
 type Job = (String, Mark, Option<RobotSpecPart>, Option<i64>);
 
-/// Writes every planned robot, a few at a time; fails with the first error after trying all.
+/// Writes every planned robot, a few at a time: the writes that succeeded, and the first error
+/// after trying all.
 pub(super) async fn write_robots(
     client: &kube::Client,
     deployment: &RobotDeployment,
     facts: &Facts,
     plan: &Plan,
-) -> Result<Vec<Written>> {
+) -> (Vec<Written>, Result<()>) {
     let namespace = deployment.metadata.namespace.clone().unwrap_or_default();
     let robots: Api<Robot> = Api::namespaced(client.clone(), &namespace);
     let kind = deployment.spec.kind();
@@ -54,11 +56,22 @@ pub(super) async fn write_robots(
         .buffer_unordered(WRITE_CONCURRENCY)
         .collect()
         .await;
-    let written = results.iter().filter(|r| r.is_ok()).count();
-    if !plan.writes.is_empty() {
-        info!(robots = written, of = plan.writes.len(), "robots written");
+    let (mut written, mut failed) = (Vec::with_capacity(results.len()), Ok(()));
+    for result in results {
+        match result {
+            Ok(w) => written.push(w),
+            Err(e) if failed.is_ok() => failed = Err(e),
+            Err(_) => {}
+        }
     }
-    results.into_iter().collect()
+    if !plan.writes.is_empty() {
+        info!(
+            robots = written.len(),
+            of = plan.writes.len(),
+            "robots written"
+        );
+    }
+    (written, failed)
 }
 
 /// What each planned write sends. A write that sets no release (a mark-only write) still sends
@@ -187,6 +200,7 @@ pub async fn write_robot(
         robot: name.to_owned(),
         key,
         mark: text,
+        spec,
         resource_version: robot.metadata.resource_version,
     })
 }

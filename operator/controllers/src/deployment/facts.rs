@@ -49,6 +49,9 @@ pub(super) async fn gather(
         robots: ours
             .iter()
             .map(|r| {
+                // With the marks and spec this controller wrote, if the store is older.
+                let laid = state.own.robot(r, kind.mark_annotation());
+                let r: &Robot = &laid;
                 let gateway = r.status.as_ref().and_then(|s| s.gateway.as_deref());
                 let grace = state.ctx.heartbeat_grace(gateway, now);
                 let view = RobotView {
@@ -257,7 +260,7 @@ pub(super) fn is_active(guard: &DeserializeGuard<RobotDeployment>) -> bool {
 }
 
 /// What a rollout needs to know about one robot.
-fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: RolloutKind) -> RobotView {
+pub(super) fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: RolloutKind) -> RobotView {
     let status = robot.status.clone().unwrap_or_default();
     // `phase` is the Robot controller's verdict, which may lag (e.g. right after an operator
     // restart); a rollout only counts a robot Online with a live connection and a heartbeat

@@ -9,9 +9,12 @@ mod facts;
 #[cfg(test)]
 mod facts_tests;
 mod index;
+mod own_writes;
 mod ownership;
 mod pace;
 pub mod plan;
+#[cfg(test)]
+mod stale_store_tests;
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -43,7 +46,9 @@ struct State {
     /// When each deployment's status was last written (see [`pace`]).
     pace: pace::Pace,
     /// Each deployment's last writes, until the stores show them (see [`catch_up`]).
-    catch_up: catch_up::CatchUp<ObjectRef<DeserializeGuard<RobotDeployment>>, OwnWrites>,
+    catch_up: catch_up::CatchUp<ObjectRef<DeserializeGuard<RobotDeployment>>, LastWrites>,
+    /// The writes laid over the stores while they do not show them (see [`own_writes`]).
+    own: own_writes::OwnWrites,
 }
 
 /// Runs the RobotDeployment controller until `cancel` fires.
@@ -73,6 +78,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         wake,
         pace: pace::Pace::default(),
         catch_up: catch_up::CatchUp::default(),
+        own: own_writes::OwnWrites::default(),
     });
     info!("robot deployment controller started");
     let handlers = (reconcile, error_policy);
@@ -167,22 +173,29 @@ async fn reconcile(
             return Ok(Action::await_change());
         };
         ownership::wake_rivals(&state.deployments, &state.wake, deployment);
-        // A status held by the pace is where the rollout stands: plan on from it.
+        // A status held by the pace is where the rollout stands: plan on from it; else the one
+        // this controller wrote last, while the store shows an older one.
         let held = state
             .pace
             .held((namespace.as_str(), name.as_str()), deployment)
+            .or_else(|| state.own.status(deployment))
             .map(|status| RobotDeployment {
                 status: Some(status),
                 ..deployment.clone()
             });
         let plan = plan::plan(held.as_ref().unwrap_or(deployment), &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
-        let written = apply::write_robots(&ctx.client, deployment, &facts, &plan).await?;
+        let (written, failed) = apply::write_robots(&ctx.client, deployment, &facts, &plan).await;
+        state.own.wrote_robots(&namespace, &written);
+        failed?;
         let (status_version, held) = write_status(&state, deployment, &plan).await?;
+        state
+            .own
+            .wrote_status(deployment, status_version.as_deref(), &plan.status);
         apply::publish_events(&ctx.recorder, deployment, &plan.events).await;
         state.catch_up.wrote(
             key,
-            OwnWrites {
+            LastWrites {
                 status: plan.status.clone(),
                 status_version,
                 robots: written,
@@ -228,13 +241,13 @@ async fn write_status(
 /// watches fill a little after each write; planning from a store older than the last plan's
 /// own writes would judge a batch from robots' new marks under the old status (a rollback
 /// taken for a success) or start robots again.
-struct OwnWrites {
+struct LastWrites {
     status: lekiwi_crds::RobotDeploymentStatus,
     status_version: Option<String>,
     robots: Vec<apply::Written>,
 }
 
-impl OwnWrites {
+impl LastWrites {
     /// Whether the stores show every write: the object at the written resourceVersion, or with
     /// the same content (another writer may have changed it since). A deleted object counts.
     fn in_stores(
