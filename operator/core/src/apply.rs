@@ -11,7 +11,8 @@
 use std::collections::BTreeMap;
 
 use kube::Resource;
-use lekiwi_crds::{AgentRef, ReleaseRef};
+use lekiwi_crds::deployment::RolloutKind;
+use lekiwi_crds::{AgentRef, ReleaseRef, RobotSpec};
 use serde::Serialize;
 
 /// `apiVersion` and `kind` of `K`, as every apply patch of it starts.
@@ -99,6 +100,40 @@ pub struct RobotSpecPart {
     pub agent: Option<AgentRef>,
 }
 
+impl RobotSpecPart {
+    /// The part of `spec` a rollout of `kind` owns, when `spec` has it set.
+    pub fn owned(kind: RolloutKind, spec: &RobotSpec) -> Option<Self> {
+        match kind {
+            RolloutKind::Release => spec.release.clone().map(|release| Self {
+                release: Some(release),
+                agent: None,
+            }),
+            RolloutKind::Agent => spec.agent.clone().map(|agent| Self {
+                release: None,
+                agent: Some(agent),
+            }),
+        }
+    }
+
+    /// Whether it carries the part a rollout of `kind` owns.
+    pub fn owns(&self, kind: RolloutKind) -> bool {
+        match kind {
+            RolloutKind::Release => self.release.is_some(),
+            RolloutKind::Agent => self.agent.is_some(),
+        }
+    }
+
+    /// Sets on `spec` the parts it carries, as the write that sends it leaves the Robot.
+    pub fn set_on(&self, spec: &mut RobotSpec) {
+        if let Some(release) = &self.release {
+            spec.release = Some(release.clone());
+        }
+        if let Some(agent) = &self.agent {
+            spec.agent = Some(agent.clone());
+        }
+    }
+}
+
 /// An apply patch of a Robot's metadata (annotations) and, optionally, the part of its spec
 /// its field manager owns.
 #[derive(Clone, Debug, Serialize)]
@@ -130,6 +165,33 @@ mod tests {
     use serde_json::json;
 
     use super::*;
+
+    /// A rollout of each kind owns its own part of the spec, and a part sets only what it holds.
+    #[test]
+    fn a_spec_part_is_the_part_its_rollout_kind_owns() {
+        let release: ReleaseRef = serde_json::from_value(json!({
+            "version": "1.0.0", "digest": format!("sha256:{}", "a".repeat(64)),
+        }))
+        .unwrap();
+        let spec = lekiwi_crds::RobotSpec {
+            release: Some(release.clone()),
+            ..Default::default()
+        };
+        let part = RobotSpecPart::owned(RolloutKind::Release, &spec).expect("set");
+        assert!(part.owns(RolloutKind::Release) && !part.owns(RolloutKind::Agent));
+        assert_eq!(RobotSpecPart::owned(RolloutKind::Agent, &spec), None);
+        let mut other = lekiwi_crds::RobotSpec {
+            display_name: Some("kiwi".into()),
+            ..Default::default()
+        };
+        part.set_on(&mut other);
+        assert_eq!(other.release, Some(release));
+        assert_eq!(
+            other.display_name.as_deref(),
+            Some("kiwi"),
+            "the rest is the lab's"
+        );
+    }
 
     #[test]
     fn a_status_patch_names_its_type_and_only_the_fields_set() {

@@ -214,33 +214,17 @@ async fn keep_live(
     name: &str,
     spec: Option<RobotSpecPart>,
 ) -> Result<Option<RobotSpecPart>> {
-    let owned = spec.as_ref().is_some_and(|s| match kind {
-        RolloutKind::Release => s.release.is_some(),
-        RolloutKind::Agent => s.agent.is_some(),
-    });
-    if owned {
+    if spec.as_ref().is_some_and(|s| s.owns(kind)) {
         return Ok(spec);
     }
-    let live = match api.get_opt(name).await {
-        Ok(Some(robot)) => robot.spec,
-        Ok(None) => return Ok(spec),
-        Err(source) => {
-            return Err(Error::ReadRobot {
-                object: name.to_owned(),
-                source,
-            });
-        }
+    let live = api.get_opt(name).await.map_err(|source| Error::ReadRobot {
+        object: name.to_owned(),
+        source,
+    })?;
+    let Some(live) = live else {
+        return Ok(spec);
     };
-    let kept = match kind {
-        RolloutKind::Release => live.release.map(|release| RobotSpecPart {
-            release: Some(release),
-            agent: None,
-        }),
-        RolloutKind::Agent => live.agent.map(|agent| RobotSpecPart {
-            release: None,
-            agent: Some(agent),
-        }),
-    };
+    let kept = RobotSpecPart::owned(kind, &live.spec);
     if kept.is_some() {
         debug!(robot = %name, ?kept, "the Robot store showed no value this rollout may own; keeping the robot's");
     }

@@ -89,8 +89,13 @@ impl OwnWrites {
     /// `robot` as the store holds it, or with the mark (annotation `key`) and spec part this
     /// controller wrote when the store is older than that write.
     pub fn robot<'a>(&self, robot: &'a Robot, key: &'static str) -> Cow<'a, Robot> {
-        let id = (robot.namespace().unwrap_or_default(), robot.name_any(), key);
         let mut robots = lock(&self.robots);
+        // Every robot of every plan passes here; with nothing remembered (the steady state),
+        // no key is built.
+        if robots.is_empty() {
+            return Cow::Borrowed(robot);
+        }
+        let id = (robot.namespace().unwrap_or_default(), robot.name_any(), key);
         let Some(w) = robots.get(&id) else {
             return Cow::Borrowed(robot);
         };
@@ -102,12 +107,7 @@ impl OwnWrites {
         laid.annotations_mut()
             .insert(key.to_owned(), w.mark.clone());
         if let Some(spec) = &w.spec {
-            if let Some(release) = &spec.release {
-                laid.spec.release = Some(release.clone());
-            }
-            if let Some(agent) = &spec.agent {
-                laid.spec.agent = Some(agent.clone());
-            }
+            spec.set_on(&mut laid.spec);
         }
         Cow::Owned(laid)
     }
