@@ -47,6 +47,30 @@ fn agent() -> AgentRef {
     }
 }
 
+/// A rollout of `kind` starts `kiwi` with `part` (its manager then owns that part of the spec),
+/// then writes it again in `state` as planned from a store that shows no value: no spec part.
+/// Returns the second write's mark and the robot as the API server then holds it.
+async fn started_then_written_blind(
+    robots: &Api<Robot>,
+    kind: RolloutKind,
+    part: RobotSpecPart,
+    state: MarkState,
+) -> anyhow::Result<(String, Robot)> {
+    write_robot(
+        robots,
+        kind,
+        "kiwi",
+        &mark(MarkState::Started),
+        Some(part),
+        None,
+    )
+    .await?;
+    let blind = write_robot(robots, kind, "kiwi", &mark(state), None, None)
+        .await
+        .map_err(|e| anyhow::anyhow!("the {kind:?} rollout's write was refused: {e}"))?;
+    Ok((blind.mark, robots.get("kiwi").await?))
+}
+
 #[tokio::test]
 async fn a_write_planned_from_a_lagging_store_keeps_the_spec_the_rollout_set() -> anyhow::Result<()>
 {
@@ -57,59 +81,28 @@ async fn a_write_planned_from_a_lagging_store_keeps_the_spec_the_rollout_set() -
     // Created as enrollment creates robots: a plain create, no release, no agent.
     create_robot(&client, &ns, "kiwi", &[]).await?;
 
-    // A release rollout starts the robot (its manager now owns `spec.release`), rolls it back
-    // with nothing to return to, and plans that write from a store that shows no release.
+    // A release rollout starts the robot, then rolls it back with nothing to return to.
     let target = release()?;
-    let started = Some(RobotSpecPart {
+    let kind = RolloutKind::Release;
+    let part = RobotSpecPart {
         release: Some(target.clone()),
         agent: None,
-    });
-    let kind = RolloutKind::Release;
-    write_robot(
-        &robots,
-        kind,
-        "kiwi",
-        &mark(MarkState::Started),
-        started,
-        None,
-    )
-    .await?;
-    let back = write_robot(
-        &robots,
-        kind,
-        "kiwi",
-        &mark(MarkState::RollingBack),
-        None,
-        None,
-    )
-    .await
-    .map_err(|e| anyhow::anyhow!("the rollback write was refused: {e}"))?;
-    assert!(back.mark.contains("rolling-back"), "{}", back.mark);
-    let robot = robots.get("kiwi").await?;
+    };
+    let (mark_text, robot) =
+        started_then_written_blind(&robots, kind, part, MarkState::RollingBack).await?;
+    assert!(mark_text.contains("rolling-back"), "{mark_text}");
     assert_eq!(robot.spec.release.as_ref(), Some(&target));
     let annotations = robot.metadata.annotations.unwrap_or_default();
     assert!(annotations[kind.mark_annotation()].contains("rolling-back"));
 
-    // The same for an agent rollout and `spec.agent`.
+    // The same for an agent rollout and `spec.agent`, the robot told nothing at first.
     let build = agent();
-    let kind = RolloutKind::Agent;
-    let started = Some(RobotSpecPart {
+    let part = RobotSpecPart {
         release: None,
         agent: Some(build.clone()),
-    });
-    write_robot(
-        &robots,
-        kind,
-        "kiwi",
-        &mark(MarkState::Started),
-        started,
-        None,
-    )
-    .await?;
-    write_robot(&robots, kind, "kiwi", &mark(MarkState::Waiting), None, None)
-        .await
-        .map_err(|e| anyhow::anyhow!("the agent rollout's write was refused: {e}"))?;
-    let robot = robots.get("kiwi").await?;
+    };
+    let (_, robot) =
+        started_then_written_blind(&robots, RolloutKind::Agent, part, MarkState::Waiting).await?;
     assert_eq!(robot.spec.agent.as_ref(), Some(&build));
     assert_eq!(
         robot.spec.release.as_ref(),
@@ -119,10 +112,9 @@ async fn a_write_planned_from_a_lagging_store_keeps_the_spec_the_rollout_set() -
 
     // A robot that never had a release gets none from such a write.
     create_robot(&client, &ns, "kiwi-new", &[]).await?;
-    let kind = RolloutKind::Release;
     write_robot(
         &robots,
-        kind,
+        RolloutKind::Release,
         "kiwi-new",
         &mark(MarkState::Skipped),
         None,
