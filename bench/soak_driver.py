@@ -132,8 +132,10 @@ class Soak:
     def operator_procs(self):
         common = ["--kubeconfig", C["kubeconfig"], "--namespace", "lekiwi-system",
                   "--watch-namespace", NS]
-        # Each robot a rollout writes, to tell when a robot was told its release.
-        env = {"RUST_LOG": "warn,lekiwi_controllers::deployment::apply=debug"}
+        # Each robot a rollout writes, to tell when a robot was told its release; each list of
+        # a watch (how long it took, what changed meanwhile).
+        env = {"RUST_LOG": "warn,lekiwi_controllers::deployment::apply=debug,"
+                           "lekiwi_core::watch=info"}
         for c in ("ctl-a", "ctl-b"):
             self.ports[c] = free_port()
             self.procs[c] = Proc(c, [f"{BIN}/lekiwi-operator", "--role", "controller", *common,
@@ -156,7 +158,8 @@ class Soak:
                 dict(env, MIMALLOC_SHOW_STATS="1",
                      RUST_LOG="warn,lekiwi_gateway::blob_api::access=debug,"
                               "lekiwi_gateway::session::serve=info,"
-                              "lekiwi_gateway::dispatch=debug,lekiwi_core::cache=info"))
+                              "lekiwi_gateway::dispatch=debug,lekiwi_core::cache=info,"
+                              "lekiwi_core::watch=info"))
 
     # Which HAProxy each client process connects through. A proxied connection holds two open
     # files in HAProxy (the robot's and the gateway's), and a process may hold at most the

@@ -242,7 +242,12 @@ impl ControlPlane {
     /// subresource (`robots`, `robots/status`): on a private control plane, what a test's
     /// processes cost it.
     pub fn writes(&self) -> Result<std::collections::BTreeMap<String, f64>> {
-        const VERBS: [&str; 5] = ["POST", "PUT", "PATCH", "APPLY", "DELETE"];
+        self.requests(&["POST", "PUT", "PATCH", "APPLY", "DELETE"])
+    }
+
+    /// The API server's requests of `verbs` so far (`apiserver_request_total`), by resource
+    /// (`robots`, `robots/status`, ...).
+    pub fn requests(&self, verbs: &[&str]) -> Result<std::collections::BTreeMap<String, f64>> {
         let out = self.kubectl(&["get", "--raw", "/metrics"]);
         anyhow::ensure!(out.status.success(), "kubectl get --raw /metrics failed");
         let text = String::from_utf8(out.stdout)?;
@@ -261,7 +266,7 @@ impl ControlPlane {
                     .map(|v| v.trim_end_matches('"').to_owned())
                     .unwrap_or_default()
             };
-            if !VERBS.contains(&label("verb").as_str()) {
+            if !verbs.contains(&label("verb").as_str()) {
                 continue;
             }
             let (resource, sub) = (label("resource"), label("subresource"));

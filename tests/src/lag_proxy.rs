@@ -4,6 +4,11 @@
 //! once. The lag can change while connections are open (it starts at zero, so the client can
 //! start up at full speed).
 //!
+//! It can also hand on what the server sends at a set rate per connection
+//! ([`LagProxy::set_rate`]): a large answer (a list of thousands of objects) then takes long to
+//! arrive while small ones (a watch's events) still come in time, as on an API server that is
+//! slow to send big lists.
+//!
 //! It can also play an API server that restarts badly: [`LagProxy::cut_and_hold`] closes every
 //! open connection and takes the next ones in without ever answering them, as a server that
 //! accepted requests while it started and lost them; [`LagProxy::release`] forwards connections
@@ -29,6 +34,8 @@ pub struct LagProxy {
     /// Where clients connect: `127.0.0.1:port`.
     pub addr: SocketAddr,
     lag_ms: Arc<AtomicU64>,
+    /// Bytes per second handed on per connection; 0: no limit.
+    rate: Arc<AtomicU64>,
     /// Bumped to close every connection forwarded so far.
     cuts: watch::Sender<u64>,
     /// While set, connections are taken in and never answered.
@@ -43,21 +50,23 @@ impl LagProxy {
         let listener = TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
         let lag_ms = Arc::new(AtomicU64::new(0));
+        let rate = Arc::new(AtomicU64::new(0));
         let (cuts, cut) = watch::channel(0);
         let holding = Arc::new(AtomicBool::new(false));
-        let (lag, hold) = (lag_ms.clone(), holding.clone());
+        let (pace, hold) = ((lag_ms.clone(), rate.clone()), holding.clone());
         let accept = tokio::spawn(async move {
             while let Ok((client, _)) = listener.accept().await {
                 if hold.load(Ordering::Relaxed) {
                     tokio::spawn(never_answer(client));
                 } else {
-                    tokio::spawn(forward(client, upstream, lag.clone(), cut.clone()));
+                    tokio::spawn(forward(client, upstream, pace.clone(), cut.clone()));
                 }
             }
         });
         Ok(Self {
             addr,
             lag_ms,
+            rate,
             cuts,
             holding,
             accept,
@@ -81,6 +90,12 @@ impl LagProxy {
         let ms = u64::try_from(lag.as_millis()).unwrap_or(u64::MAX);
         self.lag_ms.store(ms, Ordering::Relaxed);
     }
+
+    /// From now on, each connection hands on at most `bytes_per_second` of what the server
+    /// sends (`0`: as fast as it comes), on open connections too.
+    pub fn set_rate(&self, bytes_per_second: u64) {
+        self.rate.store(bytes_per_second, Ordering::Relaxed);
+    }
 }
 
 impl Drop for LagProxy {
@@ -100,17 +115,24 @@ async fn never_answer(mut client: TcpStream) {
 async fn forward(
     client: TcpStream,
     upstream: SocketAddr,
-    lag_ms: Arc<AtomicU64>,
+    pace: (Arc<AtomicU64>, Arc<AtomicU64>),
     mut cut: watch::Receiver<u64>,
 ) {
     cut.mark_unchanged();
     tokio::select! {
-        () = relay(client, upstream, lag_ms) => {}
+        () = relay(client, upstream, pace) => {}
         _ = cut.changed() => {}
     }
 }
 
-async fn relay(client: TcpStream, upstream: SocketAddr, lag_ms: Arc<AtomicU64>) {
+/// The most handed on at once when a rate is set: pieces this small keep the pace even.
+const PIECE: usize = 4 * 1024;
+
+async fn relay(
+    client: TcpStream,
+    upstream: SocketAddr,
+    (lag_ms, rate): (Arc<AtomicU64>, Arc<AtomicU64>),
+) {
     let Ok(server) = TcpStream::connect(upstream).await else {
         return;
     };
@@ -137,10 +159,19 @@ async fn relay(client: TcpStream, upstream: SocketAddr, lag_ms: Arc<AtomicU64>) 
             }
         }
     });
-    while let Some((at, chunk)) = rx.recv().await {
+    // Paced by sleeping each piece's share of a second: a test bed's stand-in for a slow link,
+    // no rate limiter of the product's.
+    'chunks: while let Some((at, chunk)) = rx.recv().await {
         tokio::time::sleep_until(at).await;
-        if client_write.write_all(&chunk).await.is_err() {
-            break;
+        for piece in chunk.chunks(PIECE) {
+            if client_write.write_all(piece).await.is_err() {
+                break 'chunks;
+            }
+            let len = u64::try_from(piece.len()).unwrap_or(u64::MAX);
+            let per_second = rate.load(Ordering::Relaxed);
+            if let Some(micros) = (len * 1_000_000).checked_div(per_second) {
+                tokio::time::sleep(Duration::from_micros(micros)).await;
+            }
         }
     }
     let _ = client_write.shutdown().await;

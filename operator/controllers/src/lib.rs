@@ -17,6 +17,8 @@ use std::time::Duration;
 use futures::{Stream, StreamExt};
 use kube::runtime::controller::{Action, Config as ControllerConfig, Controller};
 use kube::runtime::reflector::ObjectRef;
+use kube::runtime::{WatchStreamExt, reflector};
+use lekiwi_core::watch::watch_first;
 use serde::de::DeserializeOwned;
 use std::fmt::Debug;
 use tokio_util::sync::CancellationToken;
@@ -225,12 +227,17 @@ where
     })
 }
 
-/// A controller of `api` with this process's reconcile concurrency.
+/// A controller of `api` with this process's reconcile concurrency, fed by a watch that starts
+/// before its list (a list longer than the API server's watch history does not expire it: see
+/// `lekiwi_core::watch`).
 pub(crate) fn controller_for<K>(api: Api<K>, ctx: &Context) -> Controller<K>
 where
     K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + Sync + 'static,
 {
-    Controller::new(api, lekiwi_core::api_client::watch_config().any_semantic())
+    let writer = reflector::store::Writer::default();
+    let store = writer.as_reader();
+    let changes = watch_first(api, lekiwi_core::api_client::watch_config());
+    Controller::for_stream(reflector(writer, changes).applied_objects(), store)
         .with_config(ControllerConfig::default().concurrency(ctx.config.concurrency))
 }
 

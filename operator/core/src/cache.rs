@@ -4,8 +4,9 @@
 //! namespace is one range of the map; an index by label `key=value` lets a list with such a
 //! selector read only the objects that carry the label. Each object's JSON is made when a list
 //! first asks for it and kept until the object changes, so a list is answered by joining ready
-//! bytes, and objects nobody lists cost no JSON (about 1.6 KB per Robot). A relist (after the
-//! watch broke off) updates each object as it arrives and, once complete, drops those it no
+//! bytes, and objects nobody lists cost no JSON (about 1.6 KB per Robot). The watch starts before
+//! its list ([`crate::watch`]), so changes arrive while a long list is read; a relist then updates
+//! each object it holds at another version than the map's and, once complete, drops those it no
 //! longer holds (sent as deletions): the map never shows an object older than a change already
 //! sent, which readers that act on both (the gateway's dispatch and its sessions) count on.
 //! Every change the watch delivers is also sent once on the cache's broadcast
@@ -17,6 +18,7 @@ use std::ops::Bound;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock, RwLock};
 
+use crate::watch::watch_first;
 use futures::StreamExt;
 use kube::runtime::{WatchStreamExt, watcher};
 use kube::{Api, Resource, ResourceExt};
@@ -302,26 +304,18 @@ impl<K: Resource + Serialize> Cache<K> {
                 objects.remove(&key(&o));
                 let _ = self.changes.send(Change::Deleted(Arc::new(o)));
             }
-            watcher::Event::Init => {
-                *relist = Some(Relist {
-                    seen: HashSet::new(),
-                    started: std::time::Instant::now(),
-                });
-            }
+            watcher::Event::Init => *relist = Some(Relist::default()),
             watcher::Event::InitApply(o) => {
                 if let Some(r) = relist.as_mut() {
                     r.seen.insert(key(&o));
                 }
-                self.applied(o);
+                // The watch that runs beside the list may have brought this very version.
+                if !self.holds(&o) {
+                    self.applied(o);
+                }
             }
             watcher::Event::InitDone => {
-                if let Some(Relist { seen, started }) = relist.take() {
-                    tracing::info!(
-                        kind = kind_of::<K>(),
-                        objects = seen.len(),
-                        seconds = started.elapsed().as_secs_f64(),
-                        "listed"
-                    );
+                if let Some(Relist { seen }) = relist.take() {
                     let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
                     let gone: Vec<Key> = objects
                         .map
@@ -347,6 +341,18 @@ impl<K: Resource + Serialize> Cache<K> {
         self.applied(o);
     }
 
+    /// Whether the map holds `o` at its version already.
+    fn holds(&self, o: &K) -> bool {
+        let Some(version) = o.meta().resource_version.as_deref() else {
+            return false;
+        };
+        let objects = self.objects.read().unwrap_or_else(|p| p.into_inner());
+        objects
+            .map
+            .get(&key(o))
+            .is_some_and(|i| i.object.meta().resource_version.as_deref() == Some(version))
+    }
+
     /// Keeps `o` and then sends the change, under the map's lock: whoever reads the change
     /// finds the map as new as it.
     fn applied(&self, o: K) {
@@ -357,16 +363,10 @@ impl<K: Resource + Serialize> Cache<K> {
     }
 }
 
-/// The short name of `K`'s type (`Robot`), for logs.
-fn kind_of<K>() -> &'static str {
-    let name = std::any::type_name::<K>();
-    name.rsplit("::").next().unwrap_or(name)
-}
-
-/// A list in progress: the keys it delivered so far, and when it began.
+/// A relist in progress: the keys it delivered so far.
+#[derive(Default)]
 struct Relist {
     seen: HashSet<Key>,
-    started: std::time::Instant,
 }
 
 /// The key of `o`.
@@ -382,12 +382,19 @@ pub fn watch<K>(
     cancel: CancellationToken,
 ) -> (Arc<Cache<K>>, JoinHandle<()>)
 where
-    K: Resource + Clone + DeserializeOwned + Serialize + std::fmt::Debug + Send + Sync + 'static,
+    K: Resource<DynamicType = ()>
+        + Clone
+        + DeserializeOwned
+        + Serialize
+        + std::fmt::Debug
+        + Send
+        + Sync
+        + 'static,
 {
     let cache = Arc::new(Cache::new());
     let filled = cache.clone();
     let task = tokio::spawn(async move {
-        let stream = watcher(api, crate::api_client::watch_config().any_semantic())
+        let stream = watch_first(api, crate::api_client::watch_config())
             .default_backoff()
             .modify(trim);
         let mut stream = std::pin::pin!(stream);
@@ -400,7 +407,7 @@ where
                     // Spaced by the watcher's backoff; a list or watch that keeps failing leaves
                     // every reader of the cache (deploys, blob access, the Fleet API) behind.
                     Some(Err(e)) => tracing::warn!(
-                        kind = kind_of::<K>(),
+                        kind = K::kind(&()).as_ref(),
                         error = %e,
                         "watch failed; retrying"
                     ),

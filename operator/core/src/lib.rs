@@ -2,8 +2,9 @@
 //! of the fleet's Robots and RobotDeployments that the gateway and the Fleet API read
 //! ([`cache`]), the token bucket that paces frames and writes ([`rate`]), the typed server-side
 //! apply patches every writer of a Robot or RobotDeployment sends ([`apply`]), and how long a
-//! request to the API server may wait ([`api_client`]), and the JSON errors every HTTP route
-//! answers ([`http`]).
+//! request to the API server may wait ([`api_client`]), the watch that starts before its list so a
+//! long list cannot expire it ([`watch`]), and the JSON errors every HTTP route answers
+//! ([`http`]).
 
 pub mod api_client;
 pub mod apply;
@@ -11,5 +12,6 @@ pub mod cache;
 pub mod http;
 pub mod rate;
 mod robot;
+pub mod watch;
 
 pub use robot::RobotKey;

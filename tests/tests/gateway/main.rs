@@ -13,5 +13,6 @@ mod otel;
 mod recovery;
 mod replica_lag;
 mod robot_controller;
+mod slow_list;
 mod storm;
 mod tls_rotation;

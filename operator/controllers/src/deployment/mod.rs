@@ -26,6 +26,7 @@ use kube::runtime::controller::Action;
 use kube::runtime::reflector::{ObjectRef, Store};
 use kube::runtime::{WatchStreamExt, reflector, watcher};
 use kube::{Api, ResourceExt};
+use lekiwi_core::watch::watch_first;
 use lekiwi_crds::{Robot, RobotDeployment};
 use tokio_util::sync::CancellationToken;
 use tracing::{Instrument, info, info_span, warn};
@@ -105,13 +106,11 @@ fn watch_robots(
 ) -> (Store<Robot>, impl Future<Output = ()> + Send + 'static) {
     let (store, writer) = reflector::store();
     let index = index::RobotIndex::default();
+    // Started before its list, so a list longer than the API server's watch history (10,000
+    // Robots after an API server restart) does not expire it (see `lekiwi_core::watch`).
     let watch = reflector(
         writer,
-        watcher(
-            robots,
-            lekiwi_core::api_client::watch_config().any_semantic(),
-        )
-        .modify(|r: &mut Robot| {
+        watch_first(robots, lekiwi_core::api_client::watch_config()).modify(|r: &mut Robot| {
             // Only labels, annotations, spec and status are read; drop the rest.
             r.managed_fields_mut().clear();
         }),

@@ -1,0 +1,432 @@
+//! A watch that starts before its list, so that however long the list takes, the watch after it
+//! is never refused as too old.
+//!
+//! kube's watcher lists first and then watches from the list's resourceVersion. The API server
+//! keeps only a short history of changes for watches to resume from (its watch cache: at least
+//! the last 75 seconds on the Kubernetes versions without streaming lists); a list that takes
+//! longer than that under load (10,000 Robots listed by every watcher at once after an API server
+//! restart took 90-137 s on two cores) is followed by a watch refused at once (`410 Gone`), and
+//! the list starts over, for as long as lists stay slow.
+//!
+//! Here the order is turned round. A list that matches nothing (`metadata.name=`), answered from
+//! the API server's cache, reads where that cache stands (not etcd's revision, which other kinds'
+//! writes move on and the cache of a quiet kind may not reach for minutes); the watch starts
+//! there; then the full list, at least as new, is read while the watch's changes
+//! are already handed on (as `Apply` and `Delete`, so readers see them during a long list). When
+//! the list is in, it is merged with what the watch brought, the newer of the two by
+//! resourceVersion winning for each object, and handed on as one complete relist (`Init`, each
+//! object as `InitApply`, `InitDone`), which kube's reflector and [`crate::cache`] take as the
+//! whole set. resourceVersions are compared as numbers, as every etcd-backed API server writes
+//! them; where one is not a number, the watch's copy wins.
+//!
+//! The stream yields each failure as an error, as kube's watcher does, for the caller's backoff
+//! (`WatchStreamExt::default_backoff`) to space the retries: a watch that ends or fails resumes
+//! from the last version it saw; one refused as too old starts over with a new list.
+
+use std::collections::HashMap;
+use std::fmt::Debug;
+use std::time::Instant;
+
+use futures::future::BoxFuture;
+use futures::stream::BoxStream;
+use futures::{FutureExt, Stream, StreamExt};
+use kube::api::{ListParams, ObjectList, VersionMatch, WatchEvent, WatchParams};
+use kube::runtime::watcher::{self, Event};
+use kube::{Api, Resource, ResourceExt};
+use serde::de::DeserializeOwned;
+
+/// An object's namespace and name.
+type Key = (String, String);
+
+/// The events of a watch, as the API server sends them.
+type Changes<K> = BoxStream<'static, kube::Result<WatchEvent<K>>>;
+
+/// What this stream yields.
+type Yield<K> = watcher::Result<Event<K>>;
+
+/// Where the stream stands.
+enum State<K: Clone> {
+    /// Nothing open: find the API server's current version, watch from it, list.
+    Start,
+    /// The list is being read while the watch already runs.
+    Listing(Box<Listing<K>>),
+    /// Watching from `version`; the watch is to open again when `changes` is `None`.
+    Watching {
+        version: String,
+        changes: Option<Changes<K>>,
+    },
+}
+
+/// A list in progress and the watch that runs beside it.
+struct Listing<K: Clone> {
+    list: BoxFuture<'static, kube::Result<ObjectList<K>>>,
+    changes: Changes<K>,
+    /// The last version the watch reached (an object's, or a bookmark's).
+    version: String,
+    /// For each object the watch changed since it started: its version and, unless deleted,
+    /// the object as the watch brought it last.
+    seen: HashMap<Key, (Option<u64>, Option<K>)>,
+    started: Instant,
+}
+
+/// Watches the objects of `api` that `config`'s selectors and timeout choose (its list
+/// semantic, page size and initial list strategy do not apply: the list is read whole, at least
+/// as new as the watch's start). Yields the events kube's watcher yields, in the order described
+/// in the module's documentation.
+pub fn watch_first<K>(api: Api<K>, config: watcher::Config) -> impl Stream<Item = Yield<K>> + Send
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
+{
+    futures::stream::unfold(State::Start, move |state| {
+        let (api, config) = (api.clone(), config.clone());
+        async move { Some(step(&api, &config, state).await) }
+    })
+    .flat_map(futures::stream::iter)
+}
+
+/// One step from `state`: what it yields (often nothing or one event; a whole relist when a
+/// list comes in) and the state after it.
+async fn step<K>(
+    api: &Api<K>,
+    config: &watcher::Config,
+    state: State<K>,
+) -> (Vec<Yield<K>>, State<K>)
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
+{
+    match state {
+        State::Start => start(api, config).await,
+        State::Listing(listing) => listing_step(api, config, *listing).await,
+        State::Watching {
+            version,
+            changes: None,
+        } => match api.watch(&watch_params(config), &version).await {
+            Ok(changes) => (
+                Vec::new(),
+                State::Watching {
+                    version,
+                    changes: Some(changes.boxed()),
+                },
+            ),
+            Err(kube::Error::Api(status)) if status.code == 410 => {
+                (vec![Err(watcher::Error::WatchError(status))], State::Start)
+            }
+            Err(e) => (
+                vec![Err(watcher::Error::WatchStartFailed(e))],
+                State::Watching {
+                    version,
+                    changes: None,
+                },
+            ),
+        },
+        State::Watching {
+            mut version,
+            changes: Some(mut changes),
+        } => {
+            let (out, next) = match changes.next().await {
+                Some(Ok(WatchEvent::Added(o) | WatchEvent::Modified(o))) => {
+                    note_version(&mut version, &o);
+                    (Some(Ok(Event::Apply(o))), Next::Go)
+                }
+                Some(Ok(WatchEvent::Deleted(o))) => {
+                    note_version(&mut version, &o);
+                    (Some(Ok(Event::Delete(o))), Next::Go)
+                }
+                Some(Ok(WatchEvent::Bookmark(b))) => {
+                    version = b.metadata.resource_version;
+                    (None, Next::Go)
+                }
+                Some(Ok(WatchEvent::Error(status))) => {
+                    let next = if status.code == 410 {
+                        Next::Relist
+                    } else {
+                        Next::Reopen
+                    };
+                    (Some(Err(watcher::Error::WatchError(status))), next)
+                }
+                Some(Err(e)) => (Some(Err(watcher::Error::WatchFailed(e))), Next::Reopen),
+                // The server ended the watch (its timeout): resume it at once.
+                None => (None, Next::Reopen),
+            };
+            let state = match next {
+                Next::Go => State::Watching {
+                    version,
+                    changes: Some(changes),
+                },
+                Next::Reopen => State::Watching {
+                    version,
+                    changes: None,
+                },
+                Next::Relist => State::Start,
+            };
+            (out.into_iter().collect(), state)
+        }
+    }
+}
+
+/// What follows an event of a running watch.
+enum Next {
+    /// Read on.
+    Go,
+    /// Open the watch again from the last version.
+    Reopen,
+    /// The version is too old: list again.
+    Relist,
+}
+
+/// Reads where the API server's cache stands, opens the watch there and starts the list.
+async fn start<K>(api: &Api<K>, config: &watcher::Config) -> (Vec<Yield<K>>, State<K>)
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
+{
+    let nothing = match &config.field_selector {
+        Some(fields) => format!("{fields},metadata.name="),
+        None => "metadata.name=".to_owned(),
+    };
+    let now = ListParams {
+        field_selector: Some(nothing),
+        resource_version: Some("0".to_owned()),
+        ..list_params(config)
+    };
+    let version = match api.list(&now).await {
+        Ok(list) => match list.metadata.resource_version {
+            Some(v) if !v.is_empty() => v,
+            _ => return (vec![Err(watcher::Error::NoResourceVersion)], State::Start),
+        },
+        Err(e) => {
+            return (
+                vec![Err(watcher::Error::InitialListFailed(e))],
+                State::Start,
+            );
+        }
+    };
+    let changes = match api.watch(&watch_params(config), &version).await {
+        Ok(changes) => changes.boxed(),
+        Err(e) => return (vec![Err(watcher::Error::WatchStartFailed(e))], State::Start),
+    };
+    let whole = ListParams {
+        resource_version: Some(version.clone()),
+        version_match: Some(VersionMatch::NotOlderThan),
+        ..list_params(config)
+    };
+    let lister = api.clone();
+    tracing::debug!(
+        kind = K::kind(&()).as_ref(),
+        version,
+        "listing; watching already"
+    );
+    let listing = Listing {
+        list: async move { lister.list(&whole).await }.boxed(),
+        changes,
+        version,
+        seen: HashMap::new(),
+        started: Instant::now(),
+    };
+    (Vec::new(), State::Listing(Box::new(listing)))
+}
+
+/// One step while the list is read: the list came in (merged and handed on), or the watch
+/// brought a change (handed on at once and remembered for the merge).
+async fn listing_step<K>(
+    api: &Api<K>,
+    config: &watcher::Config,
+    mut l: Listing<K>,
+) -> (Vec<Yield<K>>, State<K>)
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
+{
+    let change = tokio::select! {
+        listed = &mut l.list => {
+            return match listed {
+                Ok(list) => {
+                    tracing::info!(
+                        kind = K::kind(&()).as_ref(),
+                        objects = list.items.len(),
+                        changed_while_listing = l.seen.len(),
+                        seconds = l.started.elapsed().as_secs_f64(),
+                        "listed"
+                    );
+                    let relist = merge(list.items, l.seen);
+                    let watching = State::Watching { version: l.version, changes: Some(l.changes) };
+                    (relist, watching)
+                }
+                Err(e) => (vec![Err(watcher::Error::InitialListFailed(e))], State::Start),
+            };
+        }
+        change = l.changes.next() => change,
+    };
+    let event = match change {
+        Some(Ok(WatchEvent::Added(o) | WatchEvent::Modified(o))) => {
+            note_version(&mut l.version, &o);
+            l.seen.insert(key(&o), (version_of(&o), Some(o.clone())));
+            Some(Ok(Event::Apply(o)))
+        }
+        Some(Ok(WatchEvent::Deleted(o))) => {
+            note_version(&mut l.version, &o);
+            l.seen.insert(key(&o), (version_of(&o), None));
+            Some(Ok(Event::Delete(o)))
+        }
+        Some(Ok(WatchEvent::Bookmark(b))) => {
+            l.version = b.metadata.resource_version;
+            None
+        }
+        // The list cannot be trusted to merge with a watch that failed: start over.
+        Some(Ok(WatchEvent::Error(status))) => {
+            return (vec![Err(watcher::Error::WatchError(status))], State::Start);
+        }
+        Some(Err(e)) => return (vec![Err(watcher::Error::WatchFailed(e))], State::Start),
+        // The server ended the watch (its timeout) before the list came in: resume it.
+        None => match api.watch(&watch_params(config), &l.version).await {
+            Ok(changes) => {
+                l.changes = changes.boxed();
+                None
+            }
+            Err(e) => return (vec![Err(watcher::Error::WatchStartFailed(e))], State::Start),
+        },
+    };
+    (event.into_iter().collect(), State::Listing(Box::new(l)))
+}
+
+/// The list merged with what the watch brought meanwhile, as one relist: for each object the
+/// newer copy, none for an object the watch saw deleted after the list's copy.
+fn merge<K: Resource>(
+    items: Vec<K>,
+    mut seen: HashMap<Key, (Option<u64>, Option<K>)>,
+) -> Vec<Yield<K>> {
+    let mut out = Vec::with_capacity(items.len() + seen.len() + 2);
+    out.push(Ok(Event::Init));
+    for item in items {
+        let listed = version_of(&item);
+        match seen.remove(&key(&item)) {
+            Some((watched, object)) if !older(watched, listed) => {
+                out.extend(object.map(|o| Ok(Event::InitApply(o))));
+            }
+            _ => out.push(Ok(Event::InitApply(item))),
+        }
+    }
+    // Created after the list's version.
+    out.extend(
+        seen.into_values()
+            .filter_map(|(_, object)| object.map(|o| Ok(Event::InitApply(o)))),
+    );
+    out.push(Ok(Event::InitDone));
+    out
+}
+
+/// Whether a copy at version `watched` is older than one at `listed` (unknown: not older).
+fn older(watched: Option<u64>, listed: Option<u64>) -> bool {
+    matches!((watched, listed), (Some(w), Some(l)) if w < l)
+}
+
+fn key<K: Resource>(o: &K) -> Key {
+    (o.namespace().unwrap_or_default(), o.name_any())
+}
+
+/// `o`'s resourceVersion as a number, if it is one.
+fn version_of<K: Resource>(o: &K) -> Option<u64> {
+    o.resource_version()?.parse().ok()
+}
+
+/// Moves `version` on to `o`'s, if it has one.
+fn note_version<K: Resource>(version: &mut String, o: &K) {
+    if let Some(v) = o.resource_version().filter(|v| !v.is_empty()) {
+        *version = v;
+    }
+}
+
+fn list_params(config: &watcher::Config) -> ListParams {
+    ListParams {
+        label_selector: config.label_selector.clone(),
+        field_selector: config.field_selector.clone(),
+        ..ListParams::default()
+    }
+}
+
+fn watch_params(config: &watcher::Config) -> WatchParams {
+    WatchParams {
+        label_selector: config.label_selector.clone(),
+        field_selector: config.field_selector.clone(),
+        timeout: config.timeout,
+        bookmarks: config.bookmarks,
+        ..WatchParams::default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use lekiwi_crds::{Robot, RobotSpec};
+
+    fn robot(name: &str, version: &str, room: &str) -> Robot {
+        let mut r = Robot::new(name, RobotSpec::default());
+        r.metadata.namespace = Some("lab".into());
+        r.metadata.resource_version = Some(version.into());
+        r.metadata.labels = Some([("room".to_owned(), room.to_owned())].into());
+        r
+    }
+
+    fn described(events: &[Yield<Robot>]) -> Vec<String> {
+        events
+            .iter()
+            .map(|e| match e {
+                Ok(Event::Init) => "init".to_owned(),
+                Ok(Event::InitApply(r)) => {
+                    format!(
+                        "{}@{}:{}",
+                        r.name_any(),
+                        r.resource_version().unwrap(),
+                        r.labels()["room"]
+                    )
+                }
+                Ok(Event::InitDone) => "done".to_owned(),
+                other => format!("{other:?}"),
+            })
+            .collect()
+    }
+
+    /// The newer copy of each object wins, by number (not text: "9" < "10"); an object the
+    /// watch saw deleted after the list's copy is left out, one it saw created is added, and
+    /// the list's copy wins over an older one the watch brought.
+    #[test]
+    fn the_newer_copy_wins_and_deletions_after_the_list_hold() {
+        let listed = vec![
+            robot("a", "9", "list"),
+            robot("b", "12", "list"),
+            robot("c", "9", "list"),
+            robot("d", "5", "list"),
+        ];
+        let seen: HashMap<Key, (Option<u64>, Option<Robot>)> = [
+            (robot("a", "10", "watch"), true),
+            (robot("b", "11", "watch"), true),
+            (robot("c", "13", "watch"), false),
+            (robot("e", "14", "watch"), true),
+        ]
+        .into_iter()
+        .map(|(r, alive)| (key(&r), (version_of(&r), alive.then_some(r))))
+        .collect();
+        let mut merged = described(&merge(listed, seen));
+        assert_eq!(merged.first().map(String::as_str), Some("init"));
+        assert_eq!(merged.last().map(String::as_str), Some("done"));
+        merged.sort();
+        assert_eq!(
+            merged,
+            [
+                "a@10:watch",
+                "b@12:list",
+                "d@5:list",
+                "done",
+                "e@14:watch",
+                "init"
+            ]
+        );
+    }
+
+    /// Where a version is not a number, the watch's copy (the later one to arrive) wins.
+    #[test]
+    fn an_unreadable_version_leaves_the_watchs_copy() {
+        assert!(!older(None, Some(3)));
+        assert!(!older(Some(3), None));
+        assert!(older(Some(3), Some(4)));
+        assert!(!older(Some(4), Some(4)));
+    }
+}
