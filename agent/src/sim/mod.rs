@@ -84,8 +84,9 @@ pub struct Args {
     /// resent after a reconnect; the summary counts generated and acknowledged ones.
     #[arg(long)]
     pub events_per_minute: Option<f64>,
-    /// When `--duration` ends, stop making events and wait up to this many seconds for the
-    /// unacknowledged ones to be acknowledged before exiting.
+    /// When `--duration` ends, stop making durable messages (events, telemetry batches,
+    /// command reports) and wait up to this many seconds for the unacknowledged ones to be
+    /// acknowledged before exiting.
     #[arg(long, default_value_t = 0.0)]
     pub drain_seconds: f64,
     /// Share (0 to 1) of the robots that, after losing a session, wait `--late-delay` seconds
@@ -329,12 +330,17 @@ impl Fleet {
         !self.stats.draining.load(Ordering::Relaxed)
     }
 
-    /// Stops new events and waits up to `--drain-seconds` for the rest to be acknowledged.
+    /// Stops new durable messages (events, telemetry batches, command reports) and waits up to
+    /// `--drain-seconds` for the rest to be acknowledged. The first look comes a moment after
+    /// the stop, so a message a robot was making as it came is counted.
     async fn drain(&self) {
         self.stats.draining.store(true, Ordering::Relaxed);
         let end = Instant::now() + Duration::from_secs_f64(self.args.drain_seconds);
-        while Instant::now() < end && self.unacked() > 0 {
+        loop {
             tokio::time::sleep(Duration::from_millis(200)).await;
+            if Instant::now() >= end || self.unacked() == 0 {
+                break;
+            }
         }
         self.report();
     }

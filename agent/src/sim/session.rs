@@ -178,7 +178,9 @@ pub(super) async fn robot(fleet: Fleet, name: String, gateway: usize) {
 /// current).
 fn settle_offline(commands: &mut Commands, robot: &RobotId, outbox: &mut Outbox, stats: &Stats) {
     while let Some(report) = commands.try_next() {
-        if let Handled::Durable(d) = commands.handle(robot, report) {
+        if let Handled::Durable(d) = commands.handle(robot, report)
+            && !stats.draining.load(Ordering::Relaxed)
+        {
             outbox.push_message(|seq| d.message(seq), stats);
         }
     }
@@ -253,6 +255,8 @@ impl Session<'_> {
             };
             let step = match wake {
                 Wake::Heartbeat => Step::Heartbeat,
+                // The run began to drain since the wait began: nothing new.
+                Wake::Event if !self.fleet.generating() => Step::Go,
                 Wake::Event => {
                     let (seq, ts_ms) = self.outbox.push_at(self.clock_ms(), stats);
                     match tx.send(event(self.name, seq, ts_ms)).await {
@@ -355,7 +359,7 @@ impl Session<'_> {
     /// outbox until acknowledged.
     fn batch(&mut self) -> Option<Message> {
         let s = self.sampler.as_mut()?;
-        if s.pending.is_empty() {
+        if s.pending.is_empty() || !self.fleet.generating() {
             return None;
         }
         let samples = std::mem::take(&mut s.pending);
@@ -367,6 +371,8 @@ impl Session<'_> {
     /// Something the robot's commands have for the gateway.
     async fn on_report(&mut self, report: super::commands::Report, tx: &mut Tx) -> Step {
         match self.commands.handle(&self.robot, report) {
+            // A draining run makes nothing new: every message made is acknowledged or counted.
+            Handled::Durable(_) if !self.fleet.generating() => Step::Go,
             Handled::Durable(d) => {
                 let stats = &*self.fleet.stats;
                 let frame = self.outbox.push_message(|seq| d.message(seq), stats);
