@@ -190,7 +190,8 @@ pub struct RolloutStrategy {
     pub success_threshold: f64,
 
     /// How long one robot may take to download, switch and report healthy before it counts as
-    /// failed. Default 600.
+    /// failed, counted from the write that started it (a batch's robots are written a few at a
+    /// time). Default 600.
     #[serde(default = "default_robot_timeout")]
     #[schemars(range(min = 1))]
     pub robot_timeout_seconds: i64,

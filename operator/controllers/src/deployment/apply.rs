@@ -6,6 +6,7 @@
 use std::collections::BTreeMap;
 
 use futures::StreamExt;
+use jiff::Timestamp;
 use kube::api::{Patch, PatchParams};
 use kube::runtime::events::{Event, EventType, Recorder};
 use kube::{Api, Resource};
@@ -48,10 +49,14 @@ pub(super) async fn write_robots(
     let robots: Api<Robot> = Api::namespaced(client.clone(), &namespace);
     let kind = deployment.spec.kind();
     let jobs = robot_writes(deployment, facts, plan);
+    let planned_at = facts.now;
     let results: Vec<Result<Written>> = futures::stream::iter(jobs)
         .map(|(robot, mark, spec, window)| {
             let robots = robots.clone();
-            async move { write_robot(&robots, kind, &robot, &mark, spec, window).await }
+            async move {
+                let mark = entered_now(mark, planned_at);
+                write_robot(&robots, kind, &robot, &mark, spec, window).await
+            }
         })
         .buffer_unordered(WRITE_CONCURRENCY)
         .collect()
@@ -72,6 +77,18 @@ pub(super) async fn write_robots(
         );
     }
     (written, failed)
+}
+
+/// `mark` with the time of its write for the time its state was entered, when this plan
+/// entered it (at `planned_at`): a robot's timeout counts from when it was told, not from when
+/// the plan began. A batch of a thousand robots written to an API server busy after its restart
+/// took four minutes; robots told last had timed out before they were told, and their batch
+/// failed. A mark kept from an earlier plan keeps its time.
+fn entered_now(mut mark: Mark, planned_at: Timestamp) -> Mark {
+    if mark.since == planned_at {
+        mark.since = Timestamp::now().max(planned_at);
+    }
+    mark
 }
 
 /// What each planned write sends. A write that sets no release (a mark-only write) still sends
@@ -399,5 +416,26 @@ mod tests {
         facts.robots[0].desired = Some(rel("1.5.0", 'd'));
         let (_, _, spec, _) = robot_writes(&release, &facts, &plan).remove(0);
         assert_eq!(spec.and_then(|s| s.release), Some(rel("1.5.0", 'd')));
+    }
+
+    /// A state this plan entered takes the time of its write (the robot's timeout counts from
+    /// when it was told); a mark kept from an earlier plan keeps its time.
+    #[test]
+    fn a_mark_entered_now_takes_the_time_of_its_write() {
+        let target = rel("2.0.0", 'b');
+        let (_, plan) = mark_only(MarkState::Started, &target);
+        let mark = plan.writes[0].mark.clone();
+        let planned_at = Timestamp::now() - jiff::SignedDuration::from_secs(240);
+        let entered = Mark {
+            since: planned_at,
+            ..mark.clone()
+        };
+        let written = entered_now(entered, planned_at);
+        assert!(written.since > planned_at + jiff::SignedDuration::from_secs(200));
+        let kept = Mark {
+            since: planned_at - jiff::SignedDuration::from_secs(60),
+            ..mark
+        };
+        assert_eq!(entered_now(kept.clone(), planned_at), kept);
     }
 }
