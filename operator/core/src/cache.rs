@@ -28,8 +28,8 @@ use tokio::sync::broadcast;
 use tokio::task::JoinHandle;
 use tokio_util::sync::CancellationToken;
 
-/// An object's place in the map: namespace, then name.
-pub type Key = (String, String);
+/// An object's place in the map: namespace, then name (the watch's own key of an object).
+pub use crate::watch::{Key, key};
 
 /// Changes a subscriber may fall behind by before it is told it lagged (and reads the cache
 /// again instead): the broadcast's memory is bounded whatever the subscribers do.
@@ -310,9 +310,7 @@ impl<K: Resource + Serialize> Cache<K> {
                     r.seen.insert(key(&o));
                 }
                 // The watch that runs beside the list may have brought this very version.
-                if !self.holds(&o) {
-                    self.applied(o);
-                }
+                self.applied_unless_held(o);
             }
             watcher::Event::InitDone => {
                 if let Some(Relist { seen }) = relist.take() {
@@ -341,25 +339,32 @@ impl<K: Resource + Serialize> Cache<K> {
         self.applied(o);
     }
 
-    /// Whether the map holds `o` at its version already.
-    fn holds(&self, o: &K) -> bool {
-        let Some(version) = o.meta().resource_version.as_deref() else {
-            return false;
-        };
-        let objects = self.objects.read().unwrap_or_else(|p| p.into_inner());
-        objects
-            .map
-            .get(&key(o))
-            .is_some_and(|i| i.object.meta().resource_version.as_deref() == Some(version))
+    /// Like [`Cache::applied`], unless the map holds `o` at its version already (checked under
+    /// the same lock).
+    fn applied_unless_held(&self, o: K) {
+        self.keep(o, true);
     }
 
     /// Keeps `o` and then sends the change, under the map's lock: whoever reads the change
     /// finds the map as new as it.
     fn applied(&self, o: K) {
-        let new = Item::new(o);
+        self.keep(o, false);
+    }
+
+    fn keep(&self, o: K, unless_held: bool) {
         let mut objects = self.objects.write().unwrap_or_else(|p| p.into_inner());
-        let old = objects.insert(new.clone());
-        let _ = self.changes.send(Change::Applied(old, new.object));
+        let version = o.meta().resource_version.as_deref();
+        let held = unless_held
+            && version.is_some()
+            && objects
+                .map
+                .get(&key(&o))
+                .is_some_and(|i| i.object.meta().resource_version.as_deref() == version);
+        if !held {
+            let new = Item::new(o);
+            let old = objects.insert(new.clone());
+            let _ = self.changes.send(Change::Applied(old, new.object));
+        }
     }
 }
 
@@ -367,11 +372,6 @@ impl<K: Resource + Serialize> Cache<K> {
 #[derive(Default)]
 struct Relist {
     seen: HashSet<Key>,
-}
-
-/// The key of `o`.
-pub fn key<K: Resource>(o: &K) -> Key {
-    (o.namespace().unwrap_or_default(), o.name_any())
 }
 
 /// Starts watching `api`; every object goes through `trim` (to drop what the API never
@@ -497,6 +497,32 @@ mod tests {
         assert_eq!(gone.name_any(), "r2");
         assert!(changes.try_recv().is_err(), "nothing else changed");
         assert_eq!(cache.page(None, None, 10, |_| true).0.len(), 1);
+    }
+
+    /// A relist that brings an object at the version the map holds (the watch beside the list
+    /// brought it first) sends no change; at another version it does.
+    #[test]
+    fn a_relisted_object_the_map_holds_at_its_version_sends_no_change() {
+        let mut held = labelled("b", "r1", "x1");
+        held.metadata.resource_version = Some("7".into());
+        let cache = Cache::listed([held.clone()]);
+        let mut changes = cache.subscribe();
+        let mut relist = None;
+        cache.apply(watcher::Event::Init, &mut relist);
+        cache.apply(watcher::Event::InitApply(held), &mut relist);
+        assert!(
+            changes.try_recv().is_err(),
+            "the same version again is no change"
+        );
+        let mut newer = labelled("b", "r1", "x2");
+        newer.metadata.resource_version = Some("8".into());
+        cache.apply(watcher::Event::InitApply(newer), &mut relist);
+        let Ok(Change::Applied(Some(_), now)) = changes.try_recv() else {
+            panic!("a newer version is a change");
+        };
+        assert_eq!(now.labels()["room"], "x2");
+        cache.apply(watcher::Event::InitDone, &mut relist);
+        assert_eq!(cache.get("b", "r1").unwrap().labels()["room"], "x2");
     }
 
     fn labelled(ns: &str, name: &str, room: &str) -> Robot {

@@ -36,7 +36,7 @@ use kube::{Api, Resource, ResourceExt};
 use serde::de::DeserializeOwned;
 
 /// An object's namespace and name.
-type Key = (String, String);
+pub type Key = (String, String);
 
 /// The events of a watch, as the API server sends them.
 type Changes<K> = BoxStream<'static, kube::Result<WatchEvent<K>>>;
@@ -123,31 +123,7 @@ where
             mut version,
             changes: Some(mut changes),
         } => {
-            let (out, next) = match changes.next().await {
-                Some(Ok(WatchEvent::Added(o) | WatchEvent::Modified(o))) => {
-                    note_version(&mut version, &o);
-                    (Some(Ok(Event::Apply(o))), Next::Go)
-                }
-                Some(Ok(WatchEvent::Deleted(o))) => {
-                    note_version(&mut version, &o);
-                    (Some(Ok(Event::Delete(o))), Next::Go)
-                }
-                Some(Ok(WatchEvent::Bookmark(b))) => {
-                    version = b.metadata.resource_version;
-                    (None, Next::Go)
-                }
-                Some(Ok(WatchEvent::Error(status))) => {
-                    let next = if status.code == 410 {
-                        Next::Relist
-                    } else {
-                        Next::Reopen
-                    };
-                    (Some(Err(watcher::Error::WatchError(status))), next)
-                }
-                Some(Err(e)) => (Some(Err(watcher::Error::WatchFailed(e))), Next::Reopen),
-                // The server ended the watch (its timeout): resume it at once.
-                None => (None, Next::Reopen),
-            };
+            let (out, next) = read(changes.next().await, &mut version);
             let state = match next {
                 Next::Go => State::Watching {
                     version,
@@ -161,6 +137,38 @@ where
             };
             (out.into_iter().collect(), state)
         }
+    }
+}
+
+/// What a watch's next item yields, and what follows it; moves `version` on to the item's.
+fn read<K: Resource>(
+    change: Option<kube::Result<WatchEvent<K>>>,
+    version: &mut String,
+) -> (Option<Yield<K>>, Next) {
+    match change {
+        Some(Ok(WatchEvent::Added(o) | WatchEvent::Modified(o))) => {
+            note_version(version, &o);
+            (Some(Ok(Event::Apply(o))), Next::Go)
+        }
+        Some(Ok(WatchEvent::Deleted(o))) => {
+            note_version(version, &o);
+            (Some(Ok(Event::Delete(o))), Next::Go)
+        }
+        Some(Ok(WatchEvent::Bookmark(b))) => {
+            *version = b.metadata.resource_version;
+            (None, Next::Go)
+        }
+        Some(Ok(WatchEvent::Error(status))) => {
+            let next = if status.code == 410 {
+                Next::Relist
+            } else {
+                Next::Reopen
+            };
+            (Some(Err(watcher::Error::WatchError(status))), next)
+        }
+        Some(Err(e)) => (Some(Err(watcher::Error::WatchFailed(e))), Next::Reopen),
+        // The server ended the watch (its timeout): resume it at once.
+        None => (None, Next::Reopen),
     }
 }
 
@@ -255,36 +263,26 @@ where
         }
         change = l.changes.next() => change,
     };
-    let event = match change {
-        Some(Ok(WatchEvent::Added(o) | WatchEvent::Modified(o))) => {
-            note_version(&mut l.version, &o);
-            l.seen.insert(key(&o), (version_of(&o), Some(o.clone())));
-            Some(Ok(Event::Apply(o)))
-        }
-        Some(Ok(WatchEvent::Deleted(o))) => {
-            note_version(&mut l.version, &o);
-            l.seen.insert(key(&o), (version_of(&o), None));
-            Some(Ok(Event::Delete(o)))
-        }
-        Some(Ok(WatchEvent::Bookmark(b))) => {
-            l.version = b.metadata.resource_version;
-            None
-        }
+    match read(change, &mut l.version) {
         // The list cannot be trusted to merge with a watch that failed: start over.
-        Some(Ok(WatchEvent::Error(status))) => {
-            return (vec![Err(watcher::Error::WatchError(status))], State::Start);
-        }
-        Some(Err(e)) => return (vec![Err(watcher::Error::WatchFailed(e))], State::Start),
-        // The server ended the watch (its timeout) before the list came in: resume it.
-        None => match api.watch(&watch_params(config), &l.version).await {
-            Ok(changes) => {
-                l.changes = changes.boxed();
-                None
+        (Some(Err(e)), _) => return (vec![Err(e)], State::Start),
+        (Some(Ok(event)), _) => {
+            // Remembered for the merge: the version, and the object unless deleted.
+            match &event {
+                Event::Apply(o) => _ = l.seen.insert(key(o), (version_of(o), Some(o.clone()))),
+                Event::Delete(o) => _ = l.seen.insert(key(o), (version_of(o), None)),
+                Event::Init | Event::InitApply(_) | Event::InitDone => {}
             }
+            return (vec![Ok(event)], State::Listing(Box::new(l)));
+        }
+        (None, Next::Go) => {}
+        // The server ended the watch (its timeout) before the list came in: resume it.
+        (None, _) => match api.watch(&watch_params(config), &l.version).await {
+            Ok(changes) => l.changes = changes.boxed(),
             Err(e) => return (vec![Err(watcher::Error::WatchStartFailed(e))], State::Start),
         },
-    };
-    (event.into_iter().collect(), State::Listing(Box::new(l)))
+    }
+    (Vec::new(), State::Listing(Box::new(l)))
 }
 
 /// The list merged with what the watch brought meanwhile, as one relist: for each object the
@@ -318,7 +316,8 @@ fn older(watched: Option<u64>, listed: Option<u64>) -> bool {
     matches!((watched, listed), (Some(w), Some(l)) if w < l)
 }
 
-fn key<K: Resource>(o: &K) -> Key {
+/// The key of `o`.
+pub fn key<K: Resource>(o: &K) -> Key {
     (o.namespace().unwrap_or_default(), o.name_any())
 }
 
