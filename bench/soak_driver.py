@@ -580,13 +580,18 @@ backend gateways
             cut = [f for f in self.faults if f["kind"] == "cut"][-1]
             cut["ended"] = now
         # A fault over (its process back, its disk freed, its robots let go) is healed once
-        # every robot is Online and holds a session again.
+        # every robot is Online and holds a session again: Online as the leader's store counts
+        # them and as the API server shows them (this driver's own watch). The leader's count
+        # alone is stale while its Robot watch lists again after an API server restart.
         over = [f for f in self.faults if f["healed_s"] is None and not (
             f.get("restart") or f.get("ballast") or (f["kind"] == "cut" and self.stall))]
         if not over:
             return
         total = self.total_robots()
-        if self.phases()["Online"] >= total and self.sessions() >= total:
+        self.read_watch()
+        watched = sum(1 for phase, _ in self.robot_state.values() if phase == "Online")
+        if (watched >= total and self.phases()["Online"] >= total
+                and self.sessions() >= total):
             for f in over:
                 f["healed_s"] = round(now - f.get("ended", f["at"]), 1)
                 if f["kind"] == "gateway":

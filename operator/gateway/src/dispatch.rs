@@ -4,8 +4,8 @@
 //! command, PROTOCOL.md §12) or when another gateway's later session took the robot over (the
 //! session closes, see [`lekiwi_presence::holder`]); and presence when another gateway's earlier session
 //! shows up only now in a robot whose session is here (the robot moved here: see
-//! [`lekiwi_presence::claims`]), or shows such a robot `Unknown` or `Offline` (its write then
-//! goes first).
+//! [`lekiwi_presence::claims`]), or shows such a robot, or one whose live session here it
+//! names, `Unknown` or `Offline` (its write then goes first).
 
 use std::sync::Arc;
 
@@ -94,6 +94,9 @@ impl Dispatch {
         if let (Some(epoch), Some(other)) = (holder.epoch, holder.gateway.as_deref()) {
             if other == self.gateway {
                 self.presence.write_seen(&key, epoch);
+                if claims::is_shown_gone(robot) && self.presence.shown_gone_here(&key, epoch) {
+                    debug!(robot = %key, "the robot is shown gone under its live session here; writing it first");
+                }
             } else if self.registry.moved(&key, epoch) {
                 info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
             } else {

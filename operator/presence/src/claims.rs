@@ -20,7 +20,9 @@
 //! shown wrong: its write goes before every other waiting one ([`Priority::Gone`]). This gateway
 //! learns that from its Robot watch ([`Presence::shown_gone`]) or, seconds sooner on a
 //! saturated API server, from the list of marked robots on the old gateway's Lease
-//! ([`crate::peers`], [`Presence::marked`]).
+//! ([`crate::peers`], [`Presence::marked`]). A robot the controller marks under this gateway's
+//! own live session (its writes ran later than the lag the controller allowed for) is shown
+//! wrong the same way, and written first too ([`Presence::shown_gone_here`]).
 
 use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
@@ -85,11 +87,11 @@ impl Presence {
         let named = self
             .cached_robot(key)
             .is_some_and(|r| holder_gateway(&r) == Some(gateway));
-        named && self.put_first(key, |e| e.moved)
+        named && self.put_first(key, |e| e.moved && e.written_at.is_none())
     }
 
     /// Puts `key` before every other waiting robot ([`Priority::Gone`]) if its session here is
-    /// live, `also` holds for it, and it has no write landed or in flight; `true` if it did.
+    /// live, `also` holds for it, and no write of it is in flight; `true` if it did.
     fn put_first(&self, key: &RobotKey, also: impl Fn(&Entry) -> bool) -> bool {
         let first = self.with_state(|s| {
             let Some(e) = s.robots.get(key) else {
@@ -97,7 +99,7 @@ impl Presence {
             };
             // No settling check: a session whose status names another gateway never settles
             // (`connect_moved`, `moved_later`).
-            if !e.connected || !also(e) || e.written_at.is_some() || s.writing.contains_key(key) {
+            if !e.connected || !also(e) || s.writing.contains_key(key) {
                 return false;
             }
             s.enqueue(key, Priority::Gone);
@@ -160,7 +162,19 @@ impl Presence {
     /// included (those still show `Online`): [`Priority::Gone`]. Not while its write is in
     /// flight. `true` if it was put first.
     pub fn shown_gone(&self, key: &RobotKey, epoch: i64) -> bool {
-        self.put_first(key, |e| e.epoch > epoch)
+        self.put_first(key, |e| e.epoch > epoch && e.written_at.is_none())
+    }
+
+    /// The Robot cache shows `key` `Unknown` or `Offline` under this gateway's own session with
+    /// epoch `epoch`, and that session is live: the Robot controller marked the robot while
+    /// this gateway's writes ran later than the lag it allows for (an API server that came back
+    /// from a restart and took fewer writes than the robots needed, say). The robot is shown
+    /// gone although connected, so its write goes before every other waiting one, as for
+    /// [`Presence::shown_gone`], instead of waiting for its next refresh minutes later. Not
+    /// while its write is in flight (the write that follows it shows the robot again). `true`
+    /// if it was put first.
+    pub fn shown_gone_here(&self, key: &RobotKey, epoch: i64) -> bool {
+        self.put_first(key, |e| e.epoch == epoch)
     }
 
     /// The Robot cache shows `key`'s status naming another gateway with session epoch

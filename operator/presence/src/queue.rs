@@ -11,8 +11,9 @@ use lekiwi_core::RobotKey;
 /// overtake moves, which overtake other transitions, which overtake routine refreshes.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Priority {
-    /// A robot that moved here and whose status shows it `Unknown` or `Offline` (the Robot
-    /// controller marked it before it reconnected): the one robot shown wrong, not just
+    /// A robot whose session here is live and whose status shows it `Unknown` or `Offline`:
+    /// one that moved here after the Robot controller marked it, or one marked under this
+    /// gateway's own session while its writes ran late. The robot shown wrong, not just
     /// through a gateway that is gone (see [`super::claims::is_shown_gone`]).
     Gone,
     /// A new session of a robot whose status names another gateway (it moved here, e.g. after

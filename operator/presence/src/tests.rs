@@ -653,6 +653,49 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
     });
 }
 
+/// A robot whose live session here was written, and which the Robot controller then marked
+/// `Unknown` (this gateway's writes ran late), goes before every waiting write when the cache
+/// shows the mark under this session's epoch; not under another epoch, not without a session,
+/// not while its write is in flight.
+#[test]
+fn a_robot_shown_gone_under_its_own_live_session_is_written_first() {
+    let p = presence();
+    for (n, name) in ["waiting", "marked", "busy", "closed"].iter().enumerate() {
+        p.connect(&key(name), n as u64 + 1, 700, ConnectInfo::default());
+        let entry = p.with_state(|s| s.take_for_write(&key(name)).unwrap());
+        p.written(&key(name), &entry);
+    }
+    p.disconnect(&key("closed"), 4);
+    p.with_state(|s| {
+        while s.pop().is_some() {}
+        s.enqueue(&key("waiting"), Priority::High);
+        assert!(s.begin_write(&key("busy"), Priority::Low));
+    });
+    assert!(
+        !p.shown_gone_here(&key("marked"), 699),
+        "another session's epoch"
+    );
+    assert!(
+        !p.shown_gone_here(&key("closed"), 700),
+        "no live session here"
+    );
+    assert!(
+        !p.shown_gone_here(&key("absent"), 700),
+        "never connected here"
+    );
+    assert!(
+        !p.shown_gone_here(&key("busy"), 700),
+        "its write is in flight"
+    );
+    assert!(p.shown_gone_here(&key("marked"), 700));
+    p.with_state(|s| {
+        let order: Vec<_> = std::iter::from_fn(|| s.pop())
+            .map(|(k, _)| k.name)
+            .collect();
+        assert_eq!(order, ["marked", "waiting"], "the marked robot first, once");
+    });
+}
+
 /// A moved robot the Robot controller listed on its old gateway's Lease as marked `Unknown`
 /// goes before the moves, whether the list came before its session here or after, as long as
 /// the cache shows its status naming that gateway; a robot listed there whose status names

@@ -533,6 +533,63 @@ async fn silence_closes_the_session_and_a_dead_gateway_leaves_robots_unknown() -
     Ok(())
 }
 
+/// A robot the Robot controller shows gone while its session here is live (its status'
+/// heartbeat aged past the grace because this gateway's writes ran late, as after an API server
+/// restart) is written again before anything else, not at its next refresh minutes later.
+#[tokio::test]
+async fn a_live_robot_shown_gone_is_written_again_at_once() -> anyhow::Result<()> {
+    let cp = ControlPlane::shared();
+    let client = cp.client().await?;
+    let ns = namespace(&client, "showngone").await?;
+    // Refreshes 10 minutes apart: only a write put first brings the robot back in the test's time.
+    let gw = gateway_operator(cp, &ns, "op", &["--status-refresh-seconds", "600"]).await?;
+    let enroll = enrollment_token(&client, &ns).await?;
+    let (mut ws, _) = connect_agent(&gw, &enroll, &format!("{ns}/kiwi")).await?;
+    send(&mut ws, &heartbeat()).await;
+    phase_within(&client, &ns, "kiwi", RobotPhase::Online, secs(10)).await?;
+    let beats = tokio::spawn(async move {
+        loop {
+            send(&mut ws, &heartbeat()).await;
+            tokio::time::sleep(secs(2)).await;
+        }
+    });
+    let gone = "lekiwi_gateway_status_writes_total{priority=\"gone\",result=\"ok\"}";
+    let before = gw.metric(gone).await.unwrap_or(0.0);
+
+    // The status as a gateway whose writes run late leaves it: its heartbeat 10 minutes old.
+    // The Robot controller turns the robot Offline (heartbeat expired) under the live session.
+    let stale = jiff::Timestamp::now() - jiff::SignedDuration::from_mins(10);
+    Api::<Robot>::namespaced(client.clone(), &ns)
+        .patch_status(
+            "kiwi",
+            &PatchParams::default(),
+            &Patch::Merge(json!({ "status": { "lastHeartbeatTime": stale.to_string() } })),
+        )
+        .await?;
+    let t = Instant::now();
+    wait_for("the robot written first", secs(20), || async {
+        (gw.metric(gone).await? > before).then_some(())
+    })
+    .await
+    .map_err(|e| anyhow::anyhow!("{e}\n{}", gw.log_text()))?;
+    let r = phase_within(&client, &ns, "kiwi", RobotPhase::Online, secs(10)).await?;
+    println!(
+        "shown gone under its live session: written again {:?} after the stale status, Online {r:?} later",
+        t.elapsed()
+    );
+    let heartbeat_age = get_robot(&client, &ns, "kiwi")
+        .await?
+        .status
+        .and_then(|s| s.last_heartbeat_time)
+        .map(|h| jiff::Timestamp::now().duration_since(h.0));
+    assert!(
+        heartbeat_age.is_some_and(|a| a < jiff::SignedDuration::from_secs(30)),
+        "written with a fresh heartbeat: {heartbeat_age:?}"
+    );
+    beats.abort();
+    Ok(())
+}
+
 #[tokio::test]
 async fn legacy_poll_is_answered_cached_and_counts_as_heartbeat() -> anyhow::Result<()> {
     let cp = ControlPlane::shared();
