@@ -10,4 +10,5 @@ mod release_gc;
 mod releases;
 mod rollout;
 mod sim_commands;
+mod slow_writes;
 mod stale_store;
