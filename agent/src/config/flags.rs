@@ -304,8 +304,8 @@ pub struct JoinArgs {
     /// tests: start the agent yourself; join still waits for it).
     #[arg(long)]
     pub no_start: bool,
-    /// Seconds to keep trying a gateway that refuses or does not answer connections, then to
-    /// wait for the agent to reach it (0: try once, do not wait).
+    /// Seconds to keep trying a gateway that refuses or does not answer connections (or their
+    /// TLS handshake), then to wait for the agent to reach it (0: try once, do not wait).
     #[arg(long, default_value_t = 120)]
     pub wait_s: u64,
     /// Directory that stands for `/`: files are written under it, and the paths written into

@@ -140,7 +140,9 @@ pub async fn presented_chain(
     };
     let handshake = tokio_rustls::TlsConnector::from(Arc::new(config)).connect(name, tcp);
     match tokio::time::timeout(timeout, handshake).await {
-        Err(_) => Err(Error::Gateway(format!(
+        // A gateway that takes the connection but does not answer its TLS (a process just
+        // starting, a Service whose endpoint is changing) is not there yet: tried again.
+        Err(_) => Err(Error::Unreachable(format!(
             "no TLS handshake with {address} within {timeout:?}"
         ))),
         Ok(Err(e)) => Err(Error::Gateway(format!(
@@ -245,5 +247,42 @@ mod tests {
         );
         let err = Endpoint::of_url("ws://10.0.0.5/v1/agent").unwrap_err();
         assert!(err.to_string().contains("wss://"), "{err}");
+    }
+
+    /// A gateway that takes the connection and never answers the TLS handshake (a process
+    /// still starting) is not there yet, which join tries again; one that answers something
+    /// other than TLS is the wrong gateway, which join does not.
+    #[tokio::test]
+    async fn a_silent_handshake_is_tried_again_a_wrong_answer_is_not() {
+        let silent = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let at = Endpoint {
+            host: "127.0.0.1".into(),
+            port: silent.local_addr().unwrap().port(),
+        };
+        let held = tokio::spawn(async move {
+            let (conn, _) = silent.accept().await.unwrap();
+            tokio::time::sleep(Duration::from_secs(5)).await;
+            drop(conn);
+        });
+        let err = presented_chain(&at, Duration::from_millis(300))
+            .await
+            .unwrap_err();
+        assert!(matches!(err, Error::Unreachable(_)), "{err:?}");
+        held.abort();
+
+        let plain = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let at = Endpoint {
+            host: "127.0.0.1".into(),
+            port: plain.local_addr().unwrap().port(),
+        };
+        tokio::spawn(async move {
+            use tokio::io::AsyncWriteExt;
+            let (mut conn, _) = plain.accept().await.unwrap();
+            let _ = conn.write_all(b"HTTP/1.1 400 Bad Request\r\n\r\n").await;
+        });
+        let err = presented_chain(&at, Duration::from_secs(5))
+            .await
+            .unwrap_err();
+        assert!(matches!(err, Error::Gateway(_)), "{err:?}");
     }
 }

@@ -28,8 +28,8 @@ pub enum Error {
     /// The gateway's certificate is not usable, or it answers no TLS.
     #[error("{0}")]
     Gateway(String),
-    /// No connection to the gateway (refused, unreachable, timed out): tried again until
-    /// `--wait-s` ends.
+    /// No connection to the gateway (refused, unreachable, timed out), or no answer to the TLS
+    /// handshake in time: tried again until `--wait-s` ends.
     #[error("{0}")]
     Unreachable(String),
     /// No CA the gateway presents has the pin.
