@@ -38,6 +38,10 @@ use lekiwi_core::RobotKey;
 /// Then the claim ends for good (a later write does not bring it back).
 pub const CLAIM_AFTER_WRITE: SignedDuration = SignedDuration::from_secs(120);
 
+/// How often [`Presence::tick`] looks for robots shown gone under their live session here
+/// ([`Presence::sweep_shown_gone`]).
+pub const GONE_SWEEP: std::time::Duration = std::time::Duration::from_secs(5);
+
 /// Whether `robot`'s status shows it `Unknown` or `Offline`: a moved robot shown so while its
 /// session here is live is written before every other ([`Presence::shown_gone`]).
 pub fn is_shown_gone(robot: &Robot) -> bool {
@@ -170,11 +174,72 @@ impl Presence {
     /// this gateway's writes ran later than the lag it allows for (an API server that came back
     /// from a restart and took fewer writes than the robots needed, say). The robot is shown
     /// gone although connected, so its write goes before every other waiting one, as for
-    /// [`Presence::shown_gone`], instead of waiting for its next refresh minutes later. Not
-    /// while its write is in flight (the write that follows it shows the robot again). `true`
-    /// if it was put first.
+    /// [`Presence::shown_gone`], instead of waiting for its next refresh minutes later. A write
+    /// of it in flight was planned before the mark and may be refused for it (a conflict, then
+    /// a retry at its own priority): the write queued now follows it (see `State::begin_write`).
+    /// `true` if it was put first.
     pub fn shown_gone_here(&self, key: &RobotKey, epoch: i64) -> bool {
-        self.put_first(key, |e| e.epoch == epoch)
+        let first = self.with_state(|s| {
+            if !s
+                .robots
+                .get(key)
+                .is_some_and(|e| e.connected && e.epoch == epoch)
+            {
+                return false;
+            }
+            s.enqueue(key, Priority::Gone);
+            true
+        });
+        if first {
+            self.wake();
+        }
+        first
+    }
+
+    /// Every [`GONE_SWEEP`], what [`Presence::shown_gone_here`] does for each change the Robot
+    /// cache sends, done again for every robot at once: each robot whose session here is live
+    /// and was written, that waits for no retry, and that the cache shows `Unknown` or
+    /// `Offline` under that very session, is put first. A change the dispatch could not act on
+    /// (one it missed while it read the whole cache again) is acted on here.
+    pub(super) fn sweep_shown_gone_when_due(&self) {
+        let due = self.with_state(|s| {
+            let due = s.gone_swept.is_none_or(|at| at.elapsed() >= GONE_SWEEP);
+            if due {
+                s.gone_swept = Some(std::time::Instant::now());
+            }
+            due
+        });
+        if due {
+            self.sweep_shown_gone();
+        }
+    }
+
+    /// Puts first every robot the Robot cache shows gone under its live, written session here
+    /// (see [`Presence::sweep_shown_gone_when_due`]); `true` if any was.
+    pub(super) fn sweep_shown_gone(&self) -> bool {
+        let swept = self.with_state(|s| {
+            let gone: Vec<RobotKey> = s
+                .robots
+                .iter()
+                .filter(|(_, e)| e.connected && e.written_at.is_some() && e.retries == 0)
+                .filter(|(key, _)| s.queued.get(*key).is_none_or(|(p, _)| *p != Priority::Gone))
+                .filter(|(key, e)| {
+                    self.cached_robot(key).is_some_and(|r| {
+                        is_shown_gone(&r)
+                            && r.status.as_ref().and_then(|st| st.session_epoch) == Some(e.epoch)
+                    })
+                })
+                .map(|(key, _)| key.clone())
+                .collect();
+            for key in &gone {
+                s.enqueue(key, Priority::Gone);
+            }
+            !gone.is_empty()
+        });
+        if swept {
+            self.wake();
+        }
+        swept
     }
 
     /// The Robot cache shows `key`'s status naming another gateway with session epoch

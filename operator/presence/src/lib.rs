@@ -471,7 +471,8 @@ impl Presence {
     }
 
     /// Queues routine refreshes and the outcomes of analysis windows, ends silent polling
-    /// sessions and stale claims; call every second.
+    /// sessions and stale claims, and every [`claims::GONE_SWEEP`] puts first the robots the
+    /// Robot cache shows gone under their live session here; call every second.
     pub fn tick(&self) {
         let now = Timestamp::now();
         let refresh =
@@ -519,5 +520,6 @@ impl Presence {
         if queued {
             self.wake();
         }
+        self.sweep_shown_gone_when_due();
     }
 }

@@ -72,6 +72,9 @@ pub(super) struct State {
     /// The highest wait [`State::oldest_wait`] reported and when: what it reports decays from
     /// there at one second per second.
     pub(super) wait_peak: Option<(Duration, Instant)>,
+    /// When [`super::Presence::tick`] last looked for robots shown gone under their live
+    /// session here.
+    pub(super) gone_swept: Option<Instant>,
 }
 
 impl State {

@@ -655,8 +655,8 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
 
 /// A robot whose live session here was written, and which the Robot controller then marked
 /// `Unknown` (this gateway's writes ran late), goes before every waiting write when the cache
-/// shows the mark under this session's epoch; not under another epoch, not without a session,
-/// not while its write is in flight.
+/// shows the mark under this session's epoch, even while a write of it is in flight (that one
+/// was planned before the mark); not under another epoch, not without a session.
 #[test]
 fn a_robot_shown_gone_under_its_own_live_session_is_written_first() {
     let p = presence();
@@ -684,15 +684,87 @@ fn a_robot_shown_gone_under_its_own_live_session_is_written_first() {
         "never connected here"
     );
     assert!(
-        !p.shown_gone_here(&key("busy"), 700),
-        "its write is in flight"
+        p.shown_gone_here(&key("busy"), 700),
+        "in flight: queued to follow"
     );
     assert!(p.shown_gone_here(&key("marked"), 700));
     p.with_state(|s| {
         let order: Vec<_> = std::iter::from_fn(|| s.pop())
             .map(|(k, _)| k.name)
             .collect();
-        assert_eq!(order, ["marked", "waiting"], "the marked robot first, once");
+        assert_eq!(
+            order,
+            ["busy", "marked", "waiting"],
+            "the marked robots first, once"
+        );
+        assert!(
+            !s.begin_write(&key("busy"), Priority::Gone),
+            "still in flight"
+        );
+        s.end_write(&key("busy"));
+        assert_eq!(
+            s.pop(),
+            Some((key("busy"), Priority::Gone)),
+            "then written first"
+        );
+    });
+}
+
+/// The sweep of [`Presence::tick`] puts first every robot the Robot cache shows `Unknown` or
+/// `Offline` under its live, written session here, whatever the dispatch of changes did; not
+/// one shown so under another session, not one shown `Online`, not one whose session was not
+/// written yet or whose write waits for a retry.
+#[test]
+fn the_sweep_puts_first_every_robot_shown_gone_under_its_live_session() {
+    let p = presence();
+    let robot = |name: &str, phase: &str, epoch: i64| -> lekiwi_crds::Robot {
+        serde_json::from_value(json!({
+            "apiVersion": "fleet.lekiwi.io/v1alpha1",
+            "kind": "Robot",
+            "metadata": { "name": name, "namespace": "lab" },
+            "spec": {},
+            "status": { "phase": phase, "gateway": "gw", "sessionEpoch": epoch },
+        }))
+        .unwrap()
+    };
+    let cache = lekiwi_core::cache::Cache::listed([
+        robot("gone", "Unknown", 700),
+        robot("offline", "Offline", 700),
+        robot("online", "Online", 700),
+        robot("older", "Unknown", 600),
+        robot("unwritten", "Unknown", 700),
+        robot("retrying", "Unknown", 700),
+    ]);
+    let robots = crate::watched::WatchedRobots(std::sync::Arc::new(cache));
+    p.plan_phases(PhasePlanner::new(robots, Duration::from_secs(60)));
+    let names = [
+        "gone",
+        "offline",
+        "online",
+        "older",
+        "unwritten",
+        "retrying",
+    ];
+    for (n, name) in names.iter().enumerate() {
+        p.connect(&key(name), n as u64 + 1, 700, ConnectInfo::default());
+        if *name != "unwritten" {
+            let entry = p.with_state(|s| s.take_for_write(&key(name)).unwrap());
+            p.written(&key(name), &entry);
+        }
+    }
+    p.with_state(|s| {
+        while s.pop().is_some() {}
+        s.robots.get_mut(&key("retrying")).unwrap().retries = 1;
+    });
+    assert!(p.sweep_shown_gone());
+    assert!(!p.sweep_shown_gone(), "those queued first stay queued once");
+    p.with_state(|s| {
+        let mut first: Vec<_> = std::iter::from_fn(|| s.pop())
+            .filter(|(_, priority)| *priority == Priority::Gone)
+            .map(|(k, _)| k.name)
+            .collect();
+        first.sort();
+        assert_eq!(first, ["gone", "offline"]);
     });
 }
 
