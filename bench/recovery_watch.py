@@ -24,16 +24,60 @@ def token_header(token_file):
     return path
 
 
+def line(obj, kind):
+    """One output line for `obj` as an event of type `kind`."""
+    status = obj.get("status") or {}
+    return "%.3f|%s|%s|%s|%s|%s\n" % (
+        time.time(), kind, obj.get("metadata", {}).get("name", ""),
+        status.get("phase", ""), status.get("gateway", ""),
+        "true" if status.get("connected") else "false")
+
+
+def list_robots(collection, ca, header, out):
+    """Lists every Robot (pages of 500 from one snapshot), writes each as an ADDED line and
+    returns the list's resourceVersion, where the watch then starts; None if the API server
+    did not answer the whole list."""
+    version, cont = None, ""
+    while True:
+        url = collection + "?limit=500" + (f"&continue={cont}" if cont else "")
+        got = subprocess.run(["curl", "-sS", "--fail", "--max-time", "120", "--cacert", ca,
+                              "-H", "@" + header, url], capture_output=True)
+        if got.returncode != 0:
+            print("list failed (curl exit %s): %s" % (got.returncode, got.stderr[:200]),
+                  file=sys.stderr)
+            return None
+        try:
+            page = json.loads(got.stdout)
+        except ValueError:
+            return None
+        meta = page.get("metadata", {})
+        version = version or meta.get("resourceVersion")
+        for obj in page.get("items", []):
+            out.write(line(obj, "ADDED"))
+        cont = meta.get("continue") or ""
+        if not cont:
+            return version
+
+
 def main():
     api, ca, token_file, namespace, out_path = sys.argv[1:6]
-    base = f"{api}/apis/fleet.lekiwi.io/v1alpha1/namespaces/{namespace}/robots?watch=1&allowWatchBookmarks=true&timeoutSeconds=50"
+    collection = f"{api}/apis/fleet.lekiwi.io/v1alpha1/namespaces/{namespace}/robots"
+    base = collection + "?watch=1&allowWatchBookmarks=true&timeoutSeconds=50"
     header = token_header(token_file)
     version = None
     with open(out_path, "w", buffering=1) as out:
         while True:
-            # Resume where the last stream ended; a version too old (410) starts over with a
-            # fresh list of ADDED events, which the report reads as states, not changes.
-            url = base + (f"&resourceVersion={version}" if version else "")
+            # At the start, and after a version too old (410): list, and write what the list
+            # holds as ADDED lines (the report reads them as states, not changes), then watch
+            # from the list's own version. (A watch without a version would do both, but its
+            # ADDED objects carry their own, older versions: resuming from one of them after a
+            # stream that ended early would miss changes.)
+            if version is None:
+                version = list_robots(collection, ca, header, out)
+                if version is None:
+                    time.sleep(1)
+                    continue
+            url = base + f"&resourceVersion={version}"
             # The server ends each watch within 50 s (after a bookmark of where it stood), and
             # curl gives up on one that brings nothing for 60 s: a request an API server took in
             # while it restarted may never be answered, and must not blind the watch for good.
@@ -41,26 +85,23 @@ def main():
             curl = ["curl", "-sS", "--fail", "--no-buffer", "--max-time", "120", "--speed-time", "60",
                     "--speed-limit", "1", "--cacert", ca, "-H", "@" + header, url]
             with subprocess.Popen(curl, stdout=subprocess.PIPE) as proc:
-                for line in proc.stdout:
+                for raw in proc.stdout:
                     try:
-                        event = json.loads(line)
+                        event = json.loads(raw)
                     except ValueError:
-                        print("not a watch event: %r" % line[:200], file=sys.stderr)
+                        print("not a watch event: %r" % raw[:200], file=sys.stderr)
                         proc.kill()
                         break
                     obj = event.get("object", {})
                     if event.get("type") == "ERROR":
                         print("watch error: %s" % obj.get("message"), file=sys.stderr)
                         version = None
-                        continue
+                        proc.kill()
+                        break
                     version = obj.get("metadata", {}).get("resourceVersion", version)
                     if event.get("type") == "BOOKMARK":
                         continue
-                    status = obj.get("status") or {}
-                    out.write("%.3f|%s|%s|%s|%s|%s\n" % (
-                        time.time(), event.get("type", ""), obj.get("metadata", {}).get("name", ""),
-                        status.get("phase", ""), status.get("gateway", ""),
-                        "true" if status.get("connected") else "false"))
+                    out.write(line(obj, event.get("type", "")))
             print("%.3f watch stream ended (curl exit %s); resuming" % (time.time(), proc.returncode),
                   file=sys.stderr)
             if proc.returncode == 22:
