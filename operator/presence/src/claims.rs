@@ -42,6 +42,12 @@ pub const CLAIM_AFTER_WRITE: SignedDuration = SignedDuration::from_secs(120);
 /// ([`Presence::sweep_shown_gone`]).
 pub const GONE_SWEEP: std::time::Duration = std::time::Duration::from_secs(5);
 
+/// Whether this gateway's Lease, as last renewed, still lasts (see [`Presence::lease_renewed`]).
+fn lease_current(s: &super::queue::State) -> bool {
+    s.lease_until
+        .is_some_and(|until| std::time::Instant::now() < until)
+}
+
 /// Whether `robot`'s status shows it `Unknown` or `Offline`: a moved robot shown so while its
 /// session here is live is written before every other ([`Presence::shown_gone`]).
 pub fn is_shown_gone(robot: &Robot) -> bool {
@@ -180,10 +186,11 @@ impl Presence {
     /// `true` if it was put first.
     pub fn shown_gone_here(&self, key: &RobotKey, epoch: i64) -> bool {
         let first = self.with_state(|s| {
-            if !s
-                .robots
-                .get(key)
-                .is_some_and(|e| e.connected && e.epoch == epoch)
+            if !lease_current(s)
+                || !s
+                    .robots
+                    .get(key)
+                    .is_some_and(|e| e.connected && e.epoch == epoch)
             {
                 return false;
             }
@@ -194,6 +201,16 @@ impl Presence {
             self.wake();
         }
         first
+    }
+
+    /// This gateway's Lease was renewed just now, for `duration`. Until it runs out the Robot
+    /// controller counts the gateway alive, so a robot it shows gone under a live session here
+    /// was marked for a heartbeat that aged in the status, which a write corrects. Once it has
+    /// run out, the controller marks the robots here `Unknown` for the Lease whatever they
+    /// write: they are not put first then ([`Presence::shown_gone_here`] and the sweep), or
+    /// each write would only be marked again.
+    pub fn lease_renewed(&self, duration: std::time::Duration) {
+        self.with_state(|s| s.lease_until = Some(std::time::Instant::now() + duration));
     }
 
     /// Every [`GONE_SWEEP`], what [`Presence::shown_gone_here`] does for each change the Robot
@@ -218,6 +235,9 @@ impl Presence {
     /// (see [`Presence::sweep_shown_gone_when_due`]); `true` if any was.
     pub(super) fn sweep_shown_gone(&self) -> bool {
         let swept = self.with_state(|s| {
+            if !lease_current(s) {
+                return false;
+            }
             let gone: Vec<RobotKey> = s
                 .robots
                 .iter()

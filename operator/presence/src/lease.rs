@@ -106,7 +106,12 @@ pub async fn renew(
             )
             .await
         {
-            Ok(_) => acquired = acquired.or(Some(now)),
+            Ok(_) => {
+                acquired = acquired.or(Some(now));
+                if let Some(p) = &presence {
+                    p.lease_renewed(duration);
+                }
+            }
             Err(e) => warn!(lease = %name, error = %e, "cannot renew the gateway Lease"),
         }
         let moved = async {

@@ -75,6 +75,9 @@ pub(super) struct State {
     /// When [`super::Presence::tick`] last looked for robots shown gone under their live
     /// session here.
     pub(super) gone_swept: Option<Instant>,
+    /// Until when this gateway's last renewed Lease lasts (see
+    /// [`super::Presence::lease_renewed`]).
+    pub(super) lease_until: Option<Instant>,
 }
 
 impl State {

@@ -660,6 +660,12 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
 #[test]
 fn a_robot_shown_gone_under_its_own_live_session_is_written_first() {
     let p = presence();
+    p.connect(&key("early"), 9, 700, ConnectInfo::default());
+    assert!(
+        !p.shown_gone_here(&key("early"), 700),
+        "no Lease renewed: the controller marks the robot for the Lease, whatever is written"
+    );
+    p.lease_renewed(Duration::from_secs(60));
     for (n, name) in ["waiting", "marked", "busy", "closed"].iter().enumerate() {
         p.connect(&key(name), n as u64 + 1, 700, ConnectInfo::default());
         let entry = p.with_state(|s| s.take_for_write(&key(name)).unwrap());
@@ -756,6 +762,8 @@ fn the_sweep_puts_first_every_robot_shown_gone_under_its_live_session() {
         while s.pop().is_some() {}
         s.robots.get_mut(&key("retrying")).unwrap().retries = 1;
     });
+    assert!(!p.sweep_shown_gone(), "no Lease renewed: nothing put first");
+    p.lease_renewed(Duration::from_secs(60));
     assert!(p.sweep_shown_gone());
     assert!(!p.sweep_shown_gone(), "those queued first stay queued once");
     p.with_state(|s| {
