@@ -28,6 +28,7 @@ use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::contract::encode_claims;
 use lekiwi_crds::{Robot, RobotPhase};
 
+use super::queue::State;
 use super::{Entry, Presence, Priority};
 use crate::peers::Peers;
 use lekiwi_core::RobotKey;
@@ -43,7 +44,7 @@ pub const CLAIM_AFTER_WRITE: SignedDuration = SignedDuration::from_secs(120);
 pub const GONE_SWEEP: std::time::Duration = std::time::Duration::from_secs(5);
 
 /// Whether this gateway's Lease, as last renewed, still lasts (see [`Presence::lease_renewed`]).
-fn lease_current(s: &super::queue::State) -> bool {
+fn lease_current(s: &State) -> bool {
     s.lease_until
         .is_some_and(|until| std::time::Instant::now() < until)
 }
@@ -97,23 +98,23 @@ impl Presence {
         let named = self
             .cached_robot(key)
             .is_some_and(|r| holder_gateway(&r) == Some(gateway));
-        named && self.put_first(key, |e| e.moved && e.written_at.is_none())
+        named
+            && self.put_first(key, |s, e| {
+                e.moved && e.written_at.is_none() && !s.writing.contains_key(key)
+            })
     }
 
     /// Puts `key` before every other waiting robot ([`Priority::Gone`]) if its session here is
-    /// live, `also` holds for it, and no write of it is in flight; `true` if it did.
-    fn put_first(&self, key: &RobotKey, also: impl Fn(&Entry) -> bool) -> bool {
+    /// live and `also` holds for it (given the whole state: whether a write of it is in flight,
+    /// say); `true` if it did. No settling check: a session whose status names another gateway
+    /// never settles (`connect_moved`, `moved_later`).
+    fn put_first(&self, key: &RobotKey, also: impl Fn(&State, &Entry) -> bool) -> bool {
         let first = self.with_state(|s| {
-            let Some(e) = s.robots.get(key) else {
-                return false;
-            };
-            // No settling check: a session whose status names another gateway never settles
-            // (`connect_moved`, `moved_later`).
-            if !e.connected || !also(e) || s.writing.contains_key(key) {
-                return false;
+            let first = s.robots.get(key).is_some_and(|e| e.connected && also(s, e));
+            if first {
+                s.enqueue(key, Priority::Gone);
             }
-            s.enqueue(key, Priority::Gone);
-            true
+            first
         });
         if first {
             self.wake();
@@ -172,7 +173,9 @@ impl Presence {
     /// included (those still show `Online`): [`Priority::Gone`]. Not while its write is in
     /// flight. `true` if it was put first.
     pub fn shown_gone(&self, key: &RobotKey, epoch: i64) -> bool {
-        self.put_first(key, |e| e.epoch > epoch && e.written_at.is_none())
+        self.put_first(key, |s, e| {
+            e.epoch > epoch && e.written_at.is_none() && !s.writing.contains_key(key)
+        })
     }
 
     /// The Robot cache shows `key` `Unknown` or `Offline` under this gateway's own session with
@@ -185,22 +188,7 @@ impl Presence {
     /// a retry at its own priority): the write queued now follows it (see `State::begin_write`).
     /// `true` if it was put first.
     pub fn shown_gone_here(&self, key: &RobotKey, epoch: i64) -> bool {
-        let first = self.with_state(|s| {
-            if !lease_current(s)
-                || !s
-                    .robots
-                    .get(key)
-                    .is_some_and(|e| e.connected && e.epoch == epoch)
-            {
-                return false;
-            }
-            s.enqueue(key, Priority::Gone);
-            true
-        });
-        if first {
-            self.wake();
-        }
-        first
+        self.put_first(key, |s, e| lease_current(s) && e.epoch == epoch)
     }
 
     /// This gateway's Lease was renewed just now, for `duration`. Until it runs out the Robot
