@@ -134,8 +134,10 @@ class Soak:
                   "--watch-namespace", NS]
         # Each robot a rollout writes, to tell when a robot was told its release; each list of
         # a watch (how long it took, what changed meanwhile).
+        # Each status the Robot controller writes itself (a robot it marked gone) and each
+        # phase change it sees.
         env = {"RUST_LOG": "warn,lekiwi_controllers::deployment::apply=debug,"
-                           "lekiwi_core::watch=info"}
+                           "lekiwi_controllers::robot=info,lekiwi_core::watch=info"}
         for c in ("ctl-a", "ctl-b"):
             self.ports[c] = free_port()
             self.procs[c] = Proc(c, [f"{BIN}/lekiwi-operator", "--role", "controller", *common,

@@ -236,7 +236,13 @@ where
 {
     let writer = reflector::store::Writer::default();
     let store = writer.as_reader();
-    let changes = watch_first(api, lekiwi_core::api_client::watch_config());
+    // The Robot controller reads who wrote a status, and when, from managed fields: only the
+    // field sets go.
+    let changes = watch_first(
+        api,
+        lekiwi_core::api_client::watch_config(),
+        lekiwi_core::watch::drop_field_sets::<K>,
+    );
     Controller::for_stream(reflector(writer, changes).applied_objects(), store)
         .with_config(ControllerConfig::default().concurrency(ctx.config.concurrency))
 }

@@ -394,9 +394,7 @@ where
     let cache = Arc::new(Cache::new());
     let filled = cache.clone();
     let task = tokio::spawn(async move {
-        let stream = watch_first(api, crate::api_client::watch_config())
-            .default_backoff()
-            .modify(trim);
+        let stream = watch_first(api, crate::api_client::watch_config(), trim).default_backoff();
         let mut stream = std::pin::pin!(stream);
         let mut relist = None;
         loop {

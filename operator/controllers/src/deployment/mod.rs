@@ -110,10 +110,14 @@ fn watch_robots(
     // Robots after an API server restart) does not expire it (see `lekiwi_core::watch`).
     let watch = reflector(
         writer,
-        watch_first(robots, lekiwi_core::api_client::watch_config()).modify(|r: &mut Robot| {
-            // Only labels, annotations, spec and status are read; drop the rest.
-            r.managed_fields_mut().clear();
-        }),
+        watch_first(
+            robots,
+            lekiwi_core::api_client::watch_config(),
+            |r: &mut Robot| {
+                // Only labels, annotations, spec and status are read; drop the rest.
+                r.managed_fields_mut().clear();
+            },
+        ),
     )
     .default_backoff()
     .for_each(move |event| {

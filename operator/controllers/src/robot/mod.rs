@@ -216,6 +216,14 @@ async fn write_status(
             debug!("the robot changed under the plan; waiting for the newer version");
             return Ok(Some(Action::requeue(CONFLICT_RECHECK)));
         }
+        // Rare (a robot whose gateway is gone, or whose heartbeats stopped): each one named, so
+        // a robot shown gone can be traced to the write that said so.
+        info!(
+            from = ?robot.status.as_ref().and_then(|s| s.phase),
+            to = %plan.phase,
+            gateway = ?gateway,
+            "wrote the robot's status"
+        );
         note_marked(ctx, robot, plan, gateway);
     }
     ctx.robot_deferred.forget(key);
