@@ -72,11 +72,14 @@ class Samples:
 
 
 def _slope(points):
-    n = len(points)
-    mx = sum(t for t, _ in points) / n
-    my = sum(v for _, v in points) / n
-    var = sum((t - mx) ** 2 for t, _ in points)
-    return sum((t - mx) * (v - my) for t, v in points) / var if var else 0.0
+    """The Theil-Sen slope: the median of the slopes between every two samples. A process's
+    RSS moves in the allocator's steps (pages committed and purged by the MiB); a least-squares
+    line through a few such steps reads a trend where the level only went down and up again (a
+    standby controller's 28.8-30.9 MiB read as +1.3 MiB over 40 minutes), while a steady growth
+    moves the median of the pairwise slopes as much as it moves a fitted line."""
+    slopes = [(v2 - v1) / (t2 - t1)
+              for i, (t1, v1) in enumerate(points) for t2, v2 in points[i + 1:] if t2 != t1]
+    return statistics.median(slopes) if slopes else 0.0
 
 
 def _slope_beside(points, other):
