@@ -248,7 +248,7 @@ where
 }
 
 /// Runs `controller`, also woken by `requests`, until `cancel` fires and the reconciles in
-/// flight finish. Failed items were already logged and counted by the error policy, hence
+/// flight finish (within [`DRAIN`]). Failed items were already logged and counted by the error policy, hence
 /// only `debug` here.
 pub(crate) async fn drive<K, Ctx, Fut>(
     controller: Controller<K>,
@@ -265,18 +265,37 @@ pub(crate) async fn drive<K, Ctx, Fut>(
     Fut: Future<Output = Result<Action>> + Send + 'static,
     Ctx: Send + Sync + 'static,
 {
-    controller
+    let stop = cancel.clone();
+    let run = controller
         .reconcile_on(requests)
-        .graceful_shutdown_on(async move { cancel.cancelled().await })
+        .graceful_shutdown_on(async move { stop.cancelled().await })
         .run(reconcile, error_policy, ctx)
         .for_each(|res| {
             if let Err(e) = res {
                 tracing::debug!(error = %e, "{what}");
             }
             futures::future::ready(())
-        })
-        .await;
+        });
+    let mut run = std::pin::pin!(run);
+    tokio::select! {
+        () = &mut run => return,
+        () = cancel.cancelled() => {}
+    }
+    if tokio::time::timeout(DRAIN, run).await.is_err() {
+        warn!(
+            drain = ?DRAIN,
+            "the controller did not stop within the drain time; its reconciles in flight are dropped"
+        );
+    }
 }
+
+/// How long a stopped controller's reconciles in flight have to finish before they are dropped.
+/// A replica that lost its Lease must stop writing soon; and kube's runner waits for its store
+/// to be ready before it sees its queue end, which a store whose list never came in (the watch
+/// that fills it stops with the controller) never is: a leader that lost its Lease before its
+/// RobotDeployment list came in waited for it for good, and never ran its controllers again
+/// when it won the Lease back.
+const DRAIN: Duration = Duration::from_secs(10);
 
 #[cfg(test)]
 mod tests {
@@ -305,6 +324,32 @@ mod tests {
             source: error::api(code),
         };
         ctx.reconcile_failed(ControllerName::robot, "kiwi", "lab", &error)
+    }
+
+    /// A controller stopped before its store was ready stops within [`DRAIN`] (see there).
+    #[tokio::test(start_paused = true)]
+    async fn a_controller_stopped_before_its_store_is_ready_stops() {
+        use k8s_openapi::api::core::v1::ConfigMap;
+        let writer = reflector::store::Writer::<ConfigMap>::default();
+        let controller = Controller::for_stream(
+            futures::stream::pending::<Result<ConfigMap, kube::runtime::watcher::Error>>(),
+            writer.as_reader(),
+        );
+        let cancel = CancellationToken::new();
+        let stop = cancel.clone();
+        tokio::spawn(async move {
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            stop.cancel();
+        });
+        let handlers = (
+            |_: Arc<ConfigMap>, _: Arc<()>| async { Ok::<_, Error>(Action::await_change()) },
+            |_: Arc<ConfigMap>, _: &Error, _: Arc<()>| Action::await_change(),
+        );
+        let requests = futures::stream::pending::<ObjectRef<ConfigMap>>();
+        let driven = drive(controller, requests, handlers, Arc::new(()), cancel, "test");
+        let stopped = tokio::time::timeout(Duration::from_secs(120), driven).await;
+        assert!(stopped.is_ok(), "still running 120 s after the stop");
+        drop(writer);
     }
 
     /// What a subscriber wrote, for tests of what is logged.
