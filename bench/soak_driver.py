@@ -116,6 +116,7 @@ class Soak:
         self.faults = []  # dicts: kind, at, healed_s, notes
         self.stall = None  # (start, end) of the cut-off while it lasts
         self.robot_state = {}  # name -> (phase, gateway)
+        self.robot_connected = {}  # name -> status.connected
         self.not_online_since = {}
         self.online_dead_since = {}
         self.violations = {"online_through_dead_gateway": 0, "not_online_with_session": 0,
@@ -345,6 +346,7 @@ backend gateways
                 parts = line.rstrip("\n").split("|")
                 if len(parts) >= 6:
                     self.robot_state[parts[2]] = (parts[3], parts[4])
+                    self.robot_connected[parts[2]] = parts[5] == "true"
             self.watch_offset = f.tell()
 
     def check_robots(self, now):
@@ -584,17 +586,25 @@ backend gateways
         # A fault over (its process back, its disk freed, its robots let go) is healed once
         # every robot is Online and holds a session again: Online as the leader's store counts
         # them and as the API server shows them (this driver's own watch). The leader's count
-        # alone is stale while its Robot watch lists again after an API server restart.
+        # alone is stale while its Robot watch lists again after an API server restart. The
+        # cut-off robots' fault is healed once they are Online and connected as the API server
+        # shows them: the cut touches no other robot, and an agent rollout under way restarts
+        # robots all through the fleet (an hour's cut read as healed 417 s after its end, the
+        # second the agent rollout that started during it ended).
         over = [f for f in self.faults if f["healed_s"] is None and not (
             f.get("restart") or f.get("ballast") or (f["kind"] == "cut" and self.stall))]
         if not over:
             return
-        total = self.total_robots()
         self.read_watch()
+        cut = [n for n in self.robot_state if n.startswith("cut-")]
+        cut_back = bool(cut) and all(
+            self.robot_state[n][0] == "Online" and self.robot_connected.get(n) for n in cut)
+        total = self.total_robots()
         watched = sum(1 for phase, _ in self.robot_state.values() if phase == "Online")
-        if (watched >= total and self.phases()["Online"] >= total
-                and self.sessions() >= total):
-            for f in over:
+        fleet_back = (watched >= total and self.phases()["Online"] >= total
+                      and self.sessions() >= total)
+        for f in over:
+            if fleet_back or (f["kind"] == "cut" and cut_back):
                 f["healed_s"] = round(now - f.get("ended", f["at"]), 1)
                 if f["kind"] == "gateway":
                     self.gateway_ratio(f, now)
