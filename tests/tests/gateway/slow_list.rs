@@ -145,57 +145,6 @@ async fn a_list_longer_than_the_watch_history_is_read_once_and_changes_show_duri
     Ok(())
 }
 
-/// A list longer than a page is read page by page at one version (each page one request), and
-/// the cache holds every object of it, trimmed; the watch goes on after it.
-#[tokio::test]
-async fn a_list_longer_than_a_page_is_read_in_pages() -> anyhow::Result<()> {
-    let cp = ControlPlane::private()?;
-    cp.install_crds()?;
-    let client = cp.client().await?;
-    let ns = namespace(&client, "paged-list").await?;
-    let page = lekiwi_core::watch::LIST_PAGE as usize;
-    let count = 2 * page + 7;
-    create_padded(&client, &ns, count, 16).await?;
-    let lists_before = robot_lists(&cp)?;
-    let cancel = CancellationToken::new();
-    let (cache, _task) = lekiwi_core::cache::watch(
-        Api::<Robot>::namespaced(client.clone(), &ns),
-        |r| r.managed_fields_mut().clear(),
-        cancel.clone(),
-    );
-    wait_for("the list in the cache", Duration::from_secs(60), || async {
-        cache.is_ready().then_some(())
-    })
-    .await?;
-    let (all, _) = cache.page(Some(&ns), None, usize::MAX, |_| true);
-    assert_eq!(all.len(), count, "every robot of every page");
-    assert!(
-        all.iter().all(|r| r.managed_fields().is_empty()),
-        "each object trimmed"
-    );
-    let lists = robot_lists(&cp)? - lists_before;
-    assert_eq!(
-        lists,
-        1.0 + count.div_ceil(page) as f64,
-        "one list of nothing (where the cache stands), then one request per page"
-    );
-    let robots: Api<Robot> = Api::namespaced(client.clone(), &ns);
-    relabel(&robots, "r-000", "after").await?;
-    wait_for(
-        "a change after the list",
-        Duration::from_secs(30),
-        || async {
-            cache
-                .get(&ns, "r-000")
-                .is_some_and(|r| r.labels().get("room").is_some_and(|v| v == "after"))
-                .then_some(())
-        },
-    )
-    .await?;
-    cancel.cancel();
-    Ok(())
-}
-
 /// Creates `count` robots `r-000`, ... in `ns`, each padded by `pad` bytes.
 async fn create_padded(client: &Client, ns: &str, count: usize, pad: usize) -> anyhow::Result<()> {
     let api: Api<Robot> = Api::namespaced(client.clone(), ns);
