@@ -248,8 +248,8 @@ where
 }
 
 /// Runs `controller`, also woken by `requests`, until `cancel` fires and the reconciles in
-/// flight finish (within [`DRAIN`]). Failed items were already logged and counted by the error policy, hence
-/// only `debug` here.
+/// flight finish (within [`DRAIN`]). Failed items were already logged and counted by the error
+/// policy, hence only `debug` here.
 pub(crate) async fn drive<K, Ctx, Fut>(
     controller: Controller<K>,
     requests: impl Stream<Item = ObjectRef<K>> + Send + 'static,
@@ -346,9 +346,16 @@ mod tests {
             |_: Arc<ConfigMap>, _: &Error, _: Arc<()>| Action::await_change(),
         );
         let requests = futures::stream::pending::<ObjectRef<ConfigMap>>();
+        let started = tokio::time::Instant::now();
         let driven = drive(controller, requests, handlers, Arc::new(()), cancel, "test");
         let stopped = tokio::time::timeout(Duration::from_secs(120), driven).await;
         assert!(stopped.is_ok(), "still running 120 s after the stop");
+        // Stopped at 1 s, dropped [`DRAIN`] later.
+        let took = started.elapsed();
+        assert!(
+            took <= Duration::from_secs(1) + DRAIN + Duration::from_millis(100),
+            "stopped {took:?} after the start"
+        );
         drop(writer);
     }
 

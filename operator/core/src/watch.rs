@@ -79,7 +79,7 @@ struct Listing<K: Clone> {
 /// Watches the objects of `api` that `config`'s selectors and timeout choose (its list
 /// semantic, page size and initial list strategy do not apply: the list is read whole, at least
 /// as new as the watch's start). Every object goes through `trim` (to drop what the reader never
-/// looks at, such as managed fields) as it comes in. Yields the events kube's watcher yields, in
+/// looks at, such as managed fields) once, as it comes in from the list or the watch. Yields the events kube's watcher yields, in
 /// the order described in the module's documentation.
 pub fn watch_first<K>(
     api: Api<K>,
@@ -94,12 +94,6 @@ where
         async move { Some(step(&api, &config, trim, state).await) }
     })
     .flat_map(futures::stream::iter)
-    .map(move |mut event| {
-        if let Ok(Event::Apply(o) | Event::InitApply(o) | Event::Delete(o)) = &mut event {
-            trim(o);
-        }
-        event
-    })
 }
 
 /// Every object `params` asks for, each trimmed as it comes in.
@@ -125,7 +119,7 @@ where
 {
     match state {
         State::Start => start(api, config, trim).await,
-        State::Listing(listing) => listing_step(api, config, *listing).await,
+        State::Listing(listing) => listing_step(api, config, trim, *listing).await,
         State::Watching {
             version,
             changes: None,
@@ -152,7 +146,7 @@ where
             mut version,
             changes: Some(mut changes),
         } => {
-            let (out, next) = read(changes.next().await, &mut version);
+            let (out, next) = read(changes.next().await, &mut version, trim);
             let state = match next {
                 Next::Go => State::Watching {
                     version,
@@ -169,18 +163,22 @@ where
     }
 }
 
-/// What a watch's next item yields, and what follows it; moves `version` on to the item's.
+/// What a watch's next item yields (its object trimmed), and what follows it; moves `version`
+/// on to the item's.
 fn read<K: Resource>(
     change: Option<kube::Result<WatchEvent<K>>>,
     version: &mut String,
+    trim: fn(&mut K),
 ) -> (Option<Yield<K>>, Next) {
     match change {
-        Some(Ok(WatchEvent::Added(o) | WatchEvent::Modified(o))) => {
+        Some(Ok(WatchEvent::Added(mut o) | WatchEvent::Modified(mut o))) => {
             note_version(version, &o);
+            trim(&mut o);
             (Some(Ok(Event::Apply(o))), Next::Go)
         }
-        Some(Ok(WatchEvent::Deleted(o))) => {
+        Some(Ok(WatchEvent::Deleted(mut o))) => {
             note_version(version, &o);
+            trim(&mut o);
             (Some(Ok(Event::Delete(o))), Next::Go)
         }
         Some(Ok(WatchEvent::Bookmark(b))) => {
@@ -271,6 +269,7 @@ where
 async fn listing_step<K>(
     api: &Api<K>,
     config: &watcher::Config,
+    trim: fn(&mut K),
     mut l: Listing<K>,
 ) -> (Vec<Yield<K>>, State<K>)
 where
@@ -296,7 +295,7 @@ where
         }
         change = l.changes.next() => change,
     };
-    match read(change, &mut l.version) {
+    match read(change, &mut l.version, trim) {
         // The list cannot be trusted to merge with a watch that failed: start over.
         (Some(Err(e)), _) => return (vec![Err(e)], State::Start),
         (Some(Ok(event)), _) => {
