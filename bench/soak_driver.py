@@ -115,8 +115,7 @@ class Soak:
         self.rollouts = []  # dicts: version, kind, expected, phase, started, ended, seconds
         self.faults = []  # dicts: kind, at, healed_s, notes
         self.stall = None  # (start, end) of the cut-off while it lasts
-        self.robot_state = {}  # name -> (phase, gateway)
-        self.robot_connected = {}  # name -> status.connected
+        self.robot_state = {}  # name -> (phase, gateway, status.connected)
         self.not_online_since = {}
         self.online_dead_since = {}
         self.violations = {"online_through_dead_gateway": 0, "not_online_with_session": 0,
@@ -345,15 +344,14 @@ backend gateways
                     break
                 parts = line.rstrip("\n").split("|")
                 if len(parts) >= 6:
-                    self.robot_state[parts[2]] = (parts[3], parts[4])
-                    self.robot_connected[parts[2]] = parts[5] == "true"
+                    self.robot_state[parts[2]] = (parts[3], parts[4], parts[5] == "true")
             self.watch_offset = f.tell()
 
     def check_robots(self, now):
         self.read_watch()
         dead = {g for g in self.gateways if not self.procs[g].alive()}
         stalled = self.stall is not None
-        for name, (phase, gateway) in self.robot_state.items():
+        for name, (phase, gateway, _) in self.robot_state.items():
             if phase == "Online" and gateway in dead:
                 since = self.online_dead_since.setdefault(name, now)
                 d = now - since
@@ -596,11 +594,11 @@ backend gateways
         if not over:
             return
         self.read_watch()
-        cut = [n for n in self.robot_state if n.startswith("cut-")]
-        cut_back = bool(cut) and all(
-            self.robot_state[n][0] == "Online" and self.robot_connected.get(n) for n in cut)
+        cut = [(phase, connected) for n, (phase, _, connected) in self.robot_state.items()
+               if n.startswith("cut-")]
+        cut_back = bool(cut) and all(p == "Online" and c for p, c in cut)
         total = self.total_robots()
-        watched = sum(1 for phase, _ in self.robot_state.values() if phase == "Online")
+        watched = sum(1 for phase, _, _ in self.robot_state.values() if phase == "Online")
         fleet_back = (watched >= total and self.phases()["Online"] >= total
                       and self.sessions() >= total)
         for f in over:
