@@ -36,9 +36,9 @@ def watch(work):
     rows = []
     for line in (work / "robots.log").read_text(errors="replace").splitlines():
         parts = line.split("|")
-        if len(parts) != 6 or parts[1] not in ("ADDED", "MODIFIED"):
+        if len(parts) != 7 or parts[1] not in ("ADDED", "MODIFIED"):
             continue
-        t, _, name, phase, gateway, connected = parts
+        t, _, name, phase, gateway, connected, _ = parts
         rows.append((float(t), name, phase, gateway, connected == "true"))
     return rows
 

@@ -1,6 +1,10 @@
 #!/usr/bin/env python3
 """Watches every Robot of a namespace and writes each change, stamped with the time it arrived, to
-a file: `<unix time>|<event type>|<name>|<phase>|<gateway>|<connected>`.
+a file: `<unix time>|<event type>|<name>|<phase>|<gateway>|<connected>|<written>`, where
+`<written>` is the unix time of the object's latest write as the API server recorded it (the
+newest `metadata.managedFields[].time`; empty if it has none). A reader whose watch runs late
+(an API server busy relisting after a restart) can so judge its view at the moment it shows,
+not at the moment it arrived.
 
 It reads the API server's watch stream (newline-delimited JSON) through `curl --no-buffer`:
 `kubectl get --watch` buffers its output to a pipe in 8 KiB blocks, and Python's own HTTP client
@@ -9,6 +13,7 @@ changes late. Standard library and curl only.
 
 Usage: recovery_watch.py API_URL CA_FILE TOKEN_FILE NAMESPACE OUT_FILE (runs until killed;
 bench/recovery.sh starts it)."""
+import calendar
 import json
 import os
 import subprocess
@@ -24,39 +29,45 @@ def token_header(token_file):
     return path
 
 
+def written(obj):
+    """The unix time of `obj`'s latest write (its newest managed-fields entry), or None."""
+    times = [m.get("time") for m in obj.get("metadata", {}).get("managedFields") or []]
+    times = [t for t in times if t]
+    if not times:
+        return None
+    # RFC 3339 in UTC with whole seconds ("2026-12-07T00:48:52Z"), as the API server writes it.
+    return calendar.timegm(time.strptime(max(times), "%Y-%m-%dT%H:%M:%SZ"))
+
+
 def line(obj, kind):
     """One output line for `obj` as an event of type `kind`."""
     status = obj.get("status") or {}
-    return "%.3f|%s|%s|%s|%s|%s\n" % (
+    at = written(obj)
+    return "%.3f|%s|%s|%s|%s|%s|%s\n" % (
         time.time(), kind, obj.get("metadata", {}).get("name", ""),
         status.get("phase", ""), status.get("gateway", ""),
-        "true" if status.get("connected") else "false")
+        "true" if status.get("connected") else "false", "" if at is None else at)
 
 
 def list_robots(collection, ca, header, out):
-    """Lists every Robot (pages of 500 from one snapshot), writes each as an ADDED line and
-    returns the list's resourceVersion, where the watch then starts; None if the API server
-    did not answer the whole list."""
-    version, cont = None, ""
-    while True:
-        url = collection + "?limit=500" + (f"&continue={cont}" if cont else "")
-        got = subprocess.run(["curl", "-sS", "--fail", "--max-time", "120", "--cacert", ca,
-                              "-H", "@" + header, url], capture_output=True)
-        if got.returncode != 0:
-            print("list failed (curl exit %s): %s" % (got.returncode, got.stderr[:200]),
-                  file=sys.stderr)
-            return None
-        try:
-            page = json.loads(got.stdout)
-        except ValueError:
-            return None
-        meta = page.get("metadata", {})
-        version = version or meta.get("resourceVersion")
-        for obj in page.get("items", []):
-            out.write(line(obj, "ADDED"))
-        cont = meta.get("continue") or ""
-        if not cont:
-            return version
+    """Lists every Robot whole from the API server's cache (`resourceVersion=0`), writes each as
+    an ADDED line and returns the list's resourceVersion, where the watch then starts; None if
+    the API server did not answer. Not in pages: a paged list is read from etcd, which took
+    minutes for 10,000 Robots after an API server restart, and the view stood still meanwhile."""
+    got = subprocess.run(["curl", "-sS", "--fail", "--max-time", "120", "--cacert", ca,
+                          "-H", "@" + header, collection + "?resourceVersion=0"],
+                         capture_output=True)
+    if got.returncode != 0:
+        print("list failed (curl exit %s): %s" % (got.returncode, got.stderr[:200]),
+              file=sys.stderr)
+        return None
+    try:
+        listing = json.loads(got.stdout)
+    except ValueError:
+        return None
+    for obj in listing.get("items", []):
+        out.write(line(obj, "ADDED"))
+    return listing.get("metadata", {}).get("resourceVersion")
 
 
 def main():

@@ -115,12 +115,18 @@ class Soak:
         self.rollouts = []  # dicts: version, kind, expected, phase, started, ended, seconds
         self.faults = []  # dicts: kind, at, healed_s, notes
         self.stall = None  # (start, end) of the cut-off while it lasts
+        self.stalls = []  # [start, end] of every cut-off (end None while it lasts)
+        self.down = []  # [gateway, killed, restarted] (restarted None while it is down)
         self.robot_state = {}  # name -> (phase, gateway, status.connected)
+        # The moment this driver's view of the Robots shows: the latest write its watch has
+        # brought (the API server's own time of that write), and how far behind it ran at most.
+        self.view_time = None
+        self.max_view_lag = 0.0
         self.not_online_since = {}
         self.online_dead_since = {}
         self.violations = {"online_through_dead_gateway": 0, "not_online_with_session": 0,
                            "max_online_through_dead_gateway_s": 0.0,
-                           "max_not_online_with_session_s": 0.0}
+                           "max_not_online_with_session_s": 0.0, "max_view_lag_s": 0.0}
         self.release_files = os.path.join(WORK, "releases")
         self.completed_releases = set()
         self.unwanted_releases = set()
@@ -343,14 +349,32 @@ backend gateways
                 if not line.endswith("\n"):
                     break
                 parts = line.rstrip("\n").split("|")
-                if len(parts) >= 6:
+                if len(parts) >= 7:
                     self.robot_state[parts[2]] = (parts[3], parts[4], parts[5] == "true")
+                    if parts[6] and parts[1] == "MODIFIED":
+                        written = float(parts[6])
+                        self.view_time = max(self.view_time or written, written)
+                        # Whole seconds: a write 0.9 s ago may read as 1.9 s.
+                        self.max_view_lag = max(self.max_view_lag,
+                                                float(parts[0]) - written - 1)
             self.watch_offset = f.tell()
 
+    def down_at(self, t):
+        """The gateways dead at time t."""
+        return {g for g, killed, back in self.down if killed <= t and (back is None or t < back)}
+
+    def stalled_at(self, t):
+        return any(start <= t and (end is None or t < end) for start, end in self.stalls)
+
     def check_robots(self, now):
+        """Counts robots shown in a state the documented graces do not allow, judged at the
+        moment the watch's view shows (`view_time`), not the moment it arrived here: after an
+        API server restart the watch runs minutes late while the server relists, and a view
+        from then, judged now, would count a robot long Online again as still Unknown."""
         self.read_watch()
-        dead = {g for g in self.gateways if not self.procs[g].alive()}
-        stalled = self.stall is not None
+        now = min(now, self.view_time or now)
+        dead = self.down_at(now)
+        stalled = self.stalled_at(now)
         for name, (phase, gateway, _) in self.robot_state.items():
             if phase == "Online" and gateway in dead:
                 since = self.online_dead_since.setdefault(name, now)
@@ -372,6 +396,7 @@ backend gateways
         self.violations["not_online_with_session"] = max(
             self.violations["not_online_with_session"],
             sum(1 for n, s in self.not_online_since.items() if now - s > GRACE_NOT_ONLINE))
+        self.violations["max_view_lag_s"] = round(self.max_view_lag, 1)
 
     # ---- releases and rollouts ----------------------------------------------------------------
     def make_release(self, version):
@@ -524,6 +549,7 @@ backend gateways
             f["sessions"] = self.sessions()
             f["writes_before"] = self.apiserver_writes()
             self.procs[g].kill()
+            self.down.append([g, time.time(), None])
             f["notes"] = f"{g} SIGKILLed, restarted 30 s later"
             f["restart_at"] = time.time() + 30
             f["restart"] = g
@@ -556,6 +582,7 @@ backend gateways
         elif kind == "cut":
             os.kill(self.procs["sim-cut"].pid, signal.SIGSTOP)
             self.stall = (time.time(), time.time() + STALL_SECONDS)
+            self.stalls.append([self.stall[0], None])
             f["notes"] = f"{C['stalled']} robots' connections stalled for {STALL_SECONDS} s"
         elif kind == "disk":
             st = os.statvfs(C["pg_dir"])
@@ -573,12 +600,17 @@ backend gateways
         now = time.time()
         for f in self.faults:
             if f.get("restart") and now >= f["restart_at"]:
-                self.procs[f.pop("restart")].restart()
+                g = f.pop("restart")
+                self.procs[g].restart()
+                for d in self.down:
+                    if d[0] == g and d[2] is None:
+                        d[2] = time.time()
             if f.get("ballast") and now >= f["release_at"]:
                 os.remove(f.pop("ballast"))
         if self.stall and now >= self.stall[1]:
             os.kill(self.procs["sim-cut"].pid, signal.SIGCONT)
             self.stall = None
+            self.stalls[-1][1] = now
             cut = [f for f in self.faults if f["kind"] == "cut"][-1]
             cut["ended"] = now
         # A fault over (its process back, its disk freed, its robots let go) is healed once
@@ -664,7 +696,36 @@ backend gateways
         self.wait(f"all {total} robots Online", total // 20 + 300,
                   lambda: self.phases()["Online"] >= total)
         log(f"all {total} robots Online after {time.time() - t:.0f} s")
-        return time.time() - t
+        online = time.time() - t
+        self.starting_release()
+        return online
+
+    def starting_release(self):
+        """Gives the real agents the release the simulated robots start with (0.9.0), through a
+        rollout of their own, as a lab's robots have a release before the next one comes. A
+        robot with no earlier release keeps a failing one on rollback (it has nothing to go
+        back to), so without this every real agent would stay on the first failing release.
+        The soak's own deployment, newer, then owns these robots (this one shows them
+        Superseded)."""
+        digest = self.push("0.9.0")
+        self.apply({"apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "RobotDeployment",
+                    "metadata": {"name": "soak-start", "namespace": NS},
+                    "spec": {"selector": {"matchExpressions": [
+                        {"key": "fleet.lekiwi.io/sim", "operator": "DoesNotExist"}]},
+                        "release": {"version": "0.9.0", "digest": digest},
+                        "strategy": {"canary": 1, "batchSize": "25%",
+                                     "robotTimeoutSeconds": 180}}})
+        t = time.time()
+
+        def completed():
+            st = (self.deployment("soak-start") or {}).get("status") or {}
+            if st.get("phase") in ("RolledBack", "Failed"):
+                raise RuntimeError(f"the real agents' starting release ended {st.get('phase')}")
+            self.start_counts = {k: st.get(k) for k in ("targeted", "updated", "skipped")}
+            return st.get("phase") == "Completed"
+        self.wait("the real agents on release 0.9.0", 600, completed)
+        log(f"real agents' starting release Completed after {time.time() - t:.0f} s "
+            f"({self.start_counts})")
 
     def status_lag(self):
         """The longest status-write lag among the live gateways (lekiwi_gateway_status_lag_seconds),

@@ -168,6 +168,8 @@ def report(facts, samples, rollouts, faults, violations, events, steady, sizes, 
         violations["not_online_with_session"], "0", violations["not_online_with_session"] == 0)
     row("longest a robot with a session was not Online, s",
         f"{violations['max_not_online_with_session_s']:.0f}")
+    row("the driver's watch behind the API server's writes at most, s (robot states are judged "
+        "at the time the watch shows)", f"{violations.get('max_view_lag_s', 0):.0f}")
     for f in faults:
         healed = f["healed_s"]
         extra = ""
