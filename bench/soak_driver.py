@@ -633,8 +633,19 @@ backend gateways
         watched = sum(1 for phase, _, _ in self.robot_state.values() if phase == "Online")
         fleet_back = (watched >= total and self.phases()["Online"] >= total
                       and self.sessions() >= total)
+        # The leader's kill touches no robot: it is healed once a controller leads again and its
+        # Robot store holds every robot (its controllers run), however many robots an agent
+        # rollout under way restarts meanwhile (an hour's leader heals read 151 s and 198 s,
+        # each the end of such a rollout).
+        counted = self.phases()
+        led = sum(counted.values()) >= total
         for f in over:
-            if fleet_back or (f["kind"] == "cut" and cut_back):
+            # What the driver's watch shows counts only once it shows a moment after the fault
+            # ended: after an API server restart it ran minutes behind, and a cut read as healed
+            # 0 s after its end from a view of before the cut.
+            seen_after = (self.view_time or 0) >= f.get("ended", f["at"])
+            if (seen_after and (fleet_back or (f["kind"] == "cut" and cut_back))) or (
+                    f["kind"] == "leader" and led):
                 f["healed_s"] = round(now - f.get("ended", f["at"]), 1)
                 if f["kind"] == "gateway":
                     self.gateway_ratio(f, now)

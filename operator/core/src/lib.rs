@@ -10,6 +10,7 @@ pub mod api_client;
 pub mod apply;
 pub mod cache;
 pub mod http;
+pub mod list;
 pub mod rate;
 mod robot;
 pub mod watch;

@@ -96,6 +96,9 @@ pub struct GatewayMetrics {
     pub status_rate: Gauge<f64, AtomicU64>,
     /// Status writes, by priority and result.
     pub status_writes: Family<WriteLabels, Counter>,
+    /// Status writes the API server refused because the Robot changed since the version they
+    /// were fenced on (each is followed by a read of the Robot and a new try).
+    pub status_write_conflicts: Counter,
     /// Legacy polls answered, `200` or `304`.
     pub polls: Family<KindLabels, Counter>,
     /// Blob bytes sent to robots and clients (no per-robot label: robots are unbounded).
@@ -198,6 +201,10 @@ impl GatewayMetrics {
             status_writes: r.add(
                 "lekiwi_gateway_status_writes",
                 "Robot status writes, by priority and result",
+            ),
+            status_write_conflicts: r.add(
+                "lekiwi_gateway_status_write_conflicts",
+                "Status writes refused as the Robot changed since their version (each then reads it)",
             ),
             polls: r.add("lekiwi_gateway_polls", "Legacy polls answered, by code"),
             blob_bytes_served: r.add(

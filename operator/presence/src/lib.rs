@@ -116,8 +116,9 @@ struct Entry {
     /// When the last write of this session landed: routine refreshes count their period from
     /// it (`written_heartbeat` is the heartbeat's own time, up to an interval earlier).
     written_at: Option<Timestamp>,
-    /// A hash of the robot's name, fixing its point in each refresh period (see
-    /// [`refresh_due`]); computed once here, not on every tick.
+    /// The Robot's `resourceVersion` after this session's last write (0: none); see `writer`.
+    written_version: u64,
+    /// A hash of the robot's name fixing its point in each refresh period ([`refresh_due`]).
     refresh_hash: u64,
     teleoperation_since: Option<Timestamp>,
     vitals: Vitals,
@@ -241,7 +242,6 @@ impl Presence {
             let old = s.robots.get(key);
             let restarted = old.is_some_and(|e| agent::restarted_into_update(e));
             let last_update = old.and_then(|e| e.last_update.clone());
-            let agent_update = old.and_then(|e| e.agent_update.clone());
             let cached = self.cached_robot(key);
             // Shown gone although it connected: its write goes first (see `shown_gone`).
             let gone = moved && cached.as_ref().is_some_and(|r| self.gone_or_marked(key, r));
@@ -263,13 +263,14 @@ impl Presence {
                     last_heartbeat: now,
                     written_heartbeat: None,
                     written_at: None,
+                    written_version: 0,
                     refresh_hash: refresh_hash(key),
                     teleoperation_since,
                     vitals: Vitals::default(),
                     retries: 0,
                     last_update,
                     analysis,
-                    agent_update,
+                    agent_update: old.and_then(|e| e.agent_update.clone()),
                     presence_only: false,
                     settling: s.known_offline.contains(key) && !moved,
                     moved,

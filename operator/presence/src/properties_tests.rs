@@ -242,6 +242,7 @@ fn entry(mut hello: AgentMessage, mut heartbeat: AgentMessage) -> Entry {
         last_heartbeat: now,
         written_heartbeat: None,
         written_at: None,
+        written_version: 0,
         refresh_hash: 0,
         teleoperation_since: Some(now),
         vitals,

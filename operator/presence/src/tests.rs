@@ -33,6 +33,7 @@ pub(super) fn entry(connected: bool, info: ConnectInfo) -> Entry {
         last_heartbeat: at("2026-11-20T08:05:30.250Z"),
         written_heartbeat: None,
         written_at: None,
+        written_version: 0,
         refresh_hash: 0,
         teleoperation_since: None,
         vitals: Vitals::default(),
@@ -399,6 +400,7 @@ fn transitions_jump_the_queue_and_bursts_coalesce() {
                 last_heartbeat: Timestamp::now(),
                 written_heartbeat: None,
                 written_at: None,
+                written_version: 0,
                 refresh_hash: 0,
                 teleoperation_since: None,
                 vitals: Vitals::default(),
@@ -543,7 +545,7 @@ fn moved_robots_go_first_and_are_claimed_until_written() {
         assert_eq!(s.pop(), None);
         s.take_for_write(&key("m1")).unwrap()
     });
-    p.written(&key("m1"), &m1);
+    p.written(&key("m1"), &m1, 0);
     assert_eq!(p.claims(), [key("m1"), key("m2")], "written, not yet seen");
     p.write_seen(&key("m1"), 999);
     assert_eq!(
@@ -554,7 +556,7 @@ fn moved_robots_go_first_and_are_claimed_until_written() {
     p.write_seen(&key("m1"), 1_000);
     assert_eq!(p.claims(), [key("m2")], "its write seen: no claim any more");
     let m2 = p.with_state(|s| s.take_for_write(&key("m2")).unwrap());
-    p.written(&key("m2"), &m2);
+    p.written(&key("m2"), &m2, 0);
     let long_ago = Timestamp::now() - super::claims::CLAIM_AFTER_WRITE;
     p.with_state(|s| s.robots.get_mut(&key("m2")).unwrap().written_at = Some(long_ago));
     assert_eq!(p.claims(), [key("m2")], "until the next tick");
@@ -586,7 +588,7 @@ fn a_move_the_cache_shows_late_is_claimed_then() {
     );
     assert!(!p.moved_later(&key("absent"), 500), "no session here");
     let written = p.with_state(|s| s.take_for_write(&key("written")).unwrap());
-    p.written(&key("written"), &written);
+    p.written(&key("written"), &written, 0);
     assert!(
         !p.moved_later(&key("written"), 500),
         "its own write landed first"
@@ -636,7 +638,7 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
         assert!(s.begin_write(&key("busy"), Priority::Move));
         s.take_for_write(&key("written")).unwrap()
     });
-    p.written(&key("written"), &written);
+    p.written(&key("written"), &written, 0);
     assert!(!p.shown_gone(&key("busy"), 500), "its write is in flight");
     assert!(!p.shown_gone(&key("written"), 500), "its own write landed");
     assert!(p.shown_gone(&key("m3"), 500));
@@ -669,7 +671,7 @@ fn a_robot_shown_gone_under_its_own_live_session_is_written_first() {
     for (n, name) in ["waiting", "marked", "busy", "closed"].iter().enumerate() {
         p.connect(&key(name), n as u64 + 1, 700, ConnectInfo::default());
         let entry = p.with_state(|s| s.take_for_write(&key(name)).unwrap());
-        p.written(&key(name), &entry);
+        p.written(&key(name), &entry, 0);
     }
     p.disconnect(&key("closed"), 4);
     p.with_state(|s| {
@@ -755,7 +757,7 @@ fn the_sweep_puts_first_every_robot_shown_gone_under_its_live_session() {
         p.connect(&key(name), n as u64 + 1, 700, ConnectInfo::default());
         if *name != "unwritten" {
             let entry = p.with_state(|s| s.take_for_write(&key(name)).unwrap());
-            p.written(&key(name), &entry);
+            p.written(&key(name), &entry, 0);
         }
     }
     p.with_state(|s| {
@@ -925,7 +927,7 @@ fn a_robot_just_written_is_not_due_again() {
         // A heartbeat 40 minutes old: counted from it, most robots' point in the hour would
         // lie between it and now.
         written.last_heartbeat -= jiff::SignedDuration::from_mins(40);
-        p.written(k, &written);
+        p.written(k, &written, 0);
     }
     p.with_state(|s| while s.pop().is_some() {});
     p.tick();
@@ -962,7 +964,7 @@ fn only_a_switch_a_rollout_asked_to_watch_is_written_when_its_window_ends() {
         let mut order = Vec::new();
         while let Some((k, prio)) = p.with_state(|s| s.pop()) {
             let sent = p.with_state(|s| s.take_for_write(&k)).unwrap();
-            p.written(&k, &sent);
+            p.written(&k, &sent, 0);
             order.push((k.name, prio));
         }
         order
@@ -1013,8 +1015,9 @@ fn only_a_switch_a_rollout_asked_to_watch_is_written_when_its_window_ends() {
 #[test]
 fn an_entry_is_small() {
     let size = std::mem::size_of::<Entry>();
-    // 792 bytes; 1,328 with those three inline.
-    assert!(size <= 800, "a presence entry is {size} bytes");
+    // 808 bytes (800 before the version of the session's last write; 1,336 with those three
+    // inline).
+    assert!(size <= 808, "a presence entry is {size} bytes");
 }
 
 /// An agent update's steps in progress are kept for the robot's next write, its outcome is

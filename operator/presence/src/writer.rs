@@ -40,8 +40,11 @@ enum WriteError {
     Api(kube::Error),
 }
 
+/// A write that landed: the Robot's `resourceVersion` after it (0 when not a number).
+type Written = u64;
+
 /// Whether a write's outcome says the API server is overloaded: a 429, a 5xx, or no answer.
-fn throttled(result: &Result<(), WriteError>) -> bool {
+fn throttled(result: &Result<Written, WriteError>) -> bool {
     match result {
         Err(WriteError::Api(kube::Error::Api(s))) => s.code == 429 || s.code >= 500,
         Err(WriteError::Api(_)) => true,
@@ -176,11 +179,11 @@ impl Presence {
         key: RobotKey,
         priority: Priority,
         entry: &Entry,
-        result: Result<(), WriteError>,
+        result: Result<Written, WriteError>,
     ) -> &'static str {
         match result {
-            Ok(()) => {
-                self.written(&key, entry);
+            Ok(version) => {
+                self.written(&key, entry, version);
                 "ok"
             }
             Err(WriteError::Gone) => {
@@ -218,13 +221,14 @@ impl Presence {
         }
     }
 
-    /// `entry` is in the API server now: its heartbeat counts as written, and a disconnected
-    /// robot written as such is forgotten.
-    pub(super) fn written(&self, key: &RobotKey, entry: &Entry) {
+    /// `entry` is in the API server now, the Robot at `version`: its heartbeat counts as
+    /// written, and a disconnected robot written as such is forgotten.
+    pub(super) fn written(&self, key: &RobotKey, entry: &Entry, version: Written) {
         self.with_state(|s| {
             if let Some(e) = s.robots.get_mut(key) {
                 e.retries = 0;
                 if e.session == entry.session {
+                    e.written_version = e.written_version.max(version);
                     e.written_heartbeat = Some(entry.last_heartbeat);
                     e.written_at = Some(Timestamp::now());
                     e.analysis.written(&entry.analysis);
@@ -310,19 +314,29 @@ impl Presence {
 
     /// Applies the status of `e`, fenced: only while no later session holds the robot (see
     /// [`crate::holder`]), with the `resourceVersion` that showed it as a precondition.
-    /// The Robot watch's cache (`holders`) answers first; after a conflict, or for a robot
-    /// missing there, the Robot is read from the API server, up to [`FRESH_ATTEMPTS`] times.
+    /// The newer of the Robot watch's cache (`holders`) and this session's own last write
+    /// answers first (see [`newest_holder`]); after a conflict, or for a robot missing there,
+    /// the Robot is read from the API server, up to [`FRESH_ATTEMPTS`] times.
     async fn write(
         &self,
         client: &kube::Client,
         holders: Option<&WatchedRobots>,
         key: &RobotKey,
         e: &Entry,
-    ) -> Result<(), WriteError> {
+    ) -> Result<Written, WriteError> {
         let api: Api<Robot> = Api::namespaced(client.clone(), &key.namespace);
-        if let Some(cached) = holders.and_then(|h| h.holder(key)) {
-            match self.apply(&api, key, e, &cached, None).await {
-                Err(WriteError::Conflict) => {}
+        let own = self.with_state(|s| {
+            s.robots
+                .get(key)
+                .filter(|held| held.session == e.session)
+                .map_or(0, |held| held.written_version)
+        });
+        let cached = holders.and_then(|h| h.holder(key));
+        if let Some(holder) = newest_holder(cached, own, &self.config.gateway, e.epoch) {
+            match self.apply(&api, key, e, &holder, None).await {
+                Err(WriteError::Conflict) => {
+                    self.metrics.gateway.status_write_conflicts.inc();
+                }
                 done => return done,
             }
         }
@@ -338,7 +352,9 @@ impl Presence {
                 .apply(&api, key, e, &Holder::of(&fresh), Some(&fresh))
                 .await
             {
-                Err(WriteError::Conflict) => {}
+                Err(WriteError::Conflict) => {
+                    self.metrics.gateway.status_write_conflicts.inc();
+                }
                 done => return done,
             }
         }
@@ -355,7 +371,7 @@ impl Presence {
         e: &Entry,
         holder: &Holder,
         fresh: Option<&Robot>,
-    ) -> Result<(), WriteError> {
+    ) -> Result<Written, WriteError> {
         if holder.supersedes(&self.config.gateway, e.epoch, e.connected) {
             debug!(robot = %key.name, holder = ?holder.gateway, "a later session holds the robot; not writing");
             return Err(WriteError::Superseded);
@@ -370,7 +386,7 @@ impl Presence {
             )
             .await
         {
-            Ok(_) => Ok(()),
+            Ok(robot) => Ok(version_number(&robot).unwrap_or(0)),
             Err(kube::Error::Api(s)) if is_missing(&s, &key.name) => Err(WriteError::Gone),
             Err(kube::Error::Api(s)) if s.code == 409 => Err(WriteError::Conflict),
             Err(kube::Error::Api(s)) if s.code == 400 || s.code == 422 => {
@@ -379,6 +395,38 @@ impl Presence {
             Err(err) => Err(WriteError::Api(err)),
         }
     }
+}
+
+/// The Robot's `resourceVersion` as a number (as every etcd-backed API server writes it).
+fn version_number(robot: &Robot) -> Option<u64> {
+    robot.metadata.resource_version.as_deref()?.parse().ok()
+}
+
+/// What a write is fenced on: the Robot as the watch's cache shows it (`cached`), unless this
+/// gateway's own last write of the session (`own`, a `resourceVersion`; 0 for none) is newer.
+/// Then the Robot at that version is what that write made it: held by this gateway with this
+/// session's `epoch`. A watch that runs behind the API server (minutes, after an API server
+/// restart on a busy machine) would otherwise fence every write of a robot written since on a
+/// version gone by, and each would cost a refused write and a read before the one that lands:
+/// three requests for one, just when the API server has the least to spare. A newer write by
+/// anyone else still meets a conflict, and the Robot is read again.
+fn newest_holder(
+    cached: Option<Holder>,
+    own: Written,
+    gateway: &str,
+    epoch: i64,
+) -> Option<Holder> {
+    let cached_version = cached
+        .as_ref()
+        .and_then(|h| h.resource_version.as_deref()?.parse::<u64>().ok());
+    if own == 0 || cached_version.is_some_and(|c| c >= own) {
+        return cached;
+    }
+    Some(Holder {
+        gateway: Some(gateway.to_owned()),
+        epoch: Some(epoch),
+        resource_version: Some(own.to_string()),
+    })
 }
 
 #[cfg(test)]
@@ -395,6 +443,45 @@ mod tests {
         let app = axum::Router::new().fallback(move || async move { (status, body) });
         tokio::spawn(async move { axum::serve(listener, app).await });
         kube::Client::try_from(kube::Config::new(url.parse().unwrap())).unwrap()
+    }
+
+    fn holder(gateway: &str, epoch: i64, version: &str) -> Holder {
+        Holder {
+            gateway: Some(gateway.into()),
+            epoch: Some(epoch),
+            resource_version: Some(version.into()),
+        }
+    }
+
+    /// The fence is the newer of the cache's version and the session's own last write; the
+    /// cache's when it caught up, or when the session wrote nothing yet.
+    #[test]
+    fn a_write_is_fenced_on_the_newer_of_the_cache_and_its_own_last_write() {
+        let cached = holder("gw-b", 5, "100");
+        // Its own write is newer: the Robot at that version is what it wrote.
+        assert_eq!(
+            newest_holder(Some(cached.clone()), 180, "gw-a", 7),
+            Some(holder("gw-a", 7, "180"))
+        );
+        // The cache caught up with it, or went past it (another writer): the cache's.
+        for own in [0, 100, 90] {
+            assert_eq!(
+                newest_holder(Some(cached.clone()), own, "gw-a", 7),
+                Some(cached.clone())
+            );
+        }
+        // Not in the cache: its own write, if any, else a read of the Robot.
+        assert_eq!(
+            newest_holder(None, 180, "gw-a", 7),
+            Some(holder("gw-a", 7, "180"))
+        );
+        assert_eq!(newest_holder(None, 0, "gw-a", 7), None);
+        // A version that is not a number never stands for a newer one.
+        let odd = holder("gw-b", 5, "abc");
+        assert_eq!(
+            newest_holder(Some(odd), 180, "gw-a", 7),
+            Some(holder("gw-a", 7, "180"))
+        );
     }
 
     /// A restarting API server answers "404 page not found" for a custom resource it has not

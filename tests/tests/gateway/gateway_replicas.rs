@@ -212,7 +212,8 @@ async fn a_robot_moves_between_replicas() -> anyhow::Result<()> {
     // Kept connected through B while the second robot's replica dies.
     let _on_b = a_newer_session_on_another_replica_ends_the_old_one(&r).await?;
     a_robot_moves_when_its_replica_is_killed(&mut r).await?;
-    an_older_sessions_writes_are_fenced(&r).await
+    an_older_sessions_writes_are_fenced(&r).await?;
+    writes_run_ahead_of_a_cache_that_runs_behind(&r).await
 }
 
 /// The same identity connects through B while its session on A lives: A's session ends within
@@ -415,5 +416,102 @@ async fn an_older_sessions_writes_are_fenced(r: &Replicas) -> anyhow::Result<()>
     assert_eq!(writes(&old_metrics, "ok"), 1.0, "only its connect landed");
     old_cancel.cancel();
     new_cancel.cancel();
+    Ok(())
+}
+
+/// A session's writes in a row, while the gateway's Robot cache runs behind (stuck at the
+/// robot's creation, as a watch minutes behind an API server that restarted on a busy machine):
+/// each is fenced on the version the one before it left, so none meets a conflict and none
+/// needs a read of the Robot first. Fenced on the cache's version, every write after the first
+/// was refused once and read the Robot: three requests for one, when the API server can least
+/// spare them. A write of another writer in between still meets its conflict.
+async fn writes_run_ahead_of_a_cache_that_runs_behind(r: &Replicas) -> anyhow::Result<()> {
+    // A namespace no operator of the fixture watches: this writer is the Robot's only writer
+    // (the Robot controller would write each robot's phase after it).
+    let ns = namespace(&r.client, "behind").await?;
+    let created = create_robot(&r.client, &ns, "kiwi-behind", &[]).await?;
+    let cache = WatchedRobots(Arc::new(Cache::listed([created])));
+    let key = RobotKey::new(&ns, "kiwi-behind");
+    let (writer, metrics, cancel) = status_writer(&r.client, "gw-a", &cache);
+    let conflicts = |metrics: &Metrics| {
+        sample(
+            &metrics.encode(),
+            "lekiwi_gateway_status_write_conflicts_total",
+        )
+        .unwrap_or(0.0)
+    };
+    let health = |healthy: bool| {
+        Some(Health {
+            healthy,
+            message: None,
+            reason: None,
+        })
+    };
+    let info = ConnectInfo {
+        protocol: "websocket",
+        health: health(true),
+        ..ConnectInfo::default()
+    };
+    let shows = |healthy: bool| {
+        let (client, ns) = (r.client.clone(), ns.clone());
+        async move {
+            let s = get_robot(&client, &ns, "kiwi-behind").await.ok()?.status?;
+            (s.connected == Some(true) && s.health.as_ref()?.healthy == healthy).then_some(())
+        }
+    };
+    writer.connect(&key, 1, 1_000, info);
+    wait_for("the session written", Duration::from_secs(10), || {
+        shows(true)
+    })
+    .await?;
+    for round in 0..4 {
+        let healthy = round % 2 == 1;
+        writer.heartbeat(
+            &key,
+            1,
+            HeartbeatInfo {
+                health: health(healthy),
+                ..HeartbeatInfo::default()
+            },
+        );
+        wait_for("the change written", Duration::from_secs(10), || {
+            shows(healthy)
+        })
+        .await?;
+    }
+    assert_eq!(writes(&metrics, "ok"), 5.0);
+    assert_eq!(
+        conflicts(&metrics),
+        0.0,
+        "a write was fenced on the cache's old version"
+    );
+
+    // Another writer changes the Robot: the next write meets that change, reads, and lands.
+    let robots: Api<Robot> = Api::namespaced(r.client.clone(), &ns);
+    robots
+        .patch(
+            "kiwi-behind",
+            &kube::api::PatchParams::apply("lekiwi-test"),
+            &kube::api::Patch::Apply(json!({
+                "apiVersion": "fleet.lekiwi.io/v1alpha1", "kind": "Robot",
+                "metadata": {"labels": {"moved-by": "another-writer"}},
+            })),
+        )
+        .await?;
+    writer.heartbeat(
+        &key,
+        1,
+        HeartbeatInfo {
+            health: health(false),
+            ..HeartbeatInfo::default()
+        },
+    );
+    wait_for("the change written", Duration::from_secs(10), || {
+        shows(false)
+    })
+    .await?;
+    assert_eq!(conflicts(&metrics), 1.0);
+    assert_eq!(writes(&metrics, "ok"), 6.0);
+    cancel.cancel();
     Ok(())
 }
