@@ -631,13 +631,13 @@ backend gateways
         cut_back = bool(cut) and all(p == "Online" and c for p, c in cut)
         total = self.total_robots()
         watched = sum(1 for phase, _, _ in self.robot_state.values() if phase == "Online")
-        fleet_back = (watched >= total and self.phases()["Online"] >= total
+        counted = self.phases()
+        fleet_back = (watched >= total and counted["Online"] >= total
                       and self.sessions() >= total)
         # The leader's kill touches no robot: it is healed once a controller leads again and its
         # Robot store holds every robot (its controllers run), however many robots an agent
         # rollout under way restarts meanwhile (an hour's leader heals read 151 s and 198 s,
         # each the end of such a rollout).
-        counted = self.phases()
         led = sum(counted.values()) >= total
         for f in over:
             # What the driver's watch shows counts only once it shows a moment after the fault

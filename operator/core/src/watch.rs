@@ -80,8 +80,8 @@ struct Listing<K: Clone> {
 /// Watches the objects of `api` that `config`'s selectors and timeout choose (its list
 /// semantic, page size and initial list strategy do not apply: the list is read whole, at least
 /// as new as the watch's start). Every object goes through `trim` (to drop what the reader never
-/// looks at, such as managed fields) once, as it comes in from the list or the watch. Yields the events kube's watcher yields, in
-/// the order described in the module's documentation.
+/// looks at, such as managed fields) once, as it comes in from the list or the watch. Yields the
+/// events kube's watcher yields, in the order described in the module's documentation.
 pub fn watch_first<K>(
     api: Api<K>,
     config: watcher::Config,
@@ -360,8 +360,8 @@ pub fn key<K: Resource>(o: &K) -> Key {
     (o.namespace().unwrap_or_default(), o.name_any())
 }
 
-/// `o`'s resourceVersion as a number, if it is one.
-fn version_of<K: Resource>(o: &K) -> Option<u64> {
+/// `o`'s resourceVersion as a number, if it is one (as every etcd-backed API server writes it).
+pub fn version_of<K: Resource>(o: &K) -> Option<u64> {
     o.resource_version()?.parse().ok()
 }
 

@@ -24,6 +24,7 @@ use lekiwi_core::RobotKey;
 use lekiwi_core::api_client::is_missing;
 use lekiwi_core::apply::Metadata;
 use lekiwi_core::rate::TokenBucket;
+use lekiwi_core::watch::version_of;
 
 /// Why a status write did not happen.
 enum WriteError {
@@ -386,7 +387,7 @@ impl Presence {
             )
             .await
         {
-            Ok(robot) => Ok(version_number(&robot).unwrap_or(0)),
+            Ok(robot) => Ok(version_of(&robot).unwrap_or(0)),
             Err(kube::Error::Api(s)) if is_missing(&s, &key.name) => Err(WriteError::Gone),
             Err(kube::Error::Api(s)) if s.code == 409 => Err(WriteError::Conflict),
             Err(kube::Error::Api(s)) if s.code == 400 || s.code == 422 => {
@@ -395,11 +396,6 @@ impl Presence {
             Err(err) => Err(WriteError::Api(err)),
         }
     }
-}
-
-/// The Robot's `resourceVersion` as a number (as every etcd-backed API server writes it).
-fn version_number(robot: &Robot) -> Option<u64> {
-    robot.metadata.resource_version.as_deref()?.parse().ok()
 }
 
 /// What a write is fenced on: the Robot as the watch's cache shows it (`cached`), unless this

@@ -459,13 +459,8 @@ async fn writes_run_ahead_of_a_cache_that_runs_behind(r: &Replicas) -> anyhow::R
             (s.connected == Some(true) && s.health.as_ref()?.healthy == healthy).then_some(())
         }
     };
-    writer.connect(&key, 1, 1_000, info);
-    wait_for("the session written", Duration::from_secs(10), || {
-        shows(true)
-    })
-    .await?;
-    for round in 0..4 {
-        let healthy = round % 2 == 1;
+    // The session reports a health change; waits until the API server shows it.
+    let change = |healthy: bool| {
         writer.heartbeat(
             &key,
             1,
@@ -474,10 +469,17 @@ async fn writes_run_ahead_of_a_cache_that_runs_behind(r: &Replicas) -> anyhow::R
                 ..HeartbeatInfo::default()
             },
         );
-        wait_for("the change written", Duration::from_secs(10), || {
+        wait_for("the change written", Duration::from_secs(10), move || {
             shows(healthy)
         })
-        .await?;
+    };
+    writer.connect(&key, 1, 1_000, info);
+    wait_for("the session written", Duration::from_secs(10), || {
+        shows(true)
+    })
+    .await?;
+    for round in 0..4 {
+        change(round % 2 == 1).await?;
     }
     assert_eq!(writes(&metrics, "ok"), 5.0);
     assert_eq!(
@@ -498,18 +500,7 @@ async fn writes_run_ahead_of_a_cache_that_runs_behind(r: &Replicas) -> anyhow::R
             })),
         )
         .await?;
-    writer.heartbeat(
-        &key,
-        1,
-        HeartbeatInfo {
-            health: health(false),
-            ..HeartbeatInfo::default()
-        },
-    );
-    wait_for("the change written", Duration::from_secs(10), || {
-        shows(false)
-    })
-    .await?;
+    change(false).await?;
     assert_eq!(conflicts(&metrics), 1.0);
     assert_eq!(writes(&metrics, "ok"), 6.0);
     cancel.cancel();
