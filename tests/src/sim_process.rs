@@ -80,6 +80,11 @@ impl SimProcess {
         )?)?)
     }
 
+    /// The process id (to stop and continue it, as a cut-off does).
+    pub fn pid(&self) -> u32 {
+        self.process.pid()
+    }
+
     /// The log as text, for failure messages.
     pub fn log_text(&self) -> String {
         self.process.log_text()

@@ -5,7 +5,9 @@
 //! file (the same bytes fetched, only the changed file), one whose health check fails
 //! (rolled back), one cancelled mid-download (`rollout undo`), and one the simulated robots
 //! break off by going offline (a failed command, then the retry, resumed). A second test rolls
-//! an agent build out to simulated robots and back.
+//! an agent build out to simulated robots and back; a third freezes the agent and the
+//! simulated robots mid-deploy (as the soak's cut-off does) and checks they take the next
+//! rollout once thawed.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -606,5 +608,68 @@ async fn simulated_robots_update_their_agent_and_go_back() -> anyhow::Result<()>
     }
     let summary = sim.stop()?;
     assert_eq!(summary["agent_updates"], 2 * SIMS as u64, "{summary:#}");
+    Ok(())
+}
+
+/// Sends `signal` (`STOP`, `CONT`) to each process.
+fn signal(signal: &str, pids: &[u32]) -> anyhow::Result<()> {
+    for pid in pids {
+        let ok = Command::new("kill")
+            .args([format!("-{signal}"), pid.to_string()])
+            .status()?
+            .success();
+        anyhow::ensure!(ok, "kill -{signal} {pid} failed");
+    }
+    Ok(())
+}
+
+/// Robots frozen in the middle of a deploy (SIGSTOP, as the soak's cut-off does) for longer
+/// than the heartbeat grace and the rollout's robot timeout: the gateway drops their
+/// sessions and the rollout rolls back without them. Thawed, each finishes or abandons what
+/// it was doing, follows the rollback, and takes the next rollout like any robot.
+#[tokio::test]
+async fn robots_frozen_mid_deploy_take_the_next_rollout() -> anyhow::Result<()> {
+    let sim_flags = ["--release-version", "", "--health-check-seconds", "30"];
+    let site = Site::new("simfrz", &sim_flags).await?;
+    let root = site.dir.path().to_owned();
+    let v1 = site.push(&release_dir(&root, "1", &[], 0)?, "1.0.0")?;
+    site.roll_out(&v1).await?;
+    let st = site.finished().await?;
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "1.0.0: {st:#?}");
+    site.all_on("1.0.0").await?;
+
+    // 2.0.0: the agent is downloading it (slowly), the simulated robots check its health.
+    let v2 = site.push(&release_dir(&root, "2", &[2], 24 * 1024 * 1024)?, "2.0.0")?;
+    let marks = site.marks().await?;
+    site.roll_out(&v2).await?;
+    wait_for(
+        "the agent downloading 2.0.0 and the simulated robots checking its health",
+        Duration::from_secs(60),
+        || async {
+            let all = site.commands(&marks).await.ok()?;
+            let at = |robot: &str, phase: &str| {
+                all.get(robot)
+                    .is_some_and(|(cmds, _)| cmds.iter().any(|c| c.iter().any(|p| p == phase)))
+            };
+            let sims = (1..=SIMS).all(|i| at(&format!("sim-{i:05}"), "health_check"));
+            (sims && at(AGENT, "downloading")).then_some(())
+        },
+    )
+    .await?;
+    let pids = [site.agent.pid(), site.sim.pid()];
+    signal("STOP", &pids)?;
+    let frozen = rollout_finished(&site.deployments(), DEPLOYMENT, Duration::from_secs(180)).await;
+    signal("CONT", &pids)?;
+    let st = frozen?.status.unwrap_or_default();
+    assert_eq!(st.phase, Some(RolloutPhase::RolledBack), "2.0.0: {st:#?}");
+    eprintln!("2.0.0 rolled back while every robot was frozen; thawed");
+    site.all_on("1.0.0").await?;
+
+    // 3.0.0 reaches every robot.
+    let v3 = site.push(&release_dir(&root, "3", &[3], 0)?, "3.0.0")?;
+    site.roll_out(&v3).await?;
+    let st = site.finished().await?;
+    assert_eq!(st.phase, Some(RolloutPhase::Completed), "3.0.0: {st:#?}");
+    site.all_on("3.0.0").await?;
     Ok(())
 }
