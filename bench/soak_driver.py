@@ -887,8 +887,12 @@ backend gateways
                 self.procs[n].kill()
 
     def psql(self, sql):
+        # The report's queries group every stored row: in memory, not in temporary files on the
+        # database's volume, which the disk-full fault leaves nearly full (an hour's report
+        # failed there with "No space left on device").
         pg = [os.path.join(C["pg_bin"], "psql"), "-X", "-q", "-At", "-h", "127.0.0.1", "-p",
-              str(C["pg_port"]), "-U", "postgres", "-d", "lekiwi", "-c", sql]
+              str(C["pg_port"]), "-U", "postgres", "-d", "lekiwi", "-c", "SET work_mem = '2GB'",
+              "-c", sql]
         return subprocess.run(pg, capture_output=True, text=True, timeout=600, check=True).stdout
 
     def events(self):

@@ -44,26 +44,37 @@ pub(super) async fn gather(
     let target = target(&deployment.spec);
     let agent = deployment.spec.agent.as_ref();
     let kind = deployment.spec.kind();
+    let robot_view = |r: &Robot| {
+        let gateway = r.status.as_ref().and_then(|s| s.gateway.as_deref());
+        let grace = state.ctx.heartbeat_grace(gateway, now);
+        let view = view(r, now, grace, kind);
+        match (kind, agent) {
+            (RolloutKind::Agent, Some(agent)) => agent_view(view, r, agent, &target),
+            _ => view,
+        }
+    };
+    let mut robots: Vec<RobotView> = ours
+        .iter()
+        .map(|r| {
+            // With the marks and spec this controller wrote, if the store is older.
+            let laid = state.own.robot(r, kind.mark_annotation());
+            RobotView {
+                superseded_by: owners.remove(&r.name_any()),
+                ..robot_view(&laid)
+            }
+        })
+        .collect();
+    let timeouts = super::confirm::Timeouts {
+        deployment: &deployment.name_any(),
+        target: &target,
+        timeout: SignedDuration::from_secs(deployment.spec.strategy.robot_timeout_seconds),
+        now,
+    };
+    let api = kube::Api::<Robot>::namespaced(state.ctx.client.clone(), &namespace);
+    super::confirm::confirm(&api, &timeouts, &mut robots, robot_view).await;
     Ok(Some(Facts {
         now,
-        robots: ours
-            .iter()
-            .map(|r| {
-                // With the marks and spec this controller wrote, if the store is older.
-                let laid = state.own.robot(r, kind.mark_annotation());
-                let r: &Robot = &laid;
-                let gateway = r.status.as_ref().and_then(|s| s.gateway.as_deref());
-                let grace = state.ctx.heartbeat_grace(gateway, now);
-                let view = RobotView {
-                    superseded_by: owners.remove(&r.name_any()),
-                    ..view(r, now, grace, kind)
-                };
-                match (kind, agent) {
-                    (RolloutKind::Agent, Some(agent)) => agent_view(view, r, agent, &target),
-                    _ => view,
-                }
-            })
-            .collect(),
+        robots,
         target,
         release,
         overlaps,

@@ -5,6 +5,7 @@
 
 pub mod apply;
 mod catch_up;
+mod confirm;
 mod facts;
 #[cfg(test)]
 mod facts_tests;

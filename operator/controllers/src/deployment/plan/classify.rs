@@ -207,7 +207,7 @@ fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_
         );
     }
     let timeout = rollout.robot_timeout;
-    if rollout.now.duration_since(since) > timeout {
+    if rollout.now.duration_since(since) > timeout && !robot.unconfirmed {
         let runs = robot
             .current
             .as_ref()

@@ -150,6 +150,10 @@ pub struct RobotView {
     /// Agent rollouts: why the robot cannot take the agent (no build for its architecture);
     /// such a robot is skipped with this message instead of started.
     pub no_build: Option<String>,
+    /// Past its timeout on the shared store, which can run minutes behind the API server under
+    /// load, and not read fresh this time (the controller reads a bounded number of such
+    /// robots per reconcile): it does not time out on this view; a later reconcile reads it.
+    pub unconfirmed: bool,
 }
 
 /// Whether the release can be rolled out.

@@ -300,6 +300,33 @@ fn silent_robots_fail_after_the_timeout() {
     );
 }
 
+/// The soak's canary that timed out on a store a minute behind: a robot past its timeout on a
+/// view that was not read fresh (`unconfirmed`) stays in progress, and the plan looks again
+/// within a second; on a fresh view that still shows it silent, it fails.
+#[test]
+fn a_timeout_waits_for_a_fresh_view_of_the_robot() {
+    let mut d = deployment(IntOrString::Int(2), 0);
+    d.spec.strategy.success_threshold = 1.0;
+    let mut sim = Sim::new(d, 2);
+    sim.step();
+    sim.robots[1].phase = Some(RobotPhase::Offline);
+    sim.agents();
+    sim.advance(61);
+    sim.robots[1].unconfirmed = true;
+    let plan = sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::Progressing);
+    assert_eq!(plan.requeue_after, Some(std::time::Duration::from_secs(1)));
+    sim.robots[1].unconfirmed = false;
+    sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
+    let st = sim.d.status.as_ref().unwrap();
+    assert!(
+        st.message.as_deref().unwrap().contains("timed out"),
+        "{:?}",
+        st.message
+    );
+}
+
 #[test]
 fn an_offline_robot_that_comes_back_in_time_succeeds() {
     let mut sim = Sim::new(deployment(IntOrString::Int(2), 0), 2);
