@@ -15,7 +15,7 @@ use super::plan::{MarkState, RobotView};
 
 /// Robots read fresh in one reconcile at most; the others wait for a later reconcile (the
 /// plan looks again within a second while one waits).
-pub(super) const MAX_READS: usize = 200;
+const MAX_READS: usize = 200;
 /// Reads in flight at once.
 const CONCURRENCY: usize = 16;
 /// How long the reads of one reconcile may take together.
@@ -44,7 +44,7 @@ impl Timeouts<'_> {
     }
 
     /// The robots among `robots` that are overdue on the store, most overdue first.
-    pub(super) fn due(&self, robots: &[RobotView]) -> Vec<usize> {
+    fn due(&self, robots: &[RobotView]) -> Vec<usize> {
         let mut due: Vec<usize> = (0..robots.len())
             .filter(|&i| self.overdue(&robots[i]))
             .collect();

@@ -277,6 +277,17 @@ fn robots_waited_for_too_long_are_skipped_and_offline_ones_skipped_at_once() {
     assert_eq!(sim.robots[1].current, Some(rel("1")));
 }
 
+/// The rollout rolls back, and says a robot timed out.
+fn assert_rolling_back_on_a_timeout(sim: &Sim) {
+    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
+    let st = sim.d.status.as_ref().unwrap();
+    assert!(
+        st.message.as_deref().unwrap().contains("timed out"),
+        "{:?}",
+        st.message
+    );
+}
+
 #[test]
 fn silent_robots_fail_after_the_timeout() {
     let mut d = deployment(IntOrString::Int(2), 0);
@@ -291,13 +302,7 @@ fn silent_robots_fail_after_the_timeout() {
     assert_eq!(sim.phase(), RolloutPhase::Progressing);
     sim.advance(31);
     sim.step();
-    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
-    let st = sim.d.status.as_ref().unwrap();
-    assert!(
-        st.message.as_deref().unwrap().contains("timed out"),
-        "{:?}",
-        st.message
-    );
+    assert_rolling_back_on_a_timeout(&sim);
 }
 
 /// The soak's canary that timed out on a store a minute behind: a robot past its timeout on a
@@ -318,13 +323,7 @@ fn a_timeout_waits_for_a_fresh_view_of_the_robot() {
     assert_eq!(plan.requeue_after, Some(std::time::Duration::from_secs(1)));
     sim.robots[1].unconfirmed = false;
     sim.step();
-    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
-    let st = sim.d.status.as_ref().unwrap();
-    assert!(
-        st.message.as_deref().unwrap().contains("timed out"),
-        "{:?}",
-        st.message
-    );
+    assert_rolling_back_on_a_timeout(&sim);
 }
 
 #[test]
