@@ -47,6 +47,35 @@ impl RobotView {
         self.current.as_ref() == Some(release)
     }
 
+    /// The release to record as a robot's `previous` (what a rollback returns it to) when a
+    /// rollout starts it or marks it waiting: the release it runs, unless it is on its way back
+    /// to another: its mark (rolling back, or waiting as recorded while it was) names a release
+    /// it does not run yet that its spec still asks for (a rollback in flight, or a store that
+    /// does not show it back yet). Then that release: recording the one it still runs would
+    /// let a later rollback return it to the release an earlier rollback took it off.
+    pub(super) fn before_start(&self) -> Option<ReleaseRef> {
+        let headed = self
+            .mark
+            .as_ref()
+            .filter(|m| matches!(m.state, MarkState::RollingBack | MarkState::Waiting))
+            .and_then(|m| m.previous.clone())
+            .filter(|p| self.asks_for(p));
+        match headed {
+            Some(release) if !self.runs(&release) => Some(release),
+            _ => self.current.clone(),
+        }
+    }
+
+    /// Whether the robot's spec asks for `release`: `spec.release`, or for an agent rollout
+    /// `spec.agent`'s version (an agent release is known by its version).
+    fn asks_for(&self, release: &ReleaseRef) -> bool {
+        self.desired.as_ref() == Some(release)
+            || self
+                .desired_agent
+                .as_ref()
+                .is_some_and(|a| a.version == release.version.as_str())
+    }
+
     /// The message of a robot waited for: why it is not available.
     pub(super) fn waiting_reason(&self) -> String {
         match self.available() {

@@ -154,7 +154,7 @@ fn form_batch(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) -> Ou
             batch,
             state,
             since: now,
-            previous: robot.current.clone(),
+            previous: robot.before_start(),
             message,
             failed: false,
         };
@@ -274,7 +274,7 @@ fn resolve_waiting(
         mark.state = MarkState::Started;
         mark.since = now;
         mark.message = None;
-        mark.previous = robot.current.clone();
+        mark.previous = robot.before_start();
         draft.write(&robot.name, mark, Some(rollout.target.clone()));
         draft.wake_at(now + rollout.robot_timeout + SignedDuration::from_secs(1));
         true

@@ -610,6 +610,76 @@ fn rolling_a_release_out_again_ignores_the_marks_of_its_earlier_rollout() {
     assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
 }
 
+/// 2 rolled out to four robots and rolled back (kiwi-01 fails its health check), kiwi-02 taken
+/// over by a teleoperator before it applied the rollback: the rollout ends RolledBack on its
+/// timeout while kiwi-02 still runs 2, its `spec.release` back on 1.
+fn rolled_back_without_kiwi_02() -> Sim {
+    let mut sim = Sim::new(deployment(IntOrString::Int(4), 0), 4);
+    sim.failing = vec!["kiwi-01".into()];
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
+    sim.robots[2].teleoperated = true;
+    sim.run_until_done(120);
+    assert_eq!(sim.phase(), RolloutPhase::RolledBack);
+    let kiwi_02 = &sim.robots[2];
+    assert_eq!(
+        (&kiwi_02.current, &kiwi_02.desired),
+        (&Some(rel("2")), &Some(rel("1")))
+    );
+    sim.failing.clear();
+    sim.d.spec.release = Some(rel("3"));
+    sim.advance(1);
+    sim
+}
+
+#[test]
+fn a_robot_still_rolling_back_is_started_with_the_release_it_returns_to_as_previous() {
+    let mut sim = rolled_back_without_kiwi_02();
+    // Free, but its rollback not yet done (or not yet seen): it still runs the release left.
+    sim.robots[2].teleoperated = false;
+    let plan = sim.step();
+    let kiwi_02 = plan.writes.iter().find(|w| w.robot == "kiwi-02").unwrap();
+    assert_eq!(kiwi_02.mark.state, MarkState::Started);
+    assert_eq!(kiwi_02.mark.previous, Some(rel("1")), "not 2, rolled back");
+    assert_eq!(plan.writes.len(), 4);
+    assert!(
+        plan.writes
+            .iter()
+            .all(|w| w.mark.previous == Some(rel("1")))
+    );
+}
+
+#[test]
+fn a_robot_waited_for_while_rolling_back_keeps_the_release_it_returns_to_as_previous() {
+    let mut sim = rolled_back_without_kiwi_02();
+    let plan = sim.step();
+    let kiwi_02 = plan.writes.iter().find(|w| w.robot == "kiwi-02").unwrap();
+    assert_eq!(kiwi_02.mark.state, MarkState::Waiting);
+    assert_eq!(kiwi_02.mark.previous, Some(rel("1")));
+    // Free again, still on 2: started from its wait with 1 to return to.
+    sim.robots[2].teleoperated = false;
+    sim.advance(1);
+    let plan = sim.step();
+    let kiwi_02 = plan.writes.iter().find(|w| w.robot == "kiwi-02").unwrap();
+    assert_eq!(kiwi_02.mark.state, MarkState::Started);
+    assert_eq!(kiwi_02.mark.previous, Some(rel("1")), "not 2, rolled back");
+    // Its spec no longer asks for 1 (written by hand meanwhile): what it runs is recorded.
+    let mut sim = rolled_back_without_kiwi_02();
+    sim.robots[2].current = Some(rel("5"));
+    sim.robots[2].desired = Some(rel("5"));
+    sim.robots[2].teleoperated = false;
+    let plan = sim.step();
+    let kiwi_02 = plan.writes.iter().find(|w| w.robot == "kiwi-02").unwrap();
+    assert_eq!(
+        kiwi_02.mark.previous,
+        Some(rel("5")),
+        "it runs what it was told"
+    );
+}
+
 #[test]
 fn a_robot_that_vanishes_mid_update_leaves_a_consistent_rollout() {
     let mut sim = Sim::new(deployment(IntOrString::Int(3), 0), 9);
