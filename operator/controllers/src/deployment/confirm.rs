@@ -1,5 +1,6 @@
 //! Timeouts judged on the API server's present: a robot the shared store shows past its
-//! rollout timeout is read fresh before the plan may count it failed. Under load the store can
+//! rollout timeout is read fresh before the plan may count it failed, or count it as not back
+//! from a rollback. Under load the store can
 //! run minutes behind the API server: the soak at 10,000 robots timed a canary out on a store
 //! that did not show yet the release its gateway had written it running a minute before.
 
@@ -33,14 +34,24 @@ pub(super) struct Timeouts<'a> {
 }
 
 impl Timeouts<'_> {
-    /// Whether `robot` is started by this deployment and past its timeout without running the
-    /// target healthy, on this view.
+    /// Whether `robot`, on this view, is past its timeout since this deployment told it to
+    /// switch without running the target healthy, or since it told it to switch back without
+    /// running the release it returns to.
     pub(super) fn overdue(&self, robot: &RobotView) -> bool {
-        robot.mark.as_ref().is_some_and(|m| {
-            m.deployment == self.deployment
-                && matches!(m.state, MarkState::Started)
-                && self.now.duration_since(m.since) > self.timeout
-        }) && !(robot.current.as_ref() == Some(self.target) && robot.healthy)
+        let Some(m) = robot.mark.as_ref() else {
+            return false;
+        };
+        if m.deployment != self.deployment || self.now.duration_since(m.since) <= self.timeout {
+            return false;
+        }
+        match m.state {
+            MarkState::Started => !(robot.current.as_ref() == Some(self.target) && robot.healthy),
+            MarkState::RollingBack => m
+                .previous
+                .as_ref()
+                .is_some_and(|back| robot.current.as_ref() != Some(back)),
+            _ => false,
+        }
     }
 
     /// The robots among `robots` that are overdue on the store, most overdue first.
@@ -144,7 +155,7 @@ mod tests {
     }
 
     #[test]
-    fn only_this_deployments_started_robots_past_their_timeout_are_due_oldest_first() {
+    fn only_this_deployments_robots_past_their_timeout_are_due_oldest_first() {
         let now = Timestamp::now();
         let target = release("2");
         let t = Timeouts {
@@ -160,6 +171,13 @@ mod tests {
         unhealthy.healthy = false;
         let mut waiting = started("waiting", "d", 100, now);
         waiting.mark.as_mut().unwrap().state = MarkState::Waiting;
+        let rolling_back = |name, previous: &str, age_s| {
+            let mut r = started(name, "d", age_s, now);
+            let mark = r.mark.as_mut().unwrap();
+            mark.state = MarkState::RollingBack;
+            mark.previous = Some(release(previous));
+            r
+        };
         let robots = vec![
             started("young", "d", 30, now),
             started("old", "d", 61, now),
@@ -168,6 +186,9 @@ mod tests {
             on_target,
             unhealthy,
             waiting,
+            rolling_back("not-back", "0", 200),
+            rolling_back("back", "1", 200),
+            rolling_back("not-back-young", "0", 30),
             RobotView::default(),
         ];
         let names: Vec<&str> = t
@@ -175,6 +196,6 @@ mod tests {
             .iter()
             .map(|&i| robots[i].name.as_str())
             .collect();
-        assert_eq!(names, ["older", "unhealthy", "old"]);
+        assert_eq!(names, ["older", "not-back", "unhealthy", "old"]);
     }
 }

@@ -68,31 +68,45 @@ pub(super) fn resume_recorded_rollback(
     }
 }
 
-/// Waits until every robot told to switch back runs its previous release (or timed out).
+/// Waits until every robot told to switch back runs its previous release, or is past its
+/// timeout on a fresh view (one past it on a store not read fresh is waited for).
 pub(super) fn await_rollback(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &mut Draft) {
     let now = rollout.now;
-    let mut outstanding = 0;
+    let (mut outstanding, mut not_back) = (0, Vec::new());
     for (robot, state) in &fleet.robots {
         let RobotState::RollingBack(_, since) = state else {
             continue;
         };
         let back = robot.mark.as_ref().and_then(|m| m.previous.as_ref());
         let done = back.is_none_or(|p| robot.runs(p));
-        if !done && now.duration_since(*since) <= rollout.robot_timeout {
+        if done {
+            continue;
+        }
+        if now.duration_since(*since) <= rollout.robot_timeout || robot.unconfirmed {
             outstanding += 1;
             draft.wake_at(*since + rollout.robot_timeout + SignedDuration::from_secs(1));
+        } else {
+            not_back.push(robot.name.as_str());
         }
     }
     if outstanding == 0 {
         draft.phase = RolloutPhase::RolledBack;
         draft.status.completion_time = Some(time(now));
-        draft.warning(
-            "RolledBack",
-            format!(
-                "every updated robot is back on its previous release: {}",
-                draft.message
+        let verdict = match not_back.as_slice() {
+            [] => "every updated robot is back on its previous release".to_owned(),
+            [first, ..] => format!(
+                "{} updated robot(s) did not run their previous release within {}s of being told \
+                 to switch back (first: {first}); the others are back",
+                not_back.len(),
+                rollout.robot_timeout.as_secs()
             ),
-        );
+        };
+        let message = format!("{verdict}: {}", draft.message);
+        if !not_back.is_empty() {
+            // Said in the status too: robots to see to, as long as the rollout shows.
+            draft.message.clone_from(&message);
+        }
+        draft.warning("RolledBack", message);
     } else {
         draft.wake_at(now + SignedDuration::from_secs(10));
     }

@@ -624,6 +624,14 @@ fn rolled_back_without_kiwi_02() -> Sim {
     sim.robots[2].teleoperated = true;
     sim.run_until_done(120);
     assert_eq!(sim.phase(), RolloutPhase::RolledBack);
+    let message = sim.d.status.as_ref().unwrap().message.clone().unwrap();
+    assert!(
+        message.starts_with(
+            "1 updated robot(s) did not run their previous release within 60s of being told to \
+             switch back (first: kiwi-02)"
+        ),
+        "{message}"
+    );
     let kiwi_02 = &sim.robots[2];
     assert_eq!(
         (&kiwi_02.current, &kiwi_02.desired),
@@ -633,6 +641,29 @@ fn rolled_back_without_kiwi_02() -> Sim {
     sim.d.spec.release = Some(rel("3"));
     sim.advance(1);
     sim
+}
+
+/// A rollback gives a robot up (the rollout ends RolledBack without it) only on a fresh view:
+/// past its timeout on a store not read fresh, it is waited for.
+#[test]
+fn a_rollback_gives_a_robot_up_only_on_a_fresh_view() {
+    let mut sim = Sim::new(deployment(IntOrString::Int(4), 0), 4);
+    sim.failing = vec!["kiwi-01".into()];
+    sim.step();
+    sim.agents();
+    sim.advance(1);
+    sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
+    sim.robots[2].teleoperated = true;
+    sim.agents();
+    sim.advance(61);
+    sim.robots[2].unconfirmed = true;
+    let plan = sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
+    assert_eq!(plan.requeue_after, Some(std::time::Duration::from_secs(1)));
+    sim.robots[2].unconfirmed = false;
+    sim.step();
+    assert_eq!(sim.phase(), RolloutPhase::RolledBack);
 }
 
 #[test]
