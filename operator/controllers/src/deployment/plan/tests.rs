@@ -610,10 +610,9 @@ fn rolling_a_release_out_again_ignores_the_marks_of_its_earlier_rollout() {
     assert_eq!(sim.d.status.as_ref().unwrap().updated, 4);
 }
 
-/// 2 rolled out to four robots and rolled back (kiwi-01 fails its health check), kiwi-02 taken
-/// over by a teleoperator before it applied the rollback: the rollout ends RolledBack on its
-/// timeout while kiwi-02 still runs 2, its `spec.release` back on 1.
-fn rolled_back_without_kiwi_02() -> Sim {
+/// 2 rolled out to four robots and rolling back (kiwi-01 fails its health check), kiwi-02 taken
+/// over by a teleoperator before it applied the rollback (agents do not act while teleoperated).
+fn rolling_back_without_kiwi_02() -> Sim {
     let mut sim = Sim::new(deployment(IntOrString::Int(4), 0), 4);
     sim.failing = vec!["kiwi-01".into()];
     sim.step();
@@ -622,6 +621,13 @@ fn rolled_back_without_kiwi_02() -> Sim {
     sim.step();
     assert_eq!(sim.phase(), RolloutPhase::RollingBack);
     sim.robots[2].teleoperated = true;
+    sim
+}
+
+/// [`rolling_back_without_kiwi_02`] to its end: RolledBack on kiwi-02's timeout while it still
+/// runs 2, its `spec.release` back on 1; then 3 asked for.
+fn rolled_back_without_kiwi_02() -> Sim {
+    let mut sim = rolling_back_without_kiwi_02();
     sim.run_until_done(120);
     assert_eq!(sim.phase(), RolloutPhase::RolledBack);
     let message = sim.d.status.as_ref().unwrap().message.clone().unwrap();
@@ -647,14 +653,7 @@ fn rolled_back_without_kiwi_02() -> Sim {
 /// past its timeout on a store not read fresh, it is waited for.
 #[test]
 fn a_rollback_gives_a_robot_up_only_on_a_fresh_view() {
-    let mut sim = Sim::new(deployment(IntOrString::Int(4), 0), 4);
-    sim.failing = vec!["kiwi-01".into()];
-    sim.step();
-    sim.agents();
-    sim.advance(1);
-    sim.step();
-    assert_eq!(sim.phase(), RolloutPhase::RollingBack);
-    sim.robots[2].teleoperated = true;
+    let mut sim = rolling_back_without_kiwi_02();
     sim.agents();
     sim.advance(61);
     sim.robots[2].unconfirmed = true;
