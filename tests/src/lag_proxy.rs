@@ -9,14 +9,19 @@
 //! arrive while small ones (a watch's events) still come in time, as on an API server that is
 //! slow to send big lists.
 //!
+//! It can also lag only the answers in flight on the connections open at one moment
+//! ([`LagProxy::lag_open`]): a client's watches (each one long answer) then run behind while the
+//! requests it sends afterwards, on kept-alive or new connections, are answered in time, as on an
+//! API server whose watches fall behind under load.
+//!
 //! It can also play an API server that restarts badly: [`LagProxy::cut_and_hold`] closes every
 //! open connection and takes the next ones in without ever answering them, as a server that
 //! accepted requests while it started and lost them; [`LagProxy::release`] forwards connections
 //! opened after it again (those held stay unanswered).
 
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, Weak};
 use std::time::Duration;
 
 use anyhow::Result;
@@ -40,6 +45,8 @@ pub struct LagProxy {
     cuts: watch::Sender<u64>,
     /// While set, connections are taken in and never answered.
     holding: Arc<AtomicBool>,
+    /// Each forwarded connection's own lag in milliseconds, while it is open.
+    open: Arc<Mutex<Vec<Weak<AtomicU64>>>>,
     accept: JoinHandle<()>,
 }
 
@@ -53,14 +60,29 @@ impl LagProxy {
         let rate = Arc::new(AtomicU64::new(0));
         let (cuts, cut) = watch::channel(0);
         let holding = Arc::new(AtomicBool::new(false));
-        let (pace, hold) = ((lag_ms.clone(), rate.clone()), holding.clone());
+        let open = Arc::new(Mutex::new(Vec::<Weak<AtomicU64>>::new()));
+        let (pace, hold, conns) = (
+            (lag_ms.clone(), rate.clone()),
+            holding.clone(),
+            open.clone(),
+        );
         let accept = tokio::spawn(async move {
             while let Ok((client, _)) = listener.accept().await {
                 if hold.load(Ordering::Relaxed) {
                     tokio::spawn(never_answer(client));
-                } else {
-                    tokio::spawn(forward(client, upstream, pace.clone(), cut.clone()));
+                    continue;
                 }
+                let own = Arc::new(AtomicU64::new(0));
+                if let Ok(mut conns) = conns.lock() {
+                    conns.retain(|c| c.strong_count() > 0);
+                    conns.push(Arc::downgrade(&own));
+                }
+                let pace = Pace {
+                    lag_ms: pace.0.clone(),
+                    own_lag_ms: own,
+                    rate: pace.1.clone(),
+                };
+                tokio::spawn(forward(client, upstream, pace, cut.clone()));
             }
         });
         Ok(Self {
@@ -69,6 +91,7 @@ impl LagProxy {
             rate,
             cuts,
             holding,
+            open,
             accept,
         })
     }
@@ -89,6 +112,20 @@ impl LagProxy {
     pub fn set_lag(&self, lag: Duration) {
         let ms = u64::try_from(lag.as_millis()).unwrap_or(u64::MAX);
         self.lag_ms.store(ms, Ordering::Relaxed);
+    }
+
+    /// From now on, what the server sends on the connections open now is handed on `lag` late
+    /// (or the lag of [`LagProxy::set_lag`], if longer), until the client sends on that
+    /// connection again: a watch's answer runs behind to its end, while a new request on a
+    /// kept-alive connection (HTTP/1.1 sends one after the answer before it has come) or on a
+    /// connection opened later is answered in time.
+    pub fn lag_open(&self, lag: Duration) {
+        let ms = u64::try_from(lag.as_millis()).unwrap_or(u64::MAX);
+        if let Ok(conns) = self.open.lock() {
+            for own in conns.iter().filter_map(Weak::upgrade) {
+                own.store(ms, Ordering::Relaxed);
+            }
+        }
     }
 
     /// From now on, each connection hands on at most `bytes_per_second` of what the server
@@ -115,7 +152,7 @@ async fn never_answer(mut client: TcpStream) {
 async fn forward(
     client: TcpStream,
     upstream: SocketAddr,
-    pace: (Arc<AtomicU64>, Arc<AtomicU64>),
+    pace: Pace,
     mut cut: watch::Receiver<u64>,
 ) {
     cut.mark_unchanged();
@@ -125,14 +162,26 @@ async fn forward(
     }
 }
 
+/// How one connection hands on what the server sends.
+struct Pace {
+    /// The proxy's lag for every connection, in milliseconds.
+    lag_ms: Arc<AtomicU64>,
+    /// This connection's own (see [`LagProxy::lag_open`]); the longer of the two counts. Back to
+    /// 0 when the client sends.
+    own_lag_ms: Arc<AtomicU64>,
+    /// Bytes per second; 0: no limit.
+    rate: Arc<AtomicU64>,
+}
+
 /// The most handed on at once when a rate is set: pieces this small keep the pace even.
 const PIECE: usize = 4 * 1024;
 
-async fn relay(
-    client: TcpStream,
-    upstream: SocketAddr,
-    (lag_ms, rate): (Arc<AtomicU64>, Arc<AtomicU64>),
-) {
+async fn relay(client: TcpStream, upstream: SocketAddr, pace: Pace) {
+    let Pace {
+        lag_ms,
+        own_lag_ms,
+        rate,
+    } = pace;
     let Ok(server) = TcpStream::connect(upstream).await else {
         return;
     };
@@ -140,15 +189,26 @@ async fn relay(
     let (mut server_read, mut server_write) = server.into_split();
     // Both halves' tasks end with this future, also when a cut drops it.
     let mut tasks = tokio::task::JoinSet::new();
+    let unlag = own_lag_ms.clone();
     tasks.spawn(async move {
-        let _ = tokio::io::copy(&mut client_read, &mut server_write).await;
+        let mut buf = vec![0u8; 16 * 1024];
+        while let Ok(n) = client_read.read(&mut buf).await {
+            // A client that sends again has had the answer it waited for: a new request.
+            unlag.store(0, Ordering::Relaxed);
+            if n == 0 || server_write.write_all(&buf[..n]).await.is_err() {
+                break;
+            }
+        }
         let _ = server_write.shutdown().await;
     });
     let (tx, mut rx) = mpsc::channel::<(Instant, Vec<u8>)>(IN_FLIGHT);
     tasks.spawn(async move {
         let mut buf = vec![0u8; 64 * 1024];
         while let Ok(n) = server_read.read(&mut buf).await {
-            let lag = Duration::from_millis(lag_ms.load(Ordering::Relaxed));
+            let ms = lag_ms
+                .load(Ordering::Relaxed)
+                .max(own_lag_ms.load(Ordering::Relaxed));
+            let lag = Duration::from_millis(ms);
             if n == 0
                 || tx
                     .send((Instant::now() + lag, buf[..n].to_vec()))

@@ -30,7 +30,7 @@ use kube::{Api, ResourceExt};
 use lekiwi_core::watch::watch_first;
 use lekiwi_crds::{Robot, RobotDeployment};
 use tokio_util::sync::CancellationToken;
-use tracing::{Instrument, info, info_span, warn};
+use tracing::{Instrument, debug, info, info_span, warn};
 
 pub use self::facts::check_release;
 use super::Context;
@@ -210,11 +210,13 @@ async fn reconcile(
             .rollouts
             .record(deployment, &plan.status, (judged, plan.finished), now);
         ctx.reset_backoff(&name, &namespace);
-        Ok(match (plan.requeue_after, held) {
-            (Some(after), Some(held)) => Action::requeue(after.min(held)),
-            (Some(after), None) | (None, Some(after)) => Action::requeue(after),
-            (None, None) => Action::await_change(),
-        })
+        let again = match (plan.requeue_after, held) {
+            (Some(after), Some(held)) => Some(after.min(held)),
+            (Some(after), None) | (None, Some(after)) => Some(after),
+            (None, None) => None,
+        };
+        debug!(?again, "reconciled");
+        Ok(again.map_or_else(Action::await_change, Action::requeue))
     }
     .instrument(span)
     .await
