@@ -117,9 +117,12 @@ wait_for() { # what timeout_s command...
 }
 
 # The commit measured, and how many files differ from it.
-fact_source() {
-  fact source "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
+# The tree the binaries were built from: read when release_binaries starts the build (an edit
+# made while a long run goes on is not in its binaries), else now.
+source_rev() {
+  echo "$(git -C "$ROOT" rev-parse --short HEAD 2>/dev/null || echo unknown)$(n="$(git -C "$ROOT" status --porcelain 2>/dev/null | wc -l)"; [ "$n" = 0 ] || echo " + $n uncommitted changes")"
 }
+fact_source() { fact source "${BUILT_FROM:-$(source_rev)}"; }
 
 # ---- metrics, memory and CPU of the processes a benchmark starts -----------------------------
 # (scrape_apiserver needs CP_DIR and APISERVER_PORT, set by start_control_plane.)
@@ -281,6 +284,7 @@ release_binaries() {
   for p in $1; do packages+=(-p "$p"); done
   shift
   if [ "$BUILD" = 1 ]; then
+    BUILT_FROM="$(source_rev)"
     log "building release binaries"
     (cd "$ROOT" && cargo build --release --bins "${packages[@]}") \
       >"$WORK/build.log" 2>&1 || { tail -30 "$WORK/build.log" >&2; die "build failed"; }
