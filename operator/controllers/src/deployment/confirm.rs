@@ -41,15 +41,12 @@ impl Timeouts<'_> {
         let Some(m) = robot.mark.as_ref() else {
             return false;
         };
-        if m.deployment != self.deployment || self.now.duration_since(m.since) <= self.timeout {
+        if m.deployment != self.deployment || !robot.timed_out(m.since, self.timeout, self.now) {
             return false;
         }
         match m.state {
-            MarkState::Started => !(robot.current.as_ref() == Some(self.target) && robot.healthy),
-            MarkState::RollingBack => m
-                .previous
-                .as_ref()
-                .is_some_and(|back| robot.current.as_ref() != Some(back)),
+            MarkState::Started => !(robot.runs(self.target) && robot.healthy),
+            MarkState::RollingBack => m.previous.as_ref().is_some_and(|back| !robot.runs(back)),
             _ => false,
         }
     }

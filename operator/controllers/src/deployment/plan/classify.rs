@@ -1,7 +1,7 @@
 //! First step of the rollout planner: where each selected robot stands in the current rollout,
 //! read from its mark and its reports, and the batch arithmetic that follows.
 
-use jiff::Timestamp;
+use jiff::{SignedDuration, Timestamp};
 use lekiwi_crds::{ReleaseRef, RobotPhase};
 
 use super::analysis::{Settled, switched};
@@ -43,8 +43,20 @@ impl RobotView {
     }
 
     /// Whether the robot reports running `release`.
-    pub(super) fn runs(&self, release: &ReleaseRef) -> bool {
+    pub(crate) fn runs(&self, release: &ReleaseRef) -> bool {
         self.current.as_ref() == Some(release)
+    }
+
+    /// Whether a robot told something at `since` is past `timeout` at `now`: never on a view
+    /// that should have been read fresh and was not ([`RobotView::unconfirmed`]). The one
+    /// timeout rule of a switch and of a switch back, and of which robots to read fresh.
+    pub(crate) fn timed_out(
+        &self,
+        since: Timestamp,
+        timeout: SignedDuration,
+        now: Timestamp,
+    ) -> bool {
+        now.duration_since(since) > timeout && !self.unconfirmed
     }
 
     /// The release to record as a robot's `previous` (what a rollback returns it to) when a
@@ -236,7 +248,7 @@ fn started(robot: &RobotView, batch: i32, since: Timestamp, rollout: &Rollout<'_
         );
     }
     let timeout = rollout.robot_timeout;
-    if rollout.now.duration_since(since) > timeout && !robot.unconfirmed {
+    if robot.timed_out(since, timeout, rollout.now) {
         let runs = robot
             .current
             .as_ref()

@@ -82,11 +82,11 @@ pub(super) fn await_rollback(rollout: &Rollout<'_>, fleet: &Fleet<'_>, draft: &m
         if done {
             continue;
         }
-        if now.duration_since(*since) <= rollout.robot_timeout || robot.unconfirmed {
+        if robot.timed_out(*since, rollout.robot_timeout, now) {
+            not_back.push(robot.name.as_str());
+        } else {
             outstanding += 1;
             draft.wake_at(*since + rollout.robot_timeout + SignedDuration::from_secs(1));
-        } else {
-            not_back.push(robot.name.as_str());
         }
     }
     if outstanding == 0 {

@@ -288,15 +288,21 @@ fn assert_rolling_back_on_a_timeout(sim: &Sim) {
     );
 }
 
-#[test]
-fn silent_robots_fail_after_the_timeout() {
+/// Two robots started in one batch that must all succeed; kiwi-01 goes offline mid-update and
+/// never reports (kiwi-00 succeeds).
+fn one_robot_silent() -> Sim {
     let mut d = deployment(IntOrString::Int(2), 0);
     d.spec.strategy.success_threshold = 1.0;
     let mut sim = Sim::new(d, 2);
     sim.step();
-    // kiwi-01 goes offline mid-update and never reports.
     sim.robots[1].phase = Some(RobotPhase::Offline);
     sim.agents();
+    sim
+}
+
+#[test]
+fn silent_robots_fail_after_the_timeout() {
+    let mut sim = one_robot_silent();
     sim.advance(30);
     sim.step();
     assert_eq!(sim.phase(), RolloutPhase::Progressing);
@@ -310,12 +316,7 @@ fn silent_robots_fail_after_the_timeout() {
 /// within a second; on a fresh view that still shows it silent, it fails.
 #[test]
 fn a_timeout_waits_for_a_fresh_view_of_the_robot() {
-    let mut d = deployment(IntOrString::Int(2), 0);
-    d.spec.strategy.success_threshold = 1.0;
-    let mut sim = Sim::new(d, 2);
-    sim.step();
-    sim.robots[1].phase = Some(RobotPhase::Offline);
-    sim.agents();
+    let mut sim = one_robot_silent();
     sim.advance(61);
     sim.robots[1].unconfirmed = true;
     let plan = sim.step();
