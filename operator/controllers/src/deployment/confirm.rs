@@ -2,8 +2,12 @@
 //! rollout timeout is read fresh before the plan may count it failed, or count it as not back
 //! from a rollback. Under load the store can
 //! run minutes behind the API server: the soak at 10,000 robots timed a canary out on a store
-//! that did not show yet the release its gateway had written it running a minute before.
+//! that did not show yet the release its gateway had written it running a minute before. A
+//! robot a fresh read found past its timeout is not read again for the same mark: a failed
+//! robot keeps its mark while the rollout goes on, and would be read on every reconcile.
 
+use std::collections::{HashMap, HashSet};
+use std::sync::Mutex;
 use std::time::Duration;
 
 use futures::{StreamExt, stream};
@@ -22,8 +26,38 @@ const CONCURRENCY: usize = 16;
 /// How long the reads of one reconcile may take together.
 const BUDGET: Duration = Duration::from_secs(10);
 
+/// Per deployment (`namespace/name`), the robots a fresh read found past their timeout, by name
+/// and the time of the mark it was judged on. A mark's timeout, once past, stays past; a robot
+/// that reports its outcome late shows it on the store like any other change.
+#[derive(Debug, Default)]
+pub(super) struct Confirmed(Mutex<HashMap<String, HashSet<(String, Timestamp)>>>);
+
+impl Confirmed {
+    fn take(&self, key: &str) -> HashSet<(String, Timestamp)> {
+        self.lock().remove(key).unwrap_or_default()
+    }
+
+    fn put(&self, key: String, robots: HashSet<(String, Timestamp)>) {
+        if !robots.is_empty() {
+            self.lock().insert(key, robots);
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<String, HashSet<(String, Timestamp)>>> {
+        self.0.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// Where fresh reads come from, and what they found before.
+pub(super) struct Reads<'a> {
+    pub api: &'a Api<Robot>,
+    pub confirmed: &'a Confirmed,
+}
+
 /// What a rollout's timeouts are judged against.
 pub(super) struct Timeouts<'a> {
+    /// The deployment's namespace.
+    pub namespace: &'a str,
     /// The deployment whose marks count.
     pub deployment: &'a str,
     /// What its robots should end up running.
@@ -51,6 +85,11 @@ impl Timeouts<'_> {
         }
     }
 
+    /// `robot`'s mark, as [`Confirmed`] remembers it.
+    fn judged(robot: &RobotView) -> Option<(String, Timestamp)> {
+        Some((robot.name.clone(), robot.mark.as_ref()?.since))
+    }
+
     /// The robots among `robots` that are overdue on the store, most overdue first.
     fn due(&self, robots: &[RobotView]) -> Vec<usize> {
         let mut due: Vec<usize> = (0..robots.len())
@@ -61,18 +100,30 @@ impl Timeouts<'_> {
     }
 }
 
-/// Reads the robots of `robots` that are overdue on the store from the API server (at most
-/// [`MAX_READS`], within [`BUDGET`]) and puts the view `rebuild` makes of each in place of the
-/// store's; an overdue robot not read (beyond the cap, the budget, or a failed read) is marked
-/// [`RobotView::unconfirmed`] and does not time out on this plan.
+/// Reads the robots of `robots` that are overdue on the store, and were not found so for the
+/// same mark before, from the API server (at most [`MAX_READS`], within [`BUDGET`]) and puts the
+/// view `rebuild` makes of each in place of the store's; an overdue robot not read (beyond the
+/// cap, the budget, or a failed read) is marked [`RobotView::unconfirmed`] and does not time out
+/// on this plan.
 pub(super) async fn confirm(
-    api: &Api<Robot>,
+    reads: &Reads<'_>,
     timeouts: &Timeouts<'_>,
     robots: &mut [RobotView],
     rebuild: impl Fn(&Robot) -> RobotView,
 ) {
+    let key = format!("{}/{}", timeouts.namespace, timeouts.deployment);
+    let before = reads.confirmed.take(&key);
     let due = timeouts.due(robots);
+    // Found past their timeout for these very marks: judged on the store, not read again.
+    let (known, due): (Vec<usize>, Vec<usize>) = due
+        .into_iter()
+        .partition(|&i| Timeouts::judged(&robots[i]).is_some_and(|j| before.contains(&j)));
+    let mut confirmed: HashSet<_> = known
+        .iter()
+        .filter_map(|&i| Timeouts::judged(&robots[i]))
+        .collect();
     if due.is_empty() {
+        reads.confirmed.put(key, confirmed);
         return;
     }
     for &i in &due {
@@ -83,12 +134,13 @@ pub(super) async fn confirm(
         .take(MAX_READS)
         .map(|&i| (i, robots[i].name.clone()))
         .collect();
-    let mut reads = stream::iter(names)
+    let api = reads.api;
+    let mut gets = stream::iter(names)
         .map(|(i, name)| async move { (i, api.get_opt(&name).await) })
         .buffer_unordered(CONCURRENCY);
     let deadline = tokio::time::Instant::now() + BUDGET;
     let (mut read, mut in_time) = (0, 0);
-    while let Ok(Some((i, got))) = tokio::time::timeout_at(deadline, reads.next()).await {
+    while let Ok(Some((i, got))) = tokio::time::timeout_at(deadline, gets.next()).await {
         match got {
             Ok(Some(fresh)) => {
                 let view = RobotView {
@@ -96,7 +148,11 @@ pub(super) async fn confirm(
                     ..rebuild(&fresh)
                 };
                 read += 1;
-                in_time += usize::from(!timeouts.overdue(&view));
+                if timeouts.overdue(&view) {
+                    confirmed.extend(Timeouts::judged(&view));
+                } else {
+                    in_time += 1;
+                }
                 robots[i] = view;
             }
             // Deleted: the store drops it soon; nothing to time out.
@@ -105,6 +161,7 @@ pub(super) async fn confirm(
                 "cannot read a robot past its timeout; judged on a later reconcile"),
         }
     }
+    reads.confirmed.put(key, confirmed);
     let waiting = robots.iter().filter(|r| r.unconfirmed).count();
     // Routine when robots really time out; worth a line when the store misled or reads wait.
     if in_time > 0 || waiting > 0 {
@@ -151,11 +208,63 @@ mod tests {
         }
     }
 
+    /// A robot found past its timeout on a fresh read is not read again for the same mark (it
+    /// is judged on the store, not left unconfirmed); one with a newer mark is read again. The
+    /// API server here refuses every connection: a read fails and leaves its robot unconfirmed.
+    #[tokio::test]
+    async fn a_robot_found_past_its_timeout_is_not_read_again_for_the_same_mark() {
+        let config = kube::Config::new("http://127.0.0.1:9".parse().unwrap());
+        let api = Api::namespaced(kube::Client::try_from(config).unwrap(), "ns");
+        let confirmed = Confirmed::default();
+        let reads = Reads {
+            api: &api,
+            confirmed: &confirmed,
+        };
+        let now = Timestamp::now();
+        let target = release("2");
+        let t = Timeouts {
+            namespace: "ns",
+            deployment: "d",
+            target: &target,
+            timeout: SignedDuration::from_secs(60),
+            now,
+        };
+        let (known, renewed) = (
+            started("known", "d", 100, now),
+            started("renewed", "d", 90, now),
+        );
+        let earlier = renewed.mark.as_ref().unwrap().since - SignedDuration::from_secs(200);
+        confirmed.put(
+            "ns/d".to_owned(),
+            HashSet::from([
+                Timeouts::judged(&known).unwrap(),
+                ("renewed".to_owned(), earlier),
+            ]),
+        );
+        let mut robots = vec![known, renewed];
+        confirm(&reads, &t, &mut robots, |_| {
+            unreachable!("no read succeeds")
+        })
+        .await;
+        assert!(!robots[0].unconfirmed, "judged on the store");
+        assert!(
+            robots[1].unconfirmed,
+            "read (and failed) for its newer mark"
+        );
+        let kept = confirmed.take("ns/d");
+        assert_eq!(kept, HashSet::from([Timeouts::judged(&robots[0]).unwrap()]));
+        // Once the deployment has no robot past its timeout, it holds nothing.
+        confirmed.put("ns/d".to_owned(), kept);
+        confirm(&reads, &t, &mut [], |_| unreachable!()).await;
+        assert!(confirmed.take("ns/d").is_empty());
+    }
+
     #[test]
     fn only_this_deployments_robots_past_their_timeout_are_due_oldest_first() {
         let now = Timestamp::now();
         let target = release("2");
         let t = Timeouts {
+            namespace: "ns",
             deployment: "d",
             target: &target,
             timeout: SignedDuration::from_secs(60),

@@ -65,13 +65,18 @@ pub(super) async fn gather(
         })
         .collect();
     let timeouts = super::confirm::Timeouts {
+        namespace: &namespace,
         deployment: &deployment.name_any(),
         target: &target,
         timeout: SignedDuration::from_secs(deployment.spec.strategy.robot_timeout_seconds),
         now,
     };
     let api = kube::Api::<Robot>::namespaced(state.ctx.client.clone(), &namespace);
-    super::confirm::confirm(&api, &timeouts, &mut robots, robot_view).await;
+    let reads = super::confirm::Reads {
+        api: &api,
+        confirmed: &state.confirmed,
+    };
+    super::confirm::confirm(&reads, &timeouts, &mut robots, robot_view).await;
     Ok(Some(Facts {
         now,
         robots,

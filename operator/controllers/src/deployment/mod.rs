@@ -51,6 +51,8 @@ struct State {
     catch_up: catch_up::CatchUp<ObjectRef<DeserializeGuard<RobotDeployment>>, LastWrites>,
     /// The writes laid over the stores while they do not show them (see [`own_writes`]).
     own: own_writes::OwnWrites,
+    /// Robots a fresh read found past their timeout (see [`confirm`]).
+    confirmed: confirm::Confirmed,
 }
 
 /// Runs the RobotDeployment controller until `cancel` fires.
@@ -81,6 +83,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         pace: pace::Pace::default(),
         catch_up: catch_up::CatchUp::default(),
         own: own_writes::OwnWrites::default(),
+        confirmed: confirm::Confirmed::default(),
     });
     info!("robot deployment controller started");
     let handlers = (reconcile, error_policy);
