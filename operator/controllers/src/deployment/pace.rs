@@ -1,11 +1,14 @@
-//! A deployment's status written at a bounded rate however many robots move: a change that
-//! leaves its phase, rollout, generation and conditions' verdicts alone (counts, rows, the
-//! batch, the message) waits until [`STATUS_PERIOD`] has passed since this process last wrote
-//! it; a change of those is written at once, and so is the end of the rollout. A held status is
-//! kept here and the next plan starts from it, not from the stored one, so nothing is planned
-//! twice (no batch closed again, no Event published again) while the write waits. Robot writes
-//! are not held: the marks on robots are what a rollout resumes from, also when this process
-//! stops with a status held.
+//! Deployments' status written at a bounded rate however many robots move and however many
+//! deployments roll at once: a change that leaves a deployment's phase, rollout, generation and
+//! conditions' verdicts alone (counts, rows, the batch, the message) waits until its period has
+//! passed since this process last wrote that deployment's status; a change of those is written
+//! at once, and so is the end of the rollout. The period is [`STATUS_PERIOD`], or longer when
+//! many deployments roll at once: they share [`PROGRESS_WRITES_PER_SECOND`], so 100 rollouts
+//! at once cost the API server no more progress writes a second than 6 do. A held status is kept
+//! here and the next plan starts from it, not from the stored one, so nothing is planned twice
+//! (no batch closed again, no Event published again) while the write waits. Robot writes are not
+//! held: the marks on robots are what a rollout resumes from, also when this process stops with
+//! a status held.
 
 use std::collections::HashMap;
 use std::sync::Mutex;
@@ -19,6 +22,14 @@ use super::plan::Plan;
 /// The least time between two status writes of one deployment that change no verdict.
 pub const STATUS_PERIOD: Duration = Duration::from_secs(3);
 
+/// The progress writes (ones that change no verdict) a second all deployments share: with `n`
+/// deployments rolling, each waits `n / PROGRESS_WRITES_PER_SECOND` seconds between two, at
+/// least [`STATUS_PERIOD`].
+pub const PROGRESS_WRITES_PER_SECOND: u32 = 2;
+
+/// A deployment counts as rolling while this process wrote or held its status this recently.
+const ROLLING: Duration = Duration::from_secs(60);
+
 /// Per deployment (by namespace and name): when this process last wrote its status, and the
 /// status planned since but held.
 #[derive(Debug, Default)]
@@ -29,6 +40,8 @@ pub struct Pace {
 #[derive(Debug, Default)]
 struct Entry {
     written: Option<Instant>,
+    /// When a status was last planned for it, written or held.
+    planned: Option<Instant>,
     held: Option<RobotDeploymentStatus>,
 }
 
@@ -59,11 +72,11 @@ impl Pace {
             return None;
         }
         let mut last = self.lock();
+        let period = period(&last, now);
         let entry = last.get_mut(&owned(key))?;
         let since = now.duration_since(entry.written?);
-        let left = STATUS_PERIOD
-            .checked_sub(since)
-            .filter(|left| !left.is_zero())?;
+        entry.planned = Some(now);
+        let left = period.checked_sub(since).filter(|left| !left.is_zero())?;
         entry.held = Some(plan.status.clone());
         Some(left)
     }
@@ -75,12 +88,24 @@ impl Pace {
         entry.held = None;
         if written.is_some() {
             entry.written = written;
+            entry.planned = written;
         }
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<(String, String), Entry>> {
         self.last.lock().unwrap_or_else(|e| e.into_inner())
     }
+}
+
+/// The least time between two progress writes of one deployment while the deployments in
+/// `last` roll: [`STATUS_PERIOD`], or their share of [`PROGRESS_WRITES_PER_SECOND`].
+fn period(last: &HashMap<(String, String), Entry>, now: Instant) -> Duration {
+    let rolling = last
+        .values()
+        .filter(|e| e.planned.is_some_and(|t| now.duration_since(t) < ROLLING))
+        .count();
+    let share = Duration::from_secs(1) * rolling as u32 / PROGRESS_WRITES_PER_SECOND;
+    share.max(STATUS_PERIOD)
 }
 
 fn owned(key: (&str, &str)) -> (String, String) {
@@ -197,5 +222,40 @@ mod tests {
         pace.stored(key, None);
         d.metadata.generation = Some(1);
         assert_eq!(pace.held(key, &d), None, "stored: nothing held");
+    }
+
+    #[test]
+    fn deployments_rolling_at_once_share_the_progress_writes() {
+        let (pace, t0) = (Pace::default(), Instant::now());
+        let stored = status(1, 1);
+        let names: Vec<String> = (0..20).map(|i| format!("d{i}")).collect();
+        for name in &names {
+            pace.stored(("ns", name), Some(t0));
+        }
+        // 20 rolling at 2 writes a second: each waits 10 s between two progress writes.
+        let at = t0 + Duration::from_secs(4);
+        assert_eq!(
+            pace.wait(("ns", "d0"), Some(&stored), &plan(status(2, 1)), at),
+            Some(Duration::from_secs(6))
+        );
+        // A new verdict is not held however many roll.
+        let mut done = status(40, 1);
+        done.phase = Some(RolloutPhase::Completed);
+        assert_eq!(
+            pace.wait(("ns", "d1"), Some(&stored), &plan(done), at),
+            None
+        );
+        // Once the others have planned nothing for a while, one alone is back to the period.
+        let later = t0 + ROLLING + Duration::from_secs(1);
+        pace.stored(("ns", "d0"), Some(later));
+        assert_eq!(
+            pace.wait(
+                ("ns", "d0"),
+                Some(&stored),
+                &plan(status(3, 1)),
+                later + Duration::from_secs(1)
+            ),
+            Some(STATUS_PERIOD - Duration::from_secs(1))
+        );
     }
 }
