@@ -7,9 +7,10 @@
 #! gateway processes sharing one blob directory, HAProxy spreading new connections over the
 #! gateways as a Service would, N simulated robots (`lekiwi-sim`, answering commands as agents
 #! do) and some real agents (`lekiwi-fleet`). For --duration it then (bench/soak_driver.py):
-#!   - rolls releases out back to back, one every --release-every seconds: most complete, some
-#!     have robots that fail their health check (rolled back), some are undone mid-way, and
-#!     every fourth is an agent update (spec.agent);
+#!   - rolls releases out back to back, one every --release-every seconds, in a rotation: some
+#!     complete, some have robots that fail their health check (rolled back), some are undone
+#!     mid-way, some aborted mid-way (robots that switched keep the release, downloading ones
+#!     stop), and some are agent updates (spec.agent);
 #!   - every --fault-every seconds breaks one thing, in turn: a gateway SIGKILLed (restarted
 #!     30 s later); the controller leader SIGKILLed (restarted); etcd and kube-apiserver
 #!     SIGKILLed and restarted; PostgreSQL restarted; 5 % of the robots cut off for 2 minutes
@@ -33,6 +34,10 @@
 #!   --duration D         how long the fleet works, seconds (default 3600)
 #!   --fault-every S      seconds between faults (default 300)
 #!   --release-every S    seconds between rollouts (default 180)
+#!   --rotation LIST      the kinds of rollout in turn, comma-separated, from ok (completes),
+#!                        fail (robots fail their health check: rolled back), undo (undone
+#!                        once the canary switched), agent (an agent update), abort (aborted
+#!                        while the first batch downloads); default fail,undo,agent,abort,ok
 #!   --gateways G         gateway replicas (default 2)
 #!   --events-per-minute E  durable events per simulated robot per minute (default 2)
 #!   --no-build           use the binaries already in target/release
@@ -55,6 +60,7 @@ AGENTS=200
 DURATION=3600
 FAULT_EVERY=300
 RELEASE_EVERY=180
+ROTATION=fail,undo,agent,abort,ok
 GATEWAYS=2
 EPM=2
 BUILD=1
@@ -71,6 +77,10 @@ while [ $# -gt 0 ]; do
     --duration) positive_int "$1" "${2:-}"; DURATION="$2"; shift 2 ;;
     --fault-every) positive_int "$1" "${2:-}"; FAULT_EVERY="$2"; shift 2 ;;
     --release-every) positive_int "$1" "${2:-}"; RELEASE_EVERY="$2"; shift 2 ;;
+    --rotation)
+      [[ "${2:-}" =~ ^(ok|fail|undo|agent|abort)(,(ok|fail|undo|agent|abort))*$ ]] \
+        || die "--rotation is a comma-separated list of ok, fail, undo, agent, abort"
+      ROTATION="$2"; shift 2 ;;
     --gateways)
       [[ "${2:-}" =~ ^[2-9]$ ]] || die "--gateways is a number from 2 to 9"
       GATEWAYS="$2"; shift 2 ;;
@@ -173,6 +183,7 @@ json.dump({
     "store_url": "$STORE_URL", "robots": int("$ROBOTS"), "stalled": int("$STALLED"),
     "agents": int("$AGENTS"), "duration": int("$DURATION"),
     "fault_every": int("$FAULT_EVERY"), "release_every": int("$RELEASE_EVERY"),
+    "rotation": "$ROTATION".split(","),
     "gateways": int("$GATEWAYS"), "events_per_minute": int("$EPM"),
     "fds": int("$FDS"), "command": """$COMMAND""",
 }, open(sys.argv[1], "w"), indent=1)

@@ -24,6 +24,7 @@ GRACE_DEAD_GATEWAY = 45  # the gateway Lease (15 s) and the controller's next pa
 GRACE_NOT_ONLINE = 300  # a robot with a live session is Online again within this
 STALL_SECONDS = 120
 DISK_FULL_SECONDS = 120
+ABORT_SETTLE = 30  # after an aborted rollout, before its robots are counted
 LOG = open(os.path.join(WORK, "driver-events.log"), "a", buffering=1)
 
 
@@ -469,7 +470,8 @@ backend gateways
         return json.loads(p.stdout) if p.returncode == 0 else None
 
     def kind_of(self, k):
-        return ("ok", "fail", "undo", "agent")[k % 4]
+        """The kind of the k-th rollout (from 1), in the rotation --rotation gives."""
+        return C["rotation"][(k - 1) % len(C["rotation"])]
 
     def start_rollout(self, k):
         kind = self.kind_of(k)
@@ -491,7 +493,7 @@ backend gateways
             name = "soak"
             spec = {"selector": {}, "release": {"version": version, "digest": digest},
                     "strategy": strategy}
-            expected = "Completed" if kind == "ok" else "RolledBack"
+            expected = {"ok": "Completed", "abort": "Aborted"}.get(kind, "RolledBack")
             if kind == "undo":
                 # Slow enough to be undone mid-way whatever the fleet's size.
                 strategy["pauseBetweenBatchesSeconds"] = 60
@@ -501,13 +503,15 @@ backend gateways
                     "metadata": {"name": name, "namespace": NS}, "spec": spec})
         r = {"n": k, "kind": kind, "version": version if kind != "agent" else v,
              "deployment": name, "expected": expected, "phase": None, "started": started,
-             "seconds": None, "undone": False, "generation": None}
+             "seconds": None, "undone": False, "aborted": False, "generation": None}
         self.rollouts.append(r)
         log(f"rollout {k} ({kind}): {r['version']} via {name}, expecting {expected}")
         return r
 
     def follow_rollout(self, r):
-        """Moves a rollout on (undo once it is under way); true once it ended."""
+        """Moves a rollout on (undo or abort once robots switch); true once it ended."""
+        if r.get("settle_until"):
+            return self.settle_abort(r)
         d = self.deployment(r["deployment"])
         if not d:
             return False
@@ -517,22 +521,55 @@ backend gateways
         if st.get("observedGeneration") != d["metadata"].get("generation"):
             return False
         phase = st.get("phase")
-        if r["kind"] == "undo" and not r["undone"] and phase == "Progressing" \
-                and st.get("updated", 0) >= 1:
-            run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], "rollout", "undo",
-                r["deployment"], "-n", NS)
-            r["undone"] = True
-            log(f"rollout {r['n']}: undo after {st.get('updated')} robots updated")
-        if phase in ("Completed", "RolledBack", "Failed") and (r["kind"] != "undo" or r["undone"]
-                                                                or phase != "Completed"):
+        steer = {"undo": "undone", "abort": "aborted"}.get(r["kind"])
+        # Undo once the canary switched; abort once the first batch after the canary is under
+        # way, so robots are downloading when it comes.
+        least = 2 if r["kind"] == "abort" else 1
+        if steer and not r[steer] and phase == "Progressing" and st.get("updated", 0) >= least:
+            p = run(f"{BIN}/kubectl-lekiwi", "--kubeconfig", C["kubeconfig"], "rollout",
+                    r["kind"], r["deployment"], "-n", NS, check=False)
+            if p.returncode == 0:
+                r[steer] = True
+                log(f"rollout {r['n']}: {r['kind']} after {st.get('updated')} robots updated")
+            else:
+                # The API server may be down (a fault of the soak): again on the next tick.
+                log(f"rollout {r['n']}: {r['kind']} failed: {p.stderr.strip()[-200:]}")
+        if phase in ("Completed", "RolledBack", "Failed", "Aborted") \
+                and (not steer or r[steer] or phase != "Completed"):
             r["phase"] = phase
             r["seconds"] = round(time.time() - r["started"], 1)
             r["counts"] = {k: st.get(k) for k in ("targeted", "updated", "failed", "skipped")}
             if phase == "Completed" and r["kind"] != "agent":
                 self.completed_releases.add(r["version"])
             log(f"rollout {r['n']} ended {phase} after {r['seconds']} s ({r['counts']})")
+            if phase == "Aborted":
+                # The next rollout waits until the fleet shows where the abort left it.
+                r["settle_until"] = time.time() + ABORT_SETTLE
+                return False
             return True
         return False
+
+    def settle_abort(self, r):
+        """After an abort: once the gateways' status writes run on time (and at least
+        ABORT_SETTLE s on), counts the robots that run the aborted release. An abort starts no
+        robot and lets no downloading robot switch, so that is the robots the rollout shows
+        updated; one more is a robot that switched after it was told to stop."""
+        if time.time() < r["settle_until"]:
+            return False
+        lag = self.status_lag()
+        if (lag is None or lag > 5) and time.time() < r["settle_until"] + 300:
+            return False
+        st = (self.deployment(r["deployment"]) or {}).get("status") or {}
+        r["counts"] = {k: st.get(k) for k in ("targeted", "updated", "failed", "skipped")}
+        p = run("kubectl", "-n", NS, "get", "robots", "-o", "json", timeout=300)
+        r["on_release"] = sum(
+            1 for x in json.loads(p.stdout)["items"]
+            if (((x.get("status") or {}).get("currentRelease") or {}).get("version")
+                == r["version"]))
+        log(f"rollout {r['n']}: {r['on_release']} robots run {r['version']} after the abort "
+            f"(the rollout shows {r['counts']['updated']} updated)")
+        r["settle_until"] = None
+        return True
 
     # ---- faults ---------------------------------------------------------------------------------
     def fault_kinds(self):
@@ -963,7 +1000,8 @@ def main():
             "control plane": f"2 controller processes (leader election), {C['gateways']} gateways "
                              "behind HAProxy, PostgreSQL 15 event store, etcd + kube-apiserver",
             "run": f"{C['duration']} s, a fault every {C['fault_every']} s, a rollout every "
-                   f"{C['release_every']} s; all robots Online {online_s:.0f} s after start",
+                   f"{C['release_every']} s (in turn: {', '.join(C['rotation'])}); all robots Online "
+                   f"{online_s:.0f} s after start",
             "robots_total": s.total_robots(),
             "unwanted_robots": unwanted,
         }

@@ -155,8 +155,16 @@ def report(facts, samples, rollouts, faults, violations, events, steady, sizes, 
         events["unacked"] == 0)
     for r in rollouts:
         ok = r["phase"] == r["expected"]
-        row(f"rollout {r['n']} ({r['kind']}, {r['version']})",
-            f"{r['phase']} in {r['seconds']} s, {r.get('counts')}", r["expected"], ok)
+        measured = f"{r['phase']} in {r['seconds']} s, {r.get('counts')}"
+        goal = r["expected"]
+        if r["kind"] == "abort":
+            # An abort starts no robot and lets no downloading robot switch.
+            on = r.get("on_release")
+            updated = (r.get("counts") or {}).get("updated")
+            measured += f"; {on} robots run it after the abort"
+            goal += ", robots on it = updated"
+            ok = ok and on is not None and on == updated
+        row(f"rollout {r['n']} ({r['kind']}, {r['version']})", measured, goal, ok)
     row("robots on a release no deployment asked for (rolled back or undone)",
         facts["unwanted_robots"], "0", facts["unwanted_robots"] == 0)
     row("robots Online through a dead gateway past its Lease + 30 s (most at once)",
