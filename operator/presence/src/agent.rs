@@ -81,10 +81,7 @@ pub(super) fn wait_for_restart(s: &mut State, key: &RobotKey) -> bool {
     let Some(e) = s.robots.get_mut(key) else {
         return false;
     };
-    let restarting = e
-        .agent_update
-        .as_ref()
-        .is_some_and(|u| matches!(u.phase, "Sent" | "Started"));
+    let restarting = in_progress(e);
     if restarting {
         e.restart_grace = RESTART_GRACE_SECONDS;
     }
@@ -96,11 +93,25 @@ pub(super) fn wait_for_restart(s: &mut State, key: &RobotKey) -> bool {
 /// welcomed: the new session and the update's outcome then cost the robot one status write.
 pub const REPORT_WAIT_SECONDS: u8 = 2;
 
-/// Whether `old`, the entry a new session of its robot replaces, is a session's end held back
-/// as its agent restarted into an update (see [`wait_for_restart`]): the new session is then
-/// written with the agent's report of the update, or after [`REPORT_WAIT_SECONDS`].
+/// Whether `old`, the entry a new session of its robot replaces, is the session of an agent
+/// that restarted into its update: a session's end held back for it (see
+/// [`wait_for_restart`]), or a session still open with an update in progress, whose end this
+/// gateway had not noticed yet when the restarted agent connected again (a busy gateway reads
+/// a closed socket late). The new session is then written with the agent's report of the
+/// update, or after [`REPORT_WAIT_SECONDS`].
 pub(super) fn restarted_into_update(old: &Entry) -> bool {
-    !old.connected && old.restart_grace > 0
+    if old.connected {
+        in_progress(old)
+    } else {
+        old.restart_grace > 0
+    }
+}
+
+/// Whether the latest agent update of `e` is under way (`Sent` or `Started`).
+fn in_progress(e: &Entry) -> bool {
+    e.agent_update
+        .as_ref()
+        .is_some_and(|u| matches!(u.phase, "Sent" | "Started"))
 }
 
 /// One second of the restart grace of `e` (see [`RESTART_GRACE_SECONDS`]) went by: whether it

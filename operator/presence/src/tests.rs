@@ -1048,6 +1048,44 @@ fn agent_update_steps_in_progress_wait_for_the_next_write_outcomes_do_not() {
     assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
 }
 
+/// An agent that restarted into its update and connects again before this gateway noticed
+/// its old session close (the new session replaces one still open) costs one write too.
+#[test]
+fn an_agent_back_from_its_update_before_its_old_session_closed_is_written_once() {
+    let p = presence();
+    p.connect(&key("a"), 1, 1_000, ConnectInfo::default());
+    p.with_state(|s| s.pop());
+    let started = AgentUpdateOutcome {
+        version: "0.3.0".into(),
+        phase: "Started",
+        message: "switching".into(),
+        time: Timestamp::now(),
+    };
+    assert!(p.agent_update(&key("a"), 1, started.clone()));
+    p.connect(&key("a"), 2, 1_001, ConnectInfo::default());
+    assert_eq!(
+        p.with_state(|s| s.pop()),
+        None,
+        "the new session waits for the agent's report"
+    );
+    p.disconnect(&key("a"), 1);
+    let succeeded = AgentUpdateOutcome {
+        phase: "Succeeded",
+        message: "running 0.3.0".into(),
+        ..started
+    };
+    assert!(p.agent_update(&key("a"), 2, succeeded));
+    let (k, _) = p.with_state(|s| s.pop()).expect("the report is written");
+    assert!(p.with_state(|s| s.take_for_write(&k)).unwrap().connected);
+    for _ in 0..=agent::RESTART_GRACE_SECONDS {
+        p.tick();
+    }
+    assert_eq!(p.with_state(|s| s.pop()), None, "one write for the restart");
+    // A session replaced with no update under way is written at once.
+    p.connect(&key("a"), 3, 1_002, ConnectInfo::default());
+    assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
+}
+
 /// An agent restarting into its update costs the robot one status write: its session's end
 /// waits for the next session, which waits for the agent's report of the update and is
 /// written with it; only an agent that stays away longer than the grace is written
