@@ -30,10 +30,20 @@
 //! The stream yields each failure as an error, as kube's watcher does, for the caller's backoff
 //! (`WatchStreamExt::default_backoff`) to space the retries: a watch that ends or fails resumes
 //! from the last version it saw; one refused as too old starts over with a new list.
+//!
+//! Every step has a deadline of its own ([`Deadlines`]), besides the client's read timeout: a
+//! running watch yields or ends within [`Deadlines::quiet`] (the server ends it sooner), opening
+//! one and finding where the cache stands take at most [`Deadlines::open`], and a whole list at
+//! most [`Deadlines::list`]. Past one, the step is dropped (and whatever request it waited on
+//! with it) and yields an error. In a soak hour, after an API server restart, the Robot watches
+//! of all four operator processes waited in a step for good (no request in flight for them, no
+//! error, the Robot stores stopped where the restart found them, rollouts timed out on robots
+//! never told), while the client's own timeouts never fired.
 
 use std::collections::HashMap;
 use std::fmt::Debug;
-use std::time::Instant;
+use std::future::Future;
+use std::time::{Duration, Instant};
 
 use futures::future::BoxFuture;
 use futures::stream::BoxStream;
@@ -75,6 +85,57 @@ struct Listing<K: Clone> {
     /// the object as the watch brought it last.
     seen: HashMap<Key, (Option<u64>, Option<K>)>,
     started: Instant,
+    /// When the list must be in (see [`Deadlines::list`]).
+    deadline: tokio::time::Instant,
+}
+
+/// How long each step of the watch may take (see the module's documentation).
+#[derive(Clone, Copy, Debug)]
+pub struct Deadlines {
+    /// Finding where the API server's cache stands and opening the watch there; opening it
+    /// again from a version.
+    pub open: Duration,
+    /// A running watch's next event, bookmark or end (the server ends it within the watch's
+    /// `timeout`).
+    pub quiet: Duration,
+    /// The whole list, from its start.
+    pub list: Duration,
+}
+
+impl Deadlines {
+    /// The deadlines of a watch with `config`: a running watch may stay quiet until the server
+    /// ends it (`config.timeout`; without one, the API server's own, at most an hour) and a
+    /// read timeout more.
+    pub fn of(config: &watcher::Config) -> Self {
+        let read = crate::api_client::READ_TIMEOUT;
+        let server_end = config.timeout.map_or(3600, u64::from);
+        Self {
+            open: read * 2,
+            quiet: Duration::from_secs(server_end) + read,
+            // Under heavy write load a list of 10,000 Robots took over two minutes.
+            list: Duration::from_secs(600),
+        }
+    }
+}
+
+/// The error a step yields when it ran past its deadline.
+fn stalled(what: &str, deadline: Duration) -> kube::Error {
+    let message = format!("{what} took longer than {deadline:?}; starting it again");
+    kube::Error::Service(Box::new(std::io::Error::new(
+        std::io::ErrorKind::TimedOut,
+        message,
+    )))
+}
+
+/// `step` within `deadline`, or `late` once past it.
+async fn within<T>(
+    deadline: Duration,
+    step: impl Future<Output = T>,
+    late: impl FnOnce() -> T,
+) -> T {
+    tokio::time::timeout(deadline, step)
+        .await
+        .unwrap_or_else(|_| late())
 }
 
 /// Watches the objects of `api` that `config`'s selectors and timeout choose (its list
@@ -90,9 +151,23 @@ pub fn watch_first<K>(
 where
     K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
 {
+    let deadlines = Deadlines::of(&config);
+    watch_first_within(api, config, trim, deadlines)
+}
+
+/// [`watch_first`] with the steps' deadlines given.
+pub fn watch_first_within<K>(
+    api: Api<K>,
+    config: watcher::Config,
+    trim: fn(&mut K),
+    deadlines: Deadlines,
+) -> impl Stream<Item = Yield<K>> + Send
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
+{
     futures::stream::unfold(State::Start, move |state| {
         let (api, config) = (api.clone(), config.clone());
-        async move { Some(step(&api, &config, trim, state).await) }
+        async move { Some(step(&api, &config, trim, &deadlines, state).await) }
     })
     .flat_map(futures::stream::iter)
 }
@@ -111,41 +186,49 @@ async fn step<K>(
     api: &Api<K>,
     config: &watcher::Config,
     trim: fn(&mut K),
+    deadlines: &Deadlines,
     state: State<K>,
 ) -> (Vec<Yield<K>>, State<K>)
 where
     K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
 {
     match state {
-        State::Start => start(api, config, trim).await,
-        State::Listing(listing) => listing_step(api, config, trim, *listing).await,
+        State::Start => {
+            within(deadlines.open, start(api, config, trim, deadlines), || {
+                let e = stalled("starting the watch", deadlines.open);
+                (
+                    vec![Err(watcher::Error::InitialListFailed(e))],
+                    State::Start,
+                )
+            })
+            .await
+        }
+        State::Listing(listing) => {
+            let left = listing
+                .deadline
+                .saturating_duration_since(tokio::time::Instant::now());
+            within(left, listing_step(api, config, trim, *listing), || {
+                let e = stalled("the list", deadlines.list);
+                (
+                    vec![Err(watcher::Error::InitialListFailed(e))],
+                    State::Start,
+                )
+            })
+            .await
+        }
         State::Watching {
             version,
             changes: None,
-        } => match api.watch(&watch_params(config), &version).await {
-            Ok(changes) => (
-                Vec::new(),
-                State::Watching {
-                    version,
-                    changes: Some(changes.boxed()),
-                },
-            ),
-            Err(kube::Error::Api(status)) if status.code == 410 => {
-                (vec![Err(watcher::Error::WatchError(status))], State::Start)
-            }
-            Err(e) => (
-                vec![Err(watcher::Error::WatchStartFailed(e))],
-                State::Watching {
-                    version,
-                    changes: None,
-                },
-            ),
-        },
+        } => reopen(api, config, deadlines, version).await,
         State::Watching {
             mut version,
             changes: Some(mut changes),
         } => {
-            let (out, next) = read(changes.next().await, &mut version, trim);
+            let next = within(deadlines.quiet, changes.next(), || {
+                Some(Err(stalled("the watch's next event", deadlines.quiet)))
+            })
+            .await;
+            let (out, next) = read(next, &mut version, trim);
             let state = match next {
                 Next::Go => State::Watching {
                     version,
@@ -159,6 +242,43 @@ where
             };
             (out.into_iter().collect(), state)
         }
+    }
+}
+
+/// Opens the watch again from `version`.
+async fn reopen<K>(
+    api: &Api<K>,
+    config: &watcher::Config,
+    deadlines: &Deadlines,
+    version: String,
+) -> (Vec<Yield<K>>, State<K>)
+where
+    K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
+{
+    let opened = within(
+        deadlines.open,
+        api.watch(&watch_params(config), &version),
+        || Err(stalled("opening the watch", deadlines.open)),
+    )
+    .await;
+    match opened {
+        Ok(changes) => (
+            Vec::new(),
+            State::Watching {
+                version,
+                changes: Some(changes.boxed()),
+            },
+        ),
+        Err(kube::Error::Api(status)) if status.code == 410 => {
+            (vec![Err(watcher::Error::WatchError(status))], State::Start)
+        }
+        Err(e) => (
+            vec![Err(watcher::Error::WatchStartFailed(e))],
+            State::Watching {
+                version,
+                changes: None,
+            },
+        ),
     }
 }
 
@@ -213,6 +333,7 @@ async fn start<K>(
     api: &Api<K>,
     config: &watcher::Config,
     trim: fn(&mut K),
+    deadlines: &Deadlines,
 ) -> (Vec<Yield<K>>, State<K>)
 where
     K: Resource<DynamicType = ()> + Clone + DeserializeOwned + Debug + Send + 'static,
@@ -259,6 +380,7 @@ where
         version,
         seen: HashMap::new(),
         started: Instant::now(),
+        deadline: tokio::time::Instant::now() + deadlines.list,
     };
     (Vec::new(), State::Listing(Box::new(listing)))
 }
@@ -466,5 +588,120 @@ mod tests {
         assert!(!older(Some(3), None));
         assert!(older(Some(3), Some(4)));
         assert!(!older(Some(4), Some(4)));
+    }
+
+    /// An API server that answers the first list and opens the watch, then sends the headers of
+    /// the whole list (or, with `list`, the whole list) and nothing more: no error, no end. It
+    /// counts the first lists, or with `list` the watches opened.
+    async fn stalling_server(
+        list: bool,
+    ) -> (String, std::sync::Arc<std::sync::atomic::AtomicUsize>) {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let starts = std::sync::Arc::new(AtomicUsize::new(0));
+        let counted = starts.clone();
+        tokio::spawn(async move {
+            while let Ok((mut conn, _)) = listener.accept().await {
+                let starts = counted.clone();
+                tokio::spawn(async move {
+                    let mut head = Vec::new();
+                    let mut buf = [0u8; 4096];
+                    while let Ok(n) = conn.read(&mut buf).await {
+                        if n == 0 {
+                            return;
+                        }
+                        head.extend_from_slice(&buf[..n]);
+                        let Some(end) = head.windows(4).position(|w| w == b"\r\n\r\n") else {
+                            continue;
+                        };
+                        let line = String::from_utf8_lossy(&head[..end]).to_string();
+                        head.drain(..end + 4);
+                        let watch = line.contains("watch=true");
+                        if (list && watch) || (!list && line.contains("fieldSelector")) {
+                            starts.fetch_add(1, Ordering::SeqCst);
+                        }
+                        if line.contains("fieldSelector") || (list && !watch) {
+                            let body = r#"{"kind":"RobotList","apiVersion":"fleet.lekiwi.io/v1alpha1","metadata":{"resourceVersion":"7"},"items":[]}"#;
+                            let answer = format!(
+                                "HTTP/1.1 200 OK\r\ncontent-type: application/json\r\ncontent-length: {}\r\n\r\n{body}",
+                                body.len()
+                            );
+                            _ = conn.write_all(answer.as_bytes()).await;
+                        } else {
+                            // The watch, or the whole list: headers, then silence.
+                            let answer = "HTTP/1.1 200 OK\r\ncontent-type: application/json\r\ntransfer-encoding: chunked\r\n\r\n";
+                            _ = conn.write_all(answer.as_bytes()).await;
+                            std::future::pending::<()>().await;
+                        }
+                    }
+                });
+            }
+        });
+        (format!("http://{addr}"), starts)
+    }
+
+    /// A list the API server never finishes is dropped at the list's deadline and the watch
+    /// starts over, even when the client's own timeouts never fire (none here).
+    #[tokio::test]
+    async fn a_list_that_never_ends_is_started_again_at_its_deadline() {
+        let (url, starts) = stalling_server(false).await;
+        let mut config = kube::Config::new(url.parse().unwrap());
+        config.read_timeout = None;
+        let client = kube::Client::try_from(config).unwrap();
+        let deadlines = Deadlines {
+            open: Duration::from_secs(1),
+            quiet: Duration::from_secs(1),
+            list: Duration::from_secs(2),
+        };
+        let api: Api<Robot> = Api::namespaced(client, "lab");
+        let stream =
+            watch_first_within(api, watcher::Config::default(), drop_field_sets, deadlines);
+        let mut stream = std::pin::pin!(stream);
+        for round in 1..=2 {
+            let next = tokio::time::timeout(Duration::from_secs(20), stream.next())
+                .await
+                .expect("the stream waited on the list for good");
+            let Some(Err(watcher::Error::InitialListFailed(e))) = next else {
+                panic!("round {round}: {next:?}");
+            };
+            assert!(e.to_string().contains("took longer"), "{e}");
+            assert_eq!(starts.load(std::sync::atomic::Ordering::SeqCst), round);
+        }
+    }
+
+    /// A watch that brings nothing and does not end is opened again at its deadline.
+    #[tokio::test]
+    async fn a_watch_gone_quiet_is_opened_again_at_its_deadline() {
+        let (url, opened) = stalling_server(true).await;
+        let mut config = kube::Config::new(url.parse().unwrap());
+        config.read_timeout = None;
+        let client = kube::Client::try_from(config).unwrap();
+        let deadlines = Deadlines {
+            open: Duration::from_secs(1),
+            quiet: Duration::from_secs(1),
+            list: Duration::from_secs(1),
+        };
+        let api: Api<Robot> = Api::namespaced(client, "lab");
+        let stream =
+            watch_first_within(api, watcher::Config::default(), drop_field_sets, deadlines);
+        let mut stream = std::pin::pin!(stream);
+        let mut failed = 0;
+        while failed < 2 {
+            let next = tokio::time::timeout(Duration::from_secs(20), stream.next())
+                .await
+                .expect("the stream waited on a quiet watch for good");
+            match next {
+                Some(Ok(_)) => {}
+                Some(Err(watcher::Error::WatchFailed(e))) => {
+                    assert!(e.to_string().contains("took longer"), "{e}");
+                    failed += 1;
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        // The one opened with the list, and one after each quiet spell but the last.
+        assert!(opened.load(std::sync::atomic::Ordering::SeqCst) >= 2);
     }
 }
