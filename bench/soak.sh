@@ -30,7 +30,7 @@
 #! Usage: bash bench/soak.sh [options]
 #!   --robots N           simulated robots (default 10000; 5 % of them in the simulator that
 #!                        is cut off)
-#!   --agents N           real agents (lekiwi-fleet, default 200, at most 1000)
+#!   --agents N           real agents (lekiwi-fleet, default 300, at most 1000)
 #!   --duration D         how long the fleet works, seconds (default 3600)
 #!   --fault-every S      seconds between faults (default 300)
 #!   --release-every S    seconds between rollouts (default 180)
@@ -56,7 +56,7 @@ RESULTS="$ROOT/bench/results"
 PG_BIN=/usr/lib/postgresql/15/bin
 
 ROBOTS=10000
-AGENTS=200
+AGENTS=300
 DURATION=3600
 FAULT_EVERY=300
 RELEASE_EVERY=180
