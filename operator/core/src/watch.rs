@@ -642,22 +642,30 @@ mod tests {
         (format!("http://{addr}"), starts)
     }
 
-    /// A list the API server never finishes is dropped at the list's deadline and the watch
-    /// starts over, even when the client's own timeouts never fire (none here).
-    #[tokio::test]
-    async fn a_list_that_never_ends_is_started_again_at_its_deadline() {
-        let (url, starts) = stalling_server(false).await;
+    /// A watch of Robots at `url` whose steps have 1 s deadlines (`list` for the whole list),
+    /// from a client with no read timeout: only the deadlines can end a stalled step.
+    fn watch_without_read_timeout(
+        url: &str,
+        list: Duration,
+    ) -> impl Stream<Item = Yield<Robot>> + Send {
         let mut config = kube::Config::new(url.parse().unwrap());
         config.read_timeout = None;
         let client = kube::Client::try_from(config).unwrap();
         let deadlines = Deadlines {
             open: Duration::from_secs(1),
             quiet: Duration::from_secs(1),
-            list: Duration::from_secs(2),
+            list,
         };
         let api: Api<Robot> = Api::namespaced(client, "lab");
-        let stream =
-            watch_first_within(api, watcher::Config::default(), drop_field_sets, deadlines);
+        watch_first_within(api, watcher::Config::default(), drop_field_sets, deadlines)
+    }
+
+    /// A list the API server never finishes is dropped at the list's deadline and the watch
+    /// starts over, even when the client's own timeouts never fire (none here).
+    #[tokio::test]
+    async fn a_list_that_never_ends_is_started_again_at_its_deadline() {
+        let (url, starts) = stalling_server(false).await;
+        let stream = watch_without_read_timeout(&url, Duration::from_secs(2));
         let mut stream = std::pin::pin!(stream);
         for round in 1..=2 {
             let next = tokio::time::timeout(Duration::from_secs(20), stream.next())
@@ -675,17 +683,7 @@ mod tests {
     #[tokio::test]
     async fn a_watch_gone_quiet_is_opened_again_at_its_deadline() {
         let (url, opened) = stalling_server(true).await;
-        let mut config = kube::Config::new(url.parse().unwrap());
-        config.read_timeout = None;
-        let client = kube::Client::try_from(config).unwrap();
-        let deadlines = Deadlines {
-            open: Duration::from_secs(1),
-            quiet: Duration::from_secs(1),
-            list: Duration::from_secs(1),
-        };
-        let api: Api<Robot> = Api::namespaced(client, "lab");
-        let stream =
-            watch_first_within(api, watcher::Config::default(), drop_field_sets, deadlines);
+        let stream = watch_without_read_timeout(&url, Duration::from_secs(1));
         let mut stream = std::pin::pin!(stream);
         let mut failed = 0;
         while failed < 2 {

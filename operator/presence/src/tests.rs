@@ -1048,10 +1048,8 @@ fn agent_update_steps_in_progress_wait_for_the_next_write_outcomes_do_not() {
     assert_eq!(p.with_state(|s| s.pop()), Some((key("a"), Priority::High)));
 }
 
-/// An agent that restarted into its update and connects again before this gateway noticed
-/// its old session close (the new session replaces one still open) costs one write too.
-#[test]
-fn an_agent_back_from_its_update_before_its_old_session_closed_is_written_once() {
+/// Robot "a" in session 1, written, whose agent reports its update to 0.3.0 `Started`.
+fn update_started() -> (Presence, AgentUpdateOutcome) {
     let p = presence();
     p.connect(&key("a"), 1, 1_000, ConnectInfo::default());
     p.with_state(|s| s.pop());
@@ -1062,6 +1060,14 @@ fn an_agent_back_from_its_update_before_its_old_session_closed_is_written_once()
         time: Timestamp::now(),
     };
     assert!(p.agent_update(&key("a"), 1, started.clone()));
+    (p, started)
+}
+
+/// An agent that restarted into its update and connects again before this gateway noticed
+/// its old session close (the new session replaces one still open) costs one write too.
+#[test]
+fn an_agent_back_from_its_update_before_its_old_session_closed_is_written_once() {
+    let (p, started) = update_started();
     p.connect(&key("a"), 2, 1_001, ConnectInfo::default());
     assert_eq!(
         p.with_state(|s| s.pop()),
@@ -1092,16 +1098,7 @@ fn an_agent_back_from_its_update_before_its_old_session_closed_is_written_once()
 /// disconnected. Any other session end is written at once.
 #[test]
 fn an_agent_restarting_into_its_update_is_written_once() {
-    let p = presence();
-    p.connect(&key("a"), 1, 1_000, ConnectInfo::default());
-    p.with_state(|s| s.pop());
-    let started = AgentUpdateOutcome {
-        version: "0.3.0".into(),
-        phase: "Started",
-        message: "switching".into(),
-        time: Timestamp::now(),
-    };
-    assert!(p.agent_update(&key("a"), 1, started.clone()));
+    let (p, started) = update_started();
     p.disconnect(&key("a"), 1);
     p.tick();
     assert_eq!(
