@@ -561,11 +561,7 @@ backend gateways
             return False
         st = (self.deployment(r["deployment"]) or {}).get("status") or {}
         r["counts"] = {k: st.get(k) for k in ("targeted", "updated", "failed", "skipped")}
-        p = run("kubectl", "-n", NS, "get", "robots", "-o", "json", timeout=300)
-        r["on_release"] = sum(
-            1 for x in json.loads(p.stdout)["items"]
-            if (((x.get("status") or {}).get("currentRelease") or {}).get("version")
-                == r["version"]))
+        r["on_release"] = sum(1 for v in self.current_releases().values() if v == r["version"])
         log(f"rollout {r['n']}: {r['on_release']} robots run {r['version']} after the abort "
             f"(the rollout shows {r['counts']['updated']} updated)")
         r["settle_until"] = None
@@ -901,13 +897,16 @@ backend gateways
         if active:
             active["phase"], active["seconds"] = "not ended", round(time.time() - active["started"])
 
-    def unwanted_robots(self):
+    def current_releases(self):
+        """Each robot's name and the release its status says it runs (None: none)."""
         p = run("kubectl", "-n", NS, "get", "robots", "-o", "json", timeout=300)
-        bad = []
-        for r in json.loads(p.stdout)["items"]:
-            cur = ((r.get("status") or {}).get("currentRelease") or {}).get("version")
-            if cur in self.unwanted_releases:
-                bad.append(f"{r['metadata']['name']}={cur}")
+        return {r["metadata"]["name"]:
+                ((r.get("status") or {}).get("currentRelease") or {}).get("version")
+                for r in json.loads(p.stdout)["items"]}
+
+    def unwanted_robots(self):
+        bad = [f"{name}={cur}" for name, cur in self.current_releases().items()
+               if cur in self.unwanted_releases]
         if bad:
             log(f"robots on unwanted releases: {bad[:20]}")
         return len(bad)
