@@ -25,6 +25,7 @@ GRACE_NOT_ONLINE = 300  # a robot with a live session is Online again within thi
 STALL_SECONDS = 120
 DISK_FULL_SECONDS = 120
 ABORT_SETTLE = 30  # after an aborted rollout, before its robots are counted
+ROLLOUT_LIMIT = 1200  # a rollout not ended this long after its apply fails as "not ended"
 LOG = open(os.path.join(WORK, "driver-events.log"), "a", buffering=1)
 
 
@@ -876,9 +877,9 @@ backend gateways
                 next_fault += C["fault_every"]
             if active and self.follow_rollout(active):
                 active = None
-            elif active and now - active["started"] > 1200:
+            elif active and now - active["started"] > ROLLOUT_LIMIT:
                 active["phase"], active["seconds"] = "not ended", round(now - active["started"])
-                log(f"rollout {active['n']} not ended after 1200 s")
+                log(f"rollout {active['n']} not ended after {ROLLOUT_LIMIT} s")
                 active = None
             if not active and now >= next_release:
                 k += 1
