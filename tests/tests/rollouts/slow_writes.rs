@@ -24,8 +24,9 @@ use k8s_openapi::api::core::v1::Event;
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
 use k8s_openapi::apimachinery::pkg::util::intstr::IntOrString;
 use kube::Api;
-use kube::api::PostParams;
-use lekiwi_crds::deployment::{RolloutPhase, RolloutStrategy};
+use kube::api::{Patch, PatchParams, PostParams};
+use lekiwi_controllers::deployment::plan::Mark;
+use lekiwi_crds::deployment::{ABORT_ANNOTATION, RolloutKind, RolloutPhase, RolloutStrategy};
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
 use lekiwi_tests::lag_proxy::LagProxy;
 use lekiwi_tests::{
@@ -253,6 +254,89 @@ async fn a_robots_timeout_is_judged_on_a_fresh_read_not_on_a_watch_behind() -> a
     assert!(
         found_done >= 1,
         "robots past their timeout on the store should have been read done:\n{}",
+        tail(&log)
+    );
+    Ok(())
+}
+
+/// A user aborts a rollout while the controller writes a batch of 160 robots behind a 2 s lag
+/// (ten rounds of 16 writes, 20 s): the controller stops starting robots once its store shows
+/// the abort, and the rollout ends `Aborted` with the robots it had written. Before, the writes
+/// went on to the last robot of the batch after the abort (as the soak found with a busy API
+/// server: a batch of 1,021 robots written on after the abort, robots it had stopped switching).
+#[tokio::test]
+async fn an_abort_stops_the_writes_of_a_batch_under_way() -> anyhow::Result<()> {
+    /// The canary, then one batch of the rest.
+    const ROBOTS: usize = 161;
+    const LAG: Duration = Duration::from_secs(2);
+    let bed = LaggedBed::start("abortwrites", ROBOTS, "1").await?;
+    bed.proxy.set_lag(LAG);
+    let strategy = RolloutStrategy {
+        batch_size: IntOrString::String("100%".into()),
+        success_threshold: 1.0,
+        robot_timeout_seconds: 300,
+        ..test_strategy(0, 1)
+    };
+    let d = RobotDeployment::new(
+        "abort",
+        RobotDeploymentSpec {
+            selector: LabelSelector::default(),
+            release: Some(bed.release.clone()),
+            agent: None,
+            strategy,
+            paused: false,
+            analysis: None,
+            priority: 0,
+        },
+    );
+    bed.deployments.create(&PostParams::default(), &d).await?;
+    let ns = bed.deployments.namespace().unwrap_or_default().to_owned();
+    let robots = Api::<Robot>::namespaced(bed.client.clone(), &ns);
+    // Robots the rollout's batch after the canary has told to switch (read from the API
+    // server itself, not through the lag).
+    let batch_told = || async {
+        let all = robots.list(&Default::default()).await.ok()?.items;
+        Some(
+            all.iter()
+                .filter(|r| Mark::of(r, RolloutKind::Release).is_some_and(|m| m.batch == 1))
+                .count(),
+        )
+    };
+    wait_for(
+        "the batch's writes under way",
+        Duration::from_secs(120),
+        || async { batch_told().await.filter(|n| *n > 0) },
+    )
+    .await?;
+    let patch = serde_json::json!({"metadata": {"annotations": {
+        ABORT_ANNOTATION: jiff::Timestamp::now().to_string(),
+    }}});
+    bed.deployments
+        .patch("abort", &PatchParams::default(), &Patch::Merge(&patch))
+        .await?;
+    let d = rollout_finished(&bed.deployments, "abort", Duration::from_secs(120)).await?;
+    let told = batch_told().await.unwrap_or_default();
+    println!(
+        "after the abort: {told} of {} robots of the batch told",
+        ROBOTS - 1
+    );
+    assert_eq!(
+        d.status.as_ref().and_then(|s| s.phase),
+        Some(RolloutPhase::Aborted),
+        "{:?}\n{}",
+        d.status,
+        tail(&bed.controller.log_text())
+    );
+    assert!(
+        told <= (ROBOTS - 1) * 3 / 4,
+        "{told} of {} robots told after the abort:\n{}",
+        ROBOTS - 1,
+        tail(&bed.controller.log_text())
+    );
+    let log = bed.controller.log_text();
+    assert!(
+        log.contains("the deployment changed while its robots were written"),
+        "{}",
         tail(&log)
     );
     Ok(())

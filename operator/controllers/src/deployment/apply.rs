@@ -9,10 +9,10 @@ use futures::StreamExt;
 use jiff::Timestamp;
 use kube::api::{Patch, PatchParams};
 use kube::runtime::events::{Event, EventType, Recorder};
-use kube::{Api, Resource};
+use kube::{Api, Resource, ResourceExt};
 use lekiwi_crds::analysis::WINDOW_ANNOTATION;
 use lekiwi_crds::contract::managers;
-use lekiwi_crds::deployment::RolloutKind;
+use lekiwi_crds::deployment::{ABORT_ANNOTATION, RESTART_ANNOTATION, RolloutKind, UNDO_ANNOTATION};
 use lekiwi_crds::{AgentArch, AgentBuild, AgentRef, ReleaseRef, Robot, RobotDeployment};
 use tracing::{debug, info, warn};
 
@@ -37,20 +37,34 @@ pub struct Written {
 /// One robot's write: its name, mark, the owned part of its spec, and the analysis window.
 type Job = (String, Mark, Option<RobotSpecPart>, Option<i64>);
 
-/// Writes every planned robot, a few at a time: the writes that succeeded, and the first error
-/// after trying all.
+/// How a plan's robot writes went: the writes that succeeded, the first error after trying
+/// all, and whether the rest were left unwritten because the deployment changed meanwhile.
+pub(super) struct Writes {
+    pub written: Vec<Written>,
+    pub failed: Result<()>,
+    pub interrupted: bool,
+}
+
+/// Writes every planned robot, a few at a time, until `changed` says a user changed the
+/// deployment since the plan read it (an abort, undo, restart or new spec: the robots not yet
+/// written are left for the plan of the new state). A batch of a thousand robots takes seconds
+/// to write, and minutes on a busy API server: an abort that came meanwhile let the writes go
+/// on starting robots it had stopped.
 pub(super) async fn write_robots(
     client: &kube::Client,
     deployment: &RobotDeployment,
-    facts: &Facts,
-    plan: &Plan,
-) -> (Vec<Written>, Result<()>) {
+    (facts, plan): (&Facts, &Plan),
+    changed: impl Fn() -> bool,
+) -> Writes {
     let namespace = deployment.metadata.namespace.clone().unwrap_or_default();
     let robots: Api<Robot> = Api::namespaced(client.clone(), &namespace);
     let kind = deployment.spec.kind();
     let jobs = robot_writes(deployment, facts, plan);
     let planned_at = facts.now;
+    let planned = jobs.len();
     let results: Vec<Result<Written>> = futures::stream::iter(jobs)
+        // Asked as each write is about to start.
+        .take_while(|_| std::future::ready(!changed()))
         .map(|(robot, mark, spec, window)| {
             let robots = robots.clone();
             async move {
@@ -61,6 +75,7 @@ pub(super) async fn write_robots(
         .buffer_unordered(WRITE_CONCURRENCY)
         .collect()
         .await;
+    let interrupted = results.len() < planned;
     let (mut written, mut failed) = (Vec::with_capacity(results.len()), Ok(()));
     for result in results {
         match result {
@@ -73,10 +88,25 @@ pub(super) async fn write_robots(
         info!(
             robots = written.len(),
             of = plan.writes.len(),
+            interrupted,
             "robots written"
         );
     }
-    (written, failed)
+    Writes {
+        written,
+        failed,
+        interrupted,
+    }
+}
+
+/// Whether `now` (the store's) is a change of `seen` a user made that a plan from `seen` does
+/// not know: a new spec, or a new abort, undo or restart request.
+pub(super) fn changed_by_user(seen: &RobotDeployment, now: &RobotDeployment) -> bool {
+    let asked = |d: &RobotDeployment, key: &str| d.annotations().get(key).cloned();
+    now.metadata.generation != seen.metadata.generation
+        || [ABORT_ANNOTATION, UNDO_ANNOTATION, RESTART_ANNOTATION]
+            .iter()
+            .any(|key| asked(now, key) != asked(seen, key))
 }
 
 /// `mark` with the time of its write for the time its state was entered, when this plan
@@ -437,5 +467,32 @@ mod tests {
             ..mark
         };
         assert_eq!(entered_now(kept.clone(), planned_at), kept);
+    }
+
+    /// A user's new spec or new abort, undo or restart request stops a plan's writes; the
+    /// status (this controller's own writes) and other annotations do not.
+    #[test]
+    fn only_a_users_change_stops_the_writes() {
+        let seen = deployment(Some(rel("2.0.0", 'b')), None);
+        assert!(!changed_by_user(&seen, &seen));
+        let mut status = seen.clone();
+        status.status = Some(Default::default());
+        status.metadata.resource_version = Some("2".into());
+        assert!(!changed_by_user(&seen, &status), "its own status write");
+        let mut other = seen.clone();
+        other
+            .annotations_mut()
+            .insert("example.org/note".into(), "x".into());
+        assert!(!changed_by_user(&seen, &other));
+        for key in [ABORT_ANNOTATION, UNDO_ANNOTATION, RESTART_ANNOTATION] {
+            let mut asked = seen.clone();
+            asked
+                .annotations_mut()
+                .insert(key.into(), "2026-12-07T20:00:00Z".into());
+            assert!(changed_by_user(&seen, &asked), "{key}");
+        }
+        let mut spec = seen.clone();
+        spec.metadata.generation = Some(seen.metadata.generation.unwrap_or(1) + 1);
+        assert!(changed_by_user(&seen, &spec), "a new generation");
     }
 }

@@ -190,11 +190,13 @@ async fn reconcile(
                 status: Some(status),
                 ..deployment.clone()
             });
-        let plan = plan::plan(held.as_ref().unwrap_or(deployment), &facts);
+        let planned_from = held.as_ref().unwrap_or(deployment);
+        let plan = plan::plan(planned_from, &facts);
         // Robots first: if we die between the two, the marks let the next leader resume.
-        let (written, failed) = apply::write_robots(&ctx.client, deployment, &facts, &plan).await;
-        state.own.wrote_robots(&namespace, &written);
-        failed?;
+        let written = write_robots(&state, (&key, planned_from), (&facts, &plan)).await?;
+        let Some(written) = written else {
+            return Ok(Action::requeue(Duration::ZERO));
+        };
         let (status_version, held) = write_status(&state, deployment, &plan).await?;
         state
             .own
@@ -213,16 +215,67 @@ async fn reconcile(
             .rollouts
             .record(deployment, &plan.status, (judged, plan.finished), now);
         ctx.reset_backoff(&name, &namespace);
-        let again = match (plan.requeue_after, held) {
-            (Some(after), Some(held)) => Some(after.min(held)),
-            (Some(after), None) | (None, Some(after)) => Some(after),
-            (None, None) => None,
-        };
-        debug!(?again, "reconciled");
-        Ok(again.map_or_else(Action::await_change, Action::requeue))
+        Ok(next_look(plan.requeue_after, held))
     }
     .instrument(span)
     .await
+}
+
+/// When to reconcile again: when the plan asks (`requeue_after`) or the pace releases the
+/// status it held, whichever comes first; else on the next change.
+fn next_look(requeue_after: Option<Duration>, held: Option<Duration>) -> Action {
+    let again = match (requeue_after, held) {
+        (Some(after), Some(held)) => Some(after.min(held)),
+        (Some(after), None) | (None, Some(after)) => Some(after),
+        (None, None) => None,
+    };
+    debug!(?again, "reconciled");
+    again.map_or_else(Action::await_change, Action::requeue)
+}
+
+/// Writes the plan's robots ([`apply::write_robots`]) and records them as this controller's
+/// own writes: the robots written, or `None` when a user changed the deployment meanwhile and
+/// the rest were left unwritten (the status of this plan would claim robots it did not start:
+/// the caller plans again from the change, with the marks of the robots written so far). Only a
+/// rollout whose status (`planned_from`'s) records it stops so: the next plan goes on with it,
+/// where the first plan of a rollout would start another, told nothing of the writes.
+async fn write_robots(
+    state: &State,
+    (key, planned_from): (
+        &ObjectRef<DeserializeGuard<RobotDeployment>>,
+        &RobotDeployment,
+    ),
+    (facts, plan): (&plan::Facts, &plan::Plan),
+) -> Result<Option<Vec<apply::Written>>> {
+    let recorded = planned_from
+        .status
+        .as_ref()
+        .and_then(|s| s.rollout_id.as_ref())
+        .is_some_and(|id| plan.status.rollout_id.as_ref() == Some(id));
+    let changed = || {
+        recorded
+            && state.deployments.get(key).is_some_and(|now| {
+                now.0
+                    .as_ref()
+                    .is_ok_and(|now| apply::changed_by_user(planned_from, now))
+            })
+    };
+    let apply::Writes {
+        written,
+        failed,
+        interrupted,
+    } = apply::write_robots(&state.ctx.client, planned_from, (facts, plan), changed).await;
+    let namespace = planned_from.namespace().unwrap_or_default();
+    state.own.wrote_robots(&namespace, &written);
+    failed?;
+    if interrupted {
+        info!(
+            written = written.len(),
+            "the deployment changed while its robots were written; planning again"
+        );
+        return Ok(None);
+    }
+    Ok(Some(written))
 }
 
 /// Writes the planned status unless [`pace`] holds it: its resourceVersion if written, and how
