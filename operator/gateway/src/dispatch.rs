@@ -5,7 +5,9 @@
 //! session closes, see [`lekiwi_presence::holder`]); and presence when another gateway's earlier session
 //! shows up only now in a robot whose session is here (the robot moved here: see
 //! [`lekiwi_presence::claims`]), or shows such a robot, or one whose live session here it
-//! names, `Unknown` or `Offline` (its write then goes first).
+//! names, `Unknown` or `Offline` (its write then goes first). A release a rollout told the robot
+//! to switch to after a user aborted or undid that rollout is passed on held (not deployed:
+//! [`Holds`]).
 
 use std::sync::Arc;
 
@@ -16,6 +18,7 @@ use tokio::sync::broadcast::error::RecvError;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+use super::halt::Holds;
 use super::registry::Registry;
 use crate::error::{Error, Result};
 use lekiwi_core::RobotKey;
@@ -30,6 +33,7 @@ use lekiwi_presence::{Presence, claims};
 /// (`gateway`).
 pub async fn start(
     robots: Arc<Cache<Robot>>,
+    holds: Holds,
     registry: Arc<Registry>,
     presence: Presence,
     gateway: &str,
@@ -43,6 +47,7 @@ pub async fn start(
     let task = tokio::spawn(async move {
         let dispatch = Dispatch {
             registry,
+            holds,
             presence,
             gateway,
         };
@@ -70,11 +75,12 @@ pub async fn start(
     Ok((WatchedRobots(robots), task))
 }
 
-/// The dispatch task: which sessions to tell, the robots' presence, and this gateway's name. It
-/// keeps nothing per robot: each change carries the Robot as it was, so a change of
-/// `spec.release` or `spec.agent` shows by comparing the two.
+/// The dispatch task: which sessions to tell, the rollouts that may hold a release, the robots'
+/// presence, and this gateway's name. It keeps nothing per robot: each change carries the Robot
+/// as it was, so a change of `spec.release` or `spec.agent` shows by comparing the two.
 struct Dispatch {
     registry: Arc<Registry>,
+    holds: Holds,
     presence: Presence,
     gateway: String,
 }
@@ -116,8 +122,13 @@ impl Dispatch {
         if old.is_none_or(|o| o.spec.release != robot.spec.release) {
             let desired = robot.spec.release.as_ref().map(Release::from);
             let version = desired.as_ref().map(|r| r.version.clone());
-            let told = self.registry.notify_desired_release(&key, desired);
-            debug!(robot = %key, release = ?version, told, "desired release changed");
+            let held = desired.is_some() && self.holds.held(robot);
+            let told = self.registry.notify_desired_release(&key, desired, held);
+            if held {
+                info!(robot = %key, release = ?version, told, "a rollout a user stopped told the robot to switch after the request; not deploying it");
+            } else {
+                debug!(robot = %key, release = ?version, told, "desired release changed");
+            }
         }
     }
 }

@@ -4,6 +4,7 @@
 //! each robot's `spec.release` back (which for a batch of a large fleet takes seconds at the
 //! API server's write rate). Which requests and robots count is the planner's rule
 //! ([`lekiwi_controllers::deployment::plan::halt`]); the controller's writes follow as before.
+//! A robot the rollout told to switch only after the request is held ([`Holds`]).
 
 use std::sync::Arc;
 
@@ -15,9 +16,31 @@ use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
 
 use super::registry::Registry;
-use lekiwi_controllers::deployment::plan::halt;
+use lekiwi_controllers::deployment::plan::{Mark, halt};
 use lekiwi_core::RobotKey;
 use lekiwi_core::cache::{Cache, Change};
+use lekiwi_crds::deployment::RolloutKind;
+
+/// Which robots' desired release is held: told to switch by a rollout a user aborted or undid
+/// only after the request (the controller's writes of a batch under way when it came), read from
+/// the gateway's RobotDeployment cache ([`halt::held`]). Dispatch passes such a change on held,
+/// and a session that opens for such a robot does not deploy its release either.
+#[derive(Clone)]
+pub struct Holds(pub Arc<Cache<RobotDeployment>>);
+
+impl Holds {
+    /// Whether the rollout that told `robot` to switch (its mark's deployment) was aborted or
+    /// undone before that.
+    pub fn held(&self, robot: &Robot) -> bool {
+        let Some(mark) = Mark::of(robot, RolloutKind::Release) else {
+            return false;
+        };
+        let namespace = robot.namespace().unwrap_or_default();
+        self.0
+            .get(&namespace, &mark.deployment)
+            .is_some_and(|d| halt::held(robot, &d))
+    }
+}
 
 /// Starts the task that follows `rollouts` and halts downloads of the robots of `robots` whose
 /// rollout a user stopped; it runs until `cancel`.

@@ -25,8 +25,13 @@ pub enum Control {
     /// Send this to the agent.
     /// Boxed: the channel's slots are allocated per connection, so keep them pointer-sized.
     Send(Box<ServerMessage>),
-    /// The robot's `spec.release` changed to this; the session sends a deploy command if due.
-    Desired(Option<Box<Release>>),
+    /// The robot's `spec.release` changed to `release`; the session sends a deploy command if
+    /// due, unless `held`: a rollout a user aborted or undid told the robot to switch only after
+    /// the request (see [`super::halt`]), and the release is not deployed in this session.
+    Desired {
+        release: Option<Box<Release>>,
+        held: bool,
+    },
     /// A user aborted or undid the rollout of this release: the session cancels a deploy of it
     /// in flight at once, before the Robot's `spec.release` changes (see
     /// [`super::halt`]).
@@ -120,10 +125,17 @@ impl Registry {
             .is_some_and(|slot| put(&slot.tx, Control::Moved))
     }
 
-    /// Tells a robot's session that its desired release changed; false when the robot has no
-    /// session here. Never lost to a full mailbox (see [`put`]).
-    pub fn notify_desired_release(&self, key: &RobotKey, release: Option<Release>) -> bool {
-        self.put(key, Control::Desired(release.map(Box::new)))
+    /// Tells a robot's session that its desired release changed (`held`: not to be deployed,
+    /// see [`Control::Desired`]); false when the robot has no session here. Never lost to a
+    /// full mailbox (see [`put`]).
+    pub fn notify_desired_release(
+        &self,
+        key: &RobotKey,
+        release: Option<Release>,
+        held: bool,
+    ) -> bool {
+        let release = release.map(Box::new);
+        self.put(key, Control::Desired { release, held })
     }
 
     /// Tells a robot's session to stop a download of `release` in flight; false when the robot
@@ -246,9 +258,9 @@ mod tests {
             version: v.into(),
             digest: format!("sha256:{}", "a".repeat(64)),
         };
-        assert!(registry.notify_desired_release(&key, Some(release("1.0.0"))));
+        assert!(registry.notify_desired_release(&key, Some(release("1.0.0")), false));
         assert!(registry.notify_credentials(&key, true));
-        assert!(registry.notify_desired_release(&key, Some(release("2.0.0"))));
+        assert!(registry.notify_desired_release(&key, Some(release("2.0.0")), true));
         assert_eq!(registry.recheck_all_credentials(), 1);
         assert!(registry.notify_desired_agent(&key, None));
         let mut states = Vec::new();
@@ -259,7 +271,7 @@ mod tests {
         }
         assert_eq!(states.len(), 3, "{states:?}");
         assert!(
-            matches!(&states[0], Control::Desired(Some(r)) if r.version == "2.0.0"),
+            matches!(&states[0], Control::Desired { release: Some(r), held: true } if r.version == "2.0.0"),
             "{states:?}"
         );
         assert!(matches!(states[1], Control::Credentials { deleted: true }));

@@ -18,6 +18,7 @@ use tracing::{info, warn};
 
 use super::admission::EnrollAdmission;
 use super::auth::Authenticator;
+use super::halt::Holds;
 use super::listener::{self, ConnLimits};
 use super::lookup::{LookupConfig, Lookups};
 use super::quota_warnings::QuotaWarnings;
@@ -68,7 +69,7 @@ pub async fn run(
         &config.fleet_api,
         &cancel,
     );
-    let (desired, [dispatch_task, halt_task]) =
+    let (desired, holds, [dispatch_task, halt_task]) =
         start_dispatch(&config, &fleet, registry.clone(), &presence, &cancel).await?;
     let shared = SessionContext {
         presence: presence.clone(),
@@ -80,6 +81,7 @@ pub async fn run(
         gateway: name.clone(),
         cancel: cancel.clone(),
         desired: Some(desired.clone()),
+        holds: Some(holds),
         quota_warnings: QuotaWarnings::new(client.clone(), &name, QUOTA_WARNING_INTERVAL),
     };
     let live = super::blob_start::LiveHeartbeats(presence.clone());
@@ -109,32 +111,43 @@ pub async fn run(
     );
     let more = [secret_task, dispatch_task, halt_task, care_task];
     tasks.aborted.extend(more.into_iter().chain(fleet_tasks));
-    let addr = config.flags.gateway_addr;
     let served = serve(&config, &name, state, listening, &cancel).await?;
     cancel.cancel();
     drain(&presence, tasks).await;
-    served.map_err(|source| Error::Serve { addr, source })
+    served.map_err(|source| Error::Serve {
+        addr: config.flags.gateway_addr,
+        source,
+    })
 }
 
 /// Starts the dispatch of Robot changes to this gateway's sessions and presence once the
 /// fleet's Robot cache holds the first list, and lets presence plan phases from it; and the
 /// halting of downloads a user's abort, undo or pause of a rollout stops. Returns the desired
-/// releases (and holders) of the robots, the dispatch task and the halt task.
+/// releases (and holders) of the robots, which of them are held, the dispatch task and the
+/// halt task.
 async fn start_dispatch(
     config: &Config,
     fleet: &FleetApi,
     registry: Arc<Registry>,
     presence: &Presence,
     cancel: &CancellationToken,
-) -> Result<(WatchedRobots, [JoinHandle<()>; 2])> {
+) -> Result<(WatchedRobots, Holds, [JoinHandle<()>; 2])> {
+    let holds = Holds(fleet.rollouts.clone());
     let name = config.name.clone();
     let robots = fleet.robots.clone();
     let halt = super::halt::start(&fleet.rollouts, robots.clone(), registry.clone(), cancel);
-    let (desired, task) =
-        dispatch::start(robots, registry, presence.clone(), &name, cancel).await?;
+    let (desired, task) = dispatch::start(
+        robots,
+        holds.clone(),
+        registry,
+        presence.clone(),
+        &name,
+        cancel,
+    )
+    .await?;
     let grace = Duration::from_secs(config.heartbeat_grace_seconds);
     presence.plan_phases(PhasePlanner::new(desired.clone(), grace));
-    Ok((desired, [task, halt]))
+    Ok((desired, holds, [task, halt]))
 }
 
 /// The gateway's presence: the robots' states and the status writer's limits.

@@ -10,10 +10,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use k8s_openapi::apimachinery::pkg::apis::meta::v1::LabelSelector;
-use kube::Api;
 use kube::api::{ListParams, Patch, PatchParams, PostParams};
+use kube::{Api, ResourceExt};
 use lekiwi_controllers::deployment::plan;
 use lekiwi_crds::deployment::RolloutPhase;
 use lekiwi_crds::{ReleaseRef, Robot, RobotDeployment, RobotDeploymentSpec};
@@ -117,6 +117,78 @@ impl Site {
             .list(&ListParams::default())
             .await?
             .items)
+    }
+
+    /// Gives every robot of `names` `release`, as a controller would, and waits until each
+    /// runs it.
+    async fn all_on(&self, names: &[String], release: &ReleaseRef) -> anyhow::Result<()> {
+        let robots: Api<Robot> = Api::namespaced(self.client.clone(), &self.ns);
+        for name in names {
+            let patch = json!({"spec": {"release": release}});
+            robots
+                .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+                .await?;
+        }
+        wait_for(
+            "every robot on the release",
+            Duration::from_secs(60),
+            || async {
+                let all = self.robots().await.ok()?;
+                all.iter()
+                    .all(|r| {
+                        r.status.as_ref().and_then(|s| s.current_release.as_ref()) == Some(release)
+                    })
+                    .then_some(())
+            },
+        )
+        .await
+    }
+
+    /// What the controller writes when a rollout of `release` (deployment `cx`) starts, 2 s
+    /// ago: the deployment and its status; returns the rollout's id.
+    async fn rollout_of(&self, release: &ReleaseRef) -> anyhow::Result<String> {
+        let started = jiff::Timestamp::now() - jiff::SignedDuration::from_secs(2);
+        let key = plan::rollout_id(release, None);
+        let rollout_id = plan::rollout_id_at(&key, started);
+        self.deploy("cx", release).await?;
+        let status = json!({"status": {"phase": "Progressing", "rolloutId": rollout_id}});
+        self.deployments()
+            .patch_status("cx", &PatchParams::default(), &Patch::Merge(&status))
+            .await?;
+        Ok(rollout_id)
+    }
+
+    /// What the controller writes to start the robots `names` of the rollout `rollout_id` of
+    /// `cx`: each one's mark and `spec.release` `to`, from `from`.
+    async fn told_to_switch(
+        &self,
+        names: &[String],
+        rollout_id: &str,
+        from: &ReleaseRef,
+        to: &ReleaseRef,
+    ) -> anyhow::Result<()> {
+        let robots: Api<Robot> = Api::namespaced(self.client.clone(), &self.ns);
+        let started = plan::rollout_start(rollout_id).context("rollout id")?;
+        for name in names {
+            let mark = plan::Mark {
+                deployment: "cx".into(),
+                rollout_id: rollout_id.to_owned(),
+                batch: 0,
+                state: plan::MarkState::Started,
+                since: started,
+                previous: Some(from.clone()),
+                message: None,
+                failed: false,
+            };
+            let patch = json!({
+                "metadata": {"annotations": {plan::MARK_ANNOTATION: serde_json::to_string(&mark)?}},
+                "spec": {"release": to},
+            });
+            robots
+                .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
+                .await?;
+        }
+        Ok(())
     }
 
     /// Bytes of partial downloads in each agent's store.
@@ -334,50 +406,10 @@ async fn the_gateway_cancels_downloads_on_abort_before_any_robot_is_written() ->
     let site = Site::new_with("halt", &["--role", "gateway"]).await?;
     let v1 = site.push(&release_dir(site.dir.path(), "1", 1024)?, "1.0.0")?;
     let v2 = site.push(&release_dir(site.dir.path(), "2", BIG)?, "2.0.0")?;
-    let robots: Api<Robot> = Api::namespaced(site.client.clone(), &site.ns);
     let names: Vec<String> = (0..ROBOTS).map(|i| format!("kiwi-{i}")).collect();
-    for name in &names {
-        let patch = json!({"spec": {"release": v1}});
-        robots
-            .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
-            .await?;
-    }
-    wait_for("every robot on 1.0.0", Duration::from_secs(60), || async {
-        let all = site.robots().await.ok()?;
-        all.iter()
-            .all(|r| r.status.as_ref().and_then(|s| s.current_release.as_ref()) == Some(&v1))
-            .then_some(())
-    })
-    .await?;
-
-    // What the controller writes when a rollout of 2.0.0 starts its batch.
-    let started = jiff::Timestamp::now() - jiff::SignedDuration::from_secs(2);
-    let key = plan::rollout_id(&v2, None);
-    let rollout_id = plan::rollout_id_at(&key, started);
-    site.deploy("cx", &v2).await?;
-    let status = json!({"status": {"phase": "Progressing", "rolloutId": rollout_id}});
-    site.deployments()
-        .patch_status("cx", &PatchParams::default(), &Patch::Merge(&status))
-        .await?;
-    for name in &names {
-        let mark = plan::Mark {
-            deployment: "cx".into(),
-            rollout_id: rollout_id.clone(),
-            batch: 0,
-            state: plan::MarkState::Started,
-            since: started,
-            previous: Some(v1.clone()),
-            message: None,
-            failed: false,
-        };
-        let patch = json!({
-            "metadata": {"annotations": {plan::MARK_ANNOTATION: serde_json::to_string(&mark)?}},
-            "spec": {"release": v2},
-        });
-        robots
-            .patch(name, &PatchParams::default(), &Patch::Merge(&patch))
-            .await?;
-    }
+    site.all_on(&names, &v1).await?;
+    let rollout_id = site.rollout_of(&v2).await?;
+    site.told_to_switch(&names, &rollout_id, &v1, &v2).await?;
     site.downloading_past(2 * 1024 * 1024).await?;
 
     site.cancel_with("abort", &v2, &v1).await?;
@@ -390,6 +422,77 @@ async fn the_gateway_cancels_downloads_on_abort_before_any_robot_is_written() ->
     }
     site.downloads_stay_stopped("no download started again while spec.release still names 2.0.0")
         .await;
+    assert!(!site.any_installed("2.0.0"));
+    Ok(())
+}
+
+/// A robot the controller starts only after a user aborted its rollout (the writes of a batch
+/// were under way when the abort came, as the soak found, with a busy API server): its gateway
+/// does not deploy the release its `spec.release` and mark name, neither to its live session
+/// nor to the session it opens after a restart. With the operator as the gateway alone, the
+/// test writes what the controller would.
+#[tokio::test]
+async fn a_robot_started_after_the_abort_is_not_deployed() -> anyhow::Result<()> {
+    let mut site = Site::new_with("held", &["--role", "gateway"]).await?;
+    let v1 = site.push(&release_dir(site.dir.path(), "1", 1024)?, "1.0.0")?;
+    let v2 = site.push(&release_dir(site.dir.path(), "2", BIG)?, "2.0.0")?;
+    let names: Vec<String> = (0..ROBOTS).map(|i| format!("kiwi-{i}")).collect();
+    site.all_on(&names, &v1).await?;
+    let rollout_id = site.rollout_of(&v2).await?;
+    let (batch, late) = names.split_at(ROBOTS - 1);
+    site.told_to_switch(batch, &rollout_id, &v1, &v2).await?;
+    wait_for("the batch downloading", Duration::from_secs(60), || async {
+        site.partial_bytes()[..ROBOTS - 1]
+            .iter()
+            .all(|b| *b > 1024 * 1024)
+            .then_some(())
+    })
+    .await?;
+    site.rollout("abort", "cx")?;
+    // The batch's downloads stop: the gateway has seen the abort.
+    wait_for("the batch cancelled", Duration::from_secs(10), || async {
+        let robots = site.robots().await.ok()?;
+        let cancelled = robots.iter().filter(|r| {
+            r.status
+                .as_ref()
+                .and_then(|s| s.last_update.as_ref())
+                .is_some_and(|u| {
+                    u.release.as_ref() == Some(&v2) && u.phase.as_deref() == Some("cancelled")
+                })
+        });
+        (cancelled.count() == ROBOTS - 1).then_some(())
+    })
+    .await?;
+
+    site.told_to_switch(late, &rollout_id, &v1, &v2).await?;
+    let late_bytes = |site: &Site| site.partial_bytes()[ROBOTS - 1];
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    assert_eq!(late_bytes(&site), 0, "the late robot started its download");
+    site.agents[ROBOTS - 1].restart()?;
+    tokio::time::sleep(Duration::from_secs(5)).await;
+    assert_eq!(
+        late_bytes(&site),
+        0,
+        "the late robot's new session deployed it"
+    );
+    let robot = site
+        .robots()
+        .await?
+        .into_iter()
+        .find(|r| r.name_any() == late[0])
+        .unwrap();
+    let status = robot.status.unwrap_or_default();
+    assert_eq!(status.current_release.as_ref(), Some(&v1));
+    assert!(
+        status.last_update.as_ref().and_then(|u| u.release.as_ref()) != Some(&v2),
+        "no update to 2.0.0 reported: {:?}",
+        status.last_update
+    );
+    assert_eq!(
+        robot.spec.release.as_ref(),
+        Some(&v2),
+        "no controller wrote it back"
+    );
     assert!(!site.any_installed("2.0.0"));
     Ok(())
 }

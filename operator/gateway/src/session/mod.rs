@@ -77,6 +77,8 @@ pub struct SessionContext {
     pub cancel: CancellationToken,
     /// The robots' desired releases (`spec.release`), when this gateway watches Robots.
     pub desired: Option<WatchedRobots>,
+    /// Which robots' desired release is held (a rollout a user stopped), alongside `desired`.
+    pub holds: Option<crate::halt::Holds>,
     /// Warning Events on Robots whose agents send past their event store quota.
     pub quota_warnings: QuotaWarnings,
 }
@@ -216,15 +218,18 @@ where
         shared.desired.as_ref().and_then(|d| d.agent(key)),
     );
     let opened = Box::pin(open(shared, key, ConnectInfo { address, ..hello })).await;
+    let mut commands =
+        CommandLedger::new(current, shared.desired.as_ref().and_then(|d| d.get(key)));
+    if let Some(release) = held_release(shared, key) {
+        // Nothing is in flight in a new session: no cancel to send.
+        let _ = commands.halt(release, &shared.gateway, opened.id);
+    }
     let mut session = Session {
         shared,
         key,
         id: opened.id,
         conn,
-        commands: Box::new(CommandLedger::new(
-            current,
-            shared.desired.as_ref().and_then(|d| d.get(key)),
-        )),
+        commands: Box::new(commands),
         agent: Box::new(agent),
         token_hash,
     };
@@ -234,6 +239,21 @@ where
         Err(end) => Err(end),
     };
     Some((session, opened, welcomed))
+}
+
+/// The robot's desired release when it is held (see [`crate::halt::Holds`]): a session that
+/// opens does not deploy it.
+fn held_release(shared: &SessionContext, key: &RobotKey) -> Option<lekiwi_protocol::Release> {
+    let robots = shared.desired.as_ref()?;
+    let robot = robots.robot(key)?;
+    if !shared.holds.as_ref()?.held(&robot) {
+        return None;
+    }
+    robot
+        .spec
+        .release
+        .as_ref()
+        .map(lekiwi_protocol::Release::from)
 }
 
 /// Registers the session (replacing an older one) with an epoch above the one the robot's
@@ -402,6 +422,7 @@ mod tests {
             gateway: "gw".into(),
             cancel: CancellationToken::new(),
             desired: None,
+            holds: None,
             quota_warnings: QuotaWarnings::new(client, "gw", Duration::from_secs(300)),
         });
         let (sink, _rx) = futures::channel::mpsc::channel::<Message>(1);

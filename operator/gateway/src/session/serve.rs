@@ -158,8 +158,12 @@ where
     async fn on_control(&mut self, control: Option<Control>) -> Flow {
         match control {
             Some(Control::Send(msg)) => self.conn.send(&msg).await,
-            Some(Control::Desired(release)) => {
-                self.commands.set_desired(release.map(|r| *r));
+            Some(Control::Desired { release, held }) => {
+                let release = release.map(|r| *r);
+                self.commands.set_desired(release.clone());
+                if let Some(release) = release.filter(|_| held) {
+                    self.halt(release).await?;
+                }
                 self.send_commands().await
             }
             Some(Control::Halt(release)) => self.halt(*release).await,

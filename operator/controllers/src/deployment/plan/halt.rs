@@ -59,6 +59,36 @@ pub fn halts(robot: &Robot, deployment: &str, rollout_id: &str) -> bool {
     })
 }
 
+/// Whether `robot`, told by `deployment`'s current rollout to switch to its release, belongs to
+/// a rollout a user aborted or undid (a request made after the rollout started): a robot the
+/// controller wrote only after the request (a batch whose writes were under way when it came)
+/// must not start its download either; the controller's next plan sends it back. A pause is not
+/// held here: a resumed rollout goes on with the robots it started.
+pub fn held(robot: &Robot, deployment: &RobotDeployment) -> bool {
+    let Some(rollout_id) = deployment
+        .status
+        .as_ref()
+        .and_then(|s| s.rollout_id.as_deref())
+    else {
+        return false;
+    };
+    let Some(started) = super::rollout_start(rollout_id) else {
+        return false;
+    };
+    if robot.spec.release.is_none() || robot.spec.release != deployment.spec.release {
+        return false;
+    }
+    let asked = |key: &str| {
+        deployment
+            .annotations()
+            .get(key)
+            .and_then(|at| at.parse::<Timestamp>().ok())
+            .is_some_and(|at| at > started)
+    };
+    (asked(ABORT_ANNOTATION) || asked(UNDO_ANNOTATION))
+        && halts(robot, &deployment.name_any(), rollout_id)
+}
+
 #[cfg(test)]
 mod tests {
     use std::collections::BTreeMap;
@@ -195,5 +225,42 @@ mod tests {
         let waiting = mark(MarkState::Waiting, Some(release("1")));
         assert!(!halts(&robot(Some(waiting)), "d", &id));
         assert!(!halts(&robot(None), "d", &id));
+    }
+
+    #[test]
+    fn a_robot_written_after_an_abort_or_undo_of_its_rollout_is_held() {
+        let told = |d: &RobotDeployment| {
+            let mut r = robot(Some(mark(MarkState::Started, Some(release("1")))));
+            r.spec.release = d.spec.release.clone();
+            r
+        };
+        for key in [ABORT_ANNOTATION, UNDO_ANNOTATION] {
+            // The request comes whatever the phase the cache shows yet (the controller may
+            // have written the rollout Aborted before the late robot's change arrives).
+            for phase in [RolloutPhase::Progressing, RolloutPhase::Aborted] {
+                let d = deployment(phase, &[(key, &at(5))]);
+                assert!(held(&told(&d), &d), "{key} in {phase:?}");
+            }
+            let earlier = deployment(RolloutPhase::Progressing, &[(key, &at(-5))]);
+            assert!(
+                !held(&told(&earlier), &earlier),
+                "{key} of an earlier rollout"
+            );
+        }
+        let d = deployment(RolloutPhase::Progressing, &[(ABORT_ANNOTATION, &at(5))]);
+        let mut back = told(&d);
+        back.spec.release = Some(release("1"));
+        assert!(!held(&back, &d), "sent back: its own release goes out");
+        let fresh = robot(Some(mark(MarkState::Started, None)));
+        assert!(
+            !held(&fresh, &d),
+            "nothing to stay on: it goes on switching"
+        );
+        let mut paused = deployment(RolloutPhase::Progressing, &[]);
+        paused.spec.paused = true;
+        assert!(
+            !held(&told(&paused), &paused),
+            "a pause goes on with its robots"
+        );
     }
 }
