@@ -29,15 +29,11 @@ pub fn stopped_by(old: &RobotDeployment, new: &RobotDeployment) -> Option<(Strin
         return None;
     }
     let asked = |key: &str| {
-        let at = new.annotations().get(key)?;
-        let fresh = old.annotations().get(key) != Some(at);
-        at.parse::<Timestamp>()
-            .ok()
-            .filter(|at| fresh && *at > started)
+        old.annotations().get(key) != new.annotations().get(key) && asked_after(new, key, started)
     };
     let phase = status.phase?;
-    let undo = asked(UNDO_ANNOTATION).is_some() && rollback::undo_applies(phase);
-    let abort = asked(ABORT_ANNOTATION).is_some() && abort::applies(phase);
+    let undo = asked(UNDO_ANNOTATION) && rollback::undo_applies(phase);
+    let abort = asked(ABORT_ANNOTATION) && abort::applies(phase);
     // A pause holds robots only where the rollout moves forward (not while it waits for an
     // older overlapping deployment: robots started then keep going).
     let conflict = find(&status.conditions, CONDITION_CONFLICT)
@@ -78,15 +74,19 @@ pub fn held(robot: &Robot, deployment: &RobotDeployment) -> bool {
     if robot.spec.release.is_none() || robot.spec.release != deployment.spec.release {
         return false;
     }
-    let asked = |key: &str| {
-        deployment
-            .annotations()
-            .get(key)
-            .and_then(|at| at.parse::<Timestamp>().ok())
-            .is_some_and(|at| at > started)
-    };
-    (asked(ABORT_ANNOTATION) || asked(UNDO_ANNOTATION))
+    (asked_after(deployment, ABORT_ANNOTATION, started)
+        || asked_after(deployment, UNDO_ANNOTATION, started))
         && halts(robot, &deployment.name_any(), rollout_id)
+}
+
+/// Whether `deployment`'s request annotation `key` (a time) was made after `started`: one made
+/// before its rollout started, or that does not parse, counts for nothing (as for the planner).
+fn asked_after(deployment: &RobotDeployment, key: &str, started: Timestamp) -> bool {
+    deployment
+        .annotations()
+        .get(key)
+        .and_then(|at| at.parse::<Timestamp>().ok())
+        .is_some_and(|at| at > started)
 }
 
 #[cfg(test)]
