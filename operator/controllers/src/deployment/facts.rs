@@ -2,6 +2,7 @@
 //! from the shared stores (selected robots, overlapping deployments) and the blob store
 //! (whether the release can be rolled out).
 
+use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
@@ -9,6 +10,7 @@ use std::time::Duration;
 use jiff::{SignedDuration, Timestamp};
 use kube::ResourceExt;
 use kube::core::{DeserializeGuard, Selector, SelectorExt};
+use kube::runtime::reflector::{ObjectRef, Store};
 use lekiwi_crds::deployment::RolloutKind;
 use lekiwi_crds::{AgentArch, AgentRef, ReleaseRef, Robot, RobotDeployment, RobotPhase};
 use lekiwi_protocol::ProgressPhase;
@@ -25,12 +27,18 @@ pub(super) async fn gather(
     now: Timestamp,
 ) -> Result<Option<Facts>> {
     let namespace = deployment.namespace().unwrap_or_default();
-    let all_robots = state.robots.state();
     let Some(selector) = selector(deployment) else {
         return Ok(None);
     };
-    let ours = selected(&all_robots, &namespace, &selector);
-    let (overlaps, active_deployments) = overlaps(state, deployment, &ours);
+    let deployments = state.deployments.state();
+    let Some(selection) = state
+        .members
+        .select(&state.robots, &deployments, deployment)
+    else {
+        return Ok(None);
+    };
+    let ours = own_robots(&state.robots, &namespace, &selector, &selection.robots);
+    let (overlaps, active_deployments) = overlaps(&deployments, deployment, &selection.shared);
     let config = &state.ctx.config;
     let blob_dir = config.blob_dir.clone();
     let spec = deployment.spec.clone();
@@ -40,7 +48,7 @@ pub(super) async fn gather(
     })
     .await
     .map_err(|_| Error::TaskStopped("release check"))?;
-    let mut owners = super::ownership::superseded(&state.deployments, deployment, &ours);
+    let mut owners = super::ownership::superseded(&deployments, deployment, &selection.shared);
     let target = target(&deployment.spec);
     let agent = deployment.spec.agent.as_ref();
     let kind = deployment.spec.kind();
@@ -187,23 +195,28 @@ fn selector(deployment: &RobotDeployment) -> Option<Selector> {
     Selector::try_from(deployment.spec.selector.clone()).ok()
 }
 
-fn selected<'a>(
-    robots: &'a [Arc<Robot>],
+/// The robots named (a deployment's [`Selection`](super::members::Selection)) as the store
+/// shows them, that `selector` selects there.
+fn own_robots(
+    store: &Store<Robot>,
     namespace: &str,
     selector: &Selector,
-) -> Vec<&'a Arc<Robot>> {
-    robots
+    names: &[String],
+) -> Vec<Arc<Robot>> {
+    names
         .iter()
-        .filter(|r| r.namespace().as_deref() == Some(namespace) && selector.matches(r.labels()))
+        .filter_map(|name| store.get(&ObjectRef::new(name).within(namespace)))
+        .filter(|r| selector.matches(r.labels()))
         .collect()
 }
 
-/// Other active deployments of the namespace and which of our robots they select; also the
-/// names of all active deployments, ours first (their marks hold robots).
+/// Other active deployments of the namespace and which of our robots they select (`shared`:
+/// robot -> the other deployments selecting it), by name; also the names of all active
+/// deployments, ours first (their marks hold robots).
 fn overlaps(
-    state: &State,
+    all: &[Arc<DeserializeGuard<RobotDeployment>>],
     deployment: &RobotDeployment,
-    ours: &[&Arc<Robot>],
+    shared: &BTreeMap<String, Vec<String>>,
 ) -> (Vec<Overlap>, Vec<String>) {
     let name = deployment.name_any();
     let namespace = deployment.namespace().unwrap_or_default();
@@ -214,38 +227,35 @@ fn overlaps(
             x.name_any(),
         )
     };
-    let mut overlaps = Vec::new();
     let mut active = vec![name.clone()];
-    for guard in state.deployments.state() {
+    // The other active deployments of our kind: whether each is older than ours.
+    let mut earlier: HashMap<String, bool> = HashMap::new();
+    for guard in all {
         let Ok(other) = &guard.0 else { continue };
-        if other.namespace().as_deref() != Some(namespace.as_str())
+        if other.metadata.namespace.as_deref() != Some(namespace.as_str())
             || other.name_any() == name
             || other.spec.kind() != deployment.spec.kind()
+            || !is_active(guard)
         {
             continue;
         }
-        if !is_active(&guard) {
-            continue;
-        }
         active.push(other.name_any());
-        let Some(other_selector) = selector(other) else {
-            continue;
-        };
-        // Only our robots can be shared: matching them alone keeps a plan's cost flat in the
-        // number of deployments (matching every robot of the namespace for each did not).
-        let shared: Vec<String> = ours
-            .iter()
-            .filter(|r| other_selector.matches(r.labels()))
-            .map(|r| r.name_any())
-            .collect();
-        if !shared.is_empty() {
-            overlaps.push(Overlap {
-                deployment: other.name_any(),
-                earlier: age(other) < age(deployment),
-                robots: shared,
-            });
+        earlier.insert(other.name_any(), age(other) < age(deployment));
+    }
+    let mut by_other: BTreeMap<&str, Vec<String>> = BTreeMap::new();
+    for (robot, others) in shared {
+        for other in others.iter().filter(|o| earlier.contains_key(*o)) {
+            by_other.entry(other).or_default().push(robot.clone());
         }
     }
+    let overlaps = by_other
+        .into_iter()
+        .map(|(other, robots)| Overlap {
+            deployment: other.to_owned(),
+            earlier: earlier[other],
+            robots,
+        })
+        .collect();
     (overlaps, active)
 }
 
@@ -277,15 +287,18 @@ pub(super) fn is_active(guard: &DeserializeGuard<RobotDeployment>) -> bool {
 
 /// What a rollout needs to know about one robot.
 pub(super) fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: RolloutKind) -> RobotView {
-    let status = robot.status.clone().unwrap_or_default();
+    // Borrowed, not cloned: a plan views every robot of its deployment.
+    let status = robot.status.as_ref();
     // `phase` is the Robot controller's verdict, which may lag (e.g. right after an operator
     // restart); a rollout only counts a robot Online with a live connection and a heartbeat
     // within the grace (the Robot controller's, extended by its gateway's status lag).
-    let fresh = status.connected == Some(true)
-        && status.last_heartbeat_time.as_ref().is_some_and(|t| {
-            now.duration_since(t.0) <= SignedDuration::try_from(grace).unwrap_or_default()
-        });
-    let phase = match status.phase {
+    let fresh = status.is_some_and(|s| {
+        s.connected == Some(true)
+            && s.last_heartbeat_time.as_ref().is_some_and(|t| {
+                now.duration_since(t.0) <= SignedDuration::try_from(grace).unwrap_or_default()
+            })
+    });
+    let phase = match status.and_then(|s| s.phase) {
         Some(RobotPhase::Online) if !fresh => Some(RobotPhase::Offline),
         p => p,
     };
@@ -293,15 +306,24 @@ pub(super) fn view(robot: &Robot, now: Timestamp, grace: Duration, kind: Rollout
         name: robot.name_any(),
         maintenance: robot.spec.maintenance,
         phase,
-        healthy: status.health.as_ref().is_none_or(|h| h.healthy),
-        teleoperated: status.teleoperation.as_ref().is_some_and(|t| t.active),
+        healthy: status
+            .and_then(|s| s.health.as_ref())
+            .is_none_or(|h| h.healthy),
+        teleoperated: status
+            .and_then(|s| s.teleoperation.as_ref())
+            .is_some_and(|t| t.active),
         desired: robot.spec.release.clone(),
-        current: status.current_release.clone(),
-        last_update: status
-            .last_update
-            .and_then(|u| Some((u.release?, u.phase?, u.message, u.time.map(|t| t.0)))),
+        current: status.and_then(|s| s.current_release.clone()),
+        last_update: status.and_then(|s| s.last_update.as_ref()).and_then(|u| {
+            Some((
+                u.release.clone()?,
+                u.phase.clone()?,
+                u.message.clone(),
+                u.time.as_ref().map(|t| t.0),
+            ))
+        }),
         mark: Mark::of(robot, kind),
-        analysis: status.analysis.map(|a| *a),
+        analysis: status.and_then(|s| s.analysis.as_deref().cloned()),
         superseded_by: None,
         ..RobotView::default()
     }

@@ -10,6 +10,7 @@ mod facts;
 #[cfg(test)]
 mod facts_tests;
 mod index;
+mod members;
 mod own_writes;
 mod ownership;
 mod pace;
@@ -53,6 +54,8 @@ struct State {
     own: own_writes::OwnWrites,
     /// Robots a fresh read found past their timeout (see [`confirm`]).
     confirmed: confirm::Confirmed,
+    /// Which robots each deployment selects, kept by the robot watch (see [`members`]).
+    members: Arc<members::Members>,
 }
 
 /// Runs the RobotDeployment controller until `cancel` fires.
@@ -68,7 +71,12 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     let controller = super::controller_for(deploys, &ctx);
     let deployment_store = controller.store();
     let (wake, wake_requests) = trigger();
-    let (robot_store, robot_watch) = watch_robots(robots, deployment_store.clone(), wake.clone());
+    let members = Arc::new(members::Members::default());
+    let (robot_store, robot_watch) = watch_robots(
+        robots,
+        (deployment_store.clone(), members.clone()),
+        wake.clone(),
+    );
     let robot_task = tokio::spawn(robot_watch);
     // Planning before every robot is listed would see too few robots (even none).
     tokio::select! {
@@ -84,6 +92,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         catch_up: catch_up::CatchUp::default(),
         own: own_writes::OwnWrites::default(),
         confirmed: confirm::Confirmed::default(),
+        members,
     });
     info!("robot deployment controller started");
     let handlers = (reconcile, error_policy);
@@ -102,10 +111,14 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
 }
 
 /// The Robot store and the watch that fills it; a robot change wakes the active deployments
-/// it concerns (see [`index`]), not every deployment of its namespace.
+/// it concerns (see [`index`]), not every deployment of its namespace, and moves it in or out
+/// of the deployments' selections (see [`members`]).
 fn watch_robots(
     robots: Api<Robot>,
-    deployments: Store<DeserializeGuard<RobotDeployment>>,
+    (deployments, members): (
+        Store<DeserializeGuard<RobotDeployment>>,
+        Arc<members::Members>,
+    ),
     wake: Trigger<DeserializeGuard<RobotDeployment>>,
 ) -> (Store<Robot>, impl Future<Output = ()> + Send + 'static) {
     let (store, writer) = reflector::store();
@@ -126,12 +139,21 @@ fn watch_robots(
     .default_backoff()
     .for_each(move |event| {
         let all = deployments.state();
+        // The reflector stored the event before passing it on: the selections follow the store.
         let concerned = match &event {
             Ok(watcher::Event::Apply(robot) | watcher::Event::InitApply(robot)) => {
+                members.applied(robot);
                 Some((robot, index.applied(robot, &all)))
             }
-            Ok(watcher::Event::Delete(robot)) => Some((robot, index.deleted(robot, &all))),
-            _ => None,
+            Ok(watcher::Event::Delete(robot)) => {
+                members.deleted(robot);
+                Some((robot, index.deleted(robot, &all)))
+            }
+            Ok(watcher::Event::Init | watcher::Event::InitDone) => {
+                members.clear();
+                None
+            }
+            Err(_) => None,
         };
         if let Some((robot, names)) = concerned {
             let namespace = robot.namespace().unwrap_or_default();
