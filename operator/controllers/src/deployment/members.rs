@@ -107,6 +107,17 @@ impl Members {
     /// A robot was added or changed (its labels may have): it joins the sets whose selector
     /// matches it and leaves the others of its namespace.
     pub fn applied(&self, robot: &Robot) {
+        self.place(robot, true);
+    }
+
+    /// A robot was deleted: it leaves every set.
+    pub fn deleted(&self, robot: &Robot) {
+        self.place(robot, false);
+    }
+
+    /// Puts `robot` in the sets of its namespace whose selector matches it, if it `exists`, and
+    /// takes it out of the others; records which sets hold it.
+    fn place(&self, robot: &Robot, exists: bool) {
         let (Some(namespace), Some(name)) = (&robot.metadata.namespace, &robot.metadata.name)
         else {
             return;
@@ -118,7 +129,7 @@ impl Members {
             if set_namespace != namespace {
                 continue;
             }
-            if set.selector.matches(robot.labels()) {
+            if exists && set.selector.matches(robot.labels()) {
                 if !set.robots.contains(name) {
                     set.robots.insert(name.clone());
                 }
@@ -136,26 +147,6 @@ impl Members {
                 .entry(namespace.clone())
                 .or_default()
                 .insert(name.clone(), holding);
-        }
-    }
-
-    /// A robot was deleted: it leaves every set.
-    pub fn deleted(&self, robot: &Robot) {
-        let (Some(namespace), Some(name)) = (&robot.metadata.namespace, &robot.metadata.name)
-        else {
-            return;
-        };
-        let mut inner = self.lock();
-        let Inner { sets, by_robot } = &mut *inner;
-        for set in sets
-            .iter_mut()
-            .filter(|((ns, _), _)| ns == namespace)
-            .map(|(_, set)| set)
-        {
-            set.robots.remove(name);
-        }
-        if let Some(of_namespace) = by_robot.get_mut(namespace) {
-            of_namespace.remove(name);
         }
     }
 
