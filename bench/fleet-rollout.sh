@@ -79,6 +79,8 @@ verdict() { awk -v v="$1" -v g="$2" 'BEGIN { print (v != "" && v + 0 <= g + 0) ?
 # ---- control plane, operator, fleet ------------------------------------------------------------
 start_control_plane
 export APISERVER_PORT
+APISERVER_PID="$(cat "$CP_DIR/kube-apiserver.pid")"
+ETCD_PID="$(cat "$CP_DIR/etcd.pid")"
 kubectl create namespace lekiwi-system >/dev/null
 kubectl create namespace "$NS" >/dev/null
 enrollment_token "$NS" "$WORK/enrollment-token"
@@ -152,6 +154,15 @@ writes() { # metrics file -> robots robots/status robotdeployments/status
 snap() {
   scrape_apiserver "$WORK/m-$1.prom"; writes "$WORK/m-$1.prom" >"$WORK/w-$1"
   cpu_seconds "$CTRL_PID" >"$WORK/cpu-$1"; date +%s.%N >"$WORK/t-$1"; gateway_writes >"$WORK/g-$1"
+  echo "$(cpu_seconds "$APISERVER_PID") $(cpu_seconds "$ETCD_PID") $(cpu_seconds "$OP_PID")" \
+    "$(cpu_seconds "$CTRL_PID") $(cpu_seconds "$SIM_PID") $(machine_busy)" >"$WORK/procs-$1"
+}
+# Cores each process kept busy from snapshot $1 to $2 (CPU seconds over wall seconds): where a
+# phase's time goes on a machine the API server, etcd, the operator and the fleet share.
+cores() {
+  paste "$WORK/procs-$1" "$WORK/procs-$2" | awk -v t0="$(cat "$WORK/t-$1")" -v t1="$(cat "$WORK/t-$2")" '
+    { s = t1 - t0; printf "apiserver %.2f, etcd %.2f, gateway %.2f, controller %.2f, sim %.2f; machine %.2f of '"$(nproc)"'\n",
+        ($7 - $1) / s, ($8 - $2) / s, ($9 - $3) / s, ($10 - $4) / s, ($11 - $5) / s, ($12 - $6) / s }'
 }
 # The gateway's own count of its Robot status writes: its outcome and transition writes
 # (priority high), its routine refreshes (priority low: heartbeat time, every robot once per
@@ -217,6 +228,7 @@ row "  API writes per robot" "${A_W%% *}" "<= 2" "$(verdict "${A_W%% *}" 2)"
 row "  ${A_W#* }" "" "" ""
 row "  blob bytes served per robot / release bytes" "$(awk -v a="$s0" -v b="$s1" -v n="$ROBOTS" -v r="$RELEASE_BYTES" 'BEGIN { printf "%.2f", (b - a) / n / r }')" "~1.0" "info"
 row "  controller CPU s per Robot status write (1 deployment)" "$(cpu_per_write a0 a1)" "flat" "info"
+row "  cores busy: $(cores a0 a1)" "" "" ""
 
 # ---- 2. 5% failing: rolled back ------------------------------------------------------------------
 snap b0; t="$(now)"
@@ -266,6 +278,7 @@ many() { # count release goal_s
   row "  API writes per robot" "${w%% *}" "<= 2" "$(verdict "${w%% *}" 2)"
   row "  ${w#* }" "" "" ""
   row "  controller CPU s per Robot status write ($count deployments)" "$(cpu_per_write "m$count-0" "m$count-1")" "flat" "info"
+  row "  cores busy: $(cores "m$count-0" "m$count-1")" "" "" ""
 }
 log "labelling the robots with their groups"
 label_groups
@@ -319,6 +332,7 @@ E_W="$(per_robot e0 e1)"
 row "agent-update rollout over $ROBOTS robots: apply -> $(phase_of agents), s" "${E_S:-timeout}" "reported" "info"
 row "  API writes per robot" "${E_W%% *}" "<= 2" "$(verdict "${E_W%% *}" 2)"
 row "  ${E_W#* }" "" "" ""
+row "  cores busy: $(cores e0 e1)" "" "" ""
 row "gateway peak RSS, MiB" "$(awk '{ printf "%.0f", $1 / 1024 }' "$WORK/peak-rss")" "" "info"
 
 # ---- the table ------------------------------------------------------------------------------------

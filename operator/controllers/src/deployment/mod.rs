@@ -35,7 +35,7 @@ use tracing::{Instrument, debug, info, info_span, warn};
 
 pub use self::facts::check_release;
 use super::Context;
-use super::trigger::{Trigger, trigger};
+use super::trigger::{Trigger, spaced_trigger};
 use crate::{Error, Result};
 use lekiwi_metrics::ControllerName;
 
@@ -58,6 +58,14 @@ struct State {
     members: Arc<members::Members>,
 }
 
+/// The least time between two plans of one deployment woken by its robots' changes (or by
+/// another deployment's): during a rollout its robots report all the time, and each plan reads
+/// every robot it selects, so planning on every change made the controller's CPU per status
+/// write grow with the number of deployments rolling at once. A deployment's own changes (an
+/// edit, `rollout undo`/`abort`) and its timers are not spaced: they reach it through its own
+/// watch and requeues. A batch's last robot is seen at most this much later.
+const ROBOT_WAKE_SPACING: std::time::Duration = std::time::Duration::from_secs(1);
+
 /// Runs the RobotDeployment controller until `cancel` fires.
 pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
     let (deploys, robots): (Api<DeserializeGuard<RobotDeployment>>, Api<Robot>) =
@@ -70,7 +78,7 @@ pub async fn run(ctx: Arc<Context>, cancel: CancellationToken) -> Result<()> {
         };
     let controller = super::controller_for(deploys, &ctx);
     let deployment_store = controller.store();
-    let (wake, wake_requests) = trigger();
+    let (wake, wake_requests) = spaced_trigger(ROBOT_WAKE_SPACING);
     let members = Arc::new(members::Members::default());
     let (robot_store, robot_watch) = watch_robots(
         robots,
