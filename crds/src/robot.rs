@@ -190,10 +190,12 @@ pub struct RobotStatus {
 
     /// The session epoch of the connection named in `gateway`: microseconds since the Unix epoch
     /// when that session opened, raised above any epoch its gateway saw on this Robot before, so
-    /// a later session of the robot, on whichever gateway replica, has a higher one. A gateway
-    /// writes the robot's status only with a `resourceVersion` precondition and never over a
-    /// higher epoch, and a gateway whose session of the robot has a lower epoch than this closes
-    /// it (`replaced`): one live session per robot across replicas. Written by the gateway.
+    /// a later session of the robot, on whichever gateway replica, has a higher one (two
+    /// replicas that raised theirs above the same epoch are ordered by gateway name, the name
+    /// that sorts last being the later). A gateway writes the robot's status only with a
+    /// `resourceVersion` precondition and never over a later session, and a gateway whose
+    /// session of the robot is earlier than this closes it (`replaced`): one live session per
+    /// robot across replicas. Written by the gateway.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub session_epoch: Option<i64>,
 

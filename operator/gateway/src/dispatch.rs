@@ -23,7 +23,7 @@ use super::registry::Registry;
 use crate::error::{Error, Result};
 use lekiwi_core::RobotKey;
 use lekiwi_core::cache::{Cache, Change};
-use lekiwi_presence::holder::Holder;
+use lekiwi_presence::holder::{self, Holder};
 use lekiwi_presence::watched::WatchedRobots;
 use lekiwi_presence::{Presence, claims};
 
@@ -103,13 +103,15 @@ impl Dispatch {
                 if claims::is_shown_gone(robot) && self.presence.shown_gone_here(&key, epoch) {
                     debug!(robot = %key, "the robot is shown gone under its live session here; writing it first");
                 }
-            } else if self.registry.moved(&key, epoch) {
+            } else if self.registry.moved(&key, |ours| {
+                holder::later(epoch, other, ours, &self.gateway)
+            }) {
                 info!(robot = %key, gateway = other, "a later session on another gateway took the robot over; closing ours");
             } else {
-                if self.presence.moved_later(&key, epoch) {
+                if self.presence.moved_later(&key, epoch, other) {
                     debug!(robot = %key, gateway = other, "the robot's status names an earlier session on another gateway; claiming it");
                 }
-                if claims::is_shown_gone(robot) && self.presence.shown_gone(&key, epoch) {
+                if claims::is_shown_gone(robot) && self.presence.shown_gone(&key, epoch, other) {
                     debug!(robot = %key, gateway = other, "the robot is shown gone while its session here is live; writing it first");
                 }
             }

@@ -116,12 +116,13 @@ impl Registry {
         }
     }
 
-    /// Another gateway's session with `epoch` holds the robot now: this gateway's session of
-    /// it, if older, is told to close ([`Control::Moved`]). True when one was told.
-    pub fn moved(&self, key: &RobotKey, epoch: i64) -> bool {
+    /// Another gateway's session holds the robot now: this gateway's session of it, if that
+    /// one is later (`later_than` its epoch; see [`lekiwi_presence::holder::later`]), is told to
+    /// close ([`Control::Moved`]). True when one was told.
+    pub fn moved(&self, key: &RobotKey, later_than: impl FnOnce(i64) -> bool) -> bool {
         self.lock()
             .get(key)
-            .filter(|slot| slot.epoch < epoch)
+            .filter(|slot| later_than(slot.epoch))
             .is_some_and(|slot| put(&slot.tx, Control::Moved))
     }
 
@@ -232,18 +233,25 @@ impl Control {
 mod tests {
     use super::*;
 
-    /// Another gateway's later session closes ours; an earlier one (or an equal epoch) does not.
+    /// Another gateway's later session closes ours; an earlier one does not, nor one with the
+    /// same epoch on a gateway whose name sorts before ours (`gw-m` here).
     #[test]
     fn only_a_later_session_elsewhere_moves_ours() {
+        use lekiwi_presence::holder::later;
         let registry = Registry::default();
         let key = RobotKey::new("lab", "kiwi");
         let (_, mut rx) = registry.register(&key, 100);
-        assert!(!registry.moved(&key, 50));
-        assert!(!registry.moved(&key, 100));
+        let session =
+            |epoch: i64, gateway: &'static str| move |ours| later(epoch, gateway, ours, "gw-m");
+        assert!(!registry.moved(&key, session(50, "gw-z")));
+        assert!(!registry.moved(&key, session(100, "gw-a")));
         assert!(rx.try_recv().is_none());
-        assert!(registry.moved(&key, 200));
+        assert!(registry.moved(&key, session(100, "gw-z")));
         assert!(matches!(rx.try_recv(), Some(Control::Moved)));
-        assert!(!registry.moved(&RobotKey::new("lab", "other"), 200));
+        let (_, mut rx) = registry.register(&key, 100);
+        assert!(registry.moved(&key, session(200, "gw-a")));
+        assert!(matches!(rx.try_recv(), Some(Control::Moved)));
+        assert!(!registry.moved(&RobotKey::new("lab", "other"), session(200, "gw-a")));
     }
 
     /// A session whose mailbox is full of messages still gets the latest desired release and

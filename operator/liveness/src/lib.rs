@@ -1,8 +1,13 @@
 //! A Robot's liveness rules, pure: its phase, conditions and next wake-up from the facts a
-//! gateway recorded, the robot's spec and the state of the gateway's Lease. Both writers of a
-//! Robot's phase apply them: the gateway that holds its session and the Robot controller.
+//! gateway recorded, the robot's spec and the state of the gateway's Lease; which gateway's
+//! session holds it and which writes of its status may land ([`holder`]); what a gateway's
+//! Lease says ([`gateways`]). Both writers of a Robot's phase apply them: the gateway that
+//! holds its session and the Robot controller.
 
+#[cfg(test)]
+mod fence_tests;
 pub mod gateways;
+pub mod holder;
 
 use std::borrow::Cow;
 use std::time::Duration;

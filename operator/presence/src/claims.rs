@@ -166,15 +166,19 @@ impl Presence {
         });
     }
 
-    /// The Robot cache shows `key` `Unknown` or `Offline` under another gateway's session with
-    /// epoch `epoch` while its later session here is live and not written yet: the robot is
+    /// The Robot cache shows `key` `Unknown` or `Offline` under another gateway's (`other`)
+    /// session with epoch `epoch` while its later session here is live and not written yet
+    /// (see [`lekiwi_liveness::holder::later`]): the robot is
     /// shown gone although it is connected (the Robot controller marked it `Unknown` before
     /// it reconnected here, say), so its write goes before every other waiting one, moves
     /// included (those still show `Online`): [`Priority::Gone`]. Not while its write is in
     /// flight. `true` if it was put first.
-    pub fn shown_gone(&self, key: &RobotKey, epoch: i64) -> bool {
+    pub fn shown_gone(&self, key: &RobotKey, epoch: i64, other: &str) -> bool {
+        let gateway = self.config.gateway.clone();
         self.put_first(key, |s, e| {
-            e.epoch > epoch && e.written_at.is_none() && !s.writing.contains_key(key)
+            lekiwi_liveness::holder::later(e.epoch, &gateway, epoch, other)
+                && e.written_at.is_none()
+                && !s.writing.contains_key(key)
         })
     }
 
@@ -250,16 +254,19 @@ impl Presence {
         swept
     }
 
-    /// The Robot cache shows `key`'s status naming another gateway with session epoch
-    /// `epoch`: if this gateway's session of the robot is later and not written yet, the robot
-    /// moved here after all. It is claimed and its write goes first, as if the session had
-    /// known at its start. `true` if it was not claimed before.
-    pub fn moved_later(&self, key: &RobotKey, epoch: i64) -> bool {
+    /// The Robot cache shows `key`'s status naming another gateway (`other`) with session
+    /// epoch `epoch`: if this gateway's session of the robot is later (see
+    /// [`lekiwi_liveness::holder::later`]) and not written yet, the robot moved here after all.
+    /// It is claimed and its write goes first, as if the session had known at its start.
+    /// `true` if it was not claimed before.
+    pub fn moved_later(&self, key: &RobotKey, epoch: i64, other: &str) -> bool {
+        let gateway = self.config.gateway.clone();
         let claimed = self.with_state(|s| {
             let Some(e) = s.robots.get_mut(key) else {
                 return false;
             };
-            if !e.connected || e.moved || e.epoch <= epoch || e.written_at.is_some() {
+            let ours_later = lekiwi_liveness::holder::later(e.epoch, &gateway, epoch, other);
+            if !e.connected || e.moved || !ours_later || e.written_at.is_some() {
                 return false;
             }
             e.moved = true;

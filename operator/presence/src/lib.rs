@@ -19,7 +19,8 @@ pub(crate) mod analysis;
 #[cfg(test)]
 mod analysis_tests;
 pub mod claims;
-pub mod holder;
+/// The session epochs and the fence of a gateway's writes: rules of [`lekiwi_liveness`].
+pub use lekiwi_liveness::holder;
 mod lag;
 pub mod lease;
 mod patch;
@@ -49,8 +50,8 @@ pub use self::phase::PhasePlanner;
 pub use self::queue::Priority;
 use self::queue::State;
 use self::refresh::{refresh_due, refresh_hash};
-use crate::holder::next_epoch;
 use lekiwi_core::RobotKey;
+use lekiwi_liveness::holder::next_epoch;
 use lekiwi_metrics::Metrics;
 
 /// What a robot told us at connect time.
@@ -106,7 +107,7 @@ pub struct UpdateOutcome {
 #[derive(Clone, Debug)]
 struct Entry {
     session: u64,
-    /// The session's epoch (see [`crate::holder`]), written to `status.sessionEpoch`.
+    /// The session's epoch (see [`lekiwi_liveness::holder`]), written to `status.sessionEpoch`.
     epoch: i64,
     connected: bool,
     info: ConnectInfo,

@@ -583,18 +583,24 @@ fn a_move_the_cache_shows_late_is_claimed_then() {
     p.connect(&key("written"), 3, 1_000, ConnectInfo::default());
     assert!(p.claims().is_empty());
     assert!(
-        !p.moved_later(&key("late"), 2_000),
+        !p.moved_later(&key("late"), 2_000, "gw-other"),
         "the other session is later"
     );
-    assert!(!p.moved_later(&key("absent"), 500), "no session here");
+    assert!(
+        !p.moved_later(&key("absent"), 500, "gw-other"),
+        "no session here"
+    );
     let written = p.with_state(|s| s.take_for_write(&key("written")).unwrap());
     p.written(&key("written"), &written, 0);
     assert!(
-        !p.moved_later(&key("written"), 500),
+        !p.moved_later(&key("written"), 500, "gw-other"),
         "its own write landed first"
     );
-    assert!(p.moved_later(&key("late"), 500));
-    assert!(!p.moved_later(&key("late"), 500), "claimed once");
+    assert!(p.moved_later(&key("late"), 500, "gw-other"));
+    assert!(
+        !p.moved_later(&key("late"), 500, "gw-other"),
+        "claimed once"
+    );
     assert_eq!(p.claims(), [key("late")]);
     p.with_state(|s| {
         assert_eq!(s.pop(), Some((key("late"), Priority::Move)));
@@ -630,18 +636,27 @@ fn a_robot_shown_gone_while_connected_here_is_written_first() {
         );
     }
     assert!(
-        !p.shown_gone(&key("m3"), 2_000),
+        !p.shown_gone(&key("m3"), 2_000, "gw-other"),
         "the other session is later"
     );
-    assert!(!p.shown_gone(&key("absent"), 500), "no session here");
+    assert!(
+        !p.shown_gone(&key("absent"), 500, "gw-other"),
+        "no session here"
+    );
     let written = p.with_state(|s| {
         assert!(s.begin_write(&key("busy"), Priority::Move));
         s.take_for_write(&key("written")).unwrap()
     });
     p.written(&key("written"), &written, 0);
-    assert!(!p.shown_gone(&key("busy"), 500), "its write is in flight");
-    assert!(!p.shown_gone(&key("written"), 500), "its own write landed");
-    assert!(p.shown_gone(&key("m3"), 500));
+    assert!(
+        !p.shown_gone(&key("busy"), 500, "gw-other"),
+        "its write is in flight"
+    );
+    assert!(
+        !p.shown_gone(&key("written"), 500, "gw-other"),
+        "its own write landed"
+    );
+    assert!(p.shown_gone(&key("m3"), 500, "gw-other"));
     p.connect_moved(&key("gone"), 9, 1_000, ConnectInfo::default(), true);
     p.with_state(|s| {
         let order: Vec<_> = std::iter::from_fn(|| s.pop())

@@ -9,9 +9,9 @@ use std::sync::Arc;
 use lekiwi_crds::{AgentRef, Robot};
 use lekiwi_protocol::Release;
 
-use crate::holder::Holder;
 use lekiwi_core::RobotKey;
 use lekiwi_core::cache::Cache;
+use lekiwi_liveness::holder::Holder;
 
 /// The gateway's Robot cache (the one its Robot watch fills and the Fleet API answers from),
 /// read robot by robot.

@@ -18,13 +18,13 @@ use tracing::{debug, warn};
 
 use super::adapt::AdaptiveRate;
 use super::{Entry, Presence, Priority};
-use crate::holder::Holder;
 use crate::watched::WatchedRobots;
 use lekiwi_core::RobotKey;
 use lekiwi_core::api_client::is_missing;
 use lekiwi_core::apply::Metadata;
 use lekiwi_core::rate::TokenBucket;
 use lekiwi_core::watch::version_of;
+use lekiwi_liveness::holder::{Holder, newest_holder};
 
 /// Why a status write did not happen.
 enum WriteError {
@@ -314,7 +314,7 @@ impl Presence {
     }
 
     /// Applies the status of `e`, fenced: only while no later session holds the robot (see
-    /// [`crate::holder`]), with the `resourceVersion` that showed it as a precondition.
+    /// [`lekiwi_liveness::holder`]), with the `resourceVersion` that showed it as a precondition.
     /// The newer of the Robot watch's cache (`holders`) and this session's own last write
     /// answers first (see [`newest_holder`]); after a conflict, or for a robot missing there,
     /// the Robot is read from the API server, up to [`FRESH_ATTEMPTS`] times.
@@ -398,33 +398,6 @@ impl Presence {
     }
 }
 
-/// What a write is fenced on: the Robot as the watch's cache shows it (`cached`), unless this
-/// gateway's own last write of the session (`own`, a `resourceVersion`; 0 for none) is newer.
-/// Then the Robot at that version is what that write made it: held by this gateway with this
-/// session's `epoch`. A watch that runs behind the API server (minutes, after an API server
-/// restart on a busy machine) would otherwise fence every write of a robot written since on a
-/// version gone by, and each would cost a refused write and a read before the one that lands:
-/// three requests for one, just when the API server has the least to spare. A newer write by
-/// anyone else still meets a conflict, and the Robot is read again.
-fn newest_holder(
-    cached: Option<Holder>,
-    own: Written,
-    gateway: &str,
-    epoch: i64,
-) -> Option<Holder> {
-    let cached_version = cached
-        .as_ref()
-        .and_then(|h| h.resource_version.as_deref()?.parse::<u64>().ok());
-    if own == 0 || cached_version.is_some_and(|c| c >= own) {
-        return cached;
-    }
-    Some(Holder {
-        gateway: Some(gateway.to_owned()),
-        epoch: Some(epoch),
-        resource_version: Some(own.to_string()),
-    })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -439,45 +412,6 @@ mod tests {
         let app = axum::Router::new().fallback(move || async move { (status, body) });
         tokio::spawn(async move { axum::serve(listener, app).await });
         kube::Client::try_from(kube::Config::new(url.parse().unwrap())).unwrap()
-    }
-
-    fn holder(gateway: &str, epoch: i64, version: &str) -> Holder {
-        Holder {
-            gateway: Some(gateway.into()),
-            epoch: Some(epoch),
-            resource_version: Some(version.into()),
-        }
-    }
-
-    /// The fence is the newer of the cache's version and the session's own last write; the
-    /// cache's when it caught up, or when the session wrote nothing yet.
-    #[test]
-    fn a_write_is_fenced_on_the_newer_of_the_cache_and_its_own_last_write() {
-        let cached = holder("gw-b", 5, "100");
-        // Its own write is newer: the Robot at that version is what it wrote.
-        assert_eq!(
-            newest_holder(Some(cached.clone()), 180, "gw-a", 7),
-            Some(holder("gw-a", 7, "180"))
-        );
-        // The cache caught up with it, or went past it (another writer): the cache's.
-        for own in [0, 100, 90] {
-            assert_eq!(
-                newest_holder(Some(cached.clone()), own, "gw-a", 7),
-                Some(cached.clone())
-            );
-        }
-        // Not in the cache: its own write, if any, else a read of the Robot.
-        assert_eq!(
-            newest_holder(None, 180, "gw-a", 7),
-            Some(holder("gw-a", 7, "180"))
-        );
-        assert_eq!(newest_holder(None, 0, "gw-a", 7), None);
-        // A version that is not a number never stands for a newer one.
-        let odd = holder("gw-b", 5, "abc");
-        assert_eq!(
-            newest_holder(Some(odd), 180, "gw-a", 7),
-            Some(holder("gw-a", 7, "180"))
-        );
     }
 
     /// A restarting API server answers "404 page not found" for a custom resource it has not
