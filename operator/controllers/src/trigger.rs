@@ -55,7 +55,8 @@ where
 }
 
 /// Requests ready in arrival order, requests held until their spacing has passed, the set of
-/// both for merging duplicates, and when objects were last handed on (within the spacing).
+/// both for merging duplicates, and when objects were last handed on (less than the spacing
+/// ago; as many as objects handed on within one spacing).
 struct Queue<K: Resource>
 where
     K::DynamicType: Eq + Hash,
@@ -65,8 +66,6 @@ where
     /// By the time each may go, then arrival (`seq`).
     held: BTreeMap<(Instant, u64), ObjectRef<K>>,
     seq: u64,
-    /// Objects handed on less than the spacing ago, oldest first, and the same by object.
-    recent: VecDeque<(Instant, ObjectRef<K>)>,
     handed: HashMap<ObjectRef<K>, Instant>,
 }
 
@@ -77,16 +76,7 @@ where
     /// Forgets hand-offs older than `spacing` and moves the held requests due by `now` to the
     /// ready ones.
     fn advance(&mut self, now: Instant, spacing: Duration) {
-        while let Some((at, _)) = self.recent.front()
-            && *at + spacing <= now
-        {
-            let Some((at, object)) = self.recent.pop_front() else {
-                break;
-            };
-            if self.handed.get(&object) == Some(&at) {
-                self.handed.remove(&object);
-            }
-        }
+        self.handed.retain(|_, at| *at + spacing > now);
         while let Some(entry) = self.held.first_entry()
             && entry.key().0 <= now
         {
@@ -101,7 +91,6 @@ where
         self.waiting.remove(&next);
         if !spacing.is_zero() {
             self.handed.insert(next.clone(), now);
-            self.recent.push_back((now, next.clone()));
         }
         Some(next)
     }
@@ -151,7 +140,6 @@ where
             waiting: HashSet::new(),
             held: BTreeMap::new(),
             seq: 0,
-            recent: VecDeque::new(),
             handed: HashMap::new(),
         }),
         wake: Notify::new(),

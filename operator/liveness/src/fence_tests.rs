@@ -117,8 +117,9 @@ impl World {
         self.history.last().expect("the Robot exists")
     }
 
-    /// A write of `g`'s session, fenced as the gateway's writer fences it.
-    fn write(&mut self, g: usize) {
+    /// A write of `g`'s session (`connected`, or its disconnect), fenced as the gateway's writer
+    /// fences it.
+    fn write(&mut self, g: usize, connected: bool) {
         let Some(session) = self.gateways[g].session else {
             return;
         };
@@ -126,8 +127,7 @@ impl World {
         let mut holder = newest_holder(Some(cached), session.own, NAMES[g], session.epoch);
         for _ in 0..=FRESH_ATTEMPTS {
             let h = holder.unwrap_or_else(|| self.latest().holder());
-            // Connected or not, the fence is the same for a status with an epoch.
-            if h.supersedes(NAMES[g], session.epoch, true) {
+            if h.supersedes(NAMES[g], session.epoch, connected) {
                 return;
             }
             let latest = self.latest().clone();
@@ -169,11 +169,11 @@ impl World {
                     "epoch {epoch} not above {seen:?}"
                 );
                 self.gateways[g].session = Some(Session { epoch, own: 0 });
-                self.write(g);
+                self.write(g, true);
             }
-            Op::Write(g) => self.write(g),
+            Op::Write(g) => self.write(g, true),
             Op::Close(g) => {
-                self.write(g);
+                self.write(g, false);
                 self.gateways[g].session = None;
             }
             Op::Sync(g, k) => {

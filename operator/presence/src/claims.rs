@@ -174,9 +174,9 @@ impl Presence {
     /// included (those still show `Online`): [`Priority::Gone`]. Not while its write is in
     /// flight. `true` if it was put first.
     pub fn shown_gone(&self, key: &RobotKey, epoch: i64, other: &str) -> bool {
-        let gateway = self.config.gateway.clone();
+        let gateway = self.config.gateway.as_str();
         self.put_first(key, |s, e| {
-            lekiwi_liveness::holder::later(e.epoch, &gateway, epoch, other)
+            lekiwi_liveness::holder::later(e.epoch, gateway, epoch, other)
                 && e.written_at.is_none()
                 && !s.writing.contains_key(key)
         })
@@ -260,12 +260,12 @@ impl Presence {
     /// It is claimed and its write goes first, as if the session had known at its start.
     /// `true` if it was not claimed before.
     pub fn moved_later(&self, key: &RobotKey, epoch: i64, other: &str) -> bool {
-        let gateway = self.config.gateway.clone();
+        let gateway = self.config.gateway.as_str();
         let claimed = self.with_state(|s| {
             let Some(e) = s.robots.get_mut(key) else {
                 return false;
             };
-            let ours_later = lekiwi_liveness::holder::later(e.epoch, &gateway, epoch, other);
+            let ours_later = lekiwi_liveness::holder::later(e.epoch, gateway, epoch, other);
             if !e.connected || e.moved || !ours_later || e.written_at.is_some() {
                 return false;
             }
